@@ -1,0 +1,237 @@
+"""JMESPath mappings, compiled once at load, with the functions field work needs.
+
+JMESPath has no arithmetic, clock, ids or string formatting; routes between robots need
+all of them (degE7 to degrees, stamps, message ids), so they are registered here as
+custom functions. Unit and frame conversions live in :mod:`engine.frames`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+import uuid
+from typing import Any, Callable
+
+import jmespath
+from jmespath import exceptions as jmespath_errors
+from jmespath import functions
+
+Mapper = Callable[[Any], Any]
+
+
+class MappingError(ValueError):
+    """A mapping expression does not compile, or failed on a message."""
+
+
+def _frames() -> Any:
+    from engine import frames
+
+    return frames
+
+
+class FieldFunctions(functions.Functions):
+    """Custom functions available in every mapping; names are snake_case."""
+
+    @functions.signature({"types": ["number"]}, {"types": ["number"]})
+    def _func_mul(self, a: float, b: float) -> float:
+        return a * b
+
+    @functions.signature({"types": ["number"]}, {"types": ["number"]})
+    def _func_div(self, a: float, b: float) -> float:
+        if b == 0:
+            raise MappingError("div: division by zero")
+        return a / b
+
+    @functions.signature({"types": ["number"]}, {"types": ["number"]})
+    def _func_add(self, a: float, b: float) -> float:
+        return a + b
+
+    @functions.signature({"types": ["number"]}, {"types": ["number"]})
+    def _func_sub(self, a: float, b: float) -> float:
+        return a - b
+
+    @functions.signature({"types": ["number"]}, {"types": ["number"], "optional": True})
+    def _func_round(self, value: float, digits: int | None = None) -> float:
+        return round(value, int(digits)) if digits is not None else round(value)
+
+    @functions.signature({"types": ["number", "string"]})
+    def _func_to_int(self, value: Any) -> int:
+        return int(float(value))
+
+    @functions.signature({"types": []}, {"types": []})
+    def _func_default(self, value: Any, fallback: Any) -> Any:
+        return fallback if value is None else value
+
+    @functions.signature()
+    def _func_now(self) -> float:
+        return time.time()
+
+    @functions.signature()
+    def _func_stamp(self) -> dict[str, int]:
+        ns = time.time_ns()
+        return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+    @functions.signature()
+    def _func_uuid(self) -> str:
+        return uuid.uuid4().hex
+
+    @functions.signature({"types": ["string"]}, {"types": ["object"]})
+    def _func_format(self, template: str, values: dict[str, Any]) -> str:
+        try:
+            return template.format_map(values)
+        except (KeyError, IndexError, ValueError) as exc:
+            raise MappingError(f"format: {exc!s} in {template!r}") from None
+
+    # Unit and frame conversions (MAVLink integers <-> SI, NED <-> ENU), see engine.frames.
+    @functions.signature({"types": ["number"]})
+    def _func_deg_e7_to_deg(self, value: int) -> float:
+        return _frames().deg_e7_to_deg(value)
+
+    @functions.signature({"types": ["number"]})
+    def _func_deg_to_deg_e7(self, value: float) -> int:
+        return _frames().deg_to_deg_e7(value)
+
+    @functions.signature({"types": ["number"]})
+    def _func_mm_to_m(self, value: float) -> float:
+        return _frames().mm_to_m(value)
+
+    @functions.signature({"types": ["number"]})
+    def _func_m_to_mm(self, value: float) -> int:
+        return _frames().m_to_mm(value)
+
+    @functions.signature({"types": ["number"]})
+    def _func_cm_to_m(self, value: float) -> float:
+        return _frames().cm_to_m(value)
+
+    @functions.signature({"types": ["number"]})
+    def _func_m_to_cm(self, value: float) -> int:
+        return _frames().m_to_cm(value)
+
+    @functions.signature({"types": ["number"]})
+    def _func_cdeg_to_deg(self, value: float) -> float:
+        return _frames().cdeg_to_deg(value)
+
+    @functions.signature({"types": ["number"]})
+    def _func_deg_to_cdeg(self, value: float) -> int:
+        return _frames().deg_to_cdeg(value)
+
+    @functions.signature({"types": ["number"]})
+    def _func_rad_to_deg(self, value: float) -> float:
+        return math.degrees(value)
+
+    @functions.signature({"types": ["number"]})
+    def _func_deg_to_rad(self, value: float) -> float:
+        return math.radians(value)
+
+    @functions.signature({"types": ["array", "object"]})
+    def _func_ned_to_enu(self, vector: Any) -> Any:
+        return _frames().ned_to_enu(vector)
+
+    @functions.signature({"types": ["array", "object"]})
+    def _func_enu_to_ned(self, vector: Any) -> Any:
+        return _frames().enu_to_ned(vector)
+
+    @functions.signature({"types": ["array", "object"]})
+    def _func_quat_ned_to_enu(self, quaternion: Any) -> Any:
+        return _frames().quat_ned_aircraft_to_enu_baselink(quaternion)
+
+    @functions.signature({"types": ["array", "object"]})
+    def _func_quat_enu_to_ned(self, quaternion: Any) -> Any:
+        return _frames().quat_enu_baselink_to_ned_aircraft(quaternion)
+
+    @functions.signature({"types": ["number"]}, {"types": ["number"]}, {"types": ["number"]})
+    def _func_attitude_to_enu(self, roll: float, pitch: float, yaw: float) -> Any:
+        return _frames().attitude_ned_to_enu(roll, pitch, yaw)
+
+
+_OPTIONS = jmespath.Options(custom_functions=FieldFunctions())
+
+
+def compile_mapping(expression: str | None) -> Mapper | None:
+    """Compile a JMESPath expression; ``None`` (identity) stays ``None`` so callers can
+    forward original bytes untouched."""
+    if expression is None:
+        return None
+    try:
+        parsed = jmespath.compile(expression)
+    except jmespath_errors.JMESPathError as exc:
+        raise MappingError(_one_line(exc)) from None
+
+    def apply(data: Any) -> Any:
+        try:
+            return parsed.search(data, options=_OPTIONS)
+        except jmespath_errors.JMESPathError as exc:
+            raise MappingError(_one_line(exc)) from None
+        except (TypeError, ValueError, ArithmeticError) as exc:
+            raise MappingError(str(exc)) from None
+
+    return apply
+
+
+def unknown_functions(expression: str) -> list[str]:
+    """Function names used by ``expression`` that neither JMESPath nor we define.
+
+    JMESPath resolves function names only when evaluating; a typo in a route must
+    fail ``check`` instead of the first message.
+    """
+    known = set(_OPTIONS.custom_functions.FUNCTION_TABLE)
+    names: list[str] = []
+
+    def walk(node: Any) -> None:
+        if isinstance(node, dict):
+            if node.get("type") == "function_expression" and node["value"] not in known:
+                names.append(node["value"])
+            for child in node.get("children", ()):
+                walk(child)
+
+    walk(jmespath.compile(expression).parsed)
+    return names
+
+
+def top_level_keys(expression: str | None) -> list[str] | None:
+    """Keys of a ``{a: x, b: y}`` mapping, for static checks of typed sinks; None otherwise."""
+    if expression is None:
+        return None
+    node = jmespath.compile(expression).parsed
+    if node.get("type") != "multi_select_dict":
+        return None
+    return [child["value"] for child in node["children"]]
+
+
+_PLACEHOLDER = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*)\}")
+
+
+def compile_template(template: str) -> Callable[[Any], str]:
+    """Compile ``canonical.weeds.{agent_id}`` into a function of the canonical message.
+
+    Templates without placeholders return the constant string, so the common case costs
+    nothing per message.
+    """
+    pieces = _PLACEHOLDER.split(template)
+    if len(pieces) == 1:
+        return lambda _data: template
+    literals = pieces[0::2]
+    paths = [tuple(path.split(".")) for path in pieces[1::2]]
+
+    def render(data: Any) -> str:
+        out = [literals[0]]
+        for path, literal in zip(paths, literals[1:]):
+            value = data
+            for key in path:
+                if not isinstance(value, dict) or key not in value:
+                    raise MappingError(f"template {template!r}: field {'.'.join(path)!r} is missing")
+                value = value[key]
+            out.append(str(value))
+            out.append(literal)
+        return "".join(out)
+
+    return render
+
+
+def template_fields(template: str) -> list[str]:
+    return _PLACEHOLDER.findall(template)
+
+
+def _one_line(exc: Exception) -> str:
+    return " ".join(str(exc).split())

@@ -1,0 +1,137 @@
+"""Canonical JSON Schemas: the vocabulary every route maps into.
+
+Schemas are files ``schemas/<name>.v<N>.json``. A route names ``weed_detection`` (the
+newest version) or ``weed_detection.v1`` (pinned). Validators are built once per schema
+and shared by every route that uses it; ``$ref`` between schema files resolves through
+a ``referencing`` registry so the envelope is written once.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import jsonschema
+from referencing import Registry, Resource
+
+_FILE_NAME = re.compile(r"^(?P<name>[a-z][a-z0-9_]*)\.v(?P<version>\d+)\.json$")
+
+
+class SchemaError(ValueError):
+    """A message does not satisfy its canonical schema; the text names the field."""
+
+
+def canonical_bytes(data: Any) -> bytes:
+    """Deterministic canonical JSON: sorted keys, compact, UTF-8, no NaN/Infinity."""
+    try:
+        return json.dumps(
+            data, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
+        ).encode("utf-8")
+    except ValueError as exc:
+        raise SchemaError(f"not representable as canonical JSON: {exc}") from None
+
+
+def _reject_constant(name: str) -> float:
+    raise ValueError(f"{name} is not valid JSON")
+
+
+def parse_json(body: bytes) -> Any:
+    """Strict JSON: NaN/Infinity are rejected, errors say where."""
+    try:
+        return json.loads(body, parse_constant=_reject_constant)
+    except UnicodeDecodeError as exc:
+        raise SchemaError(f"invalid JSON: not UTF-8 at byte {exc.start}") from None
+    except json.JSONDecodeError as exc:
+        raise SchemaError(f"invalid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    except ValueError as exc:
+        raise SchemaError(f"invalid JSON: {exc}") from None
+
+
+def error_path(path: Any) -> str:
+    out = "$"
+    for part in path:
+        out += f"[{part}]" if isinstance(part, int) else f".{part}"
+    return out
+
+
+@dataclass(frozen=True)
+class CanonicalSchema:
+    name: str
+    version: int
+    path: Path
+    validate: Callable[[Any], None]
+
+
+class SchemaRegistry:
+    """All schemas of one directory, loaded and compiled together."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+        self._schemas: dict[str, CanonicalSchema] = {}
+        self.problems: list[tuple[Path, str]] = []
+        self._load()
+
+    def _load(self) -> None:
+        documents: dict[Path, dict[str, Any]] = {}
+        if not self.directory.is_dir():
+            self.problems.append((self.directory, "schema directory does not exist"))
+            return
+        for path in sorted(self.directory.glob("*.json")):
+            if not _FILE_NAME.match(path.name):
+                self.problems.append((path, "schema file names must look like name.v1.json"))
+                continue
+            try:
+                document = json.loads(path.read_text(encoding="utf-8"))
+                jsonschema.validators.validator_for(document).check_schema(document)
+            except (OSError, ValueError) as exc:
+                self.problems.append((path, f"invalid JSON: {exc}"))
+                continue
+            except jsonschema.SchemaError as exc:
+                self.problems.append((path, f"invalid JSON Schema: {exc.message}"))
+                continue
+            documents[path] = document
+        registry = Registry().with_resources(
+            (path.resolve().as_uri(), Resource.from_contents(doc)) for path, doc in documents.items()
+        )
+        registry = registry.with_resources(
+            (doc["$id"], Resource.from_contents(doc)) for doc in documents.values() if "$id" in doc
+        )
+        for path, document in documents.items():
+            match = _FILE_NAME.match(path.name)
+            assert match
+            name, version = match["name"], int(match["version"])
+            schema = dict(document)
+            schema.setdefault("$id", path.resolve().as_uri())
+            validator = jsonschema.validators.validator_for(schema)(schema, registry=registry)
+            entry = CanonicalSchema(name, version, path, _validating(f"{name}.v{version}", validator))
+            self._schemas[f"{name}.v{version}"] = entry
+            newest = self._schemas.get(name)
+            if newest is None or newest.version < version:
+                self._schemas[name] = entry
+
+    def names(self) -> list[str]:
+        return sorted(self._schemas)
+
+    def get(self, name: str) -> CanonicalSchema | None:
+        return self._schemas.get(name)
+
+
+def _validating(label: str, validator: Any) -> Callable[[Any], None]:
+    def validate(data: Any) -> None:
+        error = jsonschema.exceptions.best_match(validator.iter_errors(data))
+        if error is not None:
+            raise SchemaError(f"schema {label}: {error_path(error.absolute_path)}: {error.message}")
+
+    return validate
+
+
+__all__ = [
+    "CanonicalSchema",
+    "SchemaError",
+    "SchemaRegistry",
+    "canonical_bytes",
+    "parse_json",
+]

@@ -1,0 +1,29 @@
+"""Shared fixtures: a real RabbitMQ node per test session (never a mock)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Iterator
+
+import pytest
+
+from engine.local_broker import LocalBroker
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="session")
+def amqp_url() -> Iterator[str]:
+    """``RABBITROS_TEST_AMQP_URL`` if set, else a private node started for the session."""
+    url = os.environ.get("RABBITROS_TEST_AMQP_URL")
+    if url:
+        yield url
+        return
+    with LocalBroker() as broker:
+        yield broker.url
+
+
+@pytest.fixture
+def schemas_dir() -> Path:
+    return REPO / "schemas"

@@ -1,0 +1,143 @@
+"""The command line: check, --version/--help, and run --local-broker end to end."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import aio_pika
+
+from engine import __version__
+from tests.amqp_helpers import Collector, publish
+from tests.conftest import REPO
+
+LINE = re.compile(r"^(?P<file>[^:]+):(?P<line>\d+): (?P<message>.+)$")
+
+
+def cli(*args: str, env: dict[str, str] | None = None, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "engine", *args],
+        capture_output=True, text=True, timeout=timeout, cwd=REPO, env=env,
+    )
+
+
+def test_shipped_routes_check_clean():
+    result = cli("check", "--routes", "routes/")
+    assert result.returncode == 0, result.stderr
+    assert "ok" in result.stdout
+
+
+def test_version_and_help():
+    assert cli("--version").stdout.strip() == f"rabbitros-engine {__version__}"
+    help_text = cli("--help").stdout
+    assert "check" in help_text and "run" in help_text
+
+
+BROKEN = {
+    "bad_yaml.yaml": "routes:\n  - name: [unclosed\n",
+    "unknown_key.yaml": """
+routes:
+  - name: typo
+    source: {amqp: {queue: q, prefetchh: 10}}
+    schema: raw_json
+    sink: {amqp: {exchange: out}}
+""",
+    "bad_jmespath.yaml": """
+routes:
+  - name: bad-path
+    source: {amqp: {queue: q2}}
+    mapping: "{a: b"
+    schema: raw_json
+    sink: {amqp: {exchange: out}}
+""",
+    "unknown_schema.yaml": """
+routes:
+  - name: no-schema
+    source: {amqp: {queue: q3}}
+    schema: weed_detektion
+    sink: {amqp: {exchange: out}}
+""",
+    "unset_env.yaml": """
+connections:
+  gcs: {amqp: "amqp://guest:${SURELY_UNSET_PASSWORD_VAR}@localhost/"}
+""",
+}
+
+
+def test_check_reports_every_broken_file_with_file_and_line(tmp_path: Path):
+    for name, text in BROKEN.items():
+        (tmp_path / name).write_text(text)
+    env = {k: v for k, v in os.environ.items() if k != "SURELY_UNSET_PASSWORD_VAR"}
+    result = cli("check", "--routes", str(tmp_path), "--schemas", str(REPO / "schemas"), env=env)
+    assert result.returncode != 0
+    lines = result.stderr.strip().splitlines()
+    parsed = [LINE.match(line) for line in lines]
+    assert all(parsed), lines
+    by_file = {Path(m["file"]).name: (int(m["line"]), m["message"]) for m in parsed}
+    assert len(lines) == len(BROKEN) == len(by_file)
+    assert by_file["bad_yaml.yaml"][1].startswith("invalid YAML")
+    assert by_file["unknown_key.yaml"] == (4, by_file["unknown_key.yaml"][1])
+    assert "'prefetchh'" in by_file["unknown_key.yaml"][1]
+    assert by_file["bad_jmespath.yaml"][0] == 5 and "bad-path" in by_file["bad_jmespath.yaml"][1]
+    assert by_file["unknown_schema.yaml"][0] == 5 and "weed_detektion" in by_file["unknown_schema.yaml"][1]
+    assert by_file["unset_env.yaml"][0] == 3 and "SURELY_UNSET_PASSWORD_VAR" in by_file["unset_env.yaml"][1]
+
+
+def test_duplicate_route_names_and_unknown_connection(tmp_path: Path):
+    route = "  - {{name: same, source: {{amqp: {{queue: q, connection: {conn}}}}}, schema: raw_json, sink: {{amqp: {{exchange: e}}}}}}\n"
+    (tmp_path / "a.yaml").write_text("connections:\n  gcs: {amqp: 'amqp://localhost/'}\nroutes:\n" + route.format(conn="gcs"))
+    (tmp_path / "b.yaml").write_text("routes:\n" + route.format(conn="nope"))
+    result = cli("check", "--routes", str(tmp_path), "--schemas", str(REPO / "schemas"))
+    assert result.returncode != 0
+    assert "already defined at" in result.stderr and "unknown connection 'nope'" in result.stderr
+
+
+def test_run_with_local_broker_routes_and_stops_cleanly(tmp_path: Path):
+    url_file = tmp_path / "broker-url"
+    status_file = tmp_path / "status.json"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "engine", "--routes", "routes/", "--local-broker",
+         "--broker-url-file", str(url_file), "--status-file", str(status_file), "--log-format", "json"],
+        cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 90
+        while not status_file.exists() and time.monotonic() < deadline and process.poll() is None:
+            time.sleep(0.2)
+        assert status_file.exists(), "engine did not start"
+        url = url_file.read_text().strip()
+
+        async def roundtrip() -> list[bytes]:
+            connection = await aio_pika.connect(url)
+            channel = await connection.channel()
+            output = await Collector.bind(channel, "farm", "canonical.weeds.#")
+            body = {"agent": "uav1", "id": "d1", "stamp": 1.5, "detections": [{"lat": 1.0, "lon": 2.0, "confidence": 0.9}]}
+            await publish(channel, "farm", "weeds.uav1", [json.dumps(body).encode()])
+            received = await output.wait_for(1)
+            await connection.close()
+            return [m.body for m in received]
+
+        bodies = asyncio.run(roundtrip())
+        assert bodies == [b'{"agent_id":"uav1","id":"d1","points":[{"lat":1.0,"lon":2.0,"p":0.9}],"stamp":1.5,"type":"weed_detection"}']
+        status = json.loads(status_file.read_text())
+        assert status["generation"] == 1 and set(status["routes"]) == {"uav-weeds", "gcs-commands"}
+        process.send_signal(signal.SIGTERM)
+        _, stderr = process.communicate(timeout=60)
+        assert process.returncode == 0, stderr
+        records = [json.loads(line) for line in stderr.splitlines() if line.startswith("{")]
+        assert any(r["msg"] == "local broker started" for r in records)
+        assert "guest:guest" not in stderr, "a password reached the log"
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    port = int(url.rsplit(":", 1)[1].strip("/"))
+    with socket.socket() as probe:
+        assert probe.connect_ex(("127.0.0.1", port)) != 0, "the private broker outlived the engine"
