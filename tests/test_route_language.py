@@ -1,0 +1,99 @@
+"""The route language without a broker: env substitution, mappings, templates, schemas."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from engine.mapping import MappingError, compile_mapping, compile_template, top_level_keys, unknown_functions
+from engine.routes import RoutesInvalid, load_routes, substitute_env
+from engine.schemas import SchemaError, SchemaRegistry, parse_json
+
+
+def test_env_substitution_defaults_escapes_and_unset():
+    env = {"USER_": "ops", "EMPTY": ""}
+    assert substitute_env("${USER_}:${PASS:-guest}@h", env) == "ops:guest@h"
+    assert substitute_env("${EMPTY:-x}", env) == ""
+    assert substitute_env("cost $$5 ${USER_}", env) == "cost $5 ops"
+    with pytest.raises(KeyError):
+        substitute_env("${NOT_THERE}", env)
+
+
+def test_field_functions():
+    mapping = compile_mapping(
+        "{lat: deg_e7_to_deg(lat), alt: mm_to_m(alt), v: cm_to_m(vx), hdg: cdeg_to_deg(hdg),"
+        " r: round(mul(`2.345`, `2`), `1`), d: default(missing, 'x'), s: format('{a}-{b}', @), i: to_int('42')}"
+    )
+    assert mapping({"lat": -220000000, "alt": 12345, "vx": -150, "hdg": 9000, "a": 1, "b": "z"}) == {
+        "lat": -22.0, "alt": 12.345, "v": -1.5, "hdg": 90.0, "r": 4.7, "d": "x", "s": "1-z", "i": 42,
+    }
+    stamp = compile_mapping("stamp()")(None)
+    assert set(stamp) == {"sec", "nanosec"} and stamp["sec"] > 1_700_000_000
+    assert len(compile_mapping("uuid()")(None)) == 32
+    with pytest.raises(MappingError):
+        compile_mapping("div(`1`, `0`)")({})
+    with pytest.raises(MappingError):
+        compile_mapping("mul(a, `2`)")({"a": "text"})
+
+
+def test_static_mapping_inspection():
+    assert unknown_functions("{a: nope(b), c: round(d)}") == ["nope"]
+    assert top_level_keys("{latitude: lat, longitude: lon}") == ["latitude", "longitude"]
+    assert top_level_keys("a.b") is None
+
+
+def test_templates_interpolate_canonical_fields():
+    render = compile_template("canonical.{type}.{agent.id}")
+    assert render({"type": "weeds", "agent": {"id": "uav1"}}) == "canonical.weeds.uav1"
+    assert compile_template("fixed")({}) == "fixed"
+    with pytest.raises(MappingError, match="agent_id"):
+        compile_template("x.{agent_id}")({})
+
+
+def test_schema_registry_versions_and_errors_name_the_field(schemas_dir: Path):
+    registry = SchemaRegistry(schemas_dir)
+    assert not registry.problems
+    for name in ("envelope", "position", "attitude", "battery", "status", "weed_detection", "mission", "command", "ack", "raw_json"):
+        assert registry.get(name) is not None, name
+    weeds = registry.get("weed_detection")
+    assert weeds is registry.get("weed_detection.v1")
+    weeds.validate({"agent_id": "uav1", "points": [{"lat": 1, "lon": 2, "p": 0.5}]})
+    with pytest.raises(SchemaError, match=r"\$\.points\[0\]\.p"):
+        weeds.validate({"agent_id": "uav1", "points": [{"lat": 1, "lon": 2, "p": 5}]})
+    with pytest.raises(SchemaError, match="agent_id"):
+        weeds.validate({"agent_id": "", "points": []})
+    with pytest.raises(SchemaError, match="line 1 column 2"):
+        parse_json(b"{oops}")
+    with pytest.raises(SchemaError, match="NaN"):
+        parse_json(b'{"x": NaN}')
+
+
+def test_route_defaults_and_fingerprints(tmp_path: Path, schemas_dir: Path):
+    route = "routes:\n  - {name: r, source: {amqp: {queue: q}}, mapping: MAP, schema: raw_json, sink: {amqp: {exchange: e}}}\n"
+    (tmp_path / "a.yaml").write_text(route.replace("MAP", "'@'"))
+    registry = SchemaRegistry(schemas_dir)
+    first = load_routes(tmp_path, registry, env={})
+    assert first.routes["r"].source.connection == "default-amqp"
+    assert first.connections["default-amqp"].settings["url"].startswith("amqp://")
+    again = load_routes(tmp_path, registry, env={})
+    assert again.routes["r"].fingerprint == first.routes["r"].fingerprint
+    (tmp_path / "a.yaml").write_text(route.replace("MAP", "'{a: b}'"))
+    changed = load_routes(tmp_path, registry, env={})
+    assert changed.routes["r"].fingerprint != first.routes["r"].fingerprint
+    assert changed.content_hash != first.content_hash
+
+
+def test_ambiguous_connection_and_duplicate_yaml_keys(tmp_path: Path, schemas_dir: Path):
+    (tmp_path / "a.yaml").write_text(
+        "connections:\n  one: {amqp: 'amqp://a/'}\n  two: {amqp: 'amqp://b/'}\n"
+        "routes:\n  - {name: r, source: {amqp: {queue: q}}, schema: raw_json, sink: {amqp: {exchange: e, exchange: f}}}\n"
+    )
+    with pytest.raises(RoutesInvalid) as caught:
+        load_routes(tmp_path, SchemaRegistry(schemas_dir), env={})
+    text = str(caught.value)
+    assert "duplicate key 'exchange'" in text
+    assert f"{tmp_path / 'a.yaml'}:5:" in text
+    (tmp_path / "a.yaml").write_text((tmp_path / "a.yaml").read_text().replace(", exchange: f", ""))
+    with pytest.raises(RoutesInvalid, match="several amqp connections"):
+        load_routes(tmp_path, SchemaRegistry(schemas_dir), env={})
