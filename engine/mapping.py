@@ -133,6 +133,14 @@ class FieldFunctions(functions.Functions):
         return _frames().enu_to_ned(vector)
 
     @functions.signature({"types": ["array", "object"]})
+    def _func_aircraft_to_baselink(self, vector: Any) -> Any:
+        return _frames().aircraft_to_baselink(vector)
+
+    @functions.signature({"types": ["number"]})
+    def _func_heading_cdeg_to_deg(self, value: float) -> float | None:
+        return _frames().heading_cdeg_to_deg(value)
+
+    @functions.signature({"types": ["array", "object"]})
     def _func_quat_ned_to_enu(self, quaternion: Any) -> Any:
         return _frames().quat_ned_aircraft_to_enu_baselink(quaternion)
 

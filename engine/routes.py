@@ -31,7 +31,7 @@ ROUTE_FILE_SCHEMA: dict[str, Any] = json.loads(
 )
 _ROUTE_FILE_VALIDATOR = jsonschema.Draft202012Validator(ROUTE_FILE_SCHEMA)
 _ENV_REFERENCE = re.compile(r"\$\$|\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
-_MAVLINK_ONLY = ("baud", "source_system", "source_component", "signing")
+_MAVLINK_ONLY = ("baud", "source_system", "source_component", "signing", "rate", "heartbeat", "mav_type", "tunnel")
 
 Path_ = tuple[str | int, ...]
 

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from engine import endpoints
-from engine.endpoints.base import Connection, EndpointError, Inbound, Source
+from engine.endpoints.base import Connection, EndpointError, Inbound, MessageRejected, Source
 from engine.pipeline import ConversionError, Pipeline
 from engine.routes import ConnectionSpec, RouteSpec, RoutesConfig, RoutesInvalid, load_routes
 from engine.schemas import SchemaRegistry
@@ -82,6 +82,10 @@ class RouteRunner:
                 return
             try:
                 await pipeline.sink.send(outbound)
+            except MessageRejected as error:
+                self.stats.failed += 1
+                await self.engine.dead_letter(self, inbound, ConversionError("sink", str(error)))
+                return
             except EndpointError as error:
                 self.stats.sink_errors += 1
                 if self._report.ready():

@@ -19,7 +19,14 @@ from typing import Any, Awaitable, Callable, ClassVar, Iterable, Mapping
 
 
 class EndpointError(Exception):
-    """A protocol library failed; the message names the connection or endpoint."""
+    """A protocol library failed; the message names the connection or endpoint.
+
+    Treated as transient: the message is handed back to its source for redelivery."""
+
+
+class MessageRejected(EndpointError):
+    """This message can never be accepted by this sink (a field the type lacks, a value out
+    of range). Retrying cannot help, so the engine dead-letters it instead of redelivering."""
 
 
 @dataclass(slots=True)

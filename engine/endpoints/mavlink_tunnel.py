@@ -1,0 +1,710 @@
+"""JSON over MAVLink: whole messages carried in TUNNEL frames with selective-repeat ARQ.
+
+A canonical JSON message is usually larger than one TUNNEL payload (128 bytes) and a SiK
+radio loses whole frames, so a message is cut into fragments, reassembled, checked with a
+CRC-32 and acknowledged selectively; lost fragments, not whole messages, are sent again.
+
+Wire format, inside ``TUNNEL.payload`` (little endian), ``payload_type`` private (>= 32768,
+default 0xA900) and used as the channel, so several tunnel routes can share a link::
+
+    DATA  u8 ver<<4 | 0   u16 msg_id   u8 index   u8 count   u16 total   data[...]
+    ACK   u8 ver<<4 | 1   u16 msg_id   u8 flags   u8 count   bitmap[ceil(count/8)]
+
+``total`` is ``len(body) + 4``: the body is followed by ``crc32(body)`` before cutting, so a
+fragment mixed in from another message (id wrap-around, sender restart) is caught. Every
+fragment but the last carries the same number of bytes. ACK ``flags``: 1 = the receiver
+holds every fragment (the bitmap is then omitted), 2 = delivered; bit ``i`` of the bitmap
+(byte ``i // 8``, bit ``i % 8``) says fragment ``i`` is held.
+
+Reliability: the receiver acknowledges DELIVERED only once the engine settled the message,
+so a completed ``Sink.send`` means at-least-once delivery; ids it delivered recently are
+remembered (bounded by count and age) and a repeat only earns another DELIVERED. It sends a
+SACK at once when the last fragment arrives with gaps, and after ``sack_delay`` of silence
+while incomplete (backing off). The sender retransmits a fragment when a fragment sent after
+it is acknowledged (the link keeps order, so it was lost) or when its retransmission timer
+(SRTT + 4 RTTVAR, at least ``rto_min``, doubling per unanswered timeout) expires; after
+``retries`` timeouts without progress it gives up.
+
+:class:`Transfer` and :class:`Reassembler` are pure state machines driven by frames and a
+clock; :class:`TunnelSink`, :class:`TunnelSource` and :class:`TunnelHub` drive them on asyncio.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import random
+import struct
+import zlib
+from collections import OrderedDict
+from collections.abc import Awaitable, Callable, Hashable
+from dataclasses import dataclass
+from typing import Any, Protocol, cast
+
+from engine.endpoints.base import (
+    Deliver,
+    EndpointError,
+    Inbound,
+    Outbound,
+    Sink,
+    Source,
+)
+
+DEFAULT_PAYLOAD_TYPE = 0xA900
+TUNNEL_PAYLOAD = 128
+VERSION = 1
+KIND_DATA = 0
+KIND_ACK = 1
+FLAG_COMPLETE = 1
+FLAG_DELIVERED = 2
+_DATA = struct.Struct("<BHBBH")
+_ACK = struct.Struct("<BHBB")
+MAX_FRAGMENT = TUNNEL_PAYLOAD - _DATA.size
+MAX_FRAGMENTS = 255
+CRC_SIZE = 4
+
+
+@dataclass(frozen=True, slots=True)
+class Data:
+    msg_id: int
+    index: int
+    count: int
+    total: int
+    chunk: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Ack:
+    msg_id: int
+    count: int
+    flags: int
+    held: int
+    """Bitmap of fragments the receiver holds (all of them when FLAG_COMPLETE is set)."""
+
+
+def encode_data(d: Data) -> bytes:
+    return _DATA.pack(VERSION << 4 | KIND_DATA, d.msg_id, d.index, d.count, d.total) + d.chunk
+
+
+def encode_ack(a: Ack) -> bytes:
+    head = _ACK.pack(VERSION << 4 | KIND_ACK, a.msg_id, a.flags, a.count)
+    if a.flags & FLAG_COMPLETE:
+        return head
+    return head + a.held.to_bytes((a.count + 7) // 8, "little")
+
+
+def decode(payload: bytes) -> Data | Ack:
+    """Parse one tunnel payload; ValueError when it is not ours or is malformed."""
+    if not payload or payload[0] >> 4 != VERSION:
+        raise ValueError("not a tunnel frame of this version")
+    kind = payload[0] & 0x0F
+    if kind == KIND_DATA and len(payload) >= _DATA.size:
+        _, msg_id, index, count, total = _DATA.unpack_from(payload)
+        if count == 0 or index >= count or total < CRC_SIZE:
+            raise ValueError("bad DATA header")
+        return Data(msg_id, index, count, total, bytes(payload[_DATA.size:]))
+    if kind == KIND_ACK and len(payload) >= _ACK.size:
+        _, msg_id, flags, count = _ACK.unpack_from(payload)
+        if count == 0:
+            raise ValueError("bad ACK header")
+        if flags & FLAG_COMPLETE:
+            held = (1 << count) - 1
+        else:
+            held = int.from_bytes(payload[_ACK.size:_ACK.size + (count + 7) // 8], "little")
+        return Ack(msg_id, count, flags, held & ((1 << count) - 1))
+    raise ValueError("unknown tunnel frame")
+
+
+def fragment(msg_id: int, body: bytes, fragment_size: int = MAX_FRAGMENT) -> list[bytes]:
+    """Encoded DATA payloads for ``body``; ValueError when it needs more than 255 fragments."""
+    if not 1 <= fragment_size <= MAX_FRAGMENT:
+        raise ValueError(f"fragment_size must be 1..{MAX_FRAGMENT}")
+    whole = body + zlib.crc32(body).to_bytes(CRC_SIZE, "little")
+    count = -(-len(whole) // fragment_size)
+    if count > MAX_FRAGMENTS or len(whole) > 0xFFFF:
+        raise ValueError(f"message of {len(body)} bytes exceeds {MAX_FRAGMENTS} fragments of {fragment_size} bytes")
+    return [
+        encode_data(Data(msg_id, i, count, len(whole), whole[i * fragment_size:(i + 1) * fragment_size]))
+        for i in range(count)
+    ]
+
+
+@dataclass(slots=True)
+class RttEstimator:
+    """Jacobson/Karels retransmission timeout, shared by the transfers of one channel."""
+
+    rto_min: float = 0.5
+    rto_max: float = 8.0
+    srtt: float | None = None
+    rttvar: float = 0.0
+
+    def sample(self, rtt: float) -> None:
+        if self.srtt is None:
+            self.srtt, self.rttvar = rtt, rtt / 2
+        else:
+            self.rttvar = 0.75 * self.rttvar + 0.25 * abs(self.srtt - rtt)
+            self.srtt = 0.875 * self.srtt + 0.125 * rtt
+
+    @property
+    def rto(self) -> float:
+        if self.srtt is None:
+            return min(self.rto_max, 2 * self.rto_min)
+        return min(self.rto_max, max(self.rto_min, self.srtt + 4 * self.rttvar))
+
+
+class Transfer:
+    """Sender side of one message: what the receiver holds and what to (re)send when."""
+
+    def __init__(self, msg_id: int, body: bytes, *, fragment_size: int = MAX_FRAGMENT,
+                 rtt: RttEstimator | None = None, retries: int = 8) -> None:
+        self.msg_id = msg_id
+        self.frames = fragment(msg_id, body, fragment_size)
+        self.count = len(self.frames)
+        self.rtt = rtt or RttEstimator()
+        self.max_retries = retries
+        self.sent_at: list[float | None] = [None] * self.count
+        self.tx_count = [0] * self.count
+        self.held = 0
+        self.complete = False
+        self.delivered = False
+        self.failed = False
+        self.retries = 0
+        self.retransmissions = 0
+        self._backoff = 1.0
+        self._last_tx: float | None = None
+        self._waiting_since: float | None = None
+
+    def missing(self) -> list[int]:
+        return [i for i in range(self.count) if not self.held >> i & 1]
+
+    def is_held(self, index: int) -> bool:
+        return bool(self.held >> index & 1)
+
+    def on_sent(self, index: int, now: float) -> None:
+        if self.tx_count[index]:
+            self.retransmissions += 1
+        self.tx_count[index] += 1
+        self.sent_at[index] = now
+        self._last_tx = now
+
+    def deadline(self) -> float | None:
+        """When to give up waiting for an acknowledgement; None before anything was sent."""
+        start = self._last_tx if self._waiting_since is None else max(self._last_tx or 0.0, self._waiting_since)
+        if start is None:
+            return None
+        return start + min(self.rtt.rto_max, self.rtt.rto * self._backoff)
+
+    def on_ack(self, ack: Ack, now: float) -> list[int]:
+        """Fragments to retransmit now because of ``ack``."""
+        if ack.msg_id != self.msg_id or ack.count != self.count or self.delivered:
+            return []
+        newly = ack.held & ~self.held
+        if ack.flags & FLAG_DELIVERED:
+            newly = (1 << self.count) - 1 & ~self.held
+        if newly:
+            self._sample(newly, now)
+        if newly or ack.flags & (FLAG_DELIVERED | FLAG_COMPLETE) and not self.complete:
+            self.retries = 0
+            self._backoff = 1.0
+        self.held = ack.held
+        if ack.flags & FLAG_DELIVERED:
+            self.held = (1 << self.count) - 1
+            self.delivered = self.complete = True
+            return []
+        if ack.flags & FLAG_COMPLETE:
+            self.complete = True
+            self._waiting_since = now
+            return []
+        self.complete = False
+        times = [t for i, t in enumerate(self.sent_at) if t is not None and ack.held >> i & 1]
+        if not times:
+            return []
+        newest = max(times)
+        return [i for i in self.missing() if (t := self.sent_at[i]) is not None and t < newest]
+
+    def on_timeout(self, now: float) -> list[int]:
+        """Fragments to send after the deadline passed; sets ``failed`` when out of retries."""
+        self.retries += 1
+        if self.retries > self.max_retries:
+            self.failed = True
+            return []
+        self._backoff = min(self._backoff * 2, 64.0)
+        self._waiting_since = now
+        return self.missing() or [self.count - 1]
+
+    def _sample(self, newly: int, now: float) -> None:
+        """Karn's rule: only fragments sent once give an unambiguous round-trip time."""
+        candidates = [t for i, t in enumerate(self.sent_at) if t is not None and self.tx_count[i] == 1 and newly >> i & 1]
+        if candidates:
+            self.rtt.sample(max(0.0, now - max(candidates)))
+
+
+@dataclass(slots=True)
+class _Partial:
+    count: int
+    total: int
+    chunks: dict[int, bytes]
+    last_seen: float
+    sack_at: float | None = None
+    sack_gap: float = 0.0
+
+
+@dataclass(slots=True)
+class _Known:
+    count: int
+    total: int
+    until: float = 0.0
+    last_ack: float = float("-inf")
+
+
+@dataclass
+class ReassemblerStats:
+    fragments: int = 0
+    duplicate_fragments: int = 0
+    after_delivery: int = 0
+    crc_errors: int = 0
+    expired: int = 0
+    evicted: int = 0
+    completed: int = 0
+    acks: int = 0
+
+
+Key = tuple[Hashable, int]
+
+
+class Reassembler:
+    """Receiver side: reassembly, deduplication and the acknowledgements to send.
+
+    ``peer`` identifies the sender (MAVLink sysid/compid); ids are per peer. Returns encoded
+    ACK payloads, to be sent back to that peer.
+    """
+
+    def __init__(self, *, sack_delay: float = 0.25, sack_max: float = 4.0, timeout: float = 60.0,
+                 max_partial: int = 16, memory: int = 1024, memory_ttl: float = 300.0,
+                 ack_interval: float = 0.1) -> None:
+        self.sack_delay = sack_delay
+        self.sack_max = sack_max
+        self.timeout = timeout
+        self.max_partial = max_partial
+        self.memory = memory
+        self.memory_ttl = memory_ttl
+        self.ack_interval = ack_interval
+        self.stats = ReassemblerStats()
+        self._partial: dict[Key, _Partial] = {}
+        self._delivering: dict[Key, _Known] = {}
+        self._done: OrderedDict[Key, _Known] = OrderedDict()
+
+    def on_data(self, peer: Hashable, data: Data, now: float) -> tuple[list[bytes], tuple[Key, bytes] | None]:
+        self.stats.fragments += 1
+        key = (peer, data.msg_id)
+        known = self._done.get(key)
+        if known is not None and (known.count, known.total) == (data.count, data.total) and now < known.until:
+            self.stats.duplicate_fragments += 1
+            return self._repeat_ack(known, data, FLAG_DELIVERED | FLAG_COMPLETE, now), None
+        if known is not None:
+            del self._done[key]
+        known = self._delivering.get(key)
+        if known is not None and (known.count, known.total) == (data.count, data.total):
+            self.stats.duplicate_fragments += 1
+            return self._repeat_ack(known, data, FLAG_COMPLETE, now), None
+
+        partial = self._partial.get(key)
+        if partial is not None and (partial.count, partial.total) != (data.count, data.total):
+            del self._partial[key]
+            partial = None
+        if partial is None:
+            if len(self._partial) >= self.max_partial:
+                oldest = min(self._partial, key=lambda k: self._partial[k].last_seen)
+                del self._partial[oldest]
+                self.stats.evicted += 1
+            partial = self._partial[key] = _Partial(data.count, data.total, {}, now)
+        if data.index in partial.chunks:
+            self.stats.duplicate_fragments += 1
+        partial.chunks[data.index] = data.chunk
+        partial.last_seen = now
+
+        if len(partial.chunks) == partial.count:
+            del self._partial[key]
+            whole = b"".join(partial.chunks[i] for i in range(partial.count))
+            body, crc = whole[:-CRC_SIZE], whole[-CRC_SIZE:]
+            if len(whole) != partial.total or zlib.crc32(body).to_bytes(CRC_SIZE, "little") != crc:
+                self.stats.crc_errors += 1
+                return [self._ack(Ack(data.msg_id, data.count, 0, 0))], None
+            self._delivering[key] = _Known(partial.count, partial.total, last_ack=now)
+            self.stats.completed += 1
+            return [], (key, body)
+
+        if data.index == data.count - 1:
+            partial.sack_gap = self.sack_delay
+            partial.sack_at = now + 2 * self.sack_delay
+            return [self._sack(data.msg_id, partial)], None
+        partial.sack_gap = self.sack_delay
+        partial.sack_at = now + self.sack_delay
+        return [], None
+
+    def delivered(self, key: Key, now: float) -> bytes:
+        """The engine settled ``key``: remember it and return the DELIVERED acknowledgement."""
+        known = self._delivering.pop(key)
+        known.until = now + self.memory_ttl
+        known.last_ack = now
+        self._done[key] = known
+        self._done.move_to_end(key)
+        while len(self._done) > self.memory:
+            self._done.popitem(last=False)
+        return self._ack(Ack(key[1], known.count, FLAG_DELIVERED | FLAG_COMPLETE, 0))
+
+    def failed(self, key: Key) -> None:
+        """Delivery failed: forget the message so the sender's retransmissions rebuild it."""
+        self._delivering.pop(key, None)
+
+    def poll(self, now: float) -> list[tuple[Hashable, bytes]]:
+        """Timed SACKs for incomplete messages, and expiry of stale state."""
+        out: list[tuple[Hashable, bytes]] = []
+        for key, partial in list(self._partial.items()):
+            if now - partial.last_seen > self.timeout:
+                del self._partial[key]
+                self.stats.expired += 1
+            elif partial.sack_at is not None and now >= partial.sack_at:
+                out.append((key[0], self._sack(key[1], partial)))
+                partial.sack_gap = min(self.sack_max, partial.sack_gap * 2)
+                partial.sack_at = now + partial.sack_gap
+        while self._done:
+            key, known = next(iter(self._done.items()))
+            if known.until > now:
+                break
+            del self._done[key]
+        return out
+
+    def next_deadline(self) -> float | None:
+        times = [p.sack_at for p in self._partial.values() if p.sack_at is not None]
+        times += [p.last_seen + self.timeout for p in self._partial.values()]
+        if self._done:
+            times.append(next(iter(self._done.values())).until)
+        return min(times) if times else None
+
+    def _repeat_ack(self, known: _Known, data: Data, flags: int, now: float) -> list[bytes]:
+        if flags & FLAG_DELIVERED:
+            self.stats.after_delivery += 1
+        if now - known.last_ack < self.ack_interval:
+            return []
+        known.last_ack = now
+        return [self._ack(Ack(data.msg_id, data.count, flags, 0))]
+
+    def _sack(self, msg_id: int, partial: _Partial) -> bytes:
+        held = 0
+        for i in partial.chunks:
+            held |= 1 << i
+        return self._ack(Ack(msg_id, partial.count, 0, held))
+
+    def _ack(self, ack: Ack) -> bytes:
+        self.stats.acks += 1
+        return encode_ack(ack)
+
+
+# -- asyncio drivers ------------------------------------------------------------------------
+
+
+class TunnelLink(Protocol):
+    """What the drivers need from a MAVLink connection."""
+
+    stats: dict[str, int]
+
+    def send_tunnel(self, payload_type: int, target: tuple[int, int], payload: bytes, *,
+                    bulk: bool) -> Awaitable[float]:
+        """Queue a TUNNEL frame; the awaitable gives the loop time it was written."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class TunnelSettings:
+    """Per-connection tuning; defaults depend on the link (a SiK radio needs patience)."""
+
+    fragment_size: int = MAX_FRAGMENT
+    rto_min: float = 0.5
+    rto_max: float = 8.0
+    retries: int = 8
+    sack_delay: float = 0.25
+    window: int = 2
+    reassembly_timeout: float = 60.0
+    memory: int = 1024
+    memory_ttl: float = 300.0
+    rate: float = 0.0
+    """Bytes/s for DATA frames; 0 = half the serial rate on serial links, unpaced on networks."""
+
+    @classmethod
+    def from_settings(cls, raw: Any, *, serial: bool) -> TunnelSettings:
+        base = cls() if serial else cls(rto_min=0.2, sack_delay=0.1)
+        if not raw:
+            return base
+        if not isinstance(raw, dict):
+            raise ValueError("'tunnel' must be a mapping")
+        unknown = set(raw) - set(cls.__slots__)
+        if unknown:
+            raise ValueError(f"unknown tunnel setting(s): {', '.join(sorted(unknown))}")
+        values = {name: getattr(base, name) for name in cls.__slots__}
+        for name, value in raw.items():
+            kind = type(values[name])
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and not isinstance(value, int)):
+                raise ValueError(f"tunnel.{name} must be a {kind.__name__}")
+            values[name] = kind(value)
+        out = cls(**values)
+        if not 1 <= out.fragment_size <= MAX_FRAGMENT:
+            raise ValueError(f"tunnel.fragment_size must be 1..{MAX_FRAGMENT}")
+        if out.rto_min <= 0 or out.rto_max < out.rto_min or out.retries < 0 or out.window < 1 or out.rate < 0:
+            raise ValueError("tunnel timing settings out of range")
+        return out
+
+
+class TunnelHub:
+    """Per-connection dispatch of tunnel frames to the sinks and sources using them.
+
+    Reassembly state (and so the memory of delivered ids) belongs to the connection, not to
+    a source: a reload starts the new source before stopping the old one, and the newest
+    source of a ``payload_type`` takes over the same state without delivering twice.
+    """
+
+    def __init__(self, link: TunnelLink, settings: TunnelSettings) -> None:
+        self.link = link
+        self.settings = settings
+        self._receivers: dict[int, list[Callable[[tuple[int, int], Data], None]]] = {}
+        self._reassemblers: dict[int, Reassembler] = {}
+        self._senders: set[int] = set()
+        self._waiting: dict[tuple[int, int], Callable[[Ack], None]] = {}
+        self._next_id: dict[int, int] = {}
+        self._rtt: dict[int, RttEstimator] = {}
+
+    def on_frame(self, payload_type: int, peer: tuple[int, int], payload: bytes) -> bool:
+        """Handle a TUNNEL payload addressed to us; False when no route uses its type."""
+        if payload_type not in self._receivers and payload_type not in self._senders:
+            return False
+        try:
+            frame = decode(payload)
+        except ValueError:
+            self.link.stats["tunnel_malformed"] = self.link.stats.get("tunnel_malformed", 0) + 1
+            return True
+        if isinstance(frame, Data):
+            receivers = self._receivers.get(payload_type)
+            if receivers:
+                receivers[-1](peer, frame)
+        else:
+            waiter = self._waiting.get((payload_type, frame.msg_id))
+            if waiter is not None:
+                waiter(frame)
+        return True
+
+    def add_receiver(self, payload_type: int, callback: Callable[[tuple[int, int], Data], None]) -> None:
+        self._receivers.setdefault(payload_type, []).append(callback)
+
+    def remove_receiver(self, payload_type: int, callback: Callable[[tuple[int, int], Data], None]) -> None:
+        receivers = self._receivers.get(payload_type, [])
+        if callback in receivers:
+            receivers.remove(callback)
+        if not receivers:
+            self._receivers.pop(payload_type, None)
+
+    def reassembler(self, payload_type: int) -> Reassembler:
+        reasm = self._reassemblers.get(payload_type)
+        if reasm is None:
+            s = self.settings
+            reasm = self._reassemblers[payload_type] = Reassembler(
+                sack_delay=s.sack_delay, timeout=s.reassembly_timeout, memory=s.memory, memory_ttl=s.memory_ttl)
+        return reasm
+
+    def add_sender(self, payload_type: int) -> None:
+        self._senders.add(payload_type)
+
+    def new_id(self, payload_type: int) -> int:
+        """Ids start at random so a restarted sender does not collide with the receiver's memory."""
+        value = self._next_id.get(payload_type)
+        if value is None:
+            value = random.getrandbits(16)
+        while (payload_type, value) in self._waiting:
+            value = (value + 1) & 0xFFFF
+        self._next_id[payload_type] = (value + 1) & 0xFFFF
+        return value
+
+    def rtt(self, payload_type: int) -> RttEstimator:
+        est = self._rtt.get(payload_type)
+        if est is None:
+            est = self._rtt[payload_type] = RttEstimator(self.settings.rto_min, self.settings.rto_max)
+        return est
+
+    def watch(self, payload_type: int, msg_id: int, callback: Callable[[Ack], None]) -> None:
+        self._waiting[(payload_type, msg_id)] = callback
+
+    def unwatch(self, payload_type: int, msg_id: int) -> None:
+        self._waiting.pop((payload_type, msg_id), None)
+
+    def count(self, name: str, n: int = 1) -> None:
+        self.link.stats[name] = self.link.stats.get(name, 0) + n
+
+
+class TunnelSink(Sink):
+    """Sends ``Outbound.body`` whole; returns once the receiver acknowledged delivery."""
+
+    def __init__(self, hub: TunnelHub, *, payload_type: int = DEFAULT_PAYLOAD_TYPE,
+                 target: tuple[int, int] = (0, 0)) -> None:
+        self.hub = hub
+        self.payload_type = payload_type
+        self.target = target
+        self._window = asyncio.Semaphore(hub.settings.window)
+        hub.add_sender(payload_type)
+
+    async def send(self, message: Outbound) -> None:
+        await self.send_bytes(message.body)
+
+    async def send_bytes(self, body: bytes) -> None:
+        hub, settings = self.hub, self.hub.settings
+        async with self._window:
+            msg_id = hub.new_id(self.payload_type)
+            try:
+                transfer = Transfer(msg_id, body, fragment_size=settings.fragment_size,
+                                    rtt=hub.rtt(self.payload_type), retries=settings.retries)
+            except ValueError as exc:
+                raise EndpointError(f"tunnel: {exc}") from None
+            acks: asyncio.Queue[Ack] = asyncio.Queue()
+            hub.watch(self.payload_type, msg_id, acks.put_nowait)
+            try:
+                await self._run(transfer, acks)
+            finally:
+                hub.unwatch(self.payload_type, msg_id)
+                hub.count("tunnel_retransmissions", transfer.retransmissions)
+        hub.count("tunnel_sent")
+
+    async def _run(self, transfer: Transfer, acks: asyncio.Queue[Ack]) -> None:
+        loop = asyncio.get_running_loop()
+        pending: list[int] = list(range(transfer.count))
+
+        def plan(indexes: list[int]) -> None:
+            pending.extend(i for i in indexes if i not in pending)
+
+        while True:
+            while pending and not transfer.delivered:
+                index = pending.pop(0)
+                if transfer.is_held(index):
+                    continue
+                sent = await self.hub.link.send_tunnel(self.payload_type, self.target, transfer.frames[index], bulk=True)
+                transfer.on_sent(index, sent)
+                while not acks.empty():
+                    plan(transfer.on_ack(acks.get_nowait(), loop.time()))
+            if transfer.delivered:
+                return
+            deadline = transfer.deadline()
+            assert deadline is not None
+            try:
+                ack = await asyncio.wait_for(acks.get(), max(0.0, deadline - loop.time()))
+            except TimeoutError:
+                plan(transfer.on_timeout(loop.time()))
+                if transfer.failed:
+                    raise EndpointError(
+                        f"tunnel message {transfer.msg_id} not acknowledged after {transfer.max_retries} retries"
+                    ) from None
+            else:
+                plan(transfer.on_ack(ack, loop.time()))
+
+
+class TunnelSource(Source):
+    """Reassembles messages of one ``payload_type`` and hands each body to ``deliver`` once."""
+
+    def __init__(self, hub: TunnelHub, *, route: str, payload_type: int = DEFAULT_PAYLOAD_TYPE,
+                 system_id: int | None = None, component_id: int | None = None) -> None:
+        self.hub = hub
+        self.route = route
+        self.payload_type = payload_type
+        self.system_id = system_id
+        self.component_id = component_id
+        self.reassembler = hub.reassembler(payload_type)
+        self._ready: asyncio.Queue[tuple[Key, bytes] | None] = asyncio.Queue()
+        self._wake = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+
+    async def start(self, deliver: Deliver) -> None:
+        self.hub.add_receiver(self.payload_type, self._on_data)
+        self._tasks = [
+            asyncio.create_task(self._timers(), name=f"tunnel-timers:{self.route}"),
+            asyncio.create_task(self._deliveries(deliver), name=f"tunnel-deliver:{self.route}"),
+        ]
+
+    async def stop(self) -> None:
+        self.hub.remove_receiver(self.payload_type, self._on_data)
+        if not self._tasks:
+            return
+        timers, deliveries = self._tasks
+        self._tasks = []
+        timers.cancel()
+        while not self._ready.empty():
+            item = self._ready.get_nowait()
+            if item is not None:
+                self.reassembler.failed(item[0])
+        self._ready.put_nowait(None)
+        await asyncio.gather(timers, deliveries, return_exceptions=True)
+
+    def _on_data(self, peer: tuple[int, int], data: Data) -> None:
+        if self.system_id is not None and peer[0] != self.system_id:
+            return
+        if self.component_id is not None and peer[1] != self.component_id:
+            return
+        acks, complete = self.reassembler.on_data(peer, data, asyncio.get_running_loop().time())
+        for ack in acks:
+            self._send_ack(peer, ack)
+        if complete is not None:
+            self._ready.put_nowait(complete)
+        self._wake.set()
+
+    def _send_ack(self, peer: Hashable, ack: bytes) -> None:
+        assert isinstance(peer, tuple)
+        sent = asyncio.ensure_future(self.hub.link.send_tunnel(self.payload_type, peer, ack, bulk=False))
+        sent.add_done_callback(_consume)
+
+    async def _timers(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            deadline = self.reassembler.next_deadline()
+            self._wake.clear()
+            timeout = None if deadline is None else max(0.0, deadline - loop.time())
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), timeout)
+            for peer, ack in self.reassembler.poll(loop.time()):
+                self._send_ack(peer, ack)
+
+    async def _deliveries(self, deliver: Deliver) -> None:
+        loop = asyncio.get_running_loop()
+        while (item := await self._ready.get()) is not None:
+            key, body = item
+            peer, msg_id = cast(tuple[int, int], key[0]), key[1]
+            meta = {"message": "TUNNEL", "system_id": peer[0], "component_id": peer[1],
+                    "payload_type": self.payload_type, "tunnel_id": msg_id}
+            try:
+                await deliver(Inbound(body=body, meta=meta))
+            except Exception:
+                self.reassembler.failed(key)
+                self.hub.count("tunnel_deliver_failed")
+                continue
+            self.hub.count("tunnel_delivered")
+            self._send_ack(peer, self.reassembler.delivered(key, loop.time()))
+
+
+def _consume(future: asyncio.Future[Any]) -> None:
+    """Acknowledgements are best effort: the sender's timer covers one that was not written."""
+    if not future.cancelled():
+        future.exception()
+
+
+__all__ = [
+    "DEFAULT_PAYLOAD_TYPE",
+    "MAX_FRAGMENT",
+    "Ack",
+    "Data",
+    "Reassembler",
+    "RttEstimator",
+    "Transfer",
+    "TunnelHub",
+    "TunnelLink",
+    "TunnelSettings",
+    "TunnelSink",
+    "TunnelSource",
+    "decode",
+    "encode_ack",
+    "encode_data",
+    "fragment",
+]
