@@ -8,6 +8,7 @@ shortcut through shared memory, which both namespaces see.
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import uuid
@@ -62,6 +63,13 @@ class TwoHosts:
             self.__exit__()
             raise NamespacesUnavailable(str(exc)) from exc
         return self.gcs, self.uav
+
+    def received_bytes(self, host: Host) -> int:
+        """Bytes the host's end of the link has received: proof that traffic crossed it."""
+        veth = self._veth[0] if host is self.gcs else self._veth[1]
+        out = subprocess.run(["ip", "-n", host.namespace, "-s", "-j", "link", "show", "dev", veth],
+                             capture_output=True, text=True, timeout=10, check=True).stdout
+        return int(json.loads(out)[0]["stats64"]["rx"]["bytes"])
 
     def __exit__(self, *exc: object) -> None:
         for host in (self.gcs, self.uav):

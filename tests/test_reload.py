@@ -9,19 +9,25 @@ from tests.reload_harness import run_reloads
 
 
 def test_fifty_rewrites_under_500_msg_per_s_lose_nothing(amqp_url: str, tmp_path: Path):
+    """AMQP->AMQP, AMQP->ROS 2 and ROS 2->AMQP at 500 msg/s each while farm.yaml is rewritten
+    50 times: mapping changes, a route added and removed, atomic renames, an invalid file
+    written and then fixed."""
     run = asyncio.run(run_reloads(amqp_url, tmp_path, rewrites=50, rate=500.0))
     print(run.summary())
-    assert run.sent >= 5000
-    missing = set(range(run.sent)) - set(run.copies)
-    assert not missing, f"{len(missing)} messages lost, e.g. {sorted(missing)[:10]}"
     written = {0, *run.written_generations}
-    seen = {gen for gens in run.copies.values() for gen in gens}
-    assert seen <= written
-    assert len(seen) >= 40, "mappings were not swapped live"
+    for name, flow in run.flows.items():
+        assert flow.sent >= 5000, name
+        missing = set(range(flow.sent)) - set(flow.copies)
+        assert not missing, f"{name}: {len(missing)} messages lost, e.g. {sorted(missing)[:10]}"
+        seen = {gen for gens in flow.copies.values() for gen in gens}
+        assert seen <= written, name
+        assert len(seen) >= 40, f"{name}: mappings were not swapped live"
+        assert max(seen) == run.written_generations[-1], f"{name}: the last configuration is not live"
     assert run.rejected_reported, "the invalid file was not reported with file:line"
     reloads = run.status["reloads"]
-    assert reloads["rejected"] == 5 and reloads["succeeded"] >= 50
-    assert run.status["generation"] >= 50
+    assert reloads["rejected"] == 5
+    assert reloads["succeeded"] >= 40, "saves close together may share a reload, not most of them"
+    assert run.status["generation"] == reloads["succeeded"] + 1
 
 
 def test_sighup_reloads_and_status_names_the_live_config(amqp_url: str, tmp_path: Path):
