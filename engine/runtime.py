@@ -67,6 +67,8 @@ class RouteRunner:
         self.connections = connections
         """The source's then the sink's connection: kept open while the runner lives."""
         self.stats = RouteStats()
+        self.latency_samples: list[int] | None = None
+        """Set to a list to record every message's reception-to-acceptance time (benchmarks)."""
         self._report = Throttle()
 
     async def deliver(self, inbound: Inbound) -> None:
@@ -98,6 +100,8 @@ class RouteRunner:
             stats.latency_ns_total += latency
             if latency > stats.latency_ns_max:
                 stats.latency_ns_max = latency
+            if self.latency_samples is not None:
+                self.latency_samples.append(latency)
         finally:
             pipeline.leave()
 

@@ -25,12 +25,13 @@ from engine.endpoints.base import (
     Deliver,
     EndpointError,
     Inbound,
+    MessageRejected,
     Outbound,
     Sink,
     Source,
     Transport,
 )
-from engine.mapping import compile_template
+from engine.mapping import MappingError, compile_template
 
 _ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError)
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
@@ -106,7 +107,7 @@ class AmqpConnection(Connection):
     ) -> None:
         try:
             exchange = await self.exchange(exchange_name, kind, durable)
-            await exchange.publish(message, routing_key)
+            await exchange.publish(message, routing_key, mandatory=False)
         except _ERRORS as exc:
             raise EndpointError(f"amqp publish to {exchange_name!r}/{routing_key!r} on {self.name!r}: {exc}") from exc
 
@@ -214,6 +215,9 @@ class AmqpSource(Source):
 
 
 class AmqpSink(Sink):
+    """Publishes without the mandatory flag: as in AMQP itself, an exchange with no matching
+    binding drops the message (RabbitMQ's alternate exchanges are the way to keep those)."""
+
     def __init__(self, connection: AmqpConnection, route: str, options: Mapping[str, Any]) -> None:
         self._connection = connection
         self._exchange = options.get("exchange", "")
@@ -226,7 +230,10 @@ class AmqpSink(Sink):
         )
 
     async def send(self, message: Outbound) -> None:
-        routing_key = self._routing_key(message.canonical)
+        try:
+            routing_key = self._routing_key(message.canonical)
+        except MappingError as exc:  # a field the key needs is missing: no retry can help
+            raise MessageRejected(str(exc)) from None
         meta = message.meta
         await self._connection.publish(
             self._exchange,
