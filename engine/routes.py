@@ -213,12 +213,24 @@ def _to_python(
     value = loader.construct_object(node)
     if isinstance(value, str) and "$" in value:
         try:
-            return substitute_env(value, env)
+            substituted = substitute_env(value, env)
         except KeyError as exc:
             problems.append(
                 Problem(file, node.start_mark.line + 1, f"environment variable {exc.args[0]} is not set (use ${{{exc.args[0]}:-default}} for a default)")
             )
+            return value
+        return _typed(substituted) if node.style is None else substituted
     return value
+
+
+def _typed(text: str) -> Any:
+    """An unquoted ``${VAR}`` takes the YAML type of its value (``domain_id: ${ROS_DOMAIN_ID}``
+    is a number); quoting it keeps a string."""
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+    return value if isinstance(value, (int, float, bool)) and not isinstance(value, str) else text
 
 
 def substitute_env(text: str, env: Mapping[str, str]) -> str:

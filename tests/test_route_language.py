@@ -20,6 +20,15 @@ def test_env_substitution_defaults_escapes_and_unset():
         substitute_env("${NOT_THERE}", env)
 
 
+def test_unquoted_env_values_take_their_yaml_type(tmp_path: Path, schemas_dir: Path):
+    (tmp_path / "a.yaml").write_text(
+        "connections:\n  ros:\n    ros2:\n      domain_id: ${DOMAIN:-7}\n      node: '${NODE:-n42}'\n"
+        "routes:\n  - {name: r, source: {ros2: {topic: /a}}, schema: raw_json, sink: {amqp: {exchange: e}}}\n"
+    )
+    config = load_routes(tmp_path, SchemaRegistry(schemas_dir), env={"DOMAIN": "12"})
+    assert config.connections["ros"].settings == {"domain_id": 12, "node": "n42"}
+
+
 def test_field_functions():
     mapping = compile_mapping(
         "{lat: deg_e7_to_deg(lat), alt: mm_to_m(alt), v: cm_to_m(vx), hdg: cdeg_to_deg(hdg),"
