@@ -163,6 +163,9 @@ class Engine:
                 await self._apply(config, schemas)
             except EndpointError as error:
                 return self._rejected([str(error)])
+            except Exception as error:  # a reload must never take the running engine down
+                log.exception("reload failed")
+                return self._rejected([f"{type(error).__name__}: {error}"])
             self.reloads.succeeded += 1
             self.reloads.last_error = []
             self.reloads.last_reload_s = time.monotonic() - began
@@ -216,10 +219,11 @@ class Engine:
             for runner in fresh:
                 await runner.source.start(runner.deliver)
         except BaseException:
-            for runner in fresh:
-                await runner.source.stop()
-            for pipeline in [r.pipeline for r in fresh] + [p for _, p, _ in swaps]:
-                await pipeline.sink.close()
+            await asyncio.gather(
+                *(runner.source.stop() for runner in fresh),
+                *(pipeline.sink.close() for pipeline in [r.pipeline for r in fresh] + [p for _, p, _ in swaps]),
+                return_exceptions=True,
+            )
             await self._close_unused(self.runners.values())
             raise
 
