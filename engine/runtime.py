@@ -285,7 +285,6 @@ class Engine:
     async def stop(self) -> None:
         async with self._lock:
             await asyncio.gather(*(runner.stop() for runner in self.runners.values()), return_exceptions=True)
-            self.runners = {}
             for connection in self._connections.values():
                 await connection.close()
             self._connections.clear()

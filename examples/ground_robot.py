@@ -15,7 +15,7 @@ import time
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import NavSatFix, NavSatStatus
 from std_msgs.msg import String
@@ -52,7 +52,9 @@ def main() -> int:
         fix.altitude = 600.0
         fix_pub.publish(fix)
 
-    node.create_subscription(String, f"/{args.name}/mission", on_mission, qos)
+    missions_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    node.create_subscription(String, f"/{args.name}/mission", on_mission, missions_qos)
     node.create_timer(1.0, publish_fix)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):

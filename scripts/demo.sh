@@ -1,23 +1,9 @@
 #!/usr/bin/env bash
-# Sets everything up, then runs the main job: the engine on the shipped routes with a private
-# RabbitMQ node, a generator publishing UAV weed detections and a consumer printing the
-# canonical messages that come out.
+# Sets everything up, then runs the main job: the farm example (examples/farm_uav_gcs.yaml) with
+# every part real on this machine: a simulated UAV on MAVLink 2 through an emulated SiK radio, a
+# ROS 2 ground robot, the engine with a private RabbitMQ node, and the supervisory software that
+# turns the UAV's weed detections into missions for the robot.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-
-work=$(mktemp -d)
-cleanup() {
-  [ -n "${engine_pid:-}" ] && kill -TERM -- "-$engine_pid" 2>/dev/null && wait "$engine_pid" 2>/dev/null
-  rm -rf "$work"
-}
-trap cleanup EXIT
-
-setsid timeout -s KILL 600 .venv/bin/rabbitros-engine --routes "${ROUTES:-routes/}" --local-broker \
-  --broker-url-file "$work/url" --status-file "$work/status.json" &
-engine_pid=$!
-for _ in $(seq 120); do [ -s "$work/status.json" ] && break; sleep 0.5; done
-[ -s "$work/status.json" ] || { echo "demo: engine did not start" >&2; exit 1; }
-
-timeout -s KILL 120 .venv/bin/python examples/generator.py --url "$(cat "$work/url")" --count "${COUNT:-20}"
-.venv/bin/rabbitros-engine status --status-file "$work/status.json"
+exec timeout -s KILL 600 .venv/bin/python examples/farm_demo.py --duration "${DURATION:-30}"

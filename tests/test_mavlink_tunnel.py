@@ -489,7 +489,7 @@ def test_signed_round_trip_through_radio_and_simulated_vehicle(monkeypatch: pyte
     async def scenario() -> None:
         async with sik_radio.SikRadioPair(loss=0.05, seed=8) as pair:
             link = vehicle_sim.open_link(pair.link_b)
-            vehicle = vehicle_sim.SimVehicle(link, signing_key=key, link_id=1)
+            vehicle = vehicle_sim.SimVehicle(link, signing_key=key, link_id=1, echo_frames=True)
             stop = asyncio.Event()
             running = asyncio.create_task(vehicle.run(stop))
             gcs = TRANSPORT.connect("gcs", {"url": pair.link_a, "baud": 57600,

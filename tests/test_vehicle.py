@@ -1,7 +1,9 @@
-"""The simulated vehicle must stream the documented trajectory and echo TUNNEL frames exactly."""
+"""The simulated vehicle must stream the documented trajectory, speak the engine's JSON tunnel
+protocol as the robot agent (store, then send back), and echo raw TUNNEL frames exactly on request."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import itertools
 import json
@@ -184,7 +186,7 @@ def test_telemetry_over_the_radio_matches_the_trajectory(radio: SikRadioPair) ->
 def test_tunnel_echo_over_the_radio_is_byte_identical(radio: SikRadioPair, tmp_path: Path) -> None:
     store = tmp_path / "tunnel.hex"
     payloads = [bytes(range(1, 61)) + bytes(8), bytes((7 * k) % 256 for k in range(128)), b"\x00"]
-    with vehicle("--device", radio.link_b, "--store", str(store), "--duration", "15") as proc:
+    with vehicle("--device", radio.link_b, "--echo-frames", "--store", str(store), "--duration", "15") as proc:
         gcs = serial_peer(radio.link_a)
         try:
             sent = [gcs.mav.tunnel_encode(1, 1, TUNNEL_TYPE + i, len(p), list(p) + [0] * (128 - len(p)))
@@ -227,13 +229,13 @@ def test_network_transports_carry_telemetry_and_echo(transport: str) -> None:
         if transport == "udpin":
             port = _free_udp_port()
             sock = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
-            proc = stack.enter_context(vehicle("--device", f"udpin:127.0.0.1:{port}", "--duration", "15"))
+            proc = stack.enter_context(vehicle("--device", f"udpin:127.0.0.1:{port}", "--echo-frames", "--duration", "15"))
             peer = Peer(lambda: sock.recv(65535), lambda d: sock.sendto(d, ("127.0.0.1", port)), sock.fileno())
         elif transport == "udpout":
             sock = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
             sock.bind(("127.0.0.1", 0))
             target = f"udpout:127.0.0.1:{sock.getsockname()[1]}"
-            proc = stack.enter_context(vehicle("--device", target, "--duration", "15"))
+            proc = stack.enter_context(vehicle("--device", target, "--echo-frames", "--duration", "15"))
             source: dict[str, Any] = {}
 
             def recv_udp() -> bytes:
@@ -244,7 +246,7 @@ def test_network_transports_carry_telemetry_and_echo(transport: str) -> None:
         else:
             server = stack.enter_context(socket.create_server(("127.0.0.1", 0)))
             proc = stack.enter_context(vehicle("--device", f"tcp:127.0.0.1:{server.getsockname()[1]}",
-                                               "--duration", "15"))
+                                               "--echo-frames", "--duration", "15"))
             server.settimeout(5)
             conn = stack.enter_context(server.accept()[0])
             peer = Peer(lambda: conn.recv(4096), conn.sendall, conn.fileno())
@@ -260,7 +262,7 @@ def test_network_transports_carry_telemetry_and_echo(transport: str) -> None:
 def test_signing_signs_everything_and_rejects_unsigned_tunnels() -> None:
     port = _free_udp_port()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock, \
-            vehicle("--device", f"udpin:127.0.0.1:{port}", "--signing-key", KEY.hex(),
+            vehicle("--device", f"udpin:127.0.0.1:{port}", "--echo-frames", "--signing-key", KEY.hex(),
                     "--link-id", "5", "--duration", "15") as proc:
         peer = Peer(lambda: sock.recv(65535), lambda d: sock.sendto(d, ("127.0.0.1", port)), sock.fileno(),
                     key=KEY)
@@ -283,3 +285,55 @@ def test_signing_signs_everything_and_rejects_unsigned_tunnels() -> None:
     wrong_key.signing.secret_key = bytes(32)
     decoded = wrong_key.parse_buffer(frames[0].get_msgbuf()) or []
     assert [m.get_type() for m in decoded] == ["BAD_DATA"]
+
+
+def test_json_tunnel_peer_stores_before_acknowledging_and_sends_back(tmp_path: Path) -> None:
+    """The engine's own tunnel endpoint on one side, the vehicle process on the other: each
+    message is on the robot's disk by the time the engine's send returns, comes back once and
+    unchanged, and a malformed or foreign TUNNEL frame is neither stored nor answered."""
+    from engine.endpoints import mavlink
+    from engine.endpoints.base import Outbound
+    from engine.endpoints.mavlink_tunnel import fragment
+
+    port = _free_udp_port()
+    bodies = [b"{}", json.dumps({"agent_id": "uav1", "pad": "x" * 230}).encode(),
+              json.dumps({"big": list(range(700))}, separators=(",", ":")).encode()]
+    store = tmp_path / "robot.jsonl"
+
+    async def scenario() -> list[bytes]:
+        gcs = mavlink.TRANSPORT.connect("gcs", {"url": f"udpout:127.0.0.1:{port}"})
+        await gcs.open()
+        echoes: list[bytes] = []
+
+        async def collect(inbound: Any) -> None:
+            echoes.append(inbound.body)
+
+        source = gcs.source("back", {"json_tunnel": True, "system_id": 1})
+        await source.start(collect)
+        sink = gcs.sink("out", {"json_tunnel": True, "target_system": 1, "target_component": 1})
+        try:
+            junk = b"bad".ljust(128, b"\0")
+            await gcs.send_message(mavlink2.MAVLink_tunnel_message(1, 1, 0xA900, 3, junk))
+            foreign = fragment(4321, b'{"for":"uav7"}')[0]
+            await gcs.send_message(mavlink2.MAVLink_tunnel_message(
+                7, 1, 0xA900, len(foreign), foreign.ljust(128, b"\0")))
+            for index, body in enumerate(bodies):
+                await sink.send(Outbound(body, None, None, f"m{index}", {}))
+                assert store.read_bytes().splitlines() == bodies[:index + 1], "stored before DELIVERED"
+            deadline = time.monotonic() + 10
+            while len(echoes) < len(bodies) and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(0.5)
+            return echoes
+        finally:
+            await source.stop()
+            await gcs.close()
+
+    with vehicle("--device", f"udpin:127.0.0.1:{port}", "--store", str(store), "--duration", "20") as proc:
+        echoes = asyncio.run(asyncio.wait_for(scenario(), 30))
+        stats = stop(proc)
+    assert sorted(echoes) == sorted(bodies), "each message back exactly once, unchanged"
+    assert store.read_bytes() == b"".join(body + b"\n" for body in bodies)
+    assert stats["json_received"] == stats["json_echoed"] == len(bodies)
+    assert stats["json_echo_failed"] == 0 and stats["tunnels_echoed"] == 0
+    assert stats["tunnels_ignored"] == 1, "the frame for system 7 is not ours"
