@@ -72,6 +72,7 @@ from engine.endpoints.mavlink_tunnel import (  # noqa: E402
     TunnelSettings,
     TunnelSink,
     TunnelSource,
+    radio_pacing_factor,
 )
 
 MESSAGES: dict[str, type[mavlink2.MAVLink_message]] = {cls.msgname: cls for cls in mavlink2.mavlink_map.values()}
@@ -873,7 +874,7 @@ class MavlinkConnection(Connection):
             if rate:
                 self._tx_ready = max(self._tx_ready, start) + len(data) / rate
             if bulk and bulk_rate:
-                self._bulk_ready = max(self._bulk_ready, start) + len(data) / (bulk_rate * self._radio_factor(start))
+                self._bulk_ready = max(self._bulk_ready, start) + len(data) / (bulk_rate * radio_pacing_factor(self._radio_txbuf, start))
             if not future.done():
                 future.set_result(loop.time())
 
@@ -884,13 +885,6 @@ class MavlinkConnection(Connection):
         data = msg.pack(self._mav)
         self._mav.seq = (self._mav.seq + 1) % 256
         return data
-
-    def _radio_factor(self, now: float) -> float:
-        """SiK reports its free buffer in RADIO_STATUS.txbuf (%); back off before it overflows."""
-        if self._radio_txbuf is None or now - self._radio_txbuf[0] > 3.0:
-            return 1.0
-        free = self._radio_txbuf[1]
-        return 1.0 if free >= 50 else 0.5 if free >= 25 else 0.2
 
     async def _heartbeat(self) -> None:
         period = 1.0 / self.config.heartbeat

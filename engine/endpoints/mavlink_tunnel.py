@@ -415,6 +415,18 @@ class TunnelLink(Protocol):
         ...
 
 
+def radio_pacing_factor(txbuf: tuple[float, int] | None, now: float) -> float:
+    """How much of the bulk rate to use, from the radio's last RADIO_STATUS ``(time, txbuf %)``.
+
+    A SiK radio silently drops serial input that overflows its 2 KB buffer, so both ends of a
+    tunnel slow down while it reports less than half of it free; a report older than 3 s no
+    longer counts."""
+    if txbuf is None or now - txbuf[0] > 3.0:
+        return 1.0
+    free = txbuf[1]
+    return 1.0 if free >= 50 else 0.5 if free >= 25 else 0.2
+
+
 @dataclass(frozen=True, slots=True)
 class TunnelSettings:
     """Per-connection tuning; defaults depend on the link (a SiK radio needs patience)."""

@@ -56,6 +56,7 @@ from engine.endpoints.mavlink_tunnel import (  # noqa: E402
     TunnelSettings,
     TunnelSink,
     TunnelSource,
+    radio_pacing_factor,
 )
 
 CENTER_LAT_DEG = -22.0
@@ -360,14 +361,8 @@ class _TunnelPort:
                 continue
             size = self.vehicle.send_tunnel(payload_type, target, payload)
             if bulk and self.rate:
-                self._bulk_ready = max(self._bulk_ready, now) + size / (self.rate * self._radio_factor(now))
+                self._bulk_ready = max(self._bulk_ready, now) + size / (self.rate * radio_pacing_factor(self.radio_txbuf, now))
             future.set_result(loop.time())
-
-    def _radio_factor(self, now: float) -> float:
-        if self.radio_txbuf is None or now - self.radio_txbuf[0] > 3.0:
-            return 1.0
-        free = self.radio_txbuf[1]
-        return 1.0 if free >= 50 else 0.5 if free >= 25 else 0.2
 
 
 class SimVehicle:
