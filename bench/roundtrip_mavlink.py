@@ -153,7 +153,7 @@ async def vehicle_process(link: str, store: Path, budget: float, window: int | N
     the latest; yields a dict that receives the vehicle's final counters."""
     extra = ["--tunnel-window", str(window)] if window else []
     proc = await asyncio.create_subprocess_exec(
-        "timeout", "-s", "KILL", str(int(budget)), sys.executable, "-m", "engine.sim.vehicle",
+        "timeout", "-s", "KILL", str(int(budget)), sys.executable, "-m", "rabbitros_sim.vehicle",
         "--device", link, "--baud", "57600", "--store", str(store), *extra,
         cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=asyncio.subprocess.PIPE,
         start_new_session=True)
@@ -199,7 +199,7 @@ async def _with_broker(settings: Settings, amqp_url: str) -> dict[str, Any]:
     import aio_pika
 
     from engine.runtime import Engine
-    from engine.sim.sik_radio import SikRadioPair
+    from rabbitros_sim.sik_radio import SikRadioPair
 
     out = settings.out
     out.mkdir(parents=True, exist_ok=True)

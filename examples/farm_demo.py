@@ -26,7 +26,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from engine.sim.sik_radio import SikRadioPair  # noqa: E402
+from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 
 PYTHON = sys.executable
 
@@ -67,7 +67,7 @@ def main() -> int:
     with SikRadioPair(link_a=str(work / "radio-gcs"), link_b=str(work / "radio-uav"), seed=1) as radio:
         env["RABBITROS_RADIO"] = radio.link_a
         try:
-            processes.append(spawn([PYTHON, "-m", "engine.sim.vehicle", "--device", radio.link_b, "--baud", "57600",
+            processes.append(spawn([PYTHON, "-m", "rabbitros_sim.vehicle", "--device", radio.link_b, "--baud", "57600",
                                     "--weeds-every", "6"], env, work / "vehicle.log"))
             processes.append(spawn([PYTHON, "examples/ground_robot.py", "--name", "robot1"], env))
             engine = spawn([str(Path(PYTHON).with_name("rabbitros-engine")), "--routes", "examples/farm_uav_gcs.yaml",

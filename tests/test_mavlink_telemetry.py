@@ -24,8 +24,8 @@ import pytest
 
 from bench.roundtrip_mavlink import vehicle_process
 from engine.runtime import Engine
-from engine.sim.sik_radio import SikRadioPair
-from engine.sim.vehicle import expected_state
+from rabbitros_sim.sik_radio import SikRadioPair
+from rabbitros_sim.vehicle import expected_state
 from tests.amqp_helpers import Collector
 
 REPO = Path(__file__).resolve().parents[1]

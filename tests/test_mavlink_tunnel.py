@@ -22,7 +22,7 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from engine.endpoints import mavlink  # noqa: E402
-from engine.endpoints import mavlink_tunnel as tunnel  # noqa: E402
+from engine.endpoints.mavlink import tunnel  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, Outbound  # noqa: E402
 
 TRANSPORT = mavlink.TRANSPORT
@@ -409,7 +409,7 @@ def test_sink_raises_when_nobody_acknowledges() -> None:
 
 # -- over the SiK radio emulator ----------------------------------------------------------------------
 
-sik_radio = pytest.importorskip("engine.sim.sik_radio")
+from rabbitros_sim import sik_radio  # noqa: E402
 
 
 async def sik_pair(pair: Any) -> tuple[mavlink.MavlinkConnection, mavlink.MavlinkConnection]:
@@ -481,15 +481,15 @@ def test_sik_radio_three_second_outage() -> None:
 def test_signed_round_trip_through_radio_and_simulated_vehicle(monkeypatch: pytest.MonkeyPatch) -> None:
     """Telemetry from an independent pymavlink vehicle, and JSON echoed by it, over a lossy
     radio with signing on both ends (the radio's own RADIO_STATUS stays unsigned)."""
-    vehicle_sim = pytest.importorskip("engine.sim.vehicle")
+    from rabbitros_sim import vehicle as vehicle_sim
+
     key = bytes(range(32))
 
     monkeypatch.setenv("RABBITROS_TEST_TUNNEL_KEY", key.hex())
 
     async def scenario() -> None:
         async with sik_radio.SikRadioPair(loss=0.05, seed=8) as pair:
-            link = vehicle_sim.open_link(pair.link_b)
-            vehicle = vehicle_sim.SimVehicle(link, signing_key=key, link_id=1, echo_frames=True)
+            vehicle = vehicle_sim.SimVehicle(pair.link_b, signing_key=key, link_id=1, echo_frames=True)
             stop = asyncio.Event()
             running = asyncio.create_task(vehicle.run(stop))
             gcs = TRANSPORT.connect("gcs", {"url": pair.link_a, "baud": 57600,
@@ -526,6 +526,5 @@ def test_signed_round_trip_through_radio_and_simulated_vehicle(monkeypatch: pyte
                 await gcs.close()
                 stop.set()
                 await running
-                link.close()
 
     run(scenario(), timeout=60)

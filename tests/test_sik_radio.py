@@ -18,14 +18,14 @@ import pytest
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
-from engine.sim.sik_radio import (  # noqa: E402
+from rabbitros_sim.sik_radio import (  # noqa: E402
     MAX_AIR_PACKET,
     RADIO_COMPID,
     RADIO_SYSID,
     SikRadioPair,
     sik_packet_length,
 )
-from engine.sim.vehicle import open_serial  # noqa: E402
+from rabbitros_sim.vehicle import open_serial  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 TUNNEL_TYPE = 0xA900
@@ -252,7 +252,7 @@ def test_radio_status_is_injected_on_both_sides(pair_factory: PairFactory) -> No
 def test_cli_runs_as_a_process_and_stops_on_sigterm(tmp_path: Path) -> None:
     link_a, link_b = tmp_path / "gcs", tmp_path / "uav"
     proc = subprocess.Popen(
-        ["timeout", "-s", "KILL", "20", sys.executable, "-m", "engine.sim.sik_radio",
+        ["timeout", "-s", "KILL", "20", sys.executable, "-m", "rabbitros_sim.sik_radio",
          "--link-a", str(link_a), "--link-b", str(link_b), "--radio-status-interval", "0.2",
          "--seed", "5", "--loss", "0"],
         cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE,

@@ -24,8 +24,8 @@ import pytest
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
-from engine.sim.sik_radio import SikRadioPair  # noqa: E402
-from engine.sim.vehicle import (  # noqa: E402
+from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
+from rabbitros_sim.vehicle import (  # noqa: E402
     CENTER_LAT_DEG,
     CENTER_LON_DEG,
     expected_state,
@@ -43,7 +43,7 @@ ATT_FIELDS = ("roll", "pitch", "yaw", "rollspeed", "pitchspeed", "yawspeed")
 def vehicle(*args: str) -> Iterator[subprocess.Popen[str]]:
     """Run the vehicle CLI in its own process group, bounded by ``timeout``; yield once ready."""
     proc = subprocess.Popen(
-        ["timeout", "-s", "KILL", "30", sys.executable, "-m", "engine.sim.vehicle", *args],
+        ["timeout", "-s", "KILL", "30", sys.executable, "-m", "rabbitros_sim.vehicle", *args],
         cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE,
         start_new_session=True, text=True)
     try:
@@ -293,7 +293,7 @@ def test_json_tunnel_peer_stores_before_acknowledging_and_sends_back(tmp_path: P
     unchanged, and a malformed or foreign TUNNEL frame is neither stored nor answered."""
     from engine.endpoints import mavlink
     from engine.endpoints.base import Outbound
-    from engine.endpoints.mavlink_tunnel import fragment
+    from engine.endpoints.mavlink.tunnel import fragment
 
     port = _free_udp_port()
     bodies = [b"{}", json.dumps({"agent_id": "uav1", "pad": "x" * 230}).encode(),

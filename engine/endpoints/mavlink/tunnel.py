@@ -666,7 +666,7 @@ class TunnelSource(Source):
     def _send_ack(self, peer: Hashable, ack: bytes) -> None:
         assert isinstance(peer, tuple)
         sent = asyncio.ensure_future(self.hub.link.send_tunnel(self.payload_type, peer, ack, bulk=False))
-        sent.add_done_callback(_consume)
+        sent.add_done_callback(ignore_result)
 
     async def _timers(self) -> None:
         loop = asyncio.get_running_loop()
@@ -696,7 +696,7 @@ class TunnelSource(Source):
             self._send_ack(peer, self.reassembler.delivered(key, loop.time()))
 
 
-def _consume(future: asyncio.Future[Any]) -> None:
+def ignore_result(future: asyncio.Future[Any]) -> None:
     """Acknowledgements are best effort: the sender's timer covers one that was not written."""
     if not future.cancelled():
         future.exception()

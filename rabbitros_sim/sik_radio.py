@@ -25,7 +25,7 @@ direction gets at most ~48 % of the air time), frequency hopping, ECC and RTS/CT
 
 Use :class:`SikRadioPair` in-process (a background thread) or run the module as a process::
 
-    python -m engine.sim.sik_radio --link-a /tmp/gcs --link-b /tmp/uav --loss 0.05 --outage 10:2
+    python -m rabbitros_sim.sik_radio --link-a /tmp/gcs --link-b /tmp/uav --loss 0.05 --outage 10:2
 """
 
 from __future__ import annotations
@@ -440,7 +440,7 @@ def _parse_outage(text: str) -> tuple[float, float]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m engine.sim.sik_radio", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m rabbitros_sim.sik_radio", description=__doc__.split("\n")[0])
     parser.add_argument("--link-a", required=True, help="symlink to create for radio A's serial port")
     parser.add_argument("--link-b", required=True, help="symlink to create for radio B's serial port")
     parser.add_argument("--loss", type=float, default=0.0, help="probability that an air packet is lost")

@@ -1,0 +1,77 @@
+"""MAVLink 2 endpoint: telemetry in, commands, missions and JSON (TUNNEL) out, on one shared link.
+
+A connection owns one link (serial device, ``udpin:``, ``udpout:``, ``tcp:``, ``tcpin:``)
+driven by asyncio, not by pymavlink's blocking ``mavutil``: a reader hands chunks to
+``MAVLink.parse_buffer`` (byte-at-a-time parsing costs ~10x more) and one writer packs and
+writes every frame. Packing at write time keeps sequence numbers and signing timestamps in
+wire order, which a receiver requires. The writer paces to the link rate (a SiK radio's
+serial buffer is a few hundred bytes to 2 KB and overflows silently), sends control frames
+before bulk tunnel fragments, and slows bulk traffic when the radio's RADIO_STATUS reports a
+filling buffer.
+
+Signing (MAVLink 2): outgoing frames are signed by pymavlink; incoming signatures are
+verified here rather than by pymavlink because pymavlink records a stream's timestamp before
+checking the signature, so one forged frame with a far-future timestamp would make every
+genuine frame of that stream look replayed. Rejections are counted in :attr:`MavlinkConnection.stats`.
+
+Settings (YAML ``connections.<name>.mavlink``)::
+
+    url: /dev/ttyUSB0 | udpin:HOST:PORT | udpout:HOST:PORT | tcp:HOST:PORT | tcpin:HOST:PORT
+    baud: 57600                  # serial only
+    source_system: 255
+    source_component: 190
+    signing: {key_file: PATH | key_env: VAR, link_id: 0, timestamp_file: PATH,
+              allow_unsigned: [RADIO_STATUS]}
+    rate: BYTES_PER_S            # default baud/10 on serial, unpaced on networks
+    heartbeat: 1.0               # Hz, 0 = none (a SiK radio injects RADIO_STATUS only after one)
+    mav_type: 6                  # MAV_TYPE of our HEARTBEAT (6 GCS, 18 onboard controller)
+    tunnel: {fragment_size, rto_min, rto_max, retries, sack_delay, window, rate, ...}
+
+Source options: ``message`` (optional), ``system_id``, ``component_id``; or ``json_tunnel:
+true`` with ``payload_type``. Sink options: ``message``, ``target_system``,
+``target_component`` (defaults for those fields); or ``json_tunnel: true`` with
+``payload_type``, ``target_system``, ``target_component``.
+
+Modules, one per concern: :mod:`.settings` (connection settings), :mod:`.links` (serial, UDP,
+TCP), :mod:`.signing`, :mod:`.codec` (messages as dicts), :mod:`.port` (paced writer and reader),
+:mod:`.connection` (heartbeat, vehicles heard, dispatch), :mod:`.messages` (route endpoints),
+:mod:`.mission` and :mod:`.command` (transactions the vehicle acknowledges), :mod:`.enums`
+(enum names for mappings), :mod:`.checks` (static checks), :mod:`.tunnel` (JSON over TUNNEL).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, ClassVar
+
+from engine.endpoints.base import CheckResult, Transport
+from engine.endpoints.mavlink.checks import check_sink_options, check_source_options
+from engine.endpoints.mavlink.codec import MESSAGES, build_message, field_specs, message_fields, mavlink2
+from engine.endpoints.mavlink.connection import MavlinkConnection
+from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
+from engine.endpoints.mavlink.signing import signing_now
+
+
+class MavlinkTransport(Transport):
+    name: ClassVar[str] = "mavlink"
+    default_settings: ClassVar[Mapping[str, Any]] = {"url": "udpin:0.0.0.0:14550"}
+
+    def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
+        return settings_problems(settings)[1]
+
+    def check_source(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
+        return check_source_options(options, mapping)
+
+    def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
+        return check_sink_options(options, mapping)
+
+    def connect(self, name: str, settings: Mapping[str, Any]) -> MavlinkConnection:
+        return MavlinkConnection(name, settings)
+
+
+TRANSPORT = MavlinkTransport()
+
+__all__ = [
+    "MESSAGES", "TRANSPORT", "Address", "LinkConfig", "MavlinkConnection", "MavlinkTransport",
+    "build_message", "field_specs", "mavlink2", "message_fields", "parse_address", "settings_problems", "signing_now",
+]

@@ -1,0 +1,107 @@
+"""MAVLink messages as plain dicts and back: the conversion edge of the MAVLink endpoint.
+
+``build_message`` turns a sink mapping's object into a message, rejecting (permanently, with the
+field named) what the message type cannot carry; ``message_fields`` gives a received message's
+fields. Both use pymavlink's ``common`` dialect tables, MAVLink 2.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
+
+from engine.endpoints.base import MessageRejected  # noqa: E402
+
+MESSAGES: dict[str, type[mavlink2.MAVLink_message]] = {cls.msgname: cls for cls in mavlink2.mavlink_map.values()}
+RADIO_STATUS = mavlink2.MAVLINK_MSG_ID_RADIO_STATUS
+TUNNEL = mavlink2.MAVLINK_MSG_ID_TUNNEL
+_INT_RANGES = {
+    "int8_t": (-(2**7), 2**7 - 1), "uint8_t": (0, 2**8 - 1),
+    "int16_t": (-(2**15), 2**15 - 1), "uint16_t": (0, 2**16 - 1),
+    "int32_t": (-(2**31), 2**31 - 1), "uint32_t": (0, 2**32 - 1),
+    "int64_t": (-(2**63), 2**63 - 1), "uint64_t": (0, 2**64 - 1),
+}
+
+
+
+@dataclass(frozen=True, slots=True)
+class FieldSpec:
+    type: str
+    length: int
+    """Array length; 0 for a scalar."""
+
+
+def field_specs(cls: type[mavlink2.MAVLink_message]) -> dict[str, FieldSpec]:
+    """``fieldtypes`` follows ``fieldnames`` but ``array_lengths`` follows wire order."""
+    lengths = dict(zip(cls.ordered_fieldnames, cls.array_lengths))
+    return {name: FieldSpec(ftype, lengths[name]) for name, ftype in zip(cls.fieldnames, cls.fieldtypes)}
+
+
+def _scalar(name: str, ftype: str, value: Any) -> int | float:
+    if isinstance(value, str) or not isinstance(value, (int, float)):
+        raise MessageRejected(f"field {name!r}: expected a number, got {type(value).__name__}")
+    if ftype in ("float", "double"):
+        return float(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise MessageRejected(f"field {name!r}: {value} is not an integer")
+        value = round(value)
+    low, high = _INT_RANGES[ftype]
+    if not low <= value <= high:
+        raise MessageRejected(f"field {name!r}: {value} is outside {ftype} ({low}..{high})")
+    return int(value)
+
+
+def _coerce(name: str, spec: FieldSpec, value: Any) -> Any:
+    if spec.type == "char":
+        if value is None:
+            return b""
+        raw = value.encode() if isinstance(value, str) else value
+        if not isinstance(raw, (bytes, bytearray)):
+            raise MessageRejected(f"field {name!r}: expected a string")
+        if len(raw) > max(spec.length, 1):
+            raise MessageRejected(f"field {name!r}: {len(raw)} bytes exceed char[{spec.length}]")
+        return bytes(raw)
+    zero = 0.0 if spec.type in ("float", "double") else 0
+    if not spec.length:
+        return zero if value is None else _scalar(name, spec.type, value)
+    if value is None:
+        return [zero] * spec.length
+    if isinstance(value, (bytes, bytearray)) and spec.type == "uint8_t":
+        items: list[Any] = list(value)
+    elif isinstance(value, (list, tuple)):
+        items = [zero if v is None else _scalar(name, spec.type, v) for v in value]
+    else:
+        raise MessageRejected(f"field {name!r}: expected an array of {spec.length}")
+    if len(items) > spec.length:
+        raise MessageRejected(f"field {name!r}: {len(items)} items exceed [{spec.length}]")
+    return items + [zero] * (spec.length - len(items))
+
+
+def build_message(cls: type[mavlink2.MAVLink_message], fields: Any,
+                  defaults: Mapping[str, Any] | None = None) -> mavlink2.MAVLink_message:
+    """A message from a dict of fields; missing ones are 0 (empty for strings and arrays)."""
+    if not isinstance(fields, Mapping):
+        raise MessageRejected(f"{cls.msgname}: the sink mapping must produce an object of fields, got {type(fields).__name__}")
+    specs = field_specs(cls)
+    unknown = sorted(set(fields) - set(specs))
+    if unknown:
+        raise MessageRejected(f"{cls.msgname} has no field(s) {', '.join(map(repr, unknown))}")
+    defaults = defaults or {}
+    values = {}
+    for name, spec in specs.items():
+        value = fields.get(name)
+        values[name] = _coerce(name, spec, defaults.get(name) if value is None else value)
+    return cls(**values)
+
+
+def message_fields(msg: mavlink2.MAVLink_message) -> dict[str, Any]:
+    """``to_dict()`` without ``mavpackettype``: strings decoded, arrays as lists."""
+    return {name: msg.format_attr(name) for name in msg.get_fieldnames()}
+

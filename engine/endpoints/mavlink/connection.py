@@ -1,0 +1,201 @@
+"""A MAVLink connection: one link shared by every route that names it.
+
+It runs the link's :class:`~.port.MavlinkPort`, sends our HEARTBEAT (a SiK radio injects
+RADIO_STATUS only after one, and a vehicle only talks to a GCS it hears), learns the vehicles it
+hears (:attr:`MavlinkConnection.vehicles`), hands TUNNEL frames addressed to us to the JSON
+tunnel, and every accepted message to the routes and transactions that subscribed to its type.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from engine.endpoints.base import Connection, EndpointError, Sink, Source
+from engine.endpoints.mavlink.checks import check_sink_options, check_source_options, raise_problems
+from engine.endpoints.mavlink.codec import MESSAGES, TUNNEL, mavlink2
+from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
+from engine.endpoints.mavlink.settings import settings_problems
+from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelHub, TunnelSink, TunnelSource
+
+HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
+
+_STATS = (*PORT_STATS, "not_for_us", "source_dropped", "vehicles_heard")
+"""Keys of :attr:`MavlinkConnection.stats` (see :data:`.port.PORT_STATS`); ``vehicles_heard``
+counts the systems/components whose HEARTBEAT came in. Tunnel counters (``tunnel_sent``,
+``tunnel_retransmissions``, ``tunnel_delivered``, ``tunnel_deliver_failed``,
+``tunnel_malformed``), mission and command counters appear once used."""
+
+Listener = Callable[[mavlink2.MAVLink_message], None]
+
+
+@dataclass(slots=True)
+class VehicleSeen:
+    """A MAVLink component heard on the link, from its HEARTBEAT."""
+
+    system_id: int
+    component_id: int
+    autopilot: str
+    type: str
+    last_heard: float
+    """time.monotonic() of its last HEARTBEAT"""
+
+
+class MavlinkConnection(Connection):
+    """One MAVLink link shared by every route that names it."""
+
+    def __init__(self, name: str, settings: Mapping[str, Any]) -> None:
+        super().__init__(name, settings)
+        config, problems = settings_problems(settings)
+        if config is None or problems:
+            raise EndpointError(f"mavlink connection {name!r}: " + "; ".join(m for _, m in problems))
+        self.config = config
+        self.stats: dict[str, int] = dict.fromkeys(_STATS, 0)
+        self.port = MavlinkPort(name, config, self._on_message, self.stats)
+        self.hub = TunnelHub(self.port, config.tunnel)
+        self.seen: dict[tuple[int, int], VehicleSeen] = {}
+        self._heard = asyncio.Condition()
+        self._listeners: dict[int | None, list[Listener]] = {}
+        self._locks: dict[Any, asyncio.Lock] = {}
+        self._tasks: list[asyncio.Task[None]] = []
+
+    @property
+    def address(self) -> tuple[str, int] | None:
+        """Bound (host, port) of ``udpin``/``tcpin`` links; useful with port 0."""
+        return self.port.address
+
+    @property
+    def signed(self) -> bool:
+        return self.config.signing is not None
+
+    @property
+    def vehicles(self) -> list[dict[str, Any]]:
+        """What the connection has heard, for the status view."""
+        return [asdict(seen) for seen in self.seen.values()]
+
+    async def open(self) -> None:
+        await self.port.open()
+        if self.config.heartbeat > 0:
+            self._tasks.append(asyncio.create_task(self._heartbeat(), name=f"mavlink-heartbeat:{self.name}"))
+
+    async def close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks = []
+        await self.port.close()
+
+    def source(self, route: str, options: Mapping[str, Any]) -> Source:
+        from engine.endpoints.mavlink.messages import MessageSource
+
+        raise_problems(route, "source", check_source_options(options, None))
+        if options.get("json_tunnel"):
+            return TunnelSource(self.hub, route=route, payload_type=options.get("payload_type", DEFAULT_PAYLOAD_TYPE),
+                                system_id=options.get("system_id"), component_id=options.get("component_id"))
+        name = options.get("message")
+        return MessageSource(self, route, MESSAGES[name].id if name else None,
+                             options.get("system_id"), options.get("component_id"))
+
+    def sink(self, route: str, options: Mapping[str, Any]) -> Sink:
+        from engine.endpoints.mavlink.messages import sink_for
+
+        raise_problems(route, "sink", check_sink_options(options, None))
+        target = (options.get("target_system", 0), options.get("target_component", 0))
+        if options.get("json_tunnel"):
+            return TunnelSink(self.hub, payload_type=options.get("payload_type", DEFAULT_PAYLOAD_TYPE), target=target)
+        return sink_for(self, route, options)
+
+    # writing
+
+    def enqueue(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False) -> asyncio.Future[float]:
+        return self.port.enqueue(msg, bulk=bulk)
+
+    async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False) -> float:
+        return await self.port.enqueue(msg, bulk=bulk)
+
+    async def _heartbeat(self) -> None:
+        period = 1.0 / self.config.heartbeat
+        while True:
+            msg = mavlink2.MAVLink_heartbeat_message(self.config.mav_type, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0,
+                                                     mavlink2.MAV_STATE_ACTIVE, 3)
+            if self.port.ready:
+                with contextlib.suppress(EndpointError):
+                    await self.port.enqueue(msg)
+            await asyncio.sleep(period)
+
+    # reading
+
+    def _on_message(self, msg: mavlink2.MAVLink_message) -> None:
+        msg_id = msg.get_msgId()
+        if msg_id == TUNNEL:
+            if msg.target_system not in (0, self.config.source_system) or \
+                    msg.target_component not in (0, self.config.source_component):
+                self.stats["not_for_us"] += 1
+                return
+            header = msg.get_header()
+            payload = bytes(msg.payload[:msg.payload_length])
+            if self.hub.on_frame(msg.payload_type, (header.srcSystem, header.srcComponent), payload):
+                return
+        elif msg_id == HEARTBEAT:
+            self._heard_from(msg)
+        for key in (msg_id, None):
+            for listener in self._listeners.get(key, ()):
+                listener(msg)
+
+    def listen(self, msg_id: int | None, listener: Listener) -> None:
+        """Call ``listener`` with every accepted message of ``msg_id`` (None: all)."""
+        self._listeners.setdefault(msg_id, []).append(listener)
+
+    def unlisten(self, msg_id: int | None, listener: Listener) -> None:
+        with contextlib.suppress(KeyError, ValueError):
+            self._listeners[msg_id].remove(listener)
+
+    # presence
+
+    def _heard_from(self, msg: mavlink2.MAVLink_message) -> None:
+        header = msg.get_header()
+        key = (header.srcSystem, header.srcComponent)
+        seen = self.seen.get(key)
+        if seen is None:
+            self.stats["vehicles_heard"] += 1
+            self.seen[key] = VehicleSeen(key[0], key[1], _enum_name("MAV_AUTOPILOT", msg.autopilot),
+                                         _enum_name("MAV_TYPE", msg.type), time.monotonic())
+            asyncio.get_running_loop().create_task(self._notify())
+        else:
+            seen.last_heard = time.monotonic()
+
+    async def _notify(self) -> None:
+        async with self._heard:
+            self._heard.notify_all()
+
+    def has_heard(self, system: int, component: int = 0) -> bool:
+        return any(s == system and component in (0, c) for s, c in self.seen)
+
+    async def wait_for_vehicle(self, system: int, component: int, deadline: float) -> None:
+        """Return once (system, component) sent a HEARTBEAT (component 0: any of the system);
+        EndpointError at ``deadline`` (loop time): a vehicle that is not there is transient."""
+        loop = asyncio.get_running_loop()
+        async with self._heard:
+            while not self.has_heard(system, component):
+                left = deadline - loop.time()
+                if left <= 0:
+                    raise EndpointError(f"mavlink connection {self.name!r}: vehicle {system}/{component} "
+                                        "has not been heard (no HEARTBEAT)")
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._heard.wait(), left)
+
+    def transaction_lock(self, key: Any) -> asyncio.Lock:
+        """One mission upload (or command) at a time per target, as the protocols require."""
+        lock = self._locks.get(key)
+        if lock is None:
+            lock = self._locks[key] = asyncio.Lock()
+        return lock
+
+
+def _enum_name(enum: str, value: int) -> str:
+    entry = mavlink2.enums[enum].get(value)
+    return entry.name if entry is not None else str(value)

@@ -1,0 +1,330 @@
+"""Byte pipes under a MAVLink connection: serial device, UDP (``udpin``/``udpout``), TCP
+(``tcp`` client, ``tcpin`` server), all driven by asyncio.
+
+A link hands every received chunk to ``on_bytes(data, peer)`` and writes whole frames with
+``transmit``; it translates OS errors into :class:`EndpointError` and reconnects on its own
+(a serial device that disappears is reopened every second, a TCP client backs off). Used by
+the engine's connections and by the simulated vehicle alike.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import termios
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Hashable
+from typing import Any
+
+from engine.endpoints.base import EndpointError
+from engine.endpoints.mavlink.settings import Address
+
+PEER_TTL = 30.0
+READ_CHUNK = 4096
+
+OnBytes = Callable[[bytes, Hashable], None]
+
+
+class Link:
+    """A byte pipe: received chunks go to ``on_bytes(data, peer)``; ``transmit`` writes a frame."""
+
+    def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> None:
+        self.address = address
+        self.on_bytes = on_bytes
+        self.stats = stats
+        self.closed = False
+        self.local_address: tuple[str, int] | None = None
+        self.on_lost: Callable[[], None] | None = None
+        """Called when the device went away (the peer of a pty closed it, a USB radio unplugged)."""
+
+    async def open(self) -> None:
+        raise NotImplementedError
+
+    @property
+    def ready(self) -> bool:
+        """Whether a frame written now has somewhere to go."""
+        return not self.closed
+
+    async def transmit(self, data: bytes) -> None:
+        raise NotImplementedError
+
+    async def close(self) -> None:
+        self.closed = True
+
+    def _count(self, key: str) -> None:
+        self.stats[key] = self.stats.get(key, 0) + 1
+
+
+def configure_tty(fd: int, baud: int) -> None:
+    """Raw 8N1 at ``baud``, no flow control, no echo, no line discipline."""
+    iflag, oflag, cflag, lflag, _, _, cc = termios.tcgetattr(fd)
+    iflag &= ~(termios.IGNBRK | termios.BRKINT | termios.PARMRK | termios.ISTRIP | termios.INLCR
+               | termios.IGNCR | termios.ICRNL | termios.IXON | termios.IXOFF | termios.IXANY)
+    oflag &= ~termios.OPOST
+    lflag &= ~(termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG | termios.IEXTEN)
+    cflag &= ~(termios.CSIZE | termios.PARENB | termios.CSTOPB | getattr(termios, "CRTSCTS", 0))
+    cflag |= termios.CS8 | termios.CREAD | termios.CLOCAL
+    cc[termios.VMIN] = 0
+    cc[termios.VTIME] = 0
+    speed = getattr(termios, f"B{baud}")
+    termios.tcsetattr(fd, termios.TCSANOW, [iflag, oflag, cflag, lflag, speed, speed, cc])
+
+
+class SerialLink(Link):
+    """A tty read with ``add_reader``; reopened every second after the device disappears."""
+
+    _fd: int | None = None
+    _reopen: asyncio.Task[None] | None = None
+
+    async def open(self) -> None:
+        try:
+            self._open()
+        except OSError as exc:
+            raise EndpointError(f"cannot open {self.address.device}: {exc.strerror}") from None
+
+    @property
+    def ready(self) -> bool:
+        return self._fd is not None
+
+    def _open(self) -> None:
+        fd = os.open(self.address.device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            configure_tty(fd, self.address.baud)
+        except (OSError, termios.error):
+            os.close(fd)
+            raise
+        self._fd = fd
+        asyncio.get_running_loop().add_reader(fd, self._readable)
+
+    def _readable(self) -> None:
+        assert self._fd is not None
+        try:
+            data = os.read(self._fd, READ_CHUNK)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if data:
+            self.on_bytes(data, None)
+        else:
+            self._lost()
+
+    def _lost(self) -> None:
+        if self._fd is None:
+            return
+        loop = asyncio.get_running_loop()
+        loop.remove_reader(self._fd)
+        os.close(self._fd)
+        self._fd = None
+        self._count("link_lost")
+        if self.on_lost is not None:
+            self.on_lost()
+        if not self.closed and self._reopen is None:
+            self._reopen = loop.create_task(self._reopen_loop())
+
+    async def _reopen_loop(self) -> None:
+        try:
+            while not self.closed:
+                await asyncio.sleep(1.0)
+                with contextlib.suppress(OSError, termios.error):
+                    self._open()
+                    return
+        finally:
+            self._reopen = None
+
+    async def transmit(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            fd = self._fd
+            if fd is None:
+                raise EndpointError(f"serial device {self.address.device} is not open")
+            try:
+                view = view[os.write(fd, view):]
+            except BlockingIOError:
+                await self._writable(fd)
+            except OSError as exc:
+                self._lost()
+                raise EndpointError(f"write to {self.address.device} failed: {exc.strerror}") from None
+
+    async def _writable(self, fd: int) -> None:
+        loop = asyncio.get_running_loop()
+        ready: asyncio.Future[None] = loop.create_future()
+
+        def wake() -> None:
+            if not ready.done():
+                ready.set_result(None)
+
+        loop.add_writer(fd, wake)
+        try:
+            await asyncio.wait_for(ready, 1.0)
+        except TimeoutError:
+            pass
+        finally:
+            with contextlib.suppress(Exception):
+                loop.remove_writer(fd)
+
+    async def close(self) -> None:
+        await super().close()
+        if self._reopen is not None:
+            self._reopen.cancel()
+        if self._fd is not None:
+            asyncio.get_running_loop().remove_reader(self._fd)
+            os.close(self._fd)
+            self._fd = None
+
+
+class _Datagrams(asyncio.DatagramProtocol):
+    def __init__(self, link: UdpLink) -> None:
+        self.link = link
+
+    def datagram_received(self, data: bytes, addr: Any) -> None:
+        self.link.received(data, addr)
+
+    def error_received(self, exc: Exception) -> None:
+        """ICMP port unreachable while the peer is not up yet; the next datagram may succeed."""
+        self.link._count("udp_errors")
+
+
+class UdpLink(Link):
+    """``udpout`` sends to its remote; ``udpin`` answers every peer heard in the last 30 s."""
+
+    _transport: asyncio.DatagramTransport | None = None
+
+    def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> None:
+        super().__init__(address, on_bytes, stats)
+        self.peers: OrderedDict[Any, float] = OrderedDict()
+
+    async def open(self) -> None:
+        loop = asyncio.get_running_loop()
+        where = (self.address.host, self.address.port)
+        try:
+            if self.address.kind == "udpin":
+                transport, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self), local_addr=where)
+            else:
+                transport, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self), remote_addr=where)
+        except OSError as exc:
+            raise EndpointError(f"cannot open {self.address.kind}:{where[0]}:{where[1]}: {exc.strerror}") from None
+        self._transport = transport
+        self.local_address = transport.get_extra_info("sockname")[:2]
+
+    @property
+    def ready(self) -> bool:
+        if self.address.kind == "udpout":
+            return self._transport is not None
+        now = time.monotonic()
+        return any(now - seen < PEER_TTL for seen in self.peers.values())
+
+    def received(self, data: bytes, addr: Any) -> None:
+        if self.address.kind == "udpin":
+            self.peers[addr] = time.monotonic()
+            self.peers.move_to_end(addr)
+            while len(self.peers) > 8:
+                self.peers.popitem(last=False)
+        self.on_bytes(data, addr)
+
+    async def transmit(self, data: bytes) -> None:
+        if self._transport is None or self._transport.is_closing():
+            raise EndpointError("udp link is closed")
+        if self.address.kind == "udpout":
+            self._transport.sendto(data)
+            return
+        now = time.monotonic()
+        peers = [addr for addr, seen in self.peers.items() if now - seen < PEER_TTL]
+        if not peers:
+            raise EndpointError(f"udpin:{self.address.host}:{self.address.port} has not heard from any peer yet")
+        for addr in peers:
+            self._transport.sendto(data, addr)
+
+    async def close(self) -> None:
+        await super().close()
+        if self._transport is not None:
+            self._transport.close()
+
+
+class TcpLink(Link):
+    """``tcp`` (client, reconnecting) or ``tcpin`` (server, writes to every client)."""
+
+    def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> None:
+        super().__init__(address, on_bytes, stats)
+        self.writers: dict[Hashable, asyncio.StreamWriter] = {}
+        self._server: asyncio.base_events.Server | None = None
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    async def open(self) -> None:
+        host, port = self.address.host, self.address.port
+        try:
+            if self.address.kind == "tcpin":
+                self._server = await asyncio.start_server(self._serve, host, port)
+                self.local_address = self._server.sockets[0].getsockname()[:2]
+            else:
+                reader, writer = await asyncio.open_connection(host, port)
+                self._spawn(self._client(reader, writer))
+        except OSError as exc:
+            raise EndpointError(f"cannot open {self.address.kind}:{host}:{port}: {exc.strerror or exc}") from None
+
+    @property
+    def ready(self) -> bool:
+        return bool(self.writers)
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await self._pump(reader, writer)
+
+    async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        delay = 1.0
+        while not self.closed:
+            await self._pump(reader, writer)
+            self._count("link_lost")
+            while not self.closed:
+                await asyncio.sleep(delay)
+                try:
+                    reader, writer = await asyncio.open_connection(self.address.host, self.address.port)
+                    delay = 1.0
+                    break
+                except OSError:
+                    delay = min(delay * 2, 10.0)
+
+    async def _pump(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        peer = writer.get_extra_info("peername") or id(writer)
+        self.writers[peer] = writer
+        try:
+            while data := await reader.read(READ_CHUNK):
+                self.on_bytes(data, peer)
+        except OSError:
+            pass
+        finally:
+            self.writers.pop(peer, None)
+            writer.close()
+
+    async def transmit(self, data: bytes) -> None:
+        if not self.writers:
+            raise EndpointError(f"{self.address.kind}:{self.address.host}:{self.address.port} has no connected peer")
+        for writer in list(self.writers.values()):
+            writer.write(data)
+        with contextlib.suppress(OSError):
+            await asyncio.gather(*(w.drain() for w in list(self.writers.values())))
+
+    async def close(self) -> None:
+        await super().close()
+        if self._server is not None:
+            self._server.close()
+        for writer in list(self.writers.values()):
+            writer.close()
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+
+
+def make_link(address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> Link:
+    if address.kind == "serial":
+        return SerialLink(address, on_bytes, stats)
+    if address.kind in ("udpin", "udpout"):
+        return UdpLink(address, on_bytes, stats)
+    return TcpLink(address, on_bytes, stats)
+

@@ -1,0 +1,240 @@
+"""One MAVLink link with its writer and reader: the part every MAVLink peer needs.
+
+A :class:`MavlinkPort` owns a link (see :mod:`.links`), packs frames at write time (so sequence
+numbers and signing timestamps go out in wire order, which a receiver requires), paces them to
+the link rate (a SiK radio's serial buffer is a few hundred bytes to 2 KB and overflows
+silently), sends control frames before bulk tunnel fragments, and slows bulk traffic while the
+radio's RADIO_STATUS reports a filling buffer. Received chunks go to pymavlink's
+``parse_buffer`` (byte-at-a-time parsing costs ~10x more), one parser per peer; signatures are
+checked and every accepted message is handed to ``on_message``. The engine's connection and the
+simulated vehicle both run on it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections import OrderedDict, deque
+from collections.abc import Callable, Hashable
+
+from engine.endpoints.base import EndpointError
+from engine.endpoints.mavlink.codec import RADIO_STATUS, mavlink2
+from engine.endpoints.mavlink.links import Link, make_link
+from engine.endpoints.mavlink.settings import LinkConfig
+from engine.endpoints.mavlink.signing import SignatureCheck, SigningClock
+from engine.endpoints.mavlink.tunnel import TUNNEL_PAYLOAD, ignore_result, radio_pacing_factor
+
+MAX_PARSERS = 32
+
+PORT_STATS = (
+    "bytes_received", "frames_received", "frames_accepted", "frames_lost", "bad_crc", "bad_data",
+    "unknown_message", "unsigned_rejected", "unsigned_accepted", "bad_signature", "replayed",
+    "frames_sent", "bytes_sent", "send_errors",
+)
+"""``frames_received`` counts frames with a good CRC, ``frames_accepted`` those that also passed
+signing; ``frames_lost`` sums sequence gaps per sender; rejections: ``unsigned_rejected``,
+``bad_signature`` (wrong key or altered), ``replayed`` (timestamp not newer than the stream's
+last, or a new stream over 60 s old)."""
+
+OnMessage = Callable[[mavlink2.MAVLink_message], None]
+_Queued = tuple[mavlink2.MAVLink_message, "asyncio.Future[float]"]
+
+
+class MavlinkPort:
+    """Paced, signed writing and verified, dispatched reading on one link."""
+
+    def __init__(self, name: str, config: LinkConfig, on_message: OnMessage, stats: dict[str, int]) -> None:
+        self.name = name
+        self.config = config
+        self.on_message = on_message
+        self.stats = stats
+        for key in PORT_STATS:
+            stats.setdefault(key, 0)
+        self.mav = mavlink2.MAVLink(None, config.source_system, config.source_component)
+        self.radio_txbuf: tuple[float, int] | None = None
+        """(loop time, % free) of the last RADIO_STATUS: bulk traffic slows while it is low."""
+        self.on_lost: Callable[[], None] | None = None
+        self._clock: SigningClock | None = None
+        self._check: SignatureCheck | None = None
+        self._link: Link | None = None
+        self._parsers: OrderedDict[Hashable, mavlink2.MAVLink] = OrderedDict()
+        self._last_seq: dict[tuple[int, int], int] = {}
+        self._urgent: deque[_Queued] = deque()
+        self._bulk: deque[_Queued] = deque()
+        self._wake = asyncio.Event()
+        self._tx_ready = 0.0
+        self._bulk_ready = 0.0
+        self._task: asyncio.Task[None] | None = None
+        self._closed = False
+
+    @property
+    def address(self) -> tuple[str, int] | None:
+        """Bound (host, port) of ``udpin``/``tcpin`` links; useful with port 0."""
+        return self._link.local_address if self._link else None
+
+    @property
+    def ready(self) -> bool:
+        """Whether a frame written now has somewhere to go."""
+        return self._link is not None and self._link.ready
+
+    async def open(self) -> None:
+        signing = self.config.signing
+        if signing is not None:
+            self._clock = SigningClock(signing.timestamp_file)
+            s = self.mav.signing
+            s.secret_key, s.link_id, s.sign_outgoing = signing.key, signing.link_id, True
+            s.timestamp = self._clock.start()
+            self._check = SignatureCheck(signing, lambda: self.mav.signing.timestamp)
+        self._link = make_link(self.config.address, self._on_bytes, self.stats)
+        self._link.on_lost = self._lost
+        await self._link.open()
+        self._task = asyncio.create_task(self._writer(), name=f"mavlink-writer:{self.name}")
+
+    async def close(self) -> None:
+        self._closed = True
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+            self._task = None
+        for queue in (self._urgent, self._bulk):
+            while queue:
+                _, future = queue.popleft()
+                if not future.done():
+                    future.set_exception(EndpointError(f"mavlink connection {self.name!r} closed"))
+        if self._link is not None:
+            await self._link.close()
+
+    def _lost(self) -> None:
+        if self.on_lost is not None:
+            self.on_lost()
+
+    # writing
+
+    def enqueue(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False) -> asyncio.Future[float]:
+        """Queue a frame for the writer; the future gives the loop time it was written."""
+        future: asyncio.Future[float] = asyncio.get_running_loop().create_future()
+        if self._closed or self._link is None:
+            future.set_exception(EndpointError(f"mavlink connection {self.name!r} is not open"))
+        else:
+            (self._bulk if bulk else self._urgent).append((msg, future))
+            self._wake.set()
+        return future
+
+    def post(self, msg: mavlink2.MAVLink_message) -> None:
+        """Queue a frame nobody waits for (telemetry, heartbeats): a failure is only counted."""
+        self.enqueue(msg).add_done_callback(ignore_result)
+
+    async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False) -> float:
+        return await self.enqueue(msg, bulk=bulk)
+
+    def send_tunnel(self, payload_type: int, target: tuple[int, int], payload: bytes, *,
+                    bulk: bool) -> asyncio.Future[float]:
+        msg = mavlink2.MAVLink_tunnel_message(target[0], target[1], payload_type, len(payload),
+                                              payload.ljust(TUNNEL_PAYLOAD, b"\0"))
+        return self.enqueue(msg, bulk=bulk)
+
+    async def _writer(self) -> None:
+        loop = asyncio.get_running_loop()
+        rate, bulk_rate = self.config.rate, self.config.bulk_rate
+        assert self._link is not None
+        while True:
+            now = loop.time()
+            if self._urgent:
+                msg, future = self._urgent.popleft()
+                bulk = False
+            elif self._bulk and now >= self._bulk_ready:
+                msg, future = self._bulk.popleft()
+                bulk = True
+            else:
+                self._wake.clear()
+                timeout = max(0.0, self._bulk_ready - now) if self._bulk else None
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._wake.wait(), timeout)
+                continue
+            if future.done():
+                continue
+            if self._tx_ready > now:
+                await asyncio.sleep(self._tx_ready - now)
+            start = loop.time()
+            try:
+                data = self._pack(msg)
+                await self._link.transmit(data)
+            except EndpointError as exc:
+                self.stats["send_errors"] += 1
+                if not future.done():
+                    future.set_exception(exc)
+                continue
+            except Exception as exc:  # pymavlink struct errors: a field out of range
+                self.stats["send_errors"] += 1
+                if not future.done():
+                    future.set_exception(EndpointError(f"{msg.get_type()}: cannot encode: {exc}"))
+                continue
+            self.stats["frames_sent"] += 1
+            self.stats["bytes_sent"] += len(data)
+            if rate:
+                self._tx_ready = max(self._tx_ready, start) + len(data) / rate
+            if bulk and bulk_rate:
+                factor = radio_pacing_factor(self.radio_txbuf, start)
+                self._bulk_ready = max(self._bulk_ready, start) + len(data) / (bulk_rate * factor)
+            if not future.done():
+                future.set_result(loop.time())
+
+    def _pack(self, msg: mavlink2.MAVLink_message) -> bytes:
+        if self._clock is not None:
+            signing = self.mav.signing
+            signing.timestamp = self._clock.advance(max(signing.timestamp, self._check.newest if self._check else 0))
+        data: bytes = msg.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) % 256
+        return data
+
+    # reading
+
+    def _parser(self, peer: Hashable) -> mavlink2.MAVLink:
+        parser = self._parsers.get(peer)
+        if parser is None:
+            parser = self._parsers[peer] = mavlink2.MAVLink(None)
+            parser.robust_parsing = True
+            while len(self._parsers) > MAX_PARSERS:
+                self._parsers.popitem(last=False)
+        return parser
+
+    def _on_bytes(self, data: bytes, peer: Hashable) -> None:
+        self.stats["bytes_received"] += len(data)
+        parser = self._parser(peer)
+        try:
+            messages = parser.parse_buffer(data) or ()
+        except Exception:
+            self.stats["bad_data"] += 1
+            self._parsers.pop(peer, None)
+            return
+        for msg in messages:
+            self._on_frame(msg)
+
+    def _on_frame(self, msg: mavlink2.MAVLink_message) -> None:
+        msg_id = msg.get_msgId()
+        if msg_id == mavlink2.MAVLINK_MSG_ID_BAD_DATA:
+            self.stats["bad_crc" if "CRC" in getattr(msg, "reason", "") else "bad_data"] += 1
+            return
+        self.stats["frames_received"] += 1
+        if self._check is not None:
+            buf = msg.get_msgbuf()
+            verdict = self._check(buf)
+            if verdict is not None:
+                self.stats[verdict] += 1
+                return
+            if buf[0] != mavlink2.PROTOCOL_MARKER_V2 or not buf[2] & mavlink2.MAVLINK_IFLAG_SIGNED:
+                self.stats["unsigned_accepted"] += 1
+        if msg_id == mavlink2.MAVLINK_MSG_ID_UNKNOWN:
+            self.stats["unknown_message"] += 1
+            return
+        self.stats["frames_accepted"] += 1
+        header = msg.get_header()
+        stream = (header.srcSystem, header.srcComponent)
+        last = self._last_seq.get(stream)
+        if last is not None:
+            self.stats["frames_lost"] += (header.seq - last - 1) % 256
+        self._last_seq[stream] = header.seq
+        if msg_id == RADIO_STATUS:
+            self.radio_txbuf = (asyncio.get_running_loop().time(), msg.txbuf)
+        self.on_message(msg)
+
