@@ -11,9 +11,15 @@ from jmespath import exceptions as jmespath_errors
 
 from engine.endpoints.base import EndpointError
 from engine.endpoints.mavlink.codec import MESSAGES
+from engine.endpoints.mavlink.transaction import TransactionOptions
 
 _SOURCE_OPTIONS = {"message", "json_tunnel", "system_id", "component_id", "payload_type", "target_system", "target_component"}
-_SINK_OPTIONS = _SOURCE_OPTIONS
+_TRANSACTION_OPTIONS = {"timeout", "retries", "vehicle_timeout"}
+_MISSION_OPTIONS = {"mission", "target_system", "target_component", "home_placeholder", "default_alt", "mission_type",
+                    *_TRANSACTION_OPTIONS}
+_COMMAND_OPTIONS = {"acknowledged", "in_progress_timeout", "retry_delay", *_TRANSACTION_OPTIONS}
+_SINK_OPTIONS = _SOURCE_OPTIONS | _COMMAND_OPTIONS
+ACKNOWLEDGED_MESSAGES = ("COMMAND_LONG", "COMMAND_INT")
 
 
 def _int_option(options: Mapping[str, Any], key: str, low: int, high: int) -> Iterator[tuple[str, str]]:
@@ -42,9 +48,20 @@ def check_source_options(options: Mapping[str, Any], mapping: str | None) -> lis
 
 
 def check_sink_options(options: Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
+    if "mission" in options:
+        return _mission_problems(options, mapping)
     problems = list(_common_problems(options, _SINK_OPTIONS))
     if options.get("json_tunnel"):
         return problems
+    if "acknowledged" in options:
+        if not isinstance(options["acknowledged"], bool):
+            problems.append(("acknowledged", "acknowledged must be true or false"))
+        elif options["acknowledged"] and options.get("message") not in ACKNOWLEDGED_MESSAGES:
+            problems.append(("acknowledged", "acknowledged applies to COMMAND_LONG and COMMAND_INT sinks"))
+        problems += TransactionOptions.parse(options)[1]
+    elif set(options) & (_COMMAND_OPTIONS - {"acknowledged"}):
+        key = sorted(set(options) & _COMMAND_OPTIONS)[0]
+        problems.append((key, f"{key!r} applies to acknowledged commands (acknowledged: true) and missions"))
     name = options.get("message")
     if name is None:
         problems.append((None, "a mavlink sink needs 'message' (or json_tunnel: true)"))
@@ -59,6 +76,19 @@ def check_sink_options(options: Mapping[str, Any], mapping: str | None) -> list[
         if key not in cls.fieldnames:
             fields = ", ".join(cls.fieldnames)
             problems.append((None, f"sink mapping sets {key!r}, which {name} does not have (fields: {fields})"))
+    return problems
+
+
+def _mission_problems(options: Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
+    problems: list[tuple[str | None, str]] = [
+        (key, f"unknown option {key!r} for a mission sink") for key in sorted(set(options) - _MISSION_OPTIONS - {"connection"})]
+    if options["mission"] != "upload":
+        problems.append(("mission", "mission must be 'upload'"))
+    problems += TransactionOptions.parse(options)[1]
+    for key in _mapping_keys(mapping):
+        if key != "items":
+            problems.append((None, f"a mission sink mapping produces {{items: [...]}} (or a canonical mission); "
+                                   f"{key!r} is not used"))
     return problems
 
 

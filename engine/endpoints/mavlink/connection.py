@@ -18,6 +18,8 @@ from typing import Any
 from engine.endpoints.base import Connection, EndpointError, Sink, Source
 from engine.endpoints.mavlink.checks import check_sink_options, check_source_options, raise_problems
 from engine.endpoints.mavlink.codec import MESSAGES, TUNNEL, mavlink2
+from engine.endpoints.mavlink.enums import enum_name
+from engine.endpoints.mavlink.messages import MessageSource, sink_for
 from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
 from engine.endpoints.mavlink.settings import settings_problems
 from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelHub, TunnelSink, TunnelSource
@@ -90,8 +92,6 @@ class MavlinkConnection(Connection):
         await self.port.close()
 
     def source(self, route: str, options: Mapping[str, Any]) -> Source:
-        from engine.endpoints.mavlink.messages import MessageSource
-
         raise_problems(route, "source", check_source_options(options, None))
         if options.get("json_tunnel"):
             return TunnelSource(self.hub, route=route, payload_type=options.get("payload_type", DEFAULT_PAYLOAD_TYPE),
@@ -101,8 +101,6 @@ class MavlinkConnection(Connection):
                              options.get("system_id"), options.get("component_id"))
 
     def sink(self, route: str, options: Mapping[str, Any]) -> Sink:
-        from engine.endpoints.mavlink.messages import sink_for
-
         raise_problems(route, "sink", check_sink_options(options, None))
         target = (options.get("target_system", 0), options.get("target_component", 0))
         if options.get("json_tunnel"):
@@ -162,8 +160,8 @@ class MavlinkConnection(Connection):
         seen = self.seen.get(key)
         if seen is None:
             self.stats["vehicles_heard"] += 1
-            self.seen[key] = VehicleSeen(key[0], key[1], _enum_name("MAV_AUTOPILOT", msg.autopilot),
-                                         _enum_name("MAV_TYPE", msg.type), time.monotonic())
+            self.seen[key] = VehicleSeen(key[0], key[1], enum_name("MAV_AUTOPILOT", msg.autopilot),
+                                         enum_name("MAV_TYPE", msg.type), time.monotonic())
             asyncio.get_running_loop().create_task(self._notify())
         else:
             seen.last_heard = time.monotonic()
@@ -194,8 +192,3 @@ class MavlinkConnection(Connection):
         if lock is None:
             lock = self._locks[key] = asyncio.Lock()
         return lock
-
-
-def _enum_name(enum: str, value: int) -> str:
-    entry = mavlink2.enums[enum].get(value)
-    return entry.name if entry is not None else str(value)

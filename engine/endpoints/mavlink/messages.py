@@ -10,6 +10,9 @@ from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.base import Deliver, Inbound, Outbound, Sink, Source
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, message_fields, mavlink2
+from engine.endpoints.mavlink.command import AcknowledgedCommandSink
+from engine.endpoints.mavlink.mission import MissionUploadSink
+from engine.endpoints.mavlink.transaction import TransactionOptions
 
 if TYPE_CHECKING:
     from engine.endpoints.mavlink.connection import MavlinkConnection
@@ -89,6 +92,10 @@ class MessageSink(Sink):
 
 def sink_for(connection: MavlinkConnection, route: str, options: Mapping[str, Any]) -> Sink:
     """The sink the (already checked) options describe."""
+    if "mission" in options:
+        return MissionUploadSink(connection, TransactionOptions.parse(options)[0])
     cls = MESSAGES[options["message"]]
+    if options.get("acknowledged"):
+        return AcknowledgedCommandSink(connection, cls, TransactionOptions.parse(options)[0])
     defaults = {key: options[key] for key in ("target_system", "target_component") if key in options}
     return MessageSink(connection, cls, defaults)

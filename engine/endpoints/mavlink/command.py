@@ -1,0 +1,96 @@
+"""Acknowledged command sink: COMMAND_LONG or COMMAND_INT, accepted once the target's COMMAND_ACK
+says so.
+
+    sink: {mavlink: {connection: radio, message: COMMAND_LONG, target_system: 1, acknowledged: true}}
+
+Protocol (devguide ``services/command.md``): wait for the COMMAND_ACK of that command from the
+target; on silence send again (COMMAND_LONG with ``confirmation`` incremented), ``retries``
+times, then fail transiently (:class:`EndpointError`). MAV_RESULT_ACCEPTED completes;
+IN_PROGRESS extends the wait to ``in_progress_timeout`` for the final ACK;
+TEMPORARILY_REJECTED sends again after ``retry_delay`` (counted as a retry); any other result
+(DENIED, FAILED, UNSUPPORTED, ...) is permanent: :class:`MessageRejected` naming it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import TYPE_CHECKING, Any
+
+from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
+from engine.endpoints.mavlink.codec import build_message, mavlink2
+from engine.endpoints.mavlink.enums import enum_name, enum_or_number
+from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions
+
+if TYPE_CHECKING:
+    from engine.endpoints.mavlink.connection import MavlinkConnection
+
+_ACK = (mavlink2.MAVLINK_MSG_ID_COMMAND_ACK,)
+
+
+class AcknowledgedCommandSink(Sink):
+    """One command per message, retried until the target acknowledges it."""
+
+    def __init__(self, connection: MavlinkConnection, cls: type[mavlink2.MAVLink_message],
+                 options: TransactionOptions) -> None:
+        self.connection = connection
+        self.cls = cls
+        self.options = options
+        self.defaults = {"target_system": options.target_system, "target_component": options.target_component}
+
+    def _build(self, fields: Any, confirmation: int) -> mavlink2.MAVLink_message:
+        if isinstance(fields, dict) and isinstance(fields.get("command"), str):
+            try:
+                fields = {**fields, "command": enum_or_number(fields["command"], "MAV_CMD", "command")}
+            except ValueError as exc:
+                raise MessageRejected(str(exc)) from None
+        msg = build_message(self.cls, fields, self.defaults)
+        if self.cls is mavlink2.MAVLink_command_long_message:
+            msg.confirmation = min(255, msg.confirmation + confirmation)
+        return msg
+
+    async def send(self, message: Outbound) -> None:
+        msg = self._build(message.fields, 0)
+        target = (msg.target_system, msg.target_component)
+        connection, options = self.connection, self.options
+        loop = asyncio.get_running_loop()
+        async with connection.transaction_lock(("command", target, msg.command)):
+            await connection.wait_for_vehicle(*target, loop.time() + options.vehicle_timeout)
+            async with Conversation(connection, target, _ACK) as answers:
+                await self._exchange(answers, message.fields, msg)
+
+    async def _exchange(self, answers: Conversation, fields: Any, msg: mavlink2.MAVLink_message) -> None:
+        connection, options = self.connection, self.options
+        stats = connection.stats
+        loop = asyncio.get_running_loop()
+        timeout = options.answer_timeout(connection)
+        name = enum_name("MAV_CMD", msg.command)
+        where = f"vehicle {msg.target_system}/{msg.target_component}"
+        await connection.send_message(msg)
+        sent, deadline = 0, loop.time() + timeout
+        while True:
+            ack = await answers.next(max(0.0, deadline - loop.time()))
+            if ack is not None and ack.command != msg.command:
+                continue
+            if ack is not None and ack.result == mavlink2.MAV_RESULT_ACCEPTED:
+                stats["commands_acknowledged"] = stats.get("commands_acknowledged", 0) + 1
+                return
+            if ack is not None and ack.result == mavlink2.MAV_RESULT_IN_PROGRESS:
+                deadline = loop.time() + options.in_progress_timeout
+                continue
+            if ack is not None and ack.result != mavlink2.MAV_RESULT_TEMPORARILY_REJECTED:
+                stats["commands_rejected"] = stats.get("commands_rejected", 0) + 1
+                raise MessageRejected(f"{where} refused {name}: {enum_name('MAV_RESULT', ack.result)}")
+            if ack is None and loop.time() < deadline:
+                continue
+            sent += 1
+            if sent > options.retries:
+                stats["command_timeouts"] = stats.get("command_timeouts", 0) + 1
+                why = "kept answering MAV_RESULT_TEMPORARILY_REJECTED" if ack is not None else "did not acknowledge"
+                raise EndpointError(f"mavlink connection {connection.name!r}: {where} {why} {name} "
+                                    f"after {options.retries} retries")
+            if ack is not None:
+                await asyncio.sleep(options.retry_delay)
+            stats["command_resends"] = stats.get("command_resends", 0) + 1
+            msg = self._build(fields, sent)
+            await connection.send_message(msg)
+            deadline = loop.time() + timeout

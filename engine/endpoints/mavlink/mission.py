@@ -1,0 +1,171 @@
+"""Mission upload sink: a canonical ``mission`` (or explicit items) uploaded with the MAVLink
+mission protocol, acknowledged only when the vehicle accepts it.
+
+    sink: {mavlink: {connection: radio, mission: upload, target_system: 1, target_component: 1}}
+
+Each canonical waypoint becomes a MISSION_ITEM_INT ``MAV_CMD_NAV_WAYPOINT`` in
+``MAV_FRAME_GLOBAL_RELATIVE_ALT_INT``: x, y = degrees x 1e7 rounded, z = ``alt`` in metres
+(``default_alt`` where a waypoint has none), param1 = ``hold_s``, in list order. A
+``sink.mapping`` producing ``{items: [{command, frame, x, y, z, param1..param4, autocontinue}]}``
+gives full control (command and frame by name or number). ``home_placeholder: true`` puts
+ArduPilot's seq-0 home item first.
+
+Protocol (devguide ``services/mission.md``): MISSION_COUNT; every MISSION_REQUEST_INT or legacy
+MISSION_REQUEST is answered with the item asked for, repeats included; silence for the answer
+timeout sends the last message again (``retries`` times; a SiK link needs ~1.5 s, not the
+protocol's 250 ms). MISSION_ACK ``MAV_MISSION_ACCEPTED`` completes the upload; any other result
+is permanent (:class:`MessageRejected` naming it), except ArduPilot's non-terminal
+``MAV_MISSION_INVALID_SEQUENCE`` during a transfer; no answer after the retries is transient
+(:class:`EndpointError`) and cancels the upload on the vehicle. One upload at a time per target.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
+from engine.endpoints.mavlink.codec import build_message, mavlink2
+from engine.endpoints.mavlink.enums import enum_name, enum_or_number
+from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions
+
+if TYPE_CHECKING:
+    from engine.endpoints.mavlink.connection import MavlinkConnection
+
+ITEM = mavlink2.MAVLink_mission_item_int_message
+_ANSWERS = (mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_INT, mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST,
+            mavlink2.MAVLINK_MSG_ID_MISSION_ACK)
+_ITEM_KEYS = {"command", "frame", "x", "y", "z", "param1", "param2", "param3", "param4", "autocontinue", "current"}
+_MAX_ITEMS = 65535
+
+
+def _number(value: Any, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise MessageRejected(f"{what}: expected a number, got {value!r}")
+    return float(value)
+
+
+def waypoint_items(mission: Mapping[str, Any], default_alt: float | None) -> list[dict[str, Any]]:
+    """Canonical waypoints -> MISSION_ITEM_INT fields (without seq and targets)."""
+    waypoints = mission.get("waypoints")
+    if not isinstance(waypoints, list) or not waypoints:
+        raise MessageRejected("mission has no waypoints")
+    items = []
+    for index, point in enumerate(waypoints):
+        where = f"waypoints[{index}]"
+        if not isinstance(point, Mapping):
+            raise MessageRejected(f"{where}: expected an object")
+        alt = point.get("alt", default_alt)
+        if alt is None:
+            raise MessageRejected(f"{where}: no alt, and the sink sets no default_alt")
+        items.append({
+            "command": mavlink2.MAV_CMD_NAV_WAYPOINT, "frame": mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            "x": round(_number(point.get("lat"), f"{where}.lat") * 1e7),
+            "y": round(_number(point.get("lon"), f"{where}.lon") * 1e7),
+            "z": _number(alt, f"{where}.alt"), "param1": _number(point.get("hold_s", 0), f"{where}.hold_s"),
+            "autocontinue": 1,
+        })
+    return items
+
+
+def explicit_items(raw: Any) -> list[dict[str, Any]]:
+    """``items`` from a sink mapping: MISSION_ITEM_INT fields, command and frame by name or number."""
+    if not isinstance(raw, list) or not raw:
+        raise MessageRejected("items must be a non-empty list")
+    items = []
+    for index, item in enumerate(raw):
+        where = f"items[{index}]"
+        if not isinstance(item, Mapping):
+            raise MessageRejected(f"{where}: expected an object")
+        unknown = sorted(set(item) - _ITEM_KEYS)
+        if unknown:
+            raise MessageRejected(f"{where}: unknown field(s) {', '.join(unknown)} (fields: {', '.join(sorted(_ITEM_KEYS))})")
+        if "command" not in item:
+            raise MessageRejected(f"{where}: no command")
+        fields = {"frame": mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, "autocontinue": 1, **item}
+        try:
+            fields["command"] = enum_or_number(fields["command"], "MAV_CMD", f"{where}.command")
+            fields["frame"] = enum_or_number(fields["frame"], "MAV_FRAME", f"{where}.frame")
+        except ValueError as exc:
+            raise MessageRejected(str(exc)) from None
+        items.append(fields)
+    return items
+
+
+class MissionUploadSink(Sink):
+    """Uploads each message's mission to one target; returns once the vehicle accepted it."""
+
+    def __init__(self, connection: MavlinkConnection, options: TransactionOptions) -> None:
+        self.connection = connection
+        self.options = options
+
+    def items(self, fields: Any) -> list[mavlink2.MAVLink_message]:
+        if not isinstance(fields, Mapping):
+            raise MessageRejected(f"a mission sink needs an object, got {type(fields).__name__}")
+        if "items" in fields:
+            items = explicit_items(fields["items"])
+        else:
+            items = waypoint_items(fields, self.options.default_alt)
+        if self.options.home_placeholder:
+            first = items[0]
+            items.insert(0, {"command": mavlink2.MAV_CMD_NAV_WAYPOINT, "frame": mavlink2.MAV_FRAME_GLOBAL_INT,
+                             "x": first.get("x", 0), "y": first.get("y", 0), "z": 0.0, "autocontinue": 1})
+        if len(items) > _MAX_ITEMS:
+            raise MessageRejected(f"{len(items)} items exceed the mission protocol's {_MAX_ITEMS}")
+        target = {"target_system": self.options.target_system, "target_component": self.options.target_component,
+                  "mission_type": self.options.mission_type}
+        return [build_message(ITEM, {**item, **target, "seq": seq}) for seq, item in enumerate(items)]
+
+    async def send(self, message: Outbound) -> None:
+        items = self.items(message.fields)
+        connection, options = self.connection, self.options
+        loop = asyncio.get_running_loop()
+        async with connection.transaction_lock(("mission", options.target)):
+            await connection.wait_for_vehicle(*options.target, loop.time() + options.vehicle_timeout)
+            async with Conversation(connection, options.target, _ANSWERS) as answers:
+                await self._upload(answers, items)
+
+    async def _upload(self, answers: Conversation, items: list[mavlink2.MAVLink_message]) -> None:
+        connection, options = self.connection, self.options
+        stats = connection.stats
+        target_system, target_component = options.target
+        timeout = options.answer_timeout(connection)
+        last: mavlink2.MAVLink_message = mavlink2.MAVLink_mission_count_message(
+            target_system, target_component, len(items), options.mission_type)
+        await connection.send_message(last)
+        tries, highest = 0, -1
+        while True:
+            answer = await answers.next(timeout)
+            if answer is None:
+                tries += 1
+                if tries > options.retries:
+                    stats["mission_timeouts"] = stats.get("mission_timeouts", 0) + 1
+                    connection.port.post(mavlink2.MAVLink_mission_ack_message(
+                        target_system, target_component, mavlink2.MAV_MISSION_OPERATION_CANCELLED, options.mission_type))
+                    raise EndpointError(f"mavlink connection {connection.name!r}: vehicle {target_system}/{target_component} "
+                                        f"did not answer the mission upload ({len(items)} items) after {options.retries} "
+                                        f"retries of {timeout:g} s (last: {last.get_type()})")
+                stats["mission_resends"] = stats.get("mission_resends", 0) + 1
+                await connection.send_message(last)
+                continue
+            if getattr(answer, "mission_type", options.mission_type) != options.mission_type:
+                continue
+            if answer.get_type() == "MISSION_ACK":
+                if answer.type == mavlink2.MAV_MISSION_ACCEPTED:
+                    stats["missions_uploaded"] = stats.get("missions_uploaded", 0) + 1
+                    return
+                if answer.type == mavlink2.MAV_MISSION_INVALID_SEQUENCE and 0 <= highest < len(items) - 1:
+                    continue  # ArduPilot: not terminal during a transfer; it asks again
+                stats["missions_rejected"] = stats.get("missions_rejected", 0) + 1
+                raise MessageRejected(f"vehicle {target_system}/{target_component} rejected the mission: "
+                                      f"{enum_name('MAV_MISSION_RESULT', answer.type)}")
+            seq = answer.seq
+            if not 0 <= seq < len(items):
+                continue  # a request for an item we never announced: the vehicle will time out or re-ask
+            if seq > highest:
+                highest, tries = seq, 0
+            last = items[seq]
+            stats["mission_items_sent"] = stats.get("mission_items_sent", 0) + 1
+            await connection.send_message(last)

@@ -1,0 +1,115 @@
+"""What the mission upload and the acknowledged command share: the answers of one target,
+queued while a transaction with it runs, and the typed options of both sinks.
+
+Timeouts suit the link: a SiK radio's TDM round is ~237 ms, so the mission protocol's 250 ms
+item timeout would fire on every item; serial links wait 1.5 s per answer (MAVROS: 1 s), networks
+0.5 s. A timeout is not an error: the last message is sent again, ``retries`` times.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from engine.endpoints.mavlink.codec import mavlink2
+
+if TYPE_CHECKING:
+    from engine.endpoints.mavlink.connection import MavlinkConnection
+
+SERIAL_TIMEOUT = 1.5
+NETWORK_TIMEOUT = 0.5
+
+
+@dataclass(frozen=True, slots=True)
+class TransactionOptions:
+    """Sink options of ``mission: upload`` and ``acknowledged: true`` sinks."""
+
+    target_system: int = 1
+    target_component: int = 1
+    timeout: float | None = None
+    """Seconds to wait for each answer before sending again; None: by link kind."""
+    retries: int = 5
+    vehicle_timeout: float = 10.0
+    """How long a transaction waits for a target that has not sent a HEARTBEAT yet."""
+    in_progress_timeout: float = 30.0
+    """Commands: how long MAV_RESULT_IN_PROGRESS extends the wait for the final COMMAND_ACK."""
+    retry_delay: float = 1.0
+    """Commands: wait before resending after MAV_RESULT_TEMPORARILY_REJECTED."""
+    home_placeholder: bool = False
+    default_alt: float | None = None
+    mission_type: int = mavlink2.MAV_MISSION_TYPE_MISSION
+
+    @classmethod
+    def parse(cls, options: Mapping[str, Any]) -> tuple[TransactionOptions, list[tuple[str | None, str]]]:
+        values: dict[str, Any] = {}
+        problems: list[tuple[str | None, str]] = []
+        for key, kind, low in (("timeout", float, 0.05), ("retries", int, 0), ("vehicle_timeout", float, 0.0),
+                               ("in_progress_timeout", float, 0.0), ("retry_delay", float, 0.0),
+                               ("default_alt", float, -1e6), ("target_system", int, 1), ("target_component", int, 0)):
+            if key in options:
+                value = options[key]
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and not isinstance(value, int)) \
+                        or value < low:
+                    problems.append((key, f"{key} must be {'an integer' if kind is int else 'a number'} >= {low}"))
+                else:
+                    values[key] = kind(value)
+        if "home_placeholder" in options:
+            if not isinstance(options["home_placeholder"], bool):
+                problems.append(("home_placeholder", "home_placeholder must be true or false"))
+            else:
+                values["home_placeholder"] = options["home_placeholder"]
+        if "mission_type" in options:
+            names = {entry.name: value for value, entry in mavlink2.enums["MAV_MISSION_TYPE"].items()}
+            value = options["mission_type"]
+            value = names.get(value, names.get(f"MAV_MISSION_TYPE_{str(value).upper()}", value))
+            if value not in (0, 1, 2):
+                problems.append(("mission_type", "mission_type must be MAV_MISSION_TYPE_MISSION, _FENCE or _RALLY"))
+            else:
+                values["mission_type"] = value
+        return cls(**values), problems
+
+    def answer_timeout(self, connection: MavlinkConnection) -> float:
+        if self.timeout is not None:
+            return self.timeout
+        return SERIAL_TIMEOUT if connection.config.address.kind == "serial" else NETWORK_TIMEOUT
+
+    @property
+    def target(self) -> tuple[int, int]:
+        return self.target_system, self.target_component
+
+
+class Conversation:
+    """Messages of ``msg_ids`` from ``target`` addressed to us (or to everyone), queued while open."""
+
+    def __init__(self, connection: MavlinkConnection, target: tuple[int, int], msg_ids: Iterable[int]) -> None:
+        self.connection = connection
+        self.target = target
+        self.msg_ids = tuple(msg_ids)
+        self.queue: asyncio.Queue[Any] = asyncio.Queue()
+        self._us = connection.config.source_system
+
+    def _offer(self, msg: Any) -> None:
+        header = msg.get_header()
+        if header.srcSystem != self.target[0] or self.target[1] not in (0, header.srcComponent):
+            return
+        if getattr(msg, "target_system", 0) not in (0, self._us):
+            return
+        self.queue.put_nowait(msg)
+
+    async def __aenter__(self) -> Conversation:
+        for msg_id in self.msg_ids:
+            self.connection.listen(msg_id, self._offer)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        for msg_id in self.msg_ids:
+            self.connection.unlisten(msg_id, self._offer)
+
+    async def next(self, timeout: float) -> Any | None:
+        """The next answer, or None after ``timeout`` seconds."""
+        try:
+            return await asyncio.wait_for(self.queue.get(), timeout)
+        except TimeoutError:
+            return None
