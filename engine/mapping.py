@@ -152,6 +152,25 @@ class FieldFunctions(functions.Functions):
     def _func_attitude_to_enu(self, roll: float, pitch: float, yaw: float) -> Any:
         return _frames().attitude_ned_to_enu(roll, pitch, yaw)
 
+    # MAVLink enums by name, from pymavlink's dialect tables (imported on first use)
+    @functions.signature({"types": ["number"]}, {"types": ["string"]})
+    def _func_mav_enum(self, value: int, enum: str) -> str | None:
+        from engine.endpoints.mavlink import enums
+
+        return enums.mav_enum(value, enum)
+
+    @functions.signature({"types": ["string"]}, {"types": ["string"]})
+    def _func_mav_enum_value(self, name: str, enum: str) -> int:
+        from engine.endpoints.mavlink import enums
+
+        return enums.mav_enum_value(name, enum)
+
+    @functions.signature({"types": ["number"]}, {"types": ["string"]})
+    def _func_mav_flags(self, value: int, enum: str) -> list[str]:
+        from engine.endpoints.mavlink import enums
+
+        return enums.mav_flags(value, enum)
+
 
 _OPTIONS = jmespath.Options(custom_functions=FieldFunctions())
 

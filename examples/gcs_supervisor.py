@@ -1,8 +1,9 @@
 """The supervisory software of the farm demo, speaking only AMQP and canonical JSON.
 
 It watches every canonical message on the ``farm`` exchange; when the UAV reports weeds it
-turns the detections into a spraying mission for the ground robot (the paper's scenario),
-and it exits with a summary after ``--duration`` seconds: 0 when every flow was seen.
+turns the detections into a spraying mission for the ground robot (the paper's scenario) and
+one for the UAV itself (the engine uploads it to the vehicle with the MAVLink mission protocol;
+the vehicle's MISSION_ACK comes back as a canonical ack), and it exits with a summary after ``--duration`` seconds: 0 when every flow was seen.
 """
 
 from __future__ import annotations
@@ -17,7 +18,9 @@ import uuid
 
 import aio_pika
 
-UAV_FLOWS = ("position.uav1", "attitude.uav1", "battery.uav1", "status.uav1", "weeds.uav1")
+UAV_FLOWS = ("position.uav1", "attitude.uav1", "battery.uav1", "status.uav1", "weeds.uav1", "ack.uav1")
+UAV_ALT_M = 20.0
+"""Spraying height above home of the UAV's missions."""
 
 
 async def main(url: str, duration: float, robot: str) -> int:
@@ -43,8 +46,15 @@ async def main(url: str, duration: float, robot: str) -> int:
                 "mission_id": f"spray-{missions}", "task": "spray",
                 "waypoints": [{"seq": i, "lat": p["lat"], "lon": p["lon"], "action": "spray"} for i, p in enumerate(body["points"])],
             }
-            await farm.publish(aio_pika.Message(json.dumps(mission).encode(), content_type="application/json"), f"mission.{robot}")
-            print(f"gcs -> mission.{robot}: {mission['mission_id']} ({len(mission['waypoints'])} waypoints)", flush=True)
+            await farm.publish(aio_pika.Message(json.dumps(mission).encode(), content_type="application/json"),
+                               f"mission.ground.{robot}")
+            print(f"gcs -> mission.ground.{robot}: {mission['mission_id']} ({len(mission['waypoints'])} waypoints)", flush=True)
+            if missions <= 2:
+                uav = {**mission, "agent_id": body["agent_id"], "id": uuid.uuid4().hex, "mission_id": f"uav-spray-{missions}",
+                       "waypoints": [{"lat": p["lat"], "lon": p["lon"], "alt": UAV_ALT_M, "hold_s": 2.0} for p in body["points"]]}
+                await farm.publish(aio_pika.Message(json.dumps(uav).encode(), content_type="application/json"),
+                                   f"mission.uav.{uav['agent_id']}")
+                print(f"gcs -> mission.uav.{uav['agent_id']}: {uav['mission_id']} ({len(uav['waypoints'])} waypoints)", flush=True)
 
     await queue.consume(on_message, no_ack=True)
     await asyncio.sleep(duration)

@@ -174,7 +174,8 @@ def test_vehicle_telemetry_arrives_canonical_in_enu_and_si(tmp_path: Path, amqp_
         assert body["remaining"] in (1.0, 0.99)
     statuses = [json.loads(m.body) for m in received["canonical.status.uav1"]]
     assert all({k: s[k] for k in ("state", "armed", "vehicle_type", "autopilot")} ==
-               {"state": "ACTIVE", "armed": True, "vehicle_type": "QUADROTOR", "autopilot": "GENERIC"}
+               {"state": "MAV_STATE_ACTIVE", "armed": True, "vehicle_type": "MAV_TYPE_QUADROTOR",
+                "autopilot": "MAV_AUTOPILOT_GENERIC"}
                for s in statuses), statuses
 
     assert [m.body for m in received["uav.json.uav1"]] == [command], "the command came back byte for byte"

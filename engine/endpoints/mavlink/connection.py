@@ -60,6 +60,9 @@ class MavlinkConnection(Connection):
         self.port = MavlinkPort(name, config, self._on_message, self.stats)
         self.hub = TunnelHub(self.port, config.tunnel)
         self.seen: dict[tuple[int, int], VehicleSeen] = {}
+        self.mission_refs: dict[tuple[int, int], str] = {}
+        """Per vehicle, the id of the message whose mission was uploaded last: a MISSION_ACK
+        source gives it as ``ref_id`` (MISSION_ACK itself carries no reference)."""
         self._heard = asyncio.Condition()
         self._listeners: dict[int | None, list[Listener]] = {}
         self._locks: dict[Any, asyncio.Lock] = {}

@@ -18,6 +18,7 @@ if TYPE_CHECKING:
     from engine.endpoints.mavlink.connection import MavlinkConnection
 
 SOURCE_QUEUE = 256
+MISSION_ACK = mavlink2.MAVLINK_MSG_ID_MISSION_ACK
 
 
 
@@ -66,7 +67,12 @@ class MessageSource(Source):
             "message": msg.get_type(), "system_id": header.srcSystem, "component_id": header.srcComponent,
             "signed": bool(buf[0] == mavlink2.PROTOCOL_MARKER_V2 and buf[2] & mavlink2.MAVLINK_IFLAG_SIGNED),
         }
-        self._queue.put_nowait(Inbound(fields=message_fields(msg), meta=meta))
+        fields = message_fields(msg)
+        if self.msg_id == MISSION_ACK:
+            ref = self.connection.mission_refs.get((header.srcSystem, header.srcComponent))
+            if ref is not None:
+                fields["ref_id"] = ref
+        self._queue.put_nowait(Inbound(fields=fields, meta=meta))
 
     async def _run(self, deliver: Deliver) -> None:
         while (inbound := await self._queue.get()) is not None:

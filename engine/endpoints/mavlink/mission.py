@@ -122,8 +122,10 @@ class MissionUploadSink(Sink):
         items = self.items(message.fields)
         connection, options = self.connection, self.options
         loop = asyncio.get_running_loop()
+        canonical = message.canonical if isinstance(message.canonical, Mapping) else {}
         async with connection.transaction_lock(("mission", options.target)):
             await connection.wait_for_vehicle(*options.target, loop.time() + options.vehicle_timeout)
+            connection.mission_refs[options.target] = str(canonical.get("id") or message.message_id)
             async with Conversation(connection, options.target, _ANSWERS) as answers:
                 await self._upload(answers, items)
 
