@@ -9,7 +9,7 @@ the upload with that result at its start; ``silent`` never answers.
 
 Commands (``services/command.md``): every COMMAND_LONG/COMMAND_INT for this system is answered
 with the next of ``command_results`` (the last repeats); MAV_RESULT_IN_PROGRESS is followed by
-the next result after ``progress_delay``; ``silent`` never answers.
+the next result after ``progress_delay`` (it takes its place in the list); ``silent`` never answers.
 """
 
 from __future__ import annotations
@@ -69,6 +69,7 @@ class Autopilot:
         self._finished: tuple[tuple[int, int], int, int, int] | None = None
         """(peer, count, result, mission_type) of the last upload answered, to repeat its ACK."""
         self._wake = asyncio.Event()
+        self._result_index = 0
 
     def _for_us(self, msg: Any) -> bool:
         return msg.target_system in (0, self.system_id) and msg.target_component in (0, self.component_id)
@@ -140,17 +141,21 @@ class Autopilot:
 
     def _command(self, msg: Any) -> None:
         self.commands.append({"message": msg.get_type(), **message_fields(msg)})
-        index = min(self.stats["commands_received"], len(self.command_results) - 1)
         self.stats["commands_received"] += 1
         peer = (msg.get_srcSystem(), msg.get_srcComponent())
-        result = self.command_results[index]
+        result = self._next_result()
         if result is None:
             return
         self._command_ack(peer, msg, result)
         if result == mavlink2.MAV_RESULT_IN_PROGRESS:
-            final = self.command_results[min(index + 1, len(self.command_results) - 1)]
+            final = self._next_result()
             if final is not None:
                 asyncio.get_running_loop().call_later(self.progress_delay, self._command_ack, peer, msg, final)
+
+    def _next_result(self) -> int | None:
+        result = self.command_results[min(self._result_index, len(self.command_results) - 1)]
+        self._result_index += 1
+        return result
 
     def _command_ack(self, peer: tuple[int, int], msg: Any, result: int) -> None:
         if result == mavlink2.MAV_RESULT_ACCEPTED and msg.command == mavlink2.MAV_CMD_COMPONENT_ARM_DISARM:
