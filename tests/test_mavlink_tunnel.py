@@ -23,7 +23,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.mavlink import tunnel  # noqa: E402
-from engine.endpoints.base import EndpointError, Inbound, Outbound  # noqa: E402
+from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
 
 TRANSPORT = mavlink.TRANSPORT
 
@@ -528,3 +528,82 @@ def test_signed_round_trip_through_radio_and_simulated_vehicle(monkeypatch: pyte
                 await running
 
     run(scenario(), timeout=60)
+
+
+def test_every_route_on_a_tunnel_gets_every_message_and_the_sender_waits_for_all() -> None:
+    """Two routes read one payload type: one reassembly, each route gets each message once,
+    and the sender's send returns only after both settled it; a route that fails gets the
+    retransmitted message again while the one that settled it does not."""
+
+    async def scenario() -> None:
+        gcs, uav, _ = await udp_pair()
+        first, flaky = Collector(), Collector(fail_first=1)
+        a = uav.source("route-a", {"json_tunnel": True})
+        b = uav.source("route-b", {"json_tunnel": True, "system_id": 255})
+        sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
+        try:
+            await a.start(first)
+            await b.start(flaky)
+            for n in range(3):
+                await sink.send(outbound(b'{"n":%d}' % n))
+                assert len(first.items) == len(flaky.items) == n + 1, "acknowledged only after both routes settled it"
+            assert [i.body for i in first.items] == [i.body for i in flaky.items] == [b'{"n":0}', b'{"n":1}', b'{"n":2}']
+            assert flaky.calls == 4 and first.calls == 3, "the route that settled it is not given it again"
+            assert uav.stats["tunnel_deliver_failed"] == 1 and uav.stats["tunnel_delivered"] == 3
+        finally:
+            await a.stop()
+            await b.stop()
+            await gcs.close()
+            await uav.close()
+
+    run(scenario())
+
+
+def test_every_route_on_a_message_type_gets_every_message_with_nan_as_null() -> None:
+    async def scenario() -> None:
+        gcs, uav, _ = await udp_pair()
+        one, two = Collector(), Collector()
+        sources = [uav.source("one", {"message": "HIL_GPS"}), uav.source("two", {"message": "HIL_GPS"})]
+        try:
+            await sources[0].start(one)
+            await sources[1].start(two)
+            nan = float("nan")
+            for n in range(2):
+                await gcs.send_message(mavlink2.MAVLink_hil_gps_message(n, 3, 1, 2, 3, 65535, 65535, 0, 0, 0, 0, 0, 255))
+            deadline = time.monotonic() + 5
+            while (len(one.items) < 2 or len(two.items) < 2) and time.monotonic() < deadline:
+                await asyncio.sleep(0.02)
+            assert [i.fields["time_usec"] for i in one.items] == [i.fields["time_usec"] for i in two.items] == [0, 1]
+            vision = mavlink.message_fields(mavlink2.MAVLink_vision_position_estimate_message(1, 1.0, nan, 3.0, 0, 0, 0,
+                                                                                             [nan] + [0.0] * 20))
+            assert vision["y"] is None and vision["covariance"][:2] == [None, 0.0]
+        finally:
+            for source in sources:
+                await source.stop()
+            await gcs.close()
+            await uav.close()
+
+    run(scenario())
+
+
+def test_tunnel_sink_mapping_shapes_the_body() -> None:
+    async def scenario() -> None:
+        gcs, uav, _ = await udp_pair()
+        got = Collector()
+        source = uav.source("in", {"json_tunnel": True})
+        sink = gcs.sink("out", {"json_tunnel": True, "target_system": 1})
+        try:
+            await source.start(got)
+            canonical = {"agent_id": "uav1", "command": "goto"}
+            await sink.send(Outbound(b'{"agent_id":"uav1","command":"goto"}', canonical, {"cmd": "goto", "v": 1}, "m", {}))
+            same = {"a": 1}
+            await sink.send(Outbound(b'{"a": 1}', same, same, "m", {}))
+            assert [i.body for i in got.items] == [b'{"cmd":"goto","v":1}', b'{"a": 1}'], "no mapping: the bytes as they came"
+            with pytest.raises(MessageRejected):
+                await sink.send(Outbound(b"{}", {}, {"x": float("nan")}, "m", {}))
+        finally:
+            await source.stop()
+            await gcs.close()
+            await uav.close()
+
+    run(scenario())

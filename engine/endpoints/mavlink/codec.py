@@ -102,6 +102,14 @@ def build_message(cls: type[mavlink2.MAVLink_message], fields: Any,
 
 
 def message_fields(msg: mavlink2.MAVLink_message) -> dict[str, Any]:
-    """``to_dict()`` without ``mavpackettype``: strings decoded, arrays as lists."""
-    return {name: msg.format_attr(name) for name in msg.get_fieldnames()}
+    """``to_dict()`` without ``mavpackettype``: strings decoded, arrays as lists, and NaN or
+    infinite floats (MAVLink's "unknown", e.g. HIL or GPS fields) as None, as rosbridge does,
+    so the message can become JSON."""
+    fields = {name: msg.format_attr(name) for name in msg.get_fieldnames()}
+    for name, value in fields.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            fields[name] = None
+        elif isinstance(value, list) and any(isinstance(v, float) and not math.isfinite(v) for v in value):
+            fields[name] = [None if isinstance(v, float) and not math.isfinite(v) else v for v in value]
+    return fields
 

@@ -45,10 +45,12 @@ from engine.endpoints.base import (
     Deliver,
     EndpointError,
     Inbound,
+    MessageRejected,
     Outbound,
     Sink,
     Source,
 )
+from engine.schemas import SchemaError, canonical_bytes
 
 DEFAULT_PAYLOAD_TYPE = 0xA900
 TUNNEL_PAYLOAD = 128
@@ -470,16 +472,16 @@ class TunnelSettings:
 class TunnelHub:
     """Per-connection dispatch of tunnel frames to the sinks and sources using them.
 
-    Reassembly state (and so the memory of delivered ids) belongs to the connection, not to
-    a source: a reload starts the new source before stopping the old one, and the newest
-    source of a ``payload_type`` takes over the same state without delivering twice.
+    Reassembly state (and so the memory of delivered ids) belongs to the connection, one
+    :class:`TunnelChannel` per ``payload_type``, not to a source: every route reading a
+    payload type gets every message, and a reload, which starts a route's new source before
+    stopping its old one, hands the same state to the new source without delivering twice.
     """
 
     def __init__(self, link: TunnelLink, settings: TunnelSettings) -> None:
         self.link = link
         self.settings = settings
-        self._receivers: dict[int, list[Callable[[tuple[int, int], Data], None]]] = {}
-        self._reassemblers: dict[int, Reassembler] = {}
+        self._channels: dict[int, TunnelChannel] = {}
         self._senders: set[int] = set()
         self._waiting: dict[tuple[int, int], Callable[[Ack], None]] = {}
         self._next_id: dict[int, int] = {}
@@ -487,7 +489,8 @@ class TunnelHub:
 
     def on_frame(self, payload_type: int, peer: tuple[int, int], payload: bytes) -> bool:
         """Handle a TUNNEL payload addressed to us; False when no route uses its type."""
-        if payload_type not in self._receivers and payload_type not in self._senders:
+        channel = self._channels.get(payload_type)
+        if (channel is None or not channel.routes) and payload_type not in self._senders:
             return False
         try:
             frame = decode(payload)
@@ -495,32 +498,22 @@ class TunnelHub:
             self.link.stats["tunnel_malformed"] = self.link.stats.get("tunnel_malformed", 0) + 1
             return True
         if isinstance(frame, Data):
-            receivers = self._receivers.get(payload_type)
-            if receivers:
-                receivers[-1](peer, frame)
+            if channel is not None:
+                channel.on_data(peer, frame)
         else:
             waiter = self._waiting.get((payload_type, frame.msg_id))
             if waiter is not None:
                 waiter(frame)
         return True
 
-    def add_receiver(self, payload_type: int, callback: Callable[[tuple[int, int], Data], None]) -> None:
-        self._receivers.setdefault(payload_type, []).append(callback)
-
-    def remove_receiver(self, payload_type: int, callback: Callable[[tuple[int, int], Data], None]) -> None:
-        receivers = self._receivers.get(payload_type, [])
-        if callback in receivers:
-            receivers.remove(callback)
-        if not receivers:
-            self._receivers.pop(payload_type, None)
+    def channel(self, payload_type: int) -> TunnelChannel:
+        channel = self._channels.get(payload_type)
+        if channel is None:
+            channel = self._channels[payload_type] = TunnelChannel(self, payload_type)
+        return channel
 
     def reassembler(self, payload_type: int) -> Reassembler:
-        reasm = self._reassemblers.get(payload_type)
-        if reasm is None:
-            s = self.settings
-            reasm = self._reassemblers[payload_type] = Reassembler(
-                sack_delay=s.sack_delay, timeout=s.reassembly_timeout, memory=s.memory, memory_ttl=s.memory_ttl)
-        return reasm
+        return self.channel(payload_type).reassembler
 
     def add_sender(self, payload_type: int) -> None:
         self._senders.add(payload_type)
@@ -551,6 +544,102 @@ class TunnelHub:
         self.link.stats[name] = self.link.stats.get(name, 0) + n
 
 
+class TunnelChannel:
+    """The receiving side of one ``payload_type``: one reassembly, each message handed to every
+    route that reads it (the newest source of each route), and acknowledged DELIVERED to the
+    sender only once every one of them settled it. A route that failed gets the message again
+    when the sender retransmits; the routes that settled it do not."""
+
+    def __init__(self, hub: TunnelHub, payload_type: int) -> None:
+        self.hub = hub
+        self.payload_type = payload_type
+        s = hub.settings
+        self.reassembler = Reassembler(sack_delay=s.sack_delay, timeout=s.reassembly_timeout, memory=s.memory,
+                                       memory_ttl=s.memory_ttl)
+        self.routes: dict[str, list[TunnelSource]] = {}
+        self._settled: OrderedDict[Key, set[str]] = OrderedDict()
+        self._ready: asyncio.Queue[tuple[Key, bytes] | None] = asyncio.Queue()
+        self._wake = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+
+    def readers(self, peer: tuple[int, int]) -> list[TunnelSource]:
+        """The newest source of each route that accepts messages from ``peer``."""
+        return [sources[-1] for sources in self.routes.values() if sources[-1].accepts(peer)]
+
+    def add(self, source: TunnelSource) -> None:
+        self.routes.setdefault(source.route, []).append(source)
+        if not self._tasks:
+            self._tasks = [
+                asyncio.create_task(self._timers(), name=f"tunnel-timers:{self.payload_type}"),
+                asyncio.create_task(self._deliveries(), name=f"tunnel-deliver:{self.payload_type}"),
+            ]
+
+    async def remove(self, source: TunnelSource) -> None:
+        sources = self.routes.get(source.route, [])
+        if source in sources:
+            sources.remove(source)
+        if not sources:
+            self.routes.pop(source.route, None)
+        if self.routes or not self._tasks:
+            return
+        timers, deliveries = self._tasks
+        self._tasks = []
+        timers.cancel()
+        while not self._ready.empty():
+            item = self._ready.get_nowait()
+            if item is not None:
+                self.reassembler.failed(item[0])
+        self._ready.put_nowait(None)
+        await asyncio.gather(timers, deliveries, return_exceptions=True)
+
+    def on_data(self, peer: tuple[int, int], data: Data) -> None:
+        if not self.readers(peer):
+            return
+        acks, complete = self.reassembler.on_data(peer, data, asyncio.get_running_loop().time())
+        for ack in acks:
+            self._send_ack(peer, ack)
+        if complete is not None:
+            self._ready.put_nowait(complete)
+        self._wake.set()
+
+    def _send_ack(self, peer: Hashable, ack: bytes) -> None:
+        assert isinstance(peer, tuple)
+        sent = asyncio.ensure_future(self.hub.link.send_tunnel(self.payload_type, peer, ack, bulk=False))
+        sent.add_done_callback(ignore_result)
+
+    async def _timers(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            deadline = self.reassembler.next_deadline()
+            self._wake.clear()
+            timeout = None if deadline is None else max(0.0, deadline - loop.time())
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), timeout)
+            for peer, ack in self.reassembler.poll(loop.time()):
+                self._send_ack(peer, ack)
+
+    async def _deliveries(self) -> None:
+        loop = asyncio.get_running_loop()
+        while (item := await self._ready.get()) is not None:
+            key, body = item
+            peer, msg_id = cast(tuple[int, int], key[0]), key[1]
+            settled = self._settled.pop(key, set())
+            readers = [source for source in self.readers(peer) if source.route not in settled]
+            results = await asyncio.gather(*(source.deliver(Inbound(body=body, meta={
+                "message": "TUNNEL", "system_id": peer[0], "component_id": peer[1],
+                "payload_type": self.payload_type, "tunnel_id": msg_id})) for source in readers), return_exceptions=True)
+            settled.update(source.route for source, result in zip(readers, results) if result is None)
+            if len(settled) < len(readers) or not readers:
+                self._settled[key] = settled
+                while len(self._settled) > self.reassembler.memory:
+                    self._settled.popitem(last=False)
+                self.reassembler.failed(key)
+                self.hub.count("tunnel_deliver_failed")
+                continue
+            self.hub.count("tunnel_delivered")
+            self._send_ack(peer, self.reassembler.delivered(key, loop.time()))
+
+
 class TunnelSink(Sink):
     """Sends ``Outbound.body`` whole; returns once the receiver acknowledged delivery."""
 
@@ -563,7 +652,15 @@ class TunnelSink(Sink):
         hub.add_sender(payload_type)
 
     async def send(self, message: Outbound) -> None:
-        await self.send_bytes(message.body)
+        """The canonical bytes, or the JSON of what ``sink.mapping`` made of them."""
+        if message.fields is message.canonical:
+            await self.send_bytes(message.body)
+            return
+        try:
+            body = canonical_bytes(message.fields)
+        except SchemaError as exc:
+            raise MessageRejected(f"tunnel: {exc}") from None
+        await self.send_bytes(body)
 
     async def send_bytes(self, body: bytes) -> None:
         hub, settings = self.hub, self.hub.settings
@@ -616,7 +713,7 @@ class TunnelSink(Sink):
 
 
 class TunnelSource(Source):
-    """Reassembles messages of one ``payload_type`` and hands each body to ``deliver`` once."""
+    """One route reading the messages of a ``payload_type`` (see :class:`TunnelChannel`)."""
 
     def __init__(self, hub: TunnelHub, *, route: str, payload_type: int = DEFAULT_PAYLOAD_TYPE,
                  system_id: int | None = None, component_id: int | None = None) -> None:
@@ -625,75 +722,36 @@ class TunnelSource(Source):
         self.payload_type = payload_type
         self.system_id = system_id
         self.component_id = component_id
-        self.reassembler = hub.reassembler(payload_type)
-        self._ready: asyncio.Queue[tuple[Key, bytes] | None] = asyncio.Queue()
-        self._wake = asyncio.Event()
-        self._tasks: list[asyncio.Task[None]] = []
+        self.channel = hub.channel(payload_type)
+        self.reassembler = self.channel.reassembler
+        self._deliver: Deliver | None = None
+        self._busy = 0
+        self._idle = asyncio.Event()
+        self._idle.set()
+
+    def accepts(self, peer: tuple[int, int]) -> bool:
+        return (self.system_id is None or peer[0] == self.system_id) and \
+            (self.component_id is None or peer[1] == self.component_id)
 
     async def start(self, deliver: Deliver) -> None:
-        self.hub.add_receiver(self.payload_type, self._on_data)
-        self._tasks = [
-            asyncio.create_task(self._timers(), name=f"tunnel-timers:{self.route}"),
-            asyncio.create_task(self._deliveries(deliver), name=f"tunnel-deliver:{self.route}"),
-        ]
+        self._deliver = deliver
+        self.channel.add(self)
 
     async def stop(self) -> None:
-        self.hub.remove_receiver(self.payload_type, self._on_data)
-        if not self._tasks:
-            return
-        timers, deliveries = self._tasks
-        self._tasks = []
-        timers.cancel()
-        while not self._ready.empty():
-            item = self._ready.get_nowait()
-            if item is not None:
-                self.reassembler.failed(item[0])
-        self._ready.put_nowait(None)
-        await asyncio.gather(timers, deliveries, return_exceptions=True)
+        """Take no new messages; return once the one being delivered is settled."""
+        await self.channel.remove(self)
+        await self._idle.wait()
 
-    def _on_data(self, peer: tuple[int, int], data: Data) -> None:
-        if self.system_id is not None and peer[0] != self.system_id:
-            return
-        if self.component_id is not None and peer[1] != self.component_id:
-            return
-        acks, complete = self.reassembler.on_data(peer, data, asyncio.get_running_loop().time())
-        for ack in acks:
-            self._send_ack(peer, ack)
-        if complete is not None:
-            self._ready.put_nowait(complete)
-        self._wake.set()
-
-    def _send_ack(self, peer: Hashable, ack: bytes) -> None:
-        assert isinstance(peer, tuple)
-        sent = asyncio.ensure_future(self.hub.link.send_tunnel(self.payload_type, peer, ack, bulk=False))
-        sent.add_done_callback(ignore_result)
-
-    async def _timers(self) -> None:
-        loop = asyncio.get_running_loop()
-        while True:
-            deadline = self.reassembler.next_deadline()
-            self._wake.clear()
-            timeout = None if deadline is None else max(0.0, deadline - loop.time())
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), timeout)
-            for peer, ack in self.reassembler.poll(loop.time()):
-                self._send_ack(peer, ack)
-
-    async def _deliveries(self, deliver: Deliver) -> None:
-        loop = asyncio.get_running_loop()
-        while (item := await self._ready.get()) is not None:
-            key, body = item
-            peer, msg_id = cast(tuple[int, int], key[0]), key[1]
-            meta = {"message": "TUNNEL", "system_id": peer[0], "component_id": peer[1],
-                    "payload_type": self.payload_type, "tunnel_id": msg_id}
-            try:
-                await deliver(Inbound(body=body, meta=meta))
-            except Exception:
-                self.reassembler.failed(key)
-                self.hub.count("tunnel_deliver_failed")
-                continue
-            self.hub.count("tunnel_delivered")
-            self._send_ack(peer, self.reassembler.delivered(key, loop.time()))
+    async def deliver(self, inbound: Inbound) -> None:
+        assert self._deliver is not None
+        self._busy += 1
+        self._idle.clear()
+        try:
+            await self._deliver(inbound)
+        finally:
+            self._busy -= 1
+            if not self._busy:
+                self._idle.set()
 
 
 def ignore_result(future: asyncio.Future[Any]) -> None:
