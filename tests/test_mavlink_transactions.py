@@ -83,10 +83,21 @@ async def gcs_and_vehicle(**vehicle: Any) -> AsyncIterator[tuple[MavlinkConnecti
         await gcs.close()
 
 
-def write_routes(directory: Path, text: str) -> Path:
+def write_routes(directory: Path, amqp_url: str, link: str, text: str) -> Path:
+    """A routes directory with the connections ``bus`` (AMQP) and ``uav`` (MAVLink ``link``)."""
     directory.mkdir(exist_ok=True)
-    (directory / "routes.yaml").write_text(text)
+    baud = "" if link.startswith(("udp", "tcp")) else ", baud: 57600"
+    (directory / "routes.yaml").write_text(
+        f'connections:\n  bus: {{amqp: "{amqp_url}"}}\n  uav: {{mavlink: "{link}"{baud}}}\nroutes:\n{text}')
     return directory
+
+
+def amqp_route(name: str, tag: str, binding_key: str, schema: str) -> str:
+    """The head of a route from the test's exchange to a sink given after it."""
+    return f"""  - name: {name}-{tag}
+    source: {{amqp: {{connection: bus, exchange: farm-{tag}, binding_key: {binding_key}, queue: {name}-{tag}}}}}
+    schema: {schema}
+"""
 
 
 # -- the engine through RabbitMQ to MAVSDK ------------------------------------------------------
@@ -98,18 +109,10 @@ def test_canonical_mission_and_arm_through_rabbitmq_to_mavsdk(tmp_path: Path, am
     both AMQP messages are acknowledged once."""
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
-    routes = write_routes(tmp_path / "routes", f"""
-connections:
-  bus: {{amqp: "{amqp_url}"}}
-  uav: {{mavlink: "udpout:127.0.0.1:{port}"}}
-routes:
-  - name: mission-{tag}
-    source: {{amqp: {{connection: bus, exchange: farm-{tag}, binding_key: mission.uav1, queue: mission-{tag}}}}}
-    schema: mission
-    sink: {{mavlink: {{connection: uav, mission: upload, target_system: 1, target_component: 1}}}}
-  - name: arm-{tag}
-    source: {{amqp: {{connection: bus, exchange: farm-{tag}, binding_key: command.uav1, queue: arm-{tag}}}}}
-    schema: command
+    routes = write_routes(tmp_path / "routes", amqp_url, f"udpout:127.0.0.1:{port}", amqp_route(
+        "mission", tag, "mission.uav1", "mission") + """\
+    sink: {mavlink: {connection: uav, mission: upload, target_system: 1, target_component: 1}}
+""" + amqp_route("arm", tag, "command.uav1", "command") + f"""\
     sink:
       mavlink: {{connection: uav, message: COMMAND_LONG, target_system: 1, target_component: 1, acknowledged: true}}
       mapping: "{{command: mav_enum_value('MAV_CMD_COMPONENT_ARM_DISARM', 'MAV_CMD'), param1: `1`}}"
@@ -171,17 +174,11 @@ def test_mission_over_lossy_sik_radio_arrives_complete_and_is_acked_once(tmp_pat
 
     async def scenario() -> tuple[dict[str, Any], SimVehicle, list[Any]]:
         async with SikRadioPair(str(tmp_path / "gcs"), str(tmp_path / "uav"), loss=0.05, seed=12) as pair:
-            routes = write_routes(tmp_path / "routes", f"""
-connections:
-  bus: {{amqp: "{amqp_url}"}}
-  radio: {{mavlink: "{pair.link_a}", baud: 57600}}
-routes:
-  - name: mission-{tag}
-    source: {{amqp: {{connection: bus, exchange: farm-{tag}, binding_key: mission.uav1, queue: mission-{tag}}}}}
-    schema: mission
-    sink: {{mavlink: {{connection: radio, mission: upload, target_system: 1, target_component: 1, home_placeholder: true}}}}
+            routes = write_routes(tmp_path / "routes", amqp_url, pair.link_a, amqp_route(
+                "mission", tag, "mission.uav1", "mission") + f"""\
+    sink: {{mavlink: {{connection: uav, mission: upload, target_system: 1, target_component: 1, home_placeholder: true}}}}
   - name: acks-{tag}
-    source: {{mavlink: {{connection: radio, message: MISSION_ACK, system_id: 1}}}}
+    source: {{mavlink: {{connection: uav, message: MISSION_ACK, system_id: 1}}}}
     mapping: >-
       {{type: 'ack', agent_id: 'uav1', ref_id: ref_id, detail: mav_enum(type, 'MAV_MISSION_RESULT'),
       result: (type == `0` && 'accepted') || 'rejected'}}
@@ -232,18 +229,10 @@ def test_refused_mission_and_command_are_dead_lettered_with_the_result_name(tmp_
                                                                              schemas_dir: Path) -> None:
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
-    routes = write_routes(tmp_path / "routes", f"""
-connections:
-  bus: {{amqp: "{amqp_url}"}}
-  uav: {{mavlink: "udpin:127.0.0.1:{port}"}}
-routes:
-  - name: mission-{tag}
-    source: {{amqp: {{connection: bus, exchange: farm-{tag}, binding_key: mission.uav1, queue: mission-{tag}}}}}
-    schema: mission
-    sink: {{mavlink: {{connection: uav, mission: upload}}}}
-  - name: arm-{tag}
-    source: {{amqp: {{connection: bus, exchange: farm-{tag}, binding_key: command.uav1, queue: arm-{tag}}}}}
-    schema: command
+    routes = write_routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", amqp_route(
+        "mission", tag, "mission.uav1", "mission") + """\
+    sink: {mavlink: {connection: uav, mission: upload}}
+""" + amqp_route("arm", tag, "command.uav1", "command") + f"""\
     sink:
       mavlink: {{connection: uav, message: COMMAND_INT, target_system: 1, acknowledged: true}}
       mapping: "{{command: 'MAV_CMD_DO_REPOSITION', frame: `6`, x: deg_to_deg_e7(params.lat), y: deg_to_deg_e7(params.lon)}}"
@@ -289,15 +278,9 @@ def test_silent_vehicle_is_a_transient_failure_for_the_delivery_policy(tmp_path:
     ends as a dead letter naming the silence. Either way it is never acknowledged as delivered."""
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
-    routes = write_routes(tmp_path / "routes", f"""
-connections:
-  bus: {{amqp: "{amqp_url}"}}
-  uav: {{mavlink: "udpin:127.0.0.1:{port}"}}
-routes:
-  - name: mission-{tag}
-    source: {{amqp: {{connection: bus, exchange: farm-{tag}, binding_key: mission.uav1, queue: mission-{tag}}}}}
-    schema: mission
-    sink: {{mavlink: {{connection: uav, mission: upload, timeout: 0.2, retries: 2}}}}
+    routes = write_routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", amqp_route(
+        "mission", tag, "mission.uav1", "mission") + """\
+    sink: {mavlink: {connection: uav, mission: upload, timeout: 0.2, retries: 2}}
 """)
 
     async def scenario() -> tuple[dict[str, Any], list[Any], SimVehicle]:

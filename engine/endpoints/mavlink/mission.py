@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
@@ -47,16 +47,20 @@ def _number(value: Any, what: str) -> float:
     return float(value)
 
 
+def _objects(raw: Any, name: str) -> Iterator[tuple[str, Mapping[str, Any]]]:
+    """(``name[i]``, object) for each entry of a non-empty list, or MessageRejected."""
+    if not isinstance(raw, list) or not raw:
+        raise MessageRejected(f"mission has no {name}" if raw in (None, []) else f"{name} must be a list")
+    for index, entry in enumerate(raw):
+        if not isinstance(entry, Mapping):
+            raise MessageRejected(f"{name}[{index}]: expected an object")
+        yield f"{name}[{index}]", entry
+
+
 def waypoint_items(mission: Mapping[str, Any], default_alt: float | None) -> list[dict[str, Any]]:
     """Canonical waypoints -> MISSION_ITEM_INT fields (without seq and targets)."""
-    waypoints = mission.get("waypoints")
-    if not isinstance(waypoints, list) or not waypoints:
-        raise MessageRejected("mission has no waypoints")
     items = []
-    for index, point in enumerate(waypoints):
-        where = f"waypoints[{index}]"
-        if not isinstance(point, Mapping):
-            raise MessageRejected(f"{where}: expected an object")
+    for where, point in _objects(mission.get("waypoints"), "waypoints"):
         alt = point.get("alt", default_alt)
         if alt is None:
             raise MessageRejected(f"{where}: no alt, and the sink sets no default_alt")
@@ -72,13 +76,8 @@ def waypoint_items(mission: Mapping[str, Any], default_alt: float | None) -> lis
 
 def explicit_items(raw: Any) -> list[dict[str, Any]]:
     """``items`` from a sink mapping: MISSION_ITEM_INT fields, command and frame by name or number."""
-    if not isinstance(raw, list) or not raw:
-        raise MessageRejected("items must be a non-empty list")
     items = []
-    for index, item in enumerate(raw):
-        where = f"items[{index}]"
-        if not isinstance(item, Mapping):
-            raise MessageRejected(f"{where}: expected an object")
+    for where, item in _objects(raw, "items"):
         unknown = sorted(set(item) - _ITEM_KEYS)
         if unknown:
             raise MessageRejected(f"{where}: unknown field(s) {', '.join(unknown)} (fields: {', '.join(sorted(_ITEM_KEYS))})")
