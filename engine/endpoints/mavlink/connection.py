@@ -63,7 +63,7 @@ class MavlinkConnection(Connection):
         self.mission_refs: dict[tuple[int, int], str] = {}
         """Per vehicle, the id of the message whose mission was uploaded last: a MISSION_ACK
         source gives it as ``ref_id`` (MISSION_ACK itself carries no reference)."""
-        self._heard = asyncio.Condition()
+        self._heard: list[asyncio.Future[None]] = []
         self._listeners: dict[int | None, list[Listener]] = {}
         self._locks: dict[Any, asyncio.Lock] = {}
         self._tasks: list[asyncio.Task[None]] = []
@@ -165,13 +165,12 @@ class MavlinkConnection(Connection):
             self.stats["vehicles_heard"] += 1
             self.seen[key] = VehicleSeen(key[0], key[1], enum_name("MAV_AUTOPILOT", msg.autopilot),
                                          enum_name("MAV_TYPE", msg.type), time.monotonic())
-            asyncio.get_running_loop().create_task(self._notify())
+            waiters, self._heard = self._heard, []
+            for waiter in waiters:
+                if not waiter.done():
+                    waiter.set_result(None)
         else:
             seen.last_heard = time.monotonic()
-
-    async def _notify(self) -> None:
-        async with self._heard:
-            self._heard.notify_all()
 
     def has_heard(self, system: int, component: int = 0) -> bool:
         return any(s == system and component in (0, c) for s, c in self.seen)
@@ -180,14 +179,15 @@ class MavlinkConnection(Connection):
         """Return once (system, component) sent a HEARTBEAT (component 0: any of the system);
         EndpointError at ``deadline`` (loop time): a vehicle that is not there is transient."""
         loop = asyncio.get_running_loop()
-        async with self._heard:
-            while not self.has_heard(system, component):
-                left = deadline - loop.time()
-                if left <= 0:
-                    raise EndpointError(f"mavlink connection {self.name!r}: vehicle {system}/{component} "
-                                        "has not been heard (no HEARTBEAT)")
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._heard.wait(), left)
+        while not self.has_heard(system, component):
+            left = deadline - loop.time()
+            if left <= 0:
+                raise EndpointError(f"mavlink connection {self.name!r}: vehicle {system}/{component} "
+                                    "has not been heard (no HEARTBEAT)")
+            heard = loop.create_future()
+            self._heard = [waiter for waiter in self._heard if not waiter.done()] + [heard]
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(heard, left)
 
     def transaction_lock(self, key: Any) -> asyncio.Lock:
         """One mission upload (or command) at a time per target, as the protocols require."""
