@@ -88,7 +88,7 @@ def reference_upload(link: str, count: int) -> float:
         started = time.perf_counter()
         last: Any = mavlink2.MAVLink_mission_count_message(1, 1, count, 0)
         send(last)
-        tries = 0
+        tries, highest = 0, -1
         while True:
             msg = answer(time.monotonic() + TIMEOUT)
             if msg is None:
@@ -101,6 +101,8 @@ def reference_upload(link: str, count: int) -> float:
                 if msg.type != mavlink2.MAV_MISSION_ACCEPTED:
                     raise RuntimeError(f"reference upload refused: {msg.type}")
                 return time.perf_counter() - started
+            if msg.seq > highest:
+                highest, tries = msg.seq, 0
             last = items[msg.seq]
             send(last)
     finally:
@@ -122,7 +124,7 @@ def main() -> int:
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="rabbitros-mission-bench-"))
     print(f"{'items':>5} {'loss':>5} {'engine s':>9} {'items/s':>8} {'reference s':>12} {'ratio':>6} "
-          f"{'resends':>8} {'items sent':>10} {'vehicle accepted':>16}")
+          f"{'resends':>8} {'items sent':>10} {'vehicle missions':>16}")
     for loss in args.loss:
         for count in args.sizes:
             runs = [asyncio.run(measure(count, loss, 100 + r, work)) for r in range(args.repeat)]
