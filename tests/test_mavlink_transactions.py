@@ -438,3 +438,19 @@ def test_enum_functions_in_mappings() -> None:
         bad({})
     with pytest.raises(ValueError, match="unknown MAVLink enum 'MAV_NOPE'"):
         compile_mapping("mav_enum(`1`, 'MAV_NOPE')")({})  # type: ignore[misc]
+
+
+def test_a_stale_accepted_ack_does_not_complete_an_upload() -> None:
+    """A MISSION_ACK ACCEPTED that arrives before every item was asked for (a late repeat of
+    the previous upload's ACK) must not acknowledge this upload."""
+    async def scenario() -> None:
+        async with gcs_and_vehicle(mission_result="silent") as (gcs, sim):
+            sink = gcs.sink("m", {"mission": "upload", "target_system": 1, "timeout": 0.3, "retries": 1})
+            await gcs.wait_for_vehicle(1, 1, asyncio.get_running_loop().time() + 5)
+            upload = asyncio.create_task(sink.send(outbound(canonical_mission(WEEDS))))
+            await asyncio.sleep(0.1)
+            sim.port.post(mavlink2.MAVLink_mission_ack_message(255, 190, mavlink2.MAV_MISSION_ACCEPTED, 0))
+            with pytest.raises(EndpointError, match="did not answer the mission upload"):
+                await upload
+
+    run(scenario(), 20)

@@ -155,6 +155,8 @@ class MissionUploadSink(Sink):
                 continue
             if answer.get_type() == "MISSION_ACK":
                 if answer.type == mavlink2.MAV_MISSION_ACCEPTED:
+                    if highest < len(items) - 1:
+                        continue  # a late repeat of the previous upload's ACK: this one is not done
                     stats["missions_uploaded"] = stats.get("missions_uploaded", 0) + 1
                     return
                 if answer.type == mavlink2.MAV_MISSION_INVALID_SEQUENCE and 0 <= highest < len(items) - 1:
