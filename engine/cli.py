@@ -18,13 +18,14 @@ from engine.endpoints.amqp import redact
 from engine.endpoints.base import EndpointError
 from engine.local_broker import BrokerError, LocalBroker
 from engine.logs import setup_logging
+from engine.route_tests import format_result, load_tests, run_tests
 from engine.routes import RoutesInvalid, load_routes
 from engine.runtime import Engine
 from engine.schemas import SchemaRegistry
 from engine.watch import watch_routes
 
 log = logging.getLogger("engine.cli")
-COMMANDS = ("run", "check", "status")
+COMMANDS = ("run", "check", "test", "status", "tap")
 
 
 def default_schemas(routes: Path) -> Path:
@@ -42,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Routes messages between RabbitMQ, ROS 2 and MAVLink as declared in YAML route files.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    commands = parser.add_subparsers(dest="command", metavar="{run,check,status}")
+    commands = parser.add_subparsers(dest="command", metavar="{run,check,test,status,tap}")
 
     def common(sub: argparse.ArgumentParser) -> None:
         sub.add_argument("--routes", type=Path, default=Path("routes"), help="routes directory (or one file); default ./routes")
@@ -58,8 +59,13 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     run.add_argument("--log-format", default="text", choices=["text", "json"])
 
-    check = commands.add_parser("check", help="validate the routes without connecting; exit 0 when valid")
+    check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
     common(check)
+
+    test = commands.add_parser(
+        "test", help="run the *.test.yaml cases through the routes' conversion, connecting to nothing; "
+        "exit 0 when all pass, 1 when one fails, 2 when a route or test file is invalid")
+    common(test)
 
     status = commands.add_parser("status", help="print the live status written by a running engine")
     status.add_argument("--status-file", type=Path, required=True)
@@ -73,6 +79,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(args_list)
     if args.command == "check":
         return check(args.routes, args.schemas or default_schemas(args.routes))
+    if args.command == "test":
+        return run_route_tests(args.routes, args.schemas or default_schemas(args.routes))
     if args.command == "status":
         try:
             print(args.status_file.read_text(), end="")
@@ -91,11 +99,43 @@ def check(routes: Path, schemas: Path) -> int:
     try:
         config = load_routes(routes, SchemaRegistry(schemas))
     except RoutesInvalid as invalid:
-        for problem in invalid.problems:
+        _, test_problems = load_tests(routes, None)
+        for problem in sorted(invalid.problems + test_problems):
             print(problem, file=sys.stderr)
         return 1
-    print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections, config {config.content_hash}: ok")
+    cases, test_problems = load_tests(routes, config)
+    for problem in test_problems:
+        print(problem, file=sys.stderr)
+    if test_problems:
+        return 1
+    tests = f", {len(cases)} tests" if cases else ""
+    print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections{tests}, config {config.content_hash}: ok")
     return 0
+
+
+def run_route_tests(routes: Path, schemas_dir: Path) -> int:
+    """``rabbitros-engine test``: one line per case, a diff per failure; 0 pass, 1 fail, 2 invalid."""
+    schemas = SchemaRegistry(schemas_dir)
+    try:
+        config = load_routes(routes, schemas)
+    except RoutesInvalid as invalid:
+        for problem in invalid.problems:
+            print(problem, file=sys.stderr)
+        return 2
+    cases, problems = load_tests(routes, config)
+    for problem in problems:
+        print(problem, file=sys.stderr)
+    if problems:
+        return 2
+    if not cases:
+        print(f"{routes}: no tests (add *.test.yaml files beside the routes)", file=sys.stderr)
+        return 2
+    failed = 0
+    for result in run_tests(cases, config, schemas):
+        failed += not result.passed
+        print("\n".join(format_result(result)), flush=True)
+    print(f"{len(cases) - failed} passed, {failed} failed")
+    return 1 if failed else 0
 
 
 async def run(args: argparse.Namespace) -> int:

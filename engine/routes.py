@@ -107,7 +107,13 @@ def route_files(directory: Path) -> list[Path]:
         for pattern in ("*.yaml", "*.yml")
         for path in directory.glob(pattern)
         if path.is_file() and not path.name.startswith(".") and not path.name.endswith("~")
+        and not is_test_file(path)
     )
+
+
+def is_test_file(path: Path) -> bool:
+    """``*.test.yaml`` files hold route tests (``rabbitros-engine test``), never routes."""
+    return path.name.endswith((".test.yaml", ".test.yml"))
 
 
 def load_routes(
@@ -157,7 +163,8 @@ class _Document:
 
 
 def _parse_document(
-    file: str, text: str, env: Mapping[str, str], problems: list[Problem]
+    file: str, text: str, env: Mapping[str, str], problems: list[Problem],
+    validator: jsonschema.protocols.Validator = _ROUTE_FILE_VALIDATOR,
 ) -> _Document | None:
     loader = yaml.SafeLoader(text)
     try:
@@ -177,7 +184,7 @@ def _parse_document(
     lines: dict[Path_, int] = {}
     data = _to_python(loader, root, (), lines, env, file, problems)
     document = _Document(file, data if data is not None else {}, lines)
-    errors = [p for error in _ROUTE_FILE_VALIDATOR.iter_errors(data) for p in _schema_problems(document, error)]
+    errors = [p for error in validator.iter_errors(data) for p in _schema_problems(document, error)]
     problems.extend(errors)
     return None if errors else document
 
