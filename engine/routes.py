@@ -23,8 +23,10 @@ import yaml
 
 from engine import endpoints
 from engine.endpoints.base import EndpointError
-from engine.mapping import MappingError, compile_mapping, unknown_functions
+from engine.fieldcheck import mapping_field_problems, option_hint
+from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
 from engine.schemas import SchemaRegistry
+from engine.suggest import did_you_mean
 
 ROUTE_FILE_SCHEMA: dict[str, Any] = json.loads(
     resources.files("engine").joinpath("route_file.schema.json").read_text(encoding="utf-8")
@@ -263,7 +265,7 @@ def _schema_problems(document: _Document, error: jsonschema.ValidationError) -> 
         for key in error.instance:
             if key not in allowed:
                 yield document.problem(
-                    path + (key,), f"unknown key {key!r} at {_dotted(path)} (allowed: {', '.join(allowed)})"
+                    path + (key,), f"unknown key {key!r} at {_dotted(path)} (allowed: {', '.join(allowed)}){did_you_mean(key, allowed)}"
                 )
         return
     if error.context:
@@ -355,9 +357,12 @@ def _compile_routes(
             if schema_name is None:
                 problems.append(document.problem(where, f"route {name!r}: 'schema' is required (use raw_json to pass any object)"))
             elif schemas.get(schema_name) is None:
-                problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)})"))
+                problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"))
             if source and sink:
                 _endpoint_checks(document, where, name, source, sink, mapping, sink_mapping, problems)
+            if source:  # fields a typed source does not have
+                for message in mapping_field_problems(source.protocol, source.options, mapping):
+                    problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
             if len(problems) > before or not (source and sink):
                 continue
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
@@ -384,7 +389,7 @@ def _mapping_problems(expression: str | None) -> Iterator[str]:
         yield f"bad JMESPath {expression!r}: {exc}"
         return
     for function in unknown_functions(expression):
-        yield f"unknown function {function}() in {expression!r}"
+        yield f"unknown function {function}() in {expression!r}{did_you_mean(function, known_functions())}"
 
 
 def _endpoint(
@@ -419,7 +424,7 @@ def _endpoint(
             wanted = default.name
     connection = connections.get(wanted)
     if connection is None:
-        problems.append(document.problem(where + (protocol, "connection"), f"route {route!r}: unknown connection {wanted!r}"))
+        problems.append(document.problem(where + (protocol, "connection"), f"route {route!r}: unknown connection {wanted!r}{did_you_mean(wanted, connections)}"))
         return None
     if connection.protocol != protocol:
         problems.append(document.problem(where + (protocol, "connection"), f"route {route!r}: connection {wanted!r} is {connection.protocol}, not {protocol}"))
@@ -446,4 +451,5 @@ def _endpoint_checks(
         except EndpointError as exc:
             results = [(None, str(exc))]
         for key, message in results:
+            message += "" if "did you mean" in message else option_hint(spec.protocol, key, spec.options)
             problems.append(document.problem(base + ((key,) if key else ()), f"route {route!r}: {side}: {message}"))

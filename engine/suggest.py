@@ -14,7 +14,7 @@ from typing import Iterable
 def closest(word: str, choices: Iterable[str]) -> str | None:
     """The choice most like ``word``, if any is close enough (case-insensitive)."""
     options = {str(choice).lower(): str(choice) for choice in choices}
-    matches = difflib.get_close_matches(str(word).lower(), list(options), n=1, cutoff=0.7)
+    matches = difflib.get_close_matches(str(word).lower(), list(options), n=1, cutoff=0.6)
     return options[matches[0]] if matches else None
 
 
