@@ -14,7 +14,9 @@ from pathlib import Path
 from typing import Sequence
 
 from engine import __version__
+from engine.admin import AdminServer, parse_address, status_document
 from engine.endpoints.amqp import redact
+from engine.opsview import print_status, print_tap
 from engine.endpoints.base import EndpointError
 from engine.local_broker import BrokerError, LocalBroker
 from engine.logs import setup_logging
@@ -54,6 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--local-broker", action="store_true", help="start a private RabbitMQ node and use it as the default AMQP connection")
     run.add_argument("--broker-url-file", type=Path, help="with --local-broker: write the broker's URL to this file")
     run.add_argument("--status-file", type=Path, help="keep the live status (generation, config hash, counters) in this JSON file")
+    run.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT",
+                     help="serve /metrics, /healthz, /status and /tap/ROUTE over HTTP (a bare port binds 127.0.0.1); off by default")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
     run.add_argument("--stats-interval", type=float, default=10.0, help="seconds between status updates and counter logs")
     run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
@@ -67,9 +71,24 @@ def build_parser() -> argparse.ArgumentParser:
         "exit 0 when all pass, 1 when one fails, 2 when a route or test file is invalid")
     common(test)
 
-    status = commands.add_parser("status", help="print the live status written by a running engine")
-    status.add_argument("--status-file", type=Path, required=True)
+    status = commands.add_parser("status", help="the live status of a running engine: a table from its admin endpoint, or the JSON of its status file")
+    where = status.add_mutually_exclusive_group(required=True)
+    where.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", help="the engine's --admin address")
+    where.add_argument("--status-file", type=Path, help="the engine's --status-file (printed as JSON)")
+    status.add_argument("--json", action="store_true", help="print the raw status document")
+
+    tap = commands.add_parser("tap", help="print, as JSON lines, every message through a route of a running engine")
+    tap.add_argument("route")
+    tap.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", required=True, help="the engine's --admin address")
+    tap.add_argument("--count", type=int, default=0, help="stop after this many messages (default: until interrupted)")
     return parser
+
+
+def _admin_address(text: str) -> tuple[str, int]:
+    try:
+        return parse_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -82,12 +101,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "test":
         return run_route_tests(args.routes, args.schemas or default_schemas(args.routes))
     if args.command == "status":
+        if args.admin:
+            return print_status(args.admin, args.json)
         try:
             print(args.status_file.read_text(), end="")
         except OSError as exc:
             print(f"{args.status_file}: {exc.strerror}", file=sys.stderr)
             return 1
         return 0
+    if args.command == "tap":
+        return print_tap(args.admin, args.route, args.count)
     listener = setup_logging(args.log_level, args.log_format)
     try:
         return asyncio.run(run(args))
@@ -160,6 +183,21 @@ async def run(args: argparse.Namespace) -> int:
 
 async def serve(args: argparse.Namespace) -> int:
     engine = Engine(args.routes, args.schemas or default_schemas(args.routes))
+    admin = AdminServer(engine, *args.admin) if args.admin else None
+    if admin is not None:
+        try:
+            await admin.start()
+        except OSError as exc:
+            log.error("admin endpoint cannot listen", extra={"address": "%s:%s" % args.admin, "error": str(exc)})
+            return 1
+    try:
+        return await _serve(args, engine)
+    finally:
+        if admin is not None:
+            await admin.stop()
+
+
+async def _serve(args: argparse.Namespace, engine: Engine) -> int:
     try:
         await engine.start()
     except RoutesInvalid as invalid:
@@ -187,10 +225,11 @@ async def serve(args: argparse.Namespace) -> int:
 
     def write_status() -> None:
         if args.status_file:
-            _write_atomically(args.status_file, json.dumps(engine.status(), indent=2) + "\n")
+            _write_atomically(args.status_file, json.dumps(status_document(engine), indent=2, default=str) + "\n")
 
     async def reporter() -> None:
         while True:
+            engine.observers.sample()
             write_status()
             await asyncio.sleep(args.stats_interval)
             for name, route in engine.status()["routes"].items():

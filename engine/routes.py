@@ -83,6 +83,8 @@ class RouteSpec:
     fingerprint: str
     file: str = field(default="", compare=False)
     line: int = field(default=0, compare=False)
+    throttle: Mapping[str, Any] | None = None
+    """``{max_rate, per}``: at most max_rate messages/s per value of the canonical field ``per``."""
 
 
 @dataclass(frozen=True)
@@ -375,7 +377,7 @@ def _compile_routes(
             ).hexdigest()[:16]
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
-                document.file, document.line(where),
+                document.file, document.line(where), throttle=body.get("throttle"),
             )
     return routes
 
