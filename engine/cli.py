@@ -20,7 +20,7 @@ from engine.opsview import print_status, print_tap
 from engine.endpoints.base import EndpointError
 from engine.local_broker import BrokerError, LocalBroker
 from engine.logs import setup_logging
-from engine.route_tests import format_result, load_tests, run_tests
+from engine.route_tests import format_result, load_checked, run_tests
 from engine.routes import RoutesInvalid, load_routes
 from engine.runtime import Engine
 from engine.schemas import SchemaRegistry
@@ -119,17 +119,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def check(routes: Path, schemas: Path) -> int:
-    try:
-        config = load_routes(routes, SchemaRegistry(schemas))
-    except RoutesInvalid as invalid:
-        _, test_problems = load_tests(routes, None)
-        for problem in sorted(invalid.problems + test_problems):
-            print(problem, file=sys.stderr)
-        return 1
-    cases, test_problems = load_tests(routes, config)
-    for problem in test_problems:
+    config, cases, problems = load_checked(routes, SchemaRegistry(schemas))
+    for problem in problems:
         print(problem, file=sys.stderr)
-    if test_problems:
+    if config is None or problems:
         return 1
     tests = f", {len(cases)} tests" if cases else ""
     print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections{tests}, config {config.content_hash}: ok")
@@ -139,16 +132,10 @@ def check(routes: Path, schemas: Path) -> int:
 def run_route_tests(routes: Path, schemas_dir: Path) -> int:
     """``rabbitros-engine test``: one line per case, a diff per failure; 0 pass, 1 fail, 2 invalid."""
     schemas = SchemaRegistry(schemas_dir)
-    try:
-        config = load_routes(routes, schemas)
-    except RoutesInvalid as invalid:
-        for problem in invalid.problems:
-            print(problem, file=sys.stderr)
-        return 2
-    cases, problems = load_tests(routes, config)
+    config, cases, problems = load_checked(routes, schemas)
     for problem in problems:
         print(problem, file=sys.stderr)
-    if problems:
+    if config is None or problems:
         return 2
     if not cases:
         print(f"{routes}: no tests (add *.test.yaml files beside the routes)", file=sys.stderr)

@@ -27,7 +27,7 @@ import jsonschema
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound, Sink
 from engine.mapping import MappingError, compile_template
 from engine.pipeline import ConversionError, Pipeline
-from engine.routes import Problem, RoutesConfig, RouteSpec, _parse_document
+from engine.routes import Problem, RoutesConfig, RoutesInvalid, RouteSpec, _parse_document, load_routes
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
 
@@ -132,6 +132,18 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
             if len(problems) == before:
                 cases.append(Case(str(path), line, route, body.get("name", ""), body))
     return cases, problems
+
+
+def load_checked(routes: Path, schemas: SchemaRegistry) -> tuple[RoutesConfig | None, list[Case], list[Problem]]:
+    """The routes and their tests, as ``check`` and ``test`` see them: the config (None when
+    the routes do not compile), the cases, and every problem of both, sorted."""
+    try:
+        config = load_routes(routes, schemas)
+    except RoutesInvalid as invalid:
+        _, problems = load_tests(routes, None)
+        return None, [], sorted(invalid.problems + problems)
+    cases, problems = load_tests(routes, config)
+    return config, cases, problems
 
 
 class DrySink(Sink):
