@@ -125,8 +125,9 @@ class RouteRunner:
 
     def _parked_done(self, task: asyncio.Task[None]) -> None:
         self._parked_tasks.discard(task)
-        if not task.cancelled():
-            task.exception()  # already counted as redelivered by deliver
+        error = None if task.cancelled() else task.exception()
+        if error is not None and not isinstance(error, EndpointError):  # EndpointError: counted as redelivered
+            log.error("throttled message failed", extra={"route": self.spec.name, "error": repr(error)})
 
     def report_failure(self, error: ConversionError) -> None:
         if self._report.ready():
