@@ -41,9 +41,14 @@ async def main() -> None:
         convert = per_message(lambda: pipeline.convert(inbound))
         observer = RouteObserver("bench")
         bare = per_message(lambda: observer(inbound, outbound, DELIVERED, None))
-        tap = Tap("bench", size=N * 2)
+        tap = Tap("bench", size=16)
         observer.attach(tap)
-        tapped = per_message(lambda: observer(inbound, outbound, DELIVERED, None))
+
+        def tapped_and_read() -> None:  # a client that keeps up
+            observer(inbound, outbound, DELIVERED, None)
+            tap.lines.get_nowait()
+
+        tapped = per_message(tapped_and_read)
         stuck = Tap("bench", size=1)
         observer.detach(tap)
         observer.attach(stuck)
