@@ -14,17 +14,20 @@ from pathlib import Path
 from typing import Sequence
 
 from engine import __version__
+from engine.admin import AdminServer, parse_address, status_document
 from engine.endpoints.amqp import redact
+from engine.opsview import print_status, print_tap
 from engine.endpoints.base import EndpointError
 from engine.local_broker import BrokerError, LocalBroker
 from engine.logs import setup_logging
+from engine.route_tests import format_result, load_checked, run_tests
 from engine.routes import RoutesInvalid, load_routes
 from engine.runtime import Engine
 from engine.schemas import SchemaRegistry
 from engine.watch import watch_routes
 
 log = logging.getLogger("engine.cli")
-COMMANDS = ("run", "check", "status")
+COMMANDS = ("run", "check", "test", "status", "tap")
 
 
 def default_schemas(routes: Path) -> Path:
@@ -42,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Routes messages between RabbitMQ, ROS 2 and MAVLink as declared in YAML route files.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    commands = parser.add_subparsers(dest="command", metavar="{run,check,status}")
+    commands = parser.add_subparsers(dest="command", metavar="{run,check,test,status,tap}")
 
     def common(sub: argparse.ArgumentParser) -> None:
         sub.add_argument("--routes", type=Path, default=Path("routes"), help="routes directory (or one file); default ./routes")
@@ -53,17 +56,39 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--local-broker", action="store_true", help="start a private RabbitMQ node and use it as the default AMQP connection")
     run.add_argument("--broker-url-file", type=Path, help="with --local-broker: write the broker's URL to this file")
     run.add_argument("--status-file", type=Path, help="keep the live status (generation, config hash, counters) in this JSON file")
+    run.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT",
+                     help="serve /metrics, /healthz, /status and /tap/ROUTE over HTTP (a bare port binds 127.0.0.1); off by default")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
     run.add_argument("--stats-interval", type=float, default=10.0, help="seconds between status updates and counter logs")
     run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     run.add_argument("--log-format", default="text", choices=["text", "json"])
 
-    check = commands.add_parser("check", help="validate the routes without connecting; exit 0 when valid")
+    check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
     common(check)
 
-    status = commands.add_parser("status", help="print the live status written by a running engine")
-    status.add_argument("--status-file", type=Path, required=True)
+    test = commands.add_parser(
+        "test", help="run the *.test.yaml cases through the routes' conversion, connecting to nothing; "
+        "exit 0 when all pass, 1 when one fails, 2 when a route or test file is invalid")
+    common(test)
+
+    status = commands.add_parser("status", help="the live status of a running engine: a table from its admin endpoint, or the JSON of its status file")
+    where = status.add_mutually_exclusive_group(required=True)
+    where.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", help="the engine's --admin address")
+    where.add_argument("--status-file", type=Path, help="the engine's --status-file (printed as JSON)")
+    status.add_argument("--json", action="store_true", help="print the raw status document")
+
+    tap = commands.add_parser("tap", help="print, as JSON lines, every message through a route of a running engine")
+    tap.add_argument("route")
+    tap.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", required=True, help="the engine's --admin address")
+    tap.add_argument("--count", type=int, default=0, help="stop after this many messages (default: until interrupted)")
     return parser
+
+
+def _admin_address(text: str) -> tuple[str, int]:
+    try:
+        return parse_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -73,13 +98,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(args_list)
     if args.command == "check":
         return check(args.routes, args.schemas or default_schemas(args.routes))
+    if args.command == "test":
+        return run_route_tests(args.routes, args.schemas or default_schemas(args.routes))
     if args.command == "status":
+        if args.admin:
+            return print_status(args.admin, args.json)
         try:
             print(args.status_file.read_text(), end="")
         except OSError as exc:
             print(f"{args.status_file}: {exc.strerror}", file=sys.stderr)
             return 1
         return 0
+    if args.command == "tap":
+        return print_tap(args.admin, args.route, args.count)
     listener = setup_logging(args.log_level, args.log_format)
     try:
         return asyncio.run(run(args))
@@ -88,14 +119,33 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def check(routes: Path, schemas: Path) -> int:
-    try:
-        config = load_routes(routes, SchemaRegistry(schemas))
-    except RoutesInvalid as invalid:
-        for problem in invalid.problems:
-            print(problem, file=sys.stderr)
+    config, cases, problems = load_checked(routes, SchemaRegistry(schemas))
+    for problem in problems:
+        print(problem, file=sys.stderr)
+    if config is None or problems:
         return 1
-    print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections, config {config.content_hash}: ok")
+    tests = f", {len(cases)} tests" if cases else ""
+    print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections{tests}, config {config.content_hash}: ok")
     return 0
+
+
+def run_route_tests(routes: Path, schemas_dir: Path) -> int:
+    """``rabbitros-engine test``: one line per case, a diff per failure; 0 pass, 1 fail, 2 invalid."""
+    schemas = SchemaRegistry(schemas_dir)
+    config, cases, problems = load_checked(routes, schemas)
+    for problem in problems:
+        print(problem, file=sys.stderr)
+    if config is None or problems:
+        return 2
+    if not cases:
+        print(f"{routes}: no tests (add *.test.yaml files beside the routes)", file=sys.stderr)
+        return 2
+    failed = 0
+    for result in run_tests(cases, config, schemas):
+        failed += not result.passed
+        print("\n".join(format_result(result)), flush=True)
+    print(f"{len(cases) - failed} passed, {failed} failed")
+    return 1 if failed else 0
 
 
 async def run(args: argparse.Namespace) -> int:
@@ -120,6 +170,21 @@ async def run(args: argparse.Namespace) -> int:
 
 async def serve(args: argparse.Namespace) -> int:
     engine = Engine(args.routes, args.schemas or default_schemas(args.routes))
+    admin = AdminServer(engine, *args.admin) if args.admin else None
+    if admin is not None:
+        try:
+            await admin.start()
+        except OSError as exc:
+            log.error("admin endpoint cannot listen", extra={"address": "%s:%s" % args.admin, "error": str(exc)})
+            return 1
+    try:
+        return await _serve(args, engine)
+    finally:
+        if admin is not None:
+            await admin.stop()
+
+
+async def _serve(args: argparse.Namespace, engine: Engine) -> int:
     try:
         await engine.start()
     except RoutesInvalid as invalid:
@@ -147,10 +212,11 @@ async def serve(args: argparse.Namespace) -> int:
 
     def write_status() -> None:
         if args.status_file:
-            _write_atomically(args.status_file, json.dumps(engine.status(), indent=2) + "\n")
+            _write_atomically(args.status_file, json.dumps(status_document(engine), indent=2, default=str) + "\n")
 
     async def reporter() -> None:
         while True:
+            engine.observers.sample()
             write_status()
             await asyncio.sleep(args.stats_interval)
             for name, route in engine.status()["routes"].items():

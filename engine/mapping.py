@@ -196,6 +196,11 @@ def compile_mapping(expression: str | None) -> Mapper | None:
     return apply
 
 
+def known_functions() -> list[str]:
+    """Every function a mapping may call: JMESPath's own and ours."""
+    return sorted(_OPTIONS.custom_functions.FUNCTION_TABLE)
+
+
 def unknown_functions(expression: str) -> list[str]:
     """Function names used by ``expression`` that neither JMESPath nor we define.
 

@@ -17,6 +17,7 @@ from engine.endpoints.base import Inbound, Outbound, Sink
 from engine.mapping import MappingError, Mapper, compile_mapping
 from engine.routes import RouteSpec
 from engine.schemas import CanonicalSchema, SchemaError, canonical_bytes, parse_json
+from engine.throttle import Throttle
 
 
 class ConversionError(Exception):
@@ -37,6 +38,7 @@ class Pipeline:
     sink: Sink
     mapper: Mapper | None = None
     sink_mapper: Mapper | None = None
+    throttle: Throttle | None = None
     in_flight: int = 0
     _drained: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -50,6 +52,7 @@ class Pipeline:
             sink=sink,
             mapper=compile_mapping(spec.mapping),
             sink_mapper=compile_mapping(spec.sink_mapping),
+            throttle=Throttle.from_options(spec.throttle),
         )
 
     def convert(self, inbound: Inbound) -> Outbound:

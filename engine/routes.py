@@ -23,8 +23,10 @@ import yaml
 
 from engine import endpoints
 from engine.endpoints.base import EndpointError
-from engine.mapping import MappingError, compile_mapping, unknown_functions
+from engine.fieldcheck import mapping_field_problems, option_hint
+from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
 from engine.schemas import SchemaRegistry
+from engine.suggest import did_you_mean
 
 ROUTE_FILE_SCHEMA: dict[str, Any] = json.loads(
     resources.files("engine").joinpath("route_file.schema.json").read_text(encoding="utf-8")
@@ -81,6 +83,8 @@ class RouteSpec:
     fingerprint: str
     file: str = field(default="", compare=False)
     line: int = field(default=0, compare=False)
+    throttle: Mapping[str, Any] | None = None
+    """``{max_rate, per}``: at most max_rate messages/s per value of the canonical field ``per``."""
 
 
 @dataclass(frozen=True)
@@ -107,7 +111,13 @@ def route_files(directory: Path) -> list[Path]:
         for pattern in ("*.yaml", "*.yml")
         for path in directory.glob(pattern)
         if path.is_file() and not path.name.startswith(".") and not path.name.endswith("~")
+        and not is_test_file(path)
     )
+
+
+def is_test_file(path: Path) -> bool:
+    """``*.test.yaml`` files hold route tests (``rabbitros-engine test``), never routes."""
+    return path.name.endswith((".test.yaml", ".test.yml"))
 
 
 def load_routes(
@@ -157,7 +167,8 @@ class _Document:
 
 
 def _parse_document(
-    file: str, text: str, env: Mapping[str, str], problems: list[Problem]
+    file: str, text: str, env: Mapping[str, str], problems: list[Problem],
+    validator: jsonschema.protocols.Validator = _ROUTE_FILE_VALIDATOR,
 ) -> _Document | None:
     loader = yaml.SafeLoader(text)
     try:
@@ -177,7 +188,7 @@ def _parse_document(
     lines: dict[Path_, int] = {}
     data = _to_python(loader, root, (), lines, env, file, problems)
     document = _Document(file, data if data is not None else {}, lines)
-    errors = [p for error in _ROUTE_FILE_VALIDATOR.iter_errors(data) for p in _schema_problems(document, error)]
+    errors = [p for error in validator.iter_errors(data) for p in _schema_problems(document, error)]
     problems.extend(errors)
     return None if errors else document
 
@@ -256,7 +267,7 @@ def _schema_problems(document: _Document, error: jsonschema.ValidationError) -> 
         for key in error.instance:
             if key not in allowed:
                 yield document.problem(
-                    path + (key,), f"unknown key {key!r} at {_dotted(path)} (allowed: {', '.join(allowed)})"
+                    path + (key,), f"unknown key {key!r} at {_dotted(path)} (allowed: {', '.join(allowed)}){did_you_mean(key, allowed)}"
                 )
         return
     if error.context:
@@ -348,9 +359,12 @@ def _compile_routes(
             if schema_name is None:
                 problems.append(document.problem(where, f"route {name!r}: 'schema' is required (use raw_json to pass any object)"))
             elif schemas.get(schema_name) is None:
-                problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)})"))
+                problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"))
             if source and sink:
                 _endpoint_checks(document, where, name, source, sink, mapping, sink_mapping, problems)
+            if source:  # fields a typed source does not have
+                for message in mapping_field_problems(source.protocol, source.options, mapping):
+                    problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
             if len(problems) > before or not (source and sink):
                 continue
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
@@ -363,7 +377,7 @@ def _compile_routes(
             ).hexdigest()[:16]
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
-                document.file, document.line(where),
+                document.file, document.line(where), throttle=body.get("throttle"),
             )
     return routes
 
@@ -377,7 +391,7 @@ def _mapping_problems(expression: str | None) -> Iterator[str]:
         yield f"bad JMESPath {expression!r}: {exc}"
         return
     for function in unknown_functions(expression):
-        yield f"unknown function {function}() in {expression!r}"
+        yield f"unknown function {function}() in {expression!r}{did_you_mean(function, known_functions())}"
 
 
 def _endpoint(
@@ -412,7 +426,7 @@ def _endpoint(
             wanted = default.name
     connection = connections.get(wanted)
     if connection is None:
-        problems.append(document.problem(where + (protocol, "connection"), f"route {route!r}: unknown connection {wanted!r}"))
+        problems.append(document.problem(where + (protocol, "connection"), f"route {route!r}: unknown connection {wanted!r}{did_you_mean(wanted, connections)}"))
         return None
     if connection.protocol != protocol:
         problems.append(document.problem(where + (protocol, "connection"), f"route {route!r}: connection {wanted!r} is {connection.protocol}, not {protocol}"))
@@ -439,4 +453,5 @@ def _endpoint_checks(
         except EndpointError as exc:
             results = [(None, str(exc))]
         for key, message in results:
+            message += "" if "did you mean" in message else option_hint(spec.protocol, key, spec.options)
             problems.append(document.problem(base + ((key,) if key else ()), f"route {route!r}: {side}: {message}"))

@@ -26,6 +26,7 @@ from engine.pipeline import ConversionError, Pipeline
 from engine.routes import ConnectionSpec, RouteSpec, RoutesConfig, RoutesInvalid, load_routes
 from engine.schemas import SchemaRegistry
 from engine.logs import Throttle
+from engine.observe import DEAD_LETTERED, DELIVERED, REDELIVERED, Observers
 
 log = logging.getLogger("engine.runtime")
 
@@ -70,6 +71,9 @@ class RouteRunner:
         self.latency_samples: list[int] | None = None
         """Set to a list to record every message's reception-to-acceptance time (benchmarks)."""
         self._report = Throttle()
+        self.observe = engine.observers.get(spec.name)  # ops: metrics, status and taps
+        self.observe.generation = lambda: self.pipeline.generation
+        self._parked_tasks: set[asyncio.Task[None]] = set()  # ops: throttle
 
     async def deliver(self, inbound: Inbound) -> None:
         pipeline = self.pipeline
@@ -81,15 +85,21 @@ class RouteRunner:
             except ConversionError as error:
                 self.stats.failed += 1
                 await self.engine.dead_letter(self, inbound, error)
+                self.observe(inbound, None, DEAD_LETTERED, error)  # ops
                 return
+            if pipeline.throttle is not None and not pipeline.throttle.admit(inbound, outbound, self):  # ops: throttle
+                return  # parked: delivered when its slot opens, or conflated by a newer message
             try:
                 await pipeline.sink.send(outbound)
             except MessageRejected as error:
                 self.stats.failed += 1
-                await self.engine.dead_letter(self, inbound, ConversionError("sink", str(error)))
+                rejected = ConversionError("sink", str(error))
+                await self.engine.dead_letter(self, inbound, rejected)
+                self.observe(inbound, outbound, DEAD_LETTERED, rejected)  # ops
                 return
             except EndpointError as error:
                 self.stats.sink_errors += 1
+                self.observe(inbound, outbound, REDELIVERED, error)  # ops
                 if self._report.ready():
                     log.error("sink failed; message will be redelivered", extra={"route": self.spec.name, "error": str(error)})
                 await asyncio.sleep(SINK_RETRY_DELAY)
@@ -102,8 +112,22 @@ class RouteRunner:
                 stats.latency_ns_max = latency
             if self.latency_samples is not None:
                 self.latency_samples.append(latency)
+            self.observe(inbound, outbound, DELIVERED, None)  # ops
         finally:
             pipeline.leave()
+
+    def redeliver(self, inbound: Inbound) -> None:
+        """ops: a message the throttle parked goes through ``deliver`` again when its slot
+        opens; its source was already answered, so a failure here is counted, not retried."""
+        task = asyncio.create_task(self.deliver(inbound))
+        self._parked_tasks.add(task)
+        task.add_done_callback(self._parked_done)
+
+    def _parked_done(self, task: asyncio.Task[None]) -> None:
+        self._parked_tasks.discard(task)
+        error = None if task.cancelled() else task.exception()
+        if error is not None and not isinstance(error, EndpointError):  # EndpointError: counted as redelivered
+            log.error("throttled message failed", extra={"route": self.spec.name, "error": repr(error)})
 
     def report_failure(self, error: ConversionError) -> None:
         if self._report.ready():
@@ -119,6 +143,9 @@ class RouteRunner:
             )
 
     async def retire_pipeline(self, pipeline: Pipeline) -> None:
+        if pipeline.throttle is not None:  # ops: parked messages go out, not lost
+            pipeline.throttle.close(self)
+            await asyncio.sleep(0)
         await pipeline.drained()
         await pipeline.sink.close()
 
@@ -138,6 +165,13 @@ class Engine:
         self.started_at = time.time()
         self._connections: dict[tuple[str, str], Connection] = {}
         self._lock = asyncio.Lock()
+        self.observers = Observers()  # ops: per-route counters for metrics, status and taps
+
+    def open_connections(self) -> list[tuple[str, Connection]]:
+        """ops: ``(protocol, connection)`` of every open connection, for health and metrics."""
+        specs = self.config.connections if self.config is not None else {}
+        return [(specs[c.name].protocol if c.name in specs else type(c).__module__.rsplit(".", 1)[-1], c)
+                for c in self._connections.values()]
 
     def compile(self) -> tuple[RoutesConfig, SchemaRegistry]:
         schemas = SchemaRegistry(self.schemas_dir)

@@ -7,7 +7,10 @@
 - the supervisory software speaks only AMQP: it prints the canonical messages and turns weed
   detections into spraying missions for the ground robot.
 
-    .venv/bin/python examples/farm_demo.py [--duration 30]
+On a terminal the demo shows, in place, each route's rates and counts and its last canonical
+message (from the engine's admin endpoint); otherwise (or with ``--plain``) it prints plain lines.
+
+    .venv/bin/python examples/farm_demo.py [--duration 30] [--work DIR] [--plain]
 """
 
 from __future__ import annotations
@@ -17,11 +20,15 @@ import json
 import os
 import random
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+from collections import deque
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
@@ -31,8 +38,8 @@ from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 PYTHON = sys.executable
 
 
-def spawn(argv: list[str], env: dict[str, str], log: Path | None = None) -> subprocess.Popen[bytes]:
-    out = open(log, "wb") if log else None
+def spawn(argv: list[str], env: dict[str, str], log: Path | None = None, pipe: bool = False) -> subprocess.Popen[bytes]:
+    out: Any = open(log, "wb") if log else (subprocess.PIPE if pipe else None)
     return subprocess.Popen(["timeout", "-s", "KILL", "900", *argv], env=env, cwd=REPO, stdout=out,
                             stderr=subprocess.STDOUT if out else None, start_new_session=True)
 
@@ -57,30 +64,88 @@ def wait_for(path: Path, process: subprocess.Popen[bytes], timeout: float) -> No
         raise TimeoutError(f"{path} did not appear")
 
 
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def follow(process: subprocess.Popen[bytes], lines: deque[str]) -> threading.Thread:
+    """Collect a child's output lines for the live view."""
+    def read() -> None:
+        assert process.stdout is not None
+        for raw in process.stdout:
+            lines.append(raw.decode("utf-8", errors="replace").rstrip())
+
+    thread = threading.Thread(target=read, daemon=True)
+    thread.start()
+    return thread
+
+
+def live_view(admin: tuple[str, int], supervisor: subprocess.Popen[bytes], lines: deque[str]) -> None:
+    """In place in the terminal: each route's rates and counts and its last canonical message,
+    and the latest lines of the supervisor and the robot, until the supervisor is done."""
+    from rich.console import Group
+    from rich.live import Live
+    from rich.panel import Panel
+
+    from engine.opsview import fetch_status, status_table
+
+    def render() -> Group:
+        try:
+            table: Any = status_table(fetch_status(admin, timeout=2), last_canonical=True, width=70)
+        except OSError as exc:
+            table = f"engine status unavailable: {exc}"
+        return Group(table, Panel("\n".join(lines) or "...", title="supervisor and robot", title_align="left"))
+
+    with Live(render(), refresh_per_second=2, transient=False) as live:
+        while supervisor.poll() is None:
+            time.sleep(1.0)
+            live.update(render())
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration", type=float, default=30.0, help="seconds the supervisor watches")
+    parser.add_argument("--work", type=Path, help="directory for logs, the status file and the supervisor's record "
+                        "of every canonical message (default: a new temporary directory)")
+    parser.add_argument("--plain", action="store_true", help="plain lines even on a terminal")
     args = parser.parse_args()
-    work = Path(tempfile.mkdtemp(prefix="rabbitros-farm-"))
+    work = args.work or Path(tempfile.mkdtemp(prefix="rabbitros-farm-"))
+    work.mkdir(parents=True, exist_ok=True)
+    live = sys.stdout.isatty() and not args.plain
     env = {**os.environ, "ROS_DOMAIN_ID": str(random.randint(1, 100)), "PYTHONPATH": str(REPO)}
     processes: list[subprocess.Popen[bytes]] = []
+    lines: deque[str] = deque(maxlen=12)
+    admin = ("127.0.0.1", free_port())
     with SikRadioPair(link_a=str(work / "radio-gcs"), link_b=str(work / "radio-uav"), seed=1) as radio:
         env["RABBITROS_RADIO"] = radio.link_a
         try:
-            processes.append(spawn([PYTHON, "-m", "rabbitros_sim.vehicle", "--device", radio.link_b, "--baud", "57600",
-                                    "--weeds-every", "6"], env, work / "vehicle.log"))
-            processes.append(spawn([PYTHON, "examples/ground_robot.py", "--name", "robot1"], env))
             engine = spawn([str(Path(PYTHON).with_name("rabbitros-engine")), "--routes", "examples/farm_uav_gcs.yaml",
-                            "--local-broker", "--broker-url-file", str(work / "url"),
-                            "--status-file", str(work / "status.json")], env)
+                            "--local-broker", "--broker-url-file", str(work / "url"), "--admin", f"{admin[0]}:{admin[1]}",
+                            "--status-file", str(work / "status.json"), "--stats-interval", "2"], env, work / "engine.log")
             processes.append(engine)
             wait_for(work / "status.json", engine, 120)
             url = (work / "url").read_text().strip()
-            print(f"farm: engine up, broker {url.split('@')[-1]}, radio {radio.link_a} <-> {radio.link_b}", flush=True)
-            supervisor = subprocess.run(
-                ["timeout", "-s", "KILL", str(int(args.duration) + 60), PYTHON, "examples/gcs_supervisor.py",
-                 "--url", url, "--duration", str(args.duration)], env=env, cwd=REPO,
-            )
+            print(f"farm: engine up, broker {url.split('@')[-1]}, admin http://{admin[0]}:{admin[1]}/, "
+                  f"radio {radio.link_a} <-> {radio.link_b}", flush=True)
+            robot = spawn([PYTHON, "examples/ground_robot.py", "--name", "robot1"], env, pipe=live)
+            processes.append(robot)
+            supervisor = spawn(
+                [PYTHON, "examples/gcs_supervisor.py", "--url", url, "--duration", str(args.duration),
+                 "--record", str(work / "canonical.jsonl"), "--ready-file", str(work / "supervisor.ready")],
+                env, pipe=live)
+            processes.append(supervisor)
+            wait_for(work / "supervisor.ready", supervisor, 60)
+            # The UAV comes up once the ground station watches, so every detection it sends can be counted.
+            processes.append(spawn([PYTHON, "-m", "rabbitros_sim.vehicle", "--device", radio.link_b, "--baud", "57600",
+                                    "--weeds-every", "6"], env, work / "vehicle.log"))
+            if live:
+                follow(robot, lines)
+                reader = follow(supervisor, lines)
+                live_view(admin, supervisor, lines)
+                reader.join(5)
+            supervisor.wait(args.duration + 60)
         finally:
             for process in reversed(processes):
                 stop(process)
@@ -88,6 +153,7 @@ def main() -> int:
     print(f"engine generation {status['generation']} config {status['config_hash']}, final counters:")
     for name, route in status["routes"].items():
         print(f"  {name:22} received {route['received']:5}  delivered {route['delivered']:5}  failed {route['failed']}")
+    print(f"farm: logs and records in {work}")
     return supervisor.returncode
 
 

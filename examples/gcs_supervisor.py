@@ -23,7 +23,7 @@ UAV_ALT_M = 20.0
 """Spraying height above home of the UAV's missions."""
 
 
-async def main(url: str, duration: float, robot: str) -> int:
+async def main(url: str, duration: float, robot: str, record: str | None = None, ready_file: str | None = None) -> int:
     connection = await aio_pika.connect(url)
     channel = await connection.channel()
     farm = await channel.declare_exchange("farm", aio_pika.ExchangeType.TOPIC, durable=True)
@@ -31,12 +31,15 @@ async def main(url: str, duration: float, robot: str) -> int:
     await queue.bind(farm, "canonical.#")
     seen: collections.Counter[str] = collections.Counter()
     missions = 0
+    recording = open(record, "a", encoding="utf-8") if record else None
 
     async def on_message(message: aio_pika.abc.AbstractIncomingMessage) -> None:
         nonlocal missions
         kind = message.routing_key.removeprefix("canonical.")
         seen[kind] += 1
         body = json.loads(message.body)
+        if recording is not None:
+            recording.write(json.dumps({"t": time.time(), "routing_key": message.routing_key, "body": body}) + "\n")
         if seen[kind] == 1 or kind.startswith(("weeds", "ack")):
             print(f"gcs <- {message.routing_key}: {message.body.decode()[:160]}", flush=True)
         if kind.startswith("weeds") and missions < 3:
@@ -57,8 +60,13 @@ async def main(url: str, duration: float, robot: str) -> int:
                 print(f"gcs -> mission.uav.{uav['agent_id']}: {uav['mission_id']} ({len(uav['waypoints'])} waypoints)", flush=True)
 
     await queue.consume(on_message, no_ack=True)
+    if ready_file:
+        with open(ready_file, "w") as ready:
+            ready.write("watching\n")
     await asyncio.sleep(duration)
     await connection.close()
+    if recording is not None:
+        recording.close()
     print("canonical messages seen: " + ", ".join(f"{k}={v}" for k, v in sorted(seen.items())))
     missing = [kind for kind in (*UAV_FLOWS, f"position.{robot}", f"ack.{robot}") if not seen[kind]]
     if missing:
@@ -71,5 +79,7 @@ if __name__ == "__main__":
     parser.add_argument("--url", required=True)
     parser.add_argument("--duration", type=float, default=20)
     parser.add_argument("--robot", default="robot1")
+    parser.add_argument("--record", help="append every canonical message seen to this file (JSON lines)")
+    parser.add_argument("--ready-file", help="write this file once the supervisor is watching")
     args = parser.parse_args()
-    sys.exit(asyncio.run(main(args.url, args.duration, args.robot)))
+    sys.exit(asyncio.run(main(args.url, args.duration, args.robot, args.record, args.ready_file)))

@@ -60,6 +60,15 @@ class AmqpConnection(Connection):
     def url(self) -> str:
         return str(self.settings["url"])
 
+    @property
+    def healthy(self) -> bool:
+        """Connected now: the robust connection is open and its AMQP transport too (it is
+        dropped while aio-pika reconnects)."""
+        connection = self._connection
+        underlay = getattr(connection, "transport", None)
+        return (connection is not None and not connection.is_closed and underlay is not None
+                and not underlay.connection.is_closed)
+
     async def open(self) -> None:
         try:
             self._connection = await aio_pika.connect_robust(

@@ -93,6 +93,12 @@ class Connection(ABC):
         self.name = name
         self.settings = settings
 
+    @property
+    def healthy(self) -> bool:
+        """True while the connection can carry messages (read by /healthz and the status);
+        protocols that can tell override it."""
+        return True
+
     @abstractmethod
     async def open(self) -> None: ...
 

@@ -19,6 +19,9 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from engine.endpoints.base import MessageRejected  # noqa: E402
 
 MESSAGES: dict[str, type[mavlink2.MAVLink_message]] = {cls.msgname: cls for cls in mavlink2.mavlink_map.values()}
+ADDED_FIELDS: dict[str, tuple[str, ...]] = {"MISSION_ACK": ("ref_id",)}
+"""Fields a source adds to a message's own: MISSION_ACK carries no reference, so the source
+gives ``ref_id``, the id of the message whose mission the engine last uploaded to that vehicle."""
 RADIO_STATUS = mavlink2.MAVLINK_MSG_ID_RADIO_STATUS
 TUNNEL = mavlink2.MAVLINK_MSG_ID_TUNNEL
 _INT_RANGES = {

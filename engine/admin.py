@@ -1,0 +1,187 @@
+"""The admin endpoint (``--admin [HOST:]PORT``, off by default): metrics, health, status, taps.
+
+Served by aiohttp on the engine's own event loop:
+
+* ``GET /metrics``: Prometheus text format through prometheus_client. A custom collector
+  reads the routes' observers and the engine at scrape time, so the hot path only
+  increments plain integers (no prometheus_client lock per message);
+* ``GET /healthz``: 200 when every connection is up, 503 naming those that are down;
+* ``GET /status``: the status document (generation, config hash, reloads, each route's
+  counters, rates, state and last error, the connections);
+* ``GET /tap/{route}``: JSON lines, one per message through the route, from now on.
+
+A bare port binds 127.0.0.1: the admin endpoint exposes message contents (taps), so it is
+reachable from elsewhere only when an address is given on purpose.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from typing import TYPE_CHECKING, Any, Iterator
+
+from aiohttp import web
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
+from prometheus_client.exposition import CONTENT_TYPE_LATEST
+
+from engine.observe import LATENCY_BUCKETS, OUTCOMES, Tap
+
+if TYPE_CHECKING:
+    from engine.runtime import Engine
+
+log = logging.getLogger("engine.admin")
+RATE_SAMPLE_S = 1.0
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    """``PORT`` (127.0.0.1), ``HOST:PORT`` or ``[v6]:PORT``; ValueError otherwise."""
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]") if sep else "127.0.0.1"
+    if not port.isdigit() or not 0 <= int(port) <= 65535 or (sep and not host):
+        raise ValueError(f"admin address {text!r} is not [HOST:]PORT")
+    return host, int(port)
+
+
+def connection_health(engine: Engine) -> dict[str, dict[str, Any]]:
+    return {
+        connection.name: {"protocol": protocol, "up": bool(connection.healthy)}
+        for protocol, connection in engine.open_connections()
+    }
+
+
+def status_document(engine: Engine) -> dict[str, Any]:
+    """The engine's status with what the observers know: outcome counts, rates, state."""
+    document = engine.status()
+    connections = connection_health(engine)
+    document["connections"] = connections
+    for name, route in document["routes"].items():
+        runner = engine.runners.get(name)
+        observer = engine.observers.get(name)
+        route.update(observer.snapshot())
+        route.update(engine.observers.rates(name))
+        down = [c.name for c in (runner.connections if runner else ()) if not connections.get(c.name, {}).get("up", True)]
+        route["state"] = f"waiting for {', '.join(down)}" if down else "running"
+    return document
+
+
+class EngineCollector:
+    """prometheus_client custom collector: reads counters at scrape time."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+
+    def collect(self) -> Iterator[Metric]:
+        engine = self.engine
+        messages = CounterMetricFamily("rabbitros_messages", "Messages per route and outcome", labels=["route", "outcome"])
+        dead = CounterMetricFamily("rabbitros_dead_letters", "Dead-lettered messages per route and stage", labels=["route", "stage"])
+        latency = HistogramMetricFamily("rabbitros_route_latency_seconds", "Reception to sink acceptance", labels=["route"])
+        dropped = CounterMetricFamily("rabbitros_tap_dropped", "Tap lines dropped for slow clients", labels=["route"])
+        for name in sorted(engine.runners):
+            observer = engine.observers.get(name)
+            for outcome in OUTCOMES:
+                messages.add_metric([name, outcome], observer.counts[outcome])
+            for stage, count in sorted(observer.dead_letters.items()):
+                dead.add_metric([name, stage], count)
+            cumulative, buckets = 0, []
+            for bound, count in zip((*LATENCY_BUCKETS, float("inf")), observer.latency_buckets):
+                cumulative += count
+                buckets.append(("+Inf" if bound == float("inf") else repr(bound), cumulative))
+            latency.add_metric([name], buckets, observer.latency_sum)
+            dropped.add_metric([name], observer.tap_dropped + sum(t.dropped for t in observer.taps))
+        yield from (messages, dead, latency, dropped)
+        reloads = CounterMetricFamily("rabbitros_reloads", "Configuration reloads", labels=["result"])
+        reloads.add_metric(["succeeded"], engine.reloads.succeeded)
+        reloads.add_metric(["rejected"], engine.reloads.rejected)
+        yield reloads
+        yield GaugeMetricFamily("rabbitros_config_generation", "Generation of the live configuration", value=engine.generation)
+        up = GaugeMetricFamily("rabbitros_connection_up", "1 when the connection is up", labels=["connection", "protocol"])
+        for name, health in sorted(connection_health(engine).items()):
+            up.add_metric([name, health["protocol"]], 1 if health["up"] else 0)
+        yield up
+
+
+class AdminServer:
+    def __init__(self, engine: Engine, host: str, port: int) -> None:
+        self.engine = engine
+        self.host, self.port = host, port
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(EngineCollector(engine))  # type: ignore[arg-type]
+        app = web.Application()
+        app.router.add_get("/metrics", self.metrics)
+        app.router.add_get("/healthz", self.healthz)
+        app.router.add_get("/status", self.status)
+        app.router.add_get("/tap/{route}", self.tap)
+        self._runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0)
+        self._sampler: asyncio.Task[None] | None = None
+        self._taps: set[asyncio.Task[Any]] = set()
+
+    async def start(self) -> None:
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.host, self.port, reuse_address=True)
+        await site.start()
+        sockets = getattr(site._server, "sockets", None) or []  # the bound port when 0 was asked
+        if sockets:
+            self.port = sockets[0].getsockname()[1]
+        self._sampler = asyncio.create_task(self._sample(), name="admin-rates")
+        log.info("admin endpoint listening", extra={"url": f"http://{self.host}:{self.port}/"})
+
+    async def stop(self) -> None:
+        for task in list(self._taps):  # a tap streams until its client leaves: end it
+            task.cancel()
+        if self._sampler is not None:
+            self._sampler.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._sampler
+        await self._runner.cleanup()
+
+    async def _sample(self) -> None:
+        while True:
+            self.engine.observers.sample()
+            await asyncio.sleep(RATE_SAMPLE_S)
+
+    async def metrics(self, request: web.Request) -> web.Response:
+        body = generate_latest(self.registry)
+        return web.Response(body=body, headers={"Content-Type": CONTENT_TYPE_LATEST})
+
+    async def healthz(self, request: web.Request) -> web.Response:
+        connections = connection_health(self.engine)
+        down = sorted(name for name, health in connections.items() if not health["up"])
+        document = {"status": "down" if down else "ok", "down": down, "connections": connections,
+                    "generation": self.engine.generation}
+        return web.json_response(document, status=503 if down else 200)
+
+    async def status(self, request: web.Request) -> web.Response:
+        return web.json_response(status_document(self.engine), dumps=lambda d: json.dumps(d, default=str))
+
+    async def tap(self, request: web.Request) -> web.StreamResponse:
+        route = request.match_info["route"]
+        if route not in self.engine.runners:
+            known = ", ".join(sorted(self.engine.runners))
+            return web.json_response({"error": f"unknown route {route!r} (running: {known})"}, status=404)
+        observer = self.engine.observers.get(route)
+        tap = Tap(route)
+        response = web.StreamResponse(headers={"Content-Type": "application/x-ndjson", "Cache-Control": "no-cache"})
+        await response.prepare(request)
+        observer.attach(tap)
+        started = time.monotonic()
+        task = asyncio.current_task()
+        assert task is not None
+        self._taps.add(task)
+        try:
+            while True:
+                lines = [await tap.lines.get()]
+                while not tap.lines.empty() and len(lines) < 256:
+                    lines.append(tap.lines.get_nowait())
+                await response.write(b"".join(lines))
+        except (ConnectionResetError, asyncio.CancelledError):
+            pass
+        finally:
+            self._taps.discard(task)
+            observer.detach(tap)
+            log.info("tap closed", extra={"route": route, "dropped": tap.dropped,
+                                           "seconds": round(time.monotonic() - started, 1)})
+        return response

@@ -1,0 +1,236 @@
+"""Static checks of what a mapping reads from a typed source, before anything flows.
+
+A typed source (a ROS 2 message type, a MAVLink message) has known fields, so a mapping that
+reads ``longitud`` from a ``sensor_msgs/msg/NavSatFix`` can only ever produce null: ``check``
+reports it with a did-you-mean instead of letting the schema reject every message in the
+field. The mapping's JMESPath tree is walked for the field paths it reads from the source
+message (through sub-expressions, indexes, projections and filters; what follows a pipe or
+a function's result is not the source message and is left alone); each path is resolved
+against the type: ROS 2 by rosidl introspection (nested and sequence-of-message fields),
+MAVLink from pymavlink's generated message classes.
+
+Also here: did-you-mean hints for a misspelt ROS 2 type or MAVLink message name.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Iterator, Mapping
+
+import jmespath
+from jmespath import exceptions as jmespath_errors
+
+from engine.suggest import closest
+
+FieldPath = tuple[str, ...]
+ELEMENT = "[]"
+"""A path step into the elements of a list."""
+_BARE_LITERALS = frozenset({"null", "true", "false"})
+"""JMESPath reads bare ``null`` as a field that is never there, which gives null: the idiom
+``x || null`` works, so it is not reported as a missing field."""
+
+
+def mapping_reads(expression: str | None) -> list[FieldPath]:
+    """The source-message field paths a mapping reads, in order, without duplicates."""
+    if not expression:
+        return []
+    try:
+        tree = jmespath.compile(expression).parsed
+    except jmespath_errors.JMESPathError:
+        return []
+    found: list[FieldPath] = []
+    _walk(tree, (), found)
+    return list(dict.fromkeys(found))
+
+
+def _walk(node: dict[str, Any], context: FieldPath | None, found: list[FieldPath]) -> FieldPath | None:
+    """Record the paths ``node`` reads when evaluated on the value at ``context`` (None:
+    not the source message); return the path of the value it evaluates to, if known."""
+    kind = node.get("type")
+    children = node.get("children", [])
+    if kind == "field":
+        if context is None or node["value"] in _BARE_LITERALS:
+            return None
+        path = context + (node["value"],)
+        found.append(path)
+        return path
+    if kind in ("current", "identity"):
+        return context
+    if kind == "subexpression":
+        value = context
+        for child in children:
+            value = _walk(child, value, found)
+        return value
+    if kind == "index_expression":
+        value = _walk(children[0], context, found)
+        return None if value is None else value + (ELEMENT,)
+    if kind == "flatten":
+        return _walk(children[0], context, found)
+    if kind in ("projection", "filter_projection"):
+        value = _walk(children[0], context, found)
+        element = None if value is None else value + (ELEMENT,)
+        for child in children[1:]:
+            _walk(child, element, found)
+        return None
+    if kind == "value_projection":
+        _walk(children[0], context, found)
+        _walk(children[1], None, found)
+        return None
+    if kind == "pipe":
+        _walk(children[1], _walk(children[0], context, found), found)
+        return None
+    if kind == "key_val_pair":
+        return _walk(children[0], context, found)
+    if kind == "expref":
+        _walk(children[0], None, found)
+        return None
+    for child in children:  # multi-selects, functions, comparisons, and/or/not
+        _walk(child, context, found)
+    return None
+
+
+def mapping_field_problems(protocol: str, options: Mapping[str, Any], mapping: str | None) -> Iterator[str]:
+    """``mapping reads 'x', which T does not have; did you mean 'y'?`` for a typed source."""
+    if not mapping:
+        return
+    resolve = _resolver(protocol, options)
+    if resolve is None:
+        return
+    for path in mapping_reads(mapping):
+        problem = resolve(path)
+        if problem is not None:
+            yield problem
+
+
+def _resolver(protocol: str, options: Mapping[str, Any]) -> Any:
+    if protocol == "ros2":
+        type_name = options.get("type", "std_msgs/msg/String")
+        try:
+            from engine.endpoints import rosmsg
+
+            cls = rosmsg.resolve_type(type_name)
+        except Exception:  # not installed or misspelt: reported by the type check
+            return None
+        if rosmsg.type_name(cls) == "std_msgs/msg/String":
+            return None  # a byte source: the mapping reads the JSON inside
+        return lambda path: _resolve_ros(cls, path)
+    if protocol == "mavlink" and not options.get("json_tunnel") and options.get("message"):
+        fields = mavlink_fields(str(options["message"]))
+        if fields is None:
+            return None
+        return lambda path: _resolve_flat(f"MAVLink {options['message']}", fields, path)
+    return None
+
+
+def _dotted(path: FieldPath) -> str:
+    return ".".join(path).replace(f".{ELEMENT}", ELEMENT)
+
+
+def _resolve_ros(cls: type, path: FieldPath) -> str | None:
+    from engine.endpoints import rosmsg
+
+    current: type | None = cls
+    in_list = False
+    for depth, step in enumerate(path):
+        if current is None:
+            return None  # a primitive or an array of them: nothing more to check
+        if step == ELEMENT:
+            if not in_list:
+                return None  # indexing a message: JMESPath gives null, not ours to judge
+            in_list = False
+            continue
+        if in_list:
+            return None
+        fields = _ros_fields(current)
+        if step not in fields:
+            guess = closest(step, fields)
+            hint = f"; did you mean {_dotted(path[:depth] + (guess,))!r}?" if guess else f" (fields: {', '.join(fields)})"
+            return f"mapping reads {_dotted(path[:depth + 1])!r}, which {rosmsg.type_name(current)} does not have{hint}"
+        current, in_list = fields[step]
+    return None
+
+
+@lru_cache(maxsize=None)
+def _ros_fields(cls: type) -> dict[str, tuple[type | None, bool]]:
+    """field -> (message class of the field or of its elements, is a sequence of messages)."""
+    from rosidl_parser import definition as idl
+
+    from engine.endpoints import rosmsg
+
+    out: dict[str, tuple[type | None, bool]] = {}
+    for name, slot in zip(cls.get_fields_and_field_types(), cls.SLOT_TYPES):
+        if isinstance(slot, idl.NamespacedType):
+            out[name] = (rosmsg.resolve_type(f"{slot.namespaces[0]}/{slot.name}"), False)
+        elif isinstance(slot, idl.AbstractNestedType) and isinstance(slot.value_type, idl.NamespacedType):
+            value = slot.value_type
+            out[name] = (rosmsg.resolve_type(f"{value.namespaces[0]}/{value.name}"), True)
+        else:
+            out[name] = (None, False)
+    return out
+
+
+def _resolve_flat(label: str, fields: tuple[str, ...], path: FieldPath) -> str | None:
+    if not path or path[0] == ELEMENT or path[0] in fields:
+        return None
+    guess = closest(path[0], fields)
+    hint = f"; did you mean {guess!r}?" if guess else f" (fields: {', '.join(fields)})"
+    return f"mapping reads {path[0]!r}, which {label} does not have{hint}"
+
+
+# ---------------------------------------------------------------- MAVLink and ROS 2 names
+# MAVLink knowledge is read from pymavlink's tables, plus the fields the MAVLink source adds.
+
+@lru_cache(maxsize=1)
+def _mavlink_messages() -> dict[str, tuple[str, ...]]:
+    from pymavlink.dialects.v20 import common
+
+    from engine.endpoints.mavlink.codec import ADDED_FIELDS
+
+    return {cls.msgname: tuple(cls.fieldnames) + ADDED_FIELDS.get(cls.msgname, ()) for cls in common.mavlink_map.values()}
+
+
+def mavlink_fields(message: str) -> tuple[str, ...] | None:
+    try:
+        return _mavlink_messages().get(message)
+    except ImportError:
+        return None
+
+
+@lru_cache(maxsize=1)
+def installed_ros_types() -> tuple[str, ...]:
+    """``pkg/msg/Type`` of every installed message package, read from the generated
+    ``msg/__init__.py`` files without importing them (only used to suggest a name)."""
+    names: set[str] = set()
+    pattern = re.compile(r"^from \S+ import (\w+)", re.M)
+    for entry in sys.path:
+        base = Path(entry or ".")
+        if not base.is_dir():
+            continue
+        for init in base.glob("*/msg/__init__.py"):
+            try:
+                text = init.read_text(encoding="utf-8", errors="replace")
+            except OSError:
+                continue
+            names.update(f"{init.parent.parent.name}/msg/{cls}" for cls in pattern.findall(text))
+    return tuple(sorted(names))
+
+
+def option_hint(protocol: str, key: str | None, options: Mapping[str, Any]) -> str:
+    """A did-you-mean for a misspelt ``type`` (ROS 2) or ``message`` (MAVLink) option."""
+    value = options.get(key) if key else None
+    if not isinstance(value, str):
+        return ""
+    if protocol == "ros2" and key == "type":
+        full = re.sub(r"^([a-z][a-z0-9_]*)/(?!msg/)", r"\1/msg/", value.strip())
+        guess = closest(full, installed_ros_types())
+    elif protocol == "mavlink" and key == "message":
+        try:
+            guess = closest(value, _mavlink_messages())
+        except ImportError:
+            return ""
+    else:
+        return ""
+    return f"; did you mean {guess!r}?" if guess and guess != value else ""

@@ -1,0 +1,74 @@
+"""The main job in CI: the farm example, run for 30 s from the entry point of ./scripts/demo.sh.
+
+Every part is real: the simulated UAV on MAVLink 2 through the emulated SiK radio, the ROS 2
+ground robot, the engine with a private RabbitMQ node, and the AMQP-only supervisory software.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+from engine.schemas import SchemaRegistry
+from tests.conftest import REPO
+
+DURATION = 30
+
+
+def test_farm_example_end_to_end(tmp_path: Path):
+    work = tmp_path / "farm"
+    result = subprocess.run(
+        ["timeout", "-s", "KILL", "300", sys.executable, "examples/farm_demo.py", "--duration", str(DURATION),
+         "--work", str(work), "--plain"],
+        cwd=REPO, capture_output=True, text=True, timeout=320,
+    )
+    out = result.stdout
+    assert result.returncode == 0, out[-3000:] + result.stderr[-3000:]
+
+    records = [json.loads(line) for line in (work / "canonical.jsonl").read_text().splitlines()]
+    by_key: dict[str, list[dict]] = defaultdict(list)
+    for record in records:
+        by_key[record["routing_key"]].append(record)
+    schemas = SchemaRegistry(REPO / "schemas")
+
+    # UAV telemetry arrives in canonical form at the vehicle's rates (4 Hz, 4 Hz, 1 Hz, 1 Hz).
+    for kind, rate in (("position", 4.0), ("attitude", 4.0), ("battery", 1.0), ("status", 1.0)):
+        seen = by_key[f"canonical.{kind}.uav1"]
+        assert len(seen) >= rate * DURATION / 2, f"{kind}: only {len(seen)} messages"
+        for record in seen:
+            schemas.get(kind).validate(record["body"])
+            assert record["body"]["agent_id"] == "uav1" and record["body"]["type"] == kind
+        span = seen[-1]["t"] - seen[0]["t"]
+        measured = (len(seen) - 1) / span
+        print(f"{kind}.uav1: {len(seen)} messages over {span:.1f} s = {measured:.2f}/s (vehicle: {rate}/s)")
+        assert 0.8 * rate <= measured <= 1.2 * rate, f"{kind}: {measured:.2f} msg/s, expected {rate}"
+    position = by_key["canonical.position.uav1"][-1]["body"]
+    assert math.isclose(position["lat"], -22.0, abs_tol=0.01) and math.isclose(position["lon"], -47.9, abs_tol=0.01)
+
+    # Every weed detection the UAV sent reaches RabbitMQ: ids are numbered from 1 with no gap.
+    weeds = [record["body"] for record in by_key["canonical.weeds.uav1"]]
+    for body in weeds:
+        schemas.get("weed_detection").validate(body)
+    numbers = [int(body["id"].removeprefix("weeds-")) for body in weeds]
+    assert numbers == list(range(1, len(numbers) + 1)), numbers
+    uav_span = by_key["canonical.position.uav1"][-1]["t"] - by_key["canonical.position.uav1"][0]["t"]
+    assert len(numbers) >= int(uav_span // 6) - 1 >= 2, f"{len(numbers)} detections in {uav_span:.0f} s (one per 6 s)"
+    status = json.loads((work / "status.json").read_text())["routes"]
+    assert status["uav1-weeds"]["received"] == status["uav1-weeds"]["delivered"] >= len(numbers)
+    assert all(route["failed"] == 0 for route in status.values()), status
+
+    # The supervisory software's missions reach the ground robot, and its acknowledgements come back.
+    sent = re.findall(r"^gcs -> mission\.robot1: (spray-\d+)", out, re.M)
+    received = re.findall(r"^robot1: mission (spray-\d+)", out, re.M)
+    acks = [record["body"] for record in by_key["canonical.ack.robot1"]]
+    assert sent and sent == received, out[-3000:]
+    assert [ack["ref_id"] for ack in acks] == sent and all(ack["result"] == "accepted" for ack in acks)
+    for ack in acks:
+        schemas.get("ack").validate(ack)
+    assert by_key["canonical.position.robot1"], "the robot's fix never reached RabbitMQ"
+    print(f"weeds {len(numbers)}, missions {sent}, acks {len(acks)}")
