@@ -1,12 +1,15 @@
 """The running engine: connections, one runner per route, and reloads that lose nothing.
 
-A reload compiles the whole directory first; if anything is wrong the running routes are
-left exactly as they are. Otherwise only what changed is touched: an unchanged route keeps
-its pipeline and its consumer; a route whose source is unchanged keeps its source (its AMQP
-consumer, ROS subscription or MAVLink reader) and gets a new pipeline swapped in before the
-old one drains (make-before-break); a route whose source changed gets a new source started
-before the old one stops and drains. Messages in flight finish on the pipeline that took
-them, so each is converted by exactly one configuration generation.
+A reload compiles the routes and schemas directories first, off the event loop; if anything
+is wrong the running routes are left exactly as they are. Otherwise :mod:`engine.plan` says
+what changed and only that is touched: an unchanged route keeps its pipeline and its
+consumer; a route whose source is unchanged keeps its source (its AMQP consumer, ROS
+subscription or MAVLink reader) and gets a new pipeline swapped in before the old one
+drains (make-before-break); a route whose source changed gets a new source started before
+the old one stops and drains. A connection holding an exclusive resource (a listening
+port, a serial device) is the exception: its routes stop, it closes, its successor opens
+and the routes start again (break-before-make), and the gap is logged. Messages in flight
+finish on the pipeline that took them, so each is converted by exactly one generation.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from typing import Any
 from engine import endpoints
 from engine.endpoints.base import Connection, EndpointError, Inbound, MessageRejected, Source
 from engine.pipeline import ConversionError, Pipeline
+from engine.plan import ReloadPlan, connection_key, plan_reload
 from engine.routes import ConnectionSpec, RouteSpec, RoutesConfig, RoutesInvalid, load_routes
 from engine.schemas import SchemaRegistry
 from engine.logs import Throttle
@@ -52,6 +56,9 @@ class ReloadStats:
     rejected: int = 0
     last_error: list[str] = field(default_factory=list)
     last_reload_s: float = 0.0
+    last_handovers: list[dict[str, Any]] = field(default_factory=list)
+    """Exclusive resources the last reload handed over break-before-make, with the gap
+    (ms from stopping the old routes to the new ones running) during which none was served."""
 
 
 class RouteRunner:
@@ -137,26 +144,31 @@ class Engine:
         self.reloads = ReloadStats()
         self.started_at = time.time()
         self._connections: dict[tuple[str, str], Connection] = {}
+        self._schemas: SchemaRegistry | None = None
         self._lock = asyncio.Lock()
 
     def compile(self) -> tuple[RoutesConfig, SchemaRegistry]:
+        """Load both directories; blocking (files, imports): called in a worker thread."""
         schemas = SchemaRegistry(self.schemas_dir)
         return load_routes(self.routes_dir, schemas), schemas
 
     async def start(self) -> None:
         """Load and start every route; raises RoutesInvalid or EndpointError."""
-        config, schemas = self.compile()
+        config, schemas = await asyncio.to_thread(self.compile)
         async with self._lock:
             await self._apply(config, schemas)
 
     async def reload(self) -> bool:
-        """Apply the directory as it is now; on any problem keep the running routes."""
+        """Apply the directories as they are now; on any problem keep the running routes."""
         async with self._lock:
             began = time.monotonic()
             try:
-                config, schemas = self.compile()
+                config, schemas = await asyncio.to_thread(self.compile)
             except RoutesInvalid as invalid:
                 return self._rejected([str(p) for p in invalid.problems])
+            except Exception as error:  # whatever the loader did not foresee: a rejected reload, not a dead reloader
+                log.exception("loading the routes failed")
+                return self._rejected([f"{self.routes_dir}: cannot load: {type(error).__name__}: {error}"])
             if self.config is not None and config.content_hash == self.config.content_hash:
                 return True
             try:
@@ -181,7 +193,7 @@ class Engine:
         return False
 
     async def _connection(self, spec: ConnectionSpec) -> Connection:
-        key = (spec.name, json.dumps(spec.settings, sort_keys=True, default=str))
+        key = connection_key(spec)
         connection = self._connections.get(key)
         if connection is None:
             connection = endpoints.transport(spec.protocol).connect(spec.name, spec.settings)
@@ -197,27 +209,37 @@ class Engine:
         assert schema is not None
         return Pipeline.compile(spec, generation, schema, connection.sink(spec.name, spec.sink.options)), connection
 
+    async def _runner(self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int) -> RouteRunner:
+        """A route's pipeline and source, not started yet."""
+        pipeline, sink_connection = await self._pipeline(config, schemas, spec, generation)
+        try:
+            source_connection = await self._connection(config.connections[spec.source.connection])
+            source = source_connection.source(spec.name, spec.source.options)
+        except BaseException:
+            await pipeline.sink.close()
+            raise
+        return RouteRunner(self, spec, pipeline, source, [source_connection, sink_connection])
+
     async def _apply(self, config: RoutesConfig, schemas: SchemaRegistry) -> None:
+        """Carry out the plan: prepare everything make-before-break, hand exclusive resources
+        over, then commit (swap pipelines, stop what was replaced or removed)."""
+        plan = plan_reload(self.config, config)
         generation = self.generation + 1
-        previous = self.config
-        keep: dict[str, RouteRunner] = {}
+        later = plan.break_before_make
         swaps: list[tuple[RouteRunner, Pipeline, Connection]] = []
         fresh: list[RouteRunner] = []
+        handed: list[RouteRunner] = []
         try:
-            for name, spec in config.routes.items():
-                old = self.runners.get(name)
-                if old is not None and old.spec.fingerprint == spec.fingerprint:
-                    keep[name] = old
-                    continue
-                pipeline, sink_connection = await self._pipeline(config, schemas, spec, generation)
-                if old is not None and previous is not None and _same_source(previous, old.spec, config, spec):
-                    swaps.append((old, pipeline, sink_connection))
-                    continue
-                source_connection = await self._connection(config.connections[spec.source.connection])
-                source = source_connection.source(name, spec.source.options)
-                fresh.append(RouteRunner(self, spec, pipeline, source, [source_connection, sink_connection]))
+            for name in plan.add + plan.replace_source:
+                if name not in later:
+                    fresh.append(await self._runner(config, schemas, config.routes[name], generation))
+            for name in plan.swap_pipeline:
+                pipeline, sink_connection = await self._pipeline(config, schemas, config.routes[name], generation)
+                swaps.append((self.runners[name], pipeline, sink_connection))
             for runner in fresh:
                 await runner.source.start(runner.deliver)
+            if plan.handovers:
+                handed = await self._hand_over(plan, config, schemas, generation)
         except BaseException:
             await asyncio.gather(
                 *(runner.source.stop() for runner in fresh),
@@ -227,33 +249,80 @@ class Engine:
             await self._close_unused(self.runners.values())
             raise
 
+        keep = {name: self.runners[name] for name in plan.keep}
         retired = []
         for runner, pipeline, sink_connection in swaps:
             retired.append(runner.retire_pipeline(runner.pipeline))
             runner.spec, runner.pipeline = pipeline.spec, pipeline
             runner.connections = [runner.connections[0], sink_connection]
             keep[runner.spec.name] = runner
-        for runner in fresh:
+        for runner in fresh + handed:
             keep[runner.spec.name] = runner
-        stopped = [runner for name, runner in self.runners.items() if keep.get(name) is not runner]
+        stopped = [runner for name, runner in self.runners.items() if keep.get(name) is not runner and name not in later]
         retired.extend(runner.stop() for runner in stopped)
         if retired:
             await asyncio.gather(*retired)
         self.runners = keep
-        self.config = config
+        self.config, self._schemas = config, schemas
         self.generation = generation
         await self._close_unused(keep.values())
+        for warning in config.warnings:
+            log.warning("route warning", extra={"problem": str(warning)})
         log.info(
             "routes applied",
-            extra={
-                "generation": generation,
-                "config_hash": config.content_hash,
-                "routes": len(keep),
-                "started": [r.spec.name for r in fresh],
-                "swapped": [r.spec.name for r, _, _ in swaps],
-                "stopped": [r.spec.name for r in stopped],
-            },
+            extra={"generation": generation, "config_hash": config.content_hash, "routes": len(keep), **plan.summary()},
         )
+
+    async def _hand_over(
+        self, plan: ReloadPlan, config: RoutesConfig, schemas: SchemaRegistry, generation: int
+    ) -> list[RouteRunner]:
+        """Break-before-make for exclusive resources: stop the routes on the old connections,
+        close those, then open the new ones and start the routes. If that fails, the old
+        routes are restored (their connections reopened) and the error propagates."""
+        names = sorted(plan.break_before_make)
+        began = time.monotonic()
+        old = [self.runners[name] for name in names if name in self.runners]
+        await asyncio.gather(*(runner.stop() for runner in old))
+        for handover in plan.handovers:
+            connection = self._connections.pop(handover.close, None)
+            if connection is not None:
+                await connection.close()
+        started: list[RouteRunner] = []
+        try:
+            for name in names:
+                if name in config.routes:
+                    runner = await self._runner(config, schemas, config.routes[name], generation)
+                    started.append(runner)
+                    await runner.source.start(runner.deliver)
+        except BaseException:
+            await asyncio.gather(*(runner.stop() for runner in started), return_exceptions=True)
+            for handover in plan.handovers:
+                connection = self._connections.pop(handover.open, None)
+                if connection is not None:
+                    await connection.close()
+            await self._restore(old)
+            raise
+        gap_ms = round((time.monotonic() - began) * 1e3, 1)
+        self.reloads.last_handovers = [
+            {"resource": h.resource, "connection": h.open[0], "gap_ms": gap_ms, "routes": list(h.routes)}
+            for h in plan.handovers
+        ]
+        for handover in self.reloads.last_handovers:
+            log.info("exclusive resource replaced break-before-make", extra=handover)
+        return started
+
+    async def _restore(self, runners: list[RouteRunner]) -> None:
+        """Start again, on the running configuration, routes a failed handover had stopped."""
+        assert self.config is not None
+        for runner in runners:
+            try:
+                again = await self._runner(self.config, self._schemas, runner.spec, runner.pipeline.generation)
+                await again.source.start(again.deliver)
+            except Exception as error:
+                log.error("route could not be restored after a failed reload", extra={"route": runner.spec.name, "error": str(error)})
+                del self.runners[runner.spec.name]
+                continue
+            self.runners[runner.spec.name] = again
 
     async def _close_unused(self, runners: Any) -> None:
         used = {id(connection) for runner in runners for connection in runner.connections}
@@ -308,9 +377,4 @@ class Engine:
             },
         }
 
-
-def _same_source(previous: RoutesConfig, old: RouteSpec, config: RoutesConfig, new: RouteSpec) -> bool:
-    return old.source == new.source and previous.connections.get(old.source.connection) == config.connections.get(
-        new.source.connection
-    )
 

@@ -264,10 +264,19 @@ class AmqpTransport(Transport):
             yield None, "an amqp source needs a queue, an exchange, or both"
         if "binding_key" in options and not options.get("exchange"):
             yield "binding_key", "binding_key needs an exchange to bind to"
+        if "exchange_type" in options and not options.get("exchange"):
+            yield "exchange_type", "exchange_type is not used without an exchange to declare"
 
     def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         if "exchange" not in options and "routing_key" not in options:
             yield None, "an amqp sink needs an exchange and/or a routing_key"
+        for key in ("exchange_type", "durable"):
+            if key in options and not options.get("exchange"):
+                yield key, f"{key} is not used: the default exchange is never declared (name an exchange)"
+
+    def competing_consumers(self, route: str, options: Mapping[str, Any]) -> str | None:
+        queue = options.get("queue")
+        return f"queue {queue!r}" if queue else None
 
     def connect(self, name: str, settings: Mapping[str, Any]) -> Connection:
         return AmqpConnection(name, settings)
