@@ -32,6 +32,7 @@ from engine.endpoints.base import (
     Transport,
 )
 from engine.mapping import MappingError, compile_template
+from engine.schemas import SchemaError, canonical_bytes
 
 _ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError)
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
@@ -232,14 +233,15 @@ class AmqpSink(Sink):
     async def send(self, message: Outbound) -> None:
         try:
             routing_key = self._routing_key(message.canonical)
-        except MappingError as exc:  # a field the key needs is missing: no retry can help
+            body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
+        except (MappingError, SchemaError) as exc:  # a field the key needs is missing: no retry can help
             raise MessageRejected(str(exc)) from None
         meta = message.meta
         await self._connection.publish(
             self._exchange,
             routing_key,
             aio_pika.Message(
-                message.body,
+                body,
                 content_type=self._content_type,
                 delivery_mode=self._delivery_mode,
                 message_id=message.message_id,
