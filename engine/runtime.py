@@ -33,6 +33,11 @@ from engine.logs import Throttle
 
 log = logging.getLogger("engine.runtime")
 
+EXCLUSIVE_RELEASE_S = 2.0
+"""How long a handover waits for an exclusive resource the old connection released: the
+operating system (or asyncio, which closes a socket on the next loop turn) may free it a
+moment after ``close`` returns."""
+
 SINK_RETRY_DELAY = 0.5
 """Pause before handing a message back for redelivery after a sink failure, so a
 destination that is down is not hammered in a tight loop."""
@@ -289,6 +294,8 @@ class Engine:
                 await connection.close()
         started: list[RouteRunner] = []
         try:
+            for handover in plan.handovers:
+                await self._open_exclusive(config.connections[handover.open[0]])
             for name in names:
                 if name in config.routes:
                     runner = await self._runner(config, schemas, config.routes[name], generation)
@@ -300,7 +307,7 @@ class Engine:
                 connection = self._connections.pop(handover.open, None)
                 if connection is not None:
                     await connection.close()
-            await self._restore(old)
+            await self._restore(old, [h.close[0] for h in plan.handovers])
             raise
         gap_ms = round((time.monotonic() - began) * 1e3, 1)
         self.reloads.last_handovers = [
@@ -311,9 +318,28 @@ class Engine:
             log.info("exclusive resource replaced break-before-make", extra=handover)
         return started
 
-    async def _restore(self, runners: list[RouteRunner]) -> None:
+    async def _open_exclusive(self, spec: ConnectionSpec) -> Connection:
+        """Open a connection whose exclusive resource was just released, waiting briefly
+        for the release to take effect."""
+        deadline = time.monotonic() + EXCLUSIVE_RELEASE_S
+        pause = 0.0
+        while True:
+            try:
+                return await self._connection(spec)
+            except EndpointError:
+                if time.monotonic() + pause > deadline:
+                    raise
+            await asyncio.sleep(pause)
+            pause = min(0.1, pause * 2 or 0.005)
+
+    async def _restore(self, runners: list[RouteRunner], connections: list[str]) -> None:
         """Start again, on the running configuration, routes a failed handover had stopped."""
         assert self.config is not None
+        for name in connections:
+            try:
+                await self._open_exclusive(self.config.connections[name])
+            except EndpointError as error:
+                log.error("connection could not be reopened after a failed reload", extra={"connection": name, "error": str(error)})
         for runner in runners:
             try:
                 again = await self._runner(self.config, self._schemas, runner.spec, runner.pipeline.generation)
