@@ -20,6 +20,12 @@ import aio_pika
 UAV_FLOWS = ("position.uav1", "attitude.uav1", "battery.uav1", "status.uav1", "weeds.uav1")
 
 
+
+def canonical_stamp() -> dict[str, int]:
+    """Now, in the canonical form of every stamp: {sec, nanosec}."""
+    ns = time.time_ns()
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
 async def main(url: str, duration: float, robot: str) -> int:
     connection = await aio_pika.connect(url)
     channel = await connection.channel()
@@ -39,7 +45,7 @@ async def main(url: str, duration: float, robot: str) -> int:
         if kind.startswith("weeds") and missions < 3:
             missions += 1
             mission = {
-                "agent_id": robot, "id": uuid.uuid4().hex, "type": "mission", "stamp": time.time(),
+                "agent_id": robot, "id": uuid.uuid4().hex, "type": "mission", "stamp": canonical_stamp(),
                 "mission_id": f"spray-{missions}", "task": "spray",
                 "waypoints": [{"seq": i, "lat": p["lat"], "lon": p["lon"], "action": "spray"} for i, p in enumerate(body["points"])],
             }
