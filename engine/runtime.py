@@ -254,6 +254,7 @@ class Engine:
             await self._close_unused(self.runners.values())
             raise
 
+        handed_over = [self.runners[name] for name in later if name in self.runners]
         keep = {name: self.runners[name] for name in plan.keep}
         retired = []
         for runner, pipeline, sink_connection in swaps:
@@ -270,6 +271,7 @@ class Engine:
         self.runners = keep
         self.config, self._schemas = config, schemas
         self.generation = generation
+        await self._retire_sources(config, stopped + handed_over)
         await self._close_unused(keep.values())
         for warning in config.warnings:
             log.warning("route warning", extra={"problem": str(warning)})
@@ -317,6 +319,20 @@ class Engine:
         for handover in self.reloads.last_handovers:
             log.info("exclusive resource replaced break-before-make", extra=handover)
         return started
+
+    async def _retire_sources(self, config: RoutesConfig, runners: list[RouteRunner]) -> None:
+        """Let each protocol undo what a source that stopped for good had set up (AMQP
+        bindings and auto-named queues), before its connection may close."""
+        for runner in runners:
+            spec = runner.spec.source
+            remaining = [
+                (name, route.source.options) for name, route in config.routes.items()
+                if route.source.protocol == spec.protocol and route.source.connection == spec.connection
+            ]
+            try:
+                await endpoints.transport(spec.protocol).source_retired(runner.connections[0], runner.spec.name, spec.options, remaining)
+            except Exception as error:  # the reload is done; leftovers are reported, not fatal
+                log.warning("could not undo a retired source's setup", extra={"route": runner.spec.name, "error": f"{type(error).__name__}: {error}"})
 
     async def _open_exclusive(self, spec: ConnectionSpec) -> Connection:
         """Open a connection whose exclusive resource was just released, waiting briefly

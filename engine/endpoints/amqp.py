@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 from urllib.parse import urlsplit
 
 import aio_pika
@@ -275,6 +275,14 @@ class AmqpTransport(Transport):
         for key in ("exchange_type", "durable"):
             if key in options and not options.get("exchange"):
                 yield key, f"{key} is not used: the default exchange is never declared (name an exchange)"
+
+    async def source_retired(
+        self, connection: Connection, route: str, options: Mapping[str, Any],
+        remaining: Iterable[tuple[str, Mapping[str, Any]]],
+    ) -> None:
+        from engine.endpoints.amqp_topology import retire_source
+
+        await retire_source(connection, route, options, remaining)
 
     def competing_consumers(self, route: str, options: Mapping[str, Any]) -> str | None:
         queue = options.get("queue")

@@ -140,6 +140,14 @@ class Transport(ABC):
         reopens the connection when their contents change."""
         return ()
 
+    async def source_retired(
+        self, connection: Connection, route: str, options: Mapping[str, Any],
+        remaining: Iterable[tuple[str, Mapping[str, Any]]],
+    ) -> None:
+        """The source of ``route`` stopped for good (route removed, or source replaced):
+        undo on ``connection`` what only it needed (AMQP: bindings, an auto-named queue).
+        ``remaining`` are the (route, options) of the sources configured on that connection now."""
+
     def competing_consumers(self, route: str, options: Mapping[str, Any]) -> str | None:
         """For a source whose consumers compete for messages (an AMQP queue), the name of what
         it consumes; ``check`` warns when two routes name the same one."""
