@@ -216,3 +216,12 @@ def test_options_the_endpoint_does_not_use_are_errors(ws: Workspace):
                         "source: {ros2: {topic: /raw, depth: 5}}")
     with pytest.raises(RoutesInvalid, match=r"farm.yaml:12: unknown key 'depth'"):
         ws.load(text)
+
+
+def test_check_prints_warnings_and_still_succeeds(ws: Workspace, capsys: pytest.CaptureFixture[str]):
+    from engine.cli import check
+
+    ws.load(BASE.replace("queue: raw-in", "queue: weeds-in"))
+    assert check(ws.routes, ws.schemas) == 0
+    err = capsys.readouterr().err
+    assert "farm.yaml:11: warning: route 'raw' consumes queue 'weeds-in'" in err
