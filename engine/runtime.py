@@ -38,6 +38,12 @@ EXCLUSIVE_RELEASE_S = 2.0
 operating system (or asyncio, which closes a socket on the next loop turn) may free it a
 moment after ``close`` returns."""
 
+RETIRE_AFTER_S = 2.0
+"""How long a retired source's setup (AMQP bindings, an auto-named queue) outlives it. A save
+that is not atomic can be read half-written, as a file without routes, and fixed a moment
+later: undoing at once would unbind a queue that should keep buffering, and drop what is
+published meanwhile. After the delay, only what the live configuration no longer wants goes."""
+
 SINK_RETRY_DELAY = 0.5
 """Pause before handing a message back for redelivery after a sink failure, so a
 destination that is down is not hammered in a tight loop."""
@@ -151,6 +157,10 @@ class Engine:
         self._connections: dict[tuple[str, str], Connection] = {}
         self._schemas: SchemaRegistry | None = None
         self._lock = asyncio.Lock()
+        self.retire_after_s = RETIRE_AFTER_S
+        self._retiring: list[RouteRunner] = []
+        """Stopped runners whose source setup is undone later; their connections stay open."""
+        self._retirement: asyncio.Task[None] | None = None
 
     def compile(self) -> tuple[RoutesConfig, SchemaRegistry]:
         """Load both directories; blocking (files, imports): called in a worker thread."""
@@ -271,7 +281,7 @@ class Engine:
         self.runners = keep
         self.config, self._schemas = config, schemas
         self.generation = generation
-        await self._retire_sources(config, stopped + handed_over)
+        self._retire_later(stopped + handed_over)
         await self._close_unused(keep.values())
         for warning in config.warnings:
             log.warning("route warning", extra={"problem": str(warning)})
@@ -320,9 +330,27 @@ class Engine:
             log.info("exclusive resource replaced break-before-make", extra=handover)
         return started
 
+    def _retire_later(self, runners: list[RouteRunner]) -> None:
+        self._retiring.extend(runners)
+        if runners and (self._retirement is None or self._retirement.done()):
+            self._retirement = asyncio.create_task(self._retire_pending(), name="retire-sources")
+
+    async def _retire_pending(self) -> None:
+        await asyncio.sleep(self.retire_after_s)
+        async with self._lock:
+            runners, self._retiring = self._retiring, []
+            assert self.config is not None
+            await self._retire_sources(self.config, runners)
+            await self._close_unused(self.runners.values())
+
+    async def topology_settled(self) -> None:
+        """Wait until retired sources' setup has been undone (tests, orderly tools)."""
+        while self._retirement is not None and not self._retirement.done():
+            await asyncio.shield(self._retirement)
+
     async def _retire_sources(self, config: RoutesConfig, runners: list[RouteRunner]) -> None:
         """Let each protocol undo what a source that stopped for good had set up (AMQP
-        bindings and auto-named queues), before its connection may close."""
+        bindings and auto-named queues) and the live configuration no longer wants."""
         for runner in runners:
             spec = runner.spec.source
             remaining = [
@@ -367,7 +395,7 @@ class Engine:
             self.runners[runner.spec.name] = again
 
     async def _close_unused(self, runners: Any) -> None:
-        used = {id(connection) for runner in runners for connection in runner.connections}
+        used = {id(connection) for runner in [*runners, *self._retiring] for connection in runner.connections}
         for key, connection in list(self._connections.items()):
             if id(connection) not in used:
                 del self._connections[key]
@@ -394,6 +422,8 @@ class Engine:
         await connection.dead_letter(spec.name, body, headers)
 
     async def stop(self) -> None:
+        if self._retirement is not None:  # a stopped engine keeps its topology: its queues buffer
+            self._retirement.cancel()
         async with self._lock:
             await asyncio.gather(*(runner.stop() for runner in self.runners.values()), return_exceptions=True)
             for connection in self._connections.values():

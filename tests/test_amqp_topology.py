@@ -57,6 +57,7 @@ def test_bindings_and_queues_follow_the_routes(amqp_url: str, tmp_path: Path, sc
 
     async def scenario() -> None:
         engine = Engine(routes, schemas_dir)
+        engine.retire_after_s = 0.05
         await engine.start()
         connection = await aio_pika.connect(amqp_url)
         try:
@@ -69,6 +70,7 @@ def test_bindings_and_queues_follow_the_routes(amqp_url: str, tmp_path: Path, sc
 
             farm.write_text(ROUTES.format(key="new", **n) + AUTO.format(**n))
             assert await engine.reload(), engine.reloads.last_error
+            await engine.topology_settled()
             await publish(channel, n["inbox"], "old", [b'{"k": "old-2"}'])
             await publish(channel, n["inbox"], "new", [b'{"k": "new-1"}'])
             await out.wait_for(3)
@@ -78,10 +80,12 @@ def test_bindings_and_queues_follow_the_routes(amqp_url: str, tmp_path: Path, sc
 
             farm.write_text(ROUTES.format(key="new", **n))
             assert await engine.reload(), engine.reloads.last_error
+            await engine.topology_settled()
             assert await queue_exists(connection, f"rabbitros.{n['auto']}") is None, "auto-named queue left behind"
 
             farm.write_text("routes: []\n")
             assert await engine.reload(), engine.reloads.last_error
+            await engine.topology_settled()
             await publish(channel, n["inbox"], "new", [b'{"k": "new-2"}'])
             await asyncio.sleep(0.3)
             assert await queue_exists(connection, n["queue"]) == 0, "a named queue is kept, without its bindings"
@@ -90,3 +94,36 @@ def test_bindings_and_queues_follow_the_routes(amqp_url: str, tmp_path: Path, sc
             await engine.stop()
 
     asyncio.run(scenario())
+
+
+def test_a_route_missing_for_a_moment_keeps_its_binding(amqp_url: str, tmp_path: Path, schemas_dir: Path,
+                                                      monkeypatch: pytest.MonkeyPatch):
+    """A save read half-written (a file without routes) and fixed a moment later: the named
+    queue stays bound and buffers, so nothing published meanwhile is lost."""
+    monkeypatch.setenv("TEST_AMQP_URL", amqp_url)
+    tag = uuid.uuid4().hex[:8]
+    n = {"inbox": f"in-{tag}", "outbox": f"out-{tag}", "queue": f"q-{tag}"}
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    farm = routes / "farm.yaml"
+    farm.write_text(ROUTES.format(key="k", **n))
+
+    async def scenario() -> list[bytes]:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            out = await Collector.bind(channel, n["outbox"])
+            farm.write_text("")
+            assert await engine.reload() and not engine.runners
+            await publish(channel, n["inbox"], "k", [b'{"k": "meanwhile"}'])
+            farm.write_text(ROUTES.format(key="k", **n))
+            assert await engine.reload() and set(engine.runners) == {"named"}
+            await engine.topology_settled()
+            return [m.body for m in await out.wait_for(1)]
+        finally:
+            await connection.close()
+            await engine.stop()
+
+    assert asyncio.run(scenario()) == [b'{"k": "meanwhile"}']
