@@ -244,11 +244,14 @@ class Engine:
         swaps: list[tuple[RouteRunner, Pipeline, Connection]] = []
         fresh: list[RouteRunner] = []
         handed: list[RouteRunner] = []
+        absent = tuple(n for n in plan.keep + plan.swap_pipeline if n not in self.runners)  # lost by a failed handover
         try:
-            for name in plan.add + plan.replace_source:
+            for name in plan.add + plan.replace_source + absent:
                 if name not in later:
                     fresh.append(await self._runner(config, schemas, config.routes[name], generation))
             for name in plan.swap_pipeline:
+                if name in absent:
+                    continue
                 pipeline, sink_connection = await self._pipeline(config, schemas, config.routes[name], generation)
                 swaps.append((self.runners[name], pipeline, sink_connection))
             for runner in fresh:
@@ -265,7 +268,7 @@ class Engine:
             raise
 
         handed_over = [self.runners[name] for name in later if name in self.runners]
-        keep = {name: self.runners[name] for name in plan.keep}
+        keep = {name: self.runners[name] for name in plan.keep if name not in absent}
         retired = []
         for runner, pipeline, sink_connection in swaps:
             retired.append(runner.retire_pipeline(runner.pipeline))
