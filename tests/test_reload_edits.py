@@ -9,8 +9,6 @@ import asyncio
 import json
 import os
 import shutil
-import socket
-import threading
 import time
 import uuid
 from pathlib import Path
@@ -18,11 +16,11 @@ from typing import Any
 
 import aio_pika
 import pytest
-from pymavlink.dialects.v20 import common as mavlink2
 
 from engine.runtime import Engine
 from tests.amqp_helpers import Collector, publish
 from tests.engine_process import EngineProcess
+from tests.udp_vehicle import Vehicle, free_udp_port
 
 PROBE_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "type": "object", "required": ["a"]}
 PROBE_ROUTE = """
@@ -175,35 +173,6 @@ routes:
     schema: raw_json
     sink: {{amqp: {{connection: gcs, exchange: {outbox}, routing_key: other}}}}
 """
-
-
-class Vehicle(threading.Thread):
-    """A pymavlink sender: GLOBAL_POSITION_INT at ``rate`` Hz, ``time_boot_ms`` = sequence."""
-
-    def __init__(self, port: int, rate: float) -> None:
-        super().__init__(daemon=True)
-        self.port, self.rate = port, rate
-        self.sent = 0
-        self.stop = threading.Event()
-
-    def run(self) -> None:
-        mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-            started = time.monotonic()
-            while not self.stop.is_set():
-                frame = mav.global_position_int_encode(self.sent, -220000000, -479000000, 10000, 5000, 0, 0, 0, 0)
-                try:
-                    sock.sendto(frame.pack(mav), ("127.0.0.1", self.port))
-                except OSError:
-                    pass  # nobody listening during the handover: UDP telemetry is lost, as over the air
-                self.sent += 1
-                time.sleep(max(0.0, started + self.sent / self.rate - time.monotonic()))
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def test_udpin_settings_change_while_telemetry_flows_is_break_before_make(
