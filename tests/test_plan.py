@@ -225,3 +225,19 @@ def test_check_prints_warnings_and_still_succeeds(ws: Workspace, capsys: pytest.
     assert check(ws.routes, ws.schemas) == 0
     err = capsys.readouterr().err
     assert "farm.yaml:11: warning: route 'raw' consumes queue 'weeds-in'" in err
+
+
+def test_exclusive_resources_of_mavlink_links(tmp_path: Path):
+    from engine.identity import exclusive_resource
+
+    device = tmp_path / "ttyUSB0"
+    device.touch()
+    (tmp_path / "radio").symlink_to(device)
+    assert exclusive_resource("mavlink", {"url": "udpin:0.0.0.0:14550"}) == "udp:14550"
+    assert exclusive_resource("mavlink", {"url": "udp::14551"}) == "udp:14551"
+    assert exclusive_resource("mavlink", {"url": "tcpin:127.0.0.1:5760"}) == "tcp:5760"
+    assert exclusive_resource("mavlink", {"url": f"{tmp_path}/radio", "baud": 57600}) == f"serial:{device}"
+    assert exclusive_resource("mavlink", {"url": f"{device},115200"}) == f"serial:{device}"
+    for shared in ("udpin:127.0.0.1:0", "udpout:10.0.0.2:14550", "tcp:10.0.0.2:5760"):
+        assert exclusive_resource("mavlink", {"url": shared}) is None, shared
+    assert exclusive_resource("amqp", {"url": "amqp://localhost/"}) is None
