@@ -49,6 +49,9 @@ async def watch_routes(
 
     while not stop.is_set():
         directories = [d for d in {routes_dir, schemas_dir} if d is not None and d.is_dir()]
+        if not directories:  # both gone: wait for one to come back
+            await asyncio.sleep(RETRY_S)
+            continue
         try:
             async for _changes in watchfiles.awatch(
                 *directories, watch_filter=wanted, stop_event=stop, recursive=False
