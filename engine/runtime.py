@@ -258,6 +258,8 @@ class Engine:
                 await runner.source.start(runner.deliver)
             if plan.handovers:
                 handed = await self._hand_over(plan, config, schemas, generation)
+            else:
+                self.reloads.last_handovers = []
         except BaseException:
             await asyncio.gather(
                 *(runner.source.stop() for runner in fresh),
