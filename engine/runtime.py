@@ -44,6 +44,9 @@ that is not atomic can be read half-written, as a file without routes, and fixed
 later: undoing at once would unbind a queue that should keep buffering, and drop what is
 published meanwhile. After the delay, only what the live configuration no longer wants goes."""
 
+EMPTIED_SETTLE_S = 0.25
+"""How long a reload waits to read again a route file found empty (see Engine._emptied)."""
+
 SINK_RETRY_DELAY = 0.5
 """Pause before handing a message back for redelivery after a sink failure, so a
 destination that is down is not hammered in a tight loop."""
@@ -179,6 +182,9 @@ class Engine:
             began = time.monotonic()
             try:
                 config, schemas = await asyncio.to_thread(self.compile)
+                if self._emptied(config):
+                    await asyncio.sleep(EMPTIED_SETTLE_S)
+                    config, schemas = await asyncio.to_thread(self.compile)
             except RoutesInvalid as invalid:
                 return self._rejected([str(p) for p in invalid.problems])
             except Exception as error:  # whatever the loader did not foresee: a rejected reload, not a dead reloader
@@ -197,6 +203,21 @@ class Engine:
             self.reloads.last_error = []
             self.reloads.last_reload_s = time.monotonic() - began
             return True
+
+    def _emptied(self, config: RoutesConfig) -> bool:
+        """Whether a route file that defined routes is now empty: more often an editor
+        half-way through a save (truncate, then write) than an operator's intent."""
+        if self.config is None:
+            return False
+        before = {route.file for route in self.config.routes.values()}
+        after = {route.file for route in config.routes.values()}
+        for file in before - after:
+            try:
+                if os.stat(file).st_size == 0:
+                    return True
+            except OSError:
+                pass
+        return False
 
     def _rejected(self, problems: list[str]) -> bool:
         self.reloads.rejected += 1

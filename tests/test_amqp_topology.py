@@ -127,3 +127,34 @@ def test_a_route_missing_for_a_moment_keeps_its_binding(amqp_url: str, tmp_path:
             await engine.stop()
 
     assert asyncio.run(scenario()) == [b'{"k": "meanwhile"}']
+
+
+def test_a_file_found_empty_is_read_again_before_its_routes_go(amqp_url: str, tmp_path: Path, schemas_dir: Path,
+                                                              monkeypatch: pytest.MonkeyPatch):
+    """An editor that truncates then writes: the reload that sees the empty file reads it
+    again a moment later, so the routes are never stopped."""
+    monkeypatch.setenv("TEST_AMQP_URL", amqp_url)
+    tag = uuid.uuid4().hex[:8]
+    n = {"inbox": f"in-{tag}", "outbox": f"out-{tag}", "queue": f"q-{tag}"}
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    farm = routes / "farm.yaml"
+    farm.write_text(ROUTES.format(key="k", **n))
+
+    async def scenario() -> None:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        try:
+            runner = engine.runners["named"]
+            farm.write_text("")
+            reloading = asyncio.create_task(engine.reload())
+            await asyncio.sleep(0.05)
+            farm.write_text(ROUTES.format(key="k2", **n))
+            assert await reloading
+            assert engine.runners["named"] is not runner and engine.generation == 2, "one reload, to the rewritten file"
+            farm.write_text("")
+            assert await engine.reload() and not engine.runners, "a file left empty does remove its routes"
+        finally:
+            await engine.stop()
+
+    asyncio.run(scenario())
