@@ -44,7 +44,7 @@ that is not atomic can be read half-written, as a file without routes, and fixed
 later: undoing at once would unbind a queue that should keep buffering, and drop what is
 published meanwhile. After the delay, only what the live configuration no longer wants goes."""
 
-EMPTIED_SETTLE_S = 0.25
+EMPTIED_SETTLE_S = 0.1
 """How long a reload waits to read again a route file found empty (see Engine._emptied)."""
 
 SINK_RETRY_DELAY = 0.5
