@@ -161,7 +161,7 @@ def test_recursive_alias_and_broken_ref_are_rejected_and_the_engine_keeps_runnin
 TELEMETRY_ROUTES = """
 connections:
   gcs: {{amqp: "${{TEST_AMQP_URL}}"}}
-  radio: {{mavlink: "udpin:127.0.0.1:{port}", heartbeat: {heartbeat}}}
+  radio: {{mavlink: "udpin:{host}:{port}", heartbeat: {heartbeat}}}
 routes:
   - name: telemetry
     source: {{mavlink: {{connection: radio, message: GLOBAL_POSITION_INT}}}}
@@ -182,7 +182,7 @@ def test_udpin_settings_change_while_telemetry_flows_is_break_before_make(
     n, port, rate = names(), free_udp_port(), 200.0
     routes = tmp_path / "routes"
     routes.mkdir()
-    (routes / "radio.yaml").write_text(TELEMETRY_ROUTES.format(port=port, heartbeat=1, **n))
+    (routes / "radio.yaml").write_text(TELEMETRY_ROUTES.format(host="127.0.0.1", port=port, heartbeat=1, **n))
 
     async def scenario() -> tuple[list[int], dict[str, Any], int]:
         engine = Engine(routes, schemas_dir)
@@ -196,7 +196,7 @@ def test_udpin_settings_change_while_telemetry_flows_is_break_before_make(
             await out.wait_for(50)
             assert len(out.messages) >= 50, "no telemetry before the change"
             other = engine.runners["other"]
-            (routes / "radio.yaml").write_text(TELEMETRY_ROUTES.format(port=port, heartbeat=2, **n))
+            (routes / "radio.yaml").write_text(TELEMETRY_ROUTES.format(host="127.0.0.1", port=port, heartbeat=2, **n))
             assert await engine.reload(), engine.reloads.last_error
             sent_at_reload = vehicle.sent
             assert engine.runners["other"] is other, "a route on another connection was touched"
@@ -217,6 +217,41 @@ def test_udpin_settings_change_while_telemetry_flows_is_break_before_make(
     assert handover["resource"] == f"udp:{port}" and handover["routes"] == ["telemetry"]
     assert 0 < handover["gap_ms"] < 2000
     assert all(seq <= sent_at_reload for seq in missed), "telemetry lost after the new link was up"
+
+
+def test_udpin_handover_that_cannot_open_restores_the_old_link(
+    amqp_url: str, tmp_path: Path, schemas_dir: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """The new settings pass every check but cannot bind (an address this host does not
+    have): the old link is reopened, telemetry flows again, the reload is rejected."""
+    monkeypatch.setenv("TEST_AMQP_URL", amqp_url)
+    n, port = names(), free_udp_port()
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "radio.yaml").write_text(TELEMETRY_ROUTES.format(host="127.0.0.1", port=port, heartbeat=1, **n))
+
+    async def scenario() -> None:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        vehicle = Vehicle(port, 100.0)
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            out = await Collector.bind(await connection.channel(), n["outbox"], "telemetry")
+            vehicle.start()
+            assert len(await out.wait_for(20)) >= 20, "no telemetry before the change"
+            (routes / "radio.yaml").write_text(TELEMETRY_ROUTES.format(host="192.0.2.1", port=port, heartbeat=1, **n))
+            assert not await engine.reload(), "binding an address this host lacks cannot succeed"
+            assert "cannot open udpin:192.0.2.1" in engine.reloads.last_error[0], engine.reloads.last_error
+            assert engine.generation == 1 and set(engine.runners) == {"telemetry", "other"}
+            sent = vehicle.sent
+            await out.wait_for(len(out.messages) + 20)
+            assert max(json.loads(m.body)["seq"] for m in out.messages) > sent, "the old link was not restored"
+        finally:
+            vehicle.stop.set()
+            await connection.close()
+            await engine.stop()
+
+    asyncio.run(scenario())
 
 
 def test_sink_mapping_shapes_the_amqp_body(amqp_url: str, tmp_path: Path, schemas_dir: Path,
