@@ -119,11 +119,17 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def check(routes: Path, schemas: Path) -> int:
-    config, cases, problems = load_checked(routes, SchemaRegistry(schemas))
+    try:
+        config, cases, problems = load_checked(routes, SchemaRegistry(schemas))
+    except Exception as error:  # what the loader did not foresee still gets one line, not a traceback
+        print(f"{routes}: cannot load: {type(error).__name__}: {error}", file=sys.stderr)
+        return 1
     for problem in problems:
         print(problem, file=sys.stderr)
     if config is None or problems:
         return 1
+    for warning in config.warnings:
+        print(f"{warning.file}:{warning.line}: warning: {warning.message}", file=sys.stderr)
     tests = f", {len(cases)} tests" if cases else ""
     print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections{tests}, config {config.content_hash}: ok")
     return 0
@@ -207,7 +213,10 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
         while True:
             await reload_requested.wait()
             reload_requested.clear()
-            await engine.reload()
+            try:
+                await engine.reload()
+            except Exception:  # Engine.reload rejects what it can foresee; this loop must outlive the rest
+                log.exception("reload failed")
             write_status()
 
     def write_status() -> None:
@@ -224,7 +233,7 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
 
     tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
     if not args.no_watch:
-        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping)))
+        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dir)))
     log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__})
     await stopping.wait()
     log.info("stopping: draining in-flight messages")

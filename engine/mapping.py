@@ -30,6 +30,12 @@ def _frames() -> Any:
     return frames
 
 
+def _stamps() -> Any:
+    from engine import stamps
+
+    return stamps
+
+
 class FieldFunctions(functions.Functions):
     """Custom functions available in every mapping; names are snake_case."""
 
@@ -71,6 +77,19 @@ class FieldFunctions(functions.Functions):
     def _func_stamp(self) -> dict[str, int]:
         ns = time.time_ns()
         return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+    # Stamps in their one canonical form {sec, nanosec}, see engine.stamps.
+    @functions.signature({"types": ["number", "object"]})
+    def _func_to_stamp(self, value: Any) -> dict[str, int]:
+        return _stamps().to_stamp(value)
+
+    @functions.signature({"types": ["number"]})
+    def _func_stamp_usec(self, time_usec: int) -> dict[str, int]:
+        return _stamps().from_time_usec(time_usec)
+
+    @functions.signature({"types": ["number"]})
+    def _func_stamp_boot_ms(self, time_boot_ms: int) -> dict[str, int]:
+        return _stamps().from_time_boot_ms(time_boot_ms)
 
     @functions.signature()
     def _func_uuid(self) -> str:

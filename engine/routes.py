@@ -13,7 +13,7 @@ import hashlib
 import json
 import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any, Iterator, Mapping
@@ -24,6 +24,7 @@ import yaml
 from engine import endpoints
 from engine.endpoints.base import EndpointError
 from engine.fieldcheck import mapping_field_problems, option_hint
+from engine.identity import connection_fingerprint, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
@@ -63,6 +64,10 @@ class ConnectionSpec:
     settings: Mapping[str, Any]
     file: str = field(default="", compare=False)
     line: int = field(default=0, compare=False)
+    fingerprint: str = ""
+    """Settings and the contents of the key files they name (engine.identity)."""
+    exclusive: str | None = None
+    """The resource only one open connection can hold (``udp:14550``), if any."""
 
 
 @dataclass(frozen=True)
@@ -95,6 +100,8 @@ class RoutesConfig:
     connections: Mapping[str, ConnectionSpec]
     routes: Mapping[str, RouteSpec]
     content_hash: str
+    warnings: tuple[Problem, ...] = ()
+    """Accepted but probably not what was meant (two routes consuming one AMQP queue)."""
 
 
 def default_amqp_url() -> str:
@@ -148,7 +155,8 @@ def load_routes(
     routes = _compile_routes(documents, connections, schemas, problems)
     if problems:
         raise RoutesInvalid(sorted(set(problems)))
-    return RoutesConfig(directory, connections, routes, digest.hexdigest()[:12])
+    digest.update(json.dumps(sorted((n, r.fingerprint) for n, r in routes.items())).encode())  # schemas, key files
+    return RoutesConfig(directory, connections, routes, digest.hexdigest()[:12], _competing_consumers(routes))
 
 
 @dataclass
@@ -186,7 +194,11 @@ def _parse_document(
     if root is None:
         return _Document(file, {}, {})
     lines: dict[Path_, int] = {}
-    data = _to_python(loader, root, (), lines, env, file, problems)
+    try:
+        data = _to_python(loader, root, (), lines, env, file, problems)
+    except RecursionError:
+        problems.append(Problem(file, _recursive_alias_line(text), "invalid YAML: an alias inside its own anchor (recursive alias), or nesting too deep"))
+        return None
     document = _Document(file, data if data is not None else {}, lines)
     errors = [p for error in validator.iter_errors(data) for p in _schema_problems(document, error)]
     problems.extend(errors)
@@ -232,6 +244,14 @@ def _to_python(
             return value
         return _typed(substituted) if node.style is None else substituted
     return value
+
+
+def _recursive_alias_line(text: str) -> int:
+    """Where the recursive structure starts: the first anchor, as YAML's own marks are lost."""
+    for number, line in enumerate(text.splitlines(), 1):
+        if re.search(r"(^|[\s\[{,:-])&[^\s]", line):
+            return number
+    return 1
 
 
 def _typed(text: str) -> Any:
@@ -310,7 +330,11 @@ def _compile_connections(
                 checks = [(None, str(exc))]
             for key, message in checks:
                 problems.append(document.problem(where + ((protocol,) if key is None else (protocol, key)), f"connection {name!r}: {message}"))
-            connections[name] = ConnectionSpec(name, protocol, settings, document.file, document.line(where))
+            connection = _identified(ConnectionSpec(name, protocol, settings, document.file, document.line(where)))
+            holder = next((c for c in connections.values() if connection.exclusive and c.exclusive == connection.exclusive), None)
+            if holder is not None:
+                problems.append(document.problem(where + (protocol,), f"connection {name!r}: {connection.exclusive} is already used by connection {holder.name!r} at {holder.file}:{holder.line}"))
+            connections[name] = connection
     return connections
 
 
@@ -330,7 +354,36 @@ def _default_connection(protocol: str) -> ConnectionSpec:
     settings = dict(endpoints.transport(protocol).default_settings)
     if protocol == "amqp":
         settings["url"] = default_amqp_url()
-    return ConnectionSpec(f"default-{protocol}", protocol, settings)
+    return _identified(ConnectionSpec(f"default-{protocol}", protocol, settings))
+
+
+def _identified(spec: ConnectionSpec) -> ConnectionSpec:
+    return replace(
+        spec,
+        fingerprint=connection_fingerprint(spec.protocol, spec.settings),
+        exclusive=exclusive_resource(spec.protocol, spec.settings),
+    )
+
+
+def _competing_consumers(routes: Mapping[str, RouteSpec]) -> tuple[Problem, ...]:
+    """Two routes consuming one AMQP queue split its messages between them (competing
+    consumers): legal, but rarely what two routes mean, so ``check`` warns."""
+    warnings = []
+    seen: dict[tuple[str, str], RouteSpec] = {}
+    for route in routes.values():
+        try:
+            name = endpoints.transport(route.source.protocol).competing_consumers(route.name, route.source.options)
+        except EndpointError:
+            continue
+        if name is None:
+            continue
+        first = seen.setdefault((route.source.connection, name), route)
+        if first is not route:
+            warnings.append(Problem(route.file, route.line, (
+                f"route {route.name!r} consumes {name}, as route {first.name!r} does ({first.file}:{first.line}): "
+                "they compete, each message goes to only one of them (give each route its own queue to get every message)"
+            )))
+    return tuple(warnings)
 
 
 def _compile_routes(
@@ -368,9 +421,10 @@ def _compile_routes(
             if len(problems) > before or not (source and sink):
                 continue
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
+            schema = schemas.get(schema_name)
             fingerprint = hashlib.sha256(
                 json.dumps(
-                    [body, {k: (v.protocol, v.settings) if v else None for k, v in used.items()}],
+                    [body, {k: v.fingerprint if v else None for k, v in used.items()}, schema.digest if schema else None],
                     sort_keys=True,
                     default=str,
                 ).encode()

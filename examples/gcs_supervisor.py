@@ -23,6 +23,12 @@ UAV_ALT_M = 20.0
 """Spraying height above home of the UAV's missions."""
 
 
+def canonical_stamp() -> dict[str, int]:
+    """Now, in the canonical form of every stamp: {sec, nanosec}."""
+    ns = time.time_ns()
+    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+
+
 async def main(url: str, duration: float, robot: str, record: str | None = None, ready_file: str | None = None) -> int:
     connection = await aio_pika.connect(url)
     channel = await connection.channel()
@@ -45,7 +51,7 @@ async def main(url: str, duration: float, robot: str, record: str | None = None,
         if kind.startswith("weeds") and missions < 3:
             missions += 1
             mission = {
-                "agent_id": robot, "id": uuid.uuid4().hex, "type": "mission", "stamp": time.time(),
+                "agent_id": robot, "id": uuid.uuid4().hex, "type": "mission", "stamp": canonical_stamp(),
                 "mission_id": f"spray-{missions}", "task": "spray",
                 "waypoints": [{"seq": i, "lat": p["lat"], "lon": p["lon"], "action": "spray"} for i, p in enumerate(body["points"])],
             }

@@ -126,7 +126,7 @@ def test_run_with_local_broker_routes_and_stops_cleanly(tmp_path: Path):
             return [m.body for m in received]
 
         bodies = asyncio.run(roundtrip())
-        assert bodies == [b'{"agent_id":"uav1","id":"d1","points":[{"lat":1.0,"lon":2.0,"p":0.9}],"stamp":1.5,"type":"weed_detection"}']
+        assert bodies == [b'{"agent_id":"uav1","id":"d1","points":[{"lat":1.0,"lon":2.0,"p":0.9}],"stamp":{"nanosec":500000000,"sec":1},"type":"weed_detection"}']
         status = json.loads(status_file.read_text())
         assert status["generation"] == 1 and set(status["routes"]) == {"uav-weeds", "gcs-commands"}
         process.send_signal(signal.SIGTERM)

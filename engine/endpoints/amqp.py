@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 from urllib.parse import urlsplit
 
 import aio_pika
@@ -32,6 +32,7 @@ from engine.endpoints.base import (
     Transport,
 )
 from engine.mapping import MappingError, compile_template
+from engine.schemas import SchemaError, canonical_bytes
 
 _ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError)
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
@@ -241,14 +242,15 @@ class AmqpSink(Sink):
     async def send(self, message: Outbound) -> None:
         try:
             routing_key = self._routing_key(message.canonical)
-        except MappingError as exc:  # a field the key needs is missing: no retry can help
+            body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
+        except (MappingError, SchemaError) as exc:  # a field the key needs is missing: no retry can help
             raise MessageRejected(str(exc)) from None
         meta = message.meta
         await self._connection.publish(
             self._exchange,
             routing_key,
             aio_pika.Message(
-                message.body,
+                body,
                 content_type=self._content_type,
                 delivery_mode=self._delivery_mode,
                 message_id=message.message_id,
@@ -273,10 +275,27 @@ class AmqpTransport(Transport):
             yield None, "an amqp source needs a queue, an exchange, or both"
         if "binding_key" in options and not options.get("exchange"):
             yield "binding_key", "binding_key needs an exchange to bind to"
+        if "exchange_type" in options and not options.get("exchange"):
+            yield "exchange_type", "exchange_type is not used without an exchange to declare"
 
     def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         if "exchange" not in options and "routing_key" not in options:
             yield None, "an amqp sink needs an exchange and/or a routing_key"
+        for key in ("exchange_type", "durable"):
+            if key in options and not options.get("exchange"):
+                yield key, f"{key} is not used: the default exchange is never declared (name an exchange)"
+
+    async def source_retired(
+        self, connection: Connection, route: str, options: Mapping[str, Any],
+        remaining: Iterable[tuple[str, Mapping[str, Any]]],
+    ) -> None:
+        from engine.endpoints.amqp_topology import retire_source
+
+        await retire_source(connection, route, options, remaining)
+
+    def competing_consumers(self, route: str, options: Mapping[str, Any]) -> str | None:
+        queue = options.get("queue")
+        return f"queue {queue!r}" if queue else None
 
     def connect(self, name: str, settings: Mapping[str, Any]) -> Connection:
         return AmqpConnection(name, settings)

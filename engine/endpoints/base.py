@@ -134,5 +134,30 @@ class Transport(ABC):
     def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         return ()
 
+    def exclusive_resource(self, settings: Mapping[str, Any]) -> str | None:
+        """The operating-system resource only one open connection can hold (a listening port,
+        a serial device: two readers would split the bytes), as a key such as ``udp:14550``,
+        or None. A reload that changes such a connection closes the old one before opening
+        the new (break-before-make) instead of the usual make-before-break."""
+        return None
+
+    def key_files(self, settings: Mapping[str, Any]) -> Iterable[str]:
+        """Files whose contents the connection reads when it opens (signing keys): a reload
+        reopens the connection when their contents change."""
+        return ()
+
+    async def source_retired(
+        self, connection: Connection, route: str, options: Mapping[str, Any],
+        remaining: Iterable[tuple[str, Mapping[str, Any]]],
+    ) -> None:
+        """The source of ``route`` stopped for good (route removed, or source replaced):
+        undo on ``connection`` what only it needed (AMQP: bindings, an auto-named queue).
+        ``remaining`` are the (route, options) of the sources configured on that connection now."""
+
+    def competing_consumers(self, route: str, options: Mapping[str, Any]) -> str | None:
+        """For a source whose consumers compete for messages (an AMQP queue), the name of what
+        it consumes; ``check`` warns when two routes name the same one."""
+        return None
+
     @abstractmethod
     def connect(self, name: str, settings: Mapping[str, Any]) -> Connection: ...

@@ -1,0 +1,38 @@
+"""A pymavlink telemetry sender over UDP, for the udpin handover test and its benchmark."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+
+class Vehicle(threading.Thread):
+    """A pymavlink sender: GLOBAL_POSITION_INT at ``rate`` Hz, ``time_boot_ms`` = sequence."""
+
+    def __init__(self, port: int, rate: float) -> None:
+        super().__init__(daemon=True)
+        self.port, self.rate = port, rate
+        self.sent = 0
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            started = time.monotonic()
+            while not self.stop.is_set():
+                frame = mav.global_position_int_encode(self.sent, -220000000, -479000000, 10000, 5000, 0, 0, 0, 0)
+                try:
+                    sock.sendto(frame.pack(mav), ("127.0.0.1", self.port))
+                except OSError:
+                    pass  # nobody listening during the handover: UDP telemetry is lost, as over the air
+                self.sent += 1
+                time.sleep(max(0.0, started + self.sent / self.rate - time.monotonic()))
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
