@@ -62,11 +62,11 @@ def test_wrong_expectation_fails_with_a_diff(tmp_path: Path):
   - name: right
     route: uav-weeds
     input: {agent: uav1, id: a, stamp: 1, detections: [{lat: 1, lon: 2, confidence: 0.5}]}
-    expect: {id: a, stamp: 1, agent_id: uav1, type: weed_detection, points: [{lat: 1, lon: 2, p: 0.5}]}
+    expect: {id: a, stamp: {sec: 1, nanosec: 0}, agent_id: uav1, type: weed_detection, points: [{lat: 1, lon: 2, p: 0.5}]}
   - name: wrong confidence key
     route: uav-weeds
     input: {agent: uav1, id: a, stamp: 1, detections: [{lat: 1, lon: 2, confidence: 0.5}]}
-    expect: {id: a, stamp: 1, agent_id: uav1, type: weed_detection, points: [{lat: 1, lon: 2, confidence: 0.5}]}
+    expect: {id: a, stamp: {sec: 1, nanosec: 0}, agent_id: uav1, type: weed_detection, points: [{lat: 1, lon: 2, confidence: 0.5}]}
   - name: wrong routing key
     route: uav-weeds
     input: {agent: uav1, detections: []}
