@@ -326,10 +326,11 @@ class SimVehicle:
             await asyncio.sleep(every)
             state = expected_state(self._loop.time() - self._boot)
             count += 1
+            now = time.time()
             points = [{"lat": round(state["lat"] / 1e7 + i * 2e-6, 7), "lon": round(state["lon"] / 1e7 - i * 2e-6, 7),
                        "p": round(0.6 + 0.1 * i, 2)} for i in range(3)]
             body = json.dumps({"agent_id": f"uav{self.system_id}", "id": f"weeds-{count}", "type": "weed_detection",
-                               "stamp": round(time.time(), 3), "points": points}, separators=(",", ":"))
+                               "stamp": {"sec": int(now), "nanosec": int(now % 1 * 1e9)}, "points": points}, separators=(",", ":"))
             with contextlib.suppress(EndpointError):
                 await sink.send_bytes(body.encode())
 

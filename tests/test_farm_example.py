@@ -63,7 +63,7 @@ def test_farm_example_end_to_end(tmp_path: Path):
     assert all(route["failed"] == 0 for route in status.values()), status
 
     # The supervisory software's missions reach the ground robot, and its acknowledgements come back.
-    sent = re.findall(r"^gcs -> mission\.robot1: (spray-\d+)", out, re.M)
+    sent = re.findall(r"^gcs -> mission\.ground\.robot1: (spray-\d+)", out, re.M)
     received = re.findall(r"^robot1: mission (spray-\d+)", out, re.M)
     acks = [record["body"] for record in by_key["canonical.ack.robot1"]]
     assert sent and sent == received, out[-3000:]
@@ -71,4 +71,14 @@ def test_farm_example_end_to_end(tmp_path: Path):
     for ack in acks:
         schemas.get("ack").validate(ack)
     assert by_key["canonical.position.robot1"], "the robot's fix never reached RabbitMQ"
-    print(f"weeds {len(numbers)}, missions {sent}, acks {len(acks)}")
+
+    # The UAV's missions are uploaded over the radio with the MAVLink mission protocol, and the
+    # vehicle's MISSION_ACK comes back as a canonical ack (the last one may still be on its way).
+    uav_sent = re.findall(r"^gcs -> mission\.uav\.uav1: (uav-spray-\d+)", out, re.M)
+    uav_acks = [record["body"] for record in by_key["canonical.ack.uav1"]]
+    for ack in uav_acks:
+        schemas.get("ack").validate(ack)
+    assert uav_sent and len(uav_sent) - 1 <= len(uav_acks) <= len(uav_sent), (uav_sent, uav_acks)
+    assert all(ack["result"] == "accepted" and ack["detail"] == "MAV_MISSION_ACCEPTED" for ack in uav_acks), uav_acks
+    assert status["uav1-missions"]["delivered"] == len(uav_acks) or status["uav1-missions"]["delivered"] == len(uav_sent)
+    print(f"weeds {len(numbers)}, missions {sent}, acks {len(acks)}, uav missions {uav_sent}, uav acks {len(uav_acks)}")

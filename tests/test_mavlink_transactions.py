@@ -45,8 +45,13 @@ def free_udp_port() -> int:
         return port
 
 
+def canonical_stamp() -> dict[str, int]:
+    now = time.time_ns()
+    return {"sec": now // 1_000_000_000, "nanosec": now % 1_000_000_000}
+
+
 def canonical_mission(points: list[tuple[float, float]], alt: float = 15.0) -> dict[str, Any]:
-    return {"type": "mission", "agent_id": "uav1", "id": uuid.uuid4().hex, "stamp": time.time(),
+    return {"type": "mission", "agent_id": "uav1", "id": uuid.uuid4().hex, "stamp": canonical_stamp(),
             "mission_id": "spray-1", "task": "spray",
             "waypoints": [{"lat": lat, "lon": lon, "alt": alt + i, "hold_s": 2.0 + i} for i, (lat, lon) in enumerate(points)]}
 
@@ -118,7 +123,7 @@ def test_canonical_mission_and_arm_through_rabbitmq_to_mavsdk(tmp_path: Path, am
       mapping: "{{command: mav_enum_value('MAV_CMD_COMPONENT_ARM_DISARM', 'MAV_CMD'), param1: `1`}}"
 """)
     mission = canonical_mission(WEEDS)
-    command = {"type": "command", "agent_id": "uav1", "id": uuid.uuid4().hex, "stamp": time.time(), "command": "arm"}
+    command = {"type": "command", "agent_id": "uav1", "id": uuid.uuid4().hex, "stamp": canonical_stamp(), "command": "arm"}
     autopilot = MavsdkAutopilot(port)
 
     async def scenario() -> dict[str, Any]:
@@ -237,7 +242,7 @@ def test_refused_mission_and_command_are_dead_lettered_with_the_result_name(tmp_
       mavlink: {{connection: uav, message: COMMAND_INT, target_system: 1, acknowledged: true}}
       mapping: "{{command: 'MAV_CMD_DO_REPOSITION', frame: `6`, x: deg_to_deg_e7(params.lat), y: deg_to_deg_e7(params.lon)}}"
 """)
-    command = {"type": "command", "agent_id": "uav1", "id": "c1", "stamp": time.time(), "command": "goto",
+    command = {"type": "command", "agent_id": "uav1", "id": "c1", "stamp": canonical_stamp(), "command": "goto",
                "params": {"lat": -22.0001, "lon": -47.9002}}
 
     async def scenario() -> tuple[list[Any], SimVehicle]:
