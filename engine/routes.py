@@ -22,6 +22,7 @@ import jsonschema
 import yaml
 
 from engine import endpoints
+from engine.delivery import DEFAULT_MAX_MESSAGE_BYTES, DeadLetterSpec, RouteDelivery
 from engine.endpoints.base import EndpointError
 from engine.mapping import MappingError, compile_mapping, unknown_functions
 from engine.schemas import SchemaRegistry
@@ -61,6 +62,8 @@ class ConnectionSpec:
     settings: Mapping[str, Any]
     file: str = field(default="", compare=False)
     line: int = field(default=0, compare=False)
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    """Messages larger than this, in or out of this connection, are dead-lettered unparsed."""
 
 
 @dataclass(frozen=True)
@@ -81,6 +84,8 @@ class RouteSpec:
     fingerprint: str
     file: str = field(default="", compare=False)
     line: int = field(default=0, compare=False)
+    delivery: RouteDelivery = field(default=RouteDelivery(), compare=False)
+    """max_attempts, overflow and the size limits (the fingerprint covers them)."""
 
 
 @dataclass(frozen=True)
@@ -91,6 +96,8 @@ class RoutesConfig:
     connections: Mapping[str, ConnectionSpec]
     routes: Mapping[str, RouteSpec]
     content_hash: str
+    dead_letters: DeadLetterSpec = DeadLetterSpec()
+    """The engine's one dead-letter destination (``dead_letters:``, resolved)."""
 
 
 def default_amqp_url() -> str:
@@ -136,9 +143,10 @@ def load_routes(
         problems.append(Problem(str(schema_path), 0, message))
     connections = _compile_connections(documents, problems)
     routes = _compile_routes(documents, connections, schemas, problems)
+    dead_letters = _compile_dead_letters(documents, connections, problems)
     if problems:
         raise RoutesInvalid(sorted(set(problems)))
-    return RoutesConfig(directory, connections, routes, digest.hexdigest()[:12])
+    return RoutesConfig(directory, connections, routes, digest.hexdigest()[:12], dead_letters)
 
 
 @dataclass
@@ -299,7 +307,10 @@ def _compile_connections(
                 checks = [(None, str(exc))]
             for key, message in checks:
                 problems.append(document.problem(where + ((protocol,) if key is None else (protocol, key)), f"connection {name!r}: {message}"))
-            connections[name] = ConnectionSpec(name, protocol, settings, document.file, document.line(where))
+            connections[name] = ConnectionSpec(
+                name, protocol, settings, document.file, document.line(where),
+                body.get("max_message_bytes", DEFAULT_MAX_MESSAGE_BYTES),
+            )
     return connections
 
 
@@ -356,16 +367,57 @@ def _compile_routes(
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
             fingerprint = hashlib.sha256(
                 json.dumps(
-                    [body, {k: (v.protocol, v.settings) if v else None for k, v in used.items()}],
+                    [body, {k: (v.protocol, v.settings, v.max_message_bytes) if v else None for k, v in used.items()}],
                     sort_keys=True,
                     default=str,
                 ).encode()
             ).hexdigest()[:16]
+            delivery = RouteDelivery(
+                max_attempts=body.get("max_attempts", RouteDelivery.max_attempts),
+                overflow=body.get("overflow", RouteDelivery.overflow),
+                max_message_bytes=connections[source.connection].max_message_bytes,
+                sink_max_message_bytes=connections[sink.connection].max_message_bytes,
+            )
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
-                document.file, document.line(where),
+                document.file, document.line(where), delivery,
             )
     return routes
+
+
+def _compile_dead_letters(
+    documents: list[_Document], connections: dict[str, ConnectionSpec], problems: list[Problem]
+) -> DeadLetterSpec:
+    """``dead_letters: {connection, max_length}`` or ``{spool_dir, spool_max_bytes}``, from at
+    most one file; default: the only AMQP connection, else the local spool."""
+    found = [(document, document.data["dead_letters"]) for document in documents if document.data.get("dead_letters")]
+    if len(found) > 1:
+        first = found[0][0]
+        for document, _ in found[1:]:
+            problems.append(document.problem(("dead_letters",), f"dead_letters is already defined at {first.file}:{first.line(('dead_letters',))}"))
+    document, body = found[0] if found else (None, {})
+    amqp = sorted(name for name, spec in connections.items() if spec.protocol == "amqp")
+    name = body.get("connection")
+    spec = DeadLetterSpec(
+        max_length=body.get("max_length", DeadLetterSpec.max_length),
+        spool_dir=body.get("spool_dir"),
+        spool_max_bytes=body.get("spool_max_bytes", DeadLetterSpec.spool_max_bytes),
+    )
+    if name is not None:
+        if name not in connections:
+            assert document is not None
+            problems.append(document.problem(("dead_letters", "connection"), f"dead_letters: unknown connection {name!r}"))
+        elif connections[name].protocol != "amqp":
+            assert document is not None
+            problems.append(document.problem(("dead_letters", "connection"), f"dead_letters: connection {name!r} is {connections[name].protocol}, not amqp"))
+        return DeadLetterSpec(name, spec.max_length, spec.spool_dir, spec.spool_max_bytes)
+    if "spool_dir" in body or not amqp:
+        return spec
+    if len(amqp) > 1:
+        where = document or documents[0]
+        problems.append(where.problem(("dead_letters",), f"several amqp connections ({', '.join(amqp)}) could keep dead letters; name one with dead_letters: {{connection: ...}}"))
+        return spec
+    return DeadLetterSpec(amqp[0], spec.max_length, spec.spool_dir, spec.spool_max_bytes)
 
 
 def _mapping_problems(expression: str | None) -> Iterator[str]:

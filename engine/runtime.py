@@ -18,28 +18,31 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 from engine import endpoints
-from engine.endpoints.base import Connection, EndpointError, Inbound, MessageRejected, Source
-from engine.pipeline import ConversionError, Pipeline
+from engine.delivery import HEALTH_POLL, DeadLetters, Failure, settle
+from engine.endpoints.base import Connection, EndpointError, Inbound, Source
+from engine.pipeline import Pipeline
 from engine.routes import ConnectionSpec, RouteSpec, RoutesConfig, RoutesInvalid, load_routes
 from engine.schemas import SchemaRegistry
 from engine.logs import Throttle
 
 log = logging.getLogger("engine.runtime")
 
-SINK_RETRY_DELAY = 0.5
-"""Pause before handing a message back for redelivery after a sink failure, so a
-destination that is down is not hammered in a tight loop."""
-
-
 @dataclass
 class RouteStats:
     received: int = 0
     delivered: int = 0
     failed: int = 0
+    """Messages dead-lettered (any stage); ``dead_lettered`` splits them by stage."""
     sink_errors: int = 0
+    """Transient sink failures (each retried, or dead-lettered after max_attempts)."""
+    retries: int = 0
+    dropped: int = 0
+    """Messages a source dropped: queue overflow, or unsettled at stop and not redeliverable."""
+    dead_letter_errors: int = 0
+    dead_lettered: dict[str, int] = field(default_factory=dict)
     latency_ns_total: int = 0
     """Sum over delivered messages of the time from reception to the sink's acceptance
     (the paper's t2 - t1), so the mean processing latency is available without a histogram."""
@@ -55,7 +58,10 @@ class ReloadStats:
 
 
 class RouteRunner:
-    """A route's live source and its current pipeline; the pipeline can be swapped."""
+    """A route's live source and its current pipeline; the pipeline can be swapped.
+
+    The runner is the source's :class:`~engine.endpoints.base.Deliver`: it settles what the
+    source hands it with the one delivery policy (engine/delivery.py)."""
 
     def __init__(
         self, engine: Engine, spec: RouteSpec, pipeline: Pipeline, source: Source, connections: list[Connection]
@@ -70,50 +76,77 @@ class RouteRunner:
         self.latency_samples: list[int] | None = None
         """Set to a list to record every message's reception-to-acceptance time (benchmarks)."""
         self._report = Throttle()
+        self._retry_report = Throttle()
+        self._stopping = asyncio.Event()
 
-    async def deliver(self, inbound: Inbound) -> None:
-        pipeline = self.pipeline
-        pipeline.enter()
-        self.stats.received += 1
+    # -- the Deliver contract a source sees
+
+    @property
+    def overflow(self) -> str:
+        return self.spec.delivery.overflow
+
+    @property
+    def queue_limit(self) -> int:
+        return self.spec.delivery.queue_limit
+
+    async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
+        return await settle(self, inbounds)
+
+    async def __call__(self, inbound: Inbound) -> None:
+        if not (await settle(self, (inbound,)))[0]:
+            raise EndpointError(f"route {self.spec.name!r}: message not settled (route stopping)")
+
+    deliver = __call__
+
+    def dropped(self, count: int = 1) -> None:
+        self.stats.dropped += count
+
+    # -- what the delivery policy asks of the route
+
+    def accepted(self, inbound: Inbound) -> None:
+        stats = self.stats
+        stats.delivered += 1
+        latency = time.monotonic_ns() - inbound.received_ns
+        stats.latency_ns_total += latency
+        if latency > stats.latency_ns_max:
+            stats.latency_ns_max = latency
+        if self.latency_samples is not None:
+            self.latency_samples.append(latency)
+
+    async def sink_ready(self) -> bool:
+        """Wait while the sink's connection is known to be down; False once the route stops."""
+        sink_connection = self.connections[-1]
+        while not self._stopping.is_set() and not sink_connection.healthy:
+            await self.pause(HEALTH_POLL)
+        return not self._stopping.is_set()
+
+    async def pause(self, seconds: float) -> bool:
+        """Sleep between attempts; False (at once) when the route stops meanwhile."""
         try:
-            try:
-                outbound = pipeline.convert(inbound)
-            except ConversionError as error:
-                self.stats.failed += 1
-                await self.engine.dead_letter(self, inbound, error)
-                return
-            try:
-                await pipeline.sink.send(outbound)
-            except MessageRejected as error:
-                self.stats.failed += 1
-                await self.engine.dead_letter(self, inbound, ConversionError("sink", str(error)))
-                return
-            except EndpointError as error:
-                self.stats.sink_errors += 1
-                if self._report.ready():
-                    log.error("sink failed; message will be redelivered", extra={"route": self.spec.name, "error": str(error)})
-                await asyncio.sleep(SINK_RETRY_DELAY)
-                raise
-            stats = self.stats
-            stats.delivered += 1
-            latency = time.monotonic_ns() - inbound.received_ns
-            stats.latency_ns_total += latency
-            if latency > stats.latency_ns_max:
-                stats.latency_ns_max = latency
-            if self.latency_samples is not None:
-                self.latency_samples.append(latency)
-        finally:
-            pipeline.leave()
+            await asyncio.wait_for(self._stopping.wait(), seconds)
+        except asyncio.TimeoutError:
+            return True
+        return False
 
-    def report_failure(self, error: ConversionError) -> None:
+    def report_retry(self, failure: Failure, count: int) -> None:
+        self.stats.sink_errors += count
+        if self._retry_report.ready():
+            log.warning(
+                "sink failed; retrying with backoff",
+                extra={"route": self.spec.name, "error": failure.error, "messages": count,
+                       "suppressed": self._retry_report.take_suppressed()},
+            )
+
+    def report_failure(self, failure: Failure, count: int = 1) -> None:
         if self._report.ready():
             log.warning(
-                "message rejected",
+                "message dead-lettered" if failure.stage != "dead-letter" else "dead letters could not be stored",
                 extra={
                     "route": self.spec.name,
                     "file": f"{self.spec.file}:{self.spec.line}",
-                    "stage": error.stage,
-                    "error": error.detail,
+                    "stage": failure.stage,
+                    "error": failure.error[:500],
+                    "messages": count,
                     "suppressed": self._report.take_suppressed(),
                 },
             )
@@ -123,6 +156,7 @@ class RouteRunner:
         await pipeline.sink.close()
 
     async def stop(self) -> None:
+        self._stopping.set()
         await self.source.stop()
         await self.retire_pipeline(self.pipeline)
 
@@ -138,6 +172,7 @@ class Engine:
         self.started_at = time.time()
         self._connections: dict[tuple[str, str], Connection] = {}
         self._lock = asyncio.Lock()
+        self.dead_letters: DeadLetters | None = None
 
     def compile(self) -> tuple[RoutesConfig, SchemaRegistry]:
         schemas = SchemaRegistry(self.schemas_dir)
@@ -203,7 +238,9 @@ class Engine:
         keep: dict[str, RouteRunner] = {}
         swaps: list[tuple[RouteRunner, Pipeline, Connection]] = []
         fresh: list[RouteRunner] = []
+        dead_letters = self.dead_letters
         try:
+            self.dead_letters = await self._dead_letters(config)
             for name, spec in config.routes.items():
                 old = self.runners.get(name)
                 if old is not None and old.spec.fingerprint == spec.fingerprint:
@@ -217,8 +254,9 @@ class Engine:
                 source = source_connection.source(name, spec.source.options)
                 fresh.append(RouteRunner(self, spec, pipeline, source, [source_connection, sink_connection]))
             for runner in fresh:
-                await runner.source.start(runner.deliver)
+                await runner.source.start(runner)
         except BaseException:
+            self.dead_letters = dead_letters
             await asyncio.gather(
                 *(runner.source.stop() for runner in fresh),
                 *(pipeline.sink.close() for pipeline in [r.pipeline for r in fresh] + [p for _, p, _ in swaps]),
@@ -257,30 +295,29 @@ class Engine:
 
     async def _close_unused(self, runners: Any) -> None:
         used = {id(connection) for runner in runners for connection in runner.connections}
+        if self.dead_letters is not None and self.dead_letters.connection is not None:
+            used.add(id(self.dead_letters.connection))
         for key, connection in list(self._connections.items()):
             if id(connection) not in used:
                 del self._connections[key]
                 await connection.close()
 
-    async def dead_letter(self, runner: RouteRunner, inbound: Inbound, error: ConversionError) -> None:
-        """Keep a message that cannot be converted: count it, report it, and hand it to the
-        first of the route's connections that keeps dead letters (AMQP: a durable queue)."""
-        runner.report_failure(error)
-        connection = next((c for c in runner.connections if c.keeps_dead_letters), None)
-        if connection is None:
-            return
-        spec = runner.spec
-        body = inbound.body if inbound.body is not None else json.dumps(inbound.fields, default=str).encode()
-        headers = {
-            "x-rabbitros-route": spec.name,
-            "x-rabbitros-stage": error.stage,
-            "x-rabbitros-error": error.detail[:1000],
-            "x-rabbitros-route-file": f"{spec.file}:{spec.line}",
-        }
-        headers.update(
-            {f"x-source-{k}": v for k, v in inbound.meta.items() if isinstance(v, (str, int, float)) and k != "headers"}
-        )
-        await connection.dead_letter(spec.name, body, headers)
+    async def _dead_letters(self, config: RoutesConfig) -> DeadLetters:
+        """The engine's one dead-letter destination, kept when the configuration did not change it."""
+        spec = config.dead_letters
+        current = self.dead_letters
+        connection = None
+        if spec.connection is not None:
+            connection = await self._connection(config.connections[spec.connection])
+        if current is not None and current.spec == spec and current.connection is connection:
+            return current
+        dead_letters = DeadLetters(spec, connection)
+        await dead_letters.prepare()
+        return dead_letters
+
+    def dead_letters_for(self, runner: RouteRunner) -> DeadLetters:
+        assert self.dead_letters is not None
+        return self.dead_letters
 
     async def stop(self) -> None:
         async with self._lock:
@@ -297,6 +334,11 @@ class Engine:
             "generation": self.generation,
             "config_hash": config.content_hash if config else None,
             "reloads": asdict(self.reloads),
+            "dead_letters": None if self.dead_letters is None else {
+                "destination": self.dead_letters.where,
+                "stored": self.dead_letters.stored,
+                "spooled": self.dead_letters.spooled,
+            },
             "routes": {
                 name: {
                     "file": f"{runner.spec.file}:{runner.spec.line}",

@@ -4,10 +4,16 @@ The engine core (routes, pipeline, runtime) knows only these types. Each protoco
 one module of this package that subclasses them and translates its library's exceptions
 into :class:`EndpointError` at the edge, so a new protocol means one new file.
 
-Delivery contract: a :class:`Source` hands each message to ``deliver`` and waits for it.
-``deliver`` returns once the message is settled (accepted by the sink, or dead-lettered);
-only then may the source acknowledge it upstream. If ``deliver`` raises, the message was
-not settled and the source must let it be redelivered (AMQP: nack with requeue).
+Delivery contract: a :class:`Source` hands messages to the :class:`Deliver` it was started
+with, in batches (``await deliver.batch(inbounds)``, everything it has ready) or one at a
+time (``await deliver(inbound)``). Either returns once the messages are *settled*: accepted
+by the sink or dead-lettered. Which failures are retried and which are dead-lettered is
+decided by the engine (engine/delivery.py), never by a source or a sink: endpoints only
+raise :class:`EndpointError` (transient) or :class:`MessageRejected` (permanent) at the edge.
+A message ``batch`` reports as not settled (or for which ``deliver`` raised) was not
+delivered - this happens only while the route stops, or when even the dead letters fail -
+and the source must let it be redelivered if it can (AMQP: nack with requeue); a source
+that cannot (ROS 2, MAVLink) counts it as dropped.
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ from __future__ import annotations
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any, Awaitable, Callable, ClassVar, Iterable, Mapping
+from typing import Any, ClassVar, Iterable, Mapping, Protocol, Sequence
 
 
 class EndpointError(Exception):
@@ -27,6 +33,12 @@ class EndpointError(Exception):
 class MessageRejected(EndpointError):
     """This message can never be accepted by this sink (a field the type lacks, a value out
     of range). Retrying cannot help, so the engine dead-letters it instead of redelivering."""
+
+
+OVERFLOW_POLICIES = ("block", "drop_oldest", "drop_newest")
+"""What a source does when its bounded queue towards the pipeline is full: stop taking from
+its protocol until there is room (``block``: the protocol's own flow control or history
+holds the rest), or drop the oldest / the newest message and count it."""
 
 
 @dataclass(slots=True)
@@ -60,7 +72,22 @@ class Outbound:
     meta: Mapping[str, Any]
 
 
-Deliver = Callable[[Inbound], Awaitable[None]]
+class Deliver(Protocol):
+    """What a route gives its source: where messages go, and the source's bounds."""
+
+    overflow: str
+    """One of :data:`OVERFLOW_POLICIES`, for sources that queue messages in memory."""
+    queue_limit: int
+    """The most messages a source may hold between its protocol and ``batch``."""
+
+    async def __call__(self, inbound: Inbound) -> None:
+        """Settle one message; raises :class:`EndpointError` if it could not be settled."""
+
+    async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
+        """Settle messages in order; ``result[i]`` says whether ``inbounds[i]`` was settled."""
+
+    def dropped(self, count: int = 1) -> None:
+        """Count messages the source dropped (overflow, or not settled and not redeliverable)."""
 
 
 class Source(ABC):
@@ -78,6 +105,20 @@ class Sink(ABC):
     async def send(self, message: Outbound) -> None:
         """Return once the destination has accepted the message; raise EndpointError if not."""
 
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        """Deliver several messages; ``result[i]`` is None when ``messages[i]`` was accepted,
+        else the error (EndpointError or MessageRejected). Sinks whose protocol can pipeline
+        (AMQP with publisher confirms) override this; the default sends one by one."""
+        results: list[BaseException | None] = []
+        for message in messages:
+            try:
+                await self.send(message)
+            except Exception as error:  # classified by the engine's delivery policy
+                results.append(error)
+            else:
+                results.append(None)
+        return results
+
     async def close(self) -> None:
         """Release what the sink holds (the connection itself stays open)."""
 
@@ -86,8 +127,8 @@ class Connection(ABC):
     """One named connection (a broker, a ROS 2 node, a MAVLink link) shared by routes."""
 
     keeps_dead_letters: ClassVar[bool] = False
-    """True where :meth:`dead_letter` stores messages durably (a broker); the engine hands
-    a route's unconvertible messages to the first of its connections that does."""
+    """True where :meth:`dead_letter` stores messages durably (a broker), so the engine can
+    use this connection as its dead-letter destination."""
 
     def __init__(self, name: str, settings: Mapping[str, Any]) -> None:
         self.name = name
@@ -105,7 +146,18 @@ class Connection(ABC):
     @abstractmethod
     async def close(self) -> None: ...
 
-    async def dead_letter(self, route: str, body: bytes, headers: Mapping[str, Any]) -> None:
+    @property
+    def healthy(self) -> bool:
+        """False while the connection is known to be down (the engine then waits for it
+        instead of counting delivery attempts against messages)."""
+        return True
+
+    async def prepare_dead_letters(self, max_length: int | None) -> None:
+        """Declare what :meth:`dead_letter` needs (only where ``keeps_dead_letters``)."""
+        raise NotImplementedError
+
+    async def dead_letter(self, route: str, messages: Sequence[tuple[bytes, Mapping[str, Any]]]) -> None:
+        """Store ``(body, headers)`` dead letters of ``route``; raise EndpointError if not stored."""
         raise NotImplementedError
 
 
