@@ -238,7 +238,9 @@ def dead_letter_message(
     headers saying why."""
     spec = runner.spec
     body = inbound.body
-    if body is None:
+    if body is None and inbound.fields is None:
+        body = b""
+    elif body is None:
         try:
             body = json.dumps(inbound.fields, default=str, ensure_ascii=False).encode("utf-8")
         except (ValueError, RecursionError) as exc:
@@ -285,6 +287,9 @@ async def settle(runner: RouteRunner, inbounds: Sequence[Inbound]) -> list[bool]
         limit = delivery.max_message_bytes
         for index, inbound in enumerate(inbounds):
             prior = prior_attempts(inbound.meta)
+            if inbound.undecodable is not None:
+                dead.append((index, inbound, Failure("decode", inbound.undecodable, True), prior + 1))
+                continue
             body = inbound.body
             if body is not None and len(body) > limit:
                 dead.append((index, inbound, Failure("size", f"{len(body)} bytes exceed max_message_bytes {limit}", True), prior + 1))

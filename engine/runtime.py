@@ -345,6 +345,7 @@ class Engine:
                     "fingerprint": runner.spec.fingerprint,
                     "generation": runner.pipeline.generation,
                     **asdict(runner.stats),
+                    "source": runner.source.status(),
                 }
                 for name, runner in sorted(self.runners.items())
             },

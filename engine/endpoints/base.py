@@ -54,6 +54,9 @@ class Inbound:
     fields: dict[str, Any] | None = None
     meta: dict[str, Any] = field(default_factory=dict)
     received_ns: int = field(default_factory=time.monotonic_ns)
+    undecodable: str | None = None
+    """Set by a source that received something it could not turn into a message (why);
+    the engine dead-letters it (stage ``decode``) with whatever ``body`` the source kept."""
 
 
 @dataclass(slots=True)
@@ -98,6 +101,10 @@ class Source(ABC):
     @abstractmethod
     async def stop(self) -> None:
         """Stop taking messages and wait for those in flight; unsettled ones are redelivered."""
+
+    def status(self) -> dict[str, Any]:
+        """What the source wants operators to see in the status (counters, problems)."""
+        return {}
 
 
 class Sink(ABC):
