@@ -310,7 +310,6 @@ async def settle(runner: RouteRunner, inbounds: Sequence[Inbound]) -> list[bool]
                 continue
             pending.append(_Pending(index, inbound, outbound, prior))
 
-        attempt_round = 0
         while pending:
             if not await runner.sink_ready():
                 break  # the route is stopping: what is left stays unsettled
@@ -323,6 +322,8 @@ async def settle(runner: RouteRunner, inbounds: Sequence[Inbound]) -> list[bool]
                     runner.accepted(item.inbound)
                     continue
                 failure = classify(error, "sink")
+                if not failure.permanent:
+                    stats.sink_errors += 1
                 if failure.permanent or item.attempts >= delivery.max_attempts:
                     if not failure.permanent:
                         failure.error = f"gave up after {item.attempts} attempts: {failure.error}"
@@ -332,7 +333,6 @@ async def settle(runner: RouteRunner, inbounds: Sequence[Inbound]) -> list[bool]
                     retry.append(item)
             pending = retry
             if pending:
-                attempt_round += 1
                 stats.retries += len(pending)
                 runner.report_retry(pending[0].failure, len(pending))  # type: ignore[arg-type]
                 if not await runner.pause(backoff(min(p.attempts for p in pending))):

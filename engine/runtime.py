@@ -129,7 +129,6 @@ class RouteRunner:
         return False
 
     def report_retry(self, failure: Failure, count: int) -> None:
-        self.stats.sink_errors += count
         if self._retry_report.ready():
             log.warning(
                 "sink failed; retrying with backoff",
