@@ -148,16 +148,26 @@ class DeadLetterSpool:
     def write(self, route: str, messages: Sequence[tuple[bytes, Mapping[str, Any]]]) -> None:
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            lines = [self._line(route, body, headers) for body, headers in messages]
             size = self.path.stat().st_size if self.path.exists() else 0
-            if size and size + sum(map(len, lines)) > self.file_limit:
-                self._rotate()
+            chunk: list[bytes] = []
+            for body, headers in messages:
+                line = self._line(route, body, headers)
+                if size and size + len(line) > self.file_limit:
+                    self._append(chunk)
+                    self._rotate()
+                    chunk, size = [], 0
+                chunk.append(line)
+                size += len(line)
+            self._append(chunk)
+        except OSError as exc:
+            raise EndpointError(f"dead-letter spool {self.directory}: {exc.strerror or exc}") from exc
+
+    def _append(self, lines: list[bytes]) -> None:
+        if lines:
             with open(self.path, "ab") as spool:
                 spool.write(b"".join(lines))
                 spool.flush()
                 os.fsync(spool.fileno())
-        except OSError as exc:
-            raise EndpointError(f"dead-letter spool {self.directory}: {exc.strerror or exc}") from exc
 
     def _rotate(self) -> None:
         for index in range(SPOOL_FILES - 1, 0, -1):
