@@ -21,7 +21,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections import deque
 from typing import Any, Mapping, Sequence
 from urllib.parse import urlsplit
 
@@ -38,6 +37,7 @@ from engine.endpoints.base import (
     Deliver,
     EndpointError,
     Inbound,
+    Inbox,
     MessageRejected,
     Outbound,
     Sink,
@@ -196,8 +196,8 @@ class AmqpSource(Source):
         self._channel: aio_pika.abc.AbstractChannel | None = None
         self._queue: aio_pika.abc.AbstractQueue | None = None
         self._consumer: tuple[aiormq.abc.AbstractChannel, str] | None = None
-        self._received: deque[tuple[aiormq.abc.DeliveredMessage, int]] = deque()
-        self._arrived = asyncio.Event()
+        self._received: Inbox[tuple[aiormq.abc.DeliveredMessage, int]] = Inbox(1 << 30)
+        """Bounded by the prefetch: the broker sends no more than that unacknowledged."""
         self._stopping = False
         self._loop: asyncio.Task[None] | None = None
         self._max_batch = max(1, options.get("prefetch", 256) // 2)
@@ -228,9 +228,8 @@ class AmqpSource(Source):
             await self._consume()
             self._channel.reopen_callbacks.add(self._reconsume)
         except _ERRORS as exc:
-            if self._loop is not None:
-                self._stopping = True
-                self._arrived.set()
+            self._stopping = True
+            self._received.close()
             raise EndpointError(f"route {self._route!r}: amqp source queue {self.queue_name!r}: {exc}") from exc
 
     async def _consume(self) -> None:
@@ -251,19 +250,11 @@ class AmqpSource(Source):
             log.error("route %r: cannot consume %r again after reconnecting: %s", self._route, self.queue_name, exc)
 
     async def _on_message(self, message: aiormq.abc.DeliveredMessage) -> None:
-        self._received.append((message, time.monotonic_ns()))
-        self._arrived.set()
+        self._received.offer((message, time.monotonic_ns()))
+        self._received.wake()
 
     async def _run(self, deliver: Deliver) -> None:
-        received = self._received
-        while True:
-            if not received:
-                if self._stopping:
-                    return
-                self._arrived.clear()
-                await self._arrived.wait()
-                continue
-            batch = [received.popleft() for _ in range(min(len(received), self._max_batch))]
+        while batch := await self._received.take(self._max_batch):
             inbounds = [_inbound(message, received_ns) for message, received_ns in batch]
             try:
                 settled = await deliver.batch(inbounds)
@@ -300,7 +291,7 @@ class AmqpSource(Source):
                 await channel.basic_cancel(tag)
             except _ERRORS:
                 pass
-        self._arrived.set()
+        self._received.close()
         if self._loop is not None:
             await self._loop
         if self._channel is not None:

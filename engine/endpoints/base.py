@@ -18,10 +18,12 @@ that cannot (ROS 2, MAVLink) counts it as dropped.
 
 from __future__ import annotations
 
+import asyncio
 import time
 from abc import ABC, abstractmethod
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Iterable, Mapping, Protocol, Sequence
+from typing import Any, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
 
 
 class EndpointError(Exception):
@@ -91,6 +93,60 @@ class Deliver(Protocol):
 
     def dropped(self, count: int = 1) -> None:
         """Count messages the source dropped (overflow, or not settled and not redeliverable)."""
+
+
+T = TypeVar("T")
+
+
+class Inbox(Generic[T]):
+    """A push source's bounded queue towards its batch loop (ROS 2 takes, MAVLink frames).
+
+    ``offer`` applies the overflow policy and says how many it dropped; with ``block`` the
+    source must stop taking from its protocol while ``full``. ``take`` waits for the first
+    item and returns everything queued (at most ``most``); [] once closed and empty."""
+
+    def __init__(self, limit: int, overflow: str = "block") -> None:
+        self.items: deque[T] = deque()
+        self.limit = max(1, limit)
+        self.overflow = overflow
+        self.closed = False
+        self._arrived = asyncio.Event()
+
+    @property
+    def full(self) -> bool:
+        return len(self.items) >= self.limit
+
+    def offer(self, item: T) -> int:
+        """Queue ``item`` (call :meth:`wake` after a burst); returns the number dropped."""
+        items = self.items
+        if len(items) >= self.limit:
+            if self.overflow == "drop_newest":
+                return 1
+            if self.overflow == "drop_oldest":
+                items.popleft()
+                items.append(item)
+                return 1
+        items.append(item)
+        return 0
+
+    def wake(self) -> None:
+        self._arrived.set()
+
+    def close(self) -> None:
+        self.closed = True
+        self._arrived.set()
+
+    async def take(self, most: int) -> list[T]:
+        items = self.items
+        while not items:
+            if self.closed:
+                return []
+            self._arrived.clear()
+            await self._arrived.wait()
+        return [items.popleft() for _ in range(min(len(items), most))]
+
+    def __len__(self) -> int:
+        return len(self.items)
 
 
 class Source(ABC):

@@ -39,7 +39,6 @@ import os
 import re
 import threading
 import time
-from collections import deque
 from contextlib import ExitStack
 from typing import Any, Callable, Iterator, Mapping
 
@@ -61,7 +60,7 @@ from rclpy.validate_node_name import validate_node_name
 
 from engine.endpoints import rosmsg
 from engine.endpoints.base import (
-    CheckResult, Connection, Deliver, EndpointError, Inbound, MessageRejected, Outbound, Sink, Source,
+    CheckResult, Connection, Deliver, EndpointError, Inbound, Inbox, MessageRejected, Outbound, Sink, Source,
     Transport,
 )
 
@@ -428,11 +427,8 @@ class Ros2Source(Source):
         self._type_name = rosmsg.type_name(self._cls)
         self._is_string = self._type_name == STRING_TYPE
         self._qos = _qos(options)
-        self._queue: deque[Inbound] = deque()
-        self._limit = SOURCE_QUEUE
-        self._overflow = "block"
+        self._queue: Inbox[Inbound] = Inbox(SOURCE_QUEUE)
         self._deliver: Deliver | None = None
-        self._arrived = asyncio.Event()
         self.paused = False
         self.subscription: Any = None
         self._meta: dict[str, str] = {}
@@ -447,8 +443,7 @@ class Ros2Source(Source):
     async def start(self, deliver: Deliver) -> None:
         node = self._connection.node
         self._deliver = deliver
-        self._limit = max(1, getattr(deliver, "queue_limit", SOURCE_QUEUE))
-        self._overflow = getattr(deliver, "overflow", "block")
+        self._queue = Inbox(deliver.queue_limit, deliver.overflow)
         try:
             self.subscription = node.create_subscription(self._cls, self._topic, _unused_callback, self._qos)
         except Exception as exc:
@@ -463,12 +458,12 @@ class Ros2Source(Source):
     def _take(self) -> None:
         """Runs on the loop: take what is ready (bounded by the queue), never waits."""
         sub, cls, queue = self.subscription, self._cls, self._queue
-        block = self._overflow == "block"
+        block = queue.overflow == "block"
         taken_any = False
         try:
             with sub.handle:
                 for _ in range(_TAKE_BUDGET):
-                    if block and len(queue) >= self._limit:
+                    if block and queue.full:
                         self._pause()
                         break
                     try:
@@ -489,18 +484,11 @@ class Ros2Source(Source):
             return
         finally:
             if taken_any:
-                self._arrived.set()
+                queue.wake()
 
     def _put(self, inbound: Inbound) -> None:
-        queue = self._queue
-        if len(queue) >= self._limit:
-            if self._overflow == "drop_newest":
-                self._drop()
-                return
-            if self._overflow == "drop_oldest":
-                queue.popleft()
-                self._drop()
-        queue.append(inbound)
+        if self._queue.offer(inbound):
+            self._drop()
 
     def _inbound(self, msg: Any) -> Inbound:
         if self._is_string:
@@ -521,7 +509,7 @@ class Ros2Source(Source):
         if now - self._drop_logged >= 10.0:
             self._drop_logged = now
             log.warning("%s: queue full (%d, overflow %s), dropped %d messages so far",
-                        self._where, self._limit, self._overflow, self.dropped)
+                        self._where, self._queue.limit, self._queue.overflow, self.dropped)
 
     def _pause(self) -> None:
         if not self.paused:
@@ -535,15 +523,8 @@ class Ros2Source(Source):
 
     async def _run(self, deliver: Deliver) -> None:
         queue = self._queue
-        while True:
-            if not queue:
-                if self._stopping:
-                    return
-                self._arrived.clear()
-                await self._arrived.wait()
-                continue
-            batch = [queue.popleft() for _ in range(min(len(queue), _BATCH))]
-            if self.paused and len(queue) <= self._limit // 2:
+        while batch := await queue.take(_BATCH):
+            if self.paused and len(queue) <= queue.limit // 2:
                 self._resume()
             try:
                 settled = await deliver.batch(batch)
@@ -587,7 +568,7 @@ class Ros2Source(Source):
             self._stopping = True
             connection._readers.pop(self.subscription.handle.pointer, None)
             connection._readers_changed()
-            self._arrived.set()
+            self._queue.close()
         await self._pump
         if self._watch is not None:
             self._watch.cancel()
