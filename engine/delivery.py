@@ -321,6 +321,9 @@ async def settle(runner: RouteRunner, inbounds: Sequence[Inbound]) -> list[bool]
             pending.append(_Pending(index, inbound, outbound, prior))
 
         while pending:
+            if runner.should_hold():  # a buffered route whose sink is down: engine/buffer.py holds them
+                await _hold(runner, pending, settled)
+                break
             if not await runner.sink_ready():
                 break  # the route is stopping: what is left stays unsettled
             results = await pipeline.sink.send_batch([p.outbound for p in pending])
@@ -342,6 +345,10 @@ async def settle(runner: RouteRunner, inbounds: Sequence[Inbound]) -> list[bool]
                     item.failure = failure
                     retry.append(item)
             pending = retry
+            if pending and runner.buffer is not None:  # transient: the buffer retries them, the source moves on
+                runner.stats.sink_errors += len(pending)
+                await _hold(runner, pending, settled)
+                break
             if pending:
                 stats.retries += len(pending)
                 runner.report_retry(pending[0].failure, len(pending))  # type: ignore[arg-type]
@@ -366,3 +373,10 @@ async def settle(runner: RouteRunner, inbounds: Sequence[Inbound]) -> list[bool]
     finally:
         pipeline.leave()
     return settled
+
+
+async def _hold(runner: RouteRunner, pending: list[_Pending], settled: list[bool]) -> None:
+    """Hand messages to the route's buffer in order; once held they are settled for the source."""
+    await runner.hold([item.outbound for item in pending])
+    for item in pending:
+        settled[item.index] = True

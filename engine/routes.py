@@ -23,8 +23,10 @@ import yaml
 
 from engine import endpoints
 from engine.delivery import DEFAULT_MAX_MESSAGE_BYTES, DeadLetterSpec, RouteDelivery
+from engine.buffer import BufferSpec
 from engine.endpoints.base import EndpointError
 from engine.mapping import MappingError, compile_mapping, unknown_functions
+from engine.redaction import MASK, Secret, has_url_password, is_secret_name, json_default, redact_text, revealed, shown
 from engine.schemas import SchemaRegistry
 
 ROUTE_FILE_SCHEMA: dict[str, Any] = json.loads(
@@ -86,6 +88,8 @@ class RouteSpec:
     line: int = field(default=0, compare=False)
     delivery: RouteDelivery = field(default=RouteDelivery(), compare=False)
     """max_attempts, overflow and the size limits (the fingerprint covers them)."""
+    buffer: BufferSpec | None = field(default=None, compare=False)
+    """Where messages wait while the sink is down (``buffer:``); the fingerprint covers it."""
 
 
 @dataclass(frozen=True)
@@ -100,8 +104,9 @@ class RoutesConfig:
     """The engine's one dead-letter destination (``dead_letters:``, resolved)."""
 
 
-def default_amqp_url() -> str:
-    return os.environ.get("RABBITROS_AMQP_URL", "amqp://guest:guest@localhost:5672/")
+def default_amqp_url() -> str | Secret:
+    url = os.environ.get("RABBITROS_AMQP_URL", "amqp://guest:guest@localhost:5672/")
+    return Secret(url) if has_url_password(url) else url
 
 
 def route_files(directory: Path) -> list[Path]:
@@ -185,7 +190,7 @@ def _parse_document(
     lines: dict[Path_, int] = {}
     data = _to_python(loader, root, (), lines, env, file, problems)
     document = _Document(file, data if data is not None else {}, lines)
-    errors = [p for error in _ROUTE_FILE_VALIDATOR.iter_errors(data) for p in _schema_problems(document, error)]
+    errors = [p for error in _ROUTE_FILE_VALIDATOR.iter_errors(shown(data)) for p in _schema_problems(document, error)]
     problems.extend(errors)
     return None if errors else document
 
@@ -221,13 +226,17 @@ def _to_python(
     value = loader.construct_object(node)
     if isinstance(value, str) and "$" in value:
         try:
-            substituted = substitute_env(value, env)
+            substituted, masked = _substitute_masked(value, env)
         except KeyError as exc:
             problems.append(
                 Problem(file, node.start_mark.line + 1, f"environment variable {exc.args[0]} is not set (use ${{{exc.args[0]}:-default}} for a default)")
             )
             return value
+        if masked != substituted or has_url_password(substituted):
+            return Secret(substituted, redact_text(masked) if MASK in masked or has_url_password(masked) else MASK)
         return _typed(substituted) if node.style is None else substituted
+    if isinstance(value, str) and has_url_password(value):
+        return Secret(value)
     return value
 
 
@@ -243,8 +252,14 @@ def _typed(text: str) -> Any:
 
 def substitute_env(text: str, env: Mapping[str, str]) -> str:
     """``${VAR}`` and ``${VAR:-default}``; ``$$`` is a literal ``$``. Unset without default raises."""
+    return _substitute_masked(text, env)[0]
 
-    def replace(match: re.Match[str]) -> str:
+
+def _substitute_masked(text: str, env: Mapping[str, str]) -> tuple[str, str]:
+    """The substituted text, and the same with every secret-named variable's value as ``***``
+    (see engine/redaction.py for the rule)."""
+
+    def value(match: re.Match[str]) -> str:
         if match.group(0) == "$$":
             return "$"
         name, default = match.group(1), match.group(2)
@@ -254,7 +269,11 @@ def substitute_env(text: str, env: Mapping[str, str]) -> str:
             return default
         raise KeyError(name)
 
-    return _ENV_REFERENCE.sub(replace, text)
+    def masked(match: re.Match[str]) -> str:
+        found = value(match)
+        return MASK if match.group(1) and is_secret_name(match.group(1)) and found else found
+
+    return _ENV_REFERENCE.sub(value, text), _ENV_REFERENCE.sub(masked, text)
 
 
 def _schema_problems(document: _Document, error: jsonschema.ValidationError) -> Iterator[Problem]:
@@ -302,6 +321,8 @@ def _compile_connections(
                 continue
             settings = _connection_settings(protocol, body)
             try:
+                if not endpoints.transport(protocol).accepts_secrets:
+                    settings = revealed(settings)
                 checks = list(endpoints.transport(protocol).check_connection(settings))
             except EndpointError as exc:
                 checks = [(None, str(exc))]
@@ -318,7 +339,7 @@ def _connection_settings(protocol: str, body: Mapping[str, Any]) -> dict[str, An
     value = body[protocol]
     if protocol == "ros2":
         return dict(value or {})
-    if isinstance(value, str):
+    if isinstance(value, (str, Secret)):
         settings: dict[str, Any] = {"url": value}
     else:
         settings = dict(value)
@@ -343,6 +364,7 @@ def _compile_routes(
     for document in documents:
         for index, body in enumerate(document.data.get("routes") or ()):
             where: Path_ = ("routes", index)
+            body = revealed(body)  # secrets belong to connections; route options are plain text
             name = body["name"]
             before = len(problems)
             if name in routes:
@@ -369,7 +391,7 @@ def _compile_routes(
                 json.dumps(
                     [body, {k: (v.protocol, v.settings, v.max_message_bytes) if v else None for k, v in used.items()}],
                     sort_keys=True,
-                    default=str,
+                    default=json_default,
                 ).encode()
             ).hexdigest()[:16]
             delivery = RouteDelivery(
@@ -381,6 +403,7 @@ def _compile_routes(
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
                 document.file, document.line(where), delivery,
+                buffer=BufferSpec.parse(body.get("buffer"), source.protocol, _base_dir(document.file)),
             )
     return routes
 
@@ -418,6 +441,10 @@ def _compile_dead_letters(
         problems.append(where.problem(("dead_letters",), f"several amqp connections ({', '.join(amqp)}) could keep dead letters; name one with dead_letters: {{connection: ...}}"))
         return spec
     return DeadLetterSpec(amqp[0], spec.max_length, spec.spool_dir, spec.spool_max_bytes)
+
+
+def _base_dir(file: str) -> Path:
+    return Path(file).resolve().parent
 
 
 def _mapping_problems(expression: str | None) -> Iterator[str]:

@@ -15,18 +15,21 @@ import asyncio
 import json
 import logging
 import os
+import random
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 from engine import endpoints
-from engine.delivery import HEALTH_POLL, DeadLetters, Failure, settle
-from engine.endpoints.base import Connection, EndpointError, Inbound, Source
+from engine.buffer import HoldingBuffer, stats_dict
+from engine.delivery import HEALTH_POLL, DeadLetters, Failure, classify, dead_letter_message, settle
+from engine.endpoints.base import Connection, EndpointError, Inbound, Outbound, Source
 from engine.pipeline import Pipeline
 from engine.routes import ConnectionSpec, RouteSpec, RoutesConfig, RoutesInvalid, load_routes
 from engine.schemas import SchemaRegistry
 from engine.logs import Throttle
+from engine.redaction import json_default
 
 log = logging.getLogger("engine.runtime")
 
@@ -78,6 +81,11 @@ class RouteRunner:
         self._report = Throttle()
         self._retry_report = Throttle()
         self._stopping = asyncio.Event()
+        self.buffer: HoldingBuffer | None = engine.buffer_for(self)
+        """Holds the route's messages while its sink is down (``buffer:``; engine/buffer.py)."""
+        self.state = "created"
+        """created, waiting (for a connection that is not open yet), running, stopped."""
+        self._starter: asyncio.Task[None] | None = None
 
     # -- the Deliver contract a source sees
 
@@ -154,14 +162,99 @@ class RouteRunner:
         await pipeline.drained()
         await pipeline.sink.close()
 
-    async def stop(self) -> None:
+    # -- starting when the connections are open
+
+    async def start(self) -> None:
+        """Start the source now if the connections it needs are open, else in the background
+        once they are (a buffered route needs only its source's: the buffer holds the rest)."""
+        if self.buffer is not None:
+            self.buffer.start()
+        missing = self.missing_connections()
+        if not missing:
+            await self.source.start(self)
+            self.state = "running"
+            return
+        self.state = "waiting"
+        log.warning("route waits for its connections", extra={"route": self.spec.name, "connections": missing})
+        self._starter = asyncio.create_task(self._start_when_open(), name=f"start-{self.spec.name}")
+
+    def _needed(self) -> list[Connection]:
+        return self.connections if self.buffer is None else self.connections[:1]
+
+    def missing_connections(self) -> list[str]:
+        return [c.name for c in self._needed() if not self.engine.is_open(c)]
+
+    async def _start_when_open(self) -> None:
+        delay = 0.5
+        while True:
+            await self.engine.wait_open(self._needed())
+            try:
+                await self.source.start(self)
+            except EndpointError as error:  # the connection went down again meanwhile
+                log.warning("route could not start; retrying", extra={"route": self.spec.name, "error": str(error)})
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, 10.0)
+                continue
+            self.state = "running"
+            log.info("route started", extra={"route": self.spec.name})
+            return
+
+    # -- the buffer (engine/buffer.py): what the delivery policy hands it, and its way out
+
+    def should_hold(self) -> bool:
+        """True when a buffered route must hold new messages rather than try the sink: the
+        buffer already holds some (order), or the sink's connection is down."""
+        buffer = self.buffer
+        if buffer is None:
+            return False
+        sink_connection = self.connections[-1]
+        return buffer.holding or not (sink_connection.healthy and self.engine.is_open(sink_connection))
+
+    async def hold(self, outbounds: Sequence[Outbound]) -> None:
+        """Hand messages to the buffer, in order; each is settled for its source once held."""
+        assert self.buffer is not None
+        for outbound in outbounds:
+            await self.buffer.hold(outbound)
+
+    async def send_held(self, messages: list[Outbound]) -> list[BaseException | None]:
+        pipeline = self.pipeline
+        pipeline.enter()
+        try:
+            return await pipeline.sink.send_batch(messages)
+        finally:
+            pipeline.leave()
+
+    def held_delivered(self, count: int) -> None:
+        self.stats.delivered += count
+
+    async def held_rejected(self, message: Outbound, error: BaseException, attempts: int) -> None:
+        """A held message the sink rejected, or kept failing while healthy: dead-letter it."""
+        inbound = Inbound(body=message.body, meta={k: v for k, v in message.meta.items() if k not in ("route", "generation")})
+        failure = classify(error, "sink")
+        letter = dead_letter_message(self, inbound, failure, attempts, self.spec.delivery.max_message_bytes)
+        await self.engine.dead_letters_for(self).put(self.spec.name, [letter])
+        self.stats.failed += 1
+        self.stats.dead_lettered[failure.stage] = self.stats.dead_lettered.get(failure.stage, 0) + 1
+        self.report_failure(failure)
+
+    async def stop(self, drain_timeout: float = 0.0) -> None:
         self._stopping.set()
+        self.state = "stopped"
+        if self._starter is not None:
+            self._starter.cancel()
+            await asyncio.gather(self._starter, return_exceptions=True)
         await self.source.stop()
+        if self.buffer is not None and self.engine.release_buffer(self):
+            await self.buffer.close(drain_timeout)
         await self.retire_pipeline(self.pipeline)
 
 
+OPEN_RETRY_FIRST, OPEN_RETRY_MAX = 0.5, 5.0
+"""Backoff between attempts to open a connection that was unreachable at start."""
+
+
 class Engine:
-    def __init__(self, routes_dir: Path, schemas_dir: Path) -> None:
+    def __init__(self, routes_dir: Path, schemas_dir: Path, require_connections: bool = False) -> None:
         self.routes_dir = routes_dir
         self.schemas_dir = schemas_dir
         self.config: RoutesConfig | None = None
@@ -172,6 +265,14 @@ class Engine:
         self._connections: dict[tuple[str, str], Connection] = {}
         self._lock = asyncio.Lock()
         self.dead_letters: DeadLetters | None = None
+        self.require_connections = require_connections
+        """Fail (EndpointError) when a connection cannot be opened, instead of retrying it in
+        the background while the routes that do not need it run."""
+        self._opened: set[int] = set()
+        self._openers: dict[int, asyncio.Task[None]] = {}
+        self._open_changed = asyncio.Event()
+        self._buffers: dict[str, list[Any]] = {}
+        """route name -> [buffer, runners using it, newest runner]: a buffer outlives a reload."""
 
     def compile(self) -> tuple[RoutesConfig, SchemaRegistry]:
         schemas = SchemaRegistry(self.schemas_dir)
@@ -215,13 +316,95 @@ class Engine:
         return False
 
     async def _connection(self, spec: ConnectionSpec) -> Connection:
-        key = (spec.name, json.dumps(spec.settings, sort_keys=True, default=str))
+        key = (spec.name, json.dumps(spec.settings, sort_keys=True, default=json_default))
         connection = self._connections.get(key)
         if connection is None:
             connection = endpoints.transport(spec.protocol).connect(spec.name, spec.settings)
-            await connection.open()
+            try:
+                await connection.open()
+            except EndpointError as error:
+                if self.require_connections:
+                    raise
+                log.warning("connection unreachable; retrying in the background", extra={"connection": spec.name, "error": str(error)})
+                self._openers[id(connection)] = asyncio.create_task(self._keep_opening(connection), name=f"open-{spec.name}")
+            else:
+                self._opened.add(id(connection))
             self._connections[key] = connection
         return connection
+
+    async def _keep_opening(self, connection: Connection) -> None:
+        delay = OPEN_RETRY_FIRST
+        while True:
+            await asyncio.sleep(delay * (0.5 + random.random() / 2))
+            delay = min(delay * 2, OPEN_RETRY_MAX)
+            try:
+                await connection.open()
+            except EndpointError as error:
+                log.debug("connection still unreachable", extra={"connection": connection.name, "error": str(error)})
+                continue
+            self._opened.add(id(connection))
+            self._openers.pop(id(connection), None)
+            dead_letters = self.dead_letters
+            if dead_letters is not None and dead_letters.connection is connection:
+                try:
+                    await dead_letters.prepare()
+                except EndpointError as error:  # they go to the spool meanwhile
+                    log.error("dead-letter queue not declared", extra={"connection": connection.name, "error": str(error)})
+            self._open_changed.set()
+            self._open_changed = asyncio.Event()
+            log.info("connection opened", extra={"connection": connection.name})
+            return
+
+    def is_open(self, connection: Connection) -> bool:
+        """Opened once (it may be reconnecting now: its library takes care of that)."""
+        return id(connection) in self._opened
+
+    async def wait_open(self, connections: list[Connection]) -> None:
+        while not all(self.is_open(c) for c in connections):
+            await self._open_changed.wait()
+
+    def buffer_for(self, runner: RouteRunner) -> HoldingBuffer | None:
+        """The route's buffer, shared with the runner it replaces across a reload so held
+        messages are not lost; its settings change at the next start."""
+        spec = runner.spec.buffer
+        name = runner.spec.name
+        if spec is None:
+            return None
+        entry = self._buffers.get(name)
+        if entry is None:
+            sink_connection = runner.connections[-1]
+
+            def current() -> RouteRunner:
+                live = self.runners.get(name)
+                return live if live is not None and live.buffer is entry[0] else entry[2]
+
+            buffer = HoldingBuffer(
+                name,
+                lambda messages: current().send_held(messages),
+                max_messages=spec.max_messages,
+                spill_dir=spec.spill_dir,
+                fsync_interval=spec.fsync_interval,
+                max_attempts=runner.spec.delivery.max_attempts,
+                ready=lambda: sink_connection.healthy and self.is_open(sink_connection),
+                on_delivered=lambda count: current().held_delivered(count),
+                on_rejected=lambda message, error, attempts: current().held_rejected(message, error, attempts),
+            )
+            entry = self._buffers[name] = [buffer, 0, runner]
+        entry[1] += 1
+        entry[2] = runner
+        return entry[0]
+
+    def release_buffer(self, runner: RouteRunner) -> bool:
+        """True when no other runner uses the route's buffer any more (the caller closes it)."""
+        entry = self._buffers.get(runner.spec.name)
+        if entry is None or entry[0] is not runner.buffer:
+            return False
+        entry[1] -= 1
+        if entry[1] > 0:
+            return False
+        del self._buffers[runner.spec.name]
+        return True
+
 
     async def _pipeline(
         self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int
@@ -253,7 +436,7 @@ class Engine:
                 source = source_connection.source(name, spec.source.options)
                 fresh.append(RouteRunner(self, spec, pipeline, source, [source_connection, sink_connection]))
             for runner in fresh:
-                await runner.source.start(runner)
+                await runner.start()
         except BaseException:
             self.dead_letters = dead_letters
             await asyncio.gather(
@@ -299,7 +482,14 @@ class Engine:
         for key, connection in list(self._connections.items()):
             if id(connection) not in used:
                 del self._connections[key]
+                self._stop_opening(connection)
                 await connection.close()
+
+    def _stop_opening(self, connection: Connection) -> None:
+        opener = self._openers.pop(id(connection), None)
+        if opener is not None:
+            opener.cancel()
+        self._opened.discard(id(connection))
 
     async def _dead_letters(self, config: RoutesConfig) -> DeadLetters:
         """The engine's one dead-letter destination, kept when the configuration did not change it."""
@@ -311,16 +501,33 @@ class Engine:
         if current is not None and current.spec == spec and current.connection is connection:
             return current
         dead_letters = DeadLetters(spec, connection)
-        await dead_letters.prepare()
+        if connection is None or self.is_open(connection):  # else once it opens (_keep_opening)
+            await dead_letters.prepare()
         return dead_letters
 
     def dead_letters_for(self, runner: RouteRunner) -> DeadLetters:
         assert self.dead_letters is not None
         return self.dead_letters
 
-    async def stop(self) -> None:
+    async def stop(self, drain_timeout: float = 10.0) -> None:
+        """Graceful stop: sources stop taking messages; what is in flight is settled for at
+        most ``drain_timeout`` seconds in all (buffers keep delivering meanwhile, then stay
+        spilled on disk); then the connections close, which returns unacknowledged AMQP
+        messages to their queues."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + drain_timeout
         async with self._lock:
-            await asyncio.gather(*(runner.stop() for runner in self.runners.values()), return_exceptions=True)
+            runners = list(self.runners.values())
+            for connection in self._connections.values():
+                self._stop_opening(connection)
+            for runner in runners:
+                runner.state = "stopped"
+                if runner._starter is not None:
+                    runner._starter.cancel()
+            await _bounded(asyncio.gather(*(r.source.stop() for r in runners), return_exceptions=True), deadline, "sources")
+            buffers = [r.buffer for r in runners if r.buffer is not None and self.release_buffer(r)]
+            await asyncio.gather(*(b.close(max(0.0, deadline - loop.time())) for b in buffers), return_exceptions=True)
+            await _bounded(asyncio.gather(*(r.retire_pipeline(r.pipeline) for r in runners), return_exceptions=True), deadline, "pipelines")
             for connection in self._connections.values():
                 await connection.close()
             self._connections.clear()
@@ -345,10 +552,31 @@ class Engine:
                     "generation": runner.pipeline.generation,
                     **asdict(runner.stats),
                     "source": runner.source.status(),
+                    "state": runner.state,
+                    "waiting_for": runner.missing_connections() if runner.state == "waiting" else [],
+                    "buffer": stats_dict(runner.buffer) if runner.buffer is not None else None,
                 }
                 for name, runner in sorted(self.runners.items())
             },
+            "connections": {
+                connection.name: {
+                    "protocol": type(connection).__module__.rsplit(".", 1)[-1],
+                    "healthy": connection.healthy and self.is_open(connection),
+                    **connection.health(),
+                    **({} if self.is_open(connection) else {"state": "retrying"}),
+                }
+                for connection in self._connections.values()
+            },
         }
+
+
+async def _bounded(work: Any, deadline: float, what: str) -> None:
+    """Await ``work`` until ``deadline`` (loop time); past it, cancel it and say so."""
+    remaining = deadline - asyncio.get_running_loop().time()
+    try:
+        await asyncio.wait_for(work, max(0.0, remaining))
+    except asyncio.TimeoutError:
+        log.warning("drain timeout: stopping without waiting for the rest", extra={"waiting_for": what})
 
 
 def _same_source(previous: RoutesConfig, old: RouteSpec, config: RoutesConfig, new: RouteSpec) -> bool:

@@ -45,19 +45,31 @@ from engine.endpoints.base import (
     Transport,
 )
 from engine.mapping import MappingError, compile_template
+from engine.redaction import redact_text, reveal
 
 _ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError, RuntimeError)
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
 log = logging.getLogger("engine.amqp")
 
 
-def redact(url: str) -> str:
+def redact(url: Any) -> str:
     """The URL with its password hidden, for logs and errors."""
+    url = str(url)  # a Secret is already its redacted text
     parts = urlsplit(url)
     if parts.password is None:
         return url
     netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
     return parts._replace(netloc=netloc).geturl()
+
+
+RECONNECT_INTERVAL = 1.0
+"""Seconds between aio-pika's reconnection attempts after a lost connection (its default, 5 s,
+is most of the time from a broker's restart to the first message delivered after it)."""
+
+
+CONNECT_TIMEOUT = 10.0
+"""Seconds one attempt to open the connection may take (an unreachable host would otherwise
+hold the engine's start for the TCP timeout, minutes)."""
 
 
 class AmqpConnection(Connection):
@@ -69,10 +81,33 @@ class AmqpConnection(Connection):
         self._publish_channel: aio_pika.abc.AbstractChannel | None = None
         self._exchanges: dict[str, aio_pika.abc.AbstractExchange] = {}
         self._declare_lock = asyncio.Lock()
+        self._state = "connecting"
+        self._last_error: str | None = None
 
     @property
     def url(self) -> str:
-        return str(self.settings["url"])
+        return str(reveal(self.settings["url"]))
+
+    @property
+    def healthy(self) -> bool:
+        return self._state == "up"
+
+    def health(self) -> dict[str, Any]:
+        return {"state": self._state, "last_error": self._last_error}
+
+    def _failed(self, error: BaseException | None) -> None:
+        if error is not None:
+            text = redact_text(f"{type(error).__name__}: {error}")
+            password = urlsplit(self.url).password
+            self._last_error = text.replace(password, "***") if password else text
+
+    def _on_close(self, _connection: Any, error: BaseException | None = None) -> None:
+        if self._state == "up":
+            self._state = "reconnecting"
+        self._failed(error)
+
+    def _on_reconnect(self, _connection: Any) -> None:
+        self._state = "up"
 
     async def open(self) -> None:
         try:
@@ -80,12 +115,21 @@ class AmqpConnection(Connection):
                 self.url,
                 client_properties={"connection_name": f"rabbitros-engine/{self.name}"},
                 heartbeat=self.settings.get("heartbeat", 30),
+                reconnect_interval=self.settings.get("reconnect_interval", RECONNECT_INTERVAL),
+                timeout=CONNECT_TIMEOUT,
             )
+            self._connection.close_callbacks.add(self._on_close)
+            self._connection.reconnect_callbacks.add(self._on_reconnect)
             self._publish_channel = await self._connection.channel(
                 publisher_confirms=self.settings.get("publisher_confirms", True)
             )
         except _ERRORS as exc:
-            raise EndpointError(f"amqp connection {self.name!r} ({redact(self.url)}): {exc}") from exc
+            self._failed(exc)
+            if self._connection is not None:
+                await self.close()
+            self._state = "down"
+            raise EndpointError(f"amqp connection {self.name!r} ({redact(self.settings['url'])}): {self._last_error}") from exc
+        self._state = "up"
 
     def channel_factory(self) -> aio_pika.abc.AbstractRobustConnection:
         if self._connection is None:
@@ -117,6 +161,9 @@ class AmqpConnection(Connection):
     ) -> list[BaseException | None]:
         """Publish ``(routing_key, body, properties)`` pipelined on the confirm channel and
         await the confirms together; ``result[i]`` is None once the broker took message i."""
+        if self._state != "up":  # a robust channel would wait for the broker; the engine buffers instead
+            error = EndpointError(f"amqp connection {self.name!r} is {self._state}: {self._last_error}")
+            return [error] * len(messages)
         try:
             await self.exchange(exchange_name, kind, durable)
             assert self._publish_channel is not None
@@ -180,6 +227,7 @@ class AmqpConnection(Connection):
         return AmqpSink(self, route, options)
 
     async def close(self) -> None:
+        self._state = "down"
         if self._connection is not None:
             try:
                 await self._connection.close()
@@ -370,11 +418,16 @@ class AmqpSink(Sink):
 class AmqpTransport(Transport):
     name = "amqp"
     default_settings = {"url": "amqp://guest:guest@localhost:5672/"}
+    accepts_secrets = True
 
     def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
-        parts = urlsplit(str(settings.get("url", "")))
-        if parts.scheme not in ("amqp", "amqps") or not parts.hostname:
-            yield None, f"not an amqp:// URL: {redact(str(settings.get('url', '')))!r}"
+        try:
+            parts = urlsplit(str(reveal(settings.get("url", ""))))
+            valid = parts.scheme in ("amqp", "amqps") and bool(parts.hostname)
+        except ValueError:
+            valid = False
+        if not valid:
+            yield None, f"not an amqp:// URL: {redact(settings.get('url', ''))!r}"
 
     def check_source(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         if "queue" not in options and "exchange" not in options:

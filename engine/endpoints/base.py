@@ -215,6 +215,11 @@ class Connection(ABC):
         instead of counting delivery attempts against messages)."""
         return True
 
+    def health(self) -> dict[str, Any]:
+        """What the status shows: ``state`` (up, connecting, reconnecting, down) and, when
+        known, ``last_error`` (never a secret)."""
+        return {"state": "up" if self.healthy else "down"}
+
     async def prepare_dead_letters(self, max_length: int | None) -> None:
         """Declare what :meth:`dead_letter` needs (only where ``keeps_dead_letters``)."""
         raise NotImplementedError
@@ -233,6 +238,9 @@ class Transport(ABC):
 
     name: ClassVar[str]
     default_settings: ClassVar[Mapping[str, Any]]
+    accepts_secrets: ClassVar[bool] = False
+    """True when the connection settings may hold engine.redaction.Secret values, which the
+    endpoint reveals only where it connects; otherwise the loader hands it plain values."""
 
     def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
         return ()
