@@ -110,6 +110,16 @@ class LocalBroker:
         self.stop()
         raise BrokerError(f"rabbitmq-server did not listen on {self.port} within {timeout:.0f}s: {self._tail()}")
 
+    def ctl(self, *args: str, timeout: float = 60.0) -> str:
+        """Run ``rabbitmqctl`` against this node (e.g. ``add_user``); returns its output."""
+        ctl = str(Path(find_server()).with_name("rabbitmqctl"))
+        done = subprocess.run(
+            [ctl, "-n", self.node, *args], env=self.environment(), capture_output=True, text=True, timeout=timeout,
+        )
+        if done.returncode != 0:
+            raise BrokerError(f"rabbitmqctl {args[0]} failed: {done.stderr.strip() or done.stdout.strip()}")
+        return done.stdout
+
     def _tail(self) -> str:
         try:
             return " | ".join(self.log_file.read_text(errors="replace").splitlines()[-5:])

@@ -66,14 +66,17 @@ def reveal(value: Any) -> Any:
     return value.reveal() if isinstance(value, Secret) else value
 
 
+def redact_urls(text: str) -> str:
+    """``text`` with every URL password replaced by ``***`` (for any text: log lines, errors)."""
+    return _URL_PASSWORD.sub(lambda m: m["head"] + MASK + m["tail"], text) if "://" in text else text
+
+
 def redact_text(text: str) -> str:
-    """``text`` with every URL password replaced by ``***``."""
+    """How a secret value is shown: a URL with its password as ``***``; anything else that is
+    not a URL (a token, a key) as ``***`` alone."""
     if not text:
         return text
-    redacted = _URL_PASSWORD.sub(lambda m: m["head"] + MASK + m["tail"], text)
-    if redacted == text and "://" not in text:
-        return MASK  # a bare secret (a token, a key): nothing of it is shown
-    return redacted
+    return redact_urls(text) if "://" in text else MASK
 
 
 def has_url_password(text: str) -> bool:

@@ -26,7 +26,7 @@ from engine.delivery import DEFAULT_MAX_MESSAGE_BYTES, DeadLetterSpec, RouteDeli
 from engine.buffer import BufferSpec
 from engine.endpoints.base import EndpointError
 from engine.mapping import MappingError, compile_mapping, unknown_functions
-from engine.redaction import MASK, Secret, has_url_password, is_secret_name, json_default, redact_text, revealed, shown
+from engine.redaction import MASK, Secret, has_url_password, is_secret_name, json_default, redact_urls, revealed, shown
 from engine.schemas import SchemaRegistry
 
 ROUTE_FILE_SCHEMA: dict[str, Any] = json.loads(
@@ -233,7 +233,7 @@ def _to_python(
             )
             return value
         if masked != substituted or has_url_password(substituted):
-            return Secret(substituted, redact_text(masked) if MASK in masked or has_url_password(masked) else MASK)
+            return Secret(substituted, redact_urls(masked) if MASK in masked or has_url_password(masked) else MASK)
         return _typed(substituted) if node.style is None else substituted
     if isinstance(value, str) and has_url_password(value):
         return Secret(value)

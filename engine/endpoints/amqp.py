@@ -45,7 +45,7 @@ from engine.endpoints.base import (
     Transport,
 )
 from engine.mapping import MappingError, compile_template
-from engine.redaction import redact_text, reveal
+from engine.redaction import redact_urls, reveal
 
 _ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError, RuntimeError)
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
@@ -97,7 +97,7 @@ class AmqpConnection(Connection):
 
     def _failed(self, error: BaseException | None) -> None:
         if error is not None:
-            text = redact_text(f"{type(error).__name__}: {error}")
+            text = redact_urls(f"{type(error).__name__}: {error}")
             password = urlsplit(self.url).password
             self._last_error = text.replace(password, "***") if password else text
 
