@@ -27,7 +27,7 @@ from tests.outage_helpers import Collector, RosPeer, Tally, publish_reliably, ro
 pytest.importorskip("rclpy")
 
 N_FLOW = 10_000
-RATE = 150.0
+RATE = 250.0
 N_SPILL = 5_000
 
 
@@ -88,8 +88,17 @@ async def _warm_up(peer: RosPeer, connection: Any, names: dict[str, str], down: 
     await channel.close()
 
 
-def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path: Path) -> None:
-    """10,000 AMQP -> ROS 2 and 10,000 ROS 2 -> AMQP at 150 msg/s each while the broker is
+@pytest.fixture(scope="module")
+def broker() -> Any:
+    """One private node for the tests that kill it: it restarts on its own data directory."""
+    node = LocalBroker()
+    node.start()
+    yield node
+    node.stop()
+
+
+def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path: Path, broker: LocalBroker) -> None:
+    """10,000 AMQP -> ROS 2 and 10,000 ROS 2 -> AMQP at 250 msg/s each while the broker is
     killed with -9 and restarted (same data directory and port) twice."""
     names = _names()
     routes = tmp_path / "routes"
@@ -130,12 +139,9 @@ def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path
         print("\n" + engine.log()[-1500:] if code else "", status.get("routes", {}).get("from-ros", {}).get("buffer"))
         return code
 
-    broker = LocalBroker()
-    try:
+    if not broker.running:
         broker.start()
-        code = asyncio.run(scenario(broker))
-    finally:
-        broker.stop()
+    code = asyncio.run(scenario(broker))
     for tally in (to_ros, from_ros):
         figures = [tally.first_after(moment) for moment in restarts]
         print(f"\n{tally.figures(expected)}; restart->first delivered: "
@@ -146,7 +152,7 @@ def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path
     assert code == 0, "graceful stop must exit 0"
 
 
-def test_spilled_messages_survive_an_engine_restart_during_the_outage(tmp_path: Path) -> None:
+def test_spilled_messages_survive_an_engine_restart_during_the_outage(tmp_path: Path, broker: LocalBroker) -> None:
     """ROS 2 -> AMQP with spill_dir: broker down, 5,000 messages, engine stopped (SIGTERM) and
     started again while the broker is still down, broker back: all 5,000 delivered."""
     names = _names()
@@ -196,12 +202,9 @@ def test_spilled_messages_survive_an_engine_restart_during_the_outage(tmp_path: 
                 second.stop()
             peer.close()
 
-    broker = LocalBroker()
-    try:
+    if not broker.running:
         broker.start()
-        asyncio.run(scenario(broker))
-    finally:
-        broker.stop()
+    asyncio.run(scenario(broker))
     print(f"\n{arrived.figures(expected)}; replayed={figures.get('replayed')} "
           f"restart->first delivered: {figures.get('restart_to_first')}")
     assert figures["exit_code"] == 0 and figures["second_exit_code"] == 0
