@@ -12,7 +12,8 @@ Every failure is classified once, where a route settles its messages:
   queue's ``x-delivery-count``, or at least one earlier attempt when the broker says it
   redelivers), then the message is dead-lettered with the last error. While the sink's
   connection reports itself down (``Connection.healthy``) the route waits for it instead of
-  spending attempts.
+  spending attempts. A route with a buffer (engine/buffer.py: ROS 2 and MAVLink sources by
+  default) hands such messages to its buffer instead, and its source moves on.
 
 Sources and sinks never decide this; they raise the two error types at their edge. A batch
 is settled as a whole: one pipelined ``send_batch``, the failures retried together, all

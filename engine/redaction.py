@@ -90,27 +90,25 @@ def is_secret_name(name: str) -> bool:
     return bool(SECRET_NAME.search(name))
 
 
+def _map_secrets(value: Any, replace: Any) -> Any:
+    if isinstance(value, Secret):
+        return replace(value)
+    if isinstance(value, dict):
+        return {key: _map_secrets(item, replace) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_map_secrets(item, replace) for item in value]
+    return value
+
+
 def shown(value: Any) -> Any:
     """A copy of a parsed document in which every Secret is its redacted text: what schema
     validation and error messages see."""
-    if isinstance(value, Secret):
-        return str(value)
-    if isinstance(value, dict):
-        return {key: shown(item) for key, item in value.items()}
-    if isinstance(value, list):
-        return [shown(item) for item in value]
-    return value
+    return _map_secrets(value, str)
 
 
 def revealed(value: Any) -> Any:
     """A copy with every Secret unwrapped (for places that are not credentials)."""
-    if isinstance(value, Secret):
-        return value.reveal()
-    if isinstance(value, dict):
-        return {key: revealed(item) for key, item in value.items()}
-    if isinstance(value, list):
-        return [revealed(item) for item in value]
-    return value
+    return _map_secrets(value, Secret.reveal)
 
 
 def json_default(value: Any) -> Any:

@@ -249,8 +249,10 @@ class RouteRunner:
         await self.retire_pipeline(self.pipeline)
 
 
-OPEN_RETRY_FIRST, OPEN_RETRY_MAX = 0.5, 5.0
+OPEN_RETRY_FIRST, OPEN_RETRY_MAX = 0.25, 2.0
 """Backoff between attempts to open a connection that was unreachable at start."""
+STOP_GRACE = 2.0
+"""Seconds a stop gives sources to hand back what they hold once the drain timeout is over."""
 
 
 class Engine:
@@ -405,7 +407,6 @@ class Engine:
         del self._buffers[runner.spec.name]
         return True
 
-
     async def _pipeline(
         self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int
     ) -> tuple[Pipeline, Connection]:
@@ -524,10 +525,20 @@ class Engine:
                 runner.state = "stopped"
                 if runner._starter is not None:
                     runner._starter.cancel()
-            await _bounded(asyncio.gather(*(r.source.stop() for r in runners), return_exceptions=True), deadline, "sources")
+            sources = asyncio.ensure_future(asyncio.gather(*(r.source.stop() for r in runners), return_exceptions=True))
+            if not await _finished(sources, deadline):
+                log.warning("drain timeout: what is not settled yet is requeued (AMQP) or dropped and counted (ROS 2, MAVLink)")
+                for runner in runners:
+                    runner._stopping.set()  # the delivery policy stops retrying; sources settle what they can
+                if not await _finished(sources, loop.time() + STOP_GRACE):
+                    sources.cancel()
+                    await asyncio.gather(sources, return_exceptions=True)
             buffers = [r.buffer for r in runners if r.buffer is not None and self.release_buffer(r)]
             await asyncio.gather(*(b.close(max(0.0, deadline - loop.time())) for b in buffers), return_exceptions=True)
-            await _bounded(asyncio.gather(*(r.retire_pipeline(r.pipeline) for r in runners), return_exceptions=True), deadline, "pipelines")
+            pipelines = asyncio.ensure_future(asyncio.gather(*(r.retire_pipeline(r.pipeline) for r in runners), return_exceptions=True))
+            if not await _finished(pipelines, max(deadline, loop.time() + STOP_GRACE)):
+                pipelines.cancel()
+                await asyncio.gather(pipelines, return_exceptions=True)
             for connection in self._connections.values():
                 await connection.close()
             self._connections.clear()
@@ -570,13 +581,10 @@ class Engine:
         }
 
 
-async def _bounded(work: Any, deadline: float, what: str) -> None:
-    """Await ``work`` until ``deadline`` (loop time); past it, cancel it and say so."""
-    remaining = deadline - asyncio.get_running_loop().time()
-    try:
-        await asyncio.wait_for(work, max(0.0, remaining))
-    except asyncio.TimeoutError:
-        log.warning("drain timeout: stopping without waiting for the rest", extra={"waiting_for": what})
+async def _finished(work: asyncio.Future[Any], deadline: float) -> bool:
+    """Wait for ``work`` until ``deadline`` (loop time) without cancelling it; True if done."""
+    done, _ = await asyncio.wait({work}, timeout=max(0.0, deadline - asyncio.get_running_loop().time()))
+    return bool(done)
 
 
 def _same_source(previous: RoutesConfig, old: RouteSpec, config: RoutesConfig, new: RouteSpec) -> bool:
