@@ -400,10 +400,13 @@ def _compile_routes(
                 max_message_bytes=connections[source.connection].max_message_bytes,
                 sink_max_message_bytes=connections[sink.connection].max_message_bytes,
             )
+            buffer = BufferSpec.parse(body.get("buffer"), source.protocol, _base_dir(document.file))
+            if buffer is not None and buffer.spill_dir is not None and buffer.spill_dir.exists() and not buffer.spill_dir.is_dir():
+                problems.append(document.problem(where + ("buffer", "spill_dir"), f"route {name!r}: spill_dir {str(buffer.spill_dir)!r} is not a directory"))
+                continue
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
-                document.file, document.line(where), delivery,
-                buffer=BufferSpec.parse(body.get("buffer"), source.protocol, _base_dir(document.file)),
+                document.file, document.line(where), delivery, buffer=buffer,
             )
     return routes
 

@@ -226,3 +226,28 @@ def test_a_message_the_healthy_sink_keeps_failing_is_given_up_after_max_attempts
         await buffer.close()
 
     asyncio.run(scenario())
+
+
+def test_route_files_parse_buffer_options_and_check_the_spill_dir(tmp_path: Path) -> None:
+    from engine.buffer import BufferSpec
+    from engine.routes import RoutesInvalid, load_routes
+    from engine.schemas import SchemaRegistry
+    from tests.conftest import REPO
+
+    (tmp_path / "not-a-dir").write_text("")
+    route = """
+routes:
+  - {name: held, source: {amqp: {queue: q}}, schema: raw_json, sink: {amqp: {exchange: e}}, buffer: {max_messages: 50, spill_dir: spill}}
+  - {name: plain, source: {amqp: {queue: q2}}, schema: raw_json, sink: {amqp: {exchange: e}}}
+  - {name: none, source: {amqp: {queue: q3}}, schema: raw_json, sink: {amqp: {exchange: e}}, buffer: false}
+"""
+    (tmp_path / "a.yaml").write_text(route)
+    registry = SchemaRegistry(REPO / "schemas")
+    config = load_routes(tmp_path, registry, env={})
+    assert config.routes["held"].buffer == BufferSpec(50, (tmp_path / "spill").resolve(), 1.0)
+    assert config.routes["plain"].buffer is None and config.routes["none"].buffer is None
+    assert BufferSpec.parse(None, "ros2", tmp_path) == BufferSpec() and BufferSpec.parse(False, "mavlink", tmp_path) is None
+    (tmp_path / "a.yaml").write_text(route.replace("spill_dir: spill", "spill_dir: not-a-dir"))
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, registry, env={})
+    assert any("a.yaml:3" in str(p) and "is not a directory" in str(p) for p in invalid.value.problems)
