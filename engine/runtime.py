@@ -533,7 +533,8 @@ class Engine:
                 if not await _finished(sources, loop.time() + STOP_GRACE):
                     sources.cancel()
                     await asyncio.gather(sources, return_exceptions=True)
-            buffers = [r.buffer for r in runners if r.buffer is not None and self.release_buffer(r)]
+            buffers = [entry[0] for entry in self._buffers.values()]
+            self._buffers.clear()
             await asyncio.gather(*(b.close(max(0.0, deadline - loop.time())) for b in buffers), return_exceptions=True)
             pipelines = asyncio.ensure_future(asyncio.gather(*(r.retire_pipeline(r.pipeline) for r in runners), return_exceptions=True))
             if not await _finished(pipelines, max(deadline, loop.time() + STOP_GRACE)):

@@ -314,3 +314,59 @@ def test_engine_starts_without_the_broker_and_routes_that_do_not_need_it_run_at_
     print(f"\nstart without broker: {figures}; {up.figures(range(200))}")
     assert figures["exit_code"] == 0
     assert figures["mavlink_to_ros_first_s"] < 15
+
+
+def test_held_messages_survive_a_reload_that_replaces_the_route(tmp_path: Path, broker: LocalBroker,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The broker is down; a ROS 2 -> AMQP route holds 300 messages in memory; a reload changes
+    the route's source (a new runner) and the held messages move with the route; once the broker
+    is up all arrive."""
+    from engine.runtime import Engine
+
+    names = _names()
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    text = ROUTES.format(extra="", **names)
+    (routes / "outage.yaml").write_text(text)
+    arrived, ignored = Tally("ros2->amqp across a reload"), Tally("unused")
+    monkeypatch.setenv("RABBITROS_AMQP_URL", broker.url)
+
+    async def collector_queue() -> None:  # declared (durable) while the broker is up
+        connection = await robust(broker.url)
+        await Collector(arrived).bind(connection, f"collect-{names['tag']}", names["outbox"], "up.#")
+        await connection.close()
+
+    async def scenario() -> None:
+        engine = Engine(routes, REPO / "schemas")
+        peer = RosPeer(int(names["domain"]), f"peer_{names['tag']}", f"/{names['tag']}/up", f"/{names['tag']}/down", ignored)
+        connection = None
+        try:
+            await engine.start()
+            runner = engine.runners["from-ros"]
+            assert runner.state == "running" and engine.runners["to-ros"].state == "waiting"
+            await wait_for(lambda: peer.subscribers(f"/{names['tag']}/up") > 0, 30, "the engine's ROS subscription")
+            await asyncio.sleep(1.0)
+            for seq in range(300):
+                peer.publish(seq)
+            await wait_for(lambda: runner.buffer is not None and len(runner.buffer) >= 300, 30, "300 held")
+            (routes / "outage.yaml").write_text(text.replace(f"topic: /{names['tag']}/up}}", f"topic: /{names['tag']}/up, qos: {{depth: 500}}}}"))
+            assert await engine.reload()
+            replaced = engine.runners["from-ros"]
+            assert replaced is not runner and replaced.buffer is runner.buffer and len(replaced.buffer) == 300
+            await asyncio.to_thread(broker.start)
+            connection = await robust(broker.url)
+            await Collector(arrived).bind(connection, f"collect-{names['tag']}", names["outbox"], "up.#")
+            await wait_for(lambda: not arrived.lost(range(300)), 60, "the held messages")
+        finally:
+            if connection is not None:
+                await connection.close()
+            await engine.stop(2.0)
+            peer.close()
+
+    if not broker.running:
+        broker.start()
+    asyncio.run(collector_queue())
+    broker.kill()
+    asyncio.run(scenario())
+    print(f"\n{arrived.figures(range(300))}")
+    assert not arrived.lost(range(300))
