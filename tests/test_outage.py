@@ -348,6 +348,7 @@ def test_held_messages_survive_a_reload_that_replaces_the_route(tmp_path: Path, 
             await asyncio.sleep(1.0)
             for seq in range(300):
                 peer.publish(seq)
+                arrived.sent += 1
             await wait_for(lambda: runner.buffer is not None and len(runner.buffer) >= 300, 30, "300 held")
             (routes / "outage.yaml").write_text(text.replace(f"topic: /{names['tag']}/up}}", f"topic: /{names['tag']}/up, qos: {{depth: 500}}}}"))
             assert await engine.reload()
