@@ -106,6 +106,7 @@ def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path
     (routes / "outage.yaml").write_text(ROUTES.format(extra="", **names))
     to_ros, from_ros = Tally("amqp->ros2"), Tally("ros2->amqp")
     restarts: list[float] = []
+    dead_lettered: dict[str, int] = {}
     expected = range(N_FLOW)
 
     async def scenario(broker: LocalBroker) -> int:
@@ -136,7 +137,9 @@ def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path
             code = engine.stop()
             peer.close()
         status = engine.status() or {}
-        print("\n" + engine.log()[-1500:] if code else "", status.get("routes", {}).get("from-ros", {}).get("buffer"))
+        routes_status = status.get("routes", {})
+        print("\n" + engine.log()[-1500:] if code else "", routes_status.get("from-ros", {}).get("buffer"))
+        dead_lettered.update({name: route.get("failed") for name, route in routes_status.items()})
         return code
 
     if not broker.running:
@@ -148,6 +151,8 @@ def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path
               + ", ".join(f"{f:.2f}s" if f is not None else "none" for f in figures))
         assert not tally.lost(expected), f"{tally.name}: lost {tally.lost(expected)[:10]}"
         assert all(f is not None for f in figures)
+    print(f"dead-lettered: {dead_lettered}")
+    assert dead_lettered == {"to-ros": 0, "from-ros": 0}, "an outage must not dead-letter anything"
     assert len(restarts) == 2
     assert code == 0, "graceful stop must exit 0"
 
