@@ -326,6 +326,8 @@ async def settle(runner: RouteRunner, inbounds: Sequence[Inbound]) -> list[bool]
                 await _hold(runner, pending, settled)
                 break
             if not await runner.sink_ready():
+                if runner.buffer is not None:  # kept: spilled, or delivered by the runner replacing this one
+                    await _hold(runner, pending, settled)
                 break  # the route is stopping: what is left stays unsettled
             results = await pipeline.sink.send_batch([p.outbound for p in pending])
             retry: list[_Pending] = []
