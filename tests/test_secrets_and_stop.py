@@ -167,3 +167,69 @@ def test_logs_status_and_dead_letters_never_show_the_password_and_sigterm_loses_
     assert "decode" in str(figures["dead_letter_headers"])
     assert figures["first_exit"] == 0 and figures["second_exit"] == 0
     assert not arrived.lost(expected)
+
+
+DRAIN_ROUTES = """
+connections:
+  src: {{amqp: "{source_url}"}}
+  dst: {{amqp: "{sink_url}"}}
+dead_letters: {{connection: src}}
+routes:
+  - name: relay
+    source:
+      amqp: {{connection: src, exchange: {inbox}, binding_key: "#", queue: {inbox}-q, prefetch: 100}}
+    schema: raw_json
+    sink:
+      amqp: {{connection: dst, exchange: out}}
+"""
+
+
+def test_sigterm_with_the_sink_down_exits_0_within_the_drain_timeout_and_requeues(tmp_path: Path, amqp_url: str) -> None:
+    """The sink's broker is killed; 500 messages wait in the source queue and the engine's
+    prefetch; SIGTERM with --drain-timeout 2: exit 0 in about the drain timeout, and all 500
+    are back in the source queue (nothing acked that was not delivered, nothing lost)."""
+    tag = uuid.uuid4().hex[:8]
+    inbox = f"drain-{tag}"
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    sink_broker = LocalBroker()
+    figures: dict[str, float] = {}
+
+    async def scenario() -> int:
+        engine = EngineProcess(routes, tmp_path / "status.json", {}, "--drain-timeout", "2")
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            await asyncio.to_thread(engine.wait_started)
+            sink_broker.kill()
+            await wait_for(lambda: not (engine.status() or {}).get("connections", {}).get("dst", {}).get("healthy", True),
+                           30, "the sink's connection to be down")
+            channel = await connection.channel()
+            await publish_reliably(connection, inbox, "m", range(500), 5000.0, Tally("published"))
+            await wait_for(lambda: (engine.status() or {}).get("routes", {}).get("relay", {}).get("received", 0) >= 1,
+                           30, "the engine to take its prefetch")
+            began = time.monotonic()
+            code = await asyncio.to_thread(engine.stop)
+            figures["stop_s"] = time.monotonic() - began
+            deadline = time.monotonic() + 30
+            while True:
+                queue = await channel.declare_queue(f"{inbox}-q", passive=True)
+                count = queue.declaration_result.message_count
+                if count == 500 or time.monotonic() > deadline:
+                    break
+                await asyncio.sleep(0.2)
+            figures["requeued"] = count
+            return code
+        finally:
+            await connection.close()
+            engine.stop()
+
+    try:
+        sink_broker.start()
+        (routes / "relay.yaml").write_text(DRAIN_ROUTES.format(source_url=amqp_url, sink_url=sink_broker.url, inbox=inbox))
+        code = asyncio.run(scenario())
+    finally:
+        sink_broker.stop()
+    print(f"\nSIGTERM with the sink down: exit {code} after {figures['stop_s']:.2f}s, {figures['requeued']:.0f}/500 back in the queue")
+    assert code == 0
+    assert figures["stop_s"] < 2 + 2 + 6, "the drain timeout bounds the stop"
+    assert figures["requeued"] == 500
