@@ -74,10 +74,23 @@ def publisher(args: argparse.Namespace) -> None:
 
 
 class Meter:
+    """Counts what a source delivers; implements the engine's Deliver contract."""
+
+    overflow = "block"
+    queue_limit = 10_000
+
     def __init__(self) -> None:
         self.count = 0
         self.first = self.last = 0.0
         self.latencies: list[float] = []
+
+    async def batch(self, inbounds: Any) -> list[bool]:
+        for inbound in inbounds:
+            await self.deliver(inbound)
+        return [True] * len(inbounds)
+
+    def dropped(self, count: int = 1) -> None:
+        pass
 
     async def deliver(self, inbound: Any) -> None:
         now = time.perf_counter()
@@ -190,7 +203,7 @@ async def main(args: argparse.Namespace) -> None:
         connection = TRANSPORT.connect("bench", {"node": "bench_engine"})
         await connection.open()
         source = connection.source("bench", {"topic": TOPIC, "type": args.type})
-        await source.start(meter.deliver)
+        await source.start(meter)
     print(f"receiver: {args.baseline or 'engine (waiter thread + takes on the loop)'}, type {args.type}")
     print(f"idle CPU before traffic: {await idle_cpu(2.0):.1f} %")
 

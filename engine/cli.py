@@ -21,7 +21,7 @@ from engine.endpoints.base import EndpointError
 from engine.local_broker import BrokerError, LocalBroker
 from engine.logs import setup_logging
 from engine.route_tests import format_result, load_checked, run_tests
-from engine.routes import RoutesInvalid, load_routes
+from engine.routes import RoutesInvalid
 from engine.runtime import Engine
 from engine.schemas import SchemaRegistry
 from engine.watch import watch_routes
@@ -62,6 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--stats-interval", type=float, default=10.0, help="seconds between status updates and counter logs")
     run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     run.add_argument("--log-format", default="text", choices=["text", "json"])
+    run.add_argument("--require-connections", action="store_true", help="exit 1 when a connection cannot be opened at start (default: retry it in the background while the other routes run)")
+    run.add_argument("--drain-timeout", type=float, default=10.0, help="seconds a stop (SIGTERM, SIGINT) waits for in-flight messages before requeueing the rest; default 10")
 
     check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
     common(check)
@@ -175,7 +177,7 @@ async def run(args: argparse.Namespace) -> int:
 
 
 async def serve(args: argparse.Namespace) -> int:
-    engine = Engine(args.routes, args.schemas or default_schemas(args.routes))
+    engine = Engine(args.routes, args.schemas or default_schemas(args.routes), require_connections=args.require_connections)
     admin = AdminServer(engine, *args.admin) if args.admin else None
     if admin is not None:
         try:
@@ -191,6 +193,10 @@ async def serve(args: argparse.Namespace) -> int:
 
 
 async def _serve(args: argparse.Namespace, engine: Engine) -> int:
+    stopping = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    loop.add_signal_handler(signal.SIGINT, stopping.set)
+    loop.add_signal_handler(signal.SIGTERM, stopping.set)
     try:
         await engine.start()
     except RoutesInvalid as invalid:
@@ -199,14 +205,10 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
         return 2
     except EndpointError as error:
         log.error("cannot start", extra={"error": str(error)})
-        await engine.stop()
+        await engine.stop(0.0)
         return 1
 
-    stopping = asyncio.Event()
     reload_requested = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    loop.add_signal_handler(signal.SIGINT, stopping.set)
-    loop.add_signal_handler(signal.SIGTERM, stopping.set)
     loop.add_signal_handler(signal.SIGHUP, reload_requested.set)
 
     async def reloader() -> None:
@@ -236,12 +238,13 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
         tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dir)))
     log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__})
     await stopping.wait()
-    log.info("stopping: draining in-flight messages")
+    log.info("stopping: draining in-flight messages", extra={"drain_timeout": args.drain_timeout})
     for task in tasks:
         task.cancel()
     await asyncio.gather(*tasks, return_exceptions=True)
-    await engine.stop()
+    await engine.stop(args.drain_timeout)
     write_status()
+    log.info("stopped")
     return 0
 
 

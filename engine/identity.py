@@ -16,12 +16,13 @@ from typing import Any, Iterable, Mapping
 
 from engine import endpoints
 from engine.endpoints.base import Transport
+from engine.redaction import json_default
 
 
 def connection_fingerprint(protocol: str, settings: Mapping[str, Any]) -> str:
     """Hash of the protocol, the settings and the contents of the key files they name; a
     file that cannot be read hashes as missing (the endpoint's own check reports it)."""
-    digest = hashlib.sha256(json.dumps([protocol, settings], sort_keys=True, default=str).encode())
+    digest = hashlib.sha256(json.dumps([protocol, settings], sort_keys=True, default=json_default).encode())
     for name in sorted(_key_files(protocol, settings)):
         digest.update(b"\0" + name.encode() + b"\0")
         try:

@@ -85,8 +85,10 @@ class LocalBroker:
         }
 
     def start(self, timeout: float = 90.0) -> str:
+        """Start the node (again, after :meth:`kill` or :meth:`halt`: same data directory,
+        node name and ports, so durable queues and persistent messages come back)."""
         server = find_server()
-        with open(self.log_file, "wb") as out:
+        with open(self.log_file, "ab") as out:
             self._process = subprocess.Popen(
                 [server],
                 env=self.environment(),
@@ -108,13 +110,38 @@ class LocalBroker:
         self.stop()
         raise BrokerError(f"rabbitmq-server did not listen on {self.port} within {timeout:.0f}s: {self._tail()}")
 
+    def ctl(self, *args: str, timeout: float = 60.0) -> str:
+        """Run ``rabbitmqctl`` against this node (e.g. ``add_user``); returns its output."""
+        ctl = str(Path(find_server()).with_name("rabbitmqctl"))
+        done = subprocess.run(
+            [ctl, "-n", self.node, *args], env=self.environment(), capture_output=True, text=True, timeout=timeout,
+        )
+        if done.returncode != 0:
+            raise BrokerError(f"rabbitmqctl {args[0]} failed: {done.stderr.strip() or done.stdout.strip()}")
+        return done.stdout
+
     def _tail(self) -> str:
         try:
             return " | ".join(self.log_file.read_text(errors="replace").splitlines()[-5:])
         except OSError:
             return ""
 
-    def stop(self, timeout: float = 20.0) -> None:
+    @property
+    def running(self) -> bool:
+        return self._process is not None and self._process.poll() is None
+
+    def kill(self) -> None:
+        """``kill -9`` the node (its whole process group), keeping its data for a restart."""
+        process, self._process = self._process, None
+        if process is not None and process.poll() is None:
+            try:
+                os.killpg(process.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            process.wait()
+
+    def halt(self, timeout: float = 20.0) -> None:
+        """Stop the node cleanly (SIGTERM), keeping its data for a restart."""
         process, self._process = self._process, None
         if process is not None and process.poll() is None:
             try:
@@ -125,6 +152,9 @@ class LocalBroker:
                 process.wait()
             except ProcessLookupError:
                 pass
+
+    def stop(self, timeout: float = 20.0) -> None:
+        self.halt(timeout)
         if not self.keep_dir:
             shutil.rmtree(self.directory, ignore_errors=True)
 

@@ -15,6 +15,8 @@ import sys
 import time
 from typing import Any
 
+from engine.redaction import redact_urls
+
 _STANDARD = set(vars(logging.makeLogRecord({}))) | {"message", "asctime"}
 
 
@@ -38,7 +40,7 @@ class LogfmtFormatter(logging.Formatter):
         line = " ".join(f"{key}={_logfmt_value(value)}" for key, value in parts.items())
         if record.exc_info:
             line += "\n" + self.formatException(record.exc_info)
-        return line
+        return redact_urls(line)  # a library's message or traceback may name a URL with its password
 
 
 def _logfmt_value(value: Any) -> str:
@@ -59,7 +61,7 @@ class JsonFormatter(logging.Formatter):
         }
         if record.exc_info:
             document["exception"] = self.formatException(record.exc_info)
-        return json.dumps(document, default=str)
+        return redact_urls(json.dumps(document, default=str))
 
 
 def setup_logging(level: str = "info", fmt: str = "text") -> logging.handlers.QueueListener:

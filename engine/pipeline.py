@@ -11,13 +11,15 @@ from __future__ import annotations
 import asyncio
 import uuid
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.base import Inbound, Outbound, Sink
 from engine.mapping import MappingError, Mapper, compile_mapping
-from engine.routes import RouteSpec
 from engine.schemas import CanonicalSchema, SchemaError, canonical_bytes, parse_json
 from engine.throttle import Throttle
+
+if TYPE_CHECKING:  # routes imports the delivery policy, which imports ConversionError from here
+    from engine.routes import RouteSpec
 
 
 class ConversionError(Exception):
@@ -56,12 +58,16 @@ class Pipeline:
         )
 
     def convert(self, inbound: Inbound) -> Outbound:
+        """Raise ConversionError naming the stage for anything that goes wrong, expected or
+        not (a RecursionError from deeply nested JSON is as permanent as a syntax error)."""
         body = inbound.body
         if body is not None:
             try:
                 data: Any = parse_json(body)
             except SchemaError as exc:
                 raise ConversionError("decode", str(exc)) from None
+            except Exception as exc:
+                raise ConversionError("decode", _unexpected(exc)) from None
         else:
             data = inbound.fields
         if self.mapper is not None:
@@ -69,6 +75,8 @@ class Pipeline:
                 data = self.mapper(data)
             except MappingError as exc:
                 raise ConversionError("mapping", str(exc)) from None
+            except Exception as exc:
+                raise ConversionError("mapping", _unexpected(exc)) from None
             body = None
         try:
             self.schema.validate(data)
@@ -76,12 +84,16 @@ class Pipeline:
                 body = canonical_bytes(data)
         except SchemaError as exc:
             raise ConversionError("schema", str(exc)) from None
+        except Exception as exc:
+            raise ConversionError("schema", _unexpected(exc)) from None
         fields = data
         if self.sink_mapper is not None:
             try:
                 fields = self.sink_mapper(data)
             except MappingError as exc:
                 raise ConversionError("sink mapping", str(exc)) from None
+            except Exception as exc:
+                raise ConversionError("sink mapping", _unexpected(exc)) from None
         meta = inbound.meta
         return Outbound(
             body=body,
@@ -104,3 +116,8 @@ class Pipeline:
         """Wait until every message this pipeline started has been settled."""
         if self.in_flight:
             await self._drained.wait()
+
+
+def _unexpected(exc: BaseException) -> str:
+    text = str(exc)
+    return f"{type(exc).__name__}: {text[:200]}" if text else type(exc).__name__

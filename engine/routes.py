@@ -22,10 +22,13 @@ import jsonschema
 import yaml
 
 from engine import endpoints
+from engine.delivery import DEFAULT_MAX_MESSAGE_BYTES, DeadLetterSpec, RouteDelivery
+from engine.buffer import BufferSpec
 from engine.endpoints.base import EndpointError
 from engine.fieldcheck import mapping_field_problems, option_hint
 from engine.identity import connection_fingerprint, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
+from engine.redaction import MASK, Secret, has_url_password, is_secret_name, json_default, redact_urls, revealed, shown
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
 
@@ -68,6 +71,8 @@ class ConnectionSpec:
     """Settings and the contents of the key files they name (engine.identity)."""
     exclusive: str | None = None
     """The resource only one open connection can hold (``udp:14550``), if any."""
+    max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    """Messages larger than this, in or out of this connection, are dead-lettered unparsed."""
 
 
 @dataclass(frozen=True)
@@ -90,6 +95,10 @@ class RouteSpec:
     line: int = field(default=0, compare=False)
     throttle: Mapping[str, Any] | None = None
     """``{max_rate, per}``: at most max_rate messages/s per value of the canonical field ``per``."""
+    delivery: RouteDelivery = field(default=RouteDelivery(), compare=False)
+    """max_attempts, overflow and the size limits (the fingerprint covers them)."""
+    buffer: BufferSpec | None = field(default=None, compare=False)
+    """Where messages wait while the sink is down (``buffer:``); the fingerprint covers it."""
 
 
 @dataclass(frozen=True)
@@ -102,10 +111,13 @@ class RoutesConfig:
     content_hash: str
     warnings: tuple[Problem, ...] = ()
     """Accepted but probably not what was meant (two routes consuming one AMQP queue)."""
+    dead_letters: DeadLetterSpec = DeadLetterSpec()
+    """The engine's one dead-letter destination (``dead_letters:``, resolved)."""
 
 
-def default_amqp_url() -> str:
-    return os.environ.get("RABBITROS_AMQP_URL", "amqp://guest:guest@localhost:5672/")
+def default_amqp_url() -> str | Secret:
+    url = os.environ.get("RABBITROS_AMQP_URL", "amqp://guest:guest@localhost:5672/")
+    return Secret(url) if has_url_password(url) else url
 
 
 def route_files(directory: Path) -> list[Path]:
@@ -153,10 +165,12 @@ def load_routes(
         problems.append(Problem(str(schema_path), 0, message))
     connections = _compile_connections(documents, problems)
     routes = _compile_routes(documents, connections, schemas, problems)
+    dead_letters = _compile_dead_letters(documents, connections, problems)
     if problems:
         raise RoutesInvalid(sorted(set(problems)))
     digest.update(json.dumps(sorted((n, r.fingerprint) for n, r in routes.items())).encode())  # schemas, key files
-    return RoutesConfig(directory, connections, routes, digest.hexdigest()[:12], _competing_consumers(routes))
+    return RoutesConfig(directory, connections, routes, digest.hexdigest()[:12],
+                        warnings=_competing_consumers(routes), dead_letters=dead_letters)
 
 
 @dataclass
@@ -200,7 +214,7 @@ def _parse_document(
         problems.append(Problem(file, _recursive_alias_line(text), "invalid YAML: an alias inside its own anchor (recursive alias), or nesting too deep"))
         return None
     document = _Document(file, data if data is not None else {}, lines)
-    errors = [p for error in validator.iter_errors(data) for p in _schema_problems(document, error)]
+    errors = [p for error in validator.iter_errors(shown(data)) for p in _schema_problems(document, error)]
     problems.extend(errors)
     return None if errors else document
 
@@ -236,13 +250,17 @@ def _to_python(
     value = loader.construct_object(node)
     if isinstance(value, str) and "$" in value:
         try:
-            substituted = substitute_env(value, env)
+            substituted, masked = _substitute_masked(value, env)
         except KeyError as exc:
             problems.append(
                 Problem(file, node.start_mark.line + 1, f"environment variable {exc.args[0]} is not set (use ${{{exc.args[0]}:-default}} for a default)")
             )
             return value
+        if masked != substituted or has_url_password(substituted):
+            return Secret(substituted, redact_urls(masked) if MASK in masked or has_url_password(masked) else MASK)
         return _typed(substituted) if node.style is None else substituted
+    if isinstance(value, str) and has_url_password(value):
+        return Secret(value)
     return value
 
 
@@ -266,8 +284,14 @@ def _typed(text: str) -> Any:
 
 def substitute_env(text: str, env: Mapping[str, str]) -> str:
     """``${VAR}`` and ``${VAR:-default}``; ``$$`` is a literal ``$``. Unset without default raises."""
+    return _substitute_masked(text, env)[0]
 
-    def replace(match: re.Match[str]) -> str:
+
+def _substitute_masked(text: str, env: Mapping[str, str]) -> tuple[str, str]:
+    """The substituted text, and the same with every secret-named variable's value as ``***``
+    (see engine/redaction.py for the rule)."""
+
+    def value(match: re.Match[str]) -> str:
         if match.group(0) == "$$":
             return "$"
         name, default = match.group(1), match.group(2)
@@ -277,7 +301,11 @@ def substitute_env(text: str, env: Mapping[str, str]) -> str:
             return default
         raise KeyError(name)
 
-    return _ENV_REFERENCE.sub(replace, text)
+    def masked(match: re.Match[str]) -> str:
+        found = value(match)
+        return MASK if match.group(1) and is_secret_name(match.group(1)) and found else found
+
+    return _ENV_REFERENCE.sub(value, text), _ENV_REFERENCE.sub(masked, text)
 
 
 def _schema_problems(document: _Document, error: jsonschema.ValidationError) -> Iterator[Problem]:
@@ -325,12 +353,17 @@ def _compile_connections(
                 continue
             settings = _connection_settings(protocol, body)
             try:
+                if not endpoints.transport(protocol).accepts_secrets:
+                    settings = revealed(settings)
                 checks = list(endpoints.transport(protocol).check_connection(settings))
             except EndpointError as exc:
                 checks = [(None, str(exc))]
             for key, message in checks:
                 problems.append(document.problem(where + ((protocol,) if key is None else (protocol, key)), f"connection {name!r}: {message}"))
-            connection = _identified(ConnectionSpec(name, protocol, settings, document.file, document.line(where)))
+            connection = _identified(ConnectionSpec(
+                name, protocol, settings, document.file, document.line(where),
+                max_message_bytes=body.get("max_message_bytes", DEFAULT_MAX_MESSAGE_BYTES),
+            ))
             holder = next((c for c in connections.values() if connection.exclusive and c.exclusive == connection.exclusive), None)
             if holder is not None:
                 problems.append(document.problem(where + (protocol,), f"connection {name!r}: {connection.exclusive} is already used by connection {holder.name!r} at {holder.file}:{holder.line}"))
@@ -342,7 +375,7 @@ def _connection_settings(protocol: str, body: Mapping[str, Any]) -> dict[str, An
     value = body[protocol]
     if protocol == "ros2":
         return dict(value or {})
-    if isinstance(value, str):
+    if isinstance(value, (str, Secret)):
         settings: dict[str, Any] = {"url": value}
     else:
         settings = dict(value)
@@ -396,6 +429,7 @@ def _compile_routes(
     for document in documents:
         for index, body in enumerate(document.data.get("routes") or ()):
             where: Path_ = ("routes", index)
+            body = revealed(body)  # secrets belong to connections; route options are plain text
             name = body["name"]
             before = len(problems)
             if name in routes:
@@ -424,16 +458,66 @@ def _compile_routes(
             schema = schemas.get(schema_name)
             fingerprint = hashlib.sha256(
                 json.dumps(
-                    [body, {k: v.fingerprint if v else None for k, v in used.items()}, schema.digest if schema else None],
+                    [body, {k: (v.fingerprint, v.max_message_bytes) if v else None for k, v in used.items()},
+                     schema.digest if schema else None],
                     sort_keys=True,
-                    default=str,
+                    default=json_default,
                 ).encode()
             ).hexdigest()[:16]
+            delivery = RouteDelivery(
+                max_attempts=body.get("max_attempts", RouteDelivery.max_attempts),
+                overflow=body.get("overflow", RouteDelivery.overflow),
+                max_message_bytes=connections[source.connection].max_message_bytes,
+                sink_max_message_bytes=connections[sink.connection].max_message_bytes,
+            )
+            buffer = BufferSpec.parse(body.get("buffer"), source.protocol, _base_dir(document.file))
+            if buffer is not None and buffer.spill_dir is not None and buffer.spill_dir.exists() and not buffer.spill_dir.is_dir():
+                problems.append(document.problem(where + ("buffer", "spill_dir"), f"route {name!r}: spill_dir {str(buffer.spill_dir)!r} is not a directory"))
+                continue
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
-                document.file, document.line(where), throttle=body.get("throttle"),
+                document.file, document.line(where), throttle=body.get("throttle"), delivery=delivery, buffer=buffer,
             )
     return routes
+
+
+def _compile_dead_letters(
+    documents: list[_Document], connections: dict[str, ConnectionSpec], problems: list[Problem]
+) -> DeadLetterSpec:
+    """``dead_letters: {connection, max_length}`` or ``{spool_dir, spool_max_bytes}``, from at
+    most one file; default: the only AMQP connection, else the local spool."""
+    found = [(document, document.data["dead_letters"]) for document in documents if document.data.get("dead_letters")]
+    if len(found) > 1:
+        first = found[0][0]
+        for document, _ in found[1:]:
+            problems.append(document.problem(("dead_letters",), f"dead_letters is already defined at {first.file}:{first.line(('dead_letters',))}"))
+    document, body = found[0] if found else (None, {})
+    amqp = sorted(name for name, spec in connections.items() if spec.protocol == "amqp")
+    name = body.get("connection")
+    spec = DeadLetterSpec(
+        max_length=body.get("max_length", DeadLetterSpec.max_length),
+        spool_dir=body.get("spool_dir"),
+        spool_max_bytes=body.get("spool_max_bytes", DeadLetterSpec.spool_max_bytes),
+    )
+    if name is not None:
+        if name not in connections:
+            assert document is not None
+            problems.append(document.problem(("dead_letters", "connection"), f"dead_letters: unknown connection {name!r}"))
+        elif connections[name].protocol != "amqp":
+            assert document is not None
+            problems.append(document.problem(("dead_letters", "connection"), f"dead_letters: connection {name!r} is {connections[name].protocol}, not amqp"))
+        return DeadLetterSpec(name, spec.max_length, spec.spool_dir, spec.spool_max_bytes)
+    if "spool_dir" in body or not amqp:
+        return spec
+    if len(amqp) > 1:
+        where = document or documents[0]
+        problems.append(where.problem(("dead_letters",), f"several amqp connections ({', '.join(amqp)}) could keep dead letters; name one with dead_letters: {{connection: ...}}"))
+        return spec
+    return DeadLetterSpec(amqp[0], spec.max_length, spec.spool_dir, spec.spool_max_bytes)
+
+
+def _base_dir(file: str) -> Path:
+    return Path(file).resolve().parent
 
 
 def _mapping_problems(expression: str | None) -> Iterator[str]:

@@ -1,36 +1,35 @@
 """The running engine: connections, one runner per route, and reloads that lose nothing.
 
-A reload compiles the routes and schemas directories first, off the event loop; if anything
-is wrong the running routes are left exactly as they are. Otherwise :mod:`engine.plan` says
-what changed and only that is touched: an unchanged route keeps its pipeline and its
-consumer; a route whose source is unchanged keeps its source (its AMQP consumer, ROS
-subscription or MAVLink reader) and gets a new pipeline swapped in before the old one
-drains (make-before-break); a route whose source changed gets a new source started before
-the old one stops and drains. A connection holding an exclusive resource (a listening
-port, a serial device) is the exception: its routes stop, it closes, its successor opens
-and the routes start again (break-before-make), and the gap is logged. Messages in flight
-finish on the pipeline that took them, so each is converted by exactly one generation.
+A reload compiles the whole directory first; if anything is wrong the running routes are
+left exactly as they are. Otherwise only what changed is touched: an unchanged route keeps
+its pipeline and its consumer; a route whose source is unchanged keeps its source (its AMQP
+consumer, ROS subscription or MAVLink reader) and gets a new pipeline swapped in before the
+old one drains (make-before-break); a route whose source changed gets a new source started
+before the old one stops and drains. Messages in flight finish on the pipeline that took
+them, so each is converted by exactly one configuration generation.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import os
+import random
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 from engine import endpoints
-from engine.endpoints.base import Connection, EndpointError, Inbound, MessageRejected, Source
+from engine.buffer import HoldingBuffer, stats_dict
+from engine.delivery import HEALTH_POLL, DeadLetters, Failure, classify, dead_letter_message, settle
+from engine.endpoints.base import Connection, EndpointError, Inbound, Outbound, Source
 from engine.pipeline import ConversionError, Pipeline
-from engine.plan import ReloadPlan, connection_key, plan_reload
 from engine.routes import ConnectionSpec, RouteSpec, RoutesConfig, RoutesInvalid, load_routes
 from engine.schemas import SchemaRegistry
 from engine.logs import Throttle
 from engine.observe import DEAD_LETTERED, DELIVERED, REDELIVERED, Observers
+from engine.plan import ReloadPlan, connection_key, plan_reload
 
 log = logging.getLogger("engine.runtime")
 
@@ -48,17 +47,20 @@ published meanwhile. After the delay, only what the live configuration no longer
 EMPTIED_SETTLE_S = 0.1
 """How long a reload waits to read again a route file found empty (see Engine._emptied)."""
 
-SINK_RETRY_DELAY = 0.5
-"""Pause before handing a message back for redelivery after a sink failure, so a
-destination that is down is not hammered in a tight loop."""
-
 
 @dataclass
 class RouteStats:
     received: int = 0
     delivered: int = 0
     failed: int = 0
+    """Messages dead-lettered (any stage); ``dead_lettered`` splits them by stage."""
     sink_errors: int = 0
+    """Transient sink failures (each retried, or dead-lettered after max_attempts)."""
+    retries: int = 0
+    dropped: int = 0
+    """Messages a source dropped: queue overflow, or unsettled at stop and not redeliverable."""
+    dead_letter_errors: int = 0
+    dead_lettered: dict[str, int] = field(default_factory=dict)
     latency_ns_total: int = 0
     """Sum over delivered messages of the time from reception to the sink's acceptance
     (the paper's t2 - t1), so the mean processing latency is available without a histogram."""
@@ -77,7 +79,10 @@ class ReloadStats:
 
 
 class RouteRunner:
-    """A route's live source and its current pipeline; the pipeline can be swapped."""
+    """A route's live source and its current pipeline; the pipeline can be swapped.
+
+    The runner is the source's :class:`~engine.endpoints.base.Deliver`: it settles what the
+    source hands it with the one delivery policy (engine/delivery.py)."""
 
     def __init__(
         self, engine: Engine, spec: RouteSpec, pipeline: Pipeline, source: Source, connections: list[Connection]
@@ -92,54 +97,63 @@ class RouteRunner:
         self.latency_samples: list[int] | None = None
         """Set to a list to record every message's reception-to-acceptance time (benchmarks)."""
         self._report = Throttle()
-        self.observe = engine.observers.get(spec.name)  # ops: metrics, status and taps
+        self._retry_report = Throttle()
+        self._stopping = asyncio.Event()
+        self.buffer: HoldingBuffer | None = engine.buffer_for(self)
+        """Holds the route's messages while its sink is down (``buffer:``; engine/buffer.py)."""
+        self.state = "created"
+        """created, waiting (for a connection that is not open yet), running, stopped."""
+        self._starter: asyncio.Task[None] | None = None
+        self.observe = engine.observers.get(spec.name)
+        """Per-route counters for metrics, status and taps (engine/observe.py)."""
         self.observe.generation = lambda: self.pipeline.generation
-        self._parked_tasks: set[asyncio.Task[None]] = set()  # ops: throttle
+        self._parked_tasks: set[asyncio.Task[None]] = set()
+        """Messages the throttle released from their slot, on their way through ``deliver``."""
 
-    async def deliver(self, inbound: Inbound) -> None:
-        pipeline = self.pipeline
-        pipeline.enter()
-        self.stats.received += 1
-        try:
-            try:
-                outbound = pipeline.convert(inbound)
-            except ConversionError as error:
-                self.stats.failed += 1
-                await self.engine.dead_letter(self, inbound, error)
-                self.observe(inbound, None, DEAD_LETTERED, error)  # ops
-                return
-            if pipeline.throttle is not None and not pipeline.throttle.admit(inbound, outbound, self):  # ops: throttle
-                return  # parked: delivered when its slot opens, or conflated by a newer message
-            try:
-                await pipeline.sink.send(outbound)
-            except MessageRejected as error:
-                self.stats.failed += 1
-                rejected = ConversionError("sink", str(error))
-                await self.engine.dead_letter(self, inbound, rejected)
-                self.observe(inbound, outbound, DEAD_LETTERED, rejected)  # ops
-                return
-            except EndpointError as error:
-                self.stats.sink_errors += 1
-                self.observe(inbound, outbound, REDELIVERED, error)  # ops
-                if self._report.ready():
-                    log.error("sink failed; message will be redelivered", extra={"route": self.spec.name, "error": str(error)})
-                await asyncio.sleep(SINK_RETRY_DELAY)
-                raise
-            stats = self.stats
-            stats.delivered += 1
-            latency = time.monotonic_ns() - inbound.received_ns
-            stats.latency_ns_total += latency
-            if latency > stats.latency_ns_max:
-                stats.latency_ns_max = latency
-            if self.latency_samples is not None:
-                self.latency_samples.append(latency)
-            self.observe(inbound, outbound, DELIVERED, None)  # ops
-        finally:
-            pipeline.leave()
+    # -- the Deliver contract a source sees
+
+    @property
+    def overflow(self) -> str:
+        return self.spec.delivery.overflow
+
+    @property
+    def queue_limit(self) -> int:
+        return self.spec.delivery.queue_limit
+
+    async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
+        return await settle(self, inbounds)
+
+    async def __call__(self, inbound: Inbound) -> None:
+        if not (await settle(self, (inbound,)))[0]:
+            raise EndpointError(f"route {self.spec.name!r}: message not settled (route stopping)")
+
+    deliver = __call__
+
+    def dropped(self, count: int = 1) -> None:
+        self.stats.dropped += count
+
+    # -- what the delivery policy asks of the route
+
+    def accepted(self, inbound: Inbound, outbound: Outbound | None = None) -> None:
+        stats = self.stats
+        stats.delivered += 1
+        latency = time.monotonic_ns() - inbound.received_ns
+        stats.latency_ns_total += latency
+        if latency > stats.latency_ns_max:
+            stats.latency_ns_max = latency
+        if self.latency_samples is not None:
+            self.latency_samples.append(latency)
+        self.observe(inbound, outbound, DELIVERED, None)
+
+    def retrying(self, inbound: Inbound, outbound: Outbound, error: BaseException) -> None:
+        self.observe(inbound, outbound, REDELIVERED, error)
+
+    def dead_lettered(self, inbound: Inbound, failure: Failure) -> None:
+        self.observe(inbound, None, DEAD_LETTERED, ConversionError(failure.stage, failure.error))
 
     def redeliver(self, inbound: Inbound) -> None:
-        """ops: a message the throttle parked goes through ``deliver`` again when its slot
-        opens; its source was already answered, so a failure here is counted, not retried."""
+        """A message the throttle parked goes through ``deliver`` again when its slot opens;
+        its source was already answered, so a failure here is counted, not retried."""
         task = asyncio.create_task(self.deliver(inbound))
         self._parked_tasks.add(task)
         task.add_done_callback(self._parked_done)
@@ -147,36 +161,148 @@ class RouteRunner:
     def _parked_done(self, task: asyncio.Task[None]) -> None:
         self._parked_tasks.discard(task)
         error = None if task.cancelled() else task.exception()
-        if error is not None and not isinstance(error, EndpointError):  # EndpointError: counted as redelivered
+        if error is not None and not isinstance(error, EndpointError):
             log.error("throttled message failed", extra={"route": self.spec.name, "error": repr(error)})
 
-    def report_failure(self, error: ConversionError) -> None:
+    async def sink_ready(self) -> bool:
+        """Wait while the sink's connection is known to be down; False once the route stops."""
+        sink_connection = self.connections[-1]
+        while not self._stopping.is_set() and not sink_connection.healthy:
+            await self.pause(HEALTH_POLL)
+        return not self._stopping.is_set()
+
+    async def pause(self, seconds: float) -> bool:
+        """Sleep between attempts; False (at once) when the route stops meanwhile."""
+        try:
+            await asyncio.wait_for(self._stopping.wait(), seconds)
+        except asyncio.TimeoutError:
+            return True
+        return False
+
+    def report_retry(self, failure: Failure, count: int) -> None:
+        if self._retry_report.ready():
+            log.warning(
+                "sink failed; retrying with backoff",
+                extra={"route": self.spec.name, "error": failure.error, "messages": count,
+                       "suppressed": self._retry_report.take_suppressed()},
+            )
+
+    def report_failure(self, failure: Failure, count: int = 1) -> None:
         if self._report.ready():
             log.warning(
-                "message rejected",
+                "message dead-lettered" if failure.stage != "dead-letter" else "dead letters could not be stored",
                 extra={
                     "route": self.spec.name,
                     "file": f"{self.spec.file}:{self.spec.line}",
-                    "stage": error.stage,
-                    "error": error.detail,
+                    "stage": failure.stage,
+                    "error": failure.error[:500],
+                    "messages": count,
                     "suppressed": self._report.take_suppressed(),
                 },
             )
 
     async def retire_pipeline(self, pipeline: Pipeline) -> None:
-        if pipeline.throttle is not None:  # ops: parked messages go out, not lost
+        if pipeline.throttle is not None:  # parked messages go out, not lost
             pipeline.throttle.close(self)
             await asyncio.sleep(0)
         await pipeline.drained()
         await pipeline.sink.close()
 
-    async def stop(self) -> None:
+    # -- starting when the connections are open
+
+    async def start(self) -> None:
+        """Start the source now if the connections it needs are open, else in the background
+        once they are (a buffered route needs only its source's: the buffer holds the rest)."""
+        if self.buffer is not None:
+            self.buffer.start()
+        missing = self.missing_connections()
+        if not missing:
+            await self.source.start(self)
+            self.state = "running"
+            return
+        self.state = "waiting"
+        log.warning("route waits for its connections", extra={"route": self.spec.name, "connections": missing})
+        self._starter = asyncio.create_task(self._start_when_open(), name=f"start-{self.spec.name}")
+
+    def _needed(self) -> list[Connection]:
+        return self.connections if self.buffer is None else self.connections[:1]
+
+    def missing_connections(self) -> list[str]:
+        return [c.name for c in self._needed() if not self.engine.is_open(c)]
+
+    async def _start_when_open(self) -> None:
+        delay = 0.5
+        while True:
+            await self.engine.wait_open(self._needed())
+            try:
+                await self.source.start(self)
+            except EndpointError as error:  # the connection went down again meanwhile
+                log.warning("route could not start; retrying", extra={"route": self.spec.name, "error": str(error)})
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, 10.0)
+                continue
+            self.state = "running"
+            log.info("route started", extra={"route": self.spec.name})
+            return
+
+    # -- the buffer (engine/buffer.py): what the delivery policy hands it, and its way out
+
+    def should_hold(self) -> bool:
+        """True when a buffered route must hold new messages rather than try the sink: the
+        buffer already holds some (order), or the sink's connection is down."""
+        buffer = self.buffer
+        if buffer is None:
+            return False
+        sink_connection = self.connections[-1]
+        return buffer.holding or not (sink_connection.healthy and self.engine.is_open(sink_connection))
+
+    async def hold(self, outbounds: Sequence[Outbound]) -> None:
+        """Hand messages to the buffer, in order; each is settled for its source once held."""
+        assert self.buffer is not None
+        for outbound in outbounds:
+            await self.buffer.hold(outbound)
+
+    async def send_held(self, messages: list[Outbound]) -> list[BaseException | None]:
+        pipeline = self.pipeline
+        pipeline.enter()
+        try:
+            return await pipeline.sink.send_batch(messages)
+        finally:
+            pipeline.leave()
+
+    def held_delivered(self, count: int) -> None:
+        self.stats.delivered += count
+
+    async def held_rejected(self, message: Outbound, error: BaseException, attempts: int) -> None:
+        """A held message the sink rejected, or kept failing while healthy: dead-letter it."""
+        inbound = Inbound(body=message.body, meta={k: v for k, v in message.meta.items() if k not in ("route", "generation")})
+        failure = classify(error, "sink")
+        letter = dead_letter_message(self, inbound, failure, attempts, self.spec.delivery.max_message_bytes)
+        await self.engine.dead_letters_for(self).put(self.spec.name, [letter])
+        self.stats.failed += 1
+        self.stats.dead_lettered[failure.stage] = self.stats.dead_lettered.get(failure.stage, 0) + 1
+        self.report_failure(failure)
+
+    async def stop(self, drain_timeout: float = 0.0) -> None:
+        self._stopping.set()
+        self.state = "stopped"
+        if self._starter is not None:
+            self._starter.cancel()
+            await asyncio.gather(self._starter, return_exceptions=True)
         await self.source.stop()
+        if self.buffer is not None and self.engine.release_buffer(self):
+            await self.buffer.close(drain_timeout)
         await self.retire_pipeline(self.pipeline)
 
 
+OPEN_RETRY_FIRST, OPEN_RETRY_MAX = 0.25, 2.0
+"""Backoff between attempts to open a connection that was unreachable at start."""
+STOP_GRACE = 2.0
+"""Seconds a stop gives sources to hand back what they hold once the drain timeout is over."""
+
+
 class Engine:
-    def __init__(self, routes_dir: Path, schemas_dir: Path) -> None:
+    def __init__(self, routes_dir: Path, schemas_dir: Path, require_connections: bool = False) -> None:
         self.routes_dir = routes_dir
         self.schemas_dir = schemas_dir
         self.config: RoutesConfig | None = None
@@ -187,11 +313,21 @@ class Engine:
         self._connections: dict[tuple[str, str], Connection] = {}
         self._schemas: SchemaRegistry | None = None
         self._lock = asyncio.Lock()
-        self.observers = Observers()  # ops: per-route counters for metrics, status and taps
+        self.observers = Observers()
+        """Per-route counters for metrics, status and taps, kept across reloads."""
         self.retire_after_s = RETIRE_AFTER_S
         self._retiring: list[RouteRunner] = []
         """Stopped runners whose source setup is undone later; their connections stay open."""
         self._retirement: asyncio.Task[None] | None = None
+        self.dead_letters: DeadLetters | None = None
+        self.require_connections = require_connections
+        """Fail (EndpointError) when a connection cannot be opened, instead of retrying it in
+        the background while the routes that do not need it run."""
+        self._opened: set[int] = set()
+        self._openers: dict[int, asyncio.Task[None]] = {}
+        self._open_changed = asyncio.Event()
+        self._buffers: dict[str, list[Any]] = {}
+        """route name -> [buffer, runners using it, newest runner]: a buffer outlives a reload."""
 
     def open_connections(self) -> list[tuple[str, Connection]]:
         """ops: ``(protocol, connection)`` of every open connection, for health and metrics."""
@@ -262,14 +398,97 @@ class Engine:
         )
         return False
 
-    async def _connection(self, spec: ConnectionSpec) -> Connection:
+    async def _connection(self, spec: ConnectionSpec, retry_in_background: bool = True) -> Connection:
+        """The open connection for ``spec``, shared; one that cannot be opened is retried in the
+        background (unless ``--require-connections`` or ``retry_in_background`` says fail)."""
         key = connection_key(spec)
         connection = self._connections.get(key)
         if connection is None:
             connection = endpoints.transport(spec.protocol).connect(spec.name, spec.settings)
-            await connection.open()
+            try:
+                await connection.open()
+            except EndpointError as error:
+                if self.require_connections or not retry_in_background:
+                    raise
+                log.warning("connection unreachable; retrying in the background", extra={"connection": spec.name, "error": str(error)})
+                self._openers[id(connection)] = asyncio.create_task(self._keep_opening(connection), name=f"open-{spec.name}")
+            else:
+                self._opened.add(id(connection))
             self._connections[key] = connection
         return connection
+
+    async def _keep_opening(self, connection: Connection) -> None:
+        delay = OPEN_RETRY_FIRST
+        while True:
+            await asyncio.sleep(delay * (0.5 + random.random() / 2))
+            delay = min(delay * 2, OPEN_RETRY_MAX)
+            try:
+                await connection.open()
+            except EndpointError as error:
+                log.debug("connection still unreachable", extra={"connection": connection.name, "error": str(error)})
+                continue
+            self._opened.add(id(connection))
+            self._openers.pop(id(connection), None)
+            dead_letters = self.dead_letters
+            if dead_letters is not None and dead_letters.connection is connection:
+                try:
+                    await dead_letters.prepare()
+                except EndpointError as error:  # they go to the spool meanwhile
+                    log.error("dead-letter queue not declared", extra={"connection": connection.name, "error": str(error)})
+            self._open_changed.set()
+            self._open_changed = asyncio.Event()
+            log.info("connection opened", extra={"connection": connection.name})
+            return
+
+    def is_open(self, connection: Connection) -> bool:
+        """Opened once (it may be reconnecting now: its library takes care of that)."""
+        return id(connection) in self._opened
+
+    async def wait_open(self, connections: list[Connection]) -> None:
+        while not all(self.is_open(c) for c in connections):
+            await self._open_changed.wait()
+
+    def buffer_for(self, runner: RouteRunner) -> HoldingBuffer | None:
+        """The route's buffer, shared with the runner it replaces across a reload so held
+        messages are not lost; its settings change at the next start."""
+        spec = runner.spec.buffer
+        name = runner.spec.name
+        if spec is None:
+            return None
+        entry = self._buffers.get(name)
+        if entry is None:
+            sink_connection = runner.connections[-1]
+
+            def current() -> RouteRunner:
+                live = self.runners.get(name)
+                return live if live is not None and live.buffer is entry[0] else entry[2]
+
+            buffer = HoldingBuffer(
+                name,
+                lambda messages: current().send_held(messages),
+                max_messages=spec.max_messages,
+                spill_dir=spec.spill_dir,
+                fsync_interval=spec.fsync_interval,
+                max_attempts=runner.spec.delivery.max_attempts,
+                ready=lambda: sink_connection.healthy and self.is_open(sink_connection),
+                on_delivered=lambda count: current().held_delivered(count),
+                on_rejected=lambda message, error, attempts: current().held_rejected(message, error, attempts),
+            )
+            entry = self._buffers[name] = [buffer, 0, runner]
+        entry[1] += 1
+        entry[2] = runner
+        return entry[0]
+
+    def release_buffer(self, runner: RouteRunner) -> bool:
+        """True when no other runner uses the route's buffer any more (the caller closes it)."""
+        entry = self._buffers.get(runner.spec.name)
+        if entry is None or entry[0] is not runner.buffer:
+            return False
+        entry[1] -= 1
+        if entry[1] > 0:
+            return False
+        del self._buffers[runner.spec.name]
+        return True
 
     async def _pipeline(
         self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int
@@ -300,7 +519,9 @@ class Engine:
         fresh: list[RouteRunner] = []
         handed: list[RouteRunner] = []
         absent = tuple(n for n in plan.keep + plan.swap_pipeline if n not in self.runners)  # lost by a failed handover
+        dead_letters = self.dead_letters
         try:
+            self.dead_letters = await self._dead_letters(config)
             for name in plan.add + plan.replace_source + absent:
                 if name not in later:
                     fresh.append(await self._runner(config, schemas, config.routes[name], generation))
@@ -310,14 +531,15 @@ class Engine:
                 pipeline, sink_connection = await self._pipeline(config, schemas, config.routes[name], generation)
                 swaps.append((self.runners[name], pipeline, sink_connection))
             for runner in fresh:
-                await runner.source.start(runner.deliver)
+                await runner.start()
             if plan.handovers:
                 handed = await self._hand_over(plan, config, schemas, generation)
             else:
                 self.reloads.last_handovers = []
         except BaseException:
+            self.dead_letters = dead_letters
             await asyncio.gather(
-                *(runner.source.stop() for runner in fresh),
+                *(runner.stop() for runner in fresh),
                 *(pipeline.sink.close() for pipeline in [r.pipeline for r in fresh] + [p for _, p, _ in swaps]),
                 return_exceptions=True,
             )
@@ -372,7 +594,7 @@ class Engine:
                 if name in config.routes:
                     runner = await self._runner(config, schemas, config.routes[name], generation)
                     started.append(runner)
-                    await runner.source.start(runner.deliver)
+                    await runner.start()
         except BaseException:
             await asyncio.gather(*(runner.stop() for runner in started), return_exceptions=True)
             for handover in plan.handovers:
@@ -429,7 +651,7 @@ class Engine:
         pause = 0.0
         while True:
             try:
-                return await self._connection(spec)
+                return await self._connection(spec, retry_in_background=False)
             except EndpointError:
                 if time.monotonic() + pause > deadline:
                     raise
@@ -447,7 +669,7 @@ class Engine:
         for runner in runners:
             try:
                 again = await self._runner(self.config, self._schemas, runner.spec, runner.pipeline.generation)
-                await again.source.start(again.deliver)
+                await again.start()
             except Exception as error:
                 log.error("route could not be restored after a failed reload", extra={"route": runner.spec.name, "error": str(error)})
                 del self.runners[runner.spec.name]
@@ -456,36 +678,70 @@ class Engine:
 
     async def _close_unused(self, runners: Any) -> None:
         used = {id(connection) for runner in [*runners, *self._retiring] for connection in runner.connections}
+        if self.dead_letters is not None and self.dead_letters.connection is not None:
+            used.add(id(self.dead_letters.connection))
         for key, connection in list(self._connections.items()):
             if id(connection) not in used:
                 del self._connections[key]
+                self._stop_opening(connection)
                 await connection.close()
 
-    async def dead_letter(self, runner: RouteRunner, inbound: Inbound, error: ConversionError) -> None:
-        """Keep a message that cannot be converted: count it, report it, and hand it to the
-        first of the route's connections that keeps dead letters (AMQP: a durable queue)."""
-        runner.report_failure(error)
-        connection = next((c for c in runner.connections if c.keeps_dead_letters), None)
-        if connection is None:
-            return
-        spec = runner.spec
-        body = inbound.body if inbound.body is not None else json.dumps(inbound.fields, default=str).encode()
-        headers = {
-            "x-rabbitros-route": spec.name,
-            "x-rabbitros-stage": error.stage,
-            "x-rabbitros-error": error.detail[:1000],
-            "x-rabbitros-route-file": f"{spec.file}:{spec.line}",
-        }
-        headers.update(
-            {f"x-source-{k}": v for k, v in inbound.meta.items() if isinstance(v, (str, int, float)) and k != "headers"}
-        )
-        await connection.dead_letter(spec.name, body, headers)
+    def _stop_opening(self, connection: Connection) -> None:
+        opener = self._openers.pop(id(connection), None)
+        if opener is not None:
+            opener.cancel()
+        self._opened.discard(id(connection))
 
-    async def stop(self) -> None:
+    async def _dead_letters(self, config: RoutesConfig) -> DeadLetters:
+        """The engine's one dead-letter destination, kept when the configuration did not change it."""
+        spec = config.dead_letters
+        current = self.dead_letters
+        connection = None
+        if spec.connection is not None:
+            connection = await self._connection(config.connections[spec.connection])
+        if current is not None and current.spec == spec and current.connection is connection:
+            return current
+        dead_letters = DeadLetters(spec, connection)
+        if connection is None or self.is_open(connection):  # else once it opens (_keep_opening)
+            await dead_letters.prepare()
+        return dead_letters
+
+    def dead_letters_for(self, runner: RouteRunner) -> DeadLetters:
+        assert self.dead_letters is not None
+        return self.dead_letters
+
+    async def stop(self, drain_timeout: float = 10.0) -> None:
+        """Graceful stop: sources stop taking messages; what is in flight is settled for at
+        most ``drain_timeout`` seconds in all (buffers keep delivering meanwhile, then stay
+        spilled on disk); then the connections close, which returns unacknowledged AMQP
+        messages to their queues."""
         if self._retirement is not None:  # a stopped engine keeps its topology: its queues buffer
             self._retirement.cancel()
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + drain_timeout
         async with self._lock:
-            await asyncio.gather(*(runner.stop() for runner in self.runners.values()), return_exceptions=True)
+            runners = list(self.runners.values())
+            for connection in self._connections.values():
+                self._stop_opening(connection)
+            for runner in runners:
+                runner.state = "stopped"
+                if runner._starter is not None:
+                    runner._starter.cancel()
+            sources = asyncio.ensure_future(asyncio.gather(*(r.source.stop() for r in runners), return_exceptions=True))
+            if not await _finished(sources, deadline):
+                log.warning("drain timeout: what is not settled yet is requeued (AMQP) or dropped and counted (ROS 2, MAVLink)")
+                for runner in runners:
+                    runner._stopping.set()  # the delivery policy stops retrying; sources settle what they can
+                if not await _finished(sources, loop.time() + STOP_GRACE):
+                    sources.cancel()
+                    await asyncio.gather(sources, return_exceptions=True)
+            buffers = [entry[0] for entry in self._buffers.values()]
+            self._buffers.clear()
+            await asyncio.gather(*(b.close(max(0.0, deadline - loop.time())) for b in buffers), return_exceptions=True)
+            pipelines = asyncio.ensure_future(asyncio.gather(*(r.retire_pipeline(r.pipeline) for r in runners), return_exceptions=True))
+            if not await _finished(pipelines, max(deadline, loop.time() + STOP_GRACE)):
+                pipelines.cancel()
+                await asyncio.gather(pipelines, return_exceptions=True)
             for connection in self._connections.values():
                 await connection.close()
             self._connections.clear()
@@ -498,15 +754,37 @@ class Engine:
             "generation": self.generation,
             "config_hash": config.content_hash if config else None,
             "reloads": asdict(self.reloads),
+            "dead_letters": None if self.dead_letters is None else {
+                "destination": self.dead_letters.where,
+                "stored": self.dead_letters.stored,
+                "spooled": self.dead_letters.spooled,
+            },
             "routes": {
                 name: {
                     "file": f"{runner.spec.file}:{runner.spec.line}",
                     "fingerprint": runner.spec.fingerprint,
                     "generation": runner.pipeline.generation,
                     **asdict(runner.stats),
+                    "source": runner.source.status(),
+                    "state": runner.state,
+                    "waiting_for": runner.missing_connections() if runner.state == "waiting" else [],
+                    "buffer": stats_dict(runner.buffer) if runner.buffer is not None else None,
                 }
                 for name, runner in sorted(self.runners.items())
+            },
+            "connections": {
+                connection.name: {
+                    "protocol": type(connection).__module__.rsplit(".", 1)[-1],
+                    "healthy": connection.healthy and self.is_open(connection),
+                    **connection.health(),
+                    **({} if self.is_open(connection) else {"state": "retrying"}),
+                }
+                for connection in self._connections.values()
             },
         }
 
 
+async def _finished(work: asyncio.Future[Any], deadline: float) -> bool:
+    """Wait for ``work`` until ``deadline`` (loop time) without cancelling it; True if done."""
+    done, _ = await asyncio.wait({work}, timeout=max(0.0, deadline - asyncio.get_running_loop().time()))
+    return bool(done)

@@ -48,7 +48,8 @@ def _reject_constant(name: str) -> float:
 def parse_json(body: bytes) -> Any:
     """Strict JSON: NaN/Infinity are rejected, errors say where."""
     try:
-        return json.loads(body, parse_constant=_reject_constant)
+        # decoded strictly first: json.loads(bytes) lets UTF-8-encoded surrogates through
+        return json.loads(body.decode("utf-8"), parse_constant=_reject_constant)
     except UnicodeDecodeError as exc:
         raise SchemaError(f"invalid JSON: not UTF-8 at byte {exc.start}") from None
     except json.JSONDecodeError as exc:

@@ -102,11 +102,39 @@ def outbound(body: bytes = b"", fields: Any = None, canonical: Any = None) -> Ou
                     message_id="m", meta={})
 
 
+class FunctionDeliver:
+    """The engine's Deliver contract around a plain async function (settled unless it raises)."""
+
+    def __init__(self, function: Any, overflow: str = "block", queue_limit: int = 10_000) -> None:
+        self.function = function
+        self.overflow = overflow
+        self.queue_limit = queue_limit
+        self.drops = 0
+
+    async def __call__(self, inbound: Inbound) -> None:
+        await self.function(inbound)
+
+    async def batch(self, inbounds: Any) -> list[bool]:
+        settled = []
+        for inbound in inbounds:
+            try:
+                await self.function(inbound)
+            except Exception:
+                settled.append(False)
+            else:
+                settled.append(True)
+        return settled
+
+    def dropped(self, count: int = 1) -> None:
+        self.drops += count
+
+
 class Collector:
     def __init__(self) -> None:
         self.items: list[Inbound] = []
+        self.deliver = FunctionDeliver(self._append)
 
-    async def deliver(self, inbound: Inbound) -> None:
+    async def _append(self, inbound: Inbound) -> None:
         self.items.append(inbound)
 
 
@@ -200,7 +228,7 @@ def test_source_stop_drains_queue_then_unsubscribes():
                 delivered.append(inbound.body)
 
             source = connection.source("r-stop", {"topic": "/t_stop/in"})
-            await source.start(slow_deliver)
+            await source.start(FunctionDeliver(slow_deliver))
             await wait_until(lambda: publisher.get_subscription_count() > 0, what="discovery")
             for i in range(200):
                 publisher.publish(String(data=str(i)))
@@ -216,28 +244,78 @@ def test_source_stop_drains_queue_then_unsubscribes():
     run(body)
 
 
-def test_failed_delivery_is_retried_in_order():
+def test_unsettled_messages_are_counted_as_dropped_never_retried_by_the_source():
+    """Retrying is the engine's delivery policy, not the source's: a message the route could
+    not settle (it was stopping) is counted as dropped, and the next one goes on."""
     async def body() -> None:
         peer = Peer()
         publisher = peer.publisher(String, "/t_retry/in")
         connection = await open_connection()
         try:
             attempts: list[bytes] = []
-            delivered: list[bytes] = []
 
             async def flaky(inbound: Inbound) -> None:
                 attempts.append(inbound.body)
                 if len(attempts) == 1:
-                    raise RuntimeError("broker away")
-                delivered.append(inbound.body)
+                    raise RuntimeError("not settled")
 
+            deliver = FunctionDeliver(flaky)
             source = connection.source("r-retry", {"topic": "/t_retry/in"})
-            await source.start(flaky)
+            await source.start(deliver)
             await wait_until(lambda: publisher.get_subscription_count() > 0, what="discovery")
             publisher.publish(String(data="a"))
+            await wait_until(lambda: len(attempts) == 1, what="first delivery")
             publisher.publish(String(data="b"))
-            await wait_until(lambda: len(delivered) == 2, what="retried delivery")
-            assert delivered == [b"a", b"b"] and attempts == [b"a", b"a", b"b"]
+            await wait_until(lambda: len(attempts) == 2, what="second delivery")
+            assert attempts == [b"a", b"b"] and deliver.drops == 1 and source.dropped == 1
+        finally:
+            await connection.close()
+            peer.close()
+
+    run(body)
+
+
+def test_overflow_policies_bound_the_queue_and_count_drops():
+    """A stalled route: drop_newest keeps the first messages, drop_oldest the last ones,
+    block takes no more than the queue holds (DDS history keeps the rest) and loses none."""
+    async def body() -> None:
+        peer = Peer()
+        connection = await open_connection()
+        try:
+            for policy in ("drop_newest", "drop_oldest", "block"):
+                topic = f"/t_overflow_{policy}/in"
+                publisher = peer.publisher(String, topic)
+                gate = asyncio.Event()
+                got: list[bytes] = []
+
+                async def stalled(inbound: Inbound, got: list[bytes] = got, gate: asyncio.Event = gate) -> None:
+                    await gate.wait()
+                    got.append(inbound.body)
+
+                deliver = FunctionDeliver(stalled, overflow=policy, queue_limit=20)
+                source = connection.source(f"r-{policy}", {"topic": topic})
+                await source.start(deliver)
+                await wait_until(lambda: publisher.get_subscription_count() > 0, what="discovery")
+                publisher.publish(String(data="first"))
+                await wait_until(lambda: source.received == 1 and not source._queue, what="first taken")
+                for i in range(100):
+                    publisher.publish(String(data=str(i)))
+                if policy == "block":
+                    await wait_until(lambda: source.paused, what="paused")
+                    assert source.received <= 1 + 20
+                else:
+                    await wait_until(lambda: source.received == 101, what="all taken")
+                    assert deliver.drops == 80 and source.dropped == 80
+                gate.set()
+                expected = {"drop_newest": 21, "drop_oldest": 21, "block": 101}[policy]
+                await wait_until(lambda: len(got) == expected, what=f"{policy}: delivered")
+                if policy == "drop_newest":
+                    assert got == [b"first"] + [str(i).encode() for i in range(20)]
+                elif policy == "drop_oldest":
+                    assert got == [b"first"] + [str(i).encode() for i in range(80, 100)]
+                else:
+                    assert got == [b"first"] + [str(i).encode() for i in range(100)] and deliver.drops == 0
+                await source.stop()
         finally:
             await connection.close()
             peer.close()

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from engine.mapping import MappingError, compile_mapping, compile_template, top_level_keys, unknown_functions
+from engine.redaction import reveal
 from engine.routes import RoutesInvalid, load_routes, substitute_env
 from engine.schemas import SchemaError, SchemaRegistry, parse_json
 
@@ -84,7 +85,7 @@ def test_route_defaults_and_fingerprints(tmp_path: Path, schemas_dir: Path):
     registry = SchemaRegistry(schemas_dir)
     first = load_routes(tmp_path, registry, env={})
     assert first.routes["r"].source.connection == "default-amqp"
-    assert first.connections["default-amqp"].settings["url"].startswith("amqp://")
+    assert reveal(first.connections["default-amqp"].settings["url"]).startswith("amqp://")
     again = load_routes(tmp_path, registry, env={})
     assert again.routes["r"].fingerprint == first.routes["r"].fingerprint
     (tmp_path / "a.yaml").write_text(route.replace("MAP", "'{a: b}'"))
@@ -105,4 +106,34 @@ def test_ambiguous_connection_and_duplicate_yaml_keys(tmp_path: Path, schemas_di
     assert f"{tmp_path / 'a.yaml'}:5:" in text
     (tmp_path / "a.yaml").write_text((tmp_path / "a.yaml").read_text().replace(", exchange: f", ""))
     with pytest.raises(RoutesInvalid, match="several amqp connections"):
+        load_routes(tmp_path, SchemaRegistry(schemas_dir), env={})
+
+
+def test_delivery_keys_and_the_dead_letter_destination(tmp_path: Path, schemas_dir: Path):
+    """max_attempts, overflow and max_message_bytes reach the route's delivery settings and
+    its fingerprint; dead_letters resolves to one destination, with file:line errors."""
+    from engine.delivery import DeadLetterSpec, RouteDelivery
+
+    (tmp_path / "a.yaml").write_text(
+        "connections:\n  gcs: {amqp: 'amqp://a/', max_message_bytes: 1000}\n  ros: {ros2: {}}\n"
+        "routes:\n"
+        "  - {name: r, max_attempts: 2, overflow: drop_oldest, source: {ros2: {topic: /a}}, schema: raw_json,"
+        " sink: {amqp: {exchange: e}}}\n"
+        "  - {name: s, source: {amqp: {queue: q}}, schema: raw_json, sink: {ros2: {topic: /b}}}\n"
+    )
+    config = load_routes(tmp_path, SchemaRegistry(schemas_dir), env={})
+    assert config.routes["r"].delivery == RouteDelivery(max_attempts=2, overflow="drop_oldest", sink_max_message_bytes=1000)
+    assert config.routes["s"].delivery == RouteDelivery(max_message_bytes=1000)
+    assert config.dead_letters == DeadLetterSpec(connection="gcs")
+    before = config.routes["s"].fingerprint
+    (tmp_path / "a.yaml").write_text((tmp_path / "a.yaml").read_text().replace("1000", "2000"))
+    assert load_routes(tmp_path, SchemaRegistry(schemas_dir), env={}).routes["s"].fingerprint != before
+
+    (tmp_path / "b.yaml").write_text("dead_letters: {connection: ros, max_length: 10}\n")
+    with pytest.raises(RoutesInvalid, match=r"b.yaml:1: dead_letters: connection 'ros' is ros2, not amqp"):
+        load_routes(tmp_path, SchemaRegistry(schemas_dir), env={})
+    (tmp_path / "b.yaml").write_text("dead_letters: {spool_dir: /tmp/x}\nroutes: []\n")
+    assert load_routes(tmp_path, SchemaRegistry(schemas_dir), env={}).dead_letters.spool_dir == "/tmp/x"
+    (tmp_path / "b.yaml").write_text("routes:\n  - {name: t, overflow: later, source: {ros2: {topic: /c}}, schema: raw_json, sink: {ros2: {topic: /d}}}\n")
+    with pytest.raises(RoutesInvalid, match=r"b.yaml:2: routes\[0\].overflow: 'later' is not one of"):
         load_routes(tmp_path, SchemaRegistry(schemas_dir), env={})

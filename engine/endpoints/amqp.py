@@ -1,22 +1,34 @@
-"""AMQP 0-9-1 (RabbitMQ) endpoint on aio-pika.
+"""AMQP 0-9-1 (RabbitMQ) endpoint on aio-pika (robust connections) and aiormq (hot path).
 
-Sources consume with manual acknowledgement and ack only after ``deliver`` settled the
-message, so a crash or a reload redelivers instead of losing. Sinks publish persistent
-messages on a channel with publisher confirms (configurable), so "accepted" means the
-broker took responsibility. One robust connection per named connection is shared by all
-routes; each source has its own channel so its prefetch and its stop are its own.
+Batch-shaped, as a plain aiormq pass-through would be: a source's consumer callback only
+appends to a list; one loop per source hands everything received (up to half the prefetch)
+to the route as one batch, then acknowledges with a single ``basic_ack(multiple=True)`` up
+to the highest delivery tag whose whole prefix was settled (accepted by the sink or
+dead-lettered); the rest of the batch is acked one by one or nacked with requeue. Batches
+are settled in order, one at a time, so every earlier tag is already acked or nacked and
+at-least-once holds: a crash or a reload redelivers instead of losing. Sinks publish a
+batch pipelined on a channel with publisher confirms (configurable) and await the batch's
+confirms together, so "accepted" means the broker took responsibility.
+
+One robust connection per named connection is shared by all routes (aio-pika re-opens it,
+its channels and consumers after a broker restart); each source has its own channel so its
+prefetch and its stop are its own. Deliveries from a channel that has since been replaced
+are not acked on the new one: the broker has requeued them already.
 """
 
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Mapping, Sequence
 from urllib.parse import urlsplit
 
 import aio_pika
 import aio_pika.abc
+import aiormq.abc
 import aiormq.exceptions
+from aiormq import spec
 from aio_pika.exceptions import AMQPError
 
 from engine.endpoints.base import (
@@ -25,6 +37,7 @@ from engine.endpoints.base import (
     Deliver,
     EndpointError,
     Inbound,
+    Inbox,
     MessageRejected,
     Outbound,
     Sink,
@@ -32,19 +45,32 @@ from engine.endpoints.base import (
     Transport,
 )
 from engine.mapping import MappingError, compile_template
+from engine.redaction import redact_urls, reveal
 from engine.schemas import SchemaError, canonical_bytes
 
-_ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError)
+_ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError, RuntimeError)
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
+log = logging.getLogger("engine.amqp")
 
 
-def redact(url: str) -> str:
+def redact(url: Any) -> str:
     """The URL with its password hidden, for logs and errors."""
+    url = str(url)  # a Secret is already its redacted text
     parts = urlsplit(url)
     if parts.password is None:
         return url
     netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
     return parts._replace(netloc=netloc).geturl()
+
+
+RECONNECT_INTERVAL = 1.0
+"""Seconds between aio-pika's reconnection attempts after a lost connection (its default, 5 s,
+is most of the time from a broker's restart to the first message delivered after it)."""
+
+
+CONNECT_TIMEOUT = 10.0
+"""Seconds one attempt to open the connection may take (an unreachable host would otherwise
+hold the engine's start for the TCP timeout, minutes)."""
 
 
 class AmqpConnection(Connection):
@@ -56,19 +82,33 @@ class AmqpConnection(Connection):
         self._publish_channel: aio_pika.abc.AbstractChannel | None = None
         self._exchanges: dict[str, aio_pika.abc.AbstractExchange] = {}
         self._declare_lock = asyncio.Lock()
+        self._state = "connecting"
+        self._last_error: str | None = None
 
     @property
     def url(self) -> str:
-        return str(self.settings["url"])
+        return str(reveal(self.settings["url"]))
 
     @property
     def healthy(self) -> bool:
-        """Connected now: the robust connection is open and its AMQP transport too (it is
-        dropped while aio-pika reconnects)."""
-        connection = self._connection
-        underlay = getattr(connection, "transport", None)
-        return (connection is not None and not connection.is_closed and underlay is not None
-                and not underlay.connection.is_closed)
+        return self._state == "up"
+
+    def health(self) -> dict[str, Any]:
+        return {"state": self._state, "last_error": self._last_error}
+
+    def _failed(self, error: BaseException | None) -> None:
+        if error is not None:
+            text = redact_urls(f"{type(error).__name__}: {error}")
+            password = urlsplit(self.url).password
+            self._last_error = text.replace(password, "***") if password else text
+
+    def _on_close(self, _connection: Any, error: BaseException | None = None) -> None:
+        if self._state == "up":
+            self._state = "reconnecting"
+        self._failed(error)
+
+    def _on_reconnect(self, _connection: Any) -> None:
+        self._state = "up"
 
     async def open(self) -> None:
         try:
@@ -76,15 +116,21 @@ class AmqpConnection(Connection):
                 self.url,
                 client_properties={"connection_name": f"rabbitros-engine/{self.name}"},
                 heartbeat=self.settings.get("heartbeat", 30),
+                reconnect_interval=self.settings.get("reconnect_interval", RECONNECT_INTERVAL),
+                timeout=CONNECT_TIMEOUT,
             )
+            self._connection.close_callbacks.add(self._on_close)
+            self._connection.reconnect_callbacks.add(self._on_reconnect)
             self._publish_channel = await self._connection.channel(
                 publisher_confirms=self.settings.get("publisher_confirms", True)
             )
-            exchange = await self.exchange(DEAD_LETTER_EXCHANGE)
-            queue = await self._publish_channel.declare_queue(DEAD_LETTER_EXCHANGE, durable=True)
-            await queue.bind(exchange, "#")
         except _ERRORS as exc:
-            raise EndpointError(f"amqp connection {self.name!r} ({redact(self.url)}): {exc}") from exc
+            self._failed(exc)
+            if self._connection is not None:
+                await self.close()
+            self._state = "down"
+            raise EndpointError(f"amqp connection {self.name!r} ({redact(self.settings['url'])}): {self._last_error}") from exc
+        self._state = "up"
 
     def channel_factory(self) -> aio_pika.abc.AbstractRobustConnection:
         if self._connection is None:
@@ -107,25 +153,73 @@ class AmqpConnection(Connection):
                     )
         return self._exchanges[name]
 
-    async def publish(
+    async def publish_batch(
         self,
         exchange_name: str,
-        routing_key: str,
-        message: aio_pika.Message,
+        messages: Sequence[tuple[str, bytes, spec.Basic.Properties]],
         kind: str = "topic",
         durable: bool = True,
-    ) -> None:
+    ) -> list[BaseException | None]:
+        """Publish ``(routing_key, body, properties)`` pipelined on the confirm channel and
+        await the confirms together; ``result[i]`` is None once the broker took message i."""
+        if self._state != "up":  # a robust channel would wait for the broker; the engine buffers instead
+            error = EndpointError(f"amqp connection {self.name!r} is {self._state}: {self._last_error}")
+            return [error] * len(messages)
         try:
-            exchange = await self.exchange(exchange_name, kind, durable)
-            await exchange.publish(message, routing_key, mandatory=False)
+            await self.exchange(exchange_name, kind, durable)
+            assert self._publish_channel is not None
+            channel = await self._publish_channel.get_underlay_channel()
         except _ERRORS as exc:
-            raise EndpointError(f"amqp publish to {exchange_name!r}/{routing_key!r} on {self.name!r}: {exc}") from exc
+            error = EndpointError(f"amqp publish to {exchange_name!r} on {self.name!r}: {exc}")
+            return [error] * len(messages)
+        confirms = self._publish_channel.publisher_confirms
+        outcomes = await asyncio.gather(
+            *(
+                channel.basic_publish(body, exchange=exchange_name, routing_key=key, properties=properties, wait=not confirms)
+                for key, body, properties in messages
+            ),
+            return_exceptions=True,
+        )
+        results: list[BaseException | None] = []
+        for (key, _, _), outcome in zip(messages, outcomes):
+            if isinstance(outcome, BaseException) or isinstance(outcome, (spec.Basic.Nack, spec.Basic.Reject)):
+                reason = outcome if isinstance(outcome, BaseException) else "the broker nacked it"
+                results.append(EndpointError(f"amqp publish to {exchange_name!r}/{key!r} on {self.name!r}: {reason}"))
+            else:
+                results.append(None)
+        return results
 
-    async def dead_letter(self, route: str, body: bytes, headers: Mapping[str, Any]) -> None:
-        """Dead letters go to a durable exchange and queue declared at open, so they are kept
-        even when nobody listens yet; the routing key is the route name."""
-        message = aio_pika.Message(body, headers=dict(headers), delivery_mode=aio_pika.DeliveryMode.PERSISTENT)
-        await self.publish(DEAD_LETTER_EXCHANGE, route, message)
+    async def prepare_dead_letters(self, max_length: int | None) -> None:
+        """The durable exchange and queue ``rabbitros.dead-letter`` (bounded by ``x-max-length``),
+        so dead letters are kept even when nobody listens yet."""
+        arguments = {"x-max-length": max_length} if max_length else None
+        try:
+            await self.exchange(DEAD_LETTER_EXCHANGE)
+            channel = await self.channel_factory().channel()
+            try:
+                try:
+                    queue = await channel.declare_queue(DEAD_LETTER_EXCHANGE, durable=True, arguments=arguments)
+                except aiormq.exceptions.ChannelPreconditionFailed as exc:
+                    log.warning("dead-letter queue exists with other arguments; keeping them",
+                                extra={"connection": self.name, "error": str(exc)})
+                    await channel.close()
+                    channel = await self.channel_factory().channel()
+                    queue = await channel.declare_queue(DEAD_LETTER_EXCHANGE, passive=True)
+                await queue.bind(DEAD_LETTER_EXCHANGE, "#")
+            finally:
+                await channel.close()
+        except _ERRORS as exc:
+            raise EndpointError(f"amqp connection {self.name!r}: cannot declare the dead-letter queue: {exc}") from exc
+
+    async def dead_letter(self, route: str, messages: Sequence[tuple[bytes, Mapping[str, Any]]]) -> None:
+        """One confirmed batch to ``rabbitros.dead-letter``, routing key = route name."""
+        batch = [
+            (route, body, spec.Basic.Properties(headers=dict(headers), delivery_mode=2))
+            for body, headers in messages
+        ]
+        for error in await self.publish_batch(DEAD_LETTER_EXCHANGE, batch):
+            if error is not None:
+                raise error
 
     def source(self, route: str, options: Mapping[str, Any]) -> Source:
         return AmqpSource(self, route, options)
@@ -134,6 +228,7 @@ class AmqpConnection(Connection):
         return AmqpSink(self, route, options)
 
     async def close(self) -> None:
+        self._state = "down"
         if self._connection is not None:
             try:
                 await self._connection.close()
@@ -149,16 +244,19 @@ class AmqpSource(Source):
         self._options = options
         self._channel: aio_pika.abc.AbstractChannel | None = None
         self._queue: aio_pika.abc.AbstractQueue | None = None
-        self._consumer_tag: str | None = None
-        self._in_flight: set[asyncio.Task[Any]] = set()
-        self._deliver: Deliver | None = None
+        self._consumer: tuple[aiormq.abc.AbstractChannel, str] | None = None
+        self._received: Inbox[tuple[aiormq.abc.DeliveredMessage, int]] = Inbox(1 << 30)
+        """Bounded by the prefetch: the broker sends no more than that unacknowledged."""
+        self._stopping = False
+        self._loop: asyncio.Task[None] | None = None
+        self._max_batch = max(1, options.get("prefetch", 256) // 2)
+        """Half the prefetch: the broker keeps streaming the next batch while one is settled."""
 
     @property
     def queue_name(self) -> str:
         return self._options.get("queue") or f"rabbitros.{self._route}"
 
     async def start(self, deliver: Deliver) -> None:
-        self._deliver = deliver
         options = self._options
         try:
             self._channel = await self._connection.channel_factory().channel()
@@ -175,53 +273,104 @@ class AmqpSource(Source):
                     durable=options.get("durable", True),
                 )
                 await self._queue.bind(exchange, options.get("binding_key", "#"))
-            self._consumer_tag = await self._queue.consume(self._on_message, no_ack=False)
+            self._loop = asyncio.create_task(self._run(deliver), name=f"amqp-source:{self._route}")
+            await self._consume()
+            self._channel.reopen_callbacks.add(self._reconsume)
         except _ERRORS as exc:
+            self._stopping = True
+            self._received.close()
             raise EndpointError(f"route {self._route!r}: amqp source queue {self.queue_name!r}: {exc}") from exc
 
-    async def _on_message(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
-        task = asyncio.current_task()
-        assert task is not None and self._deliver is not None
-        self._in_flight.add(task)
+    async def _consume(self) -> None:
+        """Consume on the channel's aiormq channel: no aio-pika message object or task per
+        delivery; aio-pika still restores the channel, queue and bindings after a reconnect,
+        and :meth:`_reconsume` then consumes again."""
+        assert self._channel is not None
+        channel = await self._channel.get_underlay_channel()
+        result = await channel.basic_consume(self.queue_name, self._on_message, no_ack=False)
+        self._consumer = (channel, result.consumer_tag)
+
+    async def _reconsume(self, _channel: Any) -> None:
+        if self._stopping:
+            return
         try:
-            inbound = Inbound(
-                body=message.body,
-                meta={
-                    "routing_key": message.routing_key,
-                    "exchange": message.exchange,
-                    "message_id": message.message_id,
-                    "headers": message.headers,
-                    "content_type": message.content_type,
-                    "redelivered": message.redelivered,
-                },
-                received_ns=time.monotonic_ns(),
-            )
+            await self._consume()
+        except _ERRORS as exc:
+            log.error("route %r: cannot consume %r again after reconnecting: %s", self._route, self.queue_name, exc)
+
+    async def _on_message(self, message: aiormq.abc.DeliveredMessage) -> None:
+        self._received.offer((message, time.monotonic_ns()))
+        self._received.wake()
+
+    async def _run(self, deliver: Deliver) -> None:
+        while batch := await self._received.take(self._max_batch):
+            inbounds = [_inbound(message, received_ns) for message, received_ns in batch]
             try:
-                await self._deliver(inbound)
-            except Exception:
-                await message.nack(requeue=True)
-                return
-            await message.ack()
-        except _ERRORS:
-            pass  # the channel is gone: the broker requeues whatever was not acked
-        finally:
-            self._in_flight.discard(task)
+                settled = await deliver.batch(inbounds)
+            except Exception as exc:  # a bug in the engine must not lose messages: requeue them
+                log.exception("route %r: settling a batch failed", self._route, exc_info=exc)
+                settled = [False] * len(batch)
+            await self._acknowledge([message for message, _ in batch], settled)
+
+    async def _acknowledge(self, messages: list[aiormq.abc.DeliveredMessage], settled: list[bool]) -> None:
+        """One ``basic_ack(multiple=True)`` per channel for the settled prefix of the batch;
+        then single acks and requeueing nacks for the rest."""
+        prefix = 0
+        while prefix < len(settled) and settled[prefix]:
+            prefix += 1
+        highest: dict[int, tuple[aiormq.abc.AbstractChannel, int]] = {}
+        for message in messages[:prefix]:
+            channel = message.channel
+            highest[id(channel)] = (channel, message.delivery_tag)
+        for channel, tag in highest.values():
+            await _settle_frame(channel.basic_ack, tag, multiple=True)
+        for message, ok in zip(messages[prefix:], settled[prefix:]):
+            if ok:
+                await _settle_frame(message.channel.basic_ack, message.delivery_tag)
+            else:
+                await _settle_frame(message.channel.basic_nack, message.delivery_tag, requeue=True)
 
     async def stop(self) -> None:
-        """Cancel the consumer, let in-flight messages settle, then close the channel so
-        anything the broker sent but we did not take is requeued."""
-        if self._queue is not None and self._consumer_tag is not None:
+        """Cancel the consumer, settle what was received, then close the channel so anything
+        the broker sent but we did not take is requeued."""
+        self._stopping = True
+        if self._consumer is not None:
+            channel, tag = self._consumer
             try:
-                await self._queue.cancel(self._consumer_tag)
+                await channel.basic_cancel(tag)
             except _ERRORS:
                 pass
-        if self._in_flight:
-            await asyncio.wait(set(self._in_flight))
+        self._received.close()
+        if self._loop is not None:
+            await self._loop
         if self._channel is not None:
             try:
                 await self._channel.close()
             except _ERRORS:
                 pass
+
+
+def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
+    properties = message.header.properties
+    return Inbound(
+        body=message.body,
+        meta={
+            "routing_key": message.routing_key,
+            "exchange": message.exchange,
+            "message_id": properties.message_id,
+            "headers": properties.headers,
+            "content_type": properties.content_type,
+            "redelivered": message.redelivered,
+        },
+        received_ns=received_ns,
+    )
+
+
+async def _settle_frame(method: Any, tag: int | None, **kwargs: Any) -> None:
+    try:
+        await method(tag, **kwargs)
+    except _ERRORS:
+        pass  # the channel is gone: the broker requeues whatever was not acked
 
 
 class AmqpSink(Sink):
@@ -235,40 +384,52 @@ class AmqpSink(Sink):
         self._durable = options.get("durable", True)
         self._routing_key = compile_template(options.get("routing_key", ""))
         self._content_type = options.get("content_type", "application/json")
-        self._delivery_mode = (
-            aio_pika.DeliveryMode.PERSISTENT if options.get("persistent", True) else aio_pika.DeliveryMode.NOT_PERSISTENT
-        )
+        self._delivery_mode = 2 if options.get("persistent", True) else 1
 
     async def send(self, message: Outbound) -> None:
-        try:
-            routing_key = self._routing_key(message.canonical)
-            body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
-        except (MappingError, SchemaError) as exc:  # a field the key needs is missing: no retry can help
-            raise MessageRejected(str(exc)) from None
-        meta = message.meta
-        await self._connection.publish(
-            self._exchange,
-            routing_key,
-            aio_pika.Message(
-                body,
+        error = (await self.send_batch((message,)))[0]
+        if error is not None:
+            raise error
+
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        results: list[BaseException | None] = [None] * len(messages)
+        publishable: list[int] = []
+        batch: list[tuple[str, bytes, spec.Basic.Properties]] = []
+        for index, message in enumerate(messages):
+            try:
+                routing_key = self._routing_key(message.canonical)
+                body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
+            except (MappingError, SchemaError) as exc:  # a field the key needs is missing: no retry can help
+                results[index] = MessageRejected(str(exc))
+                continue
+            meta = message.meta
+            properties = spec.Basic.Properties(
                 content_type=self._content_type,
                 delivery_mode=self._delivery_mode,
                 message_id=message.message_id,
                 headers={"x-rabbitros-route": meta["route"], "x-rabbitros-generation": meta["generation"]},
-            ),
-            self._kind,
-            self._durable,
-        )
+            )
+            publishable.append(index)
+            batch.append((routing_key, body, properties))
+        if batch:
+            for index, error in zip(publishable, await self._connection.publish_batch(self._exchange, batch, self._kind, self._durable)):
+                results[index] = error
+        return results
 
 
 class AmqpTransport(Transport):
     name = "amqp"
     default_settings = {"url": "amqp://guest:guest@localhost:5672/"}
+    accepts_secrets = True
 
     def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
-        parts = urlsplit(str(settings.get("url", "")))
-        if parts.scheme not in ("amqp", "amqps") or not parts.hostname:
-            yield None, f"not an amqp:// URL: {redact(str(settings.get('url', '')))!r}"
+        try:
+            parts = urlsplit(str(reveal(settings.get("url", ""))))
+            valid = parts.scheme in ("amqp", "amqps") and bool(parts.hostname)
+        except ValueError:
+            valid = False
+        if not valid:
+            yield None, f"not an amqp:// URL: {redact(settings.get('url', ''))!r}"
 
     def check_source(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         if "queue" not in options and "exchange" not in options:

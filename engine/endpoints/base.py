@@ -4,18 +4,26 @@ The engine core (routes, pipeline, runtime) knows only these types. Each protoco
 one module of this package that subclasses them and translates its library's exceptions
 into :class:`EndpointError` at the edge, so a new protocol means one new file.
 
-Delivery contract: a :class:`Source` hands each message to ``deliver`` and waits for it.
-``deliver`` returns once the message is settled (accepted by the sink, or dead-lettered);
-only then may the source acknowledge it upstream. If ``deliver`` raises, the message was
-not settled and the source must let it be redelivered (AMQP: nack with requeue).
+Delivery contract: a :class:`Source` hands messages to the :class:`Deliver` it was started
+with, in batches (``await deliver.batch(inbounds)``, everything it has ready) or one at a
+time (``await deliver(inbound)``). Either returns once the messages are *settled*: accepted
+by the sink or dead-lettered. Which failures are retried and which are dead-lettered is
+decided by the engine (engine/delivery.py), never by a source or a sink: endpoints only
+raise :class:`EndpointError` (transient) or :class:`MessageRejected` (permanent) at the edge.
+A message ``batch`` reports as not settled (or for which ``deliver`` raised) was not
+delivered - this happens only while the route stops, or when even the dead letters fail -
+and the source must let it be redelivered if it can (AMQP: nack with requeue); a source
+that cannot (ROS 2, MAVLink) counts it as dropped.
 """
 
 from __future__ import annotations
 
+import asyncio
 import time
 from abc import ABC, abstractmethod
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Awaitable, Callable, ClassVar, Iterable, Mapping
+from typing import Any, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
 
 
 class EndpointError(Exception):
@@ -27,6 +35,12 @@ class EndpointError(Exception):
 class MessageRejected(EndpointError):
     """This message can never be accepted by this sink (a field the type lacks, a value out
     of range). Retrying cannot help, so the engine dead-letters it instead of redelivering."""
+
+
+OVERFLOW_POLICIES = ("block", "drop_oldest", "drop_newest")
+"""What a source does when its bounded queue towards the pipeline is full: stop taking from
+its protocol until there is room (``block``: the protocol's own flow control or history
+holds the rest), or drop the oldest / the newest message and count it."""
 
 
 @dataclass(slots=True)
@@ -42,6 +56,9 @@ class Inbound:
     fields: dict[str, Any] | None = None
     meta: dict[str, Any] = field(default_factory=dict)
     received_ns: int = field(default_factory=time.monotonic_ns)
+    undecodable: str | None = None
+    """Set by a source that received something it could not turn into a message (why);
+    the engine dead-letters it (stage ``decode``) with whatever ``body`` the source kept."""
 
 
 @dataclass(slots=True)
@@ -60,7 +77,76 @@ class Outbound:
     meta: Mapping[str, Any]
 
 
-Deliver = Callable[[Inbound], Awaitable[None]]
+class Deliver(Protocol):
+    """What a route gives its source: where messages go, and the source's bounds."""
+
+    overflow: str
+    """One of :data:`OVERFLOW_POLICIES`, for sources that queue messages in memory."""
+    queue_limit: int
+    """The most messages a source may hold between its protocol and ``batch``."""
+
+    async def __call__(self, inbound: Inbound) -> None:
+        """Settle one message; raises :class:`EndpointError` if it could not be settled."""
+
+    async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
+        """Settle messages in order; ``result[i]`` says whether ``inbounds[i]`` was settled."""
+
+    def dropped(self, count: int = 1) -> None:
+        """Count messages the source dropped (overflow, or not settled and not redeliverable)."""
+
+
+T = TypeVar("T")
+
+
+class Inbox(Generic[T]):
+    """A push source's bounded queue towards its batch loop (ROS 2 takes, MAVLink frames).
+
+    ``offer`` applies the overflow policy and says how many it dropped; with ``block`` the
+    source must stop taking from its protocol while ``full``. ``take`` waits for the first
+    item and returns everything queued (at most ``most``); [] once closed and empty."""
+
+    def __init__(self, limit: int, overflow: str = "block") -> None:
+        self.items: deque[T] = deque()
+        self.limit = max(1, limit)
+        self.overflow = overflow
+        self.closed = False
+        self._arrived = asyncio.Event()
+
+    @property
+    def full(self) -> bool:
+        return len(self.items) >= self.limit
+
+    def offer(self, item: T) -> int:
+        """Queue ``item`` (call :meth:`wake` after a burst); returns the number dropped."""
+        items = self.items
+        if len(items) >= self.limit:
+            if self.overflow == "drop_newest":
+                return 1
+            if self.overflow == "drop_oldest":
+                items.popleft()
+                items.append(item)
+                return 1
+        items.append(item)
+        return 0
+
+    def wake(self) -> None:
+        self._arrived.set()
+
+    def close(self) -> None:
+        self.closed = True
+        self._arrived.set()
+
+    async def take(self, most: int) -> list[T]:
+        items = self.items
+        while not items:
+            if self.closed:
+                return []
+            self._arrived.clear()
+            await self._arrived.wait()
+        return [items.popleft() for _ in range(min(len(items), most))]
+
+    def __len__(self) -> int:
+        return len(self.items)
 
 
 class Source(ABC):
@@ -72,11 +158,29 @@ class Source(ABC):
     async def stop(self) -> None:
         """Stop taking messages and wait for those in flight; unsettled ones are redelivered."""
 
+    def status(self) -> dict[str, Any]:
+        """What the source wants operators to see in the status (counters, problems)."""
+        return {}
+
 
 class Sink(ABC):
     @abstractmethod
     async def send(self, message: Outbound) -> None:
         """Return once the destination has accepted the message; raise EndpointError if not."""
+
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        """Deliver several messages; ``result[i]`` is None when ``messages[i]`` was accepted,
+        else the error (EndpointError or MessageRejected). Sinks whose protocol can pipeline
+        (AMQP with publisher confirms) override this; the default sends one by one."""
+        results: list[BaseException | None] = []
+        for message in messages:
+            try:
+                await self.send(message)
+            except Exception as error:  # classified by the engine's delivery policy
+                results.append(error)
+            else:
+                results.append(None)
+        return results
 
     async def close(self) -> None:
         """Release what the sink holds (the connection itself stays open)."""
@@ -86,18 +190,12 @@ class Connection(ABC):
     """One named connection (a broker, a ROS 2 node, a MAVLink link) shared by routes."""
 
     keeps_dead_letters: ClassVar[bool] = False
-    """True where :meth:`dead_letter` stores messages durably (a broker); the engine hands
-    a route's unconvertible messages to the first of its connections that does."""
+    """True where :meth:`dead_letter` stores messages durably (a broker), so the engine can
+    use this connection as its dead-letter destination."""
 
     def __init__(self, name: str, settings: Mapping[str, Any]) -> None:
         self.name = name
         self.settings = settings
-
-    @property
-    def healthy(self) -> bool:
-        """True while the connection can carry messages (read by /healthz and the status);
-        protocols that can tell override it."""
-        return True
 
     @abstractmethod
     async def open(self) -> None: ...
@@ -111,7 +209,23 @@ class Connection(ABC):
     @abstractmethod
     async def close(self) -> None: ...
 
-    async def dead_letter(self, route: str, body: bytes, headers: Mapping[str, Any]) -> None:
+    @property
+    def healthy(self) -> bool:
+        """False while the connection is known to be down: the engine then waits for it instead
+        of counting delivery attempts against messages, and /healthz and the status show it."""
+        return True
+
+    def health(self) -> dict[str, Any]:
+        """What the status shows: ``state`` (up, connecting, reconnecting, down) and, when
+        known, ``last_error`` (never a secret)."""
+        return {"state": "up" if self.healthy else "down"}
+
+    async def prepare_dead_letters(self, max_length: int | None) -> None:
+        """Declare what :meth:`dead_letter` needs (only where ``keeps_dead_letters``)."""
+        raise NotImplementedError
+
+    async def dead_letter(self, route: str, messages: Sequence[tuple[bytes, Mapping[str, Any]]]) -> None:
+        """Store ``(body, headers)`` dead letters of ``route``; raise EndpointError if not stored."""
         raise NotImplementedError
 
 
@@ -124,6 +238,9 @@ class Transport(ABC):
 
     name: ClassVar[str]
     default_settings: ClassVar[Mapping[str, Any]]
+    accepts_secrets: ClassVar[bool] = False
+    """True when the connection settings may hold engine.redaction.Secret values, which the
+    endpoint reveals only where it connects; otherwise the loader hands it plain values."""
 
     def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
         return ()

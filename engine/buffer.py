@@ -1,0 +1,482 @@
+"""Messages a route holds while its sink is down, in memory or spilled to disk.
+
+A ROS 2 or MAVLink source cannot have a message redelivered, so when the sink fails
+transiently (the broker is down, a link is out) the route's runner hands the converted
+message to its :class:`HoldingBuffer` and the source moves on. While the buffer holds
+anything, new messages queue behind it, so order is kept. One task per buffer retries the
+oldest messages with exponential backoff (and without trying at all while the sink's
+connection reports itself unhealthy), in batches sent concurrently, and counts each
+delivered message for the route.
+
+Bounded: at most ``max_messages`` are held; a full buffer makes ``hold`` wait (back-pressure
+to the source, whose own bounded queue then applies its overflow policy).
+
+Spill (``spill_dir``): every held message is appended as one JSON line to a segment file
+in ``spill_dir/<route>/`` (``<first sequence number>.jsonl``, rolled every
+``SEGMENT_MESSAGES``); ``cursor.json`` records how far delivery got (replaced atomically
+after each delivered batch); a fully delivered segment is deleted. At start the buffer
+replays what the files still hold, so an engine restart during an outage loses nothing that
+was spilled.
+
+Fsync policy: each message is written with one ``os.write`` before the source is
+acknowledged, so it is in the kernel's page cache and survives the engine process dying
+(SIGTERM, a crash, kill -9), which is the failure this buffer exists for. ``fsync`` runs at
+most every ``fsync_interval`` seconds (default 1 s) while there are new writes, when a segment
+is rolled and at close, so a power loss or kernel crash loses at most the last second. An
+fsync per message would cost a disk flush per message (milliseconds on an SD card) and cap a
+robot's throughput during the outage exactly when the backlog grows. A torn last line (a
+write cut by a power loss) is skipped and counted as ``corrupt``. Delivery is at least once:
+a crash between a delivered batch and its cursor update resends that batch.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import collections
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Awaitable, Callable, Iterator
+
+import orjson
+
+from engine.endpoints.base import EndpointError, MessageRejected, Outbound
+
+log = logging.getLogger("engine.buffer")
+
+DEFAULT_MAX_MESSAGES = 10_000
+SEGMENT_MESSAGES = 1_000
+BATCH = 64
+RETRY_FIRST, RETRY_MAX = 0.1, 2.0
+IDLE_POLL = 0.1
+"""Seconds between looks at an unhealthy sink's connection: a look costs nothing, and it
+bounds the time from the connection's return to the first message sent."""
+
+SendBatch = Callable[[list[Outbound]], Awaitable[list[BaseException | None]]]
+"""Sends messages in order; ``result[i]`` is None when ``messages[i]`` was accepted."""
+
+
+@dataclass(frozen=True)
+class BufferSpec:
+    """A route's ``buffer:`` option, parsed once."""
+
+    max_messages: int = DEFAULT_MAX_MESSAGES
+    spill_dir: Path | None = None
+    fsync_interval: float = 1.0
+
+    @classmethod
+    def parse(cls, value: Any, source_protocol: str, base: Path) -> BufferSpec | None:
+        """``buffer: false`` is none; absent is the default for sources that cannot have a
+        message redelivered (ROS 2, MAVLink) and none for AMQP, whose broker keeps them."""
+        if value is False or (value is None and source_protocol == "amqp"):
+            return None
+        value = value or {}
+        spill = value.get("spill_dir")
+        return cls(
+            int(value.get("max_messages", DEFAULT_MAX_MESSAGES)),
+            (base / spill).resolve() if spill else None,
+            float(value.get("fsync_interval", 1.0)),
+        )
+
+
+@dataclass
+class BufferStats:
+    held: int = 0
+    """Messages held now (memory or disk)."""
+    held_total: int = 0
+    delivered: int = 0
+    rejected: int = 0
+    replayed: int = 0
+    """Messages found in the spill directory at start."""
+    corrupt: int = 0
+    lost: int = 0
+    """Held in memory only and still undelivered when the buffer was closed."""
+    retries: int = 0
+
+
+class HoldingBuffer:
+    """Holds a route's messages while its sink is down; see the module docstring."""
+
+    def __init__(
+        self,
+        route: str,
+        send: SendBatch,
+        *,
+        max_messages: int = DEFAULT_MAX_MESSAGES,
+        spill_dir: Path | None = None,
+        fsync_interval: float = 1.0,
+        max_attempts: int | None = None,
+        ready: Callable[[], bool] = lambda: True,
+        on_delivered: Callable[[int], None] = lambda count: None,
+        on_rejected: Callable[[Outbound, BaseException, int], Awaitable[None]] | None = None,
+    ) -> None:
+        self.route = route
+        self._send = send
+        self.max_messages = max(1, max_messages)
+        self._ready = ready
+        self.max_attempts = max_attempts
+        """Failures of the oldest message while the sink's connection stays healthy after
+        which it is handed to ``on_rejected`` (a message the far end never takes must not
+        hold the route up for ever); failures while the connection is down do not count."""
+        self._on_delivered = on_delivered
+        self._on_rejected = on_rejected
+        self.stats = BufferStats()
+        self._store: _MemoryStore | _SpillStore = (
+            _SpillStore(spill_dir / route, fsync_interval) if spill_dir is not None else _MemoryStore()
+        )
+        self._changed = asyncio.Event()
+        self._closing = asyncio.Event()
+        self._room = asyncio.Event()
+        self._room.set()
+        self._task: asyncio.Task[None] | None = None
+        self._closed = False
+        self._last_report = 0.0
+
+    @property
+    def spills(self) -> bool:
+        return isinstance(self._store, _SpillStore)
+
+    @property
+    def holding(self) -> bool:
+        return self.stats.held > 0
+
+    def __len__(self) -> int:
+        return self.stats.held
+
+    def start(self) -> None:
+        """Replay what a previous run spilled, and begin delivering it."""
+        if self._task is not None:
+            return
+        found, corrupt = self._store.load()
+        self.stats.held = self.stats.replayed = found
+        self.stats.corrupt += corrupt
+        if found:
+            log.info("replaying spilled messages", extra={"route": self.route, "messages": found, "corrupt": corrupt})
+        self._update_room()
+        self._task = asyncio.create_task(self._deliver_loop(), name=f"buffer-{self.route}")
+
+    async def hold(self, message: Outbound) -> None:
+        """Keep ``message`` until the sink takes it; returns once it is held (written, when
+        spilling), waiting while the buffer is full."""
+        while self.stats.held >= self.max_messages:
+            self._room.clear()
+            await self._room.wait()
+        self._store.append(message)
+        self.stats.held += 1
+        self.stats.held_total += 1
+        self._update_room()
+        self._changed.set()
+        if self._task is None:
+            self.start()
+
+    async def close(self, timeout: float = 0.0) -> None:
+        """Keep delivering for at most ``timeout`` seconds, then stop. Spilled messages stay
+        on disk for the next start; messages held only in memory are counted as lost."""
+        if self._task is None:
+            return
+        if timeout > 0 and self.holding and self._ready():
+            deadline = time.monotonic() + timeout
+            while self.holding and time.monotonic() < deadline and not self._task.done():
+                await asyncio.sleep(0.02)
+        self._closed = True
+        self._closing.set()
+        self._changed.set()
+        try:  # a batch being sent finishes and is recorded, so the next start does not resend it
+            await asyncio.wait_for(asyncio.shield(self._task), 5.0)
+        except (asyncio.TimeoutError, asyncio.CancelledError):
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+        self._task = None
+        self._store.close()
+        if not self.spills and self.stats.held:
+            self.stats.lost += self.stats.held
+            log.error("buffer closed with undelivered messages", extra={"route": self.route, "lost": self.stats.held})
+        elif self.stats.held:
+            log.info("spilled messages kept for the next start", extra={"route": self.route, "messages": self.stats.held})
+
+    def _update_room(self) -> None:
+        if self.stats.held < self.max_messages:
+            self._room.set()
+
+    async def _deliver_loop(self) -> None:
+        delay = RETRY_FIRST
+        head_attempts = 0
+        sent_ahead: set[int] = set()
+        while not self._closed:
+            if not self.holding:
+                self._changed.clear()
+                await self._changed.wait()
+                continue
+            if not self._ready():
+                await self._pause(IDLE_POLL)
+                continue
+            batch = self._store.peek(BATCH)
+            if not batch:  # the count says more than the files hold (corrupt lines)
+                self.stats.held = 0
+                continue
+            to_send = [m for i, m in enumerate(batch) if i not in sent_ahead]
+            try:
+                sent = iter(await self._send(to_send))
+            except Exception as error:  # the sink's contract is to return errors; be safe anyway
+                sent = iter([error] * len(to_send))
+            results = [None if i in sent_ahead else next(sent) for i in range(len(batch))]
+            settled = delivered = 0
+            failure: BaseException | None = None
+            for message, result in zip(batch, results):
+                if result is None:
+                    delivered += 1
+                elif isinstance(result, MessageRejected) or not isinstance(result, EndpointError):
+                    await self._reject(message, result, head_attempts + 1)
+                else:
+                    failure = result
+                    break
+                settled += 1
+            if settled:
+                self._store.pop(settled)
+                self.stats.held -= settled
+                self.stats.delivered += delivered
+                self._on_delivered(delivered)
+                self._update_room()
+                head_attempts = 0
+            # accepted behind the failed one: not sent again while they wait for it
+            sent_ahead = {i - settled for i in range(settled + 1, len(batch)) if results[i] is None}
+            if failure is None:
+                delay = RETRY_FIRST
+                continue
+            self.stats.retries += 1
+            if self._ready():  # the connection looks fine, so this counts against the message
+                head_attempts += 1
+                if self.max_attempts is not None and settled == 0 and head_attempts >= self.max_attempts:
+                    await self._reject(batch[0], EndpointError(f"gave up after {head_attempts} attempts: {failure}"), head_attempts)
+                    self._store.pop(1)
+                    self.stats.held -= 1
+                    sent_ahead = {i - 1 for i in sent_ahead if i > 0}
+                    self._update_room()
+                    head_attempts = 0
+                    continue
+            now = time.monotonic()
+            if now - self._last_report > 10.0:
+                self._last_report = now
+                log.warning("sink down; holding messages", extra={"route": self.route, "held": self.stats.held, "error": str(failure)})
+            await self._pause(delay)
+            delay = min(delay * 2, RETRY_MAX)
+
+    async def _reject(self, message: Outbound, error: BaseException, attempts: int) -> None:
+        self.stats.rejected += 1
+        if self._on_rejected is not None:
+            try:
+                await self._on_rejected(message, error, attempts)
+            except Exception as failure:  # the dead letters are down too: say so, keep going
+                log.error("buffer: could not dead-letter a rejected message",
+                          extra={"route": self.route, "error": str(error), "dead_letter_error": str(failure)})
+
+    async def _pause(self, seconds: float) -> None:
+        """Sleep, but wake at once when the buffer is closed."""
+        try:
+            await asyncio.wait_for(self._closing.wait(), seconds)
+        except asyncio.TimeoutError:
+            pass
+
+
+def encode(message: Outbound) -> bytes:
+    """One JSON line for a held message."""
+    try:
+        body: dict[str, str] = {"b": message.body.decode("utf-8")}
+    except UnicodeDecodeError:
+        body = {"b64": base64.b64encode(message.body).decode()}
+    record = {**body, "id": message.message_id, "c": message.canonical, "m": dict(message.meta)}
+    if message.fields is not message.canonical:
+        record["f"] = message.fields
+    return orjson.dumps(record, default=str, option=orjson.OPT_APPEND_NEWLINE)
+
+
+def decode(line: bytes) -> Outbound:
+    record = orjson.loads(line)
+    body = record["b"].encode() if "b" in record else base64.b64decode(record["b64"])
+    canonical = record["c"]
+    return Outbound(body, canonical, record.get("f", canonical), record["id"], record["m"])
+
+
+class _MemoryStore:
+    def __init__(self) -> None:
+        self._messages: collections.deque[Outbound] = collections.deque()
+
+    def load(self) -> tuple[int, int]:
+        return len(self._messages), 0
+
+    def append(self, message: Outbound) -> None:
+        self._messages.append(message)
+
+    def peek(self, count: int) -> list[Outbound]:
+        return [self._messages[i] for i in range(min(count, len(self._messages)))]
+
+    def pop(self, count: int) -> None:
+        for _ in range(count):
+            self._messages.popleft()
+
+    def close(self) -> None:
+        pass
+
+
+class _SpillStore:
+    """Append-only JSON-lines segments plus a cursor; see the module docstring."""
+
+    def __init__(self, directory: Path, fsync_interval: float) -> None:
+        self.directory = directory
+        self.fsync_interval = fsync_interval
+        self._segments: list[int] = []  # first sequence numbers, oldest first
+        self._write_fd: int | None = None
+        self._write_count = 0
+        self._next_seq = 0
+        self._dirty = False
+        self._last_sync = time.monotonic()
+        self._read: tuple[int, int] = (0, 0)  # (segment, byte offset) of the oldest held message
+        self._peeked: list[tuple[Outbound, int, int]] = []  # message, segment, offset after it
+
+    def load(self) -> tuple[int, int]:
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self._segments = sorted(int(p.stem) for p in self.directory.glob("*.jsonl") if p.stem.isdigit())
+        segment, offset = 0, 0
+        try:
+            cursor = orjson.loads((self.directory / "cursor.json").read_bytes())
+            segment, offset = int(cursor["segment"]), int(cursor["offset"])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+        for stale in [s for s in self._segments if s < segment]:
+            self._path(stale).unlink(missing_ok=True)
+        self._segments = [s for s in self._segments if s >= segment]
+        if self._segments and self._segments[0] != segment:
+            offset = 0
+        self._read = (self._segments[0], offset) if self._segments else (0, 0)
+        found = corrupt = 0
+        for seg in self._segments:
+            start = offset if seg == self._read[0] else 0
+            for line in self._lines(seg, start):
+                if _valid(line):
+                    found += 1
+                else:
+                    corrupt += 1
+        if self._segments:
+            last = self._segments[-1]
+            self._next_seq = last + sum(1 for _ in self._lines(last, 0))
+        return found, corrupt
+
+    def _path(self, segment: int) -> Path:
+        return self.directory / f"{segment:020d}.jsonl"
+
+    def _lines(self, segment: int, offset: int) -> Iterator[bytes]:
+        try:
+            with open(self._path(segment), "rb") as file:
+                file.seek(offset)
+                for line in file:
+                    yield line
+        except FileNotFoundError:
+            return
+
+    def append(self, message: Outbound) -> None:
+        if self._write_fd is None or self._write_count >= SEGMENT_MESSAGES:
+            self._roll()
+        assert self._write_fd is not None
+        os.write(self._write_fd, encode(message))
+        self._write_count += 1
+        self._next_seq += 1
+        self._dirty = True
+        now = time.monotonic()
+        if now - self._last_sync >= self.fsync_interval:
+            self._sync(now)
+
+    def _roll(self) -> None:
+        if self._write_fd is not None:
+            os.fsync(self._write_fd)
+            os.close(self._write_fd)
+        segment = self._next_seq
+        self._write_fd = os.open(self._path(segment), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+        self._write_count = 0
+        if not self._segments or self._segments[-1] != segment:
+            self._segments.append(segment)
+            if len(self._segments) == 1:
+                self._read = (segment, 0)
+        _fsync_dir(self.directory)
+
+    def _sync(self, now: float) -> None:
+        if self._write_fd is not None and self._dirty:
+            os.fsync(self._write_fd)
+        self._dirty = False
+        self._last_sync = now
+
+    def peek(self, count: int) -> list[Outbound]:
+        """The oldest ``count`` messages (skipping torn lines), remembering where each ends."""
+        self._peeked = []
+        segment_index = 0
+        segment, offset = self._read
+        while len(self._peeked) < count and segment_index < len(self._segments):
+            seg = self._segments[segment_index]
+            if seg < segment:
+                segment_index += 1
+                continue
+            start = offset if seg == segment else 0
+            position = start
+            for line in self._lines(seg, start):
+                if not line.endswith(b"\n") and seg == self._segments[-1]:
+                    break  # being written
+                position += len(line)
+                try:
+                    message = decode(line)
+                except (ValueError, KeyError, TypeError):
+                    log.error("spill: skipping a corrupt line", extra={"file": str(self._path(seg))})
+                    continue
+                self._peeked.append((message, seg, position))
+                if len(self._peeked) >= count:
+                    break
+            segment_index += 1
+        return [message for message, _, _ in self._peeked]
+
+    def pop(self, count: int) -> None:
+        _, segment, offset = self._peeked[count - 1]
+        self._peeked = []
+        self._read = (segment, offset)
+        for old in [s for s in self._segments if s < segment]:
+            self._segments.remove(old)
+            self._path(old).unlink(missing_ok=True)
+        if self._segments and segment != self._segments[-1] and offset >= self._path(segment).stat().st_size:
+            self._segments.remove(segment)  # fully delivered and no longer written
+            self._path(segment).unlink(missing_ok=True)
+            self._read = (self._segments[0], 0) if self._segments else (0, 0)
+        self._write_cursor()
+
+    def _write_cursor(self) -> None:
+        segment, offset = self._read
+        tmp = self.directory / "cursor.json.tmp"
+        tmp.write_bytes(orjson.dumps({"segment": segment, "offset": offset}))
+        os.replace(tmp, self.directory / "cursor.json")
+
+    def close(self) -> None:
+        if self._write_fd is not None:
+            os.fsync(self._write_fd)
+            os.close(self._write_fd)
+            self._write_fd = None
+
+
+def _valid(line: bytes) -> bool:
+    if not line.endswith(b"\n"):
+        return False
+    try:
+        decode(line)
+    except (ValueError, KeyError, TypeError):
+        return False
+    return True
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def stats_dict(buffer: HoldingBuffer) -> dict[str, Any]:
+    return {**asdict(buffer.stats), "max_messages": buffer.max_messages, "spill": buffer.spills}

@@ -1,0 +1,159 @@
+"""Test peers for broker outages: an AMQP publisher and collector that ride out a broker
+killed with -9 (robust connections, publisher confirms, manual acks), a ROS 2 peer, and the
+bookkeeping of sent / delivered / duplicates and of the time from a broker's restart to the
+first message delivered after it."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import aio_pika
+
+
+@dataclass
+class Tally:
+    """Arrivals of one flow: seq -> copies, and when each arrival happened (monotonic)."""
+
+    name: str
+    sent: int = 0
+    copies: dict[int, int] = field(default_factory=dict)
+    arrivals: list[float] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def record(self, seq: int) -> None:
+        with self.lock:
+            self.copies[seq] = self.copies.get(seq, 0) + 1
+            self.arrivals.append(time.monotonic())
+
+    @property
+    def delivered(self) -> int:
+        return len(self.copies)
+
+    @property
+    def duplicates(self) -> int:
+        return sum(count - 1 for count in self.copies.values())
+
+    def lost(self, expected: range) -> list[int]:
+        return [seq for seq in expected if seq not in self.copies]
+
+    def first_after(self, moment: float) -> float | None:
+        """Seconds from ``moment`` to the first arrival after it."""
+        later = [t for t in self.arrivals if t >= moment]
+        return min(later) - moment if later else None
+
+    def figures(self, expected: range) -> str:
+        return (f"{self.name}: sent={self.sent} delivered={self.delivered} "
+                f"duplicates={self.duplicates} lost={len(self.lost(expected))}")
+
+
+async def robust(url: str) -> aio_pika.abc.AbstractRobustConnection:
+    return await aio_pika.connect_robust(url, reconnect_interval=0.5)
+
+
+class Collector:
+    """A durable queue bound to ``exchange``; acks each message after recording it, so a
+    broker killed mid-delivery redelivers (a duplicate) instead of losing it."""
+
+    def __init__(self, tally: Tally) -> None:
+        self.tally = tally
+
+    async def bind(self, connection: Any, queue: str, exchange: str, key: str = "#") -> None:
+        channel = await connection.channel()
+        await channel.set_qos(prefetch_count=500)
+        target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
+        declared = await channel.declare_queue(queue, durable=True)
+        await declared.bind(target, key)
+        await declared.consume(self._on_message)
+
+    async def _on_message(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        try:
+            self.tally.record(json.loads(message.body)["seq"])
+            await message.ack()
+        except Exception:
+            pass  # the broker is gone: it redelivers what was not acked
+
+
+async def publish_reliably(connection: Any, exchange: str, key: str, seqs: range, rate: float,
+                           tally: Tally, extra: Callable[[int], dict[str, Any]] = lambda seq: {}) -> None:
+    """Publish every seq with publisher confirms at ``rate`` msg/s; a publish that fails (the
+    broker died) is retried until confirmed."""
+    channel = await connection.channel(publisher_confirms=True)
+    target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
+    started = time.monotonic()
+    for index, seq in enumerate(seqs):
+        body = json.dumps({"seq": seq, **extra(seq)}).encode()
+        while True:
+            try:
+                await asyncio.wait_for(target.publish(
+                    aio_pika.Message(body, delivery_mode=aio_pika.DeliveryMode.PERSISTENT), key), 30)
+                break
+            except Exception:
+                await asyncio.sleep(0.2)
+        tally.sent += 1
+        delay = started + (index + 1) / rate - time.monotonic()
+        if delay > 0:
+            await asyncio.sleep(delay)
+
+
+class RosPeer:
+    """The robot side, in its own rclpy context and executor thread: publishes String JSON on
+    ``up`` and records ``down`` into a tally."""
+
+    def __init__(self, domain: int, name: str, up: str, down: str, tally_down: Tally) -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rclpy.signals import SignalHandlerOptions
+        from std_msgs.msg import String
+
+        self._String = String
+        self.context = rclpy.Context()
+        rclpy.init(args=[], context=self.context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node(name, context=self.context)
+        qos = QoSProfile(depth=100_000, reliability=ReliabilityPolicy.RELIABLE)
+        self.publisher = self.node.create_publisher(String, up, qos)
+        self.node.create_subscription(String, down, lambda msg: tally_down.record(json.loads(msg.data)["seq"]), qos)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._stop = threading.Event()
+        self._spinner = threading.Thread(target=self._spin, daemon=True)
+        self._spinner.start()
+
+    def _spin(self) -> None:
+        while not self._stop.is_set():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def publish(self, seq: int) -> None:
+        self.publisher.publish(self._String(data=json.dumps({"seq": seq})))
+
+    def publish_paced(self, seqs: range, rate: float, tally: Tally) -> None:
+        started = time.monotonic()
+        for index, seq in enumerate(seqs):
+            self.publish(seq)
+            tally.sent += 1
+            delay = started + (index + 1) / rate - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+
+    def subscribers(self, topic: str) -> int:
+        return self.node.count_subscribers(topic)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._spinner.join(5)
+        self.executor.shutdown(timeout_sec=1)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+async def wait_for(predicate: Callable[[], bool], timeout: float, what: str, interval: float = 0.1) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out after {timeout:.0f}s waiting for {what}")
+        await asyncio.sleep(interval)
