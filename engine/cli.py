@@ -16,7 +16,7 @@ from typing import Sequence
 from engine import __version__
 from engine.endpoints.amqp import redact
 from engine.endpoints.base import EndpointError
-from engine.local_broker import BrokerError, LocalBroker
+from engine.local_broker import BrokerError, LocalBroker, LocalCluster
 from engine.logs import setup_logging
 from engine.routes import RoutesInvalid, load_routes
 from engine.runtime import Engine
@@ -52,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
     common(run)
     run.add_argument("--local-broker", action="store_true", help="start a private RabbitMQ node and use it as the default AMQP connection")
     run.add_argument("--broker-url-file", type=Path, help="with --local-broker: write the broker's URL to this file")
+    run.add_argument("--cluster", type=int, default=1, metavar="N",
+                     help="with --local-broker: start N nodes joined in one cluster (default 1); the default AMQP connection lists them all")
     run.add_argument("--status-file", type=Path, help="keep the live status (generation, config hash, counters) in this JSON file")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
     run.add_argument("--stats-interval", type=float, default=10.0, help="seconds between status updates and counter logs")
@@ -99,18 +101,25 @@ def check(routes: Path, schemas: Path) -> int:
 
 
 async def run(args: argparse.Namespace) -> int:
-    broker: LocalBroker | None = None
+    broker: LocalBroker | LocalCluster | None = None
+    if args.cluster < 1 or (args.cluster > 1 and not args.local_broker):
+        log.error("--cluster N needs --local-broker and N >= 1")
+        return 2
     if args.local_broker:
-        broker = LocalBroker()
+        broker = LocalCluster(args.cluster) if args.cluster > 1 else LocalBroker()
         try:
-            url = await asyncio.to_thread(broker.start)
+            await asyncio.to_thread(broker.start)
         except BrokerError as exc:
             log.error("local broker failed to start", extra={"error": str(exc)})
             return 1
-        os.environ["RABBITROS_AMQP_URL"] = url
-        log.info("local broker started", extra={"url": redact(url), "node": broker.node})
+        urls = broker.urls if isinstance(broker, LocalCluster) else [broker.url]
+        os.environ["RABBITROS_AMQP_URL"] = urls[0]
+        if len(urls) > 1:
+            os.environ["RABBITROS_AMQP_URLS"] = " ".join(urls)
+        nodes = [n.node for n in broker.nodes] if isinstance(broker, LocalCluster) else [broker.node]
+        log.info("local broker started", extra={"urls": [redact(u) for u in urls], "nodes": nodes})
         if args.broker_url_file:
-            _write_atomically(args.broker_url_file, url + "\n")
+            _write_atomically(args.broker_url_file, "\n".join(urls) + "\n")
     try:
         return await serve(args)
     finally:

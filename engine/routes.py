@@ -330,6 +330,9 @@ def _default_connection(protocol: str) -> ConnectionSpec:
     settings = dict(endpoints.transport(protocol).default_settings)
     if protocol == "amqp":
         settings["url"] = default_amqp_url()
+        cluster = os.environ.get("RABBITROS_AMQP_URLS", "").split()
+        if cluster:  # a local cluster (--local-broker --cluster N): every node, first one first
+            settings = {"urls": cluster}
     return ConnectionSpec(f"default-{protocol}", protocol, settings)
 
 
