@@ -86,6 +86,28 @@ class RouteSpec:
     line: int = field(default=0, compare=False)
     delivery: RouteDelivery = field(default=RouteDelivery(), compare=False)
     """max_attempts, overflow and the size limits (the fingerprint covers them)."""
+    placement: Placement = field(default_factory=lambda: Placement())
+    """Which engine instances carry the route (scale-out); the default: every instance."""
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where a route runs when several engine instances share a routes directory.
+
+    ``instances``: only on these instances (by ``--instance`` name). ``active_standby``:
+    on every instance that can see the source, but only the holder of the broker lease
+    ``lease_name`` (on AMQP connection ``lease_connection``) forwards. ``ordered`` (AMQP
+    sources): single active consumer, one instance at a time, in order."""
+
+    instances: tuple[str, ...] | None = None
+    active_standby: bool = False
+    ordered: bool = False
+    lease_name: str = ""
+    lease_connection: str | None = None
+    lease_heartbeat: float = 1.0
+
+    def runs_on(self, instance: str) -> bool:
+        return self.instances is None or instance in self.instances
 
 
 @dataclass(frozen=True)
@@ -365,8 +387,11 @@ def _compile_routes(
                 problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)})"))
             if source and sink:
                 _endpoint_checks(document, where, name, source, sink, mapping, sink_mapping, problems)
-            if len(problems) > before or not (source and sink):
+            placement = _placement(document, where, name, body, source, sink, connections, problems) if source and sink else None
+            if len(problems) > before or not (source and sink and placement):
                 continue
+            if placement.ordered and source.protocol == "amqp":
+                source = EndpointSpec(source.protocol, source.connection, {**source.options, "ordered": True})
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
             fingerprint = hashlib.sha256(
                 json.dumps(
@@ -383,7 +408,7 @@ def _compile_routes(
             )
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
-                document.file, document.line(where), delivery,
+                document.file, document.line(where), delivery, placement,
             )
     return routes
 
@@ -421,6 +446,54 @@ def _compile_dead_letters(
         problems.append(where.problem(("dead_letters",), f"several amqp connections ({', '.join(amqp)}) could keep dead letters; name one with dead_letters: {{connection: ...}}"))
         return spec
     return DeadLetterSpec(amqp[0], spec.max_length, spec.spool_dir, spec.spool_max_bytes)
+
+
+def _placement(
+    document: _Document,
+    where: Path_,
+    route: str,
+    body: Mapping[str, Any],
+    source: EndpointSpec,
+    sink: EndpointSpec,
+    connections: Mapping[str, ConnectionSpec],
+    problems: list[Problem],
+) -> Placement | None:
+    """The route's scale-out keys (``instances``, ``active_standby``, ``lease``, ``ordered``)."""
+    before = len(problems)
+    ordered = bool(body.get("ordered", False))
+    active_standby = bool(body.get("active_standby", False))
+    lease = body.get("lease") or {}
+    if ordered and source.protocol != "amqp":
+        problems.append(document.problem(where + ("ordered",), f"route {route!r}: ordered applies to AMQP sources (a {source.protocol} source is carried by one instance: use instances or active_standby)"))
+    if active_standby and source.protocol == "amqp":
+        problems.append(document.problem(where + ("active_standby",), f"route {route!r}: an AMQP source is shared by competing consumers; use ordered: true for one instance at a time"))
+    if lease and not active_standby:
+        problems.append(document.problem(where + ("lease",), f"route {route!r}: lease needs active_standby: true"))
+    lease_connection = None
+    if active_standby:
+        lease_connection = lease.get("connection")
+        if lease_connection is None:
+            if sink.protocol == "amqp":
+                lease_connection = sink.connection
+            else:
+                amqp = sorted(n for n, c in connections.items() if c.protocol == "amqp")
+                if len(amqp) != 1:
+                    problems.append(document.problem(where + ("active_standby",), f"route {route!r}: active_standby needs an AMQP connection for its lease; name one with lease: {{connection: NAME}}" + (f" ({', '.join(amqp)})" if amqp else "")))
+                else:
+                    lease_connection = amqp[0]
+        elif lease_connection not in connections or connections[lease_connection].protocol != "amqp":
+            problems.append(document.problem(where + ("lease", "connection"), f"route {route!r}: lease connection {lease_connection!r} is not an AMQP connection"))
+    if len(problems) > before:
+        return None
+    instances = body.get("instances")
+    return Placement(
+        instances=tuple(instances) if instances else None,
+        active_standby=active_standby,
+        ordered=ordered,
+        lease_name=str(lease.get("name") or route),
+        lease_connection=lease_connection,
+        lease_heartbeat=float(lease.get("heartbeat", 1.0)),
+    )
 
 
 def _mapping_problems(expression: str | None) -> Iterator[str]:

@@ -44,6 +44,7 @@ from engine.endpoints.base import (
     Source,
     Transport,
 )
+from engine.endpoints import amqp_cluster
 from engine.mapping import MappingError, compile_template
 
 _ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError, RuntimeError)
@@ -72,12 +73,27 @@ class AmqpConnection(Connection):
 
     @property
     def url(self) -> str:
-        return str(self.settings["url"])
+        return self.urls[0]
+
+    @property
+    def urls(self) -> list[str]:
+        return amqp_cluster.connection_urls(self.settings)
+
+    @property
+    def queue_type(self) -> str | None:
+        """The type of the queues this connection's routes declare unless they say otherwise."""
+        return self.settings.get("queue_type")
+
+    @property
+    def endpoint(self) -> str | None:
+        """``host:port`` of the broker node in use (a cluster connection fails over)."""
+        connection = self._connection
+        return connection.endpoint if isinstance(connection, amqp_cluster.FailoverConnection) else None
 
     async def open(self) -> None:
         try:
-            self._connection = await aio_pika.connect_robust(
-                self.url,
+            self._connection = await amqp_cluster.connect_failover(
+                self.urls,
                 client_properties={"connection_name": f"rabbitros-engine/{self.name}"},
                 heartbeat=self.settings.get("heartbeat", 30),
             )
@@ -85,7 +101,8 @@ class AmqpConnection(Connection):
                 publisher_confirms=self.settings.get("publisher_confirms", True)
             )
         except _ERRORS as exc:
-            raise EndpointError(f"amqp connection {self.name!r} ({redact(self.url)}): {exc}") from exc
+            nodes = ", ".join(redact(url) for url in self.urls)
+            raise EndpointError(f"amqp connection {self.name!r} ({nodes}): {exc}") from exc
 
     def channel_factory(self) -> aio_pika.abc.AbstractRobustConnection:
         if self._connection is None:
@@ -144,7 +161,9 @@ class AmqpConnection(Connection):
     async def prepare_dead_letters(self, max_length: int | None) -> None:
         """The durable exchange and queue ``rabbitros.dead-letter`` (bounded by ``x-max-length``),
         so dead letters are kept even when nobody listens yet."""
-        arguments = {"x-max-length": max_length} if max_length else None
+        arguments = amqp_cluster.queue_arguments(
+            {"queue_arguments": {"x-max-length": max_length} if max_length else {}}, self.queue_type
+        )
         try:
             await self.exchange(DEAD_LETTER_EXCHANGE)
             channel = await self.channel_factory().channel()
@@ -215,7 +234,7 @@ class AmqpSource(Source):
             self._queue = await self._channel.declare_queue(
                 self.queue_name,
                 durable=options.get("durable", True),
-                arguments=options.get("queue_arguments"),
+                arguments=amqp_cluster.queue_arguments(options, self._connection.queue_type, options.get("ordered", False)),
             )
             if "exchange" in options and options["exchange"] != "":
                 exchange = await self._channel.declare_exchange(
@@ -372,15 +391,14 @@ class AmqpTransport(Transport):
     default_settings = {"url": "amqp://guest:guest@localhost:5672/"}
 
     def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
-        parts = urlsplit(str(settings.get("url", "")))
-        if parts.scheme not in ("amqp", "amqps") or not parts.hostname:
-            yield None, f"not an amqp:// URL: {redact(str(settings.get('url', '')))!r}"
+        yield from amqp_cluster.check_urls(settings, redact)
 
     def check_source(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         if "queue" not in options and "exchange" not in options:
             yield None, "an amqp source needs a queue, an exchange, or both"
         if "binding_key" in options and not options.get("exchange"):
             yield "binding_key", "binding_key needs an exchange to bind to"
+        yield from amqp_cluster.check_queue(options)
 
     def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         if "exchange" not in options and "routing_key" not in options:
