@@ -55,6 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--cluster", type=int, default=1, metavar="N",
                      help="with --local-broker: start N nodes joined in one cluster (default 1); the default AMQP connection lists them all")
     run.add_argument("--status-file", type=Path, help="keep the live status (generation, config hash, counters) in this JSON file")
+    run.add_argument("--instance", metavar="NAME", help="this engine's name among instances sharing the routes (routes' instances:); default the host name")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
     run.add_argument("--stats-interval", type=float, default=10.0, help="seconds between status updates and counter logs")
     run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
@@ -128,7 +129,7 @@ async def run(args: argparse.Namespace) -> int:
 
 
 async def serve(args: argparse.Namespace) -> int:
-    engine = Engine(args.routes, args.schemas or default_schemas(args.routes))
+    engine = Engine(args.routes, args.schemas or default_schemas(args.routes), instance=args.instance)
     try:
         await engine.start()
     except RoutesInvalid as invalid:
@@ -168,7 +169,7 @@ async def serve(args: argparse.Namespace) -> int:
     tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
     if not args.no_watch:
         tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping)))
-    log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__})
+    log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__, "instance": engine.instance})
     await stopping.wait()
     log.info("stopping: draining in-flight messages")
     for task in tasks:

@@ -15,6 +15,7 @@ import asyncio
 import json
 import logging
 import os
+import socket
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -47,6 +48,8 @@ class RouteStats:
     """Sum over delivered messages of the time from reception to the sink's acceptance
     (the paper's t2 - t1), so the mean processing latency is available without a histogram."""
     latency_ns_max: int = 0
+    standby_skipped: int = 0
+    """Messages an ``active_standby`` route received while another instance held the lease."""
 
 
 @dataclass
@@ -73,6 +76,8 @@ class RouteRunner:
         self.connections = connections
         """The source's then the sink's connection: kept open while the runner lives."""
         self.stats = RouteStats()
+        self.lease: Any = None
+        """The broker lease of an ``active_standby`` route: only its holder forwards."""
         self.latency_samples: list[int] | None = None
         """Set to a list to record every message's reception-to-acceptance time (benchmarks)."""
         self._report = Throttle()
@@ -160,10 +165,47 @@ class RouteRunner:
         await self.retire_pipeline(self.pipeline)
 
 
+class StandbyGate:
+    """The :class:`~engine.endpoints.base.Deliver` an ``active_standby`` route's source is
+    given: while another instance holds the route's lease, messages are settled by being
+    dropped (and counted), because the active instance forwards its own copy."""
+
+    def __init__(self, runner: RouteRunner) -> None:
+        self.runner = runner
+
+    @property
+    def overflow(self) -> str:
+        return self.runner.overflow
+
+    @property
+    def queue_limit(self) -> int:
+        return self.runner.queue_limit
+
+    def dropped(self, count: int = 1) -> None:
+        self.runner.dropped(count)
+
+    async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
+        if not self.runner.lease.active:
+            self.runner.stats.standby_skipped += len(inbounds)
+            return [True] * len(inbounds)
+        return await self.runner.batch(inbounds)
+
+    async def __call__(self, inbound: Inbound) -> None:
+        if not self.runner.lease.active:
+            self.runner.stats.standby_skipped += 1
+            return
+        await self.runner(inbound)
+
+
 class Engine:
-    def __init__(self, routes_dir: Path, schemas_dir: Path) -> None:
+    def __init__(self, routes_dir: Path, schemas_dir: Path, instance: str | None = None) -> None:
         self.routes_dir = routes_dir
         self.schemas_dir = schemas_dir
+        self.instance = instance or socket.gethostname()
+        """This engine's name among the instances sharing the routes (``--instance``)."""
+        self.elsewhere: list[str] = []
+        """Routes pinned to other instances (``instances:``), not run here."""
+        self._leases: dict[tuple[int, str], Any] = {}
         self.config: RoutesConfig | None = None
         self.generation = 0
         self.runners: dict[str, RouteRunner] = {}
@@ -238,9 +280,10 @@ class Engine:
         swaps: list[tuple[RouteRunner, Pipeline, Connection]] = []
         fresh: list[RouteRunner] = []
         dead_letters = self.dead_letters
+        here = {name: spec for name, spec in config.routes.items() if spec.placement.runs_on(self.instance)}
         try:
             self.dead_letters = await self._dead_letters(config)
-            for name, spec in config.routes.items():
+            for name, spec in here.items():
                 old = self.runners.get(name)
                 if old is not None and old.spec.fingerprint == spec.fingerprint:
                     keep[name] = old
@@ -252,8 +295,10 @@ class Engine:
                 source_connection = await self._connection(config.connections[spec.source.connection])
                 source = source_connection.source(name, spec.source.options)
                 fresh.append(RouteRunner(self, spec, pipeline, source, [source_connection, sink_connection]))
+                if spec.placement.active_standby:
+                    await self._take_lease(fresh[-1], config)
             for runner in fresh:
-                await runner.source.start(runner)
+                await runner.source.start(StandbyGate(runner) if runner.lease else runner)
         except BaseException:
             self.dead_letters = dead_letters
             await asyncio.gather(
@@ -261,6 +306,7 @@ class Engine:
                 *(pipeline.sink.close() for pipeline in [r.pipeline for r in fresh] + [p for _, p, _ in swaps]),
                 return_exceptions=True,
             )
+            await self._release_leases(self.runners.values())
             await self._close_unused(self.runners.values())
             raise
 
@@ -268,7 +314,7 @@ class Engine:
         for runner, pipeline, sink_connection in swaps:
             retired.append(runner.retire_pipeline(runner.pipeline))
             runner.spec, runner.pipeline = pipeline.spec, pipeline
-            runner.connections = [runner.connections[0], sink_connection]
+            runner.connections = [*runner.connections[:-1], sink_connection]
             keep[runner.spec.name] = runner
         for runner in fresh:
             keep[runner.spec.name] = runner
@@ -279,6 +325,8 @@ class Engine:
         self.runners = keep
         self.config = config
         self.generation = generation
+        self.elsewhere = sorted(set(config.routes) - set(here))
+        await self._release_leases(keep.values())
         await self._close_unused(keep.values())
         log.info(
             "routes applied",
@@ -291,6 +339,28 @@ class Engine:
                 "stopped": [r.spec.name for r in stopped],
             },
         )
+
+    async def _take_lease(self, runner: RouteRunner, config: RoutesConfig) -> None:
+        """Share one lease per (connection, lease name) among this instance's routes, so
+        the routes of one robot fail over together."""
+        placement = runner.spec.placement
+        assert placement.lease_connection is not None
+        connection = await self._connection(config.connections[placement.lease_connection])
+        runner.connections.insert(1, connection)  # the sink's connection stays last
+        key = (id(connection), placement.lease_name)
+        lease = self._leases.get(key)
+        if lease is None:
+            lease = connection.lease(placement.lease_name, self.instance, placement.lease_heartbeat)  # type: ignore[attr-defined]
+            await lease.start()
+            self._leases[key] = lease
+        runner.lease = lease
+
+    async def _release_leases(self, runners: Any) -> None:
+        used = {id(runner.lease) for runner in runners if runner.lease is not None}
+        for key, lease in list(self._leases.items()):
+            if id(lease) not in used:
+                del self._leases[key]
+                await lease.stop()
 
     async def _close_unused(self, runners: Any) -> None:
         used = {id(connection) for runner in runners for connection in runner.connections}
@@ -321,6 +391,7 @@ class Engine:
     async def stop(self) -> None:
         async with self._lock:
             await asyncio.gather(*(runner.stop() for runner in self.runners.values()), return_exceptions=True)
+            await self._release_leases(())
             for connection in self._connections.values():
                 await connection.close()
             self._connections.clear()
@@ -338,11 +409,20 @@ class Engine:
                 "stored": self.dead_letters.stored,
                 "spooled": self.dead_letters.spooled,
             },
+            "instance": self.instance,
+            "brokers": {
+                key[0]: connection.endpoint  # type: ignore[attr-defined]
+                for key, connection in self._connections.items()
+                if getattr(connection, "endpoint", None)
+            },
+            "elsewhere": self.elsewhere,
             "routes": {
                 name: {
                     "file": f"{runner.spec.file}:{runner.spec.line}",
                     "fingerprint": runner.spec.fingerprint,
                     "generation": runner.pipeline.generation,
+                    "role": runner.lease.role if runner.lease else ("single-active-consumer" if runner.spec.placement.ordered else "shared"),
+                    "lease_changes": runner.lease.changes if runner.lease else 0,
                     **asdict(runner.stats),
                     "source": runner.source.status(),
                 }
@@ -352,7 +432,7 @@ class Engine:
 
 
 def _same_source(previous: RoutesConfig, old: RouteSpec, config: RoutesConfig, new: RouteSpec) -> bool:
-    return old.source == new.source and previous.connections.get(old.source.connection) == config.connections.get(
+    return old.source == new.source and old.placement == new.placement and previous.connections.get(old.source.connection) == config.connections.get(
         new.source.connection
     )
 

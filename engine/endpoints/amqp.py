@@ -195,6 +195,10 @@ class AmqpConnection(Connection):
     def source(self, route: str, options: Mapping[str, Any]) -> Source:
         return AmqpSource(self, route, options)
 
+    def lease(self, name: str, instance: str, heartbeat: float) -> amqp_cluster.AmqpLease:
+        """The broker-held lease of an ``active_standby`` route (see :class:`AmqpLease`)."""
+        return amqp_cluster.AmqpLease(self, name, instance, heartbeat, self.queue_type)
+
     def sink(self, route: str, options: Mapping[str, Any]) -> Sink:
         return AmqpSink(self, route, options)
 

@@ -11,13 +11,18 @@ node lost with -9 loses no acknowledged message.
 
 from __future__ import annotations
 
+import asyncio
+import logging
+import time
 from typing import Any, Iterator, Mapping, Sequence
 from urllib.parse import urlsplit
 
 import aio_pika
+import aio_pika.abc
 from aio_pika.robust_connection import RobustConnection
 from yarl import URL
 
+log = logging.getLogger("engine.amqp")
 QUEUE_TYPES = ("classic", "quorum")
 
 QUORUM_REFUSED_ARGUMENTS = {
@@ -160,3 +165,103 @@ def check_queue(options: Mapping[str, Any]) -> Iterator[tuple[str | None, str]]:
     for argument, why in QUORUM_REFUSED_ARGUMENTS.items():
         if argument in arguments:
             yield "queue_arguments", f"quorum queues refuse {argument} ({why})"
+
+
+LEASE_QUEUE_PREFIX = "rabbitros.lease."
+LEASE_EXPIRY_BEATS = 3
+"""An active holder that has seen no heartbeat for this many periods steps down."""
+
+
+class AmqpLease:
+    """Which engine instance forwards an ``active_standby`` route, decided by the broker.
+
+    Every instance consumes the lease queue with single active consumer (SAC) and publishes
+    a heartbeat to it every ``heartbeat`` seconds. RabbitMQ delivers the queue's messages
+    to one consumer only, so the instance that receives heartbeats is the one the broker
+    made active; the others receive nothing and stay standby. When the active instance
+    dies its connection closes, the broker activates the next consumer, and that one
+    receives the next heartbeat (its own, at the latest one period later): the takeover is
+    bounded by the heartbeat period plus the time the broker needs to notice the death
+    (immediately for a killed process, whose socket the kernel closes; the AMQP heartbeat
+    timeout for a machine that vanishes). An active instance that loses its connection, or
+    sees no heartbeat for :data:`LEASE_EXPIRY_BEATS` periods, steps down at once.
+    """
+
+    def __init__(self, connection: Any, name: str, instance: str, heartbeat: float, queue_type: str | None) -> None:
+        self.connection = connection
+        self.name = name
+        self.instance = instance
+        self.heartbeat = heartbeat
+        self.queue = LEASE_QUEUE_PREFIX + name
+        self._queue_type = queue_type
+        self.active = False
+        self.changes = 0
+        """How many times the role changed (acquired or lost)."""
+        self.holder: str | None = None
+        """The instance whose heartbeat reached us last while we were active (ourselves)."""
+        self.peers: dict[str, float] = {}
+        self._last_beat = 0.0
+        self._channel: aio_pika.abc.AbstractChannel | None = None
+        self._task: asyncio.Task[None] | None = None
+        self.users = 0
+
+    @property
+    def role(self) -> str:
+        return "active" if self.active else "standby"
+
+    async def start(self) -> None:
+        raw = self.connection.channel_factory()
+        raw.close_callbacks.add(self._connection_lost)
+        self._channel = await raw.channel(publisher_confirms=False)
+        arguments = queue_arguments({"queue_arguments": {"x-max-length": 16, "x-message-ttl": 10_000}},
+                                    self._queue_type, single_active=True)
+        queue = await self._channel.declare_queue(self.queue, durable=True, arguments=arguments)
+        await queue.consume(self._on_heartbeat, no_ack=True)
+        self._task = asyncio.create_task(self._beat(), name=f"lease {self.name}")
+
+    def _connection_lost(self, *_: Any) -> None:
+        self._set(False, "connection lost")
+
+    async def _on_heartbeat(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        self._last_beat = time.monotonic()
+        sender = message.body.decode(errors="replace")
+        self.peers[sender] = time.time()
+        self._set(True, "the broker made this instance the lease queue's active consumer")
+
+    def _set(self, active: bool, why: str) -> None:
+        if active == self.active:
+            return
+        self.active = active
+        self.changes += 1
+        log.warning("lease %s", "acquired" if active else "lost",
+                    extra={"lease": self.name, "instance": self.instance, "reason": why})
+
+    async def _beat(self) -> None:
+        while True:
+            try:
+                assert self._channel is not None
+                await self._channel.default_exchange.publish(
+                    aio_pika.Message(self.instance.encode(), delivery_mode=aio_pika.DeliveryMode.NOT_PERSISTENT),
+                    self.queue,
+                )
+            except Exception:  # the connection is failing over: no lease without a broker
+                self._set(False, "cannot reach the broker")
+            if self.active and time.monotonic() - self._last_beat > LEASE_EXPIRY_BEATS * self.heartbeat:
+                self._set(False, f"no heartbeat for {LEASE_EXPIRY_BEATS} periods")
+            await asyncio.sleep(self.heartbeat)
+
+    async def stop(self) -> None:
+        """Give the lease up: cancelling our consumer makes the broker activate another."""
+        self._set(False, "stopped")
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+        try:
+            self.connection.channel_factory().close_callbacks.discard(self._connection_lost)
+        except Exception:
+            pass
+        if self._channel is not None:
+            try:
+                await self._channel.close()
+            except Exception:
+                pass
