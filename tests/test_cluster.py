@@ -66,10 +66,12 @@ async def wait_for(predicate: Callable[[], bool], timeout: float, what: str) -> 
         await asyncio.sleep(0.05)
 
 
-async def publish_seq(channel: Any, exchange: str, start: int, stop: int, rate: float | None = None) -> None:
-    """Publish ``{"seq": n}`` with publisher confirms, in confirmed batches, optionally paced."""
+async def publish_seq(
+    channel: Any, exchange: str, start: int, stop: int, rate: float | None = None, batch: int = 100
+) -> None:
+    """Publish ``{"seq": n}`` with publisher confirms, in confirmed batches, optionally paced.
+    Concurrent publishes in a batch may reach the queue in any order: ``batch=1`` keeps it."""
     target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
-    batch = 100
     began = time.monotonic()
     for first in range(start, stop, batch):
         await asyncio.gather(*(
@@ -202,18 +204,25 @@ def test_ordered_route_fails_over_to_the_other_engine_in_order(amqp_cluster, tmp
         try:
             channel = await connection.channel(publisher_confirms=True)
             collector = await TimedCollector.bind(await connection.channel(), f"out-{tag}")
-            publishing = asyncio.create_task(publish_seq(channel, f"in-{tag}", 0, total, rate=500))
+            publishing = asyncio.create_task(publish_seq(channel, f"in-{tag}", 0, total, rate=500, batch=1))
             await wait_for(lambda: len(collector.arrivals) >= total // 3, 60, "a third of the stream")
             figures["standby_received_before_kill"] = second.status()["routes"][f"ordered-{tag}"]["received"]
             killed_at = kill_engine(first)
+            seen_at_kill = collector.unique
+            in_flight_from = min(set(range(total)) - seen_at_kill)
             await publishing
             await collector.wait_unique(total, 120)
             resumed = collector.first_after(killed_at)
             seen: set[int] = set()
-            highest, out_of_order = -1, 0
-            for _, seq in collector.arrivals:
+            highest, out_of_order, late = -1, 0, []
+            context: list[float] = []
+            for index, (_, seq) in enumerate(collector.arrivals):
                 if seq < highest and seq not in seen:
                     out_of_order += 1
+                    late.append(seq)
+                    if not context:
+                        context = [round(collector.arrivals[index][0] - killed_at, 3)]
+                        context += [s for _, s in collector.arrivals[max(0, index - 40):index + 10]]
                 seen.add(seq)
                 highest = max(highest, seq)
             figures.update(
@@ -221,9 +230,11 @@ def test_ordered_route_fails_over_to_the_other_engine_in_order(amqp_cluster, tmp
                 delivered=len(collector.unique),
                 duplicates=len(collector.arrivals) - len(collector.unique),
                 out_of_order=out_of_order,
+                late_outside_in_flight=[seq for seq in late if not in_flight_from <= seq < in_flight_from + prefetch],
                 lost=total - len(collector.unique),
                 takeover_s=round(resumed - killed_at, 2) if resumed else None,
                 survivor_delivered=second.status()["routes"][f"ordered-{tag}"]["delivered"],
+                first_disorder=context,
             )
         finally:
             await connection.close()
@@ -235,7 +246,11 @@ def test_ordered_route_fails_over_to_the_other_engine_in_order(amqp_cluster, tmp
     report("ordered route, active engine killed", figures)
     assert figures["standby_received_before_kill"] == 0, "single active consumer: the second engine waits"
     assert figures["lost"] == 0
-    assert figures["out_of_order"] == 0
+    # RabbitMQ 3.10's quorum queues may hand the dead consumer's unacknowledged messages to the
+    # next one interleaved with newer messages (rabbitmq-server#6804): only those in flight
+    # at the kill (at most prefetch) may come late or twice; everything else keeps its order.
+    assert figures["late_outside_in_flight"] == [], figures
+    assert figures["out_of_order"] <= prefetch
     assert figures["duplicates"] <= prefetch, "only messages in flight at the kill are redelivered"
     assert figures["survivor_delivered"] > 0
 
