@@ -57,6 +57,12 @@ class TimedCollector:
     def first_after(self, moment: float) -> float | None:
         return next((at for at, _ in self.arrivals if at > moment), None)
 
+    def stall(self, moment: float, window: float = 30.0) -> float:
+        """The longest time the stream stood still from shortly before ``moment`` on: what
+        a consumer of the output saw of a failover."""
+        times = [at for at, _ in self.arrivals if moment - 0.2 <= at <= moment + window]
+        return max((b - a for a, b in zip(times, times[1:])), default=0.0)
+
 
 async def wait_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
     deadline = time.monotonic() + timeout
@@ -159,7 +165,8 @@ def test_two_engines_on_quorum_queues_lose_nothing_when_a_broker_node_is_killed(
                 received=len(collector.arrivals),
                 duplicates=len(collector.arrivals) - len(collector.unique),
                 lost=total - len(collector.unique),
-                stream_gap_s=round(resumed - killed_at, 2) if resumed else None,
+                first_arrival_after_kill_s=round(resumed - killed_at, 3) if resumed else None,
+                stall_s=round(collector.stall(killed_at), 3),
                 brokers_before=before,
                 brokers_after={e.status_file.stem: e.status()["brokers"]["gcs"] for e in engines},
                 per_engine_delivered={e.status_file.stem: e.status()["routes"][f"relay-{tag}"]["delivered"] for e in engines},
@@ -232,7 +239,8 @@ def test_ordered_route_fails_over_to_the_other_engine_in_order(amqp_cluster, tmp
                 out_of_order=out_of_order,
                 late_outside_in_flight=[seq for seq in late if not in_flight_from <= seq < in_flight_from + prefetch],
                 lost=total - len(collector.unique),
-                takeover_s=round(resumed - killed_at, 2) if resumed else None,
+                takeover_s=round(resumed - killed_at, 3) if resumed else None,
+                stall_s=round(collector.stall(killed_at), 3),
                 survivor_delivered=second.status()["routes"][f"ordered-{tag}"]["delivered"],
                 first_disorder=context,
             )
@@ -336,7 +344,8 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
                 duplicates=len(collector.arrivals) - len(received),
                 lost_in_gap=len(gap),
                 lost_outside_gap=len(missing) - len(gap),
-                takeover_s=round(resumed - killed_at, 2),
+                takeover_s=round(resumed - killed_at, 3),
+                stall_s=round(collector.stall(killed_at), 3),
                 survivor_role=standby.status()["routes"][route]["role"],
                 survivor_delivered=standby.status()["routes"][route]["delivered"],
             )
