@@ -249,7 +249,8 @@ async def standby_failovers(cluster: LocalCluster, work: Path, rounds: int) -> l
     for engine in live.values():
         engine.wait_started(90)
     connection = await aio_pika.connect(cluster.urls[2])
-    stalls = []
+    stalls: list[float] = []
+    ready: list[float] = []
     stop = asyncio.Event()
     sent = 0
 
@@ -267,15 +268,26 @@ async def standby_failovers(cluster: LocalCluster, work: Path, rounds: int) -> l
         for _ in range(rounds):
             await asyncio.sleep(2.0)
             active = next(n for n, e in live.items() if e.status()["routes"]["telemetry"]["role"] == "active")
+            missing_before = sent - len(collector.unique)
             killed_at = kill(live[active])
             await asyncio.sleep(4.0)
             stalls.append(collector.stall(killed_at, 4.0))
+            survivor = next(e for n, e in live.items() if n != active).status()["routes"]["telemetry"]
             print(f"  active engine {active} killed: stream stood still {stalls[-1]:.2f} s "
-                  f"({sent - len(collector.unique)} of {sent} published so far never forwarded)", flush=True)
+                  f"({sent - len(collector.unique) - missing_before} robot messages lost in the gap; survivor {survivor['role']}, "
+                  f"forwarded {survivor['delivered']}, skipped {survivor['standby_skipped']})", flush=True)
             live[active] = engines(directory, work, [active])[0]
             live[active].wait_started(90)
+            restarted = time.monotonic()
+            while live[active].status()["routes"]["telemetry"]["standby_skipped"] == 0:
+                if time.monotonic() - restarted > 120:
+                    raise TimeoutError("the restarted engine never saw the robot's messages")
+                await asyncio.sleep(0.1)
+            ready.append(time.monotonic() - restarted)
+            print(f"  restarted engine {active} sees the stream (ready as standby) after {ready[-1]:.1f} s", flush=True)
         stop.set()
         await task
+        print(summary("restarted standby ready", ready))
     finally:
         stop.set()
         await connection.close()
@@ -287,7 +299,7 @@ async def standby_failovers(cluster: LocalCluster, work: Path, rounds: int) -> l
 
 
 def summary(name: str, values: list[float]) -> str:
-    return f"{name}: median {statistics.median(values):.2f} s, max {max(values):.2f} s over {len(values)} kills"
+    return f"{name}: median {statistics.median(values):.2f} s, max {max(values):.2f} s over {len(values)} samples"
 
 
 async def main(args: argparse.Namespace) -> None:

@@ -60,8 +60,9 @@ class TimedCollector:
     def stall(self, moment: float, window: float = 30.0) -> float:
         """The longest time the stream stood still from shortly before ``moment`` on: what
         a consumer of the output saw of a failover."""
-        times = [at for at, _ in self.arrivals if moment - 0.2 <= at <= moment + window]
-        return max((b - a for a, b in zip(times, times[1:])), default=0.0)
+        end = min(time.monotonic(), moment + window)
+        times = [moment - 0.2] + [at for at, _ in self.arrivals if moment - 0.2 <= at <= end] + [end]
+        return max(b - a for a, b in zip(times, times[1:]))
 
 
 async def wait_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
