@@ -353,8 +353,9 @@ def _default_connection(protocol: str) -> ConnectionSpec:
     if protocol == "amqp":
         settings["url"] = default_amqp_url()
         cluster = os.environ.get("RABBITROS_AMQP_URLS", "").split()
-        if cluster:  # a local cluster (--local-broker --cluster N): every node, first one first
-            settings = {"urls": cluster}
+        if cluster:  # a local cluster (--local-broker --cluster N): every node, replicated queues
+            del settings["url"]
+            settings.update(urls=cluster, queue_type="quorum")
     return ConnectionSpec(f"default-{protocol}", protocol, settings)
 
 

@@ -436,3 +436,51 @@ def test_routes_pinned_to_an_instance_run_only_there(amqp_cluster, tmp_path, sch
     assert list(status["routes"]) == [f"here-{tag}"]
     assert status["elsewhere"] == [f"there-{tag}"]
     assert status["brokers"]["gcs"] == amqp_cluster.urls[0].split("@")[1].rstrip("/")
+
+
+def test_cli_local_cluster_runs_routes_on_three_nodes(tmp_path):
+    """``--local-broker --cluster 3``: three nodes joined in one cluster, the default AMQP
+    connection lists them all and declares quorum queues; stopped with the engine."""
+    tag = uuid.uuid4().hex[:8]
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text(f"""routes:
+  - name: relay
+    source: {{amqp: {{exchange: in-{tag}, queue: q-{tag}}}}}
+    schema: raw_json
+    sink: {{amqp: {{exchange: out-{tag}, routing_key: relayed}}}}
+""")
+    urls_file = tmp_path / "urls.txt"
+    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--local-broker", "--cluster", "3",
+                           "--broker-url-file", str(urls_file), "--no-watch")
+    try:
+        status = engine.wait_started(180)
+        urls = urls_file.read_text().split()
+        assert len(urls) == 3 and len(set(urls)) == 3
+
+        async def scenario() -> tuple[list[str], dict[str, Any]]:
+            connection = await aio_pika.connect(urls[2])
+            try:
+                channel = await connection.channel()
+                collector = await TimedCollector.bind(channel, f"out-{tag}")
+                await publish_seq(await connection.channel(publisher_confirms=True), f"in-{tag}", 0, 10)
+                await collector.wait_unique(10, 60)
+                queue = await channel.declare_queue(f"q-{tag}", passive=True)
+                # redeclaring with the other type fails: the engine declared a quorum queue
+                other = await connection.channel()
+                try:
+                    await other.declare_queue(f"q-{tag}", durable=True, arguments={"x-queue-type": "classic"})
+                    kind = "classic"
+                except aio_pika.exceptions.ChannelPreconditionFailed:
+                    kind = "quorum"
+                return [kind], {"consumers": queue.declaration_result.consumer_count}
+            finally:
+                await connection.close()
+
+        kinds, info = asyncio.run(asyncio.wait_for(scenario(), 120))
+        assert kinds == ["quorum"] and info["consumers"] == 1
+        assert status["brokers"]["default-amqp"] in urls[0]
+    finally:
+        assert engine.stop(120) == 0
+    log = engine.log_file.read_text()
+    assert log.count('"nodes"') >= 1 and "rabbitros-" in log
