@@ -22,6 +22,8 @@ import aio_pika.abc
 from aio_pika.robust_connection import RobustConnection
 from yarl import URL
 
+from engine.endpoints.base import EndpointError
+
 log = logging.getLogger("engine.amqp")
 QUEUE_TYPES = ("classic", "quorum")
 
@@ -212,11 +214,14 @@ class AmqpLease:
     async def start(self) -> None:
         raw = self.connection.channel_factory()
         raw.close_callbacks.add(self._connection_lost)
-        self._channel = await raw.channel(publisher_confirms=False)
         arguments = queue_arguments({"queue_arguments": {"x-max-length": 16, "x-message-ttl": 10_000}},
                                     self._queue_type, single_active=True)
-        queue = await self._channel.declare_queue(self.queue, durable=True, arguments=arguments)
-        await queue.consume(self._on_heartbeat, no_ack=True)
+        try:
+            self._channel = await raw.channel(publisher_confirms=False)
+            queue = await self._channel.declare_queue(self.queue, durable=True, arguments=arguments)
+            await queue.consume(self._on_heartbeat, no_ack=True)
+        except (aio_pika.exceptions.AMQPError, ConnectionError, OSError, RuntimeError, asyncio.TimeoutError) as exc:
+            raise EndpointError(f"lease {self.name!r} on amqp connection {self.connection.name!r}: {exc}") from exc
         self._task = asyncio.create_task(self._beat(), name=f"lease {self.name}")
 
     def _connection_lost(self, *_: Any) -> None:
