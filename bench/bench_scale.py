@@ -81,8 +81,23 @@ async def fill(url: str, tag: str, count: int) -> None:
     await connection.close()
 
 
-async def drain_rate(url: str, tag: str, count: int, timeout: float = 600) -> float:
-    """msg/s from the first message in the sink queue to the last."""
+def cpu_seconds(engines: list[EngineProcess]) -> float:
+    """CPU time (user + system) of the engines' Python processes (children of ``timeout``)."""
+    total = 0.0
+    for engine in engines:
+        try:
+            children = Path(f"/proc/{engine.process.pid}/task/{engine.process.pid}/children").read_text().split()
+            for pid in children:
+                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+                total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except OSError:
+            pass
+    return total
+
+
+async def drain_rate(url: str, tag: str, count: int, engines: list[EngineProcess], timeout: float = 600) -> tuple[float, float]:
+    """msg/s from the first message in the sink queue to the last, and the engines' CPU
+    microseconds per message over the same span."""
     connection = await aio_pika.connect(url)
     channel = await connection.channel()
     first_at = None
@@ -92,11 +107,12 @@ async def drain_rate(url: str, tag: str, count: int, timeout: float = 600) -> fl
         have = queue.declaration_result.message_count
         now = time.monotonic()
         if have and first_at is None:
-            first_at, first_count = now, have
+            first_at, first_count, first_cpu = now, have, cpu_seconds(engines)
         if have >= count:
             await connection.close()
             assert first_at is not None
-            return (count - first_count) / max(now - first_at, 1e-3)
+            moved = max(count - first_count, 1)
+            return moved / max(now - first_at, 1e-3), (cpu_seconds(engines) - first_cpu) / moved * 1e6
         await asyncio.sleep(0.05)
     raise TimeoutError(f"sink-{tag} did not reach {count}")
 
@@ -149,13 +165,14 @@ async def throughput(cluster: LocalCluster, work: Path, count: int, prefetch: in
         else:
             relay = asyncio.create_task(reference_relay(cluster.urls[0], tag, count, prefetch))
         try:
-            results[label] = await drain_rate(client, tag, count)
+            results[label], cpu_us = await drain_rate(client, tag, count, started)
         finally:
             for engine in started:
                 engine.stop()
             if relay:
                 await relay
-        print(f"  {label:12} {results[label]:8.0f} msg/s", flush=True)
+        cpu = f"   engines' CPU {cpu_us:5.0f} us/msg" if instances else ""
+        print(f"  {label:12} {results[label]:8.0f} msg/s{cpu}", flush=True)
     return results
 
 
@@ -315,6 +332,8 @@ async def main(args: argparse.Namespace) -> None:
             print(f"  engine/reference: 1 instance {rates['1 instance'] / rates['reference']:.2f}, "
                   f"2 instances {rates['2 instances'] / rates['reference']:.2f}; "
                   f"2 instances / 1 instance: {rates['2 instances'] / rates['1 instance']:.2f}")
+            if args.throughput_only:
+                return
             print("broker node killed under two engines:")
             lines = [summary("node failover (stream stall)", await node_failovers(cluster, work, args.rounds))]
             print("ordered route, active engine killed:")
@@ -332,4 +351,5 @@ if __name__ == "__main__":
     parser.add_argument("--count", type=int, default=20000)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--skip-ros", action="store_true")
+    parser.add_argument("--throughput-only", action="store_true")
     asyncio.run(main(parser.parse_args()))
