@@ -269,15 +269,14 @@ async def standby_failovers(cluster: LocalCluster, work: Path, rounds: int) -> l
     stalls: list[float] = []
     ready: list[float] = []
     stop = asyncio.Event()
-    sent = 0
+    published: list[float] = []
 
     async def robot() -> None:
-        nonlocal sent
         began = time.monotonic()
         while not stop.is_set():
-            publisher.publish(String(data=json.dumps({"seq": sent})))
-            sent += 1
-            await asyncio.sleep(max(sent / 200 - (time.monotonic() - began), 0))
+            publisher.publish(String(data=json.dumps({"seq": len(published)})))
+            published.append(time.monotonic())
+            await asyncio.sleep(max(len(published) / 200 - (time.monotonic() - began), 0))
 
     try:
         collector = await TimedCollector.bind(await connection.channel(), f"out-{tag}")
@@ -285,13 +284,14 @@ async def standby_failovers(cluster: LocalCluster, work: Path, rounds: int) -> l
         for _ in range(rounds):
             await asyncio.sleep(2.0)
             active = next(n for n, e in live.items() if e.status()["routes"]["telemetry"]["role"] == "active")
-            missing_before = sent - len(collector.unique)
             killed_at = kill(live[active])
             await asyncio.sleep(4.0)
+            around = [seq for seq, at in enumerate(published) if killed_at - 1.0 <= at <= killed_at + 3.0]
+            lost = len(set(around) - collector.unique)
             stalls.append(collector.stall(killed_at, 4.0))
             survivor = next(e for n, e in live.items() if n != active).status()["routes"]["telemetry"]
             print(f"  active engine {active} killed: stream stood still {stalls[-1]:.2f} s "
-                  f"({sent - len(collector.unique) - missing_before} robot messages lost in the gap; survivor {survivor['role']}, "
+                  f"({lost} robot messages lost in the gap; survivor {survivor['role']}, "
                   f"forwarded {survivor['delivered']}, skipped {survivor['standby_skipped']})", flush=True)
             live[active] = engines(directory, work, [active])[0]
             live[active].wait_started(90)

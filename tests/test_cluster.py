@@ -61,7 +61,9 @@ class TimedCollector:
         """The longest time the stream stood still from shortly before ``moment`` on: what
         a consumer of the output saw of a failover."""
         end = min(time.monotonic(), moment + window)
-        times = [moment - 0.2] + [at for at, _ in self.arrivals if moment - 0.2 <= at <= end] + [end]
+        times = [moment - 0.2] + [at for at, _ in self.arrivals if moment - 0.2 <= at <= end]
+        if times[-1] <= moment:  # the stream never resumed within the window
+            times.append(end)
         return max(b - a for a, b in zip(times, times[1:]))
 
 
@@ -363,7 +365,7 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
     report("active/standby ROS 2 -> AMQP, active engine killed", figures)
     assert figures["standby_role_before"] == "standby"
     assert figures["standby_forwarded_before"] == 0
-    assert figures["takeover_s"] <= TAKEOVER_BOUND_S, figures
+    assert max(figures["takeover_s"], figures["stall_s"]) <= TAKEOVER_BOUND_S, figures
     assert figures["survivor_role"] == "active" and figures["survivor_delivered"] > 0
     assert figures["lost_outside_gap"] == 0, figures
     assert figures["lost_in_gap"] <= rate * (figures["takeover_s"] + 0.7) + 10, figures
