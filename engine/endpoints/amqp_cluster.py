@@ -25,7 +25,6 @@ from yarl import URL
 from engine.endpoints.base import EndpointError
 
 log = logging.getLogger("engine.amqp")
-QUEUE_TYPES = ("classic", "quorum")
 
 QUORUM_REFUSED_ARGUMENTS = {
     "x-max-priority": "quorum queues have no priorities",
