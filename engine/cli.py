@@ -18,7 +18,7 @@ from engine.admin import AdminServer, parse_address, status_document
 from engine.endpoints.amqp import redact
 from engine.opsview import print_status, print_tap
 from engine.endpoints.base import EndpointError
-from engine.local_broker import BrokerError, LocalBroker
+from engine.local_broker import BrokerError, LocalBroker, LocalCluster
 from engine.logs import setup_logging
 from engine.route_tests import format_result, load_checked, run_tests
 from engine.routes import RoutesInvalid
@@ -55,9 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     common(run)
     run.add_argument("--local-broker", action="store_true", help="start a private RabbitMQ node and use it as the default AMQP connection")
     run.add_argument("--broker-url-file", type=Path, help="with --local-broker: write the broker's URL to this file")
+    run.add_argument("--cluster", type=int, default=1, metavar="N",
+                     help="with --local-broker: start N nodes joined in one cluster (default 1); the default AMQP connection lists them all")
     run.add_argument("--status-file", type=Path, help="keep the live status (generation, config hash, counters) in this JSON file")
     run.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT",
                      help="serve /metrics, /healthz, /status and /tap/ROUTE over HTTP (a bare port binds 127.0.0.1); off by default")
+    run.add_argument("--instance", metavar="NAME", help="this engine's name among instances sharing the routes (routes' instances:); default the host name")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
     run.add_argument("--stats-interval", type=float, default=10.0, help="seconds between status updates and counter logs")
     run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
@@ -157,18 +160,25 @@ def run_route_tests(routes: Path, schemas_dir: Path) -> int:
 
 
 async def run(args: argparse.Namespace) -> int:
-    broker: LocalBroker | None = None
+    broker: LocalBroker | LocalCluster | None = None
+    if args.cluster < 1 or (args.cluster > 1 and not args.local_broker):
+        log.error("--cluster N needs --local-broker and N >= 1")
+        return 2
     if args.local_broker:
-        broker = LocalBroker()
+        broker = LocalCluster(args.cluster) if args.cluster > 1 else LocalBroker()
         try:
-            url = await asyncio.to_thread(broker.start)
+            await asyncio.to_thread(broker.start)
         except BrokerError as exc:
             log.error("local broker failed to start", extra={"error": str(exc)})
             return 1
-        os.environ["RABBITROS_AMQP_URL"] = url
-        log.info("local broker started", extra={"url": redact(url), "node": broker.node})
+        urls = broker.urls if isinstance(broker, LocalCluster) else [broker.url]
+        os.environ["RABBITROS_AMQP_URL"] = urls[0]
+        if len(urls) > 1:
+            os.environ["RABBITROS_AMQP_URLS"] = " ".join(urls)
+        nodes = [n.node for n in broker.nodes] if isinstance(broker, LocalCluster) else [broker.node]
+        log.info("local broker started", extra={"urls": [redact(u) for u in urls], "nodes": nodes})
         if args.broker_url_file:
-            _write_atomically(args.broker_url_file, url + "\n")
+            _write_atomically(args.broker_url_file, "\n".join(urls) + "\n")
     try:
         return await serve(args)
     finally:
@@ -177,7 +187,8 @@ async def run(args: argparse.Namespace) -> int:
 
 
 async def serve(args: argparse.Namespace) -> int:
-    engine = Engine(args.routes, args.schemas or default_schemas(args.routes), require_connections=args.require_connections)
+    engine = Engine(args.routes, args.schemas or default_schemas(args.routes), require_connections=args.require_connections,
+                    instance=args.instance)
     admin = AdminServer(engine, *args.admin) if args.admin else None
     if admin is not None:
         try:
@@ -236,7 +247,7 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
     tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
     if not args.no_watch:
         tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dir)))
-    log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__})
+    log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__, "instance": engine.instance})
     await stopping.wait()
     log.info("stopping: draining in-flight messages", extra={"drain_timeout": args.drain_timeout})
     for task in tasks:

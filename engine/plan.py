@@ -137,8 +137,10 @@ def plan_reload(old: RoutesConfig | None, new: RoutesConfig) -> ReloadPlan:
 
 
 def _source(config: RoutesConfig, route: RouteSpec) -> tuple[object, ...]:
-    """What a live source depends on: its endpoint options and its connection."""
-    return (route.source, connection_key(config.connections[route.source.connection]))
+    """What a live source depends on: its endpoint options, its connection, and where and how
+    it runs (``ordered``, ``instances``, ``active_standby``: a single-active-consumer queue or
+    a lease cannot be changed under a running consumer)."""
+    return (route.source, connection_key(config.connections[route.source.connection]), route.placement)
 
 
 def _used(config: RoutesConfig) -> dict[ConnectionKey, ConnectionSpec]:

@@ -99,6 +99,28 @@ class RouteSpec:
     """max_attempts, overflow and the size limits (the fingerprint covers them)."""
     buffer: BufferSpec | None = field(default=None, compare=False)
     """Where messages wait while the sink is down (``buffer:``); the fingerprint covers it."""
+    placement: Placement = field(default_factory=lambda: Placement())
+    """Which engine instances carry the route (scale-out); the default: every instance."""
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where a route runs when several engine instances share a routes directory.
+
+    ``instances``: only on these instances (by ``--instance`` name). ``active_standby``:
+    on every instance that can see the source, but only the holder of the broker lease
+    ``lease_name`` (on AMQP connection ``lease_connection``) forwards. ``ordered`` (AMQP
+    sources): single active consumer, one instance at a time, in order."""
+
+    instances: tuple[str, ...] | None = None
+    active_standby: bool = False
+    ordered: bool = False
+    lease_name: str = ""
+    lease_connection: str | None = None
+    lease_heartbeat: float = 1.0
+
+    def runs_on(self, instance: str) -> bool:
+        return self.instances is None or instance in self.instances
 
 
 @dataclass(frozen=True)
@@ -387,6 +409,10 @@ def _default_connection(protocol: str) -> ConnectionSpec:
     settings = dict(endpoints.transport(protocol).default_settings)
     if protocol == "amqp":
         settings["url"] = default_amqp_url()
+        cluster = os.environ.get("RABBITROS_AMQP_URLS", "").split()
+        if cluster:  # a local cluster (--local-broker --cluster N): every node, replicated queues
+            del settings["url"]
+            settings.update(urls=[Secret(url) if has_url_password(url) else url for url in cluster], queue_type="quorum")
     return _identified(ConnectionSpec(f"default-{protocol}", protocol, settings))
 
 
@@ -417,6 +443,7 @@ def _competing_consumers(routes: Mapping[str, RouteSpec]) -> tuple[Problem, ...]
                 "they compete, each message goes to only one of them (give each route its own queue to get every message)"
             )))
     return tuple(warnings)
+
 
 
 def _compile_routes(
@@ -452,8 +479,11 @@ def _compile_routes(
             if source:  # fields a typed source does not have
                 for message in mapping_field_problems(source.protocol, source.options, mapping):
                     problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
-            if len(problems) > before or not (source and sink):
+            placement = _placement(document, where, name, body, source, sink, connections, problems) if source and sink else None
+            if len(problems) > before or not (source and sink and placement):
                 continue
+            if placement.ordered and source.protocol == "amqp":
+                source = EndpointSpec(source.protocol, source.connection, {**source.options, "ordered": True})
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
             schema = schemas.get(schema_name)
             fingerprint = hashlib.sha256(
@@ -477,6 +507,7 @@ def _compile_routes(
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
                 document.file, document.line(where), throttle=body.get("throttle"), delivery=delivery, buffer=buffer,
+                placement=placement,
             )
     return routes
 
@@ -518,6 +549,54 @@ def _compile_dead_letters(
 
 def _base_dir(file: str) -> Path:
     return Path(file).resolve().parent
+
+
+def _placement(
+    document: _Document,
+    where: Path_,
+    route: str,
+    body: Mapping[str, Any],
+    source: EndpointSpec,
+    sink: EndpointSpec,
+    connections: Mapping[str, ConnectionSpec],
+    problems: list[Problem],
+) -> Placement | None:
+    """The route's scale-out keys (``instances``, ``active_standby``, ``lease``, ``ordered``)."""
+    before = len(problems)
+    ordered = bool(body.get("ordered", False))
+    active_standby = bool(body.get("active_standby", False))
+    lease = body.get("lease") or {}
+    if ordered and source.protocol != "amqp":
+        problems.append(document.problem(where + ("ordered",), f"route {route!r}: ordered applies to AMQP sources (a {source.protocol} source is carried by one instance: use instances or active_standby)"))
+    if active_standby and source.protocol == "amqp":
+        problems.append(document.problem(where + ("active_standby",), f"route {route!r}: an AMQP source is shared by competing consumers; use ordered: true for one instance at a time"))
+    if lease and not active_standby:
+        problems.append(document.problem(where + ("lease",), f"route {route!r}: lease needs active_standby: true"))
+    lease_connection = None
+    if active_standby:
+        lease_connection = lease.get("connection")
+        if lease_connection is None:
+            if sink.protocol == "amqp":
+                lease_connection = sink.connection
+            else:
+                amqp = sorted(n for n, c in connections.items() if c.protocol == "amqp")
+                if len(amqp) != 1:
+                    problems.append(document.problem(where + ("active_standby",), f"route {route!r}: active_standby needs an AMQP connection for its lease; name one with lease: {{connection: NAME}}" + (f" ({', '.join(amqp)})" if amqp else "")))
+                else:
+                    lease_connection = amqp[0]
+        elif lease_connection not in connections or connections[lease_connection].protocol != "amqp":
+            problems.append(document.problem(where + ("lease", "connection"), f"route {route!r}: lease connection {lease_connection!r} is not an AMQP connection"))
+    if len(problems) > before:
+        return None
+    instances = body.get("instances")
+    return Placement(
+        instances=tuple(instances) if instances else None,
+        active_standby=active_standby,
+        ordered=ordered,
+        lease_name=str(lease.get("name") or route),
+        lease_connection=lease_connection,
+        lease_heartbeat=float(lease.get("heartbeat", 1.0)),
+    )
 
 
 def _mapping_problems(expression: str | None) -> Iterator[str]:

@@ -15,8 +15,9 @@ import asyncio
 import logging
 import os
 import random
+import socket
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -65,6 +66,8 @@ class RouteStats:
     """Sum over delivered messages of the time from reception to the sink's acceptance
     (the paper's t2 - t1), so the mean processing latency is available without a histogram."""
     latency_ns_max: int = 0
+    standby_skipped: int = 0
+    """Messages an ``active_standby`` route received while another instance held the lease."""
 
 
 @dataclass
@@ -94,6 +97,8 @@ class RouteRunner:
         self.connections = connections
         """The source's then the sink's connection: kept open while the runner lives."""
         self.stats = RouteStats()
+        self.lease: Any = None
+        """The broker lease of an ``active_standby`` route: only its holder forwards."""
         self.latency_samples: list[int] | None = None
         """Set to a list to record every message's reception-to-acceptance time (benchmarks)."""
         self._report = Throttle()
@@ -217,12 +222,17 @@ class RouteRunner:
             self.buffer.start()
         missing = self.missing_connections()
         if not missing:
-            await self.source.start(self)
+            await self.source.start(self.receiver())
             self.state = "running"
             return
         self.state = "waiting"
         log.warning("route waits for its connections", extra={"route": self.spec.name, "connections": missing})
         self._starter = asyncio.create_task(self._start_when_open(), name=f"start-{self.spec.name}")
+
+    def receiver(self) -> RouteRunner | StandbyGate:
+        """What the source hands its messages to: this runner, or for an ``active_standby``
+        route the gate that forwards only while this instance holds the lease."""
+        return StandbyGate(self) if self.lease is not None else self
 
     def _needed(self) -> list[Connection]:
         return self.connections if self.buffer is None else self.connections[:1]
@@ -235,7 +245,7 @@ class RouteRunner:
         while True:
             await self.engine.wait_open(self._needed())
             try:
-                await self.source.start(self)
+                await self.source.start(self.receiver())
             except EndpointError as error:  # the connection went down again meanwhile
                 log.warning("route could not start; retrying", extra={"route": self.spec.name, "error": str(error)})
                 await asyncio.sleep(delay)
@@ -301,10 +311,49 @@ STOP_GRACE = 2.0
 """Seconds a stop gives sources to hand back what they hold once the drain timeout is over."""
 
 
+class StandbyGate:
+    """The :class:`~engine.endpoints.base.Deliver` an ``active_standby`` route's source is
+    given: while another instance holds the route's lease, messages are settled by being
+    dropped (and counted), because the active instance forwards its own copy."""
+
+    def __init__(self, runner: RouteRunner) -> None:
+        self.runner = runner
+
+    @property
+    def overflow(self) -> str:
+        return self.runner.overflow
+
+    @property
+    def queue_limit(self) -> int:
+        return self.runner.queue_limit
+
+    def dropped(self, count: int = 1) -> None:
+        self.runner.dropped(count)
+
+    async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
+        if not self.runner.lease.active:
+            self.runner.stats.standby_skipped += len(inbounds)
+            return [True] * len(inbounds)
+        return await self.runner.batch(inbounds)
+
+    async def __call__(self, inbound: Inbound) -> None:
+        if not self.runner.lease.active:
+            self.runner.stats.standby_skipped += 1
+            return
+        await self.runner(inbound)
+
+
 class Engine:
-    def __init__(self, routes_dir: Path, schemas_dir: Path, require_connections: bool = False) -> None:
+    def __init__(
+        self, routes_dir: Path, schemas_dir: Path, require_connections: bool = False, instance: str | None = None
+    ) -> None:
         self.routes_dir = routes_dir
         self.schemas_dir = schemas_dir
+        self.instance = instance or socket.gethostname()
+        """This engine's name among the instances sharing the routes (``--instance``)."""
+        self.elsewhere: list[str] = []
+        """Routes pinned to other instances (``instances:``), not run here."""
+        self._leases: dict[tuple[int, str], Any] = {}
         self.config: RoutesConfig | None = None
         self.generation = 0
         self.runners: dict[str, RouteRunner] = {}
@@ -507,11 +556,19 @@ class Engine:
         except BaseException:
             await pipeline.sink.close()
             raise
-        return RouteRunner(self, spec, pipeline, source, [source_connection, sink_connection])
+        runner = RouteRunner(self, spec, pipeline, source, [source_connection, sink_connection])
+        if spec.placement.active_standby:
+            await self._take_lease(runner, config)
+        return runner
 
-    async def _apply(self, config: RoutesConfig, schemas: SchemaRegistry) -> None:
+    async def _apply(self, everywhere: RoutesConfig, schemas: SchemaRegistry) -> None:
         """Carry out the plan: prepare everything make-before-break, hand exclusive resources
-        over, then commit (swap pipelines, stop what was replaced or removed)."""
+        over, then commit (swap pipelines, stop what was replaced or removed). Only the routes
+        that run on this instance (``instances:``) are planned; the others are listed as
+        ``elsewhere``."""
+        config = replace(everywhere, routes={
+            name: spec for name, spec in everywhere.routes.items() if spec.placement.runs_on(self.instance)
+        })
         plan = plan_reload(self.config, config)
         generation = self.generation + 1
         later = plan.break_before_make
@@ -543,6 +600,7 @@ class Engine:
                 *(pipeline.sink.close() for pipeline in [r.pipeline for r in fresh] + [p for _, p, _ in swaps]),
                 return_exceptions=True,
             )
+            await self._release_leases(self.runners.values())
             await self._close_unused(self.runners.values())
             raise
 
@@ -552,7 +610,7 @@ class Engine:
         for runner, pipeline, sink_connection in swaps:
             retired.append(runner.retire_pipeline(runner.pipeline))
             runner.spec, runner.pipeline = pipeline.spec, pipeline
-            runner.connections = [runner.connections[0], sink_connection]
+            runner.connections = [*runner.connections[:-1], sink_connection]
             keep[runner.spec.name] = runner
         for runner in fresh + handed:
             keep[runner.spec.name] = runner
@@ -564,6 +622,8 @@ class Engine:
         self.config, self._schemas = config, schemas
         self.generation = generation
         self._retire_later(stopped + handed_over)
+        self.elsewhere = sorted(set(everywhere.routes) - set(config.routes))
+        await self._release_leases(keep.values())
         await self._close_unused(keep.values())
         for warning in config.warnings:
             log.warning("route warning", extra={"problem": str(warning)})
@@ -676,6 +736,28 @@ class Engine:
                 continue
             self.runners[runner.spec.name] = again
 
+    async def _take_lease(self, runner: RouteRunner, config: RoutesConfig) -> None:
+        """Share one lease per (connection, lease name) among this instance's routes, so
+        the routes of one robot fail over together."""
+        placement = runner.spec.placement
+        assert placement.lease_connection is not None
+        connection = await self._connection(config.connections[placement.lease_connection])
+        runner.connections.insert(1, connection)  # the sink's connection stays last
+        key = (id(connection), placement.lease_name)
+        lease = self._leases.get(key)
+        if lease is None:
+            lease = connection.lease(placement.lease_name, self.instance, placement.lease_heartbeat)  # type: ignore[attr-defined]
+            await lease.start()
+            self._leases[key] = lease
+        runner.lease = lease
+
+    async def _release_leases(self, runners: Any) -> None:
+        used = {id(runner.lease) for runner in runners if runner.lease is not None}
+        for key, lease in list(self._leases.items()):
+            if id(lease) not in used:
+                del self._leases[key]
+                await lease.stop()
+
     async def _close_unused(self, runners: Any) -> None:
         used = {id(connection) for runner in [*runners, *self._retiring] for connection in runner.connections}
         if self.dead_letters is not None and self.dead_letters.connection is not None:
@@ -742,6 +824,7 @@ class Engine:
             if not await _finished(pipelines, max(deadline, loop.time() + STOP_GRACE)):
                 pipelines.cancel()
                 await asyncio.gather(pipelines, return_exceptions=True)
+            await self._release_leases(())
             for connection in self._connections.values():
                 await connection.close()
             self._connections.clear()
@@ -759,11 +842,20 @@ class Engine:
                 "stored": self.dead_letters.stored,
                 "spooled": self.dead_letters.spooled,
             },
+            "instance": self.instance,
+            "brokers": {
+                key[0]: connection.endpoint  # type: ignore[attr-defined]
+                for key, connection in self._connections.items()
+                if getattr(connection, "endpoint", None)
+            },
+            "elsewhere": self.elsewhere,
             "routes": {
                 name: {
                     "file": f"{runner.spec.file}:{runner.spec.line}",
                     "fingerprint": runner.spec.fingerprint,
                     "generation": runner.pipeline.generation,
+                    "role": runner.lease.role if runner.lease else ("single-active-consumer" if runner.spec.placement.ordered else "shared"),
+                    "lease_changes": runner.lease.changes if runner.lease else 0,
                     **asdict(runner.stats),
                     "source": runner.source.status(),
                     "state": runner.state,

@@ -8,7 +8,7 @@ from typing import Iterator
 
 import pytest
 
-from engine.local_broker import LocalBroker
+from engine.local_broker import LocalBroker, LocalCluster
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -22,6 +22,14 @@ def amqp_url() -> Iterator[str]:
         return
     with LocalBroker() as broker:
         yield broker.url
+
+
+@pytest.fixture(scope="session")
+def amqp_cluster() -> Iterator[LocalCluster]:
+    """Three private nodes joined in one cluster, started once for every cluster test
+    (about 30 s). A test that kills a node restarts it before it ends."""
+    with LocalCluster(3) as cluster:
+        yield cluster
 
 
 @pytest.fixture

@@ -44,8 +44,9 @@ from engine.endpoints.base import (
     Source,
     Transport,
 )
+from engine.endpoints import amqp_cluster
 from engine.mapping import MappingError, compile_template
-from engine.redaction import redact_urls, reveal
+from engine.redaction import redact_urls
 from engine.schemas import SchemaError, canonical_bytes
 
 _ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError, RuntimeError)
@@ -87,7 +88,22 @@ class AmqpConnection(Connection):
 
     @property
     def url(self) -> str:
-        return str(reveal(self.settings["url"]))
+        return self.urls[0]
+
+    @property
+    def urls(self) -> list[str]:
+        return amqp_cluster.connection_urls(self.settings)
+
+    @property
+    def queue_type(self) -> str | None:
+        """The type of the queues this connection's routes declare unless they say otherwise."""
+        return self.settings.get("queue_type")
+
+    @property
+    def endpoint(self) -> str | None:
+        """``host:port`` of the broker node in use (a cluster connection fails over)."""
+        connection = self._connection
+        return connection.endpoint if isinstance(connection, amqp_cluster.FailoverConnection) else None
 
     @property
     def healthy(self) -> bool:
@@ -112,8 +128,8 @@ class AmqpConnection(Connection):
 
     async def open(self) -> None:
         try:
-            self._connection = await aio_pika.connect_robust(
-                self.url,
+            self._connection = await amqp_cluster.connect_failover(
+                self.urls,
                 client_properties={"connection_name": f"rabbitros-engine/{self.name}"},
                 heartbeat=self.settings.get("heartbeat", 30),
                 reconnect_interval=self.settings.get("reconnect_interval", RECONNECT_INTERVAL),
@@ -129,7 +145,8 @@ class AmqpConnection(Connection):
             if self._connection is not None:
                 await self.close()
             self._state = "down"
-            raise EndpointError(f"amqp connection {self.name!r} ({redact(self.settings['url'])}): {self._last_error}") from exc
+            nodes = ", ".join(redact(url) for url in self.urls)
+            raise EndpointError(f"amqp connection {self.name!r} ({nodes}): {self._last_error}") from exc
         self._state = "up"
 
     def channel_factory(self) -> aio_pika.abc.AbstractRobustConnection:
@@ -192,7 +209,9 @@ class AmqpConnection(Connection):
     async def prepare_dead_letters(self, max_length: int | None) -> None:
         """The durable exchange and queue ``rabbitros.dead-letter`` (bounded by ``x-max-length``),
         so dead letters are kept even when nobody listens yet."""
-        arguments = {"x-max-length": max_length} if max_length else None
+        arguments = amqp_cluster.queue_arguments(
+            {"queue_arguments": {"x-max-length": max_length} if max_length else {}}, self.queue_type
+        )
         try:
             await self.exchange(DEAD_LETTER_EXCHANGE)
             channel = await self.channel_factory().channel()
@@ -223,6 +242,10 @@ class AmqpConnection(Connection):
 
     def source(self, route: str, options: Mapping[str, Any]) -> Source:
         return AmqpSource(self, route, options)
+
+    def lease(self, name: str, instance: str, heartbeat: float) -> amqp_cluster.AmqpLease:
+        """The broker-held lease of an ``active_standby`` route (see :class:`AmqpLease`)."""
+        return amqp_cluster.AmqpLease(self, name, instance, heartbeat, self.queue_type)
 
     def sink(self, route: str, options: Mapping[str, Any]) -> Sink:
         return AmqpSink(self, route, options)
@@ -264,7 +287,7 @@ class AmqpSource(Source):
             self._queue = await self._channel.declare_queue(
                 self.queue_name,
                 durable=options.get("durable", True),
-                arguments=options.get("queue_arguments"),
+                arguments=amqp_cluster.queue_arguments(options, self._connection.queue_type, options.get("ordered", False)),
             )
             if "exchange" in options and options["exchange"] != "":
                 exchange = await self._channel.declare_exchange(
@@ -423,13 +446,7 @@ class AmqpTransport(Transport):
     accepts_secrets = True
 
     def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
-        try:
-            parts = urlsplit(str(reveal(settings.get("url", ""))))
-            valid = parts.scheme in ("amqp", "amqps") and bool(parts.hostname)
-        except ValueError:
-            valid = False
-        if not valid:
-            yield None, f"not an amqp:// URL: {redact(settings.get('url', ''))!r}"
+        yield from amqp_cluster.check_urls(settings, redact)
 
     def check_source(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         if "queue" not in options and "exchange" not in options:
@@ -438,6 +455,7 @@ class AmqpTransport(Transport):
             yield "binding_key", "binding_key needs an exchange to bind to"
         if "exchange_type" in options and not options.get("exchange"):
             yield "exchange_type", "exchange_type is not used without an exchange to declare"
+        yield from amqp_cluster.check_queue(options)
 
     def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         if "exchange" not in options and "routing_key" not in options:
