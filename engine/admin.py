@@ -47,24 +47,22 @@ def parse_address(text: str) -> tuple[str, int]:
 
 
 def connection_health(engine: Engine) -> dict[str, dict[str, Any]]:
-    return {
-        connection.name: {"protocol": protocol, "up": bool(connection.healthy)}
-        for protocol, connection in engine.open_connections()
-    }
+    """Each connection's health as the engine reports it (``healthy``, ``state``,
+    ``last_error``), with ``up`` for /healthz and ``rabbitros_connection_up``."""
+    connections = engine.status()["connections"]
+    for health in connections.values():
+        health["up"] = bool(health.get("healthy", True))
+    return connections
 
 
 def status_document(engine: Engine) -> dict[str, Any]:
-    """The engine's status with what the observers know: outcome counts, rates, state."""
+    """The engine's status with what the observers know: outcome counts and rates."""
     document = engine.status()
-    connections = connection_health(engine)
-    document["connections"] = connections
+    for health in document["connections"].values():
+        health["up"] = bool(health.get("healthy", True))
     for name, route in document["routes"].items():
-        runner = engine.runners.get(name)
-        observer = engine.observers.get(name)
-        route.update(observer.snapshot())
+        route.update(engine.observers.get(name).snapshot())
         route.update(engine.observers.rates(name))
-        down = [c.name for c in (runner.connections if runner else ()) if not connections.get(c.name, {}).get("up", True)]
-        route["state"] = f"waiting for {', '.join(down)}" if down else "running"
     return document
 
 

@@ -379,7 +379,7 @@ class Engine:
         """route name -> [buffer, runners using it, newest runner]: a buffer outlives a reload."""
 
     def open_connections(self) -> list[tuple[str, Connection]]:
-        """ops: ``(protocol, connection)`` of every open connection, for health and metrics."""
+        """``(protocol, connection)`` of every connection the engine holds (open or being retried)."""
         specs = self.config.connections if self.config is not None else {}
         return [(specs[c.name].protocol if c.name in specs else type(c).__module__.rsplit(".", 1)[-1], c)
                 for c in self._connections.values()]
@@ -866,12 +866,12 @@ class Engine:
             },
             "connections": {
                 connection.name: {
-                    "protocol": type(connection).__module__.rsplit(".", 1)[-1],
+                    "protocol": protocol,
                     "healthy": connection.healthy and self.is_open(connection),
                     **connection.health(),
                     **({} if self.is_open(connection) else {"state": "retrying"}),
                 }
-                for connection in self._connections.values()
+                for protocol, connection in self.open_connections()
             },
         }
 
