@@ -18,6 +18,7 @@ from engine.endpoints.amqp import redact
 from engine.endpoints.base import EndpointError
 from engine.local_broker import BrokerError, LocalBroker
 from engine.logs import setup_logging
+from engine.loop import run as run_loop
 from engine.routes import RoutesInvalid, load_routes
 from engine.runtime import Engine
 from engine.schemas import SchemaRegistry
@@ -82,7 +83,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     listener = setup_logging(args.log_level, args.log_format)
     try:
-        return asyncio.run(run(args))
+        return run_loop(run(args))
     finally:
         listener.stop()
 
