@@ -255,7 +255,7 @@ async def child(system: str, args: dict[str, Any]) -> AsyncIterator[Child]:
         await process.stop()
 
 
-async def drain_amqp_source(broker: Broker, kind: str, system: str, count: int, domain: int,
+async def drain_amqp_source(broker: Broker, kind: str, system: str, count: int, domain: int,  # noqa: PLR0913
                             body: Any = gnss_json, schema: str = "position", mapping: str | None = GNSS_MAPPING) -> dict[str, Any]:
     """AMQP -> AMQP or AMQP -> ROS 2: the bridge drains ``count`` pre-filled messages.
 

