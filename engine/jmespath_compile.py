@@ -56,6 +56,16 @@ def _identity(value: Any) -> Any:
     return value
 
 
+def _project(right: Compiled, elements: Any) -> list[Any]:
+    """A projection's right side over each element; None results are left out."""
+    collected = []
+    for element in elements:
+        current = right(element)
+        if current is not None:
+            collected.append(current)
+    return collected
+
+
 class _Expression(_InterpretedExpression):
     """An expression reference (``&field``) handed to functions such as ``sort_by``.
 
@@ -221,12 +231,7 @@ class _Compiler:
             base = left(value)
             if not isinstance(base, list):
                 return None
-            collected = []
-            for element in base:
-                current = right(element)
-                if current is not None:
-                    collected.append(current)
-            return collected
+            return _project(right, base)
 
         return projection
 
@@ -239,12 +244,7 @@ class _Compiler:
                 base = base.values()
             except AttributeError:
                 return None
-            collected = []
-            for element in base:
-                current = right(element)
-                if current is not None:
-                    collected.append(current)
-            return collected
+            return _project(right, base)
 
         return value_projection
 
