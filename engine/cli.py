@@ -20,6 +20,7 @@ from engine.opsview import print_status, print_tap
 from engine.endpoints.base import EndpointError
 from engine.local_broker import BrokerError, LocalBroker, LocalCluster
 from engine.logs import setup_logging
+from engine.loop import run as run_loop
 from engine.route_tests import format_result, load_checked, run_tests
 from engine.routes import RoutesInvalid
 from engine.runtime import Engine
@@ -118,7 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return print_tap(args.admin, args.route, args.count)
     listener = setup_logging(args.log_level, args.log_format)
     try:
-        return asyncio.run(run(args))
+        return run_loop(run(args))
     finally:
         listener.stop()
 

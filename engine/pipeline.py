@@ -9,7 +9,7 @@ so every message is converted by exactly one generation.
 from __future__ import annotations
 
 import asyncio
-import uuid
+import os
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -94,13 +94,15 @@ class Pipeline:
                 raise ConversionError("sink mapping", str(exc)) from None
             except Exception as exc:
                 raise ConversionError("sink mapping", _unexpected(exc)) from None
-        meta = inbound.meta
+        meta = inbound.meta  # the source's own dict for this message: extended, not copied
+        meta["route"] = self.route
+        meta["generation"] = self.generation
         return Outbound(
             body=body,
             canonical=data,
             fields=fields,
-            message_id=meta.get("message_id") or uuid.uuid4().hex,
-            meta={**meta, "route": self.route, "generation": self.generation},
+            message_id=meta.get("message_id") or os.urandom(16).hex(),
+            meta=meta,
         )
 
     def enter(self) -> None:

@@ -210,11 +210,16 @@ class _Document:
         return Problem(self.file, self.line(path), message)
 
 
+_Loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+"""libyaml's parser where PyYAML was built with it (the wheels are): the same nodes and line
+marks, parsed several times faster (1,000 routes: check 0.85 s -> 0.27 s here)."""
+
+
 def _parse_document(
     file: str, text: str, env: Mapping[str, str], problems: list[Problem],
     validator: jsonschema.protocols.Validator = _ROUTE_FILE_VALIDATOR,
 ) -> _Document | None:
-    loader = yaml.SafeLoader(text)
+    loader = _Loader(text)
     try:
         root = loader.get_single_node()
     except yaml.MarkedYAMLError as exc:
@@ -280,7 +285,7 @@ def _to_python(
             return value
         if masked != substituted or has_url_password(substituted):
             return Secret(substituted, redact_urls(masked) if MASK in masked or has_url_password(masked) else MASK)
-        return _typed(substituted) if node.style is None else substituted
+        return _typed(substituted) if not node.style else substituted  # plain: None (Python) or "" (libyaml)
     if isinstance(value, str) and has_url_password(value):
         return Secret(value)
     return value

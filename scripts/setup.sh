@@ -21,6 +21,6 @@ stamp=.venv/.rabbitros-installed
 want=$(sha256sum pyproject.toml | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "setup: installing the package into .venv" >&2
-  .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[ros2,test]' 2> >(grep -v 'is ignored: it is neither' >&2)
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[ros2,test,fast,bench]' 2> >(grep -v 'is ignored: it is neither' >&2)
   echo "$want" > "$stamp"
 fi

@@ -190,13 +190,21 @@ class AmqpConnection(Connection):
             error = EndpointError(f"amqp publish to {exchange_name!r} on {self.name!r}: {exc}")
             return [error] * len(messages)
         confirms = self._publish_channel.publisher_confirms
-        outcomes = await asyncio.gather(
-            *(
-                channel.basic_publish(body, exchange=exchange_name, routing_key=key, properties=properties, wait=not confirms)
-                for key, body, properties in messages
-            ),
-            return_exceptions=True,
-        )
+        if len(messages) == 1:  # the common case at low rates: no task, one loop iteration less
+            key, body, properties = messages[0]
+            try:
+                outcomes: list[Any] = [await channel.basic_publish(
+                    body, exchange=exchange_name, routing_key=key, properties=properties, wait=not confirms)]
+            except Exception as exc:  # as gather(return_exceptions=True) would report it
+                outcomes = [exc]
+        else:
+            outcomes = await asyncio.gather(
+                *(
+                    channel.basic_publish(body, exchange=exchange_name, routing_key=key, properties=properties, wait=not confirms)
+                    for key, body, properties in messages
+                ),
+                return_exceptions=True,
+            )
         results: list[BaseException | None] = []
         for (key, _, _), outcome in zip(messages, outcomes):
             if isinstance(outcome, BaseException) or isinstance(outcome, (spec.Basic.Nack, spec.Basic.Reject)):

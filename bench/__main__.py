@@ -1,0 +1,146 @@
+"""``python -m bench``: every measurement of issue 10 in one run, written to bench/results/<date>/.
+
+Starts a private RabbitMQ node, runs each section (the paper's latency method, zero-loss
+throughput of each route kind against its reference pass-through and the paper's design,
+latency at half that rate, throughput against message size, 1/100/1,000 routes, JSON over
+the emulated SiK radio) and writes ``results.json``, ``report.md`` (the paper's table format
+plus p50/p99) and PNG plots. Throughput is reported as ratios measured in the same run: the
+machine is shared, absolute numbers move with its load (recorded in the report).
+
+    .venv/bin/python -m bench                      # everything, about 6-10 minutes
+    .venv/bin/python -m bench --rate 1             # the paper's 1 msg/s for the latency method (+25 min)
+    .venv/bin/python -m bench --only throughput,routes --count 3000
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import datetime
+import json
+import os
+import subprocess
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+from bench import sections
+from bench import throughput as tp
+from bench.report import write_report
+
+REPO = Path(__file__).resolve().parent.parent
+SECTIONS = ("latency", "throughput", "sizes", "routes", "sik")
+KINDS = {
+    "amqp-amqp": ("ref-amqp-amqp", None),
+    "amqp-ros2": ("ref-amqp-ros2", "paper-amqp-ros2"),
+    "ros2-amqp": ("ref-ros2-amqp", "paper-ros2-amqp"),
+    "mavlink-amqp": ("ref-mavlink-amqp", None),
+}
+
+
+def machine() -> dict[str, Any]:
+    from engine.loop import loop_name
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "commit": commit, "cpus": os.cpu_count(), "loadavg": os.getloadavg(), "loop": loop_name()}
+
+
+async def throughput(broker: tp.Broker, count: int, mavlink_rates: list[int], half_rate_s: float) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    domain = tp.domain_id()
+    for kind, (reference, paper) in KINDS.items():
+        row: dict[str, Any] = {}
+        for role, system in (("reference", reference), ("engine", "engine"), ("paper", paper)):
+            if system is None:
+                continue
+            print(f"  {kind}: {system}", flush=True)
+            try:
+                if kind == "mavlink-amqp":
+                    row[role] = await tp.mavlink_ladder(broker, system, mavlink_rates, 2.0)
+                elif kind == "ros2-amqp":
+                    row[role] = await tp.drain_ros2_source(broker, system, count, domain)
+                else:
+                    row[role] = await tp.drain_amqp_source(broker, kind, system, count, domain)
+            except Exception as exc:
+                row[role] = {"error": f"{type(exc).__name__}: {exc}"[:2000], "msg_per_s": float("nan")}
+        engine_rate = row["engine"].get("msg_per_s", float("nan"))
+        row["vs_reference"] = engine_rate / row["reference"]["msg_per_s"] if row["reference"].get("msg_per_s") else None
+        if "paper" in row and row["paper"].get("msg_per_s"):
+            row["vs_paper"] = engine_rate / row["paper"]["msg_per_s"]
+        if engine_rate == engine_rate and engine_rate > 0:
+            print(f"  {kind}: latency at half rate ({engine_rate / 2:.0f} msg/s)", flush=True)
+            try:
+                row["latency_half_rate"] = await tp.engine_latency_at_rate(broker, kind, engine_rate / 2, half_rate_s, domain)
+            except Exception as exc:
+                row["latency_half_rate"] = {"error": f"{type(exc).__name__}: {exc}"[:2000]}
+        out[kind] = row
+    return out
+
+
+async def run(args: argparse.Namespace) -> Path:
+    from engine.local_broker import LocalBroker
+
+    only = set(args.only.split(",")) if args.only else set(SECTIONS)
+    out_dir = Path(args.out) if args.out else REPO / "bench" / "results" / datetime.date.today().isoformat()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results: dict[str, Any] = {"machine_before": machine(), "settings": vars(args)}
+    began = time.monotonic()
+    node = LocalBroker()
+    url = await asyncio.to_thread(node.start)
+    broker = tp.Broker(url)
+    await broker.open()
+    steps = [
+        ("latency", lambda: sections.paper_latency(url, args.rate, args.runs, 100)),
+        ("throughput", lambda: throughput(broker, args.count, args.mavlink_rates, args.half_rate_seconds)),
+        ("sizes", lambda: sections.throughput_by_size(broker, [50, 250, 1000, 4000], args.count)),
+        ("routes", lambda: sections.many_routes(broker, [1, 100, 1000], args.count)),
+        ("sik", lambda: sections.sik_goodput(url, 120, 250)),
+    ]
+    try:
+        for name, step in steps:
+            if name not in only:
+                continue
+            print(f"[{time.monotonic() - began:5.0f}s] {name}", flush=True)
+            try:
+                results[name] = await step()
+            except Exception as exc:
+                traceback.print_exc()
+                results[name] = {"error": f"{type(exc).__name__}: {exc}"[:3000]}
+            (out_dir / "results.json").write_text(json.dumps(results, indent=1, default=str))
+    finally:
+        await broker.close()
+        await asyncio.to_thread(node.stop)
+    results["machine_after"] = machine()
+    results["seconds"] = time.monotonic() - began
+    (out_dir / "results.json").write_text(json.dumps(results, indent=1, default=str))
+    write_report(results, out_dir)
+    print(f"[{results['seconds']:5.0f}s] wrote {out_dir}/report.md", flush=True)
+    return out_dir
+
+
+def main() -> None:
+    from engine.loop import run as run_loop
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rate", type=float, default=100.0, help="msg/s of the latency method (the paper: 1)")
+    parser.add_argument("--runs", type=int, default=5, help="runs per size of the latency method")
+    parser.add_argument("--count", type=int, default=6000,
+                        help="messages per throughput drain (well above the prefetch of 1,000)")
+    parser.add_argument("--mavlink-rates", type=lambda s: [int(x) for x in s.split(",")],
+                        default=[1000, 2000, 3000, 4500, 6000, 8000], help="the MAVLink ladder (msg/s)")
+    parser.add_argument("--half-rate-seconds", type=float, default=4.0)
+    parser.add_argument("--only", help=f"comma-separated sections of {', '.join(SECTIONS)}")
+    parser.add_argument("--out", help="output directory (default bench/results/<date>)")
+    parser.add_argument("--report-only", help="rewrite report.md and plots from this results.json")
+    args = parser.parse_args()
+    if args.report_only:
+        path = Path(args.report_only)
+        write_report(json.loads(path.read_text()), path.parent)
+        return
+    run_loop(run(args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,203 @@
+"""report.md and the PNG plots of a ``python -m bench`` run, from its results.json."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+PAPER = {"CT-L1": {"50": 0.112, "150": 0.111, "250": 0.113}, "CT-L2": {"50": 0.832, "150": 0.838, "250": 0.831}}
+TITLES = {"CT-L1": "CT-L1, AMQP -> ROS 2", "CT-L2": "CT-L2, ROS 2 -> AMQP"}
+
+
+def _f(value: Any, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def _rate(result: dict[str, Any] | None) -> str:
+    if not result:
+        return "-"
+    if "error" in result:
+        return "error"
+    text = f"{result.get('msg_per_s', float('nan')):.0f}"
+    if result.get("lost"):
+        text += f" (lost {result['lost']})"
+    return text
+
+
+def latency_tables(latency: dict[str, Any]) -> list[str]:
+    lines = [f"## 1. Processing latency, the paper's method ({latency['runs']} x {latency['count']} messages "
+             f"per size at {latency['rate']:g} msg/s), in milliseconds", ""]
+    for setting, label in (("confirms_off", "publisher confirms off (the paper's configuration)"),
+                           ("confirms_on", "publisher confirms on (the engine's default)")):
+        for name, sizes in latency.get(setting, {}).items():
+            lines += [f"**{TITLES[name]}, {label}**", "",
+                      "| Size | Mean | Standard deviation | Minimum | Maximum | p50 | p99 | Paper mean |",
+                      "|---|---|---|---|---|---|---|---|"]
+            for size, s in sizes.items():
+                lines.append(f"| {size} B | {_f(s.get('mean'))} | {_f(s.get('std'))} | {_f(s.get('min'))} | "
+                             f"{_f(s.get('max'))} | {_f(s.get('p50'))} | {_f(s.get('p99'))} | {PAPER[name][size]:.3f} |")
+            lines.append("")
+        off = latency.get(setting, {})
+        if "CT-L1" in off and "CT-L2" in off:
+            ratios = [off["CT-L2"][size]["p50"] / off["CT-L1"][size]["p50"] for size in off["CT-L1"]
+                      if off["CT-L1"][size].get("p50")]
+            lines += [f"CT-L2 / CT-L1 median ratio ({label}): " + ", ".join(f"{r:.2f}" for r in ratios)
+                      + " (the paper's: 7.4)", ""]
+    return lines
+
+
+def throughput_table(throughput: dict[str, Any]) -> list[str]:
+    lines = ["## 2-3. Maximum zero-loss throughput, msg/s, same run (ratios are what count)", "",
+             "| Route kind (GNSS position route) | Engine | Reference pass-through | Engine / reference | "
+             "Paper's design | Engine / paper | Engine latency at half rate p50 / p99 (ms) |",
+             "|---|---|---|---|---|---|---|"]
+    names = {"amqp-amqp": "AMQP -> AMQP", "amqp-ros2": "AMQP -> ROS 2", "ros2-amqp": "ROS 2 -> AMQP",
+             "mavlink-amqp": "MAVLink (UDP) -> AMQP"}
+    for kind, row in throughput.items():
+        half = row.get("latency_half_rate") or {}
+        latency = f"{_f(half.get('p50'))} / {_f(half.get('p99'))}" if "p50" in half else "-"
+        lines.append(f"| {names.get(kind, kind)} | {_rate(row.get('engine'))} | {_rate(row.get('reference'))} | "
+                     f"{_f(row.get('vs_reference'), 2)} | {_rate(row.get('paper'))} | {_f(row.get('vs_paper'), 2)} | {latency} |")
+    lines += ["", "References: aiormq consume (prefetch 1,000) -> pipelined publish per batch on a confirm channel -> "
+              "one ack(multiple) per batch; the same consumer -> rclpy String publish; an rclpy subscription taken in "
+              "batches -> the batched aiormq publisher; UDP -> pymavlink parse_buffer -> hand-written conversion -> "
+              "the batched aiormq publisher. Paper's design: aio-pika, rclpy's default executor spun from the asyncio "
+              "loop, jsonschema, synchronous logging, confirms off.", ""]
+    return lines
+
+
+def sizes_table(rows: list[dict[str, Any]]) -> list[str]:
+    lines = ["## Throughput against message size (AMQP -> AMQP identity raw_json route), msg/s", "",
+             "| Size | Engine | aiormq pass-through | Engine / reference |", "|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row['size']} B | {_rate(row.get('engine'))} | {_rate(row.get('ref-amqp-amqp'))} | {_f(row.get('ratio'), 2)} |")
+    return lines + [""]
+
+
+def routes_table(rows: list[dict[str, Any]]) -> list[str]:
+    lines = ["## 4. Many routes (AMQP -> AMQP GNSS routes, one queue each)", "",
+             "| Routes | check (s) | load, new queues (s) | load, queues exist (s) | RSS after load (MiB) | "
+             "Per-message cost (us) | vs 1 route |",
+             "|---|---|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row['routes']} | {_f(row['check_s'])} | {_f(row['load_s'])} | "
+                     f"{_f(row.get('reload_existing_queues_s'))} | {_f(row['rss_mib'], 1)} | "
+                     f"{_f(row['us_per_msg'], 1)} | {_f(row['cost_vs_one_route'], 2)} |")
+    return lines + ["", "check = parse, validate and compile the directory in process (`rabbitros-engine check` "
+                    "without interpreter start-up); load = Engine.start (connection, queue declarations, consumers); "
+                    "per-message cost = 1 / drain rate of one route while all are loaded.", ""]
+
+
+def sik_table(sik: dict[str, Any]) -> list[str]:
+    return ["## 5. JSON over the emulated SiK radio (0 % loss)", "",
+            "| Message | Messages back identical | Goodput each way (B/s) | Link payload capacity (B/s) | Fraction |",
+            "|---|---|---|---|---|",
+            f"| {sik['size']} B | {sik['identical']}/{sik['sent']} | {sik['goodput_bytes_per_s']:.0f} | "
+            f"{sik['payload_bytes_per_s']:.0f} | {sik['fraction_of_capacity']:.2f} |", "",
+            f"Capacity: TUNNEL payload one direction can carry at best on the emulator's timing "
+            f"({sik['frames_per_packet']} frame(s) of {sik['tunnel_payload']} B payload per air packet).", ""]
+
+
+def write_report(results: dict[str, Any], out: Path) -> None:
+    before, after = results.get("machine_before", {}), results.get("machine_after", {})
+    lines = ["# RabbitROS engine benchmark", "",
+             f"{before.get('date')}, commit {before.get('commit')}, {before.get('cpus')} CPUs, loop {before.get('loop')}; "
+             f"load average before {_load(before)}, after {_load(after)} (the machine is shared: absolute figures "
+             f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
+    for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
+                        ("routes", routes_table), ("sik", sik_table)):
+        value = results.get(key)
+        if value is None:
+            continue
+        if isinstance(value, dict) and "error" in value:
+            lines += [f"## {key}: failed", "", "```", value["error"], "```", ""]
+            continue
+        try:
+            lines += render(value)
+        except Exception as exc:  # a partial result must not lose the rest of the report
+            lines += [f"## {key}: cannot render ({type(exc).__name__}: {exc})", ""]
+    lines += ["Plots: " + ", ".join(f"`{p}`" for p in plots(results, out)), ""]
+    (out / "report.md").write_text("\n".join(lines))
+
+
+def _load(machine: dict[str, Any]) -> str:
+    load = machine.get("loadavg")
+    return "/".join(f"{x:.1f}" for x in load) if load else "-"
+
+
+def plots(results: dict[str, Any], out: Path) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    latency = results.get("latency")
+    if isinstance(latency, dict) and "confirms_off" in latency:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        for ax, name in zip(axes, ("CT-L1", "CT-L2")):
+            for setting, style in (("confirms_off", "-"), ("confirms_on", "--")):
+                for size, s in latency.get(setting, {}).get(name, {}).items():
+                    samples = sorted(s.get("samples") or [])
+                    if samples:
+                        ax.plot(samples, [i / len(samples) for i in range(len(samples))], style,
+                                label=f"{size} B, {setting.replace('_', ' ')}")
+            ax.set_xscale("log")
+            ax.set_xlabel("t2 - t1 (ms)")
+            ax.set_ylabel("fraction of messages")
+            ax.set_title(TITLES[name])
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "latency_distributions.png", dpi=110)
+        plt.close(fig)
+        written.append("latency_distributions.png")
+    sizes = results.get("sizes")
+    if isinstance(sizes, list) and sizes:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        xs = [row["size"] for row in sizes]
+        for system, label in (("engine", "engine"), ("ref-amqp-amqp", "aiormq pass-through")):
+            ax.plot(xs, [row[system].get("msg_per_s", float("nan")) for row in sizes], "o-", label=label)
+        ax.set_xscale("log")
+        ax.set_xlabel("message size (B)")
+        ax.set_ylabel("msg/s (AMQP -> AMQP, zero loss)")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "throughput_vs_size.png", dpi=110)
+        plt.close(fig)
+        written.append("throughput_vs_size.png")
+    routes = results.get("routes")
+    if isinstance(routes, list) and routes:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        xs = [row["routes"] for row in routes]
+        ax.plot(xs, [row["msg_per_s"] for row in routes], "o-", label="msg/s through one route")
+        ax.set_xscale("log")
+        ax.set_xlabel("routes loaded")
+        ax.set_ylabel("msg/s")
+        twin = ax.twinx()
+        twin.plot(xs, [row["load_s"] for row in routes], "s--", color="tab:red", label="load (s)")
+        twin.set_ylabel("load time (s)")
+        fig.legend(loc="lower left")
+        fig.tight_layout()
+        fig.savefig(out / "throughput_vs_routes.png", dpi=110)
+        plt.close(fig)
+        written.append("throughput_vs_routes.png")
+    throughput = results.get("throughput")
+    if isinstance(throughput, dict) and throughput:
+        fig, ax = plt.subplots(figsize=(8, 4))
+        kinds = list(throughput)
+        for offset, role in ((-0.27, "reference"), (0, "engine"), (0.27, "paper")):
+            values = [(throughput[k].get(role) or {}).get("msg_per_s", 0) or 0 for k in kinds]
+            ax.bar([i + offset for i in range(len(kinds))], values, width=0.27, label=role)
+        ax.set_xticks(range(len(kinds)), kinds)
+        ax.set_ylabel("msg/s, zero loss")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / "throughput_by_route_kind.png", dpi=110)
+        plt.close(fig)
+        written.append("throughput_by_route_kind.png")
+    return written

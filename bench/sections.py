@@ -1,0 +1,170 @@
+"""The sections of ``python -m bench`` besides the throughput drains: the paper's latency
+method, throughput against message size, many routes, and JSON over the emulated SiK radio."""
+
+from __future__ import annotations
+
+import asyncio
+import tempfile
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+from bench import throughput as tp
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+# ---------------------------------------------------------------- 1. the paper's latency method
+
+async def paper_latency(url: str, rate: float, runs: int, count: int) -> dict[str, Any]:
+    """CT-L1 (AMQP -> ROS 2) and CT-L2 (ROS 2 -> AMQP) as in the paper: t2 - t1 inside the
+    engine, 50/150/250 B, ``runs`` x ``count`` messages at ``rate``; confirms off (the paper's
+    configuration) and on."""
+    from bench.bench_latency import scenario
+
+    out: dict[str, Any] = {"rate": rate, "runs": runs, "count": count}
+    for confirms in (False, True):
+        results = await scenario(url, confirms, runs, count, rate)
+        out["confirms_on" if confirms else "confirms_off"] = {
+            name: {str(size): {**tp.summary(samples), "samples": samples} for size, samples in sizes.items()}
+            for name, sizes in results.items()
+        }
+    return out
+
+
+# ---------------------------------------------------------------- throughput against message size
+
+async def throughput_by_size(broker: tp.Broker, sizes: list[int], count: int) -> list[dict[str, Any]]:
+    """An identity raw_json route (no mapping) against the aiormq pass-through, per body size."""
+    from bench.roundtrip_ros2 import make_message
+
+    rows = []
+    for size in sizes:
+        row: dict[str, Any] = {"size": size}
+        for system in ("ref-amqp-amqp", "engine"):
+            result = await tp.drain_amqp_source(broker, "amqp-amqp", system, count, tp.domain_id(),
+                                                body=lambda i, size=size: make_message(1, size, i),
+                                                schema="raw_json", mapping=None)
+            row[system] = result
+        row["ratio"] = row["engine"]["msg_per_s"] / row["ref-amqp-amqp"]["msg_per_s"]
+        rows.append(row)
+    return rows
+
+
+# ---------------------------------------------------------------- many routes
+
+def scale_routes(directory: Path, url: str, routes: int, tag: str, exchange: str) -> None:
+    lines = ["connections:", f"  gcs: {{amqp: {{url: \"{url}\"}}}}", "routes:"]
+    for index in range(routes):
+        lines += [
+            f"  - name: r{index}",
+            f"    source: {{amqp: {{queue: scale-{tag}-{index}, prefetch: 1000}}}}",
+            f"    mapping: \"{tp.GNSS_MAPPING}\"",
+            "    schema: position",
+            f"    sink: {{amqp: {{exchange: {exchange}, routing_key: \"canonical.position.{{agent_id}}\"}}}}",
+        ]
+    (directory / "routes.yaml").write_text("\n".join(lines) + "\n")
+
+
+async def many_routes(broker: tp.Broker, counts: list[int], messages: int) -> list[dict[str, Any]]:
+    """For 1, 100, 1,000 routes: ``check`` (parse, validate, compile every route, in process),
+    load (engine start: connections, queues, consumers), the same load again once the queues
+    exist (a restart), RSS after load, and the per-message cost of draining ``messages``
+    through one route while all are loaded."""
+    from engine.routes import load_routes
+    from engine.schemas import SchemaRegistry
+
+    rows = []
+    for routes in [1, *counts]:  # the first, not reported, warms the broker up
+        tag = uuid.uuid4().hex[:6]
+        names = await broker.topology(tag)
+        with tempfile.TemporaryDirectory() as work:
+            scale_routes(Path(work), broker.url, routes, tag, names["exchange"])
+            began = time.perf_counter()
+            config = load_routes(Path(work), SchemaRegistry(REPO / "schemas"))
+            check_s = time.perf_counter() - began
+            assert len(config.routes) == routes
+            # the last route: its source starts last, so its queue is still full when loading ends
+            first = f"scale-{tag}-{routes - 1}"
+            await broker.channel.queue_declare(first, durable=True)
+            await broker.prefill(first, [tp.gnss_json(i) for i in range(messages)])
+            engine = tp.Child("engine", {"routes": work})
+            try:
+                started = await engine.wait_for("started", timeout=300)
+                await engine.wait_for("ready", timeout=60)
+                _, load_s, rss_kib = started.split()
+                drained = await tp.observe_source(broker, first, messages)
+                arrived = await tp.observe(lambda: broker.count(names["sink"]), messages)
+            finally:
+                await engine.stop(timeout=60)
+            # a restart: the queues exist now, so this load is the engine's (and the broker's
+            # channel and consumer set-up) without creating durable queues
+            engine = tp.Child("engine", {"routes": work})
+            try:
+                restarted = await engine.wait_for("started", timeout=300)
+                await engine.wait_for("ready", timeout=60)
+            finally:
+                await engine.stop(timeout=60)
+            for index in range(routes):
+                await broker.channel.queue_delete(f"scale-{tag}-{index}")
+        await broker.drop(names)
+        rows.append({"routes": routes, "check_s": check_s, "load_s": float(load_s),
+                     "reload_existing_queues_s": float(restarted.split()[1]), "rss_mib": int(rss_kib) / 1024,
+                     "msg_per_s": drained["msg_per_s"], "us_per_msg": 1e6 / drained["msg_per_s"],
+                     "lost": arrived["lost"]})
+    rows = rows[1:]
+    base = rows[0]["us_per_msg"]
+    for row in rows:
+        row["cost_vs_one_route"] = row["us_per_msg"] / base
+    return rows
+
+
+# ---------------------------------------------------------------- JSON over the emulated SiK radio
+
+def link_payload_capacity() -> dict[str, float]:
+    """TUNNEL payload bytes/s one direction of the emulated radio can carry at best.
+
+    From the emulator's constants (engine.sim.sik_radio): each radio owns TX_WINDOW_S of every
+    TDM_ROUND_S; an air packet of n bytes (at most MAX_AIR_PACKET) takes PACKET_OVERHEAD_S +
+    n * AIR_BYTE_S and must end inside the window; MAVLink frames are packed whole. A TUNNEL
+    frame is 12 bytes of MAVLink 2 framing + 5 of TUNNEL fields + p payload bytes (p <= 128).
+    The best p and frames per packet give the capacity; the serial side (57,600 baud) is the
+    other bound."""
+    from engine.sim import sik_radio as radio
+
+    best = (0.0, 0, 0)
+    for payload in range(1, 129):
+        frame = 12 + 5 + payload
+        for per_packet in range(1, radio.MAX_AIR_PACKET // frame + 1):
+            size = per_packet * frame
+            left, carried = radio.TX_WINDOW_S, 0
+            while left >= radio.PACKET_OVERHEAD_S + size * radio.AIR_BYTE_S:
+                left -= radio.PACKET_OVERHEAD_S + size * radio.AIR_BYTE_S
+                carried += per_packet * payload
+            air = carried / radio.TDM_ROUND_S
+            serial = radio.SERIAL_BYTES_PER_S * payload / frame
+            if min(air, serial) > best[0]:
+                best = (min(air, serial), payload, per_packet)
+    return {"payload_bytes_per_s": best[0], "tunnel_payload": best[1], "frames_per_packet": best[2]}
+
+
+async def sik_goodput(url: str, count: int, size: int) -> dict[str, Any]:
+    """The paper's MAVLink round trip (engine -> JSON tunnel -> radio -> vehicle and back) driven
+    faster than the radio carries; goodput = JSON bytes per second each way, from the first
+    publish to the last message back, at 0 % loss."""
+    from bench.roundtrip_mavlink import Settings, run_experiment
+
+    with tempfile.TemporaryDirectory() as work:
+        settings = Settings(runs=1, count=count, rate=40.0, sizes=(size,), loss=0.0, out=Path(work),
+                            exchange=f"goodput-{uuid.uuid4().hex[:6]}")
+        summary = await run_experiment(settings, amqp_url=url)
+    batch = summary["batches"][0]
+    capacity = link_payload_capacity()
+    goodput = batch["identical"] * size / batch["seconds"]
+    return {"size": size, "sent": batch["sent"], "identical": batch["identical"], "seconds": batch["seconds"],
+            "goodput_bytes_per_s": goodput, **capacity,
+            "fraction_of_capacity": goodput / capacity["payload_bytes_per_s"], "radio": summary.get("radio")}
+
+
+__all__ = ["asyncio", "link_payload_capacity", "many_routes", "paper_latency", "sik_goodput", "throughput_by_size"]

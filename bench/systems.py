@@ -1,0 +1,481 @@
+"""The bridges the benchmark compares, each run alone in a child process until SIGTERM.
+
+    python -m bench.systems SYSTEM '{"url": ..., ...}'
+
+* ``engine``: the RabbitROS engine on a routes file (uvloop where installed); with
+  ``latency_out`` it records every message's reception-to-acceptance time (t2 - t1) and
+  writes them there when stopped.
+* ``ref-amqp-amqp``: the plain aiormq pass-through of issue 10: consume with prefetch 1,000,
+  publish each batch of received messages pipelined on a confirm channel (persistent),
+  one ``basic_ack(multiple=True)`` per batch.
+* ``ref-amqp-ros2``: the same consumer, each batch published as std_msgs/String with rclpy.
+* ``ref-ros2-amqp``: an rclpy subscription taken in batches from rcl's wait set in a thread
+  -> the batched aiormq publisher.
+* ``ref-mavlink-amqp``: UDP datagrams -> pymavlink ``parse_buffer`` -> GLOBAL_POSITION_INT
+  converted by hand to the canonical position -> the batched aiormq publisher.
+* ``paper-amqp-ros2`` / ``paper-ros2-amqp``: the paper's own design re-implemented:
+  aio-pika, rclpy's default executor spun from the asyncio loop, pure-Python ``jsonschema``
+  validation and synchronous logging of every message, publisher confirms off.
+
+References do no schema validation: they are what the client libraries allow, the bound.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+from pamqp.commands import Basic
+
+Properties = Basic.Properties
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+# ---------------------------------------------------------------- shared pieces
+
+async def _until_stopped() -> None:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    loop.add_signal_handler(signal.SIGTERM, stop.set)
+    loop.add_signal_handler(signal.SIGINT, stop.set)
+    print("ready", flush=True)
+    await stop.wait()
+
+
+def _ros_context(domain: int) -> tuple[Any, Any]:
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.signals import SignalHandlerOptions
+
+    context = Context()
+    rclpy.init(args=[], context=context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node(f"bench_{os.getpid()}", context=context, start_parameter_services=False)
+    return context, node
+
+
+def _qos(latched: bool = False) -> Any:
+    """Reliable, keep-last 10,000 (the engine's default); ``latched`` (transient local) where a
+    bridge may publish before the bench's counter has matched."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    durability = DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE
+    return QoSProfile(depth=10_000, reliability=ReliabilityPolicy.RELIABLE, durability=durability)
+
+
+class BatchPublisher:
+    """Publishes whatever has been queued, pipelined, confirms awaited together."""
+
+    def __init__(self, channel: Any, exchange: str, routing_key: str) -> None:
+        self.channel = channel
+        self.exchange = exchange
+        self.routing_key = routing_key
+        self.properties = Properties(delivery_mode=2, content_type="application/json")
+        self.pending: deque[bytes] = deque()
+        self.ready = asyncio.Event()
+
+    def put(self, body: bytes) -> None:
+        self.pending.append(body)
+        self.ready.set()
+
+    async def run(self) -> None:
+        publish, exchange, key, properties = self.channel.basic_publish, self.exchange, self.routing_key, self.properties
+        while True:
+            await self.ready.wait()
+            self.ready.clear()
+            batch = [self.pending.popleft() for _ in range(len(self.pending))]
+            if batch:
+                await asyncio.gather(*(publish(b, exchange=exchange, routing_key=key, properties=properties) for b in batch))
+
+
+def position_from_global_position_int(msg: Any) -> dict[str, Any]:
+    """What the engine's uav1-position mapping computes, written by hand."""
+    vx, vy, vz = msg.vx / 100, msg.vy / 100, msg.vz / 100
+    return {
+        "type": "position", "agent_id": "uav1", "stamp": time.time(), "time_boot_ms": msg.time_boot_ms,
+        "lat": msg.lat / 1e7, "lon": msg.lon / 1e7, "alt_msl": msg.alt / 1000, "alt_rel": msg.relative_alt / 1000,
+        "velocity_enu": [vy, vx, -vz], "heading": None if msg.hdg == 65535 else msg.hdg / 100,
+    }
+
+
+def _rss_kib() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+# ---------------------------------------------------------------- the engine
+
+async def engine(args: dict[str, Any]) -> None:
+    from engine.runtime import Engine
+
+    bridge = Engine(Path(args["routes"]), REPO / "schemas")
+    began = time.perf_counter()
+    await bridge.start()
+    print(f"started {time.perf_counter() - began:.4f} {_rss_kib()}", flush=True)
+    if args.get("latency_out"):
+        for runner in bridge.runners.values():
+            runner.latency_samples = []
+    try:
+        await _until_stopped()
+    finally:
+        if args.get("latency_out"):
+            samples = {name: getattr(runner, "latency_samples", None) or [] for name, runner in bridge.runners.items()}
+            Path(args["latency_out"]).write_text(json.dumps(samples))
+        await bridge.stop()
+
+
+# ---------------------------------------------------------------- references on the client libraries
+
+async def _aiormq_consumer(args: dict[str, Any], handle_batch: Any) -> Any:
+    """Consume ``args['queue']``; each batch handed to ``handle_batch(bodies)`` (awaited),
+    then acknowledged with one multiple=True ack."""
+    import aiormq
+
+    connection = await aiormq.connect(args["url"])
+    channel = await connection.channel()
+    await channel.basic_qos(prefetch_count=1000)
+    received: list[Any] = []
+    ready = asyncio.Event()
+
+    async def on_message(message: Any) -> None:
+        received.append(message)
+        ready.set()
+
+    async def pump() -> None:
+        while True:
+            await ready.wait()
+            ready.clear()
+            batch = received[:]
+            del received[: len(batch)]
+            if batch:
+                await handle_batch([m.body for m in batch])
+                await channel.basic_ack(batch[-1].delivery_tag, multiple=True)
+
+    task = asyncio.create_task(pump())
+    await channel.basic_consume(args["queue"], on_message, no_ack=False)
+    return connection, task
+
+
+async def ref_amqp_amqp(args: dict[str, Any]) -> None:
+    import aiormq
+
+    out = await aiormq.connect(args["url"])
+    publish_channel = await out.channel(publisher_confirms=True)
+    properties = Properties(delivery_mode=2, content_type="application/json")
+    publish, exchange, key = publish_channel.basic_publish, args["exchange"], args["routing_key"]
+
+    async def forward(bodies: list[bytes]) -> None:
+        await asyncio.gather(*(publish(b, exchange=exchange, routing_key=key, properties=properties) for b in bodies))
+
+    connection, task = await _aiormq_consumer(args, forward)
+    await _until_stopped()
+    task.cancel()
+    await connection.close()
+    await out.close()
+
+
+async def ref_amqp_ros2(args: dict[str, Any]) -> None:
+    from std_msgs.msg import String
+
+    context, node = _ros_context(args["domain"])
+    publisher = node.create_publisher(String, args["topic"], _qos(latched=True))
+    message = String()
+
+    async def forward(bodies: list[bytes]) -> None:
+        for body in bodies:
+            message.data = body.decode()
+            publisher.publish(message)
+
+    connection, task = await _aiormq_consumer(args, forward)
+    await _until_stopped()
+    task.cancel()
+    await connection.close()
+    node.destroy_node()
+    context.try_shutdown()
+
+
+class TakeLoop:
+    """A thread that blocks in rcl's wait set on one subscription and takes every ready
+    message, handing each batch to ``on_batch`` (in that thread). This is what rclpy's
+    executors do inside, without their per-callback machinery; rclpy's EventsExecutor,
+    spun in a thread, holds the GIL here and starves the asyncio thread."""
+
+    def __init__(self, context: Any, subscription: Any, cls: type, on_batch: Any) -> None:
+        self.context, self.subscription, self.cls, self.on_batch = context, subscription, cls, on_batch
+        self.stopped = False
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+        handle, cls = self.subscription.handle, self.cls
+        while not self.stopped:
+            with handle, self.context.handle:
+                wait_set = _rclpy.WaitSet(1, 0, 0, 0, 0, 0, self.context.handle)
+                wait_set.clear_entities()
+                wait_set.add_subscription(handle)
+                wait_set.wait(100_000_000)  # ns: wakes up to notice ``stopped``
+                batch = []
+                while (taken := handle.take_message(cls, False)) is not None:
+                    batch.append(taken[0])
+            if batch:
+                self.on_batch(batch)
+
+    def stop(self) -> None:
+        self.stopped = True
+        self.thread.join(5)
+
+
+async def ref_ros2_amqp(args: dict[str, Any]) -> None:
+    import aiormq
+    from std_msgs.msg import String
+
+    connection = await aiormq.connect(args["url"])
+    channel = await connection.channel(publisher_confirms=True)
+    batcher = BatchPublisher(channel, args["exchange"], args["routing_key"])
+    loop = asyncio.get_running_loop()
+    context, node = _ros_context(args["domain"])
+
+    def put_all(bodies: list[bytes]) -> None:
+        for body in bodies:
+            batcher.put(body)
+
+    def on_batch(batch: list[Any]) -> None:  # the take thread
+        loop.call_soon_threadsafe(put_all, [msg.data.encode() for msg in batch])
+
+    subscription = node.create_subscription(String, args["topic"], lambda msg: None, _qos())
+    taker = TakeLoop(context, subscription, String, on_batch)
+    task = asyncio.create_task(batcher.run())
+    await _until_stopped()
+    taker.stop()
+    task.cancel()
+    await connection.close()
+    node.destroy_node()
+    context.try_shutdown()
+
+
+async def ref_mavlink_amqp(args: dict[str, Any]) -> None:
+    os.environ["MAVLINK20"] = "1"
+    import aiormq
+    import orjson
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    connection = await aiormq.connect(args["url"])
+    channel = await connection.channel(publisher_confirms=True)
+    batcher = BatchPublisher(channel, args["exchange"], args["routing_key"])
+    parser = mavlink2.MAVLink(None)
+    parser.robust_parsing = True
+    wanted = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT
+
+    class Datagrams(asyncio.DatagramProtocol):
+        def datagram_received(self, data: bytes, addr: Any) -> None:
+            for msg in parser.parse_buffer(data) or ():
+                if msg.get_msgId() == wanted:
+                    batcher.put(orjson.dumps(position_from_global_position_int(msg), option=orjson.OPT_SORT_KEYS))
+
+    loop = asyncio.get_running_loop()
+    transport, _ = await loop.create_datagram_endpoint(Datagrams, local_addr=("127.0.0.1", args["port"]))
+    task = asyncio.create_task(batcher.run())
+    await _until_stopped()
+    task.cancel()
+    transport.close()
+    await connection.close()
+
+
+# ---------------------------------------------------------------- the paper's design
+
+def to_canonical(data: dict[str, Any]) -> dict[str, Any]:
+    """The GNSS route's mapping, written by hand (the paper's converters are code, not routes)."""
+    return {"type": "position", "agent_id": data["agent"], "stamp": data["stamp"],
+            "lat": data["lat"], "lon": data["lon"], "alt_msl": data["alt"]}
+
+
+def _paper_logging() -> logging.Logger:
+    log = logging.getLogger("rabbitros.paper")
+    handler = logging.FileHandler(os.devnull)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s %(message)s"))
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    return log
+
+
+def _paper_validator() -> Any:
+    import jsonschema
+
+    schemas = {p.name: json.loads(p.read_text()) for p in (REPO / "schemas").glob("*.json")}
+    from referencing import Registry, Resource
+
+    registry = Registry().with_resources(
+        (doc.get("$id", name), Resource.from_contents(doc)) for name, doc in schemas.items())
+    schema = schemas["position.v1.json"]
+    return jsonschema.Draft202012Validator(schema, registry=registry)
+
+
+async def _spin_default_executor(node: Any) -> None:
+    """The paper: ROS 2 callbacks run in the asyncio loop that runs the AMQP client."""
+    import rclpy.executors
+
+    executor = rclpy.executors.SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    while True:
+        executor.spin_once(timeout_sec=0)
+        await asyncio.sleep(0.0005)
+
+
+async def paper_amqp_ros2(args: dict[str, Any]) -> None:
+    import aio_pika
+    from std_msgs.msg import String
+
+    log, validator = _paper_logging(), _paper_validator()
+    context, node = _ros_context(args["domain"])
+    publisher = node.create_publisher(String, args["topic"], _qos(latched=True))
+    connection = await aio_pika.connect_robust(args["url"])
+    channel = await connection.channel(publisher_confirms=False)
+    await channel.set_qos(prefetch_count=256)
+    queue = await channel.get_queue(args["queue"])
+
+    async def on_message(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        async with message.process():
+            canonical = to_canonical(json.loads(message.body))
+            validator.validate(canonical)
+            publisher.publish(String(data=json.dumps(canonical)))
+            log.info("AMQP -> ROS 2 %s: %s", args["topic"], canonical)
+
+    spinner = asyncio.create_task(_spin_default_executor(node))
+    await queue.consume(on_message)
+    await _until_stopped()
+    spinner.cancel()
+    await connection.close()
+    node.destroy_node()
+    context.try_shutdown()
+
+
+async def paper_ros2_amqp(args: dict[str, Any]) -> None:
+    import aio_pika
+    from std_msgs.msg import String
+
+    log, validator = _paper_logging(), _paper_validator()
+    context, node = _ros_context(args["domain"])
+    connection = await aio_pika.connect_robust(args["url"])
+    channel = await connection.channel(publisher_confirms=False)
+    exchange = await channel.get_exchange(args["exchange"])
+    pending: set[asyncio.Task[Any]] = set()
+
+    def on_message(msg: Any) -> None:
+        data = to_canonical(json.loads(msg.data))
+        validator.validate(data)
+        task = asyncio.ensure_future(exchange.publish(
+            aio_pika.Message(json.dumps(data).encode(), delivery_mode=aio_pika.DeliveryMode.PERSISTENT), args["routing_key"]))
+        pending.add(task)
+        task.add_done_callback(pending.discard)
+        log.info("ROS 2 -> AMQP %s: %s", args["routing_key"], data)
+
+    node.create_subscription(String, args["topic"], on_message, _qos())
+    spinner = asyncio.create_task(_spin_default_executor(node))
+    await _until_stopped()
+    spinner.cancel()
+    await connection.close()
+    node.destroy_node()
+    context.try_shutdown()
+
+
+# ---------------------------------------------------------------- load generators
+
+async def ros_publisher(args: dict[str, Any]) -> None:
+    """Publish ``count`` GNSS fixes as std_msgs/String on ``topic`` once a subscriber has
+    matched: as fast as rclpy goes (``rate`` 0, a burst held by DDS history) or paced."""
+    from std_msgs.msg import String
+
+    context, node = _ros_context(args["domain"])
+    publisher = node.create_publisher(String, args["topic"], _qos())
+    deadline = time.monotonic() + 30
+    while publisher.get_subscription_count() < 1 and time.monotonic() < deadline:
+        await asyncio.sleep(0.02)
+    await asyncio.sleep(0.5)
+    rate, count = float(args.get("rate", 0)), int(args["count"])
+    message = String()
+    began = time.monotonic()
+    for index in range(count):
+        message.data = gnss_json(index).decode()
+        publisher.publish(message)
+        if rate:
+            delay = began + (index + 1) / rate - time.monotonic()
+            if delay > 0:
+                await asyncio.sleep(delay)
+        elif index % 500 == 499:
+            await asyncio.sleep(0)
+    publisher.wait_for_all_acked()
+    print(f"published {count}", flush=True)
+    await asyncio.sleep(float(args.get("linger", 2.0)))
+    node.destroy_node()
+    context.try_shutdown()
+
+
+async def mavlink_sender(args: dict[str, Any]) -> None:
+    """Send ``count`` GLOBAL_POSITION_INT frames (system 1) over UDP at ``rate`` per second."""
+    import socket
+
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    mav = mavlink2.MAVLink(None, 1, 1)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    target = ("127.0.0.1", int(args["port"]))
+    rate, count = float(args["rate"]), int(args["count"])
+    frames = [mav.global_position_int_encode(i, -224123456 + i, -475654321, 612340, 35000, 120, -35, 4, 27000).pack(mav)
+              for i in range(min(count, 1000))]
+    began = time.monotonic()
+    for index in range(count):
+        sock.sendto(frames[index % len(frames)], target)
+        delay = began + (index + 1) / rate - time.monotonic()
+        if delay > 0.001:
+            await asyncio.sleep(delay)
+    print(f"sent {count} in {time.monotonic() - began:.3f}", flush=True)
+
+
+def gnss_json(index: int, pad: int = 0) -> bytes:
+    """A GNSS fix as the AMQP and ROS 2 sources receive it (about 100 bytes)."""
+    return (b'{"agent":"uav1","lat":%.7f,"lon":-47.5654321,"alt":612.34,"stamp":%.6f,"seq":%d%s}'
+            % (-22.4123456 + index * 1e-7, time.time(), index, (b',"pad":"' + b"x" * pad + b'"') if pad else b""))
+
+
+SYSTEMS = {
+    "engine": engine,
+    "ref-amqp-amqp": ref_amqp_amqp,
+    "ref-amqp-ros2": ref_amqp_ros2,
+    "ref-ros2-amqp": ref_ros2_amqp,
+    "ref-mavlink-amqp": ref_mavlink_amqp,
+    "paper-amqp-ros2": paper_amqp_ros2,
+    "paper-ros2-amqp": paper_ros2_amqp,
+    "ros-publisher": ros_publisher,
+    "mavlink-sender": mavlink_sender,
+}
+
+
+def main() -> None:
+    from engine.loop import run
+
+    system, args = sys.argv[1], json.loads(sys.argv[2])
+    if system.startswith("paper-") or system in ("ros-publisher", "mavlink-sender"):
+        asyncio.run(SYSTEMS[system](args))  # the paper ran on asyncio's own loop
+    else:
+        run(SYSTEMS[system](args))
+
+
+if __name__ == "__main__":
+    main()
+
+
+__all__ = ["SYSTEMS", "gnss_json", "position_from_global_position_int"]

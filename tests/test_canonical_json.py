@@ -1,0 +1,137 @@
+"""orjson on the hot path keeps canonical JSON byte-identical to the standard library's.
+
+The reference is what the engine did before orjson: ``json.dumps(sort_keys=True,
+separators=(",", ":"), ensure_ascii=False, allow_nan=False)`` as UTF-8, and ``json.loads`` of
+the body decoded as strict UTF-8, rejecting NaN/Infinity.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from engine.schemas import SchemaError, SchemaRegistry, canonical_bytes, parse_json
+
+SCHEMAS = Path(__file__).resolve().parent.parent / "schemas"
+HEADER = {"id": "0f4c2a", "type": "x", "stamp": {"sec": 1732320000, "nanosec": 123456789}}
+
+EXAMPLES: dict[str, list[Any]] = {
+    "ack": [{**HEADER, "agent_id": "robot1", "ref_id": "m-1", "result": "accepted", "detail": "ok ✓"}],
+    "attitude": [{**HEADER, "agent_id": "uav1", "quaternion": {"x": 0.0, "y": -0.0, "z": 0.7071067811865476, "w": 0.7071067811865475},
+                  "roll": 1e-05, "pitch": -3.5e-07, "yaw": 179.99999999999997, "angular_velocity": [0.1, 2e-10, -1e16]}],
+    "battery": [{**HEADER, "agent_id": "uav1", "voltage": 12.6, "current": None, "remaining": 0.5},
+                {"agent_id": "uav1", "voltage": 0, "current": -1.25, "remaining": None}],
+    "command": [{**HEADER, "agent_id": "gcs", "command": "arm", "target": "uav1",
+                 "params": {"force": True, "nested": {"deep": [1, [2, [3, {"z": None, "a": "é"}]]]}}}],
+    "envelope": [{"id": "1", "agent_id": "a", "type": "t", "stamp": 1732320000.25}],
+    "mission": [{**HEADER, "agent_id": "robot1", "mission_id": "m-42", "task": "spray",
+                 "waypoints": [{"lat": -22.000001, "lon": -47.9, "seq": 0, "action": "spray", "hold_s": 2.5},
+                               {"lat": 90, "lon": -180, "seq": 18446744073709551615}]}],
+    "position": [{**HEADER, "agent_id": "uav1", "lat": -22.4123456, "lon": -47.5654321, "alt_msl": 612.34,
+                  "alt_rel": 35.0, "velocity_enu": [0.5, -1.25, 0.0], "heading": None},
+                 {"agent_id": "robot1", "lat": 0, "lon": 1e-07, "heading": 359.99}],
+    "raw_json": [{"anything": ["goes", 1, 2.5, None, True, {"日本": "語", "\u2028": "\x7f\x1f\n\t\"\\/"}]},
+                 {"big": 12345678901234567890123, "neg": -0.0, "list": [1, "two", 3.0, 1e300]}],
+    "status": [{**HEADER, "agent_id": "uav1", "state": "ACTIVE", "armed": False, "mode": "AUTO",
+                "autopilot": "PX4", "vehicle_type": "QUADROTOR"}],
+    "weed_detection": [{**HEADER, "agent_id": "uav1", "points": [{"lat": -22.0, "lon": -47.9, "p": 0.8, "species": "Amaranthus 🌱"},
+                                                                  {"lat": 1.5e-5, "lon": 123.0, "p": 1}]}],
+}
+
+
+def reference_bytes(data: Any) -> bytes:
+    return json.dumps(data, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode("utf-8")
+
+
+def reference_parse(body: bytes) -> Any:
+    def reject(name: str) -> float:
+        raise ValueError(name)
+
+    return json.loads(body.decode("utf-8"), parse_constant=reject)  # strict UTF-8 first, as the engine did
+
+
+def test_every_schema_has_examples_that_validate_and_serialise_identically() -> None:
+    registry = SchemaRegistry(SCHEMAS)
+    assert not registry.problems
+    names = {name for name in registry.names() if ".v" not in name}
+    missing = sorted(names - EXAMPLES.keys())
+    assert not missing, f"schemas without canonical-JSON examples in this test: {missing}"
+    for name in sorted(names):
+        schema = registry.get(name)
+        examples = json.loads(schema.path.read_text()).get("examples", []) + EXAMPLES[name]
+        for example in examples:
+            if name != "envelope":  # the envelope is a library of $defs, not a message type
+                schema.validate(example)
+            expected = reference_bytes(example)
+            assert canonical_bytes(example) == expected, (name, example)
+            assert parse_json(expected) == reference_parse(expected)
+            assert canonical_bytes(parse_json(expected)) == expected
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        1e-07, 1e16, 1e22, 5e-324, 1.7976931348623157e308, 0.1 + 0.2, -0.0, 1e15, 123456789.123456789,
+        2**63 - 1, -(2**63), 2**64 - 1, 2**64, -(2**63) - 1, 10**40, True, False, None,
+        "", "é", "\U0001f600", "\x00\x1f\x7f\u2028\u2029", "quote \" backslash \\ slash /", "\ud800x",
+        {"b": 1, "a": 2, "é": 3, "z": 4, "\U0001f600": 5, "\uffff": 6, "A": 7, "": 8},
+        {"n": {"m": [{"k": [[], {}, [None]]}]}}, [1, [2, [3, [4, [5]]]]], (1, 2), {1: "int key"},
+        {"x": float("nan")}, {"x": [float("inf")]}, {"x": None, "y": -float("inf")},
+    ],
+)
+def test_tricky_values_serialise_like_the_standard_library(value: Any) -> None:
+    try:
+        expected: Any = reference_bytes(value)
+    except ValueError:
+        expected = SchemaError
+    if expected is SchemaError:
+        with pytest.raises(SchemaError):
+            canonical_bytes(value)
+    else:
+        assert canonical_bytes(value) == expected
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        b"123456789012345678901234567890", b"18446744073709551616", b"-9223372036854775809", b"1e400",
+        b'{"a":1,"a":2}', b"\xef\xbb\xbf{}", b"[1E5, 1e-5, -0.0, 0.30000000000000004]", b'"\\ud800"',
+        b'{"x": NaN}', b"[Infinity]", b"{oops}", b"\xff", b"", b" [1] ", b"[1,]", b'"\xed\xa0\x80"',
+    ],
+)
+def test_parse_matches_the_standard_library(body: bytes) -> None:
+    try:
+        expected = reference_parse(body)
+    except ValueError:  # including UnicodeDecodeError
+        with pytest.raises(SchemaError):
+            parse_json(body)
+        return
+    result = parse_json(body)
+    assert result == expected or (isinstance(expected, float) and math.isinf(expected) and result == expected)
+    assert json.dumps(result) == json.dumps(expected)  # same types (int stays int)
+
+
+JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(),
+    lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=6), children, max_size=4),
+    max_leaves=20,
+)
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(JSON_VALUES)
+def test_generated_values_serialise_and_parse_like_the_standard_library(value: Any) -> None:
+    try:
+        expected = reference_bytes(value)
+    except ValueError:  # NaN, Infinity, lone surrogates
+        with pytest.raises(SchemaError):
+            canonical_bytes(value)
+        return
+    assert canonical_bytes(value) == expected
+    assert json.dumps(parse_json(expected)) == json.dumps(reference_parse(expected))
