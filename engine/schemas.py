@@ -92,6 +92,10 @@ def _reject_constant(name: str) -> float:
     raise ValueError(f"{name} is not valid JSON")
 
 
+MAX_DEPTH = 1024
+"""orjson's nesting limit, and so the engine's: deeper JSON is a decode failure."""
+
+
 def parse_json(body: bytes) -> Any:
     """Strict JSON: NaN/Infinity are rejected, errors say where.
 
@@ -102,8 +106,10 @@ def parse_json(body: bytes) -> Any:
     if _LONG_NUMBER.search(body) is None:
         try:
             return orjson.loads(body)
-        except orjson.JSONDecodeError:
-            pass
+        except orjson.JSONDecodeError as exc:
+            if str(exc).startswith("depth limit exceeded"):
+                # one limit, whoever parses: the standard library's depends on the caller's stack
+                raise SchemaError(f"invalid JSON: nested deeper than {MAX_DEPTH} levels") from None
     return _stdlib_parse_json(body)
 
 

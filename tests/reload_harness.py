@@ -167,7 +167,7 @@ def _write(path: Path, text: str, atomic: bool) -> None:
 
 
 async def run_reloads(
-    amqp_url: str, workdir: Path, rewrites: int = 50, rate: float = 500.0, interval: float = 0.25,
+    amqp_url: str, workdir: Path, rewrites: int = 50, rate: float = 500.0, interval: float = 0.25, min_sent: int = 0,
 ) -> ReloadRun:
     tag = "r" + uuid.uuid4().hex[:8]
     names = {"tag": tag, "inbox": f"in-{tag}", "outbox": f"out-{tag}", "queue": f"q-{tag}",
@@ -240,6 +240,11 @@ async def run_reloads(
             written_at[gen] = time.monotonic()
             run.written_generations.append(gen)
         await asyncio.sleep(1.0)
+        # The stream outlives the rewrites until every flow carried at least min_sent messages:
+        # on a loaded machine the publishers in this process fall behind their nominal rate.
+        deadline = time.monotonic() + 60
+        while min(f.sent for f in (run.flows["amqp->amqp"], run.flows["ros2->amqp"])) < min_sent and time.monotonic() < deadline:
+            await asyncio.sleep(0.2)
         stop_publishing.set()
         await publishing
         deadline = time.monotonic() + 30
