@@ -222,9 +222,19 @@ def _typed_source(spec: RouteSpec) -> Callable[[Any], dict[str, Any]] | None:
         return ros
     if spec.source.protocol == "mavlink" and not options.get("json_tunnel") and options.get("message"):
         from engine.endpoints.mavlink import MESSAGES, build_message, message_fields
+        from engine.endpoints.mavlink.codec import ADDED_FIELDS
 
         mav_cls = MESSAGES[options["message"]]
-        return lambda value: message_fields(build_message(mav_cls, value))
+        added = ADDED_FIELDS.get(options["message"], ())
+
+        def mavlink(value: Any) -> dict[str, Any]:
+            """The message as the source gives it: its own fields, plus those the source adds."""
+            if not isinstance(value, Mapping):
+                return message_fields(build_message(mav_cls, value))
+            own = {k: v for k, v in value.items() if k not in added}
+            return {**message_fields(build_message(mav_cls, own)), **{k: value[k] for k in added if k in value}}
+
+        return mavlink
     return None
 
 
@@ -261,16 +271,34 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
             return rendered
 
         return ros
+    if protocol == "mavlink" and options.get("mission") == "upload":
+        from engine.endpoints.mavlink.mission import mission_items
+        from engine.endpoints.mavlink.transaction import TransactionOptions
+
+        transaction, _ = TransactionOptions.parse(options)
+
+        def mission(outbound: Outbound) -> str | None:
+            try:
+                mission_items(outbound.fields, transaction)
+            except MessageRejected as exc:
+                raise ConversionError("sink", str(exc)) from None
+            return None
+
+        return mission
     if protocol == "mavlink" and not options.get("json_tunnel"):
         from engine.endpoints.mavlink import MESSAGES, build_message
+        from engine.endpoints.mavlink.enums import enum_or_number
 
         mav_cls = MESSAGES[options["message"]]
         defaults = {k: options[k] for k in ("target_system", "target_component") if k in options}
 
         def mavlink(outbound: Outbound) -> str | None:
+            fields = outbound.fields
             try:
-                build_message(mav_cls, outbound.fields, defaults)
-            except MessageRejected as exc:
+                if isinstance(fields, Mapping) and isinstance(fields.get("command"), str):  # a command by name
+                    fields = {**fields, "command": enum_or_number(fields["command"], "MAV_CMD", "command")}
+                build_message(mav_cls, fields, defaults)
+            except (MessageRejected, ValueError) as exc:
                 raise ConversionError("sink", str(exc)) from None
             return None
 

@@ -93,6 +93,26 @@ def explicit_items(raw: Any) -> list[dict[str, Any]]:
     return items
 
 
+def mission_items(fields: Any, options: TransactionOptions) -> list[mavlink2.MAVLink_message]:
+    """The MISSION_ITEM_INT messages of one upload, in order; MessageRejected when the fields
+    cannot make a mission (also what ``rabbitros-engine test`` runs as the sink's dry run)."""
+    if not isinstance(fields, Mapping):
+        raise MessageRejected(f"a mission sink needs an object, got {type(fields).__name__}")
+    if "items" in fields:
+        items = explicit_items(fields["items"])
+    else:
+        items = waypoint_items(fields, options.default_alt)
+    if options.home_placeholder:
+        first = items[0]
+        items.insert(0, {"command": mavlink2.MAV_CMD_NAV_WAYPOINT, "frame": mavlink2.MAV_FRAME_GLOBAL_INT,
+                         "x": first.get("x", 0), "y": first.get("y", 0), "z": 0.0, "autocontinue": 1})
+    if len(items) > _MAX_ITEMS:
+        raise MessageRejected(f"{len(items)} items exceed the mission protocol's {_MAX_ITEMS}")
+    target = {"target_system": options.target_system, "target_component": options.target_component,
+              "mission_type": options.mission_type}
+    return [build_message(ITEM, {**item, **target, "seq": seq}) for seq, item in enumerate(items)]
+
+
 class MissionUploadSink(Sink):
     """Uploads each message's mission to one target; returns once the vehicle accepted it."""
 
@@ -101,21 +121,7 @@ class MissionUploadSink(Sink):
         self.options = options
 
     def items(self, fields: Any) -> list[mavlink2.MAVLink_message]:
-        if not isinstance(fields, Mapping):
-            raise MessageRejected(f"a mission sink needs an object, got {type(fields).__name__}")
-        if "items" in fields:
-            items = explicit_items(fields["items"])
-        else:
-            items = waypoint_items(fields, self.options.default_alt)
-        if self.options.home_placeholder:
-            first = items[0]
-            items.insert(0, {"command": mavlink2.MAV_CMD_NAV_WAYPOINT, "frame": mavlink2.MAV_FRAME_GLOBAL_INT,
-                             "x": first.get("x", 0), "y": first.get("y", 0), "z": 0.0, "autocontinue": 1})
-        if len(items) > _MAX_ITEMS:
-            raise MessageRejected(f"{len(items)} items exceed the mission protocol's {_MAX_ITEMS}")
-        target = {"target_system": self.options.target_system, "target_component": self.options.target_component,
-                  "mission_type": self.options.mission_type}
-        return [build_message(ITEM, {**item, **target, "seq": seq}) for seq, item in enumerate(items)]
+        return mission_items(fields, self.options)
 
     async def send(self, message: Outbound) -> None:
         items = self.items(message.fields)
