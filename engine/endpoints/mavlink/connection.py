@@ -26,7 +26,7 @@ from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelHub, Tun
 
 HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
 
-_STATS = (*PORT_STATS, "not_for_us", "source_dropped", "vehicles_heard")
+_STATS = (*PORT_STATS, "not_for_us", "vehicles_heard")
 """Keys of :attr:`MavlinkConnection.stats` (see :data:`.port.PORT_STATS`); ``vehicles_heard``
 counts the systems/components whose HEARTBEAT came in. Tunnel counters (``tunnel_sent``,
 ``tunnel_retransmissions``, ``tunnel_delivered``, ``tunnel_deliver_failed``,

@@ -1,0 +1,110 @@
+"""MAVLink endpoints under the engine's delivery policy: bounded sources with the route's
+overflow policy, tunnel acknowledgements after settling, reload identity and option checks."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+from typing import Any
+
+import pytest
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
+
+from engine.endpoints import mavlink  # noqa: E402
+from engine.endpoints.base import Inbound  # noqa: E402
+from tests.deliver_helpers import FunctionDeliver  # noqa: E402
+from tests.test_mavlink_endpoint import UdpPeer, packer, run, settle  # noqa: E402
+
+
+class GatedDeliver(FunctionDeliver):
+    """Settles nothing until ``gate`` opens, so the source's inbox fills up behind it."""
+
+    def __init__(self, **deliver: Any) -> None:
+        super().__init__(**deliver)
+        self.gate = asyncio.Event()
+        self.entered = asyncio.Event()
+        self.stamps: list[int] = []
+
+    async def __call__(self, inbound: Inbound) -> None:
+        self.entered.set()
+        await self.gate.wait()
+        assert inbound.fields is not None
+        self.stamps.append(inbound.fields["time_boot_ms"])
+
+
+def positions(mav: mavlink2.MAVLink, stamps: range) -> bytes:
+    return b"".join(mav.global_position_int_encode(n, 1, 2, 3, 4, 5, 6, 7, 8).pack(mav) for n in stamps)
+
+
+async def flood(overflow: str, *, stop_while_queued: bool = False) -> tuple[GatedDeliver, dict[str, Any]]:
+    """One message in flight (held at the gate), then 100 more into an inbox of 10."""
+    conn = mavlink.TRANSPORT.connect("uav", {"url": "udpin:127.0.0.1:0", "heartbeat": 0})
+    await conn.open()
+    peer = await UdpPeer.bind()
+    deliver = GatedDeliver(overflow=overflow, queue_limit=10)
+    source = conn.source("telemetry", {"message": "GLOBAL_POSITION_INT"})
+    await source.start(deliver)
+    try:
+        mav = packer(1, 1)
+        peer.send(positions(mav, range(1)), conn.address[1])
+        await asyncio.wait_for(deliver.entered.wait(), 5)
+        peer.send(positions(mav, range(1, 101)), conn.address[1])
+        await settle(lambda: source.status()["received"] == 101, 5)
+        if stop_while_queued:
+            stopping = asyncio.create_task(source.stop())
+            await asyncio.sleep(0.05)
+            deliver.gate.set()
+            await asyncio.wait_for(stopping, 5)
+        else:
+            deliver.gate.set()
+            await settle(lambda: len(deliver.stamps) == 11, 5)
+        return deliver, source.status()
+    finally:
+        await source.stop()
+        peer.close()
+        await conn.close()
+
+
+@pytest.mark.parametrize(("overflow", "kept"), [
+    ("drop_oldest", list(range(91, 101))),
+    ("block", list(range(91, 101))),  # a radio link cannot be paused: block drops the oldest
+    ("drop_newest", list(range(1, 11))),
+])
+def test_flooded_source_follows_the_overflow_policy_and_counts_drops(overflow: str, kept: list[int]) -> None:
+    deliver, status = run(flood(overflow))
+    assert deliver.stamps == [0, *kept]
+    assert deliver.drops == 90 and status["dropped"] == 90
+    assert status["received"] == 101 and status["queued"] == 0
+    assert status["overflow"] == ("drop_oldest" if overflow == "block" else overflow)
+
+
+def test_stop_hands_queued_telemetry_to_the_route() -> None:
+    deliver, status = run(flood("drop_oldest", stop_while_queued=True))
+    assert deliver.stamps == [0, *range(91, 101)], "what was queued at stop is delivered, not thrown away"
+    assert status["dropped"] == 90 and status["queued"] == 0
+
+
+def test_unsettled_messages_are_counted_as_dropped() -> None:
+    async def scenario() -> dict[str, Any]:
+        conn = mavlink.TRANSPORT.connect("uav", {"url": "udpin:127.0.0.1:0", "heartbeat": 0})
+        await conn.open()
+        peer = await UdpPeer.bind()
+
+        async def refuse(inbound: Inbound) -> None:
+            raise RuntimeError("route stopping")
+
+        deliver = FunctionDeliver(refuse)
+        source = conn.source("telemetry", {"message": "GLOBAL_POSITION_INT"})
+        await source.start(deliver)
+        try:
+            peer.send(positions(packer(1, 1), range(5)), conn.address[1])
+            await settle(lambda: deliver.drops == 5, 5)
+            return source.status()
+        finally:
+            await source.stop()
+            peer.close()
+            await conn.close()
+
+    assert run(scenario())["dropped"] == 5
