@@ -16,7 +16,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
-from tests.deliver_helpers import FunctionDeliver  # noqa: E402
+from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 
 TRANSPORT = mavlink.TRANSPORT
 KEY = bytes(range(32))

@@ -14,7 +14,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import Inbound  # noqa: E402
-from tests.deliver_helpers import FunctionDeliver  # noqa: E402
+from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 from tests.test_mavlink_endpoint import UdpPeer, packer, run, settle  # noqa: E402
 
 
@@ -108,3 +108,60 @@ def test_unsettled_messages_are_counted_as_dropped() -> None:
             await conn.close()
 
     assert run(scenario())["dropped"] == 5
+
+
+# -- tunnel: acknowledged to the sender only once the route settled it ------------------------
+
+
+class HeldBatches(FunctionDeliver):
+    """Holds each batch until ``release(settled)``; single messages are not how tunnels deliver."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.batches: asyncio.Queue[tuple[list[Inbound], asyncio.Future[bool]]] = asyncio.Queue()
+
+    async def __call__(self, inbound: Inbound) -> None:
+        raise AssertionError("the tunnel settles with Deliver.batch")
+
+    async def batch(self, inbounds: Any) -> list[bool]:
+        verdict: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
+        self.batches.put_nowait((list(inbounds), verdict))
+        return [await verdict] * len(inbounds)
+
+
+def test_tunnel_message_is_acknowledged_only_after_the_route_settled_it() -> None:
+    from tests.test_mavlink_tunnel import is_delivered_ack, outbound, udp_pair
+
+    async def scenario() -> None:
+        acks: list[Any] = []
+
+        def watch(direction: str, msg: Any) -> bool:
+            if is_delivered_ack(direction, msg):
+                acks.append(msg)
+            return False
+
+        gcs, uav, _ = await udp_pair(drop=watch)
+        deliver = HeldBatches()
+        source = uav.source("json", {"json_tunnel": True})
+        sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
+        await source.start(deliver)
+        try:
+            body = b'{"n":1,"pad":"' + b"x" * 400 + b'"}'
+            sending = asyncio.create_task(sink.send(outbound(body)))
+            inbounds, verdict = await asyncio.wait_for(deliver.batches.get(), 5)
+            assert [i.body for i in inbounds] == [body]
+            await asyncio.sleep(0.3)  # the sender's retransmissions meanwhile earn no DELIVERED
+            assert not sending.done() and acks == [] and uav.stats.get("tunnel_delivered", 0) == 0
+            verdict.set_result(False)  # not settled: no acknowledgement, the sender sends again
+            inbounds, verdict = await asyncio.wait_for(deliver.batches.get(), 10)
+            assert [i.body for i in inbounds] == [body] and not sending.done() and acks == []
+            assert uav.stats["tunnel_deliver_failed"] == 1
+            verdict.set_result(True)
+            await asyncio.wait_for(sending, 10)
+            assert len(acks) >= 1 and uav.stats["tunnel_delivered"] == 1
+        finally:
+            await source.stop()
+            await gcs.close()
+            await uav.close()
+
+    run(scenario())

@@ -27,7 +27,7 @@ from rclpy.signals import SignalHandlerOptions  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
 from engine.endpoints.ros2 import TRANSPORT  # noqa: E402
 from engine.endpoints.rosmsg import resolve_type, to_dict  # noqa: E402
-from tests.deliver_helpers import FunctionDeliver  # noqa: E402
+from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 
 DOMAIN = 1 + os.getpid() % 100
 String = resolve_type("std_msgs/msg/String")

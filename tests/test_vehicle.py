@@ -31,7 +31,7 @@ from rabbitros_sim.vehicle import (  # noqa: E402
     expected_state,
     open_serial,
 )
-from tests.deliver_helpers import FunctionDeliver  # noqa: E402
+from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 TUNNEL_TYPE = 0xA900

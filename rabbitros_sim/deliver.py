@@ -1,4 +1,5 @@
-"""The engine's Deliver contract for endpoint tests that start a source without an engine."""
+"""The engine's Deliver contract without an engine: for the simulated vehicle and endpoint tests
+that start a source on its own."""
 
 from __future__ import annotations
 
