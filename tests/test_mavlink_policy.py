@@ -13,7 +13,7 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from engine.endpoints import mavlink  # noqa: E402
-from engine.endpoints.base import Inbound  # noqa: E402
+from engine.endpoints.base import Inbound, MessageRejected, Outbound  # noqa: E402
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 from tests.test_mavlink_endpoint import UdpPeer, packer, run, settle  # noqa: E402
 
@@ -163,5 +163,33 @@ def test_tunnel_message_is_acknowledged_only_after_the_route_settled_it() -> Non
             await source.stop()
             await gcs.close()
             await uav.close()
+
+    run(scenario())
+
+
+# -- errors at the edge: permanent failures are MessageRejected, silence is EndpointError -----
+
+
+def test_encode_failures_are_rejected_and_an_oversize_tunnel_message_too() -> None:
+    async def scenario() -> None:
+        peer = await UdpPeer.bind()
+        conn = mavlink.TRANSPORT.connect("radio", {"url": f"udpout:127.0.0.1:{peer.port}", "heartbeat": 0})
+        await conn.open()
+        try:
+            sink = conn.sink("cmd", {"message": "COMMAND_LONG", "target_system": 1})
+            for fields in ({"command": 400, "param1": 1e39}, {"command": 400, "param1": 10**400},
+                           {"command": 400, "param9": 1}, {"command": -1}):
+                with pytest.raises(MessageRejected):
+                    await sink.send(Outbound(b"{}", fields, fields, "m", {}))
+            unpackable = mavlink2.MAVLink_command_long_message(1, 1, 400, 0, 1e39, 0, 0, 0, 0, 0, 0)
+            with pytest.raises(MessageRejected, match="cannot encode"):
+                await conn.send_message(unpackable)
+            tunnel = conn.sink("json", {"json_tunnel": True})
+            with pytest.raises(MessageRejected, match="exceeds"):
+                await tunnel.send(Outbound(bytes(40_000), None, None, "m", {}))
+            assert conn.stats["frames_sent"] == 0
+        finally:
+            peer.close()
+            await conn.close()
 
     run(scenario())

@@ -401,7 +401,7 @@ def test_sink_raises_when_nobody_acknowledges() -> None:
             with pytest.raises(EndpointError, match="not acknowledged"):
                 await sink.send(outbound(body_of(250)))
             assert time.monotonic() - started < 3
-            with pytest.raises(EndpointError, match="exceeds"):
+            with pytest.raises(MessageRejected, match="exceeds"):
                 await sink.send(outbound(bytes(40_000)))
         finally:
             await gcs.close()

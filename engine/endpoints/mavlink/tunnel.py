@@ -706,8 +706,8 @@ class TunnelSink(Sink):
             try:
                 transfer = Transfer(msg_id, body, fragment_size=settings.fragment_size,
                                     rtt=hub.rtt(self.payload_type), retries=settings.retries)
-            except ValueError as exc:
-                raise EndpointError(f"tunnel: {exc}") from None
+            except ValueError as exc:  # larger than a tunnel message can be: never deliverable
+                raise MessageRejected(f"tunnel: {exc}") from None
             acks: asyncio.Queue[Ack] = asyncio.Queue()
             hub.watch(self.payload_type, msg_id, acks.put_nowait)
             try:
