@@ -48,7 +48,7 @@ def parse_address(text: str) -> tuple[str, int]:
 
 def connection_health(engine: Engine) -> dict[str, dict[str, Any]]:
     return {
-        connection.name: {"protocol": protocol, "up": bool(connection.healthy)}
+        connection.name: {"protocol": protocol, "up": bool(connection.healthy), **connection.health()}
         for protocol, connection in engine.open_connections()
     }
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -193,3 +194,61 @@ def test_encode_failures_are_rejected_and_an_oversize_tunnel_message_too() -> No
             await conn.close()
 
     run(scenario())
+
+
+# -- the status shows per-connection link counters and per-route drops --------------------------
+
+STATUS_ROUTES = """
+dead_letters: {{spool_dir: {spool}}}
+connections:
+  radio: {{mavlink: "udpin:127.0.0.1:{port}", heartbeat: 0}}
+  out: {{mavlink: "udpout:127.0.0.1:{peer}", heartbeat: 0}}
+routes:
+  - name: telemetry
+    source: {{mavlink: {{connection: radio, message: GLOBAL_POSITION_INT}}}}
+    mapping: "{{time_boot_ms: time_boot_ms, value: relative_alt}}"
+    schema: raw_json
+    overflow: drop_oldest
+    sink: {{mavlink: {{connection: out, message: NAMED_VALUE_INT}}}}
+"""
+
+
+def test_engine_status_shows_link_rejections_and_source_counters(tmp_path: Path, schemas_dir: Path) -> None:
+    from rich.console import Console
+
+    from engine.admin import status_document
+    from engine.opsview import status_table
+    from engine.runtime import Engine
+    from tests.udp_vehicle import free_udp_port
+
+    async def scenario() -> dict[str, Any]:
+        peer = await UdpPeer.bind()
+        port = free_udp_port()
+        routes = tmp_path / "routes"
+        routes.mkdir()
+        (routes / "radio.yaml").write_text(STATUS_ROUTES.format(spool=tmp_path / "spool", port=port, peer=peer.port))
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        try:
+            mav = packer(1, 1)
+            corrupt = bytearray(positions(mav, range(1)))
+            corrupt[-1] ^= 0xFF
+            peer.send(positions(mav, range(3)) + bytes(corrupt), port)
+            for _ in range(3):
+                await peer.expect("NAMED_VALUE_INT", 10)
+            await settle(lambda: status_document(engine)["connections"]["radio"]["rejected"]["bad_crc"] == 1, 5)
+            return status_document(engine)
+        finally:
+            await engine.stop(drain_timeout=1.0)
+            peer.close()
+
+    document = run(scenario())
+    radio = document["connections"]["radio"]
+    assert radio["protocol"] == "mavlink" and radio["up"]
+    assert radio["rejected"]["bad_crc"] == 1 and radio["counters"]["frames_accepted"] == 3
+    route = document["routes"]["telemetry"]
+    assert route["source"] == {"received": 3, "dropped": 0, "queued": 0, "overflow": "drop_oldest"}
+    assert route["dropped"] == 0 and route["delivered"] == 3
+    console = Console(width=200, record=True)
+    console.print(status_table(document))
+    assert "radio: bad_crc 1" in console.export_text()

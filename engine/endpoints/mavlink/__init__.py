@@ -12,7 +12,8 @@ filling buffer.
 Signing (MAVLink 2): outgoing frames are signed by pymavlink; incoming signatures are
 verified here rather than by pymavlink because pymavlink records a stream's timestamp before
 checking the signature, so one forged frame with a far-future timestamp would make every
-genuine frame of that stream look replayed. Rejections are counted in :attr:`MavlinkConnection.stats`.
+genuine frame of that stream look replayed. Rejections are counted in :attr:`MavlinkConnection.stats`,
+which the engine status shows per connection (:meth:`MavlinkConnection.health`).
 
 Settings (YAML ``connections.<name>.mavlink``)::
 

@@ -32,6 +32,9 @@ counts the systems/components whose HEARTBEAT came in. Tunnel counters (``tunnel
 ``tunnel_retransmissions``, ``tunnel_delivered``, ``tunnel_deliver_failed``,
 ``tunnel_malformed``), mission and command counters appear once used."""
 
+REJECTION_STATS = ("bad_crc", "bad_data", "unsigned_rejected", "bad_signature", "replayed", "not_for_us")
+"""What the link received and threw away, shown together in the status."""
+
 Listener = Callable[[mavlink2.MAVLink_message], None]
 
 
@@ -81,6 +84,17 @@ class MavlinkConnection(Connection):
     def vehicles(self) -> list[dict[str, Any]]:
         """What the connection has heard, for the status view."""
         return [asdict(seen) for seen in self.seen.values()]
+
+    def health(self) -> dict[str, Any]:
+        """For the status: the link's state, its counters (bad CRC, bad data and signature
+        rejections among them; see :data:`.port.PORT_STATS`) and the vehicles heard."""
+        return {
+            "state": "up" if self.port.ready else "waiting for a peer",
+            "rejected": {key: self.stats[key] for key in REJECTION_STATS},
+            "counters": dict(self.stats),
+            "vehicles": [{"system_id": seen.system_id, "component_id": seen.component_id, "type": seen.type,
+                          "heard_s_ago": round(time.monotonic() - seen.last_heard, 1)} for seen in self.seen.values()],
+        }
 
     async def open(self) -> None:
         await self.port.open()
