@@ -252,3 +252,41 @@ def test_engine_status_shows_link_rejections_and_source_counters(tmp_path: Path,
     console = Console(width=200, record=True)
     console.print(status_table(document))
     assert "radio: bad_crc 1" in console.export_text()
+
+
+# -- reload identity comes from the MAVLink package ------------------------------------------------
+
+
+def test_exclusive_resource_and_key_files_come_from_the_mavlink_transport(tmp_path: Path) -> None:
+    from engine import identity
+
+    assert not hasattr(identity, "mavlink_exclusive_resource") and not hasattr(identity, "mavlink_key_files")
+    transport = mavlink.TRANSPORT
+    assert type(transport).exclusive_resource is not type(transport).__mro__[1].exclusive_resource
+    assert transport.exclusive_resource({"url": "udpin:0.0.0.0:14550"}) == "udp:14550"
+    assert transport.exclusive_resource({"url": "tcpin:127.0.0.1:5760"}) == "tcp:5760"
+    assert transport.exclusive_resource({"url": "udpout:10.0.0.2:14550"}) is None
+    assert transport.exclusive_resource({"url": "udpin:0.0.0.0:nope"}) is None, "check reports a bad url"
+    key = tmp_path / "key"
+    key.write_bytes(bytes(range(32)))
+    settings = {"url": "udpin:0.0.0.0:14550", "signing": {"key_file": str(key)}}
+    assert list(transport.key_files(settings)) == [str(key)]
+    assert list(transport.key_files({"url": "udpin:0.0.0.0:14550", "signing": {"key_env": "K"}})) == []
+    before = identity.connection_fingerprint("mavlink", settings)
+    key.write_bytes(bytes(range(1, 33)))
+    assert identity.connection_fingerprint("mavlink", settings) != before, "a new key reopens the connection"
+    assert identity.exclusive_resource("mavlink", settings) == "udp:14550"
+
+
+def test_closing_a_udpin_connection_frees_its_port_before_close_returns() -> None:
+    import socket
+
+    async def scenario() -> None:
+        conn = mavlink.TRANSPORT.connect("radio", {"url": "udpin:127.0.0.1:0", "heartbeat": 0})
+        await conn.open()
+        port = conn.address[1]
+        await conn.close()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.bind(("127.0.0.1", port))  # no retry: the old socket is gone
+
+    run(scenario())

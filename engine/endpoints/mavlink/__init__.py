@@ -42,13 +42,14 @@ TCP), :mod:`.signing`, :mod:`.codec` (messages as dicts), :mod:`.port` (paced wr
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import Any, ClassVar
 
 from engine.endpoints.base import CheckResult, Transport
 from engine.endpoints.mavlink.checks import check_sink_options, check_source_options
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, field_specs, message_fields, mavlink2
 from engine.endpoints.mavlink.connection import MavlinkConnection
+from engine.endpoints.mavlink import settings as _settings
 from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
 from engine.endpoints.mavlink.signing import signing_now
 
@@ -65,6 +66,12 @@ class MavlinkTransport(Transport):
 
     def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         return check_sink_options(options, mapping)
+
+    def exclusive_resource(self, settings: Mapping[str, Any]) -> str | None:
+        return _settings.exclusive_resource(settings)
+
+    def key_files(self, settings: Mapping[str, Any]) -> Iterable[str]:
+        return _settings.key_files(settings)
 
     def connect(self, name: str, settings: Mapping[str, Any]) -> MavlinkConnection:
         return MavlinkConnection(name, settings)
