@@ -290,3 +290,43 @@ def test_closing_a_udpin_connection_frees_its_port_before_close_returns() -> Non
             sock.bind(("127.0.0.1", port))  # no retry: the old socket is gone
 
     run(scenario())
+
+
+# -- check: a MAVLink option the endpoint does not use is an error, with file:line --------------
+
+UNUSED_OPTIONS = """\
+dead_letters: {spool_dir: /tmp/rabbitros-unused-spool}
+connections:
+  radio: {mavlink: "udpin:127.0.0.1:14999", heartbeat: 0}
+routes:
+  - name: telemetry
+    source: {mavlink: {connection: radio, message: GLOBAL_POSITION_INT, payload_type: 43264}}
+    schema: raw_json
+    sink: {mavlink: {connection: radio, message: NAMED_VALUE_INT, acknowledged: true}}
+  - name: goto
+    source: {mavlink: {connection: radio, json_tunnel: true, target_system: 1}}
+    schema: raw_json
+    sink: {mavlink: {connection: radio, message: COMMAND_LONG, default_alt: 20, retries: 3}}
+  - name: echo
+    source: {mavlink: {connection: radio, json_tunnel: true}}
+    schema: raw_json
+    sink: {mavlink: {connection: radio, json_tunnel: true, system_id: 1}}
+"""
+
+
+def test_check_reports_mavlink_options_the_endpoint_does_not_use(
+        tmp_path: Path, schemas_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from engine.cli import check
+
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "radio.yaml").write_text(UNUSED_OPTIONS)
+    assert check(routes, schemas_dir) != 0
+    err = capsys.readouterr().err
+    for line, text in ((6, "'payload_type' is not used by a message source: it applies to json_tunnel"),
+                       (8, "acknowledged applies to COMMAND_LONG and COMMAND_INT sinks"),
+                       (10, "'target_system' is not used by a json_tunnel source"),
+                       (12, "'default_alt' is not used by a message sink: it applies to mission sinks"),
+                       (12, "'retries' is not used by a message sink: it applies to acknowledged commands"),
+                       (16, "'system_id' is not used by a json_tunnel sink")):
+        assert any(f"radio.yaml:{line}" in row and text in row for row in err.splitlines()), (line, text, err)

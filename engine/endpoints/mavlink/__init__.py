@@ -31,7 +31,17 @@ Settings (YAML ``connections.<name>.mavlink``)::
 Source options: ``message`` (optional), ``system_id``, ``component_id``; or ``json_tunnel:
 true`` with ``payload_type``. Sink options: ``message``, ``target_system``,
 ``target_component`` (defaults for those fields); or ``json_tunnel: true`` with
-``payload_type``, ``target_system``, ``target_component``.
+``payload_type``, ``target_system``, ``target_component``. Acknowledged commands and missions
+add their own options (:mod:`.command`, :mod:`.mission`). An option the kind of endpoint does
+not read (``payload_type`` without ``json_tunnel``, ``acknowledged`` on a message that is not a
+command, mission options on a message sink, ``system_id`` on a sink) is an error in ``check``.
+
+Delivery: sources hand messages to the route in batches (``Deliver.batch``). Telemetry waits in
+a bounded inbox (the route's ``overflow``; ``block`` drops the oldest, as a radio link cannot be
+paused); a JSON tunnel message is acknowledged to its sender only once every route settled it.
+Sinks raise :class:`~engine.endpoints.base.MessageRejected` for what can never be sent (a field
+out of range, a message too large for the tunnel, a refusal) and
+:class:`~engine.endpoints.base.EndpointError` when the far end does not answer.
 
 Modules, one per concern: :mod:`.settings` (connection settings), :mod:`.links` (serial, UDP,
 TCP), :mod:`.signing`, :mod:`.codec` (messages as dicts), :mod:`.port` (paced writer and reader),
