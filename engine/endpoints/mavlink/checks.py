@@ -71,7 +71,7 @@ def _unused(options: Mapping[str, Any], used: set[str], kind: str) -> Iterator[t
 
 def check_source_options(options: Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
     if options.get("json_tunnel"):
-        problems = list(_common_problems(options, _TUNNEL_SOURCE - {"message"}, "json_tunnel source"))
+        problems = list(_common_problems(options, _TUNNEL_SOURCE, "json_tunnel source"))
         return [("message", "a json_tunnel source reads TUNNEL frames; drop 'message'") if key == "message" else (key, text)
                 for key, text in problems]
     return list(_common_problems(options, _MESSAGE_SOURCE, "message source"))
