@@ -57,14 +57,12 @@ def status_document(engine: Engine) -> dict[str, Any]:
     """The engine's status with what the observers know: outcome counts, rates, state."""
     document = engine.status()
     connections = connection_health(engine)
-    document["connections"] = connections
-    for name, route in document["routes"].items():
-        runner = engine.runners.get(name)
+    for name, health in connections.items():  # keep the engine's view too ("healthy": open and up)
+        document["connections"][name] = {**document["connections"].get(name, {}), **health}
+    for name, route in document["routes"].items():  # "state" is the engine's (running, waiting, stopped)
         observer = engine.observers.get(name)
         route.update(observer.snapshot())
         route.update(engine.observers.rates(name))
-        down = [c.name for c in (runner.connections if runner else ()) if not connections.get(c.name, {}).get("up", True)]
-        route["state"] = f"waiting for {', '.join(down)}" if down else "running"
     return document
 
 
