@@ -58,10 +58,15 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
         (f"{len(connections) - len(down)}/{len(connections)} up", "red" if down else "green"),
         (f" (down: {', '.join(down)})" if down else "", "red"),
     )
+    rejected = [f"{name}: " + ", ".join(f"{key} {count}" for key, count in c["rejected"].items() if count)
+                for name, c in connections.items() if any((c.get("rejected") or {}).values())]
+    if rejected:
+        header.append(Text.assemble(("\nlink rejections ", "dim"), ("; ".join(rejected), "yellow")))
     table = Table(expand=False, header_style="bold")
     for column, justify in (("route", "left"), ("state", "left"), ("recv/s", "right"), ("sent/s", "right"),
                             ("received", "right"), ("delivered", "right"), ("dead", "right"),
-                            ("redelivered", "right"), ("conflated", "right"), ("last error", "left")):
+                            ("redelivered", "right"), ("conflated", "right"), ("dropped", "right"),
+                            ("last error", "left")):
         table.add_column(column, justify=justify, no_wrap=True, overflow="ellipsis",
                          max_width=width if column == "last error" else None)
     if last_canonical:
@@ -76,7 +81,7 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
                _rate(route.get("received_per_s")), _rate(route.get("delivered_per_s")),
                _count(messages.get("received")), _count(messages.get("delivered")),
                _count(messages.get("dead_lettered")), _count(messages.get("redelivered")),
-               _count(messages.get("conflated")), Text(error, "red")]
+               _count(messages.get("conflated")), _count(route.get("dropped")), Text(error, "red")]
         if last_canonical:
             last = route.get("last_canonical")
             row.append("" if last is None else json.dumps(last, separators=(",", ":"), default=str))

@@ -65,6 +65,7 @@ from engine.endpoints.mavlink.tunnel import (  # noqa: E402
     TunnelSource,
 )
 from rabbitros_sim.autopilot import Autopilot  # noqa: E402
+from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 
 CENTER_LAT_DEG = -22.0
 CENTER_LON_DEG = -47.9
@@ -364,7 +365,7 @@ class SimVehicle:
                 self._hub = TunnelHub(self.port, self.config.tunnel)
                 self._hub.add_sender(self.payload_type)
                 source = TunnelSource(self._hub, route="vehicle", payload_type=self.payload_type)
-                await source.start(self._received_json)
+                await source.start(FunctionDeliver(self._received_json))
                 tasks += [loop.create_task(self._echo_worker(), name="vehicle-echo")
                           for _ in range(self.config.tunnel.window)]
                 if self.weeds_every:

@@ -16,6 +16,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
+from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 
 TRANSPORT = mavlink.TRANSPORT
 KEY = bytes(range(32))
@@ -96,8 +97,9 @@ def gpi(mav: mavlink2.MAVLink, lat: int = 473977418) -> bytes:
     return data
 
 
-class Collector:
-    def __init__(self) -> None:
+class Collector(FunctionDeliver):
+    def __init__(self, **deliver: Any) -> None:
+        super().__init__(**deliver)
         self.items: list[Inbound] = []
         self.event = asyncio.Event()
 

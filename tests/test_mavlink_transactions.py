@@ -420,13 +420,14 @@ def test_sink_options_are_checked_before_connecting() -> None:
     assert list(check({"mission": "upload", "target_system": 1, "home_placeholder": True}, None)) == []
     assert list(check({"mission": "download"}, None)) == [("mission", "mission must be 'upload'")]
     assert list(check({"mission": "upload", "message": "COMMAND_LONG"}, None)) == \
-        [("message", "unknown option 'message' for a mission sink")]
+        [("message", "'message' is not used by a mission sink: it applies to message sources and sinks (not json_tunnel)")]
     assert list(check({"mission": "upload", "retries": -1}, None)) == [("retries", "retries must be an integer >= 0")]
     assert list(check({"mission": "upload"}, "{waypoints: waypoints}")) != []
     assert list(check({"message": "HEARTBEAT", "acknowledged": True}, None)) == \
         [("acknowledged", "acknowledged applies to COMMAND_LONG and COMMAND_INT sinks")]
     assert list(check({"message": "COMMAND_LONG", "timeout": 1}, None)) == \
-        [("timeout", "'timeout' applies to acknowledged commands (acknowledged: true) and missions")]
+        [("timeout", "'timeout' is not used by a message sink: it applies to acknowledged commands "
+                     "(acknowledged: true) and missions (mission: upload)")]
 
 
 def test_enum_functions_in_mappings() -> None:

@@ -24,6 +24,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.mavlink import tunnel  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
+from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 
 TRANSPORT = mavlink.TRANSPORT
 
@@ -229,8 +230,9 @@ def test_reassembler_rejects_bad_crc_and_bounds_its_memory() -> None:
 # -- real links ------------------------------------------------------------------------------------
 
 
-class Collector:
+class Collector(FunctionDeliver):
     def __init__(self, fail_first: int = 0) -> None:
+        super().__init__()
         self.items: list[Inbound] = []
         self.calls = 0
         self.fail_first = fail_first
@@ -399,7 +401,7 @@ def test_sink_raises_when_nobody_acknowledges() -> None:
             with pytest.raises(EndpointError, match="not acknowledged"):
                 await sink.send(outbound(body_of(250)))
             assert time.monotonic() - started < 3
-            with pytest.raises(EndpointError, match="exceeds"):
+            with pytest.raises(MessageRejected, match="exceeds"):
                 await sink.send(outbound(bytes(40_000)))
         finally:
             await gcs.close()

@@ -27,6 +27,7 @@ from rclpy.signals import SignalHandlerOptions  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
 from engine.endpoints.ros2 import TRANSPORT  # noqa: E402
 from engine.endpoints.rosmsg import resolve_type, to_dict  # noqa: E402
+from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 
 DOMAIN = 1 + os.getpid() % 100
 String = resolve_type("std_msgs/msg/String")
@@ -100,33 +101,6 @@ def outbound(body: bytes = b"", fields: Any = None, canonical: Any = None) -> Ou
     canonical = canonical if canonical is not None else fields
     return Outbound(body=body, canonical=canonical, fields=fields if fields is not None else canonical,
                     message_id="m", meta={})
-
-
-class FunctionDeliver:
-    """The engine's Deliver contract around a plain async function (settled unless it raises)."""
-
-    def __init__(self, function: Any, overflow: str = "block", queue_limit: int = 10_000) -> None:
-        self.function = function
-        self.overflow = overflow
-        self.queue_limit = queue_limit
-        self.drops = 0
-
-    async def __call__(self, inbound: Inbound) -> None:
-        await self.function(inbound)
-
-    async def batch(self, inbounds: Any) -> list[bool]:
-        settled = []
-        for inbound in inbounds:
-            try:
-                await self.function(inbound)
-            except Exception:
-                settled.append(False)
-            else:
-                settled.append(True)
-        return settled
-
-    def dropped(self, count: int = 1) -> None:
-        self.drops += count
 
 
 class Collector:

@@ -31,6 +31,7 @@ from rabbitros_sim.vehicle import (  # noqa: E402
     expected_state,
     open_serial,
 )
+from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 TUNNEL_TYPE = 0xA900
@@ -309,7 +310,7 @@ def test_json_tunnel_peer_stores_before_acknowledging_and_sends_back(tmp_path: P
             echoes.append(inbound.body)
 
         source = gcs.source("back", {"json_tunnel": True, "system_id": 1})
-        await source.start(collect)
+        await source.start(FunctionDeliver(collect))
         sink = gcs.sink("out", {"json_tunnel": True, "target_system": 1, "target_component": 1})
         try:
             junk = b"bad".ljust(128, b"\0")

@@ -12,7 +12,8 @@ filling buffer.
 Signing (MAVLink 2): outgoing frames are signed by pymavlink; incoming signatures are
 verified here rather than by pymavlink because pymavlink records a stream's timestamp before
 checking the signature, so one forged frame with a far-future timestamp would make every
-genuine frame of that stream look replayed. Rejections are counted in :attr:`MavlinkConnection.stats`.
+genuine frame of that stream look replayed. Rejections are counted in :attr:`MavlinkConnection.stats`,
+which the engine status shows per connection (:meth:`MavlinkConnection.health`).
 
 Settings (YAML ``connections.<name>.mavlink``)::
 
@@ -30,7 +31,17 @@ Settings (YAML ``connections.<name>.mavlink``)::
 Source options: ``message`` (optional), ``system_id``, ``component_id``; or ``json_tunnel:
 true`` with ``payload_type``. Sink options: ``message``, ``target_system``,
 ``target_component`` (defaults for those fields); or ``json_tunnel: true`` with
-``payload_type``, ``target_system``, ``target_component``.
+``payload_type``, ``target_system``, ``target_component``. Acknowledged commands and missions
+add their own options (:mod:`.command`, :mod:`.mission`). An option the kind of endpoint does
+not read (``payload_type`` without ``json_tunnel``, ``acknowledged`` on a message that is not a
+command, mission options on a message sink, ``system_id`` on a sink) is an error in ``check``.
+
+Delivery: sources hand messages to the route in batches (``Deliver.batch``). Telemetry waits in
+a bounded inbox (the route's ``overflow``; ``block`` drops the oldest, as a radio link cannot be
+paused); a JSON tunnel message is acknowledged to its sender only once every route settled it.
+Sinks raise :class:`~engine.endpoints.base.MessageRejected` for what can never be sent (a field
+out of range, a message too large for the tunnel, a refusal) and
+:class:`~engine.endpoints.base.EndpointError` when the far end does not answer.
 
 Modules, one per concern: :mod:`.settings` (connection settings), :mod:`.links` (serial, UDP,
 TCP), :mod:`.signing`, :mod:`.codec` (messages as dicts), :mod:`.port` (paced writer and reader),
@@ -41,13 +52,14 @@ TCP), :mod:`.signing`, :mod:`.codec` (messages as dicts), :mod:`.port` (paced wr
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import Any, ClassVar
 
 from engine.endpoints.base import CheckResult, Transport
 from engine.endpoints.mavlink.checks import check_sink_options, check_source_options
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, field_specs, message_fields, mavlink2
 from engine.endpoints.mavlink.connection import MavlinkConnection
+from engine.endpoints.mavlink import settings as _settings
 from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
 from engine.endpoints.mavlink.signing import signing_now
 
@@ -64,6 +76,12 @@ class MavlinkTransport(Transport):
 
     def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
         return check_sink_options(options, mapping)
+
+    def exclusive_resource(self, settings: Mapping[str, Any]) -> str | None:
+        return _settings.exclusive_resource(settings)
+
+    def key_files(self, settings: Mapping[str, Any]) -> Iterable[str]:
+        return _settings.key_files(settings)
 
     def connect(self, name: str, settings: Mapping[str, Any]) -> MavlinkConnection:
         return MavlinkConnection(name, settings)

@@ -13,12 +13,33 @@ from engine.endpoints.base import EndpointError
 from engine.endpoints.mavlink.codec import MESSAGES
 from engine.endpoints.mavlink.transaction import TransactionOptions
 
-_SOURCE_OPTIONS = {"message", "json_tunnel", "system_id", "component_id", "payload_type", "target_system", "target_component"}
+_SENDER = {"system_id", "component_id"}
+_TARGET = {"target_system", "target_component"}
 _TRANSACTION_OPTIONS = {"timeout", "retries", "vehicle_timeout"}
-_MISSION_OPTIONS = {"mission", "target_system", "target_component", "home_placeholder", "default_alt", "mission_type",
-                    *_TRANSACTION_OPTIONS}
+_MISSION_ONLY = {"mission", "home_placeholder", "default_alt", "mission_type"}
+_MISSION_OPTIONS = {*_MISSION_ONLY, *_TARGET, *_TRANSACTION_OPTIONS}
 _COMMAND_OPTIONS = {"acknowledged", "in_progress_timeout", "retry_delay", *_TRANSACTION_OPTIONS}
-_SINK_OPTIONS = _SOURCE_OPTIONS | _COMMAND_OPTIONS
+
+# What each kind of endpoint reads: any other option would be silently ignored, so it is an error.
+_MESSAGE_SOURCE = {"message", "json_tunnel", *_SENDER}
+_TUNNEL_SOURCE = {"json_tunnel", "payload_type", *_SENDER}
+_MESSAGE_SINK = {"message", "json_tunnel", "acknowledged", *_TARGET}
+_COMMAND_SINK = {*_MESSAGE_SINK, *_COMMAND_OPTIONS}
+_TUNNEL_SINK = {"json_tunnel", "payload_type", *_TARGET}
+
+_APPLIES_TO = {
+    "message": "message sources and sinks (not json_tunnel)",
+    "payload_type": "json_tunnel sources and sinks",
+    "system_id": "sources (the sender to accept); a sink names its receiver with target_system",
+    "component_id": "sources (the sender to accept); a sink names its receiver with target_component",
+    "target_system": "sinks (the receiver); a source filters senders with system_id",
+    "target_component": "sinks (the receiver); a source filters senders with component_id",
+    "acknowledged": "COMMAND_LONG and COMMAND_INT sinks",
+    "in_progress_timeout": "acknowledged commands (acknowledged: true)",
+    "retry_delay": "acknowledged commands (acknowledged: true)",
+    **{key: "acknowledged commands (acknowledged: true) and missions (mission: upload)" for key in _TRANSACTION_OPTIONS},
+    **{key: "mission sinks (mission: upload)" for key in _MISSION_ONLY},
+}
 ACKNOWLEDGED_MESSAGES = ("COMMAND_LONG", "COMMAND_INT")
 
 
@@ -29,9 +50,8 @@ def _int_option(options: Mapping[str, Any], key: str, low: int, high: int) -> It
             yield key, f"{key} must be an integer {low}..{high}"
 
 
-def _common_problems(options: Mapping[str, Any], allowed: set[str]) -> Iterator[tuple[str | None, str]]:
-    for key in sorted(set(options) - allowed - {"connection"}):
-        yield key, f"unknown option {key!r}"
+def _common_problems(options: Mapping[str, Any], used: set[str], kind: str) -> Iterator[tuple[str | None, str]]:
+    yield from _unused(options, used, kind)
     for key in ("system_id", "component_id", "target_system", "target_component"):
         yield from _int_option(options, key, 0, 255)
     yield from _int_option(options, "payload_type", 32768, 65535)
@@ -40,28 +60,37 @@ def _common_problems(options: Mapping[str, Any], allowed: set[str]) -> Iterator[
         yield "message", f"unknown MAVLink message {name!r} (dialect: common)"
 
 
+def _unused(options: Mapping[str, Any], used: set[str], kind: str) -> Iterator[tuple[str | None, str]]:
+    """Every option this kind of endpoint does not read: unknown, or meant for another kind."""
+    for key in sorted(set(options) - used - {"connection"}):
+        if key in _APPLIES_TO:
+            yield key, f"{key!r} is not used by a {kind}: it applies to {_APPLIES_TO[key]}"
+        else:
+            yield key, f"unknown option {key!r}"
+
+
 def check_source_options(options: Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
-    problems = list(_common_problems(options, _SOURCE_OPTIONS))
-    if options.get("json_tunnel") and options.get("message") not in (None, "TUNNEL"):
-        problems.append(("message", "a json_tunnel source reads TUNNEL frames; drop 'message'"))
-    return problems
+    if options.get("json_tunnel"):
+        problems = list(_common_problems(options, _TUNNEL_SOURCE, "json_tunnel source"))
+        return [("message", "a json_tunnel source reads TUNNEL frames; drop 'message'") if key == "message" else (key, text)
+                for key, text in problems]
+    return list(_common_problems(options, _MESSAGE_SOURCE, "message source"))
 
 
 def check_sink_options(options: Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
     if "mission" in options:
         return _mission_problems(options, mapping)
-    problems = list(_common_problems(options, _SINK_OPTIONS))
     if options.get("json_tunnel"):
-        return problems
+        return list(_common_problems(options, _TUNNEL_SINK, "json_tunnel sink"))
+    acknowledged = options.get("acknowledged") is True
+    problems = list(_common_problems(options, _COMMAND_SINK if acknowledged else _MESSAGE_SINK,
+                                     "acknowledged command sink" if acknowledged else "message sink"))
     if "acknowledged" in options:
         if not isinstance(options["acknowledged"], bool):
             problems.append(("acknowledged", "acknowledged must be true or false"))
         elif options["acknowledged"] and options.get("message") not in ACKNOWLEDGED_MESSAGES:
             problems.append(("acknowledged", "acknowledged applies to COMMAND_LONG and COMMAND_INT sinks"))
         problems += TransactionOptions.parse(options)[1]
-    elif set(options) & (_COMMAND_OPTIONS - {"acknowledged"}):
-        key = sorted(set(options) & _COMMAND_OPTIONS)[0]
-        problems.append((key, f"{key!r} applies to acknowledged commands (acknowledged: true) and missions"))
     name = options.get("message")
     if name is None:
         problems.append((None, "a mavlink sink needs 'message' (or json_tunnel: true)"))
@@ -80,8 +109,7 @@ def check_sink_options(options: Mapping[str, Any], mapping: str | None) -> list[
 
 
 def _mission_problems(options: Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
-    problems: list[tuple[str | None, str]] = [
-        (key, f"unknown option {key!r} for a mission sink") for key in sorted(set(options) - _MISSION_OPTIONS - {"connection"})]
+    problems: list[tuple[str | None, str]] = list(_unused(options, _MISSION_OPTIONS, "mission sink"))
     if options["mission"] != "upload":
         problems.append(("mission", "mission must be 'upload'"))
     problems += TransactionOptions.parse(options)[1]

@@ -33,6 +33,9 @@ _INT_RANGES = {
 
 
 
+FLOAT32_MAX = 3.4028234663852886e38
+
+
 @dataclass(frozen=True, slots=True)
 class FieldSpec:
     type: str
@@ -50,7 +53,13 @@ def _scalar(name: str, ftype: str, value: Any) -> int | float:
     if isinstance(value, str) or not isinstance(value, (int, float)):
         raise MessageRejected(f"field {name!r}: expected a number, got {type(value).__name__}")
     if ftype in ("float", "double"):
-        return float(value)
+        try:
+            number = float(value)
+        except OverflowError:
+            raise MessageRejected(f"field {name!r}: {value} is too large for {ftype}") from None
+        if ftype == "float" and math.isfinite(number) and abs(number) > FLOAT32_MAX:
+            raise MessageRejected(f"field {name!r}: {value} is too large for float (32 bits)")
+        return number
     if isinstance(value, float):
         if not math.isfinite(value):
             raise MessageRejected(f"field {name!r}: {value} is not an integer")

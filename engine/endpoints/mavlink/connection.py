@@ -26,11 +26,14 @@ from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelHub, Tun
 
 HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
 
-_STATS = (*PORT_STATS, "not_for_us", "source_dropped", "vehicles_heard")
+_STATS = (*PORT_STATS, "not_for_us", "vehicles_heard")
 """Keys of :attr:`MavlinkConnection.stats` (see :data:`.port.PORT_STATS`); ``vehicles_heard``
 counts the systems/components whose HEARTBEAT came in. Tunnel counters (``tunnel_sent``,
 ``tunnel_retransmissions``, ``tunnel_delivered``, ``tunnel_deliver_failed``,
 ``tunnel_malformed``), mission and command counters appear once used."""
+
+REJECTION_STATS = ("bad_crc", "bad_data", "unsigned_rejected", "bad_signature", "replayed", "not_for_us")
+"""What the link received and threw away, shown together in the status."""
 
 Listener = Callable[[mavlink2.MAVLink_message], None]
 
@@ -81,6 +84,17 @@ class MavlinkConnection(Connection):
     def vehicles(self) -> list[dict[str, Any]]:
         """What the connection has heard, for the status view."""
         return [asdict(seen) for seen in self.seen.values()]
+
+    def health(self) -> dict[str, Any]:
+        """For the status: the link's state, its counters (bad CRC, bad data and signature
+        rejections among them; see :data:`.port.PORT_STATS`) and the vehicles heard."""
+        return {
+            "state": "up" if self.port.ready else "waiting for a peer",
+            "rejected": {key: self.stats[key] for key in REJECTION_STATS},
+            "counters": dict(self.stats),
+            "vehicles": [{"system_id": seen.system_id, "component_id": seen.component_id, "type": seen.type,
+                          "heard_s_ago": round(time.monotonic() - seen.last_heard, 1)} for seen in self.seen.values()],
+        }
 
     async def open(self) -> None:
         await self.port.open()

@@ -23,6 +23,8 @@ from engine.endpoints.mavlink.settings import Address
 
 PEER_TTL = 30.0
 READ_CHUNK = 4096
+UDP_CLOSE_TIMEOUT = 1.0
+"""Bound on waiting for asyncio to close a UDP socket (it takes one loop turn)."""
 
 OnBytes = Callable[[bytes, Hashable], None]
 
@@ -178,6 +180,12 @@ class SerialLink(Link):
 class _Datagrams(asyncio.DatagramProtocol):
     def __init__(self, link: UdpLink) -> None:
         self.link = link
+        self.lost: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        """Done once asyncio closed the socket (the loop turn after ``transport.close()``)."""
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.lost.done():
+            self.lost.set_result(None)
 
     def datagram_received(self, data: bytes, addr: Any) -> None:
         self.link.received(data, addr)
@@ -191,6 +199,7 @@ class UdpLink(Link):
     """``udpout`` sends to its remote; ``udpin`` answers every peer heard in the last 30 s."""
 
     _transport: asyncio.DatagramTransport | None = None
+    _protocol: _Datagrams | None = None
 
     def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> None:
         super().__init__(address, on_bytes, stats)
@@ -201,12 +210,13 @@ class UdpLink(Link):
         where = (self.address.host, self.address.port)
         try:
             if self.address.kind == "udpin":
-                transport, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self), local_addr=where)
+                transport, protocol = await loop.create_datagram_endpoint(lambda: _Datagrams(self), local_addr=where)
             else:
-                transport, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self), remote_addr=where)
+                transport, protocol = await loop.create_datagram_endpoint(lambda: _Datagrams(self), remote_addr=where)
         except OSError as exc:
             raise EndpointError(f"cannot open {self.address.kind}:{where[0]}:{where[1]}: {exc.strerror}") from None
         self._transport = transport
+        self._protocol = protocol
         self.local_address = transport.get_extra_info("sockname")[:2]
 
     @property
@@ -238,9 +248,14 @@ class UdpLink(Link):
             self._transport.sendto(data, addr)
 
     async def close(self) -> None:
+        """Return once the socket is closed, so the port is free for a connection that takes
+        it over (break-before-make); asyncio closes it a loop turn after ``transport.close``."""
         await super().close()
         if self._transport is not None:
             self._transport.close()
+        if self._protocol is not None:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(asyncio.shield(self._protocol.lost), UDP_CLOSE_TIMEOUT)
 
 
 class TcpLink(Link):

@@ -5,10 +5,12 @@ upload, acknowledged commands) where the options ask for them."""
 from __future__ import annotations
 
 import asyncio
+import logging
+import time
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
-from engine.endpoints.base import Deliver, Inbound, Outbound, Sink, Source
+from engine.endpoints.base import Deliver, Inbound, Inbox, Outbound, Sink, Source
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, message_fields, mavlink2
 from engine.endpoints.mavlink.command import AcknowledgedCommandSink
 from engine.endpoints.mavlink.mission import MissionUploadSink
@@ -17,16 +19,25 @@ from engine.endpoints.mavlink.transaction import TransactionOptions
 if TYPE_CHECKING:
     from engine.endpoints.mavlink.connection import MavlinkConnection
 
-SOURCE_QUEUE = 256
 MISSION_ACK = mavlink2.MAVLINK_MSG_ID_MISSION_ACK
+BATCH = 256
+"""Most messages handed to the route in one ``Deliver.batch``."""
+STOP_DRAIN = 2.0
+"""Seconds :meth:`MessageSource.stop` keeps handing queued telemetry to the route; what is
+still queued after that is dropped and counted (a reload must not wait on a stuck sink)."""
 
+log = logging.getLogger(__name__)
 
 
 class MessageSource(Source):
     """Decoded messages of one type (or all) as field dicts, filtered by sender.
 
-    Telemetry cannot be redelivered, so a slow route drops the oldest queued messages
-    (counted as ``source_dropped``) rather than delaying the link for every other route.
+    The link's reader hands messages to a bounded :class:`~engine.endpoints.base.Inbox`
+    (``Deliver.queue_limit``) and one task settles them in batches. A radio link cannot be
+    paused and telemetry cannot be redelivered, so a full inbox drops: ``drop_newest`` keeps
+    what is queued, ``drop_oldest`` keeps the freshest, and ``block`` (the engine's default)
+    is treated as ``drop_oldest`` (stalling the reader would stall every route on the link).
+    Drops, and messages the route could not settle, are counted with ``Deliver.dropped``.
     """
 
     def __init__(self, connection: MavlinkConnection, route: str, msg_id: int | None,
@@ -36,22 +47,40 @@ class MessageSource(Source):
         self.msg_id = msg_id
         self.system_id = system_id
         self.component_id = component_id
-        self._queue: asyncio.Queue[Inbound | None] = asyncio.Queue(SOURCE_QUEUE)
+        self._inbox: Inbox[Inbound] = Inbox(1)
+        self._deliver: Deliver | None = None
         self._task: asyncio.Task[None] | None = None
+        self.received = 0
+        self.dropped = 0
+        self._drop_logged = 0.0
 
     async def start(self, deliver: Deliver) -> None:
+        overflow = "drop_oldest" if deliver.overflow == "block" else deliver.overflow
+        self._inbox = Inbox(deliver.queue_limit, overflow)
+        self._deliver = deliver
         self.connection.listen(self.msg_id, self.offer)
         self._task = asyncio.create_task(self._run(deliver), name=f"mavlink-source:{self.route}")
 
     async def stop(self) -> None:
+        """Stop listening, hand what is queued to the route (for at most :data:`STOP_DRAIN`
+        seconds; the rest is dropped and counted), and return once the last batch settled."""
         self.connection.unlisten(self.msg_id, self.offer)
-        if self._task is None:
+        task, self._task = self._task, None
+        if task is None:
             return
-        while not self._queue.empty():
-            self._queue.get_nowait()
-        self._queue.put_nowait(None)
-        await asyncio.gather(self._task, return_exceptions=True)
-        self._task = None
+        self._inbox.close()
+        done, _ = await asyncio.wait({task}, timeout=STOP_DRAIN)
+        if not done:
+            left = len(self._inbox)
+            self._inbox.items.clear()
+            if left:
+                self._count_dropped(left)
+                log.warning("mavlink route %r: stopped with %d messages queued; dropped", self.route, left)
+            await asyncio.gather(task, return_exceptions=True)
+
+    def status(self) -> dict[str, Any]:
+        return {"received": self.received, "dropped": self.dropped, "queued": len(self._inbox),
+                "overflow": self._inbox.overflow}
 
     def offer(self, msg: mavlink2.MAVLink_message) -> None:
         header = msg.get_header()
@@ -59,9 +88,9 @@ class MessageSource(Source):
             return
         if self.component_id is not None and header.srcComponent != self.component_id:
             return
-        if self._queue.full():
-            self._queue.get_nowait()
-            self.connection.stats["source_dropped"] += 1
+        if self._inbox.closed:
+            return
+        self.received += 1
         buf = msg.get_msgbuf()
         meta = {
             "message": msg.get_type(), "system_id": header.srcSystem, "component_id": header.srcComponent,
@@ -72,14 +101,34 @@ class MessageSource(Source):
             ref = self.connection.mission_refs.get((header.srcSystem, header.srcComponent))
             if ref is not None:
                 fields["ref_id"] = ref
-        self._queue.put_nowait(Inbound(fields=fields, meta=meta))
+        if self._inbox.offer(Inbound(fields=fields, meta=meta)):
+            self._count_dropped(1)
+        self._inbox.wake()
+
+    def _count_dropped(self, count: int) -> None:
+        self.dropped += count
+        if self._deliver is not None:
+            self._deliver.dropped(count)
+        now = time.monotonic()
+        if now - self._drop_logged >= 10.0:
+            self._drop_logged = now
+            log.warning("mavlink route %r: queue full (%d, overflow %s), dropped %d messages so far",
+                        self.route, self._inbox.limit, self._inbox.overflow, self.dropped)
 
     async def _run(self, deliver: Deliver) -> None:
-        while (inbound := await self._queue.get()) is not None:
+        inbox = self._inbox
+        while batch := await inbox.take(BATCH):
             try:
-                await deliver(inbound)
-            except Exception:
-                self.connection.stats["source_dropped"] += 1
+                settled = await deliver.batch(batch)
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # a bug in the engine: telemetry cannot be redelivered, count it
+                log.exception("mavlink route %r: settling a batch failed: %s", self.route, exc)
+                settled = [False] * len(batch)
+            lost = settled.count(False)
+            if lost:
+                self._count_dropped(lost)
+            await asyncio.sleep(0)  # a backlog must not hold the loop from the link and other routes
 
 
 class MessageSink(Sink):

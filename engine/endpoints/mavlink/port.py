@@ -17,7 +17,7 @@ import contextlib
 from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable
 
-from engine.endpoints.base import EndpointError
+from engine.endpoints.base import EndpointError, MessageRejected
 from engine.endpoints.mavlink.codec import RADIO_STATUS, mavlink2
 from engine.endpoints.mavlink.links import Link, make_link
 from engine.endpoints.mavlink.settings import LinkConfig
@@ -158,16 +158,17 @@ class MavlinkPort:
             start = loop.time()
             try:
                 data = self._pack(msg)
+            except Exception as exc:  # pymavlink struct errors: this message can never be sent
+                self.stats["send_errors"] += 1
+                if not future.done():
+                    future.set_exception(MessageRejected(f"{msg.get_type()}: cannot encode: {exc}"))
+                continue
+            try:
                 await self._link.transmit(data)
             except EndpointError as exc:
                 self.stats["send_errors"] += 1
                 if not future.done():
                     future.set_exception(exc)
-                continue
-            except Exception as exc:  # pymavlink struct errors: a field out of range
-                self.stats["send_errors"] += 1
-                if not future.done():
-                    future.set_exception(EndpointError(f"{msg.get_type()}: cannot encode: {exc}"))
                 continue
             self.stats["frames_sent"] += 1
             self.stats["bytes_sent"] += len(data)

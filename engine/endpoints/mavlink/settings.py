@@ -65,6 +65,31 @@ def parse_address(url: Any, baud: Any = None) -> Address:
     return Address("serial", device=device, baud=baud)
 
 
+def exclusive_resource(settings: Mapping[str, Any]) -> str | None:
+    """What only one open connection can hold: a listening port (``udpin`` -> ``udp:PORT``,
+    ``tcpin`` -> ``tcp:PORT``, whatever the host, port 0 excepted) or a serial device
+    (``serial:<real path>``: two readers would split the bytes); None for clients and for
+    settings :func:`parse_address` rejects (``check`` reports those)."""
+    try:
+        address = parse_address(settings.get("url"), settings.get("baud"))
+    except ValueError:
+        return None
+    if address.kind in ("udpin", "tcpin") and address.port:
+        return f"{'udp' if address.kind == 'udpin' else 'tcp'}:{address.port}"
+    if address.kind == "serial":
+        return "serial:" + os.path.realpath(address.device)
+    return None
+
+
+def key_files(settings: Mapping[str, Any]) -> list[str]:
+    """The signing key file the connection reads when it opens (a reload reopens the
+    connection when its contents change)."""
+    signing = settings.get("signing")
+    if isinstance(signing, Mapping) and isinstance(signing.get("key_file"), str):
+        return [str(Path(signing["key_file"]).expanduser())]
+    return []
+
+
 @dataclass(frozen=True, slots=True)
 class SigningConfig:
     key: bytes = field(repr=False)

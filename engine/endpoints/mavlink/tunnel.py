@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import random
 import struct
 import zlib
@@ -45,6 +46,7 @@ from engine.endpoints.base import (
     Deliver,
     EndpointError,
     Inbound,
+    Inbox,
     MessageRejected,
     Outbound,
     Sink,
@@ -64,6 +66,10 @@ _ACK = struct.Struct("<BHBB")
 MAX_FRAGMENT = TUNNEL_PAYLOAD - _DATA.size
 MAX_FRAGMENTS = 255
 CRC_SIZE = 4
+DELIVERY_BATCH = 64
+"""Most reassembled messages settled together (one ``Deliver.batch`` per route)."""
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -172,6 +178,8 @@ class Transfer:
         self.failed = False
         self.retries = 0
         self.retransmissions = 0
+        self.probe: int | None = None
+        """A fragment to send again although the receiver said it held it (see on_timeout)."""
         self._backoff = 1.0
         self._last_tx: float | None = None
         self._waiting_since: float | None = None
@@ -232,7 +240,13 @@ class Transfer:
             return []
         self._backoff = min(self._backoff * 2, 64.0)
         self._waiting_since = now
-        return self.missing() or [self.count - 1]
+        missing = self.missing()
+        if missing:
+            return missing
+        # The receiver holds it all but has not settled it: probe with the last fragment. If
+        # the route failed it, the receiver forgot the message and its SACK asks for the rest.
+        self.probe = self.count - 1
+        return [self.probe]
 
     def _sample(self, newly: int, now: float) -> None:
         """Karn's rule: only fragments sent once give an unambiguous round-trip time."""
@@ -558,7 +572,8 @@ class TunnelChannel:
                                        memory_ttl=s.memory_ttl)
         self.routes: dict[str, list[TunnelSource]] = {}
         self._settled: OrderedDict[Key, set[str]] = OrderedDict()
-        self._ready: asyncio.Queue[tuple[Key, bytes] | None] = asyncio.Queue()
+        self._ready: Inbox[tuple[Key, bytes]] = Inbox(1 << 30)
+        """Reassembled messages waiting to be settled (bounded by the senders' windows)."""
         self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
 
@@ -585,11 +600,11 @@ class TunnelChannel:
         timers, deliveries = self._tasks
         self._tasks = []
         timers.cancel()
-        while not self._ready.empty():
-            item = self._ready.get_nowait()
-            if item is not None:
-                self.reassembler.failed(item[0])
-        self._ready.put_nowait(None)
+        ready, self._ready = self._ready, Inbox(1 << 30)
+        for key, _ in ready.items:  # unacknowledged: the sender retransmits them
+            self.reassembler.failed(key)
+        ready.items.clear()
+        ready.close()
         await asyncio.gather(timers, deliveries, return_exceptions=True)
 
     def on_data(self, peer: tuple[int, int], data: Data) -> None:
@@ -599,7 +614,8 @@ class TunnelChannel:
         for ack in acks:
             self._send_ack(peer, ack)
         if complete is not None:
-            self._ready.put_nowait(complete)
+            self._ready.offer(complete)
+            self._ready.wake()
         self._wake.set()
 
     def _send_ack(self, peer: Hashable, ack: bytes) -> None:
@@ -619,18 +635,34 @@ class TunnelChannel:
                 self._send_ack(peer, ack)
 
     async def _deliveries(self) -> None:
+        """Settle every ready message with every route reading it (one ``Deliver.batch`` per
+        route, the routes in parallel); acknowledge DELIVERED each message every route settled."""
+        ready = self._ready
+        while batch := await ready.take(DELIVERY_BATCH):
+            await self._settle(batch)
+
+    async def _settle(self, batch: list[tuple[Key, bytes]]) -> None:
         loop = asyncio.get_running_loop()
-        while (item := await self._ready.get()) is not None:
-            key, body = item
-            peer, msg_id = cast(tuple[int, int], key[0]), key[1]
-            settled = self._settled.pop(key, set())
-            readers = [source for source in self.readers(peer) if source.route not in settled]
-            results = await asyncio.gather(*(source.deliver(Inbound(body=body, meta={
-                "message": "TUNNEL", "system_id": peer[0], "component_id": peer[1],
-                "payload_type": self.payload_type, "tunnel_id": msg_id})) for source in readers), return_exceptions=True)
-            settled.update(source.route for source, result in zip(readers, results) if result is None)
-            if len(settled) < len(readers) or not readers:
-                self._settled[key] = settled
+        settled_by = [self._settled.pop(key, set()) for key, _ in batch]
+        wanted: dict[TunnelSource, list[int]] = {}
+        for position, (key, _) in enumerate(batch):
+            for source in self.readers(cast(tuple[int, int], key[0])):
+                if source.route not in settled_by[position]:
+                    wanted.setdefault(source, []).append(position)
+        readers = list(wanted)
+        results = await asyncio.gather(*(source.deliver_batch([self._inbound(*batch[i]) for i in wanted[source]])
+                                         for source in readers))
+        pending = [0] * len(batch)
+        for source, result in zip(readers, results):
+            for position, ok in zip(wanted[source], result):
+                if ok:
+                    settled_by[position].add(source.route)
+                else:
+                    pending[position] += 1
+        for position, (key, _) in enumerate(batch):
+            peer = cast(tuple[int, int], key[0])
+            if pending[position] or not self.readers(peer):
+                self._settled[key] = settled_by[position]
                 while len(self._settled) > self.reassembler.memory:
                     self._settled.popitem(last=False)
                 self.reassembler.failed(key)
@@ -638,6 +670,11 @@ class TunnelChannel:
                 continue
             self.hub.count("tunnel_delivered")
             self._send_ack(peer, self.reassembler.delivered(key, loop.time()))
+
+    def _inbound(self, key: Key, body: bytes) -> Inbound:
+        peer, msg_id = cast(tuple[int, int], key[0]), key[1]
+        return Inbound(body=body, meta={"message": "TUNNEL", "system_id": peer[0], "component_id": peer[1],
+                                        "payload_type": self.payload_type, "tunnel_id": msg_id})
 
 
 class TunnelSink(Sink):
@@ -669,8 +706,8 @@ class TunnelSink(Sink):
             try:
                 transfer = Transfer(msg_id, body, fragment_size=settings.fragment_size,
                                     rtt=hub.rtt(self.payload_type), retries=settings.retries)
-            except ValueError as exc:
-                raise EndpointError(f"tunnel: {exc}") from None
+            except ValueError as exc:  # larger than a tunnel message can be: never deliverable
+                raise MessageRejected(f"tunnel: {exc}") from None
             acks: asyncio.Queue[Ack] = asyncio.Queue()
             hub.watch(self.payload_type, msg_id, acks.put_nowait)
             try:
@@ -690,8 +727,10 @@ class TunnelSink(Sink):
         while True:
             while pending and not transfer.delivered:
                 index = pending.pop(0)
-                if transfer.is_held(index):
+                if transfer.is_held(index) and index != transfer.probe:
                     continue
+                if index == transfer.probe:
+                    transfer.probe = None
                 sent = await self.hub.link.send_tunnel(self.payload_type, self.target, transfer.frames[index], bulk=True)
                 transfer.on_sent(index, sent)
                 while not acks.empty():
@@ -738,16 +777,21 @@ class TunnelSource(Source):
         self.channel.add(self)
 
     async def stop(self) -> None:
-        """Take no new messages; return once the one being delivered is settled."""
+        """Take no new messages; return once those being delivered are settled."""
         await self.channel.remove(self)
         await self._idle.wait()
 
-    async def deliver(self, inbound: Inbound) -> None:
+    async def deliver_batch(self, inbounds: list[Inbound]) -> list[bool]:
+        """Settle ``inbounds`` with the route; which of them were settled (an engine failure
+        settles none: the sender retransmits them)."""
         assert self._deliver is not None
         self._busy += 1
         self._idle.clear()
         try:
-            await self._deliver(inbound)
+            return await self._deliver.batch(inbounds)
+        except Exception:
+            log.exception("tunnel route %r: settling a batch failed", self.route)
+            return [False] * len(inbounds)
         finally:
             self._busy -= 1
             if not self._busy:
