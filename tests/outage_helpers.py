@@ -82,8 +82,16 @@ async def publish_reliably(connection: Any, exchange: str, key: str, seqs: range
                            tally: Tally, extra: Callable[[int], dict[str, Any]] = lambda seq: {}) -> None:
     """Publish every seq with publisher confirms at ``rate`` msg/s; a publish that fails (the
     broker died) is retried until confirmed."""
-    channel = await connection.channel(publisher_confirms=True)
-    target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
+    deadline = time.monotonic() + 60
+    while True:  # a robust connection may still be reconnecting after a broker restart
+        try:
+            channel = await connection.channel(publisher_confirms=True)
+            target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
+            break
+        except Exception:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.2)
     started = time.monotonic()
     for index, seq in enumerate(seqs):
         body = json.dumps({"seq": seq, **extra(seq)}).encode()

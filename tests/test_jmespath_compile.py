@@ -43,6 +43,14 @@ class DeterministicFunctions(FieldFunctions):
     def _func_uuid(self) -> str:
         return "00000000000000000000000000000000"
 
+    @functions.signature({"types": ["number"]})
+    def _func_stamp_boot_ms(self, time_boot_ms: int) -> dict[str, int]:
+        return {"sec": 1732320000, "nanosec": int(time_boot_ms) % 1000 * 1_000_000}
+
+    @functions.signature({"types": ["number"]})
+    def _func_stamp_usec(self, time_usec: int) -> dict[str, int]:
+        return {"sec": 1732320000, "nanosec": int(time_usec) % 1_000_000 * 1000}
+
 
 OPTIONS = jmespath.Options(custom_functions=DeterministicFunctions())
 
