@@ -125,13 +125,13 @@ async def many_routes(broker: tp.Broker, counts: list[int], messages: int) -> li
 def link_payload_capacity() -> dict[str, float]:
     """TUNNEL payload bytes/s one direction of the emulated radio can carry at best.
 
-    From the emulator's constants (engine.sim.sik_radio): each radio owns TX_WINDOW_S of every
+    From the emulator's constants (rabbitros_sim.sik_radio): each radio owns TX_WINDOW_S of every
     TDM_ROUND_S; an air packet of n bytes (at most MAX_AIR_PACKET) takes PACKET_OVERHEAD_S +
     n * AIR_BYTE_S and must end inside the window; MAVLink frames are packed whole. A TUNNEL
     frame is 12 bytes of MAVLink 2 framing + 5 of TUNNEL fields + p payload bytes (p <= 128).
     The best p and frames per packet give the capacity; the serial side (57,600 baud) is the
     other bound."""
-    from engine.sim import sik_radio as radio
+    from rabbitros_sim import sik_radio as radio
 
     best = (0.0, 0, 0)
     for payload in range(1, 129):
