@@ -13,14 +13,12 @@ import asyncio
 import json
 import os
 import signal
-import statistics
 import time
 import uuid
 from pathlib import Path
 from typing import Any, Callable
 
 import aio_pika
-import pytest
 
 from engine.local_broker import LocalCluster
 from tests.engine_process import EngineProcess
@@ -282,7 +280,6 @@ slack, plus 2 s for the broker to drop the dead consumer and for a slow shared m
 
 
 def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_dies(amqp_cluster, tmp_path):
-    pytest.importorskip("rclpy")
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions

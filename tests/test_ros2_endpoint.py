@@ -18,7 +18,7 @@ from typing import Any, Awaitable, Callable
 
 import pytest
 
-rclpy = pytest.importorskip("rclpy")
+import rclpy  # a missing rclpy fails the run
 
 from rclpy.experimental import EventsExecutor  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402

@@ -12,7 +12,7 @@ from pathlib import Path
 import aio_pika
 import pytest
 
-pytest.importorskip("rclpy")
+import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
 from engine.schemas import canonical_bytes  # noqa: E402
 from engine.runtime import Engine  # noqa: E402
