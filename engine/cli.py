@@ -247,7 +247,7 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
 
     tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
     if not args.no_watch:
-        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dir)))
+        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dir, engine.key_files)))
     log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__, "instance": engine.instance})
     await stopping.wait()
     log.info("stopping: draining in-flight messages", extra={"drain_timeout": args.drain_timeout})

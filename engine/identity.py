@@ -22,7 +22,7 @@ def connection_fingerprint(protocol: str, settings: Mapping[str, Any]) -> str:
     """Hash of the protocol, the settings and the contents of the key files they name; a
     file that cannot be read hashes as missing (the endpoint's own check reports it)."""
     digest = hashlib.sha256(json.dumps([protocol, settings], sort_keys=True, default=json_default).encode())
-    for name in sorted(_key_files(protocol, settings)):
+    for name in sorted(connection_key_files(protocol, settings)):
         digest.update(b"\0" + name.encode() + b"\0")
         try:
             digest.update(hashlib.sha256(Path(name).expanduser().read_bytes()).digest())
@@ -36,7 +36,8 @@ def exclusive_resource(protocol: str, settings: Mapping[str, Any]) -> str | None
     return transport.exclusive_resource(settings) if transport is not None else None
 
 
-def _key_files(protocol: str, settings: Mapping[str, Any]) -> Iterable[str]:
+def connection_key_files(protocol: str, settings: Mapping[str, Any]) -> Iterable[str]:
+    """The files the connection reads when it opens (signing keys), as its transport names them."""
     transport = _transport(protocol)
     return list(transport.key_files(settings)) if transport is not None else ()
 

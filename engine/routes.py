@@ -26,7 +26,7 @@ from engine.delivery import DEFAULT_MAX_MESSAGE_BYTES, DeadLetterSpec, RouteDeli
 from engine.buffer import BufferSpec
 from engine.endpoints.base import EndpointError
 from engine.fieldcheck import mapping_field_problems, option_hint
-from engine.identity import connection_fingerprint, exclusive_resource
+from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
 from engine.redaction import MASK, Secret, has_url_password, is_secret_name, json_default, redact_urls, revealed, shown
 from engine.schemas import SchemaRegistry
@@ -73,6 +73,8 @@ class ConnectionSpec:
     """The resource only one open connection can hold (``udp:14550``), if any."""
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     """Messages larger than this, in or out of this connection, are dead-lettered unparsed."""
+    key_files: tuple[Path, ...] = ()
+    """Absolute paths of the files it reads when it opens (signing keys): watched for edits."""
 
 
 @dataclass(frozen=True)
@@ -135,6 +137,11 @@ class RoutesConfig:
     """Accepted but probably not what was meant (two routes consuming one AMQP queue)."""
     dead_letters: DeadLetterSpec = DeadLetterSpec()
     """The engine's one dead-letter destination (``dead_letters:``, resolved)."""
+
+    @property
+    def key_files(self) -> frozenset[Path]:
+        """Every key file a connection reads: a new key written there is a configuration change."""
+        return frozenset(path for connection in self.connections.values() for path in connection.key_files)
 
 
 def default_amqp_url() -> str | Secret:
@@ -426,6 +433,7 @@ def _identified(spec: ConnectionSpec) -> ConnectionSpec:
         spec,
         fingerprint=connection_fingerprint(spec.protocol, spec.settings),
         exclusive=exclusive_resource(spec.protocol, spec.settings),
+        key_files=tuple(Path(name).expanduser().resolve() for name in connection_key_files(spec.protocol, spec.settings)),
     )
 
 

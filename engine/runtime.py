@@ -378,6 +378,10 @@ class Engine:
         self._buffers: dict[str, list[Any]] = {}
         """route name -> [buffer, runners using it, newest runner]: a buffer outlives a reload."""
 
+    def key_files(self) -> frozenset[Path]:
+        """The key files the running configuration's connections read (to watch for new keys)."""
+        return self.config.key_files if self.config is not None else frozenset()
+
     def open_connections(self) -> list[tuple[str, Connection]]:
         """``(protocol, connection)`` of every connection the engine holds (open or being retried)."""
         specs = self.config.connections if self.config is not None else {}

@@ -1,7 +1,8 @@
 """Every edit takes effect and none takes the engine down, against a real RabbitMQ node and
 real MAVLink over UDP: a schema edit without touching a route file, rejected loads (a
 recursive YAML alias, a broken ``$ref``), a udpin connection changed while telemetry flows
-(break-before-make, gap reported), and ``sink.mapping`` shaping an AMQP body."""
+(break-before-make, gap reported), a new signing key written over the key file, and
+``sink.mapping`` shaping an AMQP body."""
 
 from __future__ import annotations
 
@@ -289,3 +290,61 @@ connections:
     (message,) = asyncio.run(scenario())
     assert message.routing_key == "legacy.uav1", "the routing key still comes from the canonical message"
     assert message.body == b'{"robot":"uav1","where":[-22.5,-47.25]}'
+
+
+SIGNED_ROUTES = """
+connections:
+  gcs: {{amqp: "${{TEST_AMQP_URL}}"}}
+  radio: {{mavlink: "udpin:127.0.0.1:{port}", heartbeat: 0, signing: {{key_file: "{key_file}"}}}}
+routes:
+  - name: telemetry
+    source: {{mavlink: {{connection: radio, message: GLOBAL_POSITION_INT}}}}
+    mapping: "{{seq: time_boot_ms}}"
+    schema: raw_json
+    sink: {{amqp: {{connection: gcs, exchange: {outbox}, routing_key: telemetry}}}}
+"""
+
+
+def test_a_new_signing_key_written_over_the_key_file_takes_effect(amqp_url: str, tmp_path: Path):
+    """The key file lives outside the routes directory; writing the vehicle's new key there is
+    a reload (the connection reopens with it) without touching a route file."""
+    n, port = names(), free_udp_port()
+    old_key, new_key = bytes(range(32)), bytes(range(1, 33))
+    keys, routes = tmp_path / "keys", tmp_path / "routes"
+    keys.mkdir()
+    routes.mkdir()
+    key_file = keys / "uav1.key"
+    key_file.write_bytes(old_key)
+    (routes / "radio.yaml").write_text(SIGNED_ROUTES.format(port=port, key_file=key_file, **n))
+    engine = EngineProcess(routes, tmp_path / "status.json", {"TEST_AMQP_URL": amqp_url})
+
+    def rejected_signatures() -> int:
+        radio = ((engine.status() or {}).get("connections") or {}).get("radio") or {}
+        return int((radio.get("rejected") or {}).get("bad_signature", 0))
+
+    async def scenario() -> float:
+        connection = await aio_pika.connect(amqp_url)
+        vehicle = Vehicle(port, 50.0, key=new_key)  # the vehicle already signs with the new key
+        try:
+            channel = await connection.channel()
+            out = await Collector.bind(channel, n["outbox"], "telemetry")
+            vehicle.start()
+            await wait_until(lambda: rejected_signatures() >= 20, 20, f"frames signed with another key not rejected: {engine.log()}")
+            assert out.messages == [], "frames signed with a key the engine does not have were delivered"
+            write_atomically(key_file, new_key.hex())
+            written = time.monotonic()
+            await out.wait_for(10, timeout=20)
+            assert len(out.messages) >= 10, f"the new key was never applied: {engine.log()}"
+            return time.monotonic() - written
+        finally:
+            vehicle.stop.set()
+            await connection.close()
+
+    try:
+        engine.wait_started()
+        live_s = asyncio.run(scenario())
+        status = engine.status() or {}
+    finally:
+        assert engine.stop() == 0
+    print(f"new signing key to first delivery: {live_s * 1e3:.0f} ms")
+    assert status["generation"] == 2 and status["reloads"]["succeeded"] == 1

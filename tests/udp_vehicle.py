@@ -10,16 +10,20 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 
 class Vehicle(threading.Thread):
-    """A pymavlink sender: GLOBAL_POSITION_INT at ``rate`` Hz, ``time_boot_ms`` = sequence."""
+    """A pymavlink sender: GLOBAL_POSITION_INT at ``rate`` Hz, ``time_boot_ms`` = sequence,
+    signed with ``key`` if given."""
 
-    def __init__(self, port: int, rate: float) -> None:
+    def __init__(self, port: int, rate: float, key: bytes | None = None) -> None:
         super().__init__(daemon=True)
-        self.port, self.rate = port, rate
+        self.port, self.rate, self.key = port, rate, key
         self.sent = 0
         self.stop = threading.Event()
 
     def run(self) -> None:
         mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        if self.key is not None:  # MAVLink 2 signing, link 0, timestamps from now
+            mav.signing.secret_key, mav.signing.sign_outgoing = self.key, True
+            mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
             started = time.monotonic()
             while not self.stop.is_set():
