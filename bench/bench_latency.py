@@ -22,9 +22,12 @@ import tempfile
 import time
 from pathlib import Path
 
+from typing import Any
+
 import aio_pika
 
 from bench.roundtrip_ros2 import make_message
+from engine.endpoints.base import Inbound, Outbound
 from engine.local_broker import LocalBroker
 from engine.runtime import Engine
 
@@ -57,7 +60,13 @@ def start_robot(domain: int, store: Path) -> subprocess.Popen[bytes]:
     )
 
 
-async def scenario(url: str, confirms: bool, runs: int, count: int, rate: float) -> dict[str, dict[int, list[float]]]:
+async def scenario(
+    url: str, confirms: bool, runs: int, count: int, rate: float,
+    parts: dict[str, dict[int, dict[str, list[float]]]] | None = None,
+) -> dict[str, dict[int, list[float]]]:
+    """t2 - t1 of every message, per route and size (ms). With ``parts``, also the two library
+    calls of that path timed alone at the same rate: ``convert`` (the route's pipeline) and
+    ``sink`` (the sink's send of that message, i.e. rclpy publish or aiormq publish)."""
     domain = 180 + os.getpid() % 50
     results: dict[str, dict[int, list[float]]] = {"CT-L1": {}, "CT-L2": {}}
     with tempfile.TemporaryDirectory() as routes:
@@ -65,6 +74,7 @@ async def scenario(url: str, confirms: bool, runs: int, count: int, rate: float)
         Path(routes, "latency.yaml").write_text(ROUTES.format(url=url, confirms=str(confirms).lower(), domain=domain))
         engine = Engine(Path(routes), REPO / "schemas")
         await engine.start()
+        seen = {name: remember_inbounds(engine.runners[name].pipeline) for name in results}
         connection = await aio_pika.connect(url)
         try:
             channel = await connection.channel()
@@ -94,12 +104,49 @@ async def scenario(url: str, confirms: bool, runs: int, count: int, rate: float)
                     for name, runner in zip(results, runners):
                         results[name][size].extend(ns / 1e6 for ns in runner.latency_samples or [])
                         runner.latency_samples = None
+                if parts is not None:
+                    for name in results:
+                        parts.setdefault(name, {})[size] = await parts_alone(engine.runners[name], seen[name], count, rate)
         finally:
             await connection.close()
             await engine.stop()
             robot.terminate()
             robot.wait(10)
     return results
+
+
+def remember_inbounds(pipeline: Any) -> list[Inbound]:
+    """The last message the pipeline converted, kept (a copy) to be converted and sent again alone."""
+    kept: list[Inbound] = []
+    convert = pipeline.convert
+
+    def converting(inbound: Inbound) -> Outbound:
+        kept[:] = [Inbound(body=inbound.body, fields=inbound.fields, meta=dict(inbound.meta))]
+        return convert(inbound)
+
+    pipeline.convert = converting
+    return kept
+
+
+async def parts_alone(runner: Any, kept: list[Inbound], count: int, rate: float) -> dict[str, list[float]]:
+    """What the route's conversion and its sink's send cost each on their own, one message at a
+    time at ``rate`` as in the latency runs, then back to back: on this machine an idle pause
+    between messages makes every call much slower (cold caches, an idle vCPU to wake)."""
+    convert, sink = runner.pipeline.convert, runner.pipeline.sink
+    out: dict[str, list[float]] = {}
+    for label, pause in (("", 1 / rate), ("back_to_back_", 0.0)):
+        converts, sends = out.setdefault(f"{label}convert", []), out.setdefault(f"{label}sink", [])
+        for _ in range(count):
+            inbound = Inbound(body=kept[0].body, fields=kept[0].fields, meta=dict(kept[0].meta))
+            began = time.perf_counter_ns()
+            outbound = convert(inbound)
+            converted = time.perf_counter_ns()
+            await sink.send_batch([outbound])
+            converts.append((converted - began) / 1e6)
+            sends.append((time.perf_counter_ns() - converted) / 1e6)
+            if pause:
+                await asyncio.sleep(pause)
+    return out
 
 
 def report(confirms: bool, results: dict[str, dict[int, list[float]]]) -> None:

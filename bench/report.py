@@ -48,7 +48,30 @@ def latency_tables(latency: dict[str, Any]) -> list[str]:
                       if off["CT-L1"][size].get("p50")]
             lines += [f"CT-L2 / CT-L1 median ratio ({label}): " + ", ".join(f"{r:.2f}" for r in ratios)
                       + " (the paper's: 7.4)", ""]
+        lines += _parts_table(latency, setting, label)
     return lines
+
+
+def _parts_table(latency: dict[str, Any], setting: str, label: str) -> list[str]:
+    """Where t2 - t1 goes: the same message converted and sent again alone, at the same rate
+    and back to back (the same calls, warm)."""
+    parts = latency.get(f"{setting}_parts") or {}
+    if not parts:
+        return []
+    lines = [f"The route's conversion and its sink's send timed alone ({label}), the same message again, "
+             f"p50 in microseconds: one at a time at {latency['rate']:g} msg/s as above, then back to back", "",
+             "| Route | Size | t2 - t1 (whole) | Conversion alone | Sink send alone | Conversion, back to back | Sink send, back to back |",
+             "|---|---|---|---|---|---|---|"]
+    for name, sizes in parts.items():
+        for size, alone in sizes.items():
+            whole = (latency.get(setting, {}).get(name, {}).get(size) or {}).get("p50")
+            cells = [alone.get(part, {}).get("p50") for part in ("convert", "sink", "back_to_back_convert", "back_to_back_sink")]
+            lines.append(f"| {name} | {size} B | {_us(whole)} | " + " | ".join(_us(c) for c in cells) + " |")
+    return lines + [""]
+
+
+def _us(ms: float | None) -> str:
+    return "-" if ms is None else f"{ms * 1000:.0f}"
 
 
 def throughput_table(throughput: dict[str, Any]) -> list[str]:

@@ -25,10 +25,16 @@ async def paper_latency(url: str, rate: float, runs: int, count: int) -> dict[st
 
     out: dict[str, Any] = {"rate": rate, "runs": runs, "count": count}
     for confirms in (False, True):
-        results = await scenario(url, confirms, runs, count, rate)
-        out["confirms_on" if confirms else "confirms_off"] = {
+        parts: dict[str, dict[int, dict[str, list[float]]]] = {}
+        results = await scenario(url, confirms, runs, count, rate, parts)
+        setting = "confirms_on" if confirms else "confirms_off"
+        out[setting] = {
             name: {str(size): {**tp.summary(samples), "samples": samples} for size, samples in sizes.items()}
             for name, sizes in results.items()
+        }
+        out[f"{setting}_parts"] = {
+            name: {str(size): {part: tp.summary(samples) for part, samples in alone.items()} for size, alone in sizes.items()}
+            for name, sizes in parts.items()
         }
     return out
 
