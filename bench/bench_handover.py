@@ -26,19 +26,8 @@ import aio_pika
 from engine.local_broker import LocalBroker
 from engine.runtime import Engine
 from tests.amqp_helpers import Collector
-from tests.udp_vehicle import Vehicle, free_udp_port
+from tests.udp_vehicle import Vehicle, free_udp_port, telemetry_routes
 
-ROUTES = """
-connections:
-  gcs: {{amqp: "{url}"}}
-  radio: {{mavlink: "udpin:127.0.0.1:{port}", heartbeat: {heartbeat}}}
-routes:
-  - name: telemetry
-    source: {{mavlink: {{connection: radio, message: GLOBAL_POSITION_INT}}}}
-    mapping: "{{seq: time_boot_ms}}"
-    schema: raw_json
-    sink: {{amqp: {{connection: gcs, exchange: {outbox}, routing_key: telemetry}}}}
-"""
 SCHEMAS = Path(__file__).resolve().parent.parent / "schemas"
 
 
@@ -46,7 +35,7 @@ async def scenario(url: str, runs: int, rate: float) -> list[tuple[float, int]]:
     port, outbox = free_udp_port(), f"bench-{uuid.uuid4().hex[:8]}"
     with tempfile.TemporaryDirectory() as work:
         routes = Path(work)
-        (routes / "radio.yaml").write_text(ROUTES.format(url=url, port=port, heartbeat=1, outbox=outbox))
+        (routes / "radio.yaml").write_text(telemetry_routes(url, outbox, port, heartbeat=1))
         engine = Engine(routes, SCHEMAS)
         await engine.start()
         vehicle = Vehicle(port, rate)
@@ -61,7 +50,7 @@ async def scenario(url: str, runs: int, rate: float) -> list[tuple[float, int]]:
                 before = len(out.messages)
                 first = vehicle.sent
                 (routes / "radio.yaml").write_text(
-                    ROUTES.format(url=url, port=port, heartbeat=2 if run % 2 == 0 else 1, outbox=outbox))
+                    telemetry_routes(url, outbox, port, heartbeat=2 if run % 2 == 0 else 1))
                 assert await engine.reload(), engine.reloads.last_error
                 gap_ms = engine.reloads.last_handovers[0]["gap_ms"]
                 await asyncio.sleep(0.5)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import signal
@@ -9,9 +10,11 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Awaitable, Callable, TypeVar
 
 from tests.conftest import REPO
+
+T = TypeVar("T")
 
 
 class EngineProcess:
@@ -47,6 +50,18 @@ class EngineProcess:
     def log(self) -> str:
         self._log.flush()
         return self.log_file.read_text()[-4000:]
+
+    def run(self, scenario: Callable[[], Awaitable[T]]) -> tuple[T, dict[str, Any]]:
+        """Wait for the engine to start, run ``scenario`` against it, and stop it (exit status 0
+        asserted); returns the scenario's result and the engine's last status."""
+        try:
+            self.wait_started()
+            result = asyncio.run(scenario())
+            status = self.status() or {}
+        finally:
+            exited = self.stop()
+        assert exited == 0, f"engine exited {exited}: {self.log()}"
+        return result, status
 
     def stop(self, timeout: float = 60.0) -> int:
         if self.process.poll() is None:

@@ -21,7 +21,7 @@ import pytest
 from engine.runtime import Engine
 from tests.amqp_helpers import Collector, publish
 from tests.engine_process import EngineProcess
-from tests.udp_vehicle import Vehicle, free_udp_port
+from tests.udp_vehicle import Vehicle, free_udp_port, telemetry_routes
 
 PROBE_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "type": "object", "required": ["a"]}
 PROBE_ROUTE = """
@@ -90,12 +90,7 @@ def test_schema_edit_takes_effect_within_a_second(amqp_url: str, tmp_path: Path,
         finally:
             await connection.close()
 
-    try:
-        engine.wait_started()
-        live_s = asyncio.run(scenario())
-        status = engine.status() or {}
-    finally:
-        engine.stop()
+    live_s, status = engine.run(scenario)
     print(f"schema edit to live: {live_s * 1e3:.0f} ms")
     assert (routes / "probe.yaml").stat().st_mtime_ns == route_mtime
     assert status["generation"] == 2 and status["reloads"]["succeeded"] == 1
@@ -159,21 +154,17 @@ def test_recursive_alias_and_broken_ref_are_rejected_and_the_engine_keeps_runnin
     assert final["routes"]["probe"]["generation"] == 1, "rejected loads touched the running route"
 
 
-TELEMETRY_ROUTES = """
-connections:
-  gcs: {{amqp: "${{TEST_AMQP_URL}}"}}
-  radio: {{mavlink: "udpin:{host}:{port}", heartbeat: {heartbeat}}}
-routes:
-  - name: telemetry
-    source: {{mavlink: {{connection: radio, message: GLOBAL_POSITION_INT}}}}
-    mapping: "{{seq: time_boot_ms}}"
-    schema: raw_json
-    sink: {{amqp: {{connection: gcs, exchange: {outbox}, routing_key: telemetry}}}}
+OTHER_ROUTE = """
   - name: other
     source: {{amqp: {{connection: gcs, exchange: {inbox}, binding_key: "o.#", queue: {queue}}}}}
     schema: raw_json
     sink: {{amqp: {{connection: gcs, exchange: {outbox}, routing_key: other}}}}
 """
+
+
+def radio_routes(n: dict[str, str], port: int, host: str = "127.0.0.1", heartbeat: float = 1) -> str:
+    """Telemetry from a udpin connection to AMQP, and a route ``other`` on the AMQP connection only."""
+    return telemetry_routes("${TEST_AMQP_URL}", n["outbox"], port, host, heartbeat) + OTHER_ROUTE.format(**n)
 
 
 def test_udpin_settings_change_while_telemetry_flows_is_break_before_make(
@@ -183,7 +174,7 @@ def test_udpin_settings_change_while_telemetry_flows_is_break_before_make(
     n, port, rate = names(), free_udp_port(), 200.0
     routes = tmp_path / "routes"
     routes.mkdir()
-    (routes / "radio.yaml").write_text(TELEMETRY_ROUTES.format(host="127.0.0.1", port=port, heartbeat=1, **n))
+    (routes / "radio.yaml").write_text(radio_routes(n, port))
 
     async def scenario() -> tuple[list[int], dict[str, Any], int]:
         engine = Engine(routes, schemas_dir)
@@ -197,7 +188,7 @@ def test_udpin_settings_change_while_telemetry_flows_is_break_before_make(
             await out.wait_for(50)
             assert len(out.messages) >= 50, "no telemetry before the change"
             other = engine.runners["other"]
-            (routes / "radio.yaml").write_text(TELEMETRY_ROUTES.format(host="127.0.0.1", port=port, heartbeat=2, **n))
+            (routes / "radio.yaml").write_text(radio_routes(n, port, heartbeat=2))
             assert await engine.reload(), engine.reloads.last_error
             sent_at_reload = vehicle.sent
             assert engine.runners["other"] is other, "a route on another connection was touched"
@@ -229,7 +220,7 @@ def test_udpin_handover_that_cannot_open_restores_the_old_link(
     n, port = names(), free_udp_port()
     routes = tmp_path / "routes"
     routes.mkdir()
-    (routes / "radio.yaml").write_text(TELEMETRY_ROUTES.format(host="127.0.0.1", port=port, heartbeat=1, **n))
+    (routes / "radio.yaml").write_text(radio_routes(n, port))
 
     async def scenario() -> None:
         engine = Engine(routes, schemas_dir)
@@ -240,7 +231,7 @@ def test_udpin_handover_that_cannot_open_restores_the_old_link(
             out = await Collector.bind(await connection.channel(), n["outbox"], "telemetry")
             vehicle.start()
             assert len(await out.wait_for(20)) >= 20, "no telemetry before the change"
-            (routes / "radio.yaml").write_text(TELEMETRY_ROUTES.format(host="192.0.2.1", port=port, heartbeat=1, **n))
+            (routes / "radio.yaml").write_text(radio_routes(n, port, host="192.0.2.1"))
             assert not await engine.reload(), "binding an address this host lacks cannot succeed"
             assert "cannot open udpin:192.0.2.1" in engine.reloads.last_error[0], engine.reloads.last_error
             assert engine.generation == 1 and set(engine.runners) == {"telemetry", "other"}
@@ -292,17 +283,6 @@ connections:
     assert message.body == b'{"robot":"uav1","where":[-22.5,-47.25]}'
 
 
-SIGNED_ROUTES = """
-connections:
-  gcs: {{amqp: "${{TEST_AMQP_URL}}"}}
-  radio: {{mavlink: "udpin:127.0.0.1:{port}", heartbeat: 0, signing: {{key_file: "{key_file}"}}}}
-routes:
-  - name: telemetry
-    source: {{mavlink: {{connection: radio, message: GLOBAL_POSITION_INT}}}}
-    mapping: "{{seq: time_boot_ms}}"
-    schema: raw_json
-    sink: {{amqp: {{connection: gcs, exchange: {outbox}, routing_key: telemetry}}}}
-"""
 
 
 def test_a_new_signing_key_written_over_the_key_file_takes_effect(amqp_url: str, tmp_path: Path):
@@ -315,7 +295,7 @@ def test_a_new_signing_key_written_over_the_key_file_takes_effect(amqp_url: str,
     routes.mkdir()
     key_file = keys / "uav1.key"
     key_file.write_bytes(old_key)
-    (routes / "radio.yaml").write_text(SIGNED_ROUTES.format(port=port, key_file=key_file, **n))
+    (routes / "radio.yaml").write_text(telemetry_routes("${TEST_AMQP_URL}", n["outbox"], port, heartbeat=0, key_file=str(key_file)))
     engine = EngineProcess(routes, tmp_path / "status.json", {"TEST_AMQP_URL": amqp_url})
 
     def rejected_signatures() -> int:
@@ -340,11 +320,6 @@ def test_a_new_signing_key_written_over_the_key_file_takes_effect(amqp_url: str,
             vehicle.stop.set()
             await connection.close()
 
-    try:
-        engine.wait_started()
-        live_s = asyncio.run(scenario())
-        status = engine.status() or {}
-    finally:
-        assert engine.stop() == 0
+    live_s, status = engine.run(scenario)
     print(f"new signing key to first delivery: {live_s * 1e3:.0f} ms")
     assert status["generation"] == 2 and status["reloads"]["succeeded"] == 1

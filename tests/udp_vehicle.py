@@ -1,4 +1,5 @@
-"""A pymavlink telemetry sender over UDP, for the udpin handover test and its benchmark."""
+"""A pymavlink telemetry sender over UDP and the routes that carry its telemetry to AMQP, for
+the udpin handover and key-file tests and the handover benchmark."""
 
 from __future__ import annotations
 
@@ -40,3 +41,22 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
+
+
+def telemetry_routes(amqp_url: str, outbox: str, port: int, host: str = "127.0.0.1", heartbeat: float = 1,
+                     key_file: str | None = None) -> str:
+    """A route file: GLOBAL_POSITION_INT from a ``udpin`` connection (signed with ``key_file``
+    if given) to the exchange ``outbox``, key ``telemetry``; ``{seq: time_boot_ms}``. A route
+    ``other`` on another connection can be added by the caller."""
+    signing = f", signing: {{key_file: \"{key_file}\"}}" if key_file else ""
+    return f"""
+connections:
+  gcs: {{amqp: "{amqp_url}"}}
+  radio: {{mavlink: "udpin:{host}:{port}", heartbeat: {heartbeat}{signing}}}
+routes:
+  - name: telemetry
+    source: {{mavlink: {{connection: radio, message: GLOBAL_POSITION_INT}}}}
+    mapping: "{{seq: time_boot_ms}}"
+    schema: raw_json
+    sink: {{amqp: {{connection: gcs, exchange: {outbox}, routing_key: telemetry}}}}
+"""
