@@ -25,6 +25,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
 
+from engine.options import OptionError, dotted, option, parse
+
 
 class EndpointError(Exception):
     """A protocol library failed; the message names the connection or endpoint.
@@ -233,11 +235,53 @@ CheckResult = Iterable[tuple[str | None, str]]
 """``(option key or None, message)`` pairs; the route loader attaches file and line."""
 
 
+@dataclass(frozen=True, kw_only=True)
+class EndpointOptions:
+    """What every source and sink option class has (engine/options.py declares the rest)."""
+
+    connection: str | None = option(None, description="name of a connection from any file of the directory")
+
+
+O = TypeVar("O")
+
+
+def typed(cls: type[O], value: Any, where: str) -> O:
+    """``value`` as the option class ``cls``: the typed value the loader parsed, or a mapping
+    (a caller that skipped the loader) parsed now; EndpointError names ``where``."""
+    if isinstance(value, cls):
+        return value
+    try:
+        return parse(cls, value)
+    except OptionError as exc:
+        raise EndpointError(f"{where}: {exc}") from None
+
+
+def typed_or_problem(cls: type[O], value: Any) -> tuple[O | None, list[tuple[str | None, str]]]:
+    """For the static checks: the typed value, or the problems that stop the parse, each
+    with the option it belongs to (``qos.depth`` for a nested one)."""
+    if isinstance(value, cls):
+        return value, []
+    try:
+        return parse(cls, value), []
+    except OptionError as exc:
+        return None, [(dotted(path) if path else None, f"{dotted(path)}: {message}" if not message.startswith("unknown key") else message)
+                      for path, message in exc.problems]
+
+
 class Transport(ABC):
     """What the engine knows about a protocol before connecting: defaults and static checks."""
 
     name: ClassVar[str]
     default_settings: ClassVar[Mapping[str, Any]]
+    connection_options: ClassVar[type]
+    """The option class of ``connections.<name>.<protocol>`` (engine/options.py)."""
+    source_options: ClassVar[type[EndpointOptions]]
+    sink_options: ClassVar[type[EndpointOptions]]
+    connection_shorthand: ClassVar[str | None] = None
+    """The connection option a plain string stands for (``amqp: amqp://host`` is the url)."""
+    options_beside: ClassVar[bool] = False
+    """True when the protocol key holds only the shorthand and the other connection options
+    sit beside it (``mavlink: udpin:...`` with ``baud:`` and ``signing:`` next to it)."""
     accepts_secrets: ClassVar[bool] = False
     """True when the connection settings may hold engine.redaction.Secret values, which the
     endpoint reveals only where it connects; otherwise the loader hands it plain values."""
