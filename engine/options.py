@@ -78,7 +78,8 @@ def option(
     ``show_default=False`` keeps a default out of the schema (where it depends on context, as
     a ROS 2 node name does). ``secret``: a :class:`Secret` passes as a string. ``internal``:
     set by the engine, never by a route file (not parsed, not in the schema). ``schema``:
-    extra JSON Schema keywords merged as they are."""
+    JSON Schema keywords for the schema only, merged as they are: bounds a check reports in
+    its own words (the parser does not read them; the loader validates with the schema)."""
     metadata = {
         "description": description, "minimum": minimum, "maximum": maximum,
         "exclusiveMinimum": exclusive_minimum, "pattern": pattern, "minItems": min_items,
@@ -88,6 +89,13 @@ def option(
     if isinstance(default, (list, dict, set)):
         raise TypeError("option defaults must be immutable (use a tuple)")
     return dataclasses.field(default=default, metadata=metadata)
+
+
+def evolve(value: T, **changes: Any) -> T:
+    """``dataclasses.replace`` that keeps what :func:`given` says (the keys written)."""
+    out = dataclasses.replace(value, **changes)  # type: ignore[type-var]
+    object.__setattr__(out, _GIVEN, given(value))
+    return out
 
 
 def given(value: Any) -> frozenset[str]:
@@ -245,6 +253,12 @@ def schema(cls: type) -> dict[str, Any]:
     return out
 
 
+def property_schema(cls: type, name: str) -> dict[str, Any]:
+    """The schema of one field of ``cls``."""
+    f = next(f for f in fields_of(cls) if f.name == name)
+    return field_schema(_hints(cls)[name], f)
+
+
 def field_schema(hint: Any, f: dataclasses.Field[Any]) -> dict[str, Any]:
     """One property's schema: its type, bounds, default (unless None or hidden), description."""
     meta = f.metadata
@@ -259,7 +273,10 @@ def field_schema(hint: Any, f: dataclasses.Field[Any]) -> dict[str, Any]:
         out["default"] = list(f.default) if isinstance(f.default, tuple) else f.default
     if meta.get("description"):
         out["description"] = meta["description"]
-    out.update(meta.get("schema") or {})
+    extra = meta.get("schema") or {}
+    if "enum" in extra or "const" in extra:
+        out.pop("type", None)  # the values say the type
+    out.update(extra)
     return out
 
 

@@ -195,18 +195,20 @@ class Connection(ABC):
     """True where :meth:`dead_letter` stores messages durably (a broker), so the engine can
     use this connection as its dead-letter destination."""
 
-    def __init__(self, name: str, settings: Mapping[str, Any]) -> None:
+    def __init__(self, name: str, settings: Any) -> None:
         self.name = name
         self.settings = settings
+        """The transport's typed connection options."""
 
     @abstractmethod
     async def open(self) -> None: ...
 
     @abstractmethod
-    def source(self, route: str, options: Mapping[str, Any]) -> Source: ...
+    def source(self, route: str, options: Any) -> Source:
+        """A source from the transport's typed source options (a mapping is parsed first)."""
 
     @abstractmethod
-    def sink(self, route: str, options: Mapping[str, Any]) -> Sink: ...
+    def sink(self, route: str, options: Any) -> Sink: ...
 
     @abstractmethod
     async def close(self) -> None: ...
@@ -286,39 +288,41 @@ class Transport(ABC):
     """True when the connection settings may hold engine.redaction.Secret values, which the
     endpoint reveals only where it connects; otherwise the loader hands it plain values."""
 
-    def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
+    def check_connection(self, settings: Any) -> CheckResult:
+        """Static checks of the typed connection options (a mapping is parsed first)."""
         return ()
 
-    def check_source(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
+    def check_source(self, options: Any, mapping: str | None) -> CheckResult:
         return ()
 
-    def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
+    def check_sink(self, options: Any, mapping: str | None) -> CheckResult:
         return ()
 
-    def exclusive_resource(self, settings: Mapping[str, Any]) -> str | None:
+    def exclusive_resource(self, settings: Any) -> str | None:
         """The operating-system resource only one open connection can hold (a listening port,
         a serial device: two readers would split the bytes), as a key such as ``udp:14550``,
         or None. A reload that changes such a connection closes the old one before opening
         the new (break-before-make) instead of the usual make-before-break."""
         return None
 
-    def key_files(self, settings: Mapping[str, Any]) -> Iterable[str]:
+    def key_files(self, settings: Any) -> Iterable[str]:
         """Files whose contents the connection reads when it opens (signing keys): a reload
         reopens the connection when their contents change."""
         return ()
 
     async def source_retired(
-        self, connection: Connection, route: str, options: Mapping[str, Any],
-        remaining: Iterable[tuple[str, Mapping[str, Any]]],
+        self, connection: Connection, route: str, options: Any,
+        remaining: Iterable[tuple[str, Any]],
     ) -> None:
         """The source of ``route`` stopped for good (route removed, or source replaced):
         undo on ``connection`` what only it needed (AMQP: bindings, an auto-named queue).
         ``remaining`` are the (route, options) of the sources configured on that connection now."""
 
-    def competing_consumers(self, route: str, options: Mapping[str, Any]) -> str | None:
+    def competing_consumers(self, route: str, options: Any) -> str | None:
         """For a source whose consumers compete for messages (an AMQP queue), the name of what
         it consumes; ``check`` warns when two routes name the same one."""
         return None
 
     @abstractmethod
-    def connect(self, name: str, settings: Mapping[str, Any]) -> Connection: ...
+    def connect(self, name: str, settings: Any) -> Connection:
+        """A connection from the typed connection options (or a mapping, parsed here)."""
