@@ -19,12 +19,12 @@ from engine.options import OptionError, parse
 from engine.redaction import json_default
 
 
-def connection_fingerprint(protocol: str, settings: Mapping[str, Any], options: Any) -> str:
-    """Hash of the protocol, the settings as written and the contents of the key files the
-    typed ``options`` name; a file that cannot be read hashes as missing (the endpoint's own
-    check reports it)."""
+def connection_fingerprint(protocol: str, settings: Mapping[str, Any], options: Any = None) -> str:
+    """Hash of the protocol, the settings as written and the contents of the key files they
+    name (read from the typed ``options`` when given); a file that cannot be read hashes as
+    missing (the endpoint's own check reports it)."""
     digest = hashlib.sha256(json.dumps([protocol, settings], sort_keys=True, default=json_default).encode())
-    for name in sorted(_key_files(protocol, options)):
+    for name in sorted(_key_files(protocol, settings if options is None else options)):
         digest.update(b"\0" + name.encode() + b"\0")
         try:
             digest.update(hashlib.sha256(Path(name).expanduser().read_bytes()).digest())

@@ -12,7 +12,7 @@ import jsonschema
 import pytest
 
 from engine import endpoints
-from engine.endpoints.amqp import AmqpConnectionOptions, AmqpSourceOptions
+from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSourceOptions
 from engine.options import OptionError, evolve, given, option, parse, schema
 from engine.redaction import Secret
 from engine.route_schema import REGENERATE, SCHEMA_PATH, render, route_file_schema

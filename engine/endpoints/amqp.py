@@ -21,8 +21,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from dataclasses import dataclass
-from typing import Any, Iterable, Literal, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 from urllib.parse import urlsplit
 
 import aio_pika
@@ -37,7 +36,6 @@ from engine.endpoints.base import (
     Connection,
     Deliver,
     EndpointError,
-    EndpointOptions,
     Inbound,
     Inbox,
     MessageRejected,
@@ -49,8 +47,9 @@ from engine.endpoints.base import (
     typed_or_problem,
 )
 from engine.endpoints import amqp_cluster
+from engine.endpoints.amqp_options import RECONNECT_INTERVAL, AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template
-from engine.options import given, option
+from engine.options import given
 from engine.redaction import redact_urls
 from engine.schemas import SchemaError, canonical_bytes
 
@@ -69,56 +68,9 @@ def redact(url: Any) -> str:
     return parts._replace(netloc=netloc).geturl()
 
 
-RECONNECT_INTERVAL = 1.0
-"""Seconds between aio-pika's reconnection attempts after a lost connection (its default, 5 s,
-is most of the time from a broker's restart to the first message delivered after it)."""
-
-
 CONNECT_TIMEOUT = 10.0
 """Seconds one attempt to open the connection may take (an unreachable host would otherwise
 hold the engine's start for the TCP timeout, minutes)."""
-
-
-ExchangeType = Literal["topic", "direct", "fanout", "headers"]
-QueueType = Literal["classic", "quorum"]
-
-
-@dataclass(frozen=True, kw_only=True)
-class AmqpConnectionOptions:
-    """``connections.<name>.amqp``: one broker (``url``, also the string shorthand) or a cluster."""
-
-    url: str | None = option(None, secret=True)
-    publisher_confirms: bool = option(True)
-    heartbeat: int = option(30, minimum=0, show_default=False)
-    reconnect_interval: float = option(RECONNECT_INTERVAL, exclusive_minimum=0,
-                                       description="seconds between reconnection attempts after the connection is lost")
-    urls: tuple[str, ...] | None = option(None, min_items=1, secret=True,
-                                          description="the nodes of a RabbitMQ cluster: connect to one, fail over to the next on loss")
-    queue_type: QueueType | None = option(None, description="type of the queues this connection's routes (and its dead letters) declare unless a source says otherwise")
-
-
-@dataclass(frozen=True, kw_only=True)
-class AmqpSourceOptions(EndpointOptions):
-    exchange: str | None = option(None, description="exchange name ('' is the default exchange)")
-    exchange_type: ExchangeType = option("topic")
-    durable: bool = option(True)
-    queue: str | None = option(None, description="queue to consume; declared durable; default rabbitros.<route>")
-    binding_key: str = option("#", show_default=False, description="binds the queue to the exchange; default '#'")
-    prefetch: int = option(256, minimum=1, maximum=65535)
-    queue_arguments: dict[str, Any] | None = option(None)
-    queue_type: QueueType | None = option(None, description="quorum: replicated by Raft over the cluster; default: the connection's queue_type")
-    ordered: bool = option(False, internal=True)
-    """Set by the loader from the route's ``ordered: true`` (single active consumer)."""
-
-
-@dataclass(frozen=True, kw_only=True)
-class AmqpSinkOptions(EndpointOptions):
-    exchange: str = option("", show_default=False, description="exchange name ('' is the default exchange)")
-    exchange_type: ExchangeType = option("topic")
-    durable: bool = option(True)
-    routing_key: str = option("", show_default=False, description="may interpolate canonical fields: canonical.weeds.{agent_id}")
-    content_type: str = option("application/json")
-    persistent: bool = option(True)
 
 
 class AmqpConnection(Connection):
@@ -267,7 +219,7 @@ class AmqpConnection(Connection):
         """The durable exchange and queue ``rabbitros.dead-letter`` (bounded by ``x-max-length``),
         so dead letters are kept even when nobody listens yet."""
         arguments = amqp_cluster.queue_arguments(
-            {"queue_arguments": {"x-max-length": max_length} if max_length else {}}, self.queue_type
+            AmqpSourceOptions(queue_arguments={"x-max-length": max_length} if max_length else {}), self.queue_type
         )
         try:
             await self.exchange(DEAD_LETTER_EXCHANGE)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from typing import TYPE_CHECKING, Any, Iterator, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 from urllib.parse import urlsplit
 
 import aio_pika
@@ -24,9 +24,7 @@ from yarl import URL
 
 from engine.endpoints.base import EndpointError
 from engine.redaction import reveal
-
-if TYPE_CHECKING:
-    from engine.endpoints.amqp import AmqpConnectionOptions, AmqpSourceOptions
+from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSourceOptions
 
 log = logging.getLogger("engine.amqp")
 
@@ -207,7 +205,7 @@ class AmqpLease:
     async def start(self) -> None:
         raw = self.connection.channel_factory()
         raw.close_callbacks.add(self._connection_lost)
-        arguments = queue_arguments({"queue_arguments": {"x-max-length": 16, "x-message-ttl": 10_000}},
+        arguments = queue_arguments(AmqpSourceOptions(queue_arguments={"x-max-length": 16, "x-message-ttl": 10_000}),
                                     self._queue_type, single_active=True)
         try:
             self._channel = await raw.channel(publisher_confirms=False)

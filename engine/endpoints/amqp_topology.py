@@ -15,15 +15,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Iterable
+from typing import Any, Iterable
 
 import aiormq.exceptions
 from aio_pika.exceptions import AMQPError
 
 from engine.endpoints.base import Connection
-
-if TYPE_CHECKING:
-    from engine.endpoints.amqp import AmqpSourceOptions
+from engine.endpoints.amqp_options import AmqpSourceOptions
 
 log = logging.getLogger("engine.amqp")
 _ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError)

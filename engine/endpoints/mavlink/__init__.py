@@ -55,7 +55,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from typing import Any, ClassVar
 
-from engine.endpoints.base import CheckResult, Transport
+from engine.endpoints.base import CheckResult, Transport, typed_or_problem
 from engine.endpoints.mavlink.checks import check_sink_options, check_source_options
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, field_specs, message_fields, mavlink2
 from engine.endpoints.mavlink.connection import MavlinkConnection
@@ -83,11 +83,13 @@ class MavlinkTransport(Transport):
     def check_sink(self, options: MavlinkSinkOptions | Mapping[str, Any], mapping: str | None) -> CheckResult:
         return check_sink_options(options, mapping)
 
-    def exclusive_resource(self, settings: MavlinkConnectionOptions) -> str | None:
-        return _settings.exclusive_resource(settings)
+    def exclusive_resource(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> str | None:
+        options, _ = typed_or_problem(MavlinkConnectionOptions, settings)
+        return _settings.exclusive_resource(options) if options is not None else None
 
-    def key_files(self, settings: MavlinkConnectionOptions) -> Iterable[str]:
-        return _settings.key_files(settings)
+    def key_files(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> Iterable[str]:
+        options, _ = typed_or_problem(MavlinkConnectionOptions, settings)
+        return _settings.key_files(options) if options is not None else []
 
     def connect(self, name: str, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> MavlinkConnection:
         return MavlinkConnection(name, settings)
