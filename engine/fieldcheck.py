@@ -18,7 +18,7 @@ import re
 import sys
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterator
 
 import jmespath
 from jmespath import exceptions as jmespath_errors

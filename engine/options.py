@@ -52,10 +52,16 @@ class OptionError(ValueError):
     reports them all at once."""
 
     def __init__(self, path: KeyPath, message: str, problems: tuple[tuple[KeyPath, str], ...] = ()) -> None:
-        super().__init__(message if message.startswith("unknown key") else f"{dotted(path)}: {message}")
+        super().__init__(describe(path, message))
         self.path = path
         self.message = message
         self.problems = problems or ((path, message),)
+
+
+def describe(path: KeyPath, message: str) -> str:
+    """One problem as the loader shows it: ``routes[0].rate: 0 is less than ...`` (an unknown
+    key's message names its place already)."""
+    return message if message.startswith("unknown key") else f"{dotted(path)}: {message}"
 
 
 def option(
@@ -103,6 +109,11 @@ def given(value: Any) -> frozenset[str]:
     return getattr(value, _GIVEN, frozenset())
 
 
+def unknown_key(key: Any, path: KeyPath, allowed: list[str]) -> str:
+    """The message for a key the declaration does not have (the schema's wording too)."""
+    return f"unknown key {key!r} at {dotted(path)} (allowed: {', '.join(allowed)}){did_you_mean(str(key), allowed)}"
+
+
 def dotted(path: KeyPath) -> str:
     """``routes[0].source.amqp`` (the loader's way of naming a key path)."""
     out = ""
@@ -138,7 +149,7 @@ def parse(cls: type[T], data: Any, path: KeyPath = ()) -> T:
     for key in data:
         if key not in known:
             allowed = sorted(known)
-            problems.append((path + (key,), f"unknown key {key!r} at {dotted(path)} (allowed: {', '.join(allowed)}){did_you_mean(str(key), allowed)}"))
+            problems.append((path + (key,), unknown_key(key, path, allowed)))
     hints = _hints(cls)
     values: dict[str, Any] = {}
     for name, f in known.items():

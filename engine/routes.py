@@ -28,7 +28,7 @@ from engine.endpoints.base import EndpointError, Transport
 from engine.fieldcheck import mapping_field_problems, option_hint
 from engine.identity import connection_fingerprint, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
-from engine.options import OptionError, dotted, evolve, fields_of, given, option, parse
+from engine.options import OptionError, describe, dotted, evolve, fields_of, given, option, parse, unknown_key
 from engine.redaction import MASK, Secret, has_url_password, is_secret_name, json_default, redact_urls, revealed, shown
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
@@ -396,21 +396,12 @@ def _schema_problems(document: _Document, error: jsonschema.ValidationError) -> 
         allowed = sorted(error.schema.get("properties", {}))
         for key in error.instance:
             if key not in allowed:
-                yield document.problem(
-                    path + (key,), f"unknown key {key!r} at {_dotted(path)} (allowed: {', '.join(allowed)}){did_you_mean(key, allowed)}"
-                )
+                yield document.problem(path + (key,), unknown_key(key, path, allowed))
         return
     if error.context:
         error = jsonschema.exceptions.best_match(error.context)
         path = tuple(error.absolute_path)
-    yield document.problem(path, f"{_dotted(path)}: {error.message}")
-
-
-def _dotted(path: Path_) -> str:
-    out = ""
-    for part in path:
-        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
-    return out or "top level"
+    yield document.problem(path, f"{dotted(path)}: {error.message}")
 
 
 def _compile_connections(
@@ -496,7 +487,7 @@ def _connection_options(protocol: str, body: Mapping[str, Any]) -> tuple[dict[st
     try:
         options = parse(transport.connection_options, settings)
     except OptionError as exc:
-        return settings, None, [(_connection_key(transport, path), message if message.startswith("unknown key") else f"{dotted(path)}: {message}")
+        return settings, None, [(_connection_key(transport, path), describe(path, message))
                                 for path, message in exc.problems]
     try:
         return settings, options, list(transport.check_connection(options))
@@ -583,7 +574,7 @@ def _compile_routes(
             try:
                 route = parse(RouteOptions, body, where)
             except OptionError as exc:
-                problems.extend(document.problem(path, message if message.startswith("unknown key") else f"{dotted(path)}: {message}")
+                problems.extend(document.problem(path, describe(path, message))
                                 for path, message in exc.problems)
                 continue
             name = route.name
@@ -656,7 +647,7 @@ def _compile_dead_letters(
         options = parse(DeadLettersOptions, body, ("dead_letters",))
     except OptionError as exc:
         assert document is not None
-        problems.extend(document.problem(path, f"{dotted(path)}: {message}") for path, message in exc.problems)
+        problems.extend(document.problem(path, describe(path, message)) for path, message in exc.problems)
         return DeadLetterSpec()
     amqp = sorted(name for name, spec in connections.items() if spec.protocol == "amqp")
     name = options.connection
@@ -761,7 +752,7 @@ def _endpoint(
         problems.append(document.problem(where + (protocol,), f"route {route!r}: {side}: {exc}"))
         return None
     except OptionError as exc:
-        problems.extend(document.problem(path, message if message.startswith("unknown key") else f"route {route!r}: {dotted(path)}: {message}")
+        problems.extend(document.problem(path, message if message.startswith("unknown key") else f"route {route!r}: {describe(path, message)}")
                         for path, message in exc.problems)
         return None
     wanted = options.connection

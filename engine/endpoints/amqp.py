@@ -47,7 +47,7 @@ from engine.endpoints.base import (
     typed_or_problem,
 )
 from engine.endpoints import amqp_cluster
-from engine.endpoints.amqp_options import RECONNECT_INTERVAL, AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
+from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template
 from engine.options import given
 from engine.redaction import redact_urls

@@ -25,7 +25,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
 
-from engine.options import OptionError, dotted, option, parse
+from engine.options import OptionError, describe, dotted, option, parse
 
 
 class EndpointError(Exception):
@@ -266,8 +266,7 @@ def typed_or_problem(cls: type[O], value: Any) -> tuple[O | None, list[tuple[str
     try:
         return parse(cls, value), []
     except OptionError as exc:
-        return None, [(dotted(path) if path else None, f"{dotted(path)}: {message}" if not message.startswith("unknown key") else message)
-                      for path, message in exc.problems]
+        return None, [(dotted(path) if path else None, describe(path, message)) for path, message in exc.problems]
 
 
 class Transport(ABC):
