@@ -186,6 +186,11 @@ def _check_mapping_keys(node: Mapping[str, Any], cls: type, prefix: str) -> Iter
             yield from _check_mapping_keys(value, nested, f"{prefix}{key}.")
 
 
+def _topic_of(options: Ros2EndpointOptions | Mapping[str, Any]) -> Any:
+    """The topic, for error messages, before the options are known to parse."""
+    return options.topic if isinstance(options, Ros2EndpointOptions) else options.get("topic")
+
+
 def _qos(options: Ros2EndpointOptions) -> QoSProfile:
     qos = options.qos
     return QoSProfile(
@@ -437,7 +442,7 @@ class Ros2Source(Source):
     def __init__(self, connection: Ros2Connection, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> None:
         self._connection = connection
         self._route = route
-        self._topic = options.topic if isinstance(options, Ros2EndpointOptions) else options.get("topic")
+        self._topic = _topic_of(options)
         self._where = f"route {route!r}, ros2 topic {self._topic!r}"
         problems = [message for _, message in TRANSPORT.check_source(options, None)]
         if problems:
@@ -620,7 +625,7 @@ def _unused_callback(msg: Any) -> None:
 class Ros2Sink(Sink):
     def __init__(self, connection: Ros2Connection, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> None:
         self._connection = connection
-        self._template = options.topic if isinstance(options, Ros2EndpointOptions) else options.get("topic")
+        self._template = _topic_of(options)
         self._where = f"route {route!r}, ros2 topic {self._template!r}"
         problems = [message for _, message in TRANSPORT.check_sink(options, None)]
         if problems:
