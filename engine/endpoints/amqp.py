@@ -44,7 +44,6 @@ from engine.endpoints.base import (
     Source,
     Transport,
     typed,
-    typed_or_problem,
 )
 from engine.endpoints import amqp_cluster
 from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
@@ -458,36 +457,25 @@ class AmqpTransport(Transport):
     sink_options = AmqpSinkOptions
     connection_shorthand = "url"
 
-    def check_connection(self, settings: AmqpConnectionOptions | Mapping[str, Any]) -> CheckResult:
-        parsed, problems = typed_or_problem(AmqpConnectionOptions, settings)
-        yield from problems
-        if parsed is not None:
-            yield from amqp_cluster.check_urls(parsed, redact)
+    def connection_problems(self, options: AmqpConnectionOptions) -> CheckResult:
+        yield from amqp_cluster.check_urls(options, redact)
 
-    def check_source(self, options: AmqpSourceOptions | Mapping[str, Any], mapping: str | None) -> CheckResult:
-        parsed, problems = typed_or_problem(AmqpSourceOptions, options)
-        yield from problems
-        if parsed is None:
-            return
-        written = given(parsed)
+    def source_problems(self, options: AmqpSourceOptions, mapping: str | None) -> CheckResult:
+        written = given(options)
         if "queue" not in written and "exchange" not in written:
             yield None, "an amqp source needs a queue, an exchange, or both"
-        if "binding_key" in written and not parsed.exchange:
+        if "binding_key" in written and not options.exchange:
             yield "binding_key", "binding_key needs an exchange to bind to"
-        if "exchange_type" in written and not parsed.exchange:
+        if "exchange_type" in written and not options.exchange:
             yield "exchange_type", "exchange_type is not used without an exchange to declare"
-        yield from amqp_cluster.check_queue(parsed)
+        yield from amqp_cluster.check_queue(options)
 
-    def check_sink(self, options: AmqpSinkOptions | Mapping[str, Any], mapping: str | None) -> CheckResult:
-        parsed, problems = typed_or_problem(AmqpSinkOptions, options)
-        yield from problems
-        if parsed is None:
-            return
-        written = given(parsed)
+    def sink_problems(self, options: AmqpSinkOptions, mapping: str | None) -> CheckResult:
+        written = given(options)
         if "exchange" not in written and "routing_key" not in written:
             yield None, "an amqp sink needs an exchange and/or a routing_key"
         for key in ("exchange_type", "durable"):
-            if key in written and not parsed.exchange:
+            if key in written and not options.exchange:
                 yield key, f"{key} is not used: the default exchange is never declared (name an exchange)"
 
     async def source_retired(

@@ -288,13 +288,29 @@ class Transport(ABC):
     endpoint reveals only where it connects; otherwise the loader hands it plain values."""
 
     def check_connection(self, settings: Any) -> CheckResult:
-        """Static checks of the typed connection options (a mapping is parsed first)."""
-        return ()
+        """Static checks of a connection's options: those the parse finds (a mapping is parsed
+        first; the loader passes the typed value), else :meth:`connection_problems`."""
+        parsed, problems = typed_or_problem(self.connection_options, settings)
+        return problems if parsed is None else list(self.connection_problems(parsed))
 
     def check_source(self, options: Any, mapping: str | None) -> CheckResult:
-        return ()
+        parsed, problems = typed_or_problem(self.source_options, options)
+        return problems if parsed is None else list(self.source_problems(parsed, mapping))
 
     def check_sink(self, options: Any, mapping: str | None) -> CheckResult:
+        parsed, problems = typed_or_problem(self.sink_options, options)
+        return problems if parsed is None else list(self.sink_problems(parsed, mapping))
+
+    def connection_problems(self, options: Any) -> CheckResult:
+        """What the declaration cannot say about valid typed options (a reachable device...)."""
+        return ()
+
+    def source_problems(self, options: Any, mapping: str | None) -> CheckResult:
+        """What the declaration cannot say: options that contradict each other, or are not
+        used by this kind of source, a type that is not installed, the mapping's keys."""
+        return ()
+
+    def sink_problems(self, options: Any, mapping: str | None) -> CheckResult:
         return ()
 
     def exclusive_resource(self, settings: Any) -> str | None:

@@ -62,7 +62,7 @@ from rclpy.validate_node_name import validate_node_name
 from engine.endpoints import rosmsg
 from engine.endpoints.base import (
     CheckResult, Connection, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
-    Source, Transport, typed, typed_or_problem,
+    Source, Transport, typed,
 )
 from engine.options import option
 
@@ -158,16 +158,10 @@ def _check_type(name: Any) -> Iterator[tuple[str, str]]:
         yield "type", str(exc)
 
 
-def _check_endpoint(options: Ros2EndpointOptions | Mapping[str, Any], sink: bool) -> Iterator[tuple[str | None, str]]:
-    """Problems of a source's or sink's options; the typed value is the last item (None when
-    the options do not parse)."""
-    parsed, problems = typed_or_problem(Ros2EndpointOptions, options)
-    yield from problems
-    if parsed is None:
-        return
-    for message in _check_topic(parsed.topic, allow_template=sink):
+def _check_endpoint(options: Ros2EndpointOptions, sink: bool) -> Iterator[tuple[str | None, str]]:
+    for message in _check_topic(options.topic, allow_template=sink):
         yield "topic", message
-    yield from _check_type(parsed.type)
+    yield from _check_type(options.type)
 
 
 def _check_mapping_keys(node: Mapping[str, Any], cls: type, prefix: str) -> Iterator[str]:
@@ -208,12 +202,8 @@ class Ros2Transport(Transport):
     source_options = Ros2EndpointOptions
     sink_options = Ros2EndpointOptions
 
-    def check_connection(self, settings: Ros2ConnectionOptions | Mapping[str, Any]) -> CheckResult:
-        parsed, problems = typed_or_problem(Ros2ConnectionOptions, settings)
-        yield from problems
-        if parsed is None:
-            return
-        node, namespace, domain_id = parsed.node, parsed.namespace, parsed.domain_id
+    def connection_problems(self, options: Ros2ConnectionOptions) -> CheckResult:
+        node, namespace, domain_id = options.node, options.namespace, options.domain_id
         try:
             validate_node_name(node)
         except Exception as exc:
@@ -226,19 +216,15 @@ class Ros2Transport(Transport):
         if not 0 <= domain_id <= 232:
             yield "domain_id", f"domain_id must be an integer in 0..232, not {domain_id!r}"
 
-    def check_source(self, options: Ros2EndpointOptions | Mapping[str, Any], mapping: str | None) -> CheckResult:
+    def source_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
         yield from _check_endpoint(options, sink=False)
 
-    def check_sink(self, options: Ros2EndpointOptions | Mapping[str, Any], mapping: str | None) -> CheckResult:
-        problems = list(_check_endpoint(options, sink=True))
-        yield from problems
-        if problems:
-            return
-        type_name = typed(Ros2EndpointOptions, options, "ros2 sink").type
-        if not mapping or type_name == STRING_TYPE:
+    def sink_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
+        yield from _check_endpoint(options, sink=True)
+        if not mapping or options.type == STRING_TYPE:
             return
         try:
-            cls = rosmsg.resolve_type(type_name)
+            cls = rosmsg.resolve_type(options.type)
             tree = jmespath.compile(mapping).parsed
         except (rosmsg.MessageError, jmespath.exceptions.JMESPathError):
             return  # reported by the type check and by the route loader

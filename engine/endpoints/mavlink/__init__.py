@@ -56,7 +56,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any, ClassVar
 
 from engine.endpoints.base import CheckResult, Transport, typed_or_problem
-from engine.endpoints.mavlink.checks import check_sink_options, check_source_options
+from engine.endpoints.mavlink.checks import sink_problems, source_problems
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, field_specs, message_fields, mavlink2
 from engine.endpoints.mavlink.connection import MavlinkConnection
 from engine.endpoints.mavlink import settings as _settings
@@ -74,14 +74,14 @@ class MavlinkTransport(Transport):
     connection_shorthand = "url"
     options_beside = True
 
-    def check_connection(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> CheckResult:
-        return settings_problems(settings)[1]
+    def connection_problems(self, options: MavlinkConnectionOptions) -> CheckResult:
+        return settings_problems(options)[1]
 
-    def check_source(self, options: MavlinkSourceOptions | Mapping[str, Any], mapping: str | None) -> CheckResult:
-        return check_source_options(options, mapping)
+    def source_problems(self, options: MavlinkSourceOptions, mapping: str | None) -> CheckResult:
+        return source_problems(options)
 
-    def check_sink(self, options: MavlinkSinkOptions | Mapping[str, Any], mapping: str | None) -> CheckResult:
-        return check_sink_options(options, mapping)
+    def sink_problems(self, options: MavlinkSinkOptions, mapping: str | None) -> CheckResult:
+        return sink_problems(options, mapping)
 
     def exclusive_resource(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> str | None:
         options, _ = typed_or_problem(MavlinkConnectionOptions, settings)

@@ -61,14 +61,7 @@ def _unused(options: MavlinkSourceOptions, used: set[str], kind: str) -> Iterato
             yield key, f"unknown option {key!r}"
 
 
-def check_source_options(options: MavlinkSourceOptions | Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
-    parsed, problems = typed_or_problem(MavlinkSourceOptions, options)
-    if parsed is None:
-        return problems
-    return _source_problems(parsed)
-
-
-def _source_problems(options: MavlinkSourceOptions) -> list[tuple[str | None, str]]:
+def source_problems(options: MavlinkSourceOptions) -> list[tuple[str | None, str]]:
     if options.json_tunnel:
         problems = list(_common_problems(options, _TUNNEL_SOURCE, "json_tunnel source"))
         return [("message", "a json_tunnel source reads TUNNEL frames; drop 'message'") if key == "message" else (key, text)
@@ -76,14 +69,7 @@ def _source_problems(options: MavlinkSourceOptions) -> list[tuple[str | None, st
     return list(_common_problems(options, _MESSAGE_SOURCE, "message source"))
 
 
-def check_sink_options(options: MavlinkSinkOptions | Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
-    parsed, problems = typed_or_problem(MavlinkSinkOptions, options)
-    if parsed is None:
-        return problems
-    return _sink_problems(parsed, mapping)
-
-
-def _sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tuple[str | None, str]]:
+def sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tuple[str | None, str]]:
     if "mission" in given(options):
         return _mission_problems(options, mapping)
     if options.json_tunnel:
@@ -139,7 +125,7 @@ def _mapping_keys(mapping: str | None) -> list[str]:
 def source_options(route: str, options: MavlinkSourceOptions | Mapping[str, Any]) -> MavlinkSourceOptions:
     """The typed options of a source about to be built; EndpointError lists every problem."""
     parsed, problems = typed_or_problem(MavlinkSourceOptions, options)
-    raise_problems(route, "source", problems or _source_problems(parsed))  # type: ignore[arg-type]
+    raise_problems(route, "source", problems or source_problems(parsed))  # type: ignore[arg-type]
     assert parsed is not None
     return parsed
 
@@ -147,7 +133,7 @@ def source_options(route: str, options: MavlinkSourceOptions | Mapping[str, Any]
 def sink_options(route: str, options: MavlinkSinkOptions | Mapping[str, Any]) -> MavlinkSinkOptions:
     """The typed options of a sink about to be built; EndpointError lists every problem."""
     parsed, problems = typed_or_problem(MavlinkSinkOptions, options)
-    raise_problems(route, "sink", problems or _sink_problems(parsed, None))  # type: ignore[arg-type]
+    raise_problems(route, "sink", problems or sink_problems(parsed, None))  # type: ignore[arg-type]
     assert parsed is not None
     return parsed
 
