@@ -167,3 +167,11 @@ routes:
 
 def test_shipped_schema_file_is_json() -> None:
     assert json.loads(SCHEMA_PATH.read_text(encoding="utf-8"))["$schema"].endswith("2020-12/schema")
+
+
+def test_ros2_domain_defaults_to_the_environment_as_before(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A ros2 connection without domain_id joins ROS_DOMAIN_ID, as every ROS 2 program does."""
+    transport = endpoints.transport("ros2")
+    monkeypatch.setenv("ROS_DOMAIN_ID", "7")
+    assert transport.connect("ros", {"node": "n"}).domain_id == 7
+    assert transport.connect("ros", {"node": "n", "domain_id": 3}).domain_id == 3

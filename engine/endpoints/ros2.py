@@ -101,8 +101,9 @@ def _env_domain_id() -> int:
 class Ros2ConnectionOptions:
     """``connections.<name>.ros2``: the node the engine creates, in its own DDS domain."""
 
-    domain_id: int = option(0, show_default=False, schema={"minimum": 0, "maximum": 232})
-    """The bounds are checked with the node name (``check_connection``), so both are reported."""
+    domain_id: int | None = option(None, schema={"minimum": 0, "maximum": 232})
+    """None: ``ROS_DOMAIN_ID`` (else 0), as every ROS 2 program. The bounds are checked with
+    the node name (``connection_problems``), so both are reported."""
     node: str = option("rabbitros_engine", show_default=False)
     namespace: str = option("", show_default=False)
 
@@ -213,7 +214,7 @@ class Ros2Transport(Transport):
                 validate_namespace(namespace if namespace.startswith("/") else "/" + namespace)
             except Exception as exc:
                 yield "namespace", f"invalid namespace {namespace!r}: {_rcl_reason(exc)}"
-        if not 0 <= domain_id <= 232:
+        if domain_id is not None and not 0 <= domain_id <= 232:
             yield "domain_id", f"domain_id must be an integer in 0..232, not {domain_id!r}"
 
     def source_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
@@ -247,9 +248,8 @@ class Ros2Connection(Connection):
     settings: Ros2ConnectionOptions
 
     def __init__(self, name: str, settings: Ros2ConnectionOptions | Mapping[str, Any]) -> None:
-        if not isinstance(settings, Ros2ConnectionOptions):
-            settings = {**TRANSPORT.default_settings, **settings}
         super().__init__(name, typed(Ros2ConnectionOptions, settings, f"ros2 connection {name!r}"))
+        self.domain_id = self.settings.domain_id if self.settings.domain_id is not None else _env_domain_id()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._context: Context | None = None
         self._node: Node | None = None
@@ -279,7 +279,7 @@ class Ros2Connection(Connection):
         """DDS participant creation takes tens of milliseconds, so it runs off the loop."""
         context = Context()
         try:
-            rclpy.init(args=[], context=context, domain_id=self.settings.domain_id,
+            rclpy.init(args=[], context=context, domain_id=self.domain_id,
                        signal_handler_options=SignalHandlerOptions.NO)
             node = Node(
                 self.settings.node, namespace=self.settings.namespace, context=context,

@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from engine.endpoints.base import Connection, EndpointError, Sink, Source
+from engine.endpoints.base import Connection, EndpointError, Sink, Source, typed
 from engine.endpoints.mavlink.checks import sink_options, source_options
 from engine.endpoints.mavlink.codec import MESSAGES, TUNNEL, mavlink2
 from engine.endpoints.mavlink.enums import enum_name
@@ -58,7 +58,7 @@ class MavlinkConnection(Connection):
         config, problems = settings_problems(settings)
         if config is None or problems:
             raise EndpointError(f"mavlink connection {name!r}: " + "; ".join(m for _, m in problems))
-        super().__init__(name, settings)
+        super().__init__(name, typed(MavlinkConnectionOptions, settings, f"mavlink connection {name!r}"))
         self.config = config
         self.stats: dict[str, int] = dict.fromkeys(_STATS, 0)
         self.port = MavlinkPort(name, config, self._on_message, self.stats)
