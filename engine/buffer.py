@@ -44,6 +44,7 @@ from typing import Any, Awaitable, Callable, Iterator
 import orjson
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound
+from engine.options import option
 
 log = logging.getLogger("engine.buffer")
 
@@ -61,25 +62,33 @@ SendBatch = Callable[[list[Outbound]], Awaitable[list[BaseException | None]]]
 
 @dataclass(frozen=True)
 class BufferSpec:
-    """A route's ``buffer:`` option, parsed once."""
+    """A route's ``buffer:`` option, resolved (the spill directory made absolute)."""
 
     max_messages: int = DEFAULT_MAX_MESSAGES
     spill_dir: Path | None = None
     fsync_interval: float = 1.0
 
     @classmethod
-    def parse(cls, value: Any, source_protocol: str, base: Path) -> BufferSpec | None:
+    def parse(cls, value: BufferOptions | bool | None, source_protocol: str, base: Path) -> BufferSpec | None:
         """``buffer: false`` is none; absent is the default for sources that cannot have a
         message redelivered (ROS 2, MAVLink) and none for AMQP, whose broker keeps them."""
         if value is False or (value is None and source_protocol == "amqp"):
             return None
-        value = value or {}
-        spill = value.get("spill_dir")
+        value = value if isinstance(value, BufferOptions) else BufferOptions()
         return cls(
-            int(value.get("max_messages", DEFAULT_MAX_MESSAGES)),
-            (base / spill).resolve() if spill else None,
-            float(value.get("fsync_interval", 1.0)),
+            value.max_messages,
+            (base / value.spill_dir).resolve() if value.spill_dir else None,
+            float(value.fsync_interval),
         )
+
+
+@dataclass(frozen=True, kw_only=True)
+class BufferOptions:
+    """A route's ``buffer:`` as written (``buffer: false`` is none at all)."""
+
+    max_messages: int = option(DEFAULT_MAX_MESSAGES, minimum=1)
+    spill_dir: str | None = option(None, description="keep held messages on disk here (relative to the routes directory), replayed at start")
+    fsync_interval: float = option(1.0, minimum=0, description="seconds between fsyncs of the spill files (each message is written before the source is acknowledged)")
 
 
 @dataclass

@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 from engine.endpoints.base import OVERFLOW_POLICIES, Connection, EndpointError, Inbound, MessageRejected, Outbound
 from engine.logs import Throttle
+from engine.options import option
 from engine.pipeline import ConversionError
 
 if TYPE_CHECKING:
@@ -79,6 +80,18 @@ class RouteDelivery:
 
     def __post_init__(self) -> None:
         assert self.overflow in OVERFLOW_POLICIES and self.max_attempts >= 1
+
+
+@dataclass(frozen=True, kw_only=True)
+class DeadLettersOptions:
+    """``dead_letters:`` as written in a route file (resolved into :class:`DeadLetterSpec`)."""
+
+    __schema_description__ = "the engine's one dead-letter destination; default: the only AMQP connection, else a local spool"
+
+    connection: str | None = option(None, description="an AMQP connection: exchange and queue rabbitros.dead-letter, routing key = route name")
+    max_length: int = option(DEFAULT_DEAD_LETTER_MAX_LENGTH, minimum=1, description="x-max-length of the dead-letter queue (oldest dropped beyond it)")
+    spool_dir: str | None = option(None, description="directory of rotated JSON-lines files; default ~/.local/state/rabbitros-engine/dead-letters")
+    spool_max_bytes: int = option(DEFAULT_SPOOL_MAX_BYTES, minimum=4096)
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ import re
 import sys
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterator
 
 import jmespath
 from jmespath import exceptions as jmespath_errors
@@ -92,7 +92,7 @@ def _walk(node: dict[str, Any], context: FieldPath | None, found: list[FieldPath
     return None
 
 
-def mapping_field_problems(protocol: str, options: Mapping[str, Any], mapping: str | None) -> Iterator[str]:
+def mapping_field_problems(protocol: str, options: Any, mapping: str | None) -> Iterator[str]:
     """``mapping reads 'x', which T does not have; did you mean 'y'?`` for a typed source."""
     if not mapping:
         return
@@ -105,9 +105,10 @@ def mapping_field_problems(protocol: str, options: Mapping[str, Any], mapping: s
             yield problem
 
 
-def _resolver(protocol: str, options: Mapping[str, Any]) -> Any:
+def _resolver(protocol: str, options: Any) -> Any:
+    """``options``: the source's typed options (engine/options.py)."""
     if protocol == "ros2":
-        type_name = options.get("type", "std_msgs/msg/String")
+        type_name = options.type
         try:
             from engine.endpoints import rosmsg
 
@@ -117,11 +118,11 @@ def _resolver(protocol: str, options: Mapping[str, Any]) -> Any:
         if rosmsg.type_name(cls) == "std_msgs/msg/String":
             return None  # a byte source: the mapping reads the JSON inside
         return lambda path: _resolve_ros(cls, path)
-    if protocol == "mavlink" and not options.get("json_tunnel") and options.get("message"):
-        fields = mavlink_fields(str(options["message"]))
+    if protocol == "mavlink" and not options.json_tunnel and options.message:
+        fields = mavlink_fields(options.message)
         if fields is None:
             return None
-        return lambda path: _resolve_flat(f"MAVLink {options['message']}", fields, path)
+        return lambda path: _resolve_flat(f"MAVLink {options.message}", fields, path)
     return None
 
 
@@ -218,9 +219,9 @@ def installed_ros_types() -> tuple[str, ...]:
     return tuple(sorted(names))
 
 
-def option_hint(protocol: str, key: str | None, options: Mapping[str, Any]) -> str:
+def option_hint(protocol: str, key: str | None, options: Any) -> str:
     """A did-you-mean for a misspelt ``type`` (ROS 2) or ``message`` (MAVLink) option."""
-    value = options.get(key) if key else None
+    value = getattr(options, key, None) if key else None
     if not isinstance(value, str):
         return ""
     if protocol == "ros2" and key == "type":

@@ -15,14 +15,16 @@ from typing import Any, Iterable, Mapping
 
 from engine import endpoints
 from engine.endpoints.base import Transport
+from engine.options import OptionError, parse
 from engine.redaction import json_default
 
 
-def connection_fingerprint(protocol: str, settings: Mapping[str, Any]) -> str:
-    """Hash of the protocol, the settings and the contents of the key files they name; a
-    file that cannot be read hashes as missing (the endpoint's own check reports it)."""
+def connection_fingerprint(protocol: str, settings: Mapping[str, Any], options: Any = None) -> str:
+    """Hash of the protocol, the settings as written and the contents of the key files they
+    name (read from the typed ``options`` when given); a file that cannot be read hashes as
+    missing (the endpoint's own check reports it)."""
     digest = hashlib.sha256(json.dumps([protocol, settings], sort_keys=True, default=json_default).encode())
-    for name in sorted(connection_key_files(protocol, settings)):
+    for name in sorted(connection_key_files(protocol, settings if options is None else options)):
         digest.update(b"\0" + name.encode() + b"\0")
         try:
             digest.update(hashlib.sha256(Path(name).expanduser().read_bytes()).digest())
@@ -31,15 +33,29 @@ def connection_fingerprint(protocol: str, settings: Mapping[str, Any]) -> str:
     return digest.hexdigest()[:16]
 
 
-def exclusive_resource(protocol: str, settings: Mapping[str, Any]) -> str | None:
+def exclusive_resource(protocol: str, options: Any) -> str | None:
+    """The resource the connection with these options (typed, or a mapping) holds; None
+    when there is none or they are invalid (``check`` reports those)."""
     transport = _transport(protocol)
-    return transport.exclusive_resource(settings) if transport is not None else None
+    options = _typed(transport, options)
+    return transport.exclusive_resource(options) if transport is not None and options is not None else None
 
 
-def connection_key_files(protocol: str, settings: Mapping[str, Any]) -> Iterable[str]:
-    """The files the connection reads when it opens (signing keys), as its transport names them."""
+def connection_key_files(protocol: str, options: Any) -> Iterable[str]:
+    """The files the connection with these options (typed, or a mapping) reads when it opens
+    (signing keys), as its transport names them."""
     transport = _transport(protocol)
-    return list(transport.key_files(settings)) if transport is not None else ()
+    options = _typed(transport, options)
+    return list(transport.key_files(options)) if transport is not None and options is not None else ()
+
+
+def _typed(transport: Transport | None, options: Any) -> Any:
+    if transport is None or not isinstance(options, Mapping):
+        return options
+    try:
+        return parse(transport.connection_options, options)
+    except OptionError:
+        return None
 
 
 def _transport(protocol: str) -> Transport | None:

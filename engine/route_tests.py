@@ -207,7 +207,7 @@ def source_message(spec: RouteSpec, body: Mapping[str, Any]) -> Inbound:
 def _typed_source(spec: RouteSpec) -> Callable[[Any], dict[str, Any]] | None:
     options = spec.source.options
     if spec.source.protocol == "ros2":
-        type_name = options.get("type", "std_msgs/msg/String")
+        type_name = options.type
         from engine.endpoints import rosmsg
 
         cls = rosmsg.resolve_type(type_name)
@@ -220,12 +220,12 @@ def _typed_source(spec: RouteSpec) -> Callable[[Any], dict[str, Any]] | None:
             return rosmsg.to_dict(rosmsg.from_dict(cls, value))
 
         return ros
-    if spec.source.protocol == "mavlink" and not options.get("json_tunnel") and options.get("message"):
+    if spec.source.protocol == "mavlink" and not options.json_tunnel and options.message:
         from engine.endpoints.mavlink import MESSAGES, build_message, message_fields
         from engine.endpoints.mavlink.codec import ADDED_FIELDS
 
-        mav_cls = MESSAGES[options["message"]]
-        added = ADDED_FIELDS.get(options["message"], ())
+        mav_cls = MESSAGES[options.message]
+        added = ADDED_FIELDS.get(options.message, ())
 
         def mavlink(value: Any) -> dict[str, Any]:
             """The message as the source gives it: its own fields, plus those the source adds."""
@@ -243,7 +243,7 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
     typed sink the message built from the fields; a failure is a ``sink`` error."""
     protocol, options = spec.sink.protocol, spec.sink.options
     if protocol == "amqp":
-        render = compile_template(options.get("routing_key", ""))
+        render = compile_template(options.routing_key)
 
         def amqp(outbound: Outbound) -> str | None:
             try:
@@ -256,9 +256,9 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
         from engine.endpoints import rosmsg
         from engine.endpoints.ros2 import STRING_TYPE, _topic_template
 
-        topic = options.get("topic", "")
+        topic = options.topic
         resolve = _topic_template(topic)
-        cls = rosmsg.resolve_type(options.get("type", STRING_TYPE))
+        cls = rosmsg.resolve_type(options.type)
         typed = rosmsg.type_name(cls) != STRING_TYPE
 
         def ros(outbound: Outbound) -> str | None:
@@ -271,7 +271,7 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
             return rendered
 
         return ros
-    if protocol == "mavlink" and options.get("mission") == "upload":
+    if protocol == "mavlink" and options.mission == "upload":
         from engine.endpoints.mavlink.mission import mission_items
         from engine.endpoints.mavlink.transaction import TransactionOptions
 
@@ -285,12 +285,13 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
             return None
 
         return mission
-    if protocol == "mavlink" and not options.get("json_tunnel"):
+    if protocol == "mavlink" and not options.json_tunnel:
         from engine.endpoints.mavlink import MESSAGES, build_message
         from engine.endpoints.mavlink.enums import enum_or_number
+        from engine.endpoints.mavlink.messages import message_defaults
 
-        mav_cls = MESSAGES[options["message"]]
-        defaults = {k: options[k] for k in ("target_system", "target_component") if k in options}
+        mav_cls = MESSAGES[options.message]
+        defaults = message_defaults(options)
 
         def mavlink(outbound: Outbound) -> str | None:
             fields = outbound.fields

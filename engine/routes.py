@@ -16,30 +16,81 @@ import re
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any, Iterator, Literal, Mapping
 
 import jsonschema
 import yaml
 
 from engine import endpoints
-from engine.delivery import DEFAULT_MAX_MESSAGE_BYTES, DeadLetterSpec, RouteDelivery
-from engine.buffer import BufferSpec
-from engine.endpoints.base import EndpointError
+from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, DeadLetterSpec, DeadLettersOptions, RouteDelivery
+from engine.buffer import BufferOptions, BufferSpec
+from engine.endpoints.base import EndpointError, Transport
 from engine.fieldcheck import mapping_field_problems, option_hint
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
+from engine.options import OptionError, describe, dotted, evolve, fields_of, given, option, parse, unknown_key
 from engine.redaction import MASK, Secret, has_url_password, is_secret_name, json_default, redact_urls, revealed, shown
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
+from engine.throttle import ThrottleOptions
 
 ROUTE_FILE_SCHEMA: dict[str, Any] = json.loads(
     resources.files("engine").joinpath("route_file.schema.json").read_text(encoding="utf-8")
 )
 _ROUTE_FILE_VALIDATOR = jsonschema.Draft202012Validator(ROUTE_FILE_SCHEMA)
 _ENV_REFERENCE = re.compile(r"\$\$|\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
-_MAVLINK_ONLY = ("baud", "source_system", "source_component", "signing", "rate", "heartbeat", "mav_type", "tunnel")
+NAME_PATTERN = "^[A-Za-z0-9_][A-Za-z0-9_.-]*$"
+"""Connection, route and lease names: safe in queue names, file names and metrics labels."""
 
 Path_ = tuple[str | int, ...]
+
+
+# The route file's own keys, declared once (engine/options.py); engine/route_schema.py builds
+# the route-file JSON Schema from these and from each protocol's option classes.
+
+@dataclass(frozen=True, kw_only=True)
+class ConnectionLimits:
+    """Keys of ``connections.<name>`` beside the protocol key that every protocol has."""
+
+    max_message_bytes: int = option(DEFAULT_MAX_MESSAGE_BYTES, minimum=1,
+                                    description="larger messages in or out of this connection are dead-lettered unparsed")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LeaseOptions:
+    __schema_description__ = "active_standby: the lease queue's connection and timing"
+
+    connection: str | None = option(None, description="AMQP connection holding the lease; default: the only one")
+    heartbeat: float = option(1.0, exclusive_minimum=0, description="seconds between the active instance's heartbeats")
+    name: str | None = option(None, pattern=NAME_PATTERN,
+                              description="lease shared by routes that must fail over together (one robot's topics); default: the route name")
+
+
+ENDPOINT_DESCRIPTION = "exactly one of amqp / ros2 / mavlink"
+
+
+@dataclass(frozen=True, kw_only=True)
+class RouteOptions:
+    """One item of ``routes:``. ``source`` and ``sink`` hold one protocol key each, whose
+    options the protocol's transport declares (``Transport.source_options``/``sink_options``)."""
+
+    name: str = option(pattern=NAME_PATTERN, description="unique across the directory")
+    description: str | None = option(None)
+    max_attempts: int = option(DEFAULT_MAX_ATTEMPTS, minimum=1,
+                               description="deliveries tried on transient sink failures (across redeliveries) before dead-lettering")
+    overflow: Literal["block", "drop_oldest", "drop_newest"] = option("block", description="when a ROS 2 source's in-memory queue is full")
+    buffer: Literal[False] | BufferOptions | None = option(
+        None, description="messages held while the sink is down (default for ROS 2 and MAVLink sources: in memory, 10000); false: none")
+    source: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
+    mapping: str | None = option(None, nullable=True, description="JMESPath expression; absent or null means identity")
+    schema: str | None = option(None, description="canonical schema: name or name.vN, from schemas/")
+    throttle: ThrottleOptions | None = option(None)
+    sink: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
+    ordered: bool = option(False, description="AMQP source: single active consumer, so one engine instance at a time carries the route, in order")
+    instances: tuple[str, ...] | None = option(None, min_items=1,
+                                               description="run the route only on these engine instances (--instance NAME, default the host name)")
+    active_standby: bool = option(False, description="every instance runs the source, only the holder of the broker lease forwards")
+    lease: LeaseOptions | None = option(None)
 
 
 @dataclass(frozen=True, order=True)
@@ -65,6 +116,7 @@ class ConnectionSpec:
     name: str
     protocol: str
     settings: Mapping[str, Any]
+    """As written (the fingerprint's input); ``options`` is the typed value endpoints use."""
     file: str = field(default="", compare=False)
     line: int = field(default=0, compare=False)
     fingerprint: str = ""
@@ -73,6 +125,8 @@ class ConnectionSpec:
     """The resource only one open connection can hold (``udp:14550``), if any."""
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     """Messages larger than this, in or out of this connection, are dead-lettered unparsed."""
+    options: Any = field(default=None, compare=False)
+    """The transport's ``connection_options`` instance, parsed once at load (None if invalid)."""
     key_files: tuple[Path, ...] = ()
     """Absolute paths of the files it reads when it opens (signing keys): watched for edits."""
 
@@ -81,7 +135,8 @@ class ConnectionSpec:
 class EndpointSpec:
     protocol: str
     connection: str
-    options: Mapping[str, Any]
+    options: Any
+    """The transport's ``source_options``/``sink_options`` instance, parsed once at load."""
 
 
 @dataclass(frozen=True)
@@ -95,8 +150,8 @@ class RouteSpec:
     fingerprint: str
     file: str = field(default="", compare=False)
     line: int = field(default=0, compare=False)
-    throttle: Mapping[str, Any] | None = None
-    """``{max_rate, per}``: at most max_rate messages/s per value of the canonical field ``per``."""
+    throttle: ThrottleOptions | None = None
+    """At most max_rate messages/s per value of the canonical field ``per``."""
     delivery: RouteDelivery = field(default=RouteDelivery(), compare=False)
     """max_attempts, overflow and the size limits (the fingerprint covers them)."""
     buffer: BufferSpec | None = field(default=None, compare=False)
@@ -348,21 +403,12 @@ def _schema_problems(document: _Document, error: jsonschema.ValidationError) -> 
         allowed = sorted(error.schema.get("properties", {}))
         for key in error.instance:
             if key not in allowed:
-                yield document.problem(
-                    path + (key,), f"unknown key {key!r} at {_dotted(path)} (allowed: {', '.join(allowed)}){did_you_mean(key, allowed)}"
-                )
+                yield document.problem(path + (key,), unknown_key(key, path, allowed))
         return
     if error.context:
         error = jsonschema.exceptions.best_match(error.context)
         path = tuple(error.absolute_path)
-    yield document.problem(path, f"{_dotted(path)}: {error.message}")
-
-
-def _dotted(path: Path_) -> str:
-    out = ""
-    for part in path:
-        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
-    return out or "top level"
+    yield document.problem(path, f"{dotted(path)}: {error.message}")
 
 
 def _compile_connections(
@@ -381,22 +427,17 @@ def _compile_connections(
                 first = connections[name]
                 problems.append(document.problem(where, f"connection {name!r} is already defined at {first.file}:{first.line}"))
                 continue
-            extra = [key for key in _MAVLINK_ONLY if key in body]
-            if protocol != "mavlink" and extra:
-                problems.append(document.problem(where + (extra[0],), f"{extra[0]!r} applies only to mavlink connections"))
+            misplaced = _misplaced(protocol, body)
+            if misplaced is not None:
+                problems.append(document.problem(where + (misplaced[0],), f"{misplaced[0]!r} applies only to {misplaced[1]} connections"))
                 continue
-            settings = _connection_settings(protocol, body)
-            try:
-                if not endpoints.transport(protocol).accepts_secrets:
-                    settings = revealed(settings)
-                checks = list(endpoints.transport(protocol).check_connection(settings))
-            except EndpointError as exc:
-                checks = [(None, str(exc))]
+            settings, options, checks = _connection_options(protocol, body)
             for key, message in checks:
-                problems.append(document.problem(where + ((protocol,) if key is None else (protocol, key)), f"connection {name!r}: {message}"))
+                key_path = key if isinstance(key, tuple) else (protocol,) if key is None else (protocol, key)
+                problems.append(document.problem(where + key_path, f"connection {name!r}: {message}"))
             connection = _identified(ConnectionSpec(
                 name, protocol, settings, document.file, document.line(where),
-                max_message_bytes=body.get("max_message_bytes", DEFAULT_MAX_MESSAGE_BYTES),
+                max_message_bytes=body.get("max_message_bytes", ConnectionLimits.max_message_bytes), options=options,
             ))
             holder = next((c for c in connections.values() if connection.exclusive and c.exclusive == connection.exclusive), None)
             if holder is not None:
@@ -405,35 +446,103 @@ def _compile_connections(
     return connections
 
 
-def _connection_settings(protocol: str, body: Mapping[str, Any]) -> dict[str, Any]:
-    value = body[protocol]
-    if protocol == "ros2":
-        return dict(value or {})
-    if isinstance(value, (str, Secret)):
-        settings: dict[str, Any] = {"url": value}
+def _beside_keys(transport: Transport) -> frozenset[str]:
+    """Connection options written beside the protocol key (``baud:`` next to ``mavlink:``)."""
+    if not transport.options_beside:
+        return frozenset()
+    return frozenset(f.name for f in fields_of(transport.connection_options)) - {transport.connection_shorthand}
+
+
+_LIMIT_KEYS = frozenset(f.name for f in fields_of(ConnectionLimits))
+
+
+def _beside_owners() -> dict[str, str]:
+    owners: dict[str, str] = {}
+    for protocol in endpoints.PROTOCOLS:
+        try:
+            owners.update(dict.fromkeys(_beside_keys(endpoints.transport(protocol)), protocol))
+        except EndpointError:
+            continue
+    return owners
+
+
+def _misplaced(protocol: str, body: Mapping[str, Any]) -> tuple[str, str] | None:
+    """``(key, protocol it belongs to)`` for a connection option written beside the wrong
+    protocol key (``baud:`` beside ``amqp:``)."""
+    extra = [key for key in body if key not in endpoints.PROTOCOLS and key not in _LIMIT_KEYS]
+    if not extra:
+        return None
+    try:
+        own = _beside_keys(endpoints.transport(protocol))
+    except EndpointError:  # reported with the connection's options
+        return None
+    wrong = [key for key in extra if key not in own]
+    return (wrong[0], _beside_owners().get(wrong[0], "other")) if wrong else None
+
+
+def _connection_options(protocol: str, body: Mapping[str, Any]) -> tuple[dict[str, Any], Any, list[tuple[Any, str]]]:
+    """``(settings as written, typed options or None, problems)`` of one connection; each
+    problem is ``(option key or key path or None, message)``."""
+    try:
+        transport = endpoints.transport(protocol)
+    except EndpointError as exc:
+        value = body[protocol]
+        return ({"url": value} if isinstance(value, (str, Secret)) else dict(value or {})), None, [(None, str(exc))]
+    settings = _connection_settings(transport, body)
+    if not transport.accepts_secrets:
+        settings = revealed(settings)
+    try:
+        options = parse(transport.connection_options, settings)
+    except OptionError as exc:
+        return settings, None, [(_connection_key(transport, path), describe(path, message))
+                                for path, message in exc.problems]
+    try:
+        return settings, options, list(transport.check_connection(options))
+    except EndpointError as exc:
+        return settings, options, [(None, str(exc))]
+
+
+def _connection_settings(transport: Transport, body: Mapping[str, Any]) -> dict[str, Any]:
+    """The connection's options as one mapping: the protocol key's value (a string stands
+    for the shorthand option, the url) and the options beside it."""
+    value = body[transport.name]
+    if isinstance(value, (str, Secret)) and transport.connection_shorthand:
+        settings: dict[str, Any] = {transport.connection_shorthand: value}
     else:
-        settings = dict(value)
-    settings.update({key: body[key] for key in _MAVLINK_ONLY if key in body})
+        settings = dict(value or {})
+    settings.update({key: body[key] for key in _beside_keys(transport) if key in body})
     return settings
 
 
+def _connection_key(transport: Transport, path: Path_) -> Path_:
+    """Where in ``connections.<name>`` an option's key path points."""
+    if transport.options_beside:
+        return (transport.name,) if path[:1] == (transport.connection_shorthand,) else path
+    return (transport.name, *path)
+
+
 def _default_connection(protocol: str) -> ConnectionSpec:
-    settings = dict(endpoints.transport(protocol).default_settings)
+    transport = endpoints.transport(protocol)
+    settings = dict(transport.default_settings)
     if protocol == "amqp":
         settings["url"] = default_amqp_url()
         cluster = os.environ.get("RABBITROS_AMQP_URLS", "").split()
         if cluster:  # a local cluster (--local-broker --cluster N): every node, replicated queues
             del settings["url"]
             settings.update(urls=[Secret(url) if has_url_password(url) else url for url in cluster], queue_type="quorum")
-    return _identified(ConnectionSpec(f"default-{protocol}", protocol, settings))
+    try:
+        options = parse(transport.connection_options, settings)
+    except OptionError as exc:
+        raise EndpointError(f"default {protocol} connection: {exc}") from None
+    return _identified(ConnectionSpec(f"default-{protocol}", protocol, settings, options=options))
 
 
 def _identified(spec: ConnectionSpec) -> ConnectionSpec:
     return replace(
         spec,
-        fingerprint=connection_fingerprint(spec.protocol, spec.settings),
-        exclusive=exclusive_resource(spec.protocol, spec.settings),
-        key_files=tuple(Path(name).expanduser().resolve() for name in connection_key_files(spec.protocol, spec.settings)),
+        fingerprint=connection_fingerprint(spec.protocol, spec.settings, spec.options),
+        exclusive=exclusive_resource(spec.protocol, spec.options),
+        key_files=tuple(Path(name).expanduser().resolve() for name in connection_key_files(spec.protocol, spec.options)),
     )
 
 
@@ -470,19 +579,25 @@ def _compile_routes(
         for index, body in enumerate(document.data.get("routes") or ()):
             where: Path_ = ("routes", index)
             body = revealed(body)  # secrets belong to connections; route options are plain text
-            name = body["name"]
+            try:
+                route = parse(RouteOptions, body, where)
+            except OptionError as exc:
+                problems.extend(document.problem(path, describe(path, message))
+                                for path, message in exc.problems)
+                continue
+            name = route.name
             before = len(problems)
             if name in routes:
                 first = routes[name]
                 problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first.file}:{first.line}"))
-            source = _endpoint(document, where + ("source",), name, body["source"], connections, problems)
-            sink = _endpoint(document, where + ("sink",), name, body["sink"], connections, problems)
-            mapping = body.get("mapping")
-            sink_mapping = body["sink"].get("mapping")
+            source = _endpoint(document, where + ("source",), name, route.source, connections, problems)
+            sink = _endpoint(document, where + ("sink",), name, route.sink, connections, problems)
+            mapping = route.mapping
+            sink_mapping = route.sink.get("mapping")
             for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
                 for message in _mapping_problems(expression):
                     problems.append(document.problem(key_path, f"route {name!r}: {message}"))
-            schema_name = body.get("schema")
+            schema_name = route.schema
             if schema_name is None:
                 problems.append(document.problem(where, f"route {name!r}: 'schema' is required (use raw_json to pass any object)"))
             elif schemas.get(schema_name) is None:
@@ -492,11 +607,11 @@ def _compile_routes(
             if source:  # fields a typed source does not have
                 for message in mapping_field_problems(source.protocol, source.options, mapping):
                     problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
-            placement = _placement(document, where, name, body, source, sink, connections, problems) if source and sink else None
+            placement = _placement(document, where, route, source, sink, connections, problems) if source and sink else None
             if len(problems) > before or not (source and sink and placement):
                 continue
             if placement.ordered and source.protocol == "amqp":
-                source = EndpointSpec(source.protocol, source.connection, {**source.options, "ordered": True})
+                source = EndpointSpec(source.protocol, source.connection, evolve(source.options, ordered=True))
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
             schema = schemas.get(schema_name)
             fingerprint = hashlib.sha256(
@@ -508,18 +623,18 @@ def _compile_routes(
                 ).encode()
             ).hexdigest()[:16]
             delivery = RouteDelivery(
-                max_attempts=body.get("max_attempts", RouteDelivery.max_attempts),
-                overflow=body.get("overflow", RouteDelivery.overflow),
+                max_attempts=route.max_attempts,
+                overflow=route.overflow,
                 max_message_bytes=connections[source.connection].max_message_bytes,
                 sink_max_message_bytes=connections[sink.connection].max_message_bytes,
             )
-            buffer = BufferSpec.parse(body.get("buffer"), source.protocol, _base_dir(document.file))
+            buffer = BufferSpec.parse(route.buffer, source.protocol, _base_dir(document.file))
             if buffer is not None and buffer.spill_dir is not None and buffer.spill_dir.exists() and not buffer.spill_dir.is_dir():
                 problems.append(document.problem(where + ("buffer", "spill_dir"), f"route {name!r}: spill_dir {str(buffer.spill_dir)!r} is not a directory"))
                 continue
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
-                document.file, document.line(where), throttle=body.get("throttle"), delivery=delivery, buffer=buffer,
+                document.file, document.line(where), throttle=route.throttle, delivery=delivery, buffer=buffer,
                 placement=placement,
             )
     return routes
@@ -536,13 +651,15 @@ def _compile_dead_letters(
         for document, _ in found[1:]:
             problems.append(document.problem(("dead_letters",), f"dead_letters is already defined at {first.file}:{first.line(('dead_letters',))}"))
     document, body = found[0] if found else (None, {})
+    try:
+        options = parse(DeadLettersOptions, body, ("dead_letters",))
+    except OptionError as exc:
+        assert document is not None
+        problems.extend(document.problem(path, describe(path, message)) for path, message in exc.problems)
+        return DeadLetterSpec()
     amqp = sorted(name for name, spec in connections.items() if spec.protocol == "amqp")
-    name = body.get("connection")
-    spec = DeadLetterSpec(
-        max_length=body.get("max_length", DeadLetterSpec.max_length),
-        spool_dir=body.get("spool_dir"),
-        spool_max_bytes=body.get("spool_max_bytes", DeadLetterSpec.spool_max_bytes),
-    )
+    name = options.connection
+    spec = DeadLetterSpec(max_length=options.max_length, spool_dir=options.spool_dir, spool_max_bytes=options.spool_max_bytes)
     if name is not None:
         if name not in connections:
             assert document is not None
@@ -551,7 +668,7 @@ def _compile_dead_letters(
             assert document is not None
             problems.append(document.problem(("dead_letters", "connection"), f"dead_letters: connection {name!r} is {connections[name].protocol}, not amqp"))
         return DeadLetterSpec(name, spec.max_length, spec.spool_dir, spec.spool_max_bytes)
-    if "spool_dir" in body or not amqp:
+    if options.spool_dir is not None or not amqp:
         return spec
     if len(amqp) > 1:
         where = document or documents[0]
@@ -567,8 +684,7 @@ def _base_dir(file: str) -> Path:
 def _placement(
     document: _Document,
     where: Path_,
-    route: str,
-    body: Mapping[str, Any],
+    options: RouteOptions,
     source: EndpointSpec,
     sink: EndpointSpec,
     connections: Mapping[str, ConnectionSpec],
@@ -576,9 +692,8 @@ def _placement(
 ) -> Placement | None:
     """The route's scale-out keys (``instances``, ``active_standby``, ``lease``, ``ordered``)."""
     before = len(problems)
-    ordered = bool(body.get("ordered", False))
-    active_standby = bool(body.get("active_standby", False))
-    lease = body.get("lease") or {}
+    route, ordered, active_standby = options.name, options.ordered, options.active_standby
+    lease = options.lease if options.lease is not None and given(options.lease) else None
     if ordered and source.protocol != "amqp":
         problems.append(document.problem(where + ("ordered",), f"route {route!r}: ordered applies to AMQP sources (a {source.protocol} source is carried by one instance: use instances or active_standby)"))
     if active_standby and source.protocol == "amqp":
@@ -587,7 +702,7 @@ def _placement(
         problems.append(document.problem(where + ("lease",), f"route {route!r}: lease needs active_standby: true"))
     lease_connection = None
     if active_standby:
-        lease_connection = lease.get("connection")
+        lease_connection = lease.connection if lease is not None else None
         if lease_connection is None:
             if sink.protocol == "amqp":
                 lease_connection = sink.connection
@@ -601,14 +716,14 @@ def _placement(
             problems.append(document.problem(where + ("lease", "connection"), f"route {route!r}: lease connection {lease_connection!r} is not an AMQP connection"))
     if len(problems) > before:
         return None
-    instances = body.get("instances")
+    lease = lease or LeaseOptions()
     return Placement(
-        instances=tuple(instances) if instances else None,
+        instances=options.instances,
         active_standby=active_standby,
         ordered=ordered,
-        lease_name=str(lease.get("name") or route),
+        lease_name=lease.name or route,
         lease_connection=lease_connection,
-        lease_heartbeat=float(lease.get("heartbeat", 1.0)),
+        lease_heartbeat=float(lease.heartbeat),
     )
 
 
@@ -637,8 +752,18 @@ def _endpoint(
         problems.append(document.problem(where, f"route {route!r}: {where[-1]} must name exactly one of amqp, ros2, mavlink"))
         return None
     protocol = protocols[0]
-    options = dict(body[protocol] or {})
-    wanted = options.pop("connection", None)
+    side = where[-1]
+    try:
+        transport = endpoints.transport(protocol)
+        options = parse(transport.source_options if side == "source" else transport.sink_options, body[protocol], where + (protocol,))
+    except EndpointError as exc:
+        problems.append(document.problem(where + (protocol,), f"route {route!r}: {side}: {exc}"))
+        return None
+    except OptionError as exc:
+        problems.extend(document.problem(path, message if message.startswith("unknown key") else f"route {route!r}: {describe(path, message)}")
+                        for path, message in exc.problems)
+        return None
+    wanted = options.connection
     if wanted is None:
         candidates = sorted(n for n, c in connections.items() if c.protocol == protocol)
         if len(candidates) > 1:

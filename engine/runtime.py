@@ -457,7 +457,7 @@ class Engine:
         key = connection_key(spec)
         connection = self._connections.get(key)
         if connection is None:
-            connection = endpoints.transport(spec.protocol).connect(spec.name, spec.settings)
+            connection = endpoints.transport(spec.protocol).connect(spec.name, spec.options)
             try:
                 await connection.open()
             except EndpointError as error:

@@ -21,6 +21,19 @@ from typing import Any, Mapping, Protocol
 
 from engine.endpoints.base import Inbound, Outbound
 from engine.observe import CONFLATED
+from engine.options import option, parse
+
+
+@dataclass(frozen=True, kw_only=True)
+class ThrottleOptions:
+    """A route's ``throttle:`` (see the module docstring)."""
+
+    __schema_description__ = ("at most max_rate messages/s per value of the canonical field 'per'; "
+                              "between slots only the latest is kept (conflation)")
+
+    max_rate: float = option(exclusive_minimum=0)
+    per: str | None = option(None, pattern=r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$",
+                             description="canonical field (a.b) whose values get a slot each; none: one slot for the route")
 
 
 class Redeliver(Protocol):
@@ -44,11 +57,11 @@ class Throttle:
     _released: set[int] = field(default_factory=set)
 
     @classmethod
-    def from_options(cls, options: Mapping[str, Any] | None) -> Throttle | None:
+    def from_options(cls, options: ThrottleOptions | Mapping[str, Any] | None) -> Throttle | None:
         if not options:
             return None
-        per = options.get("per")
-        return cls(float(options["max_rate"]), tuple(per.split(".")) if per else None)
+        options = parse(ThrottleOptions, options)
+        return cls(float(options.max_rate), tuple(options.per.split(".")) if options.per else None)
 
     @property
     def interval(self) -> float:

@@ -43,9 +43,12 @@ from engine.endpoints.base import (
     Sink,
     Source,
     Transport,
+    typed,
 )
 from engine.endpoints import amqp_cluster
+from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template
+from engine.options import given
 from engine.redaction import redact_urls
 from engine.schemas import SchemaError, canonical_bytes
 
@@ -64,11 +67,6 @@ def redact(url: Any) -> str:
     return parts._replace(netloc=netloc).geturl()
 
 
-RECONNECT_INTERVAL = 1.0
-"""Seconds between aio-pika's reconnection attempts after a lost connection (its default, 5 s,
-is most of the time from a broker's restart to the first message delivered after it)."""
-
-
 CONNECT_TIMEOUT = 10.0
 """Seconds one attempt to open the connection may take (an unreachable host would otherwise
 hold the engine's start for the TCP timeout, minutes)."""
@@ -77,8 +75,10 @@ hold the engine's start for the TCP timeout, minutes)."""
 class AmqpConnection(Connection):
     keeps_dead_letters = True
 
-    def __init__(self, name: str, settings: Mapping[str, Any]) -> None:
-        super().__init__(name, settings)
+    settings: AmqpConnectionOptions
+
+    def __init__(self, name: str, settings: AmqpConnectionOptions | Mapping[str, Any]) -> None:
+        super().__init__(name, typed(AmqpConnectionOptions, settings, f"amqp connection {name!r}"))
         self._connection: aio_pika.abc.AbstractRobustConnection | None = None
         self._publish_channel: aio_pika.abc.AbstractChannel | None = None
         self._exchanges: dict[str, aio_pika.abc.AbstractExchange] = {}
@@ -97,7 +97,7 @@ class AmqpConnection(Connection):
     @property
     def queue_type(self) -> str | None:
         """The type of the queues this connection's routes declare unless they say otherwise."""
-        return self.settings.get("queue_type")
+        return self.settings.queue_type
 
     @property
     def endpoint(self) -> str | None:
@@ -131,14 +131,14 @@ class AmqpConnection(Connection):
             self._connection = await amqp_cluster.connect_failover(
                 self.urls,
                 client_properties={"connection_name": f"rabbitros-engine/{self.name}"},
-                heartbeat=self.settings.get("heartbeat", 30),
-                reconnect_interval=self.settings.get("reconnect_interval", RECONNECT_INTERVAL),
+                heartbeat=self.settings.heartbeat,
+                reconnect_interval=self.settings.reconnect_interval,
                 timeout=CONNECT_TIMEOUT,
             )
             self._connection.close_callbacks.add(self._on_close)
             self._connection.reconnect_callbacks.add(self._on_reconnect)
             self._publish_channel = await self._connection.channel(
-                publisher_confirms=self.settings.get("publisher_confirms", True)
+                publisher_confirms=self.settings.publisher_confirms
             )
         except _ERRORS as exc:
             self._failed(exc)
@@ -218,7 +218,7 @@ class AmqpConnection(Connection):
         """The durable exchange and queue ``rabbitros.dead-letter`` (bounded by ``x-max-length``),
         so dead letters are kept even when nobody listens yet."""
         arguments = amqp_cluster.queue_arguments(
-            {"queue_arguments": {"x-max-length": max_length} if max_length else {}}, self.queue_type
+            AmqpSourceOptions(queue_arguments={"x-max-length": max_length} if max_length else {}), self.queue_type
         )
         try:
             await self.exchange(DEAD_LETTER_EXCHANGE)
@@ -248,15 +248,15 @@ class AmqpConnection(Connection):
             if error is not None:
                 raise error
 
-    def source(self, route: str, options: Mapping[str, Any]) -> Source:
-        return AmqpSource(self, route, options)
+    def source(self, route: str, options: AmqpSourceOptions | Mapping[str, Any]) -> Source:
+        return AmqpSource(self, route, typed(AmqpSourceOptions, options, f"route {route!r}: amqp source"))
 
     def lease(self, name: str, instance: str, heartbeat: float) -> amqp_cluster.AmqpLease:
         """The broker-held lease of an ``active_standby`` route (see :class:`AmqpLease`)."""
         return amqp_cluster.AmqpLease(self, name, instance, heartbeat, self.queue_type)
 
-    def sink(self, route: str, options: Mapping[str, Any]) -> Sink:
-        return AmqpSink(self, route, options)
+    def sink(self, route: str, options: AmqpSinkOptions | Mapping[str, Any]) -> Sink:
+        return AmqpSink(self, route, typed(AmqpSinkOptions, options, f"route {route!r}: amqp sink"))
 
     async def close(self) -> None:
         self._state = "down"
@@ -269,7 +269,7 @@ class AmqpConnection(Connection):
 
 
 class AmqpSource(Source):
-    def __init__(self, connection: AmqpConnection, route: str, options: Mapping[str, Any]) -> None:
+    def __init__(self, connection: AmqpConnection, route: str, options: AmqpSourceOptions) -> None:
         self._connection = connection
         self._route = route
         self._options = options
@@ -280,30 +280,30 @@ class AmqpSource(Source):
         """Bounded by the prefetch: the broker sends no more than that unacknowledged."""
         self._stopping = False
         self._loop: asyncio.Task[None] | None = None
-        self._max_batch = max(1, options.get("prefetch", 256) // 2)
+        self._max_batch = max(1, options.prefetch // 2)
         """Half the prefetch: the broker keeps streaming the next batch while one is settled."""
 
     @property
     def queue_name(self) -> str:
-        return self._options.get("queue") or f"rabbitros.{self._route}"
+        return self._options.queue or f"rabbitros.{self._route}"
 
     async def start(self, deliver: Deliver) -> None:
         options = self._options
         try:
             self._channel = await self._connection.channel_factory().channel()
-            await self._channel.set_qos(prefetch_count=options.get("prefetch", 256))
+            await self._channel.set_qos(prefetch_count=options.prefetch)
             self._queue = await self._channel.declare_queue(
                 self.queue_name,
-                durable=options.get("durable", True),
-                arguments=amqp_cluster.queue_arguments(options, self._connection.queue_type, options.get("ordered", False)),
+                durable=options.durable,
+                arguments=amqp_cluster.queue_arguments(options, self._connection.queue_type, options.ordered),
             )
-            if "exchange" in options and options["exchange"] != "":
+            if options.exchange:
                 exchange = await self._channel.declare_exchange(
-                    options["exchange"],
-                    aio_pika.ExchangeType(options.get("exchange_type", "topic")),
-                    durable=options.get("durable", True),
+                    options.exchange,
+                    aio_pika.ExchangeType(options.exchange_type),
+                    durable=options.durable,
                 )
-                await self._queue.bind(exchange, options.get("binding_key", "#"))
+                await self._queue.bind(exchange, options.binding_key)
             self._loop = asyncio.create_task(self._run(deliver), name=f"amqp-source:{self._route}")
             await self._consume()
             self._channel.reopen_callbacks.add(self._reconsume)
@@ -408,14 +408,14 @@ class AmqpSink(Sink):
     """Publishes without the mandatory flag: as in AMQP itself, an exchange with no matching
     binding drops the message (RabbitMQ's alternate exchanges are the way to keep those)."""
 
-    def __init__(self, connection: AmqpConnection, route: str, options: Mapping[str, Any]) -> None:
+    def __init__(self, connection: AmqpConnection, route: str, options: AmqpSinkOptions) -> None:
         self._connection = connection
-        self._exchange = options.get("exchange", "")
-        self._kind = options.get("exchange_type", "topic")
-        self._durable = options.get("durable", True)
-        self._routing_key = compile_template(options.get("routing_key", ""))
-        self._content_type = options.get("content_type", "application/json")
-        self._delivery_mode = 2 if options.get("persistent", True) else 1
+        self._exchange = options.exchange
+        self._kind = options.exchange_type
+        self._durable = options.durable
+        self._routing_key = compile_template(options.routing_key)
+        self._content_type = options.content_type
+        self._delivery_mode = 2 if options.persistent else 1
 
     async def send(self, message: Outbound) -> None:
         error = (await self.send_batch((message,)))[0]
@@ -452,24 +452,30 @@ class AmqpTransport(Transport):
     name = "amqp"
     default_settings = {"url": "amqp://guest:guest@localhost:5672/"}
     accepts_secrets = True
+    connection_options = AmqpConnectionOptions
+    source_options = AmqpSourceOptions
+    sink_options = AmqpSinkOptions
+    connection_shorthand = "url"
 
-    def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
-        yield from amqp_cluster.check_urls(settings, redact)
+    def connection_problems(self, options: AmqpConnectionOptions) -> CheckResult:
+        yield from amqp_cluster.check_urls(options, redact)
 
-    def check_source(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
-        if "queue" not in options and "exchange" not in options:
+    def source_problems(self, options: AmqpSourceOptions, mapping: str | None) -> CheckResult:
+        written = given(options)
+        if "queue" not in written and "exchange" not in written:
             yield None, "an amqp source needs a queue, an exchange, or both"
-        if "binding_key" in options and not options.get("exchange"):
+        if "binding_key" in written and not options.exchange:
             yield "binding_key", "binding_key needs an exchange to bind to"
-        if "exchange_type" in options and not options.get("exchange"):
+        if "exchange_type" in written and not options.exchange:
             yield "exchange_type", "exchange_type is not used without an exchange to declare"
         yield from amqp_cluster.check_queue(options)
 
-    def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
-        if "exchange" not in options and "routing_key" not in options:
+    def sink_problems(self, options: AmqpSinkOptions, mapping: str | None) -> CheckResult:
+        written = given(options)
+        if "exchange" not in written and "routing_key" not in written:
             yield None, "an amqp sink needs an exchange and/or a routing_key"
         for key in ("exchange_type", "durable"):
-            if key in options and not options.get("exchange"):
+            if key in written and not options.exchange:
                 yield key, f"{key} is not used: the default exchange is never declared (name an exchange)"
 
     async def source_retired(
@@ -480,11 +486,11 @@ class AmqpTransport(Transport):
 
         await retire_source(connection, route, options, remaining)
 
-    def competing_consumers(self, route: str, options: Mapping[str, Any]) -> str | None:
-        queue = options.get("queue")
+    def competing_consumers(self, route: str, options: AmqpSourceOptions) -> str | None:
+        queue = options.queue
         return f"queue {queue!r}" if queue else None
 
-    def connect(self, name: str, settings: Mapping[str, Any]) -> Connection:
+    def connect(self, name: str, settings: AmqpConnectionOptions | Mapping[str, Any]) -> Connection:
         return AmqpConnection(name, settings)
 
 

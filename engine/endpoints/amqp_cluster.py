@@ -14,7 +14,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Iterator, Sequence
 from urllib.parse import urlsplit
 
 import aio_pika
@@ -24,6 +24,7 @@ from yarl import URL
 
 from engine.endpoints.base import EndpointError
 from engine.redaction import reveal
+from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSourceOptions
 
 log = logging.getLogger("engine.amqp")
 
@@ -89,32 +90,25 @@ async def connect_failover(urls: Sequence[str], **kwargs: Any) -> FailoverConnec
     raise error
 
 
-def connection_urls(settings: Mapping[str, Any]) -> list[str]:
+def connection_urls(settings: AmqpConnectionOptions) -> list[str]:
     """Every node of a connection: ``urls`` (a cluster) or the single ``url``."""
-    urls = settings.get("urls")
-    if urls:
-        return [str(reveal(url)) for url in urls]
-    return [str(reveal(settings["url"]))]
+    if settings.urls:
+        return [str(reveal(url)) for url in settings.urls]
+    return [str(reveal(settings.url))]
 
 
-def check_urls(settings: Mapping[str, Any], redact: Any) -> Iterator[tuple[str | None, str]]:
+def check_urls(settings: AmqpConnectionOptions, redact: Any) -> Iterator[tuple[str | None, str]]:
     """Static checks of a connection's URLs; passwords never appear in a problem."""
-    if "url" in settings and "urls" in settings:
+    if settings.url is not None and settings.urls is not None:
         yield "urls", "give either url or urls, not both"
         return
-    if "url" not in settings and "urls" not in settings:
+    if settings.url is None and settings.urls is None:
         yield None, "an amqp connection needs url (one node) or urls (the nodes of a cluster)"
         return
-    if "urls" in settings:
-        urls = settings["urls"]
-        if not isinstance(urls, list) or not urls:
-            yield "urls", "urls must be a non-empty list of amqp:// URLs"
-            return
-    else:
-        urls = [settings.get("url", "")]
+    urls = settings.urls if settings.urls is not None else (settings.url,)
     seen: set[tuple[str, int | None, str]] = set()
     for index, url in enumerate(urls):
-        where = "urls" if "urls" in settings else None
+        where = "urls" if settings.urls is not None else None
         try:
             parts = urlsplit(str(reveal(url)))
             port = parts.port
@@ -131,18 +125,18 @@ def check_urls(settings: Mapping[str, Any], redact: Any) -> Iterator[tuple[str |
         seen.add(key)
 
 
-def queue_type(options: Mapping[str, Any], default: str | None) -> str | None:
+def queue_type(options: AmqpSourceOptions, default: str | None) -> str | None:
     """The queue type a source declares: its own ``queue_type``, an explicit
     ``x-queue-type`` argument, or the connection's default."""
-    arguments = options.get("queue_arguments") or {}
-    return options.get("queue_type") or arguments.get("x-queue-type") or default
+    arguments = options.queue_arguments or {}
+    return options.queue_type or arguments.get("x-queue-type") or default
 
 
 def queue_arguments(
-    options: Mapping[str, Any], default_type: str | None, single_active: bool = False
+    options: AmqpSourceOptions, default_type: str | None, single_active: bool = False
 ) -> dict[str, Any] | None:
     """The ``queue.declare`` arguments of a source's queue."""
-    arguments = dict(options.get("queue_arguments") or {})
+    arguments = dict(options.queue_arguments or {})
     kind = queue_type(options, default_type)
     if kind and kind != "classic":
         arguments["x-queue-type"] = kind
@@ -151,19 +145,16 @@ def queue_arguments(
     return arguments or None
 
 
-def check_queue(options: Mapping[str, Any]) -> Iterator[tuple[str | None, str]]:
+def check_queue(options: AmqpSourceOptions) -> Iterator[tuple[str | None, str]]:
     """What a quorum queue refuses, said before RabbitMQ says PRECONDITION_FAILED."""
-    arguments = options.get("queue_arguments") or {}
+    arguments = options.queue_arguments or {}
     declared = arguments.get("x-queue-type")
-    if declared is not None and options.get("queue_type") and declared != options["queue_type"]:
-        yield "queue_arguments", f"x-queue-type {declared!r} contradicts queue_type {options['queue_type']!r}"
+    if declared is not None and options.queue_type and declared != options.queue_type:
+        yield "queue_arguments", f"x-queue-type {declared!r} contradicts queue_type {options.queue_type!r}"
     if queue_type(options, None) != "quorum":
         return
-    if options.get("durable") is False:
+    if not options.durable:
         yield "durable", "a quorum queue is always durable (durable: false is refused)"
-    for key in ("exclusive", "auto_delete"):
-        if options.get(key):
-            yield key, f"a quorum queue cannot be {key.replace('_', '-')}"
     for argument, why in QUORUM_REFUSED_ARGUMENTS.items():
         if argument in arguments:
             yield "queue_arguments", f"quorum queues refuse {argument} ({why})"
@@ -214,7 +205,7 @@ class AmqpLease:
     async def start(self) -> None:
         raw = self.connection.channel_factory()
         raw.close_callbacks.add(self._connection_lost)
-        arguments = queue_arguments({"queue_arguments": {"x-max-length": 16, "x-message-ttl": 10_000}},
+        arguments = queue_arguments(AmqpSourceOptions(queue_arguments={"x-max-length": 16, "x-message-ttl": 10_000}),
                                     self._queue_type, single_active=True)
         try:
             self._channel = await raw.channel(publisher_confirms=False)

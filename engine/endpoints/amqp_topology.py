@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable
 
 import aiormq.exceptions
 from aio_pika.exceptions import AMQPError
 
 from engine.endpoints.base import Connection
+from engine.endpoints.amqp_options import AmqpSourceOptions
 
 log = logging.getLogger("engine.amqp")
 _ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError)
@@ -33,20 +34,19 @@ class Binding:
     key: str
 
 
-def queue_name(route: str, options: Mapping[str, Any]) -> str:
-    return options.get("queue") or f"rabbitros.{route}"
+def queue_name(route: str, options: AmqpSourceOptions) -> str:
+    return options.queue or f"rabbitros.{route}"
 
 
-def bindings(route: str, options: Mapping[str, Any]) -> set[Binding]:
+def bindings(route: str, options: AmqpSourceOptions) -> set[Binding]:
     """The bindings an AMQP source with these options makes when it starts."""
-    exchange = options.get("exchange")
-    if not exchange:
+    if not options.exchange:
         return set()
-    return {Binding(queue_name(route, options), exchange, options.get("binding_key", "#"))}
+    return {Binding(queue_name(route, options), options.exchange, options.binding_key)}
 
 
 async def retire_source(
-    connection: Connection, route: str, options: Mapping[str, Any], remaining: Iterable[tuple[str, Mapping[str, Any]]]
+    connection: Connection, route: str, options: AmqpSourceOptions, remaining: Iterable[tuple[str, AmqpSourceOptions]]
 ) -> dict[str, list[str]]:
     """Undo what the stopped source of ``route`` made and no ``remaining`` (route, options)
     source on this connection needs; returns what was done, for the log and tests."""
@@ -55,7 +55,7 @@ async def retire_source(
     queues_in_use = {queue_name(r, o) for r, o in remaining}
     stale = sorted(bindings(route, options) - wanted, key=lambda b: (b.queue, b.exchange, b.key))
     queue = queue_name(route, options)
-    auto_named = not options.get("queue") and queue not in queues_in_use
+    auto_named = not options.queue and queue not in queues_in_use
     done: dict[str, list[str]] = {"unbound": [], "deleted": [], "kept": []}
     if not stale and not auto_named:
         return done

@@ -25,6 +25,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
 
+from engine.options import OptionError, describe, dotted, option, parse
+
 
 class EndpointError(Exception):
     """A protocol library failed; the message names the connection or endpoint.
@@ -193,18 +195,20 @@ class Connection(ABC):
     """True where :meth:`dead_letter` stores messages durably (a broker), so the engine can
     use this connection as its dead-letter destination."""
 
-    def __init__(self, name: str, settings: Mapping[str, Any]) -> None:
+    def __init__(self, name: str, settings: Any) -> None:
         self.name = name
         self.settings = settings
+        """The transport's typed connection options."""
 
     @abstractmethod
     async def open(self) -> None: ...
 
     @abstractmethod
-    def source(self, route: str, options: Mapping[str, Any]) -> Source: ...
+    def source(self, route: str, options: Any) -> Source:
+        """A source from the transport's typed source options (a mapping is parsed first)."""
 
     @abstractmethod
-    def sink(self, route: str, options: Mapping[str, Any]) -> Sink: ...
+    def sink(self, route: str, options: Any) -> Sink: ...
 
     @abstractmethod
     async def close(self) -> None: ...
@@ -233,48 +237,107 @@ CheckResult = Iterable[tuple[str | None, str]]
 """``(option key or None, message)`` pairs; the route loader attaches file and line."""
 
 
+@dataclass(frozen=True, kw_only=True)
+class EndpointOptions:
+    """What every source and sink option class has (engine/options.py declares the rest)."""
+
+    connection: str | None = option(None, description="name of a connection from any file of the directory")
+
+
+O = TypeVar("O")
+
+
+def typed(cls: type[O], value: Any, where: str) -> O:
+    """``value`` as the option class ``cls``: the typed value the loader parsed, or a mapping
+    (a caller that skipped the loader) parsed now; EndpointError names ``where``."""
+    if isinstance(value, cls):
+        return value
+    try:
+        return parse(cls, value)
+    except OptionError as exc:
+        raise EndpointError(f"{where}: {exc}") from None
+
+
+def typed_or_problem(cls: type[O], value: Any) -> tuple[O | None, list[tuple[str | None, str]]]:
+    """For the static checks: the typed value, or the problems that stop the parse, each
+    with the option it belongs to (``qos.depth`` for a nested one)."""
+    if isinstance(value, cls):
+        return value, []
+    try:
+        return parse(cls, value), []
+    except OptionError as exc:
+        return None, [(dotted(path) if path else None, describe(path, message)) for path, message in exc.problems]
+
+
 class Transport(ABC):
     """What the engine knows about a protocol before connecting: defaults and static checks."""
 
     name: ClassVar[str]
     default_settings: ClassVar[Mapping[str, Any]]
+    connection_options: ClassVar[type]
+    """The option class of ``connections.<name>.<protocol>`` (engine/options.py)."""
+    source_options: ClassVar[type[EndpointOptions]]
+    sink_options: ClassVar[type[EndpointOptions]]
+    connection_shorthand: ClassVar[str | None] = None
+    """The connection option a plain string stands for (``amqp: amqp://host`` is the url)."""
+    options_beside: ClassVar[bool] = False
+    """True when the protocol key holds only the shorthand and the other connection options
+    sit beside it (``mavlink: udpin:...`` with ``baud:`` and ``signing:`` next to it)."""
     accepts_secrets: ClassVar[bool] = False
     """True when the connection settings may hold engine.redaction.Secret values, which the
     endpoint reveals only where it connects; otherwise the loader hands it plain values."""
 
-    def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
+    def check_connection(self, settings: Any) -> CheckResult:
+        """Static checks of a connection's options: those the parse finds (a mapping is parsed
+        first; the loader passes the typed value), else :meth:`connection_problems`."""
+        parsed, problems = typed_or_problem(self.connection_options, settings)
+        return problems if parsed is None else list(self.connection_problems(parsed))
+
+    def check_source(self, options: Any, mapping: str | None) -> CheckResult:
+        parsed, problems = typed_or_problem(self.source_options, options)
+        return problems if parsed is None else list(self.source_problems(parsed, mapping))
+
+    def check_sink(self, options: Any, mapping: str | None) -> CheckResult:
+        parsed, problems = typed_or_problem(self.sink_options, options)
+        return problems if parsed is None else list(self.sink_problems(parsed, mapping))
+
+    def connection_problems(self, options: Any) -> CheckResult:
+        """What the declaration cannot say about valid typed options (a reachable device...)."""
         return ()
 
-    def check_source(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
+    def source_problems(self, options: Any, mapping: str | None) -> CheckResult:
+        """What the declaration cannot say: options that contradict each other, or are not
+        used by this kind of source, a type that is not installed, the mapping's keys."""
         return ()
 
-    def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
+    def sink_problems(self, options: Any, mapping: str | None) -> CheckResult:
         return ()
 
-    def exclusive_resource(self, settings: Mapping[str, Any]) -> str | None:
+    def exclusive_resource(self, settings: Any) -> str | None:
         """The operating-system resource only one open connection can hold (a listening port,
         a serial device: two readers would split the bytes), as a key such as ``udp:14550``,
         or None. A reload that changes such a connection closes the old one before opening
         the new (break-before-make) instead of the usual make-before-break."""
         return None
 
-    def key_files(self, settings: Mapping[str, Any]) -> Iterable[str]:
+    def key_files(self, settings: Any) -> Iterable[str]:
         """Files whose contents the connection reads when it opens (signing keys): a reload
         reopens the connection when their contents change."""
         return ()
 
     async def source_retired(
-        self, connection: Connection, route: str, options: Mapping[str, Any],
-        remaining: Iterable[tuple[str, Mapping[str, Any]]],
+        self, connection: Connection, route: str, options: Any,
+        remaining: Iterable[tuple[str, Any]],
     ) -> None:
         """The source of ``route`` stopped for good (route removed, or source replaced):
         undo on ``connection`` what only it needed (AMQP: bindings, an auto-named queue).
         ``remaining`` are the (route, options) of the sources configured on that connection now."""
 
-    def competing_consumers(self, route: str, options: Mapping[str, Any]) -> str | None:
+    def competing_consumers(self, route: str, options: Any) -> str | None:
         """For a source whose consumers compete for messages (an AMQP queue), the name of what
         it consumes; ``check`` warns when two routes name the same one."""
         return None
 
     @abstractmethod
-    def connect(self, name: str, settings: Mapping[str, Any]) -> Connection: ...
+    def connect(self, name: str, settings: Any) -> Connection:
+        """A connection from the typed connection options (or a mapping, parsed here)."""

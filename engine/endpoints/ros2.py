@@ -40,7 +40,8 @@ import re
 import threading
 import time
 from contextlib import ExitStack
-from typing import Any, Callable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator, Literal, Mapping
 
 import jmespath
 import rclpy
@@ -60,9 +61,10 @@ from rclpy.validate_node_name import validate_node_name
 
 from engine.endpoints import rosmsg
 from engine.endpoints.base import (
-    CheckResult, Connection, Deliver, EndpointError, Inbound, Inbox, MessageRejected, Outbound, Sink, Source,
-    Transport,
+    CheckResult, Connection, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
+    Source, Transport, typed,
 )
+from engine.options import option
 
 log = logging.getLogger("engine.ros2")
 
@@ -83,7 +85,6 @@ _BATCH = 512
 _TYPE_CHECK_INTERVAL = 2.0
 _RELIABILITY = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT}
 _DURABILITY = {"volatile": DurabilityPolicy.VOLATILE, "transient_local": DurabilityPolicy.TRANSIENT_LOCAL}
-_OPTION_KEYS = frozenset({"topic", "type", "qos"})
 _PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
 _RCL_SUBSTITUTIONS = frozenset({"node", "ns", "namespace"})
 _FIELD_PATH = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
@@ -94,6 +95,33 @@ def _env_domain_id() -> int:
         return int(os.environ.get("ROS_DOMAIN_ID", "0"))
     except ValueError:
         return 0
+
+
+@dataclass(frozen=True, kw_only=True)
+class Ros2ConnectionOptions:
+    """``connections.<name>.ros2``: the node the engine creates, in its own DDS domain."""
+
+    domain_id: int | None = option(None, schema={"minimum": 0, "maximum": 232})
+    """None: ``ROS_DOMAIN_ID`` (else 0), as every ROS 2 program. The bounds are checked with
+    the node name (``connection_problems``), so both are reported."""
+    node: str = option("rabbitros_engine", show_default=False)
+    namespace: str = option("", show_default=False)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Ros2Qos:
+    reliability: Literal["reliable", "best_effort"] = option("reliable", show_default=False)
+    durability: Literal["volatile", "transient_local"] = option("volatile", show_default=False)
+    depth: int = option(DEFAULT_DEPTH, minimum=1, show_default=False)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Ros2EndpointOptions(EndpointOptions):
+    """A ROS 2 source or sink: one topic of one message type."""
+
+    topic: str = option(description="may interpolate canonical fields in sinks: /{agent_id}/weeds")
+    type: str = option(STRING_TYPE, description="pkg/msg/Type or pkg/Type")
+    qos: Ros2Qos = option(Ros2Qos())
 
 
 # ---------------------------------------------------------------- static checks
@@ -124,26 +152,6 @@ def _check_topic(topic: Any, allow_template: bool) -> Iterator[str]:
         yield f"invalid topic name {topic!r}: {_rcl_reason(exc)}"
 
 
-def _check_qos(qos: Any) -> Iterator[tuple[str, str]]:
-    if qos is None:
-        return
-    if not isinstance(qos, Mapping):
-        yield "qos", "qos must be a mapping with reliability, durability and depth"
-        return
-    for key in qos:
-        if key not in ("reliability", "durability", "depth"):
-            yield f"qos.{key}", f"unknown qos setting {key!r} (reliability, durability, depth)"
-    if "reliability" in qos and qos["reliability"] not in _RELIABILITY:
-        yield "qos.reliability", (f"reliability must be one of {', '.join(_RELIABILITY)}, "
-                                  f"not {qos['reliability']!r}")
-    if "durability" in qos and qos["durability"] not in _DURABILITY:
-        yield "qos.durability", (f"durability must be one of {', '.join(_DURABILITY)}, "
-                                 f"not {qos['durability']!r}")
-    depth = qos.get("depth", DEFAULT_DEPTH)
-    if type(depth) is not int or depth < 1:
-        yield "qos.depth", f"depth must be a positive integer, not {depth!r}"
-
-
 def _check_type(name: Any) -> Iterator[tuple[str, str]]:
     try:
         rosmsg.resolve_type(name)
@@ -151,14 +159,10 @@ def _check_type(name: Any) -> Iterator[tuple[str, str]]:
         yield "type", str(exc)
 
 
-def _check_endpoint(options: Mapping[str, Any], sink: bool) -> CheckResult:
-    for key in options:
-        if key not in _OPTION_KEYS:
-            yield key, f"unknown ros2 option {key!r} (expected {', '.join(sorted(_OPTION_KEYS))})"
-    for message in _check_topic(options.get("topic"), allow_template=sink):
+def _check_endpoint(options: Ros2EndpointOptions, sink: bool) -> Iterator[tuple[str | None, str]]:
+    for message in _check_topic(options.topic, allow_template=sink):
         yield "topic", message
-    yield from _check_type(options.get("type", STRING_TYPE))
-    yield from _check_qos(options.get("qos"))
+    yield from _check_type(options.type)
 
 
 def _check_mapping_keys(node: Mapping[str, Any], cls: type, prefix: str) -> Iterator[str]:
@@ -177,48 +181,51 @@ def _check_mapping_keys(node: Mapping[str, Any], cls: type, prefix: str) -> Iter
             yield from _check_mapping_keys(value, nested, f"{prefix}{key}.")
 
 
-def _qos(options: Mapping[str, Any]) -> QoSProfile:
-    qos = options.get("qos") or {}
+def _topic_of(options: Ros2EndpointOptions | Mapping[str, Any]) -> Any:
+    """The topic, for error messages, before the options are known to parse."""
+    return options.topic if isinstance(options, Ros2EndpointOptions) else options.get("topic")
+
+
+def _qos(options: Ros2EndpointOptions) -> QoSProfile:
+    qos = options.qos
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
-        depth=qos.get("depth", DEFAULT_DEPTH),
-        reliability=_RELIABILITY[qos.get("reliability", "reliable")],
-        durability=_DURABILITY[qos.get("durability", "volatile")],
+        depth=qos.depth,
+        reliability=_RELIABILITY[qos.reliability],
+        durability=_DURABILITY[qos.durability],
     )
 
 
 class Ros2Transport(Transport):
     name = "ros2"
     default_settings = {"node": "rabbitros_engine", "namespace": "", "domain_id": _env_domain_id()}
+    connection_options = Ros2ConnectionOptions
+    source_options = Ros2EndpointOptions
+    sink_options = Ros2EndpointOptions
 
-    def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
-        node = settings.get("node", self.default_settings["node"])
-        namespace = settings.get("namespace", "")
-        domain_id = settings.get("domain_id", 0)
+    def connection_problems(self, options: Ros2ConnectionOptions) -> CheckResult:
+        node, namespace, domain_id = options.node, options.namespace, options.domain_id
         try:
             validate_node_name(node)
         except Exception as exc:
             yield "node", f"invalid node name {node!r}: {_rcl_reason(exc)}"
-        if not isinstance(namespace, str):
-            yield "namespace", f"namespace must be a string, not {namespace!r}"
-        elif namespace:
+        if namespace:
             try:
                 validate_namespace(namespace if namespace.startswith("/") else "/" + namespace)
             except Exception as exc:
                 yield "namespace", f"invalid namespace {namespace!r}: {_rcl_reason(exc)}"
-        if type(domain_id) is not int or not 0 <= domain_id <= 232:
+        if domain_id is not None and not 0 <= domain_id <= 232:
             yield "domain_id", f"domain_id must be an integer in 0..232, not {domain_id!r}"
 
-    def check_source(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
+    def source_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
         yield from _check_endpoint(options, sink=False)
 
-    def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
+    def sink_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
         yield from _check_endpoint(options, sink=True)
-        type_name = options.get("type", STRING_TYPE)
-        if not mapping or type_name == STRING_TYPE:
+        if not mapping or options.type == STRING_TYPE:
             return
         try:
-            cls = rosmsg.resolve_type(type_name)
+            cls = rosmsg.resolve_type(options.type)
             tree = jmespath.compile(mapping).parsed
         except (rosmsg.MessageError, jmespath.exceptions.JMESPathError):
             return  # reported by the type check and by the route loader
@@ -226,8 +233,8 @@ class Ros2Transport(Transport):
             for message in _check_mapping_keys(tree, cls, ""):
                 yield "mapping", message
 
-    def connect(self, name: str, settings: Mapping[str, Any]) -> Connection:
-        return Ros2Connection(name, {**self.default_settings, **settings})
+    def connect(self, name: str, settings: Ros2ConnectionOptions | Mapping[str, Any]) -> Connection:
+        return Ros2Connection(name, settings)
 
 
 TRANSPORT = Ros2Transport()
@@ -238,8 +245,11 @@ TRANSPORT = Ros2Transport()
 class Ros2Connection(Connection):
     """One rclpy Context (own domain id) and one node, plus the waiter thread."""
 
-    def __init__(self, name: str, settings: Mapping[str, Any]) -> None:
-        super().__init__(name, settings)
+    settings: Ros2ConnectionOptions
+
+    def __init__(self, name: str, settings: Ros2ConnectionOptions | Mapping[str, Any]) -> None:
+        super().__init__(name, typed(Ros2ConnectionOptions, settings, f"ros2 connection {name!r}"))
+        self.domain_id = self.settings.domain_id if self.settings.domain_id is not None else _env_domain_id()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._context: Context | None = None
         self._node: Node | None = None
@@ -269,10 +279,10 @@ class Ros2Connection(Connection):
         """DDS participant creation takes tens of milliseconds, so it runs off the loop."""
         context = Context()
         try:
-            rclpy.init(args=[], context=context, domain_id=self.settings["domain_id"],
+            rclpy.init(args=[], context=context, domain_id=self.domain_id,
                        signal_handler_options=SignalHandlerOptions.NO)
             node = Node(
-                self.settings["node"], namespace=self.settings["namespace"], context=context,
+                self.settings.node, namespace=self.settings.namespace, context=context,
                 start_parameter_services=False,
                 parameter_overrides=[Parameter("start_type_description_service", value=False)],
             )
@@ -280,13 +290,13 @@ class Ros2Connection(Connection):
         except Exception as exc:
             context.try_shutdown()
             raise EndpointError(f"ros2 connection {self.name!r}: cannot create node "
-                                f"{self.settings['node']!r}: {_rcl_reason(exc)}") from exc
+                                f"{self.settings.node!r}: {_rcl_reason(exc)}") from exc
         self._context, self._node, self._guard = context, node, guard
 
-    def source(self, route: str, options: Mapping[str, Any]) -> Source:
+    def source(self, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> Source:
         return Ros2Source(self, route, options)
 
-    def sink(self, route: str, options: Mapping[str, Any]) -> Sink:
+    def sink(self, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> Sink:
         sink = Ros2Sink(self, route, options)
         self._sinks.add(sink)
         return sink
@@ -415,15 +425,16 @@ class Ros2Source(Source):
     the source reports them (log and status).
     """
 
-    def __init__(self, connection: Ros2Connection, route: str, options: Mapping[str, Any]) -> None:
+    def __init__(self, connection: Ros2Connection, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> None:
         self._connection = connection
         self._route = route
-        self._topic = options.get("topic")
+        self._topic = _topic_of(options)
         self._where = f"route {route!r}, ros2 topic {self._topic!r}"
         problems = [message for _, message in TRANSPORT.check_source(options, None)]
         if problems:
             raise EndpointError(f"{self._where}: {'; '.join(problems)}")
-        self._cls = rosmsg.resolve_type(options.get("type", STRING_TYPE))
+        options = typed(Ros2EndpointOptions, options, self._where)
+        self._cls = rosmsg.resolve_type(options.type)
         self._type_name = rosmsg.type_name(self._cls)
         self._is_string = self._type_name == STRING_TYPE
         self._qos = _qos(options)
@@ -598,14 +609,15 @@ def _unused_callback(msg: Any) -> None:
 # ---------------------------------------------------------------- sink
 
 class Ros2Sink(Sink):
-    def __init__(self, connection: Ros2Connection, route: str, options: Mapping[str, Any]) -> None:
+    def __init__(self, connection: Ros2Connection, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> None:
         self._connection = connection
-        self._template = options.get("topic")
+        self._template = _topic_of(options)
         self._where = f"route {route!r}, ros2 topic {self._template!r}"
         problems = [message for _, message in TRANSPORT.check_sink(options, None)]
         if problems:
             raise EndpointError(f"{self._where}: {'; '.join(problems)}")
-        self._cls = rosmsg.resolve_type(options.get("type", STRING_TYPE))
+        options = typed(Ros2EndpointOptions, options, self._where)
+        self._cls = rosmsg.resolve_type(options.type)
         self._string = self._cls() if rosmsg.type_name(self._cls) == STRING_TYPE else None
         self._qos = _qos(options)
         self._publishers: dict[str, Any] = {}

@@ -55,11 +55,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from typing import Any, ClassVar
 
-from engine.endpoints.base import CheckResult, Transport
-from engine.endpoints.mavlink.checks import check_sink_options, check_source_options
+from engine.endpoints.base import CheckResult, Transport, typed_or_problem
+from engine.endpoints.mavlink.checks import sink_problems, source_problems
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, field_specs, message_fields, mavlink2
 from engine.endpoints.mavlink.connection import MavlinkConnection
 from engine.endpoints.mavlink import settings as _settings
+from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
 from engine.endpoints.mavlink.signing import signing_now
 
@@ -67,23 +68,30 @@ from engine.endpoints.mavlink.signing import signing_now
 class MavlinkTransport(Transport):
     name: ClassVar[str] = "mavlink"
     default_settings: ClassVar[Mapping[str, Any]] = {"url": "udpin:0.0.0.0:14550"}
+    connection_options = MavlinkConnectionOptions
+    source_options = MavlinkSourceOptions
+    sink_options = MavlinkSinkOptions
+    connection_shorthand = "url"
+    options_beside = True
 
-    def check_connection(self, settings: Mapping[str, Any]) -> CheckResult:
-        return settings_problems(settings)[1]
+    def connection_problems(self, options: MavlinkConnectionOptions) -> CheckResult:
+        return settings_problems(options)[1]
 
-    def check_source(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
-        return check_source_options(options, mapping)
+    def source_problems(self, options: MavlinkSourceOptions, mapping: str | None) -> CheckResult:
+        return source_problems(options)
 
-    def check_sink(self, options: Mapping[str, Any], mapping: str | None) -> CheckResult:
-        return check_sink_options(options, mapping)
+    def sink_problems(self, options: MavlinkSinkOptions, mapping: str | None) -> CheckResult:
+        return sink_problems(options, mapping)
 
-    def exclusive_resource(self, settings: Mapping[str, Any]) -> str | None:
-        return _settings.exclusive_resource(settings)
+    def exclusive_resource(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> str | None:
+        options, _ = typed_or_problem(MavlinkConnectionOptions, settings)
+        return _settings.exclusive_resource(options) if options is not None else None
 
-    def key_files(self, settings: Mapping[str, Any]) -> Iterable[str]:
-        return _settings.key_files(settings)
+    def key_files(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> Iterable[str]:
+        options, _ = typed_or_problem(MavlinkConnectionOptions, settings)
+        return _settings.key_files(options) if options is not None else []
 
-    def connect(self, name: str, settings: Mapping[str, Any]) -> MavlinkConnection:
+    def connect(self, name: str, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> MavlinkConnection:
         return MavlinkConnection(name, settings)
 
 

@@ -9,9 +9,11 @@ from typing import Any
 import jmespath
 from jmespath import exceptions as jmespath_errors
 
-from engine.endpoints.base import EndpointError
+from engine.endpoints.base import EndpointError, typed_or_problem
 from engine.endpoints.mavlink.codec import MESSAGES
+from engine.endpoints.mavlink.options import MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.transaction import TransactionOptions
+from engine.options import given
 
 _SENDER = {"system_id", "component_id"}
 _TARGET = {"target_system", "target_component"}
@@ -43,55 +45,43 @@ _APPLIES_TO = {
 ACKNOWLEDGED_MESSAGES = ("COMMAND_LONG", "COMMAND_INT")
 
 
-def _int_option(options: Mapping[str, Any], key: str, low: int, high: int) -> Iterator[tuple[str, str]]:
-    if key in options:
-        value = options[key]
-        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-            yield key, f"{key} must be an integer {low}..{high}"
-
-
-def _common_problems(options: Mapping[str, Any], used: set[str], kind: str) -> Iterator[tuple[str | None, str]]:
+def _common_problems(options: MavlinkSourceOptions, used: set[str], kind: str) -> Iterator[tuple[str | None, str]]:
     yield from _unused(options, used, kind)
-    for key in ("system_id", "component_id", "target_system", "target_component"):
-        yield from _int_option(options, key, 0, 255)
-    yield from _int_option(options, "payload_type", 32768, 65535)
-    name = options.get("message")
+    name = options.message
     if name is not None and name not in MESSAGES:
         yield "message", f"unknown MAVLink message {name!r} (dialect: common)"
 
 
-def _unused(options: Mapping[str, Any], used: set[str], kind: str) -> Iterator[tuple[str | None, str]]:
-    """Every option this kind of endpoint does not read: unknown, or meant for another kind."""
-    for key in sorted(set(options) - used - {"connection"}):
+def _unused(options: MavlinkSourceOptions, used: set[str], kind: str) -> Iterator[tuple[str | None, str]]:
+    """Every option written that this kind of endpoint does not read (meant for another kind)."""
+    for key in sorted(given(options) - used - {"connection"}):
         if key in _APPLIES_TO:
             yield key, f"{key!r} is not used by a {kind}: it applies to {_APPLIES_TO[key]}"
         else:
             yield key, f"unknown option {key!r}"
 
 
-def check_source_options(options: Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
-    if options.get("json_tunnel"):
+def source_problems(options: MavlinkSourceOptions) -> list[tuple[str | None, str]]:
+    if options.json_tunnel:
         problems = list(_common_problems(options, _TUNNEL_SOURCE, "json_tunnel source"))
         return [("message", "a json_tunnel source reads TUNNEL frames; drop 'message'") if key == "message" else (key, text)
                 for key, text in problems]
     return list(_common_problems(options, _MESSAGE_SOURCE, "message source"))
 
 
-def check_sink_options(options: Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
-    if "mission" in options:
+def sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tuple[str | None, str]]:
+    if "mission" in given(options):
         return _mission_problems(options, mapping)
-    if options.get("json_tunnel"):
+    if options.json_tunnel:
         return list(_common_problems(options, _TUNNEL_SINK, "json_tunnel sink"))
-    acknowledged = options.get("acknowledged") is True
+    acknowledged = options.acknowledged
     problems = list(_common_problems(options, _COMMAND_SINK if acknowledged else _MESSAGE_SINK,
                                      "acknowledged command sink" if acknowledged else "message sink"))
-    if "acknowledged" in options:
-        if not isinstance(options["acknowledged"], bool):
-            problems.append(("acknowledged", "acknowledged must be true or false"))
-        elif options["acknowledged"] and options.get("message") not in ACKNOWLEDGED_MESSAGES:
+    if "acknowledged" in given(options):
+        if options.acknowledged and options.message not in ACKNOWLEDGED_MESSAGES:
             problems.append(("acknowledged", "acknowledged applies to COMMAND_LONG and COMMAND_INT sinks"))
         problems += TransactionOptions.parse(options)[1]
-    name = options.get("message")
+    name = options.message
     if name is None:
         problems.append((None, "a mavlink sink needs 'message' (or json_tunnel: true)"))
         return problems
@@ -99,7 +89,7 @@ def check_sink_options(options: Mapping[str, Any], mapping: str | None) -> list[
     if cls is None:
         return problems
     for key in ("target_system", "target_component"):
-        if key in options and key not in cls.fieldnames:
+        if key in given(options) and key not in cls.fieldnames:
             problems.append((key, f"{name} has no field {key!r}"))
     for key in _mapping_keys(mapping):
         if key not in cls.fieldnames:
@@ -108,9 +98,9 @@ def check_sink_options(options: Mapping[str, Any], mapping: str | None) -> list[
     return problems
 
 
-def _mission_problems(options: Mapping[str, Any], mapping: str | None) -> list[tuple[str | None, str]]:
+def _mission_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tuple[str | None, str]]:
     problems: list[tuple[str | None, str]] = list(_unused(options, _MISSION_OPTIONS, "mission sink"))
-    if options["mission"] != "upload":
+    if options.mission != "upload":
         problems.append(("mission", "mission must be 'upload'"))
     problems += TransactionOptions.parse(options)[1]
     for key in _mapping_keys(mapping):
@@ -130,6 +120,22 @@ def _mapping_keys(mapping: str | None) -> list[str]:
     if node.get("type") != "multi_select_dict":
         return []
     return [child["value"] for child in node["children"] if child.get("type") == "key_val_pair"]
+
+
+def source_options(route: str, options: MavlinkSourceOptions | Mapping[str, Any]) -> MavlinkSourceOptions:
+    """The typed options of a source about to be built; EndpointError lists every problem."""
+    parsed, problems = typed_or_problem(MavlinkSourceOptions, options)
+    raise_problems(route, "source", problems or source_problems(parsed))  # type: ignore[arg-type]
+    assert parsed is not None
+    return parsed
+
+
+def sink_options(route: str, options: MavlinkSinkOptions | Mapping[str, Any]) -> MavlinkSinkOptions:
+    """The typed options of a sink about to be built; EndpointError lists every problem."""
+    parsed, problems = typed_or_problem(MavlinkSinkOptions, options)
+    raise_problems(route, "sink", problems or sink_problems(parsed, None))  # type: ignore[arg-type]
+    assert parsed is not None
+    return parsed
 
 
 def raise_problems(route: str, side: str, problems: list[tuple[str | None, str]]) -> None:

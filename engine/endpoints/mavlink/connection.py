@@ -15,14 +15,15 @@ from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from engine.endpoints.base import Connection, EndpointError, Sink, Source
-from engine.endpoints.mavlink.checks import check_sink_options, check_source_options, raise_problems
+from engine.endpoints.base import Connection, EndpointError, Sink, Source, typed
+from engine.endpoints.mavlink.checks import sink_options, source_options
 from engine.endpoints.mavlink.codec import MESSAGES, TUNNEL, mavlink2
 from engine.endpoints.mavlink.enums import enum_name
 from engine.endpoints.mavlink.messages import MessageSource, sink_for
 from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
+from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.settings import settings_problems
-from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelHub, TunnelSink, TunnelSource
+from engine.endpoints.mavlink.tunnel import TunnelHub, TunnelSink, TunnelSource
 
 HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
 
@@ -53,11 +54,11 @@ class VehicleSeen:
 class MavlinkConnection(Connection):
     """One MAVLink link shared by every route that names it."""
 
-    def __init__(self, name: str, settings: Mapping[str, Any]) -> None:
-        super().__init__(name, settings)
+    def __init__(self, name: str, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> None:
         config, problems = settings_problems(settings)
         if config is None or problems:
             raise EndpointError(f"mavlink connection {name!r}: " + "; ".join(m for _, m in problems))
+        super().__init__(name, typed(MavlinkConnectionOptions, settings, f"mavlink connection {name!r}"))
         self.config = config
         self.stats: dict[str, int] = dict.fromkeys(_STATS, 0)
         self.port = MavlinkPort(name, config, self._on_message, self.stats)
@@ -108,20 +109,19 @@ class MavlinkConnection(Connection):
         self._tasks = []
         await self.port.close()
 
-    def source(self, route: str, options: Mapping[str, Any]) -> Source:
-        raise_problems(route, "source", check_source_options(options, None))
-        if options.get("json_tunnel"):
-            return TunnelSource(self.hub, route=route, payload_type=options.get("payload_type", DEFAULT_PAYLOAD_TYPE),
-                                system_id=options.get("system_id"), component_id=options.get("component_id"))
-        name = options.get("message")
-        return MessageSource(self, route, MESSAGES[name].id if name else None,
-                             options.get("system_id"), options.get("component_id"))
+    def source(self, route: str, options: MavlinkSourceOptions | Mapping[str, Any]) -> Source:
+        options = source_options(route, options)
+        if options.json_tunnel:
+            return TunnelSource(self.hub, route=route, payload_type=options.payload_type,
+                                system_id=options.system_id, component_id=options.component_id)
+        name = options.message
+        return MessageSource(self, route, MESSAGES[name].id if name else None, options.system_id, options.component_id)
 
-    def sink(self, route: str, options: Mapping[str, Any]) -> Sink:
-        raise_problems(route, "sink", check_sink_options(options, None))
-        target = (options.get("target_system", 0), options.get("target_component", 0))
-        if options.get("json_tunnel"):
-            return TunnelSink(self.hub, payload_type=options.get("payload_type", DEFAULT_PAYLOAD_TYPE), target=target)
+    def sink(self, route: str, options: MavlinkSinkOptions | Mapping[str, Any]) -> Sink:
+        options = sink_options(route, options)
+        if options.json_tunnel:
+            target = (options.target_system or 0, options.target_component or 0)
+            return TunnelSink(self.hub, payload_type=options.payload_type, target=target)
         return sink_for(self, route, options)
 
     # writing

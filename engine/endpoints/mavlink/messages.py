@@ -18,6 +18,7 @@ from engine.endpoints.mavlink.transaction import TransactionOptions
 
 if TYPE_CHECKING:
     from engine.endpoints.mavlink.connection import MavlinkConnection
+    from engine.endpoints.mavlink.options import MavlinkSinkOptions
 
 MISSION_ACK = mavlink2.MAVLINK_MSG_ID_MISSION_ACK
 BATCH = 256
@@ -145,12 +146,16 @@ class MessageSink(Sink):
 
 
 
-def sink_for(connection: MavlinkConnection, route: str, options: Mapping[str, Any]) -> Sink:
+def sink_for(connection: MavlinkConnection, route: str, options: MavlinkSinkOptions) -> Sink:
     """The sink the (already checked) options describe."""
-    if "mission" in options:
+    if options.mission is not None:
         return MissionUploadSink(connection, TransactionOptions.parse(options)[0])
-    cls = MESSAGES[options["message"]]
-    if options.get("acknowledged"):
+    cls = MESSAGES[options.message]
+    if options.acknowledged:
         return AcknowledgedCommandSink(connection, cls, TransactionOptions.parse(options)[0])
-    defaults = {key: options[key] for key in ("target_system", "target_component") if key in options}
-    return MessageSink(connection, cls, defaults)
+    return MessageSink(connection, cls, message_defaults(options))
+
+
+def message_defaults(options: MavlinkSinkOptions) -> dict[str, int]:
+    """The target fields a message sink fills in when the mapping does not."""
+    return {key: getattr(options, key) for key in ("target_system", "target_component") if getattr(options, key) is not None}

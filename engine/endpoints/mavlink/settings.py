@@ -7,7 +7,6 @@ field; the connection itself is built from the resulting :class:`LinkConfig`.
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 import termios
 from collections.abc import Mapping
@@ -15,12 +14,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from engine.endpoints.base import typed_or_problem
 from engine.endpoints.mavlink.codec import MESSAGES, RADIO_STATUS, mavlink2
+from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSigning
 from engine.endpoints.mavlink.tunnel import TunnelSettings
-
-_SETTINGS = {"url", "baud", "source_system", "source_component", "signing", "rate", "heartbeat", "mav_type", "tunnel"}
-_SIGNING = {"key_file", "key_env", "link_id", "timestamp_file", "allow_unsigned"}
-
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,13 +62,13 @@ def parse_address(url: Any, baud: Any = None) -> Address:
     return Address("serial", device=device, baud=baud)
 
 
-def exclusive_resource(settings: Mapping[str, Any]) -> str | None:
+def exclusive_resource(settings: MavlinkConnectionOptions) -> str | None:
     """What only one open connection can hold: a listening port (``udpin`` -> ``udp:PORT``,
     ``tcpin`` -> ``tcp:PORT``, whatever the host, port 0 excepted) or a serial device
     (``serial:<real path>``: two readers would split the bytes); None for clients and for
     settings :func:`parse_address` rejects (``check`` reports those)."""
     try:
-        address = parse_address(settings.get("url"), settings.get("baud"))
+        address = parse_address(settings.url, settings.baud)
     except ValueError:
         return None
     if address.kind in ("udpin", "tcpin") and address.port:
@@ -81,12 +78,12 @@ def exclusive_resource(settings: Mapping[str, Any]) -> str | None:
     return None
 
 
-def key_files(settings: Mapping[str, Any]) -> list[str]:
+def key_files(settings: MavlinkConnectionOptions) -> list[str]:
     """The signing key file the connection reads when it opens (a reload reopens the
     connection when its contents change)."""
-    signing = settings.get("signing")
-    if isinstance(signing, Mapping) and isinstance(signing.get("key_file"), str):
-        return [str(Path(signing["key_file"]).expanduser())]
+    signing = settings.signing
+    if signing is not None and signing.key_file is not None:
+        return [str(Path(signing.key_file).expanduser())]
     return []
 
 
@@ -98,38 +95,28 @@ class SigningConfig:
     allow_unsigned: frozenset[int] = frozenset({RADIO_STATUS})
 
 
-def load_signing(raw: Any) -> SigningConfig:
+def load_signing(raw: MavlinkSigning) -> SigningConfig:
     """Read the 32-byte key (raw or 64 hex digits) from ``key_file`` or ``key_env``."""
-    if not isinstance(raw, Mapping):
-        raise ValueError("signing must be a mapping")
-    unknown = set(raw) - _SIGNING
-    if unknown:
-        raise ValueError(f"unknown signing setting(s): {', '.join(sorted(unknown))}")
-    if ("key_file" in raw) == ("key_env" in raw):
+    if (raw.key_file is None) == (raw.key_env is None):
         raise ValueError("signing key missing: give exactly one of key_file, key_env")
-    if "key_file" in raw:
-        path = Path(str(raw["key_file"])).expanduser()
+    if raw.key_file is not None:
+        path = Path(raw.key_file).expanduser()
         try:
             data = path.read_bytes()
         except OSError as exc:
             raise ValueError(f"signing key missing: cannot read key_file {str(path)!r} ({exc.strerror})") from None
         key = _decode_key(data, f"key_file {str(path)!r}")
     else:
-        value = os.environ.get(str(raw["key_env"]))
+        value = os.environ.get(str(raw.key_env))
         if not value:
-            raise ValueError(f"signing key missing: environment variable {raw['key_env']!r} is not set")
-        key = _decode_key(value.encode(), f"environment variable {raw['key_env']!r}")
-    link_id = raw.get("link_id", 0)
-    if isinstance(link_id, bool) or not isinstance(link_id, int) or not 0 <= link_id <= 255:
-        raise ValueError("signing.link_id must be 0..255")
-    stamp = raw.get("timestamp_file")
-    stamp_path = Path(str(stamp)).expanduser() if stamp else None
+            raise ValueError(f"signing key missing: environment variable {raw.key_env!r} is not set")
+        key = _decode_key(value.encode(), f"environment variable {raw.key_env!r}")
+    stamp_path = Path(raw.timestamp_file).expanduser() if raw.timestamp_file else None
     if stamp_path is not None and not stamp_path.parent.is_dir():
         raise ValueError(f"signing.timestamp_file: directory {str(stamp_path.parent)!r} does not exist")
-    allowed = raw.get("allow_unsigned", ["RADIO_STATUS"])
-    if not isinstance(allowed, list) or any(name not in MESSAGES for name in allowed):
+    if any(name not in MESSAGES for name in raw.allow_unsigned):
         raise ValueError("signing.allow_unsigned must be a list of MAVLink message names")
-    return SigningConfig(key, link_id, stamp_path, frozenset(MESSAGES[name].id for name in allowed))
+    return SigningConfig(key, raw.link_id, stamp_path, frozenset(MESSAGES[name].id for name in raw.allow_unsigned))
 
 
 def _decode_key(data: bytes, where: str) -> bytes:
@@ -162,44 +149,33 @@ class LinkConfig:
         return self.rate / 2 if self.address.kind == "serial" else 0.0
 
 
-def settings_problems(settings: Mapping[str, Any]) -> tuple[LinkConfig | None, list[tuple[str | None, str]]]:
-    """Parse connection settings, collecting every problem with the key it belongs to."""
-    problems: list[tuple[str | None, str]] = []
-    for key in sorted(set(settings) - _SETTINGS):
-        problems.append((key, f"unknown setting {key!r}"))
+def settings_problems(
+    settings: MavlinkConnectionOptions | Mapping[str, Any],
+) -> tuple[LinkConfig | None, list[tuple[str | None, str]]]:
+    """Resolve connection settings into a :class:`LinkConfig`, collecting every problem with
+    the key it belongs to (the address, the signing key, the tunnel's timing)."""
+    options, problems = typed_or_problem(MavlinkConnectionOptions, settings)
+    if options is None:
+        return None, problems
     address = None
     try:
-        address = parse_address(settings.get("url"), settings.get("baud"))
+        address = parse_address(options.url, options.baud)
     except ValueError as exc:
         problems.append(("baud" if "baud" in str(exc) else "url", str(exc)))
-    values: dict[str, Any] = {}
-    for key, low, high in (("source_system", 1, 255), ("source_component", 0, 255), ("mav_type", 0, 255)):
-        if key in settings:
-            value = settings[key]
-            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-                problems.append((key, f"{key} must be an integer {low}..{high}"))
-            else:
-                values[key] = value
-    for key in ("rate", "heartbeat"):
-        if key in settings:
-            value = settings[key]
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0 or not math.isfinite(value):
-                problems.append((key, f"{key} must be a non-negative number"))
-            else:
-                values[key] = float(value)
-    if settings.get("signing") is not None:
+    signing = None
+    if options.signing is not None:
         try:
-            values["signing"] = load_signing(settings["signing"])
+            signing = load_signing(options.signing)
         except ValueError as exc:
             problems.append(("signing", str(exc)))
-    if address is not None:
-        try:
-            values["tunnel"] = TunnelSettings.from_settings(settings.get("tunnel"), serial=address.kind == "serial")
-        except ValueError as exc:
-            problems.append(("tunnel", str(exc)))
-        if "rate" not in values and address.kind == "serial":
-            values["rate"] = address.baud / 10
-    if problems or address is None:
+    if address is None:
         return None, problems
-    return LinkConfig(address, **values), problems
-
+    try:
+        tunnel = TunnelSettings.from_settings(options.tunnel, serial=address.kind == "serial")
+    except ValueError as exc:
+        problems.append(("tunnel", str(exc)))
+    if problems:
+        return None, problems
+    rate = options.rate if options.rate is not None else (address.baud / 10 if address.kind == "serial" else 0.0)
+    return LinkConfig(address, options.source_system, options.source_component, signing, float(rate),
+                      float(options.heartbeat), options.mav_type, tunnel), problems

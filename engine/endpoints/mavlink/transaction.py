@@ -9,14 +9,16 @@ item timeout would fire on every item; serial links wait 1.5 s per answer (MAVRO
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.mavlink.codec import mavlink2
+from engine.options import given
 
 if TYPE_CHECKING:
     from engine.endpoints.mavlink.connection import MavlinkConnection
+    from engine.endpoints.mavlink.options import MavlinkSinkOptions
 
 SERIAL_TIMEOUT = 1.5
 NETWORK_TIMEOUT = 0.5
@@ -42,27 +44,26 @@ class TransactionOptions:
     mission_type: int = mavlink2.MAV_MISSION_TYPE_MISSION
 
     @classmethod
-    def parse(cls, options: Mapping[str, Any]) -> tuple[TransactionOptions, list[tuple[str | None, str]]]:
+    def parse(cls, options: MavlinkSinkOptions) -> tuple[TransactionOptions, list[tuple[str | None, str]]]:
+        """The transaction settings a sink's typed options give (what is not given keeps the
+        defaults above), with the problems of the values out of range."""
         values: dict[str, Any] = {}
         problems: list[tuple[str | None, str]] = []
+        written = given(options)
         for key, kind, low in (("timeout", float, 0.05), ("retries", int, 0), ("vehicle_timeout", float, 0.0),
                                ("in_progress_timeout", float, 0.0), ("retry_delay", float, 0.0),
                                ("default_alt", float, -1e6), ("target_system", int, 1), ("target_component", int, 0)):
-            if key in options:
-                value = options[key]
-                if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and not isinstance(value, int)) \
-                        or value < low:
+            if key in written:
+                value = getattr(options, key)
+                if value < low:
                     problems.append((key, f"{key} must be {'an integer' if kind is int else 'a number'} >= {low}"))
                 else:
                     values[key] = kind(value)
-        if "home_placeholder" in options:
-            if not isinstance(options["home_placeholder"], bool):
-                problems.append(("home_placeholder", "home_placeholder must be true or false"))
-            else:
-                values["home_placeholder"] = options["home_placeholder"]
-        if "mission_type" in options:
+        if "home_placeholder" in written:
+            values["home_placeholder"] = options.home_placeholder
+        if options.mission_type is not None:
             names = {entry.name: value for value, entry in mavlink2.enums["MAV_MISSION_TYPE"].items()}
-            value = options["mission_type"]
+            value = options.mission_type
             value = names.get(value, names.get(f"MAV_MISSION_TYPE_{str(value).upper()}", value))
             if value not in (0, 1, 2):
                 problems.append(("mission_type", "mission_type must be MAV_MISSION_TYPE_MISSION, _FENCE or _RALLY"))

@@ -461,16 +461,15 @@ class TunnelSettings:
 
     @classmethod
     def from_settings(cls, raw: Any, *, serial: bool) -> TunnelSettings:
+        """The link's defaults with what ``raw`` (the typed ``tunnel:`` options) sets."""
         base = cls() if serial else cls(rto_min=0.2, sack_delay=0.1)
-        if not raw:
+        if raw is None:
             return base
-        if not isinstance(raw, dict):
-            raise ValueError("'tunnel' must be a mapping")
-        unknown = set(raw) - set(cls.__slots__)
-        if unknown:
-            raise ValueError(f"unknown tunnel setting(s): {', '.join(sorted(unknown))}")
         values = {name: getattr(base, name) for name in cls.__slots__}
-        for name, value in raw.items():
+        for name in cls.__slots__:
+            value = getattr(raw, name)
+            if value is None:
+                continue
             kind = type(values[name])
             if isinstance(value, bool) or not isinstance(value, (int, float)) or (kind is int and not isinstance(value, int)):
                 raise ValueError(f"tunnel.{name} must be a {kind.__name__}")

@@ -1,0 +1,123 @@
+"""The route-file JSON Schema, generated from the option declarations (engine/options.py).
+
+Every key a route file may hold is declared once, as a field of an option class: each
+protocol's connection, source and sink options (``Transport.connection_options``,
+``source_options``, ``sink_options``), and the route file's own keys (engine/routes.py
+``RouteOptions``, ``ConnectionLimits``, ``LeaseOptions``; ``BufferOptions``,
+``ThrottleOptions``, ``DeadLettersOptions`` in the modules that use them). This module puts
+them together into ``engine/route_file.schema.json``, which the loader validates with (so
+editors and ``check`` agree) and which ships with the package; ``tests/test_route_schema.py``
+fails when the shipped file is not what this module generates.
+
+    python -m engine.route_schema --write     # regenerate engine/route_file.schema.json
+    python -m engine.route_schema --check     # exit 1 if the shipped file is stale
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from engine import endpoints
+from engine.delivery import DeadLettersOptions
+from engine.endpoints.base import Transport
+from engine.options import property_schema, schema
+from engine.routes import ENDPOINT_DESCRIPTION, NAME_PATTERN, ConnectionLimits, RouteOptions
+
+SCHEMA_PATH = Path(__file__).with_name("route_file.schema.json")
+REGENERATE = "python -m engine.route_schema --write"
+
+
+def _transports() -> list[Transport]:
+    return [endpoints.transport(protocol) for protocol in endpoints.PROTOCOLS]
+
+
+def _connection_entry(transports: list[Transport]) -> dict[str, Any]:
+    """``connections.<name>``: one protocol key (its options, or the shorthand string) and
+    the keys beside it (a protocol's ``options_beside``, and :class:`ConnectionLimits`)."""
+    properties: dict[str, Any] = {}
+    beside: dict[str, Any] = {}
+    for transport in transports:
+        cls = transport.connection_options
+        if transport.options_beside:
+            shorthand = transport.connection_shorthand or ""
+            properties[transport.name] = property_schema(cls, shorthand)
+            beside.update({name: prop for name, prop in schema(cls)["properties"].items() if name != shorthand})
+        elif transport.connection_shorthand:
+            properties[transport.name] = {"anyOf": [{"type": "string"}, schema(cls)]}
+        else:
+            properties[transport.name] = schema(cls)
+    properties.update(beside)
+    properties.update(schema(ConnectionLimits)["properties"])
+    return {
+        "type": "object",
+        "additionalProperties": False,
+        "minProperties": 1,
+        "description": ENDPOINT_DESCRIPTION,
+        "properties": properties,
+    }
+
+
+def _endpoint(transports: list[Transport], side: str) -> dict[str, Any]:
+    """``source:`` or ``sink:``: exactly one protocol key with that protocol's options; a sink
+    also has ``mapping`` (the sink mapping)."""
+    properties = {t.name: schema(t.source_options if side == "source" else t.sink_options) for t in transports}
+    if side == "sink":
+        properties["mapping"] = schema(RouteOptions)["properties"]["mapping"]
+    return {"type": "object", "additionalProperties": False, "properties": properties,
+            "description": ENDPOINT_DESCRIPTION}
+
+
+def route_file_schema() -> dict[str, Any]:
+    """The whole route-file schema (draft 2020-12)."""
+    transports = _transports()
+    route = schema(RouteOptions)
+    route["properties"]["source"] = _endpoint(transports, "source")
+    route["properties"]["sink"] = _endpoint(transports, "sink")
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": "https://rabbitros.dev/schemas/route-file.json",
+        "title": "RabbitROS engine route file",
+        "type": ["object", "null"],
+        "additionalProperties": False,
+        "properties": {
+            "connections": {
+                "type": "object",
+                "propertyNames": {"type": "string", "pattern": NAME_PATTERN},
+                "additionalProperties": _connection_entry(transports),
+            },
+            "dead_letters": schema(DeadLettersOptions),
+            "routes": {"type": "array", "items": route},
+        },
+    }
+
+
+def render() -> str:
+    return json.dumps(route_file_schema(), indent=2, ensure_ascii=False) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m engine.route_schema", description=__doc__.split("\n\n")[0])
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--write", action="store_true", help=f"write {SCHEMA_PATH.name}")
+    group.add_argument("--check", action="store_true", help="exit 1 if the shipped schema is stale")
+    args = parser.parse_args(argv)
+    text = render()
+    if args.write:
+        SCHEMA_PATH.write_text(text, encoding="utf-8")
+        print(f"wrote {SCHEMA_PATH}")
+        return 0
+    if args.check:
+        if SCHEMA_PATH.read_text(encoding="utf-8") != text:
+            print(f"{SCHEMA_PATH} is stale; regenerate it with: {REGENERATE}", file=sys.stderr)
+            return 1
+        return 0
+    sys.stdout.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
