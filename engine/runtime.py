@@ -414,6 +414,7 @@ class Engine:
                 log.exception("loading the routes failed")
                 return self._rejected([f"{self.routes_dir}: cannot load: {type(error).__name__}: {error}"])
             if self.config is not None and config.content_hash == self.config.content_hash:
+                self.reloads.last_error = []  # the files are back to what runs
                 return True
             try:
                 await self._apply(config, schemas)
@@ -443,6 +444,11 @@ class Engine:
         return False
 
     def _rejected(self, problems: list[str]) -> bool:
+        """Count and report a rejected reload, once per rejection: the same problems found again
+        with nothing applied in between (an editor's save seen as two changes, a SIGHUP) are
+        the same rejected files, not a new rejection."""
+        if problems == self.reloads.last_error:
+            return False
         self.reloads.rejected += 1
         self.reloads.last_error = problems
         log.error(

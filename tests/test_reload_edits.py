@@ -323,3 +323,30 @@ def test_a_new_signing_key_written_over_the_key_file_takes_effect(amqp_url: str,
     live_s, status = engine.run(scenario)
     print(f"new signing key to first delivery: {live_s * 1e3:.0f} ms")
     assert status["generation"] == 2 and status["reloads"]["succeeded"] == 1
+
+
+def test_the_same_broken_files_found_again_are_one_rejection(amqp_url: str, tmp_path: Path, schemas_dir: Path,
+                                                             monkeypatch: pytest.MonkeyPatch):
+    """An editor's save is often seen as two changes; a rejection is counted once per broken
+    state of the files, and reverting to what runs clears the error."""
+    monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
+    routes, schemas = workspace(tmp_path, schemas_dir, PROBE_ROUTE.format(**names()))
+    good = (routes / "probe.yaml").read_text()
+
+    async def scenario() -> None:
+        engine = Engine(routes, schemas)
+        await engine.start()
+        try:
+            (routes / "probe.yaml").write_text(good.replace("schema: probe", "schema: [probe"))
+            assert not await engine.reload() and not await engine.reload()
+            assert engine.reloads.rejected == 1 and "probe.yaml:" in engine.reloads.last_error[0]
+            (routes / "probe.yaml").write_text(good)
+            assert await engine.reload()
+            assert engine.reloads.last_error == [] and engine.generation == 1, "reverting is not a change"
+            (routes / "probe.yaml").write_text(good.replace("schema: probe", "schema: [probe"))
+            assert not await engine.reload()
+            assert engine.reloads.rejected == 2
+        finally:
+            await engine.stop()
+
+    asyncio.run(scenario())
