@@ -84,6 +84,8 @@ BATTERY_PERCENT_PER_S = 1 / 36
 PRIVATE_TUNNEL_TYPE_MIN = 32768
 ECHO_ATTEMPTS = 3
 """Times a JSON echo is offered again after the tunnel gave up on it (a long outage)."""
+ECHO_BATCH = 64
+"""Most stored messages one echo worker sends back together."""
 GCS_ADDRESS = (255, 190)
 """The engine's default MAVLink system and component: where unsolicited JSON goes."""
 
@@ -300,22 +302,30 @@ class SimVehicle:
         self._echoes.put_nowait(((inbound.meta["system_id"], inbound.meta["component_id"]), body))
 
     async def _echo_worker(self) -> None:
-        """Send stored messages back, each as a new reliable message to the peer it came from."""
+        """Send stored messages back, each as a new reliable message to the peer it came from;
+        what queued up meanwhile goes together (the tunnel bundles it), as the engine's sink does."""
         assert self._hub is not None
         while True:
-            peer, body = await self._echoes.get()
-            sink = self._sinks.get(peer)
-            if sink is None:
-                sink = self._sinks[peer] = TunnelSink(self._hub, payload_type=self.payload_type, target=peer)
-            for _ in range(ECHO_ATTEMPTS):
-                try:
-                    await sink.send_bytes(body)
-                except EndpointError:
-                    continue
-                self._stats.json_echoed += 1
-                break
-            else:
-                self._stats.json_echo_failed += 1
+            batch = [await self._echoes.get()]
+            while not self._echoes.empty() and len(batch) < ECHO_BATCH:
+                batch.append(self._echoes.get_nowait())
+            by_peer: dict[tuple[int, int], list[bytes]] = {}
+            for peer, body in batch:
+                by_peer.setdefault(peer, []).append(body)
+            await asyncio.gather(*(self._echo_json(peer, bodies) for peer, bodies in by_peer.items()))
+
+    async def _echo_json(self, peer: tuple[int, int], bodies: list[bytes]) -> None:
+        assert self._hub is not None
+        sink = self._sinks.get(peer)
+        if sink is None:
+            sink = self._sinks[peer] = TunnelSink(self._hub, payload_type=self.payload_type, target=peer)
+        for _ in range(ECHO_ATTEMPTS):
+            results = await sink.send_many(bodies)
+            self._stats.json_echoed += results.count(None)
+            bodies = [body for body, error in zip(bodies, results) if error is not None]
+            if not bodies:
+                return
+        self._stats.json_echo_failed += len(bodies)
 
     async def _weed_detector(self, every: float) -> None:
         """The UAV's onboard detector of the farm demo: every ``every`` s, the weeds under the
