@@ -145,6 +145,25 @@ def expected_state(t: float) -> dict[str, Any]:
     }
 
 
+def telemetry(ms: int, with_slow: bool) -> list[Any]:
+    """The vehicle's streams at ``ms`` after boot: GLOBAL_POSITION_INT and ATTITUDE, plus
+    HEARTBEAT and SYS_STATUS first when ``with_slow`` (once a second)."""
+    s = expected_state(ms / 1000)
+    out: list[Any] = []
+    if with_slow:
+        mode = mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
+        out.append(mavlink2.MAVLink_heartbeat_message(
+            mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC, mode, 0, mavlink2.MAV_STATE_ACTIVE, 3))
+        out.append(mavlink2.MAVLink_sys_status_message(
+            _SENSORS, _SENSORS, _SENSORS, 250, s["voltage_battery"], s["current_battery"],
+            s["battery_remaining"], 0, 0, 0, 0, 0, 0))
+    out.append(mavlink2.MAVLink_global_position_int_message(
+        ms, s["lat"], s["lon"], s["alt"], s["relative_alt"], s["vx"], s["vy"], s["vz"], s["hdg"]))
+    out.append(mavlink2.MAVLink_attitude_message(
+        ms, s["roll"], s["pitch"], s["yaw"], s["rollspeed"], s["pitchspeed"], s["yawspeed"]))
+    return out
+
+
 def open_serial(path: str, baud: int = 57600) -> int:
     """Open a serial device (or pty) raw and non-blocking, as the engine's serial link does."""
     fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
@@ -246,20 +265,8 @@ class SimVehicle:
 
     def send_telemetry(self, now: float, with_slow: bool) -> None:
         """Send the 4 Hz pair, plus HEARTBEAT and SYS_STATUS when ``with_slow``."""
-        ms = self.time_boot_ms(now)
-        s = expected_state(ms / 1000)
-        post = self.port.post
-        if with_slow:
-            mode = mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
-            post(mavlink2.MAVLink_heartbeat_message(
-                mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC, mode, 0, mavlink2.MAV_STATE_ACTIVE, 3))
-            post(mavlink2.MAVLink_sys_status_message(
-                _SENSORS, _SENSORS, _SENSORS, 250, s["voltage_battery"], s["current_battery"],
-                s["battery_remaining"], 0, 0, 0, 0, 0, 0))
-        post(mavlink2.MAVLink_global_position_int_message(
-            ms, s["lat"], s["lon"], s["alt"], s["relative_alt"], s["vx"], s["vy"], s["vz"], s["hdg"]))
-        post(mavlink2.MAVLink_attitude_message(
-            ms, s["roll"], s["pitch"], s["yaw"], s["rollspeed"], s["pitchspeed"], s["yawspeed"]))
+        for msg in telemetry(self.time_boot_ms(now), with_slow):
+            self.port.post(msg)
 
     def _on_message(self, msg: Any) -> None:
         """Every accepted frame: TUNNEL to the echo or the tunnel protocol, the rest to the autopilot."""
