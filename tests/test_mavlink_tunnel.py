@@ -532,6 +532,13 @@ def test_signed_round_trip_through_radio_and_simulated_vehicle(monkeypatch: pyte
     run(scenario(), timeout=60)
 
 
+async def stop_all(sources: list[Any], connections: list[mavlink.MavlinkConnection]) -> None:
+    for source in sources:
+        await source.stop()
+    for connection in connections:
+        await connection.close()
+
+
 def test_every_route_on_a_tunnel_gets_every_message_and_the_sender_waits_for_all() -> None:
     """Two routes read one payload type: one reassembly, each route gets each message once,
     and the sender's send returns only after both settled it; a route that fails gets the
@@ -553,10 +560,7 @@ def test_every_route_on_a_tunnel_gets_every_message_and_the_sender_waits_for_all
             assert flaky.calls == 4 and first.calls == 3, "the route that settled it is not given it again"
             assert uav.stats["tunnel_deliver_failed"] == 1 and uav.stats["tunnel_delivered"] == 3
         finally:
-            await a.stop()
-            await b.stop()
-            await gcs.close()
-            await uav.close()
+            await stop_all([a, b], [gcs, uav])
 
     run(scenario())
 
@@ -605,10 +609,7 @@ def test_a_batch_travels_as_bundles_and_each_message_is_settled_once_per_route()
             assert len(parts) == 10 and 2 <= len(transfers) <= 4, "2 KB bundles of ~320-byte messages"
             assert uav.stats["tunnel_deliver_failed"] == 1 and gcs.stats["tunnel_sent"] == 10
         finally:
-            await a.stop()
-            await b.stop()
-            await gcs.close()
-            await uav.close()
+            await stop_all([a, b], [gcs, uav])
 
     run(scenario())
 
