@@ -21,8 +21,9 @@ holds every fragment (the bitmap is then omitted), 2 = delivered; bit ``i`` of t
 Bundles: when a route hands the sink several messages at once (the link is busy, so they
 queued), consecutive ones are sent together as one BUNDLE of at most ``bundle`` bytes. The
 fragments then run full across message boundaries and one acknowledgement covers them all:
-a 250-byte message alone needs three fragments (254 bytes with its CRC), and a SiK radio's
-TDM window holds six full ones, so without bundles it carries two such messages per window.
+a 250-byte message alone needs three fragments (254 bytes with its CRC) and a SiK radio's
+TDM window holds five or six, so without bundles two such messages cross per window; eight
+in a bundle take 21 fragments.
 Each message of a bundle is delivered to the routes on its own, and the bundle is
 acknowledged DELIVERED once every route settled every one of them.
 
