@@ -96,7 +96,7 @@ async def run(args: argparse.Namespace) -> Path:
         ("throughput", lambda: throughput(broker, args.count, args.mavlink_rates, args.half_rate_seconds)),
         ("sizes", lambda: sections.throughput_by_size(broker, [50, 250, 1000, 4000], args.count)),
         ("routes", lambda: sections.many_routes(broker, [1, 100, 1000], args.count)),
-        ("sik", lambda: sections.sik_goodput(url, 120, 250)),
+        ("sik", lambda: sections.sik_goodput(url, args.sik_count, 250)),
     ]
     try:
         for name, step in steps:
@@ -131,6 +131,9 @@ def main() -> None:
     parser.add_argument("--mavlink-rates", type=lambda s: [int(x) for x in s.split(",")],
                         default=[1000, 2000, 3000, 4500, 6000, 8000], help="the MAVLink ladder (msg/s)")
     parser.add_argument("--half-rate-seconds", type=float, default=4.0)
+    parser.add_argument("--sik-count", type=int, default=400,
+                        help="250-byte messages through the emulated SiK radio (the link's fill and drain, a few "
+                             "seconds, weigh less the more there are)")
     parser.add_argument("--only", help=f"comma-separated sections of {', '.join(SECTIONS)}")
     parser.add_argument("--out", help="output directory (default bench/results/<date>)")
     parser.add_argument("--report-only", help="rewrite report.md and plots from this results.json")

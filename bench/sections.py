@@ -155,22 +155,79 @@ def link_payload_capacity() -> dict[str, float]:
     return {"payload_bytes_per_s": best[0], "tunnel_payload": best[1], "frames_per_packet": best[2]}
 
 
+def flood_capacity(payload: int, seconds: float = 10.0, warmup: float = 1.0, *,
+                   telemetry: bool = False) -> float:
+    """The reference: TUNNEL payload bytes/s one direction of the emulated radio carried in this
+    run when flooded with frames of ``payload`` bytes, its buffer kept backlogged (so every air
+    packet is as full as the frames allow) but never overflowing. With ``telemetry``, the
+    simulated vehicle's streams (4 Hz position and attitude, 1 Hz heartbeat and status, as on
+    the round trip's way back) share the link.
+
+    The constants' figure (:func:`link_payload_capacity`) assumes each air packet starts the
+    instant the window opens or the previous packet ends; the emulator starts it at its next
+    tick (4 ms, later on a loaded machine), often too late for the third full packet."""
+    import os
+    import select
+
+    from rabbitros_sim.sik_radio import SikRadioPair
+    from rabbitros_sim.vehicle import mavlink2, open_serial
+    from rabbitros_sim.vehicle import telemetry as streams
+
+    backlog = 1800  # bytes written but not yet on the air: below the radio's 2,048-byte buffer
+    mav = mavlink2.MAVLink(None, 1, 1)
+    parser = mavlink2.MAVLink(None)
+    parser.robust_parsing = True
+    frame = mavlink2.MAVLink_tunnel_message(255, 190, 0xA900, payload, [0xA5] * payload + [0] * (128 - payload))
+
+    def pack(msg: Any) -> bytes:
+        data: bytes = msg.pack(mav)
+        mav.seq = (mav.seq + 1) % 256
+        return data
+
+    with SikRadioPair(radio_status_interval=None) as pair:
+        tx, rx = open_serial(pair.link_a), open_serial(pair.link_b)
+        try:
+            written, carried, start, ticks = 0, 0, time.monotonic(), 0
+            while (now := time.monotonic()) < start + warmup + seconds:
+                while telemetry and now >= start + ticks * 0.25:
+                    written += sum(os.write(tx, pack(m)) for m in streams(ticks * 250, ticks % 4 == 0))
+                    ticks += 1
+                while written - pair.stats()["a"].air_bytes < backlog:
+                    written += os.write(tx, pack(frame))
+                if select.select([rx], [], [], 0.005)[0]:
+                    for msg in parser.parse_buffer(os.read(rx, 4096)) or ():
+                        if msg.get_type() == "TUNNEL" and now >= start + warmup:
+                            carried += msg.payload_length
+            assert pair.stats()["a"].serial_rx_dropped == 0, "the flood overflowed the radio's buffer"
+        finally:
+            os.close(tx)
+            os.close(rx)
+    return carried / seconds
+
+
 async def sik_goodput(url: str, count: int, size: int) -> dict[str, Any]:
     """The paper's MAVLink round trip (engine -> JSON tunnel -> radio -> vehicle and back) driven
     faster than the radio carries; goodput = JSON bytes per second each way, from the first
-    publish to the last message back, at 0 % loss."""
+    publish to the last message back, at 0 % loss; against the constants' capacity and the
+    flood reference measured in the same run (:func:`flood_capacity`)."""
     from bench.roundtrip_mavlink import Settings, run_experiment
 
+    capacity = link_payload_capacity()
+    payload = int(capacity["tunnel_payload"])
+    flood = {"flood_payload_bytes_per_s": await asyncio.to_thread(flood_capacity, payload),
+             "flood_with_telemetry_bytes_per_s": await asyncio.to_thread(flood_capacity, payload, telemetry=True)}
     with tempfile.TemporaryDirectory() as work:
         settings = Settings(runs=1, count=count, rate=40.0, sizes=(size,), loss=0.0, out=Path(work),
                             exchange=f"goodput-{uuid.uuid4().hex[:6]}")
         summary = await run_experiment(settings, amqp_url=url)
     batch = summary["batches"][0]
-    capacity = link_payload_capacity()
     goodput = batch["identical"] * size / batch["seconds"]
     return {"size": size, "sent": batch["sent"], "identical": batch["identical"], "seconds": batch["seconds"],
-            "goodput_bytes_per_s": goodput, **capacity,
-            "fraction_of_capacity": goodput / capacity["payload_bytes_per_s"], "radio": summary.get("radio")}
+            "goodput_bytes_per_s": goodput, **capacity, **flood,
+            "fraction_of_capacity": goodput / capacity["payload_bytes_per_s"],
+            "fraction_of_flood": goodput / flood["flood_payload_bytes_per_s"],
+            "fraction_of_flood_with_telemetry": goodput / flood["flood_with_telemetry_bytes_per_s"],
+            "radio": summary.get("radio"), "vehicle": summary.get("vehicle")}
 
 
-__all__ = ["asyncio", "link_payload_capacity", "many_routes", "paper_latency", "sik_goodput", "throughput_by_size"]
+__all__ = ["asyncio", "flood_capacity", "link_payload_capacity", "many_routes", "paper_latency", "sik_goodput", "throughput_by_size"]

@@ -84,6 +84,8 @@ BATTERY_PERCENT_PER_S = 1 / 36
 PRIVATE_TUNNEL_TYPE_MIN = 32768
 ECHO_ATTEMPTS = 3
 """Times a JSON echo is offered again after the tunnel gave up on it (a long outage)."""
+ECHO_BATCH = 64
+"""Most stored messages one echo worker sends back together."""
 GCS_ADDRESS = (255, 190)
 """The engine's default MAVLink system and component: where unsolicited JSON goes."""
 
@@ -141,6 +143,25 @@ def expected_state(t: float) -> dict[str, Any]:
         "current_battery": BATTERY_CURRENT_CA,
         "battery_remaining": max(0, 100 - int(t * BATTERY_PERCENT_PER_S)),
     }
+
+
+def telemetry(ms: int, with_slow: bool) -> list[Any]:
+    """The vehicle's streams at ``ms`` after boot: GLOBAL_POSITION_INT and ATTITUDE, plus
+    HEARTBEAT and SYS_STATUS first when ``with_slow`` (once a second)."""
+    s = expected_state(ms / 1000)
+    out: list[Any] = []
+    if with_slow:
+        mode = mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
+        out.append(mavlink2.MAVLink_heartbeat_message(
+            mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC, mode, 0, mavlink2.MAV_STATE_ACTIVE, 3))
+        out.append(mavlink2.MAVLink_sys_status_message(
+            _SENSORS, _SENSORS, _SENSORS, 250, s["voltage_battery"], s["current_battery"],
+            s["battery_remaining"], 0, 0, 0, 0, 0, 0))
+    out.append(mavlink2.MAVLink_global_position_int_message(
+        ms, s["lat"], s["lon"], s["alt"], s["relative_alt"], s["vx"], s["vy"], s["vz"], s["hdg"]))
+    out.append(mavlink2.MAVLink_attitude_message(
+        ms, s["roll"], s["pitch"], s["yaw"], s["rollspeed"], s["pitchspeed"], s["yawspeed"]))
+    return out
 
 
 def open_serial(path: str, baud: int = 57600) -> int:
@@ -244,20 +265,8 @@ class SimVehicle:
 
     def send_telemetry(self, now: float, with_slow: bool) -> None:
         """Send the 4 Hz pair, plus HEARTBEAT and SYS_STATUS when ``with_slow``."""
-        ms = self.time_boot_ms(now)
-        s = expected_state(ms / 1000)
-        post = self.port.post
-        if with_slow:
-            mode = mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
-            post(mavlink2.MAVLink_heartbeat_message(
-                mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC, mode, 0, mavlink2.MAV_STATE_ACTIVE, 3))
-            post(mavlink2.MAVLink_sys_status_message(
-                _SENSORS, _SENSORS, _SENSORS, 250, s["voltage_battery"], s["current_battery"],
-                s["battery_remaining"], 0, 0, 0, 0, 0, 0))
-        post(mavlink2.MAVLink_global_position_int_message(
-            ms, s["lat"], s["lon"], s["alt"], s["relative_alt"], s["vx"], s["vy"], s["vz"], s["hdg"]))
-        post(mavlink2.MAVLink_attitude_message(
-            ms, s["roll"], s["pitch"], s["yaw"], s["rollspeed"], s["pitchspeed"], s["yawspeed"]))
+        for msg in telemetry(self.time_boot_ms(now), with_slow):
+            self.port.post(msg)
 
     def _on_message(self, msg: Any) -> None:
         """Every accepted frame: TUNNEL to the echo or the tunnel protocol, the rest to the autopilot."""
@@ -300,22 +309,30 @@ class SimVehicle:
         self._echoes.put_nowait(((inbound.meta["system_id"], inbound.meta["component_id"]), body))
 
     async def _echo_worker(self) -> None:
-        """Send stored messages back, each as a new reliable message to the peer it came from."""
+        """Send stored messages back, each as a new reliable message to the peer it came from;
+        what queued up meanwhile goes together (the tunnel bundles it), as the engine's sink does."""
         assert self._hub is not None
         while True:
-            peer, body = await self._echoes.get()
-            sink = self._sinks.get(peer)
-            if sink is None:
-                sink = self._sinks[peer] = TunnelSink(self._hub, payload_type=self.payload_type, target=peer)
-            for _ in range(ECHO_ATTEMPTS):
-                try:
-                    await sink.send_bytes(body)
-                except EndpointError:
-                    continue
-                self._stats.json_echoed += 1
-                break
-            else:
-                self._stats.json_echo_failed += 1
+            batch = [await self._echoes.get()]
+            while not self._echoes.empty() and len(batch) < ECHO_BATCH:
+                batch.append(self._echoes.get_nowait())
+            by_peer: dict[tuple[int, int], list[bytes]] = {}
+            for peer, body in batch:
+                by_peer.setdefault(peer, []).append(body)
+            await asyncio.gather(*(self._echo_json(peer, bodies) for peer, bodies in by_peer.items()))
+
+    async def _echo_json(self, peer: tuple[int, int], bodies: list[bytes]) -> None:
+        assert self._hub is not None
+        sink = self._sinks.get(peer)
+        if sink is None:
+            sink = self._sinks[peer] = TunnelSink(self._hub, payload_type=self.payload_type, target=peer)
+        for _ in range(ECHO_ATTEMPTS):
+            results = await sink.send_many(bodies)
+            self._stats.json_echoed += results.count(None)
+            bodies = [body for body, error in zip(bodies, results) if error is not None]
+            if not bodies:
+                return
+        self._stats.json_echo_failed += len(bodies)
 
     async def _weed_detector(self, every: float) -> None:
         """The UAV's onboard detector of the farm demo: every ``every`` s, the weeds under the

@@ -3,8 +3,8 @@ emulated SiK radio -> simulated vehicle (stores, sends back) -> radio -> engine 
 
 100 messages of 50, 150 and 250 bytes, once on a clean link and once with 5 % packet loss and a
 3 s outage in every batch; every message must be byte-identical as published, as stored by the
-vehicle and as it came back. Rates are close to what the radio carries with the engine's default
-tunnel window (2 messages in flight), so each case takes about a minute.
+vehicle and as it came back. Rates are paper-like (a few messages per second, below what the
+radio carries), so each case takes under a minute.
 """
 
 from __future__ import annotations

@@ -532,6 +532,13 @@ def test_signed_round_trip_through_radio_and_simulated_vehicle(monkeypatch: pyte
     run(scenario(), timeout=60)
 
 
+async def stop_all(sources: list[Any], connections: list[mavlink.MavlinkConnection]) -> None:
+    for source in sources:
+        await source.stop()
+    for connection in connections:
+        await connection.close()
+
+
 def test_every_route_on_a_tunnel_gets_every_message_and_the_sender_waits_for_all() -> None:
     """Two routes read one payload type: one reassembly, each route gets each message once,
     and the sender's send returns only after both settled it; a route that fails gets the
@@ -553,10 +560,56 @@ def test_every_route_on_a_tunnel_gets_every_message_and_the_sender_waits_for_all
             assert flaky.calls == 4 and first.calls == 3, "the route that settled it is not given it again"
             assert uav.stats["tunnel_deliver_failed"] == 1 and uav.stats["tunnel_delivered"] == 3
         finally:
-            await a.stop()
-            await b.stop()
-            await gcs.close()
-            await uav.close()
+            await stop_all([a, b], [gcs, uav])
+
+    run(scenario())
+
+
+class FailOnce(Collector):
+    """Settles everything but the first attempt at ``body``."""
+
+    def __init__(self, body: bytes) -> None:
+        super().__init__()
+        self.body, self.failed = body, False
+
+    async def __call__(self, inbound: Inbound) -> None:
+        self.calls += 1
+        if inbound.body == self.body and not self.failed:
+            self.failed = True
+            raise RuntimeError("sink down")
+        self.items.append(inbound)
+
+
+def test_a_batch_travels_as_bundles_and_each_message_is_settled_once_per_route() -> None:
+    """A batch goes as bundles (one transfer for several messages, within ``bundle`` bytes),
+    every route gets every message of a bundle on its own, once; when one route fails one
+    message, the bundle is retransmitted, that route gets only that message again, and
+    send_batch returns once both routes settled all; a message too large for the tunnel and
+    one the mapping made unencodable fail alone."""
+
+    async def scenario() -> None:
+        gcs, uav, relay = await udp_pair()
+        bodies = [b'{"n":%d,"pad":"%s"}' % (n, b"x" * 300) for n in range(10)]
+        steady, flaky = Collector(), FailOnce(bodies[4])
+        a = uav.source("route-a", {"json_tunnel": True})
+        b = uav.source("route-b", {"json_tunnel": True})
+        sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
+        try:
+            await a.start(steady)
+            await b.start(flaky)
+            huge = outbound(bytes(tunnel.MAX_FRAGMENTS * tunnel.MAX_FRAGMENT))
+            results = await sink.send_batch([outbound(x) for x in bodies[:5]] + [huge] + [outbound(x) for x in bodies[5:]])
+            assert results[:5] + results[6:] == [None] * 10
+            assert isinstance(results[5], MessageRejected)
+            assert sorted(i.body for i in steady.items) == sorted(bodies), "each message once on the steady route"
+            assert sorted(i.body for i in flaky.items) == sorted(bodies), "and once on the one that failed one"
+            assert flaky.calls == 11 and steady.calls == 10
+            parts = {(i.meta["tunnel_id"], i.meta["tunnel_part"]) for i in steady.items}
+            transfers = {tunnel_id for tunnel_id, _ in parts}
+            assert len(parts) == 10 and 2 <= len(transfers) <= 4, "2 KB bundles of ~320-byte messages"
+            assert uav.stats["tunnel_deliver_failed"] == 1 and gcs.stats["tunnel_sent"] == 10
+        finally:
+            await stop_all([a, b], [gcs, uav])
 
     run(scenario())
 

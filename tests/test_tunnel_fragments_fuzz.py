@@ -2,7 +2,8 @@
 JSON-over-MAVLink tunnel): whatever arrives, truncated, corrupted, duplicated, reordered or
 random, the receiver raises nothing but ``ValueError`` on a payload it cannot parse, never
 delivers a body that was not sent, never delivers one message twice, and delivers exactly once
-every message whose fragments all arrived intact when nothing damaged could pose as one of them."""
+every message whose fragments all arrived intact when nothing damaged could pose as one of them,
+sent alone or as a bundle."""
 
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ def arrivals(draw: st.DrawFn) -> tuple[list[bytes], list[bytes], set[int]]:
     intact: set[int] = set()
     impostors = False
     for msg_id, body in enumerate(sent):
-        fragments = tunnel.fragment(msg_id, body, size)
+        bundled = draw(st.booleans())  # a bundle of this one message: the same body once unbundled
+        fragments = tunnel.fragment(msg_id, tunnel.bundle([body]) if bundled else body, size, bundled=bundled)
         whole = True
         for payload in fragments:
             kind = draw(damage)
@@ -74,7 +76,7 @@ def test_damaged_fragments_never_become_messages(case: tuple[list[bytes], list[b
         _, done = reassembler.on_data("peer", frame, float(now))
         if done is not None:
             key, body = done
-            delivered.setdefault(key[1], []).append(body)
+            delivered.setdefault(key[1], []).extend(reassembler.messages(key, body))
             reassembler.delivered(key, float(now))
     for msg_id, copies in delivered.items():
         # a flipped header byte can renumber a fragment (the CRC-32 covers the body, not the

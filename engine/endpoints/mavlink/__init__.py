@@ -26,7 +26,7 @@ Settings (YAML ``connections.<name>.mavlink``)::
     rate: BYTES_PER_S            # default baud/10 on serial, unpaced on networks
     heartbeat: 1.0               # Hz, 0 = none (a SiK radio injects RADIO_STATUS only after one)
     mav_type: 6                  # MAV_TYPE of our HEARTBEAT (6 GCS, 18 onboard controller)
-    tunnel: {fragment_size, rto_min, rto_max, retries, sack_delay, window, rate, ...}
+    tunnel: {fragment_size, rto_min, rto_max, retries, sack_delay, window, bundle, rate, ...}
 
 Source options: ``message`` (optional), ``system_id``, ``component_id``; or ``json_tunnel:
 true`` with ``payload_type``. Sink options: ``message``, ``target_system``,

@@ -44,6 +44,7 @@ class MavlinkTunnel:
     reassembly_timeout: float | None = option(None, minimum=0)
     memory: float | None = option(None, minimum=0)
     memory_ttl: float | None = option(None, minimum=0)
+    bundle: float | None = option(None, minimum=0)
 
 
 @dataclass(frozen=True, kw_only=True)

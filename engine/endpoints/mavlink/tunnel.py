@@ -7,14 +7,25 @@ CRC-32 and acknowledged selectively; lost fragments, not whole messages, are sen
 Wire format, inside ``TUNNEL.payload`` (little endian), ``payload_type`` private (>= 32768,
 default 0xA900) and used as the channel, so several tunnel routes can share a link::
 
-    DATA  u8 ver<<4 | 0   u16 msg_id   u8 index   u8 count   u16 total   data[...]
-    ACK   u8 ver<<4 | 1   u16 msg_id   u8 flags   u8 count   bitmap[ceil(count/8)]
+    DATA    u8 ver<<4 | 0   u16 msg_id   u8 index   u8 count   u16 total   data[...]
+    ACK     u8 ver<<4 | 1   u16 msg_id   u8 flags   u8 count   bitmap[ceil(count/8)]
+    BUNDLE  u8 ver<<4 | 2   as DATA; the body is several messages, each u16 length + bytes
 
-``total`` is ``len(body) + 4``: the body is followed by ``crc32(body)`` before cutting, so a
-fragment mixed in from another message (id wrap-around, sender restart) is caught. Every
+``total`` is ``len(body) + 4``: the body is followed by ``crc32(body)`` before cutting (for a
+BUNDLE, the CRC-32 starts from ``BUNDLE_CRC_START``), so a fragment mixed in from another
+message (id wrap-around, sender restart) is caught. Every
 fragment but the last carries the same number of bytes. ACK ``flags``: 1 = the receiver
 holds every fragment (the bitmap is then omitted), 2 = delivered; bit ``i`` of the bitmap
 (byte ``i // 8``, bit ``i % 8``) says fragment ``i`` is held.
+
+Bundles: when a route hands the sink several messages at once (the link is busy, so they
+queued), consecutive ones are sent together as one BUNDLE of at most ``bundle`` bytes. The
+fragments then run full across message boundaries and one acknowledgement covers them all:
+a 250-byte message alone needs three fragments (254 bytes with its CRC) and a SiK radio's
+TDM window holds five or six, so without bundles two such messages cross per window; eight
+in a bundle take 21 fragments.
+Each message of a bundle is delivered to the routes on its own, and the bundle is
+acknowledged DELIVERED once every route settled every one of them.
 
 Reliability: the receiver acknowledges DELIVERED only once the engine settled the message,
 so a completed ``Sink.send`` means at-least-once delivery; ids it delivered recently are
@@ -38,7 +49,7 @@ import random
 import struct
 import zlib
 from collections import OrderedDict
-from collections.abc import Awaitable, Callable, Hashable
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
@@ -59,13 +70,22 @@ TUNNEL_PAYLOAD = 128
 VERSION = 1
 KIND_DATA = 0
 KIND_ACK = 1
+KIND_BUNDLE = 2
 FLAG_COMPLETE = 1
 FLAG_DELIVERED = 2
 _DATA = struct.Struct("<BHBBH")
 _ACK = struct.Struct("<BHBB")
 MAX_FRAGMENT = TUNNEL_PAYLOAD - _DATA.size
 MAX_FRAGMENTS = 255
+SIK_FRAGMENT = 100
+"""Fragment size on serial links: a TUNNEL frame of 124 bytes (12 of MAVLink 2 framing, 5 of
+TUNNEL fields, the 7-byte header, 100 of data), so two share a 252-byte SiK air packet; a
+121-byte fragment makes 145-byte frames that travel one per packet. On the emulator flooded
+with frames of one size (bench/sections.py), TUNNEL payloads of 107 bytes carried 2,260 B/s and
+of 121 bytes 2,027 B/s; 94-byte ones (three pairs fit a TDM window with room to spare) carried
+2,366 B/s alone but did no better in the round trip, where telemetry shares the packets."""
 CRC_SIZE = 4
+BUNDLE_CRC_START = 0x42554E44
 DELIVERY_BATCH = 64
 """Most reassembled messages settled together (one ``Deliver.batch`` per route)."""
 
@@ -79,6 +99,8 @@ class Data:
     count: int
     total: int
     chunk: bytes
+    bundle: bool = False
+    """The reassembled body is a bundle of messages (see :func:`bundle`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -91,7 +113,8 @@ class Ack:
 
 
 def encode_data(d: Data) -> bytes:
-    return _DATA.pack(VERSION << 4 | KIND_DATA, d.msg_id, d.index, d.count, d.total) + d.chunk
+    kind = KIND_BUNDLE if d.bundle else KIND_DATA
+    return _DATA.pack(VERSION << 4 | kind, d.msg_id, d.index, d.count, d.total) + d.chunk
 
 
 def encode_ack(a: Ack) -> bytes:
@@ -106,11 +129,11 @@ def decode(payload: bytes) -> Data | Ack:
     if not payload or payload[0] >> 4 != VERSION:
         raise ValueError("not a tunnel frame of this version")
     kind = payload[0] & 0x0F
-    if kind == KIND_DATA and len(payload) >= _DATA.size:
+    if kind in (KIND_DATA, KIND_BUNDLE) and len(payload) >= _DATA.size:
         _, msg_id, index, count, total = _DATA.unpack_from(payload)
         if count == 0 or index >= count or total < CRC_SIZE:
             raise ValueError("bad DATA header")
-        return Data(msg_id, index, count, total, bytes(payload[_DATA.size:]))
+        return Data(msg_id, index, count, total, bytes(payload[_DATA.size:]), kind == KIND_BUNDLE)
     if kind == KIND_ACK and len(payload) >= _ACK.size:
         _, msg_id, flags, count = _ACK.unpack_from(payload)
         if count == 0:
@@ -123,18 +146,54 @@ def decode(payload: bytes) -> Data | Ack:
     raise ValueError("unknown tunnel frame")
 
 
-def fragment(msg_id: int, body: bytes, fragment_size: int = MAX_FRAGMENT) -> list[bytes]:
-    """Encoded DATA payloads for ``body``; ValueError when it needs more than 255 fragments."""
+def fragment(msg_id: int, body: bytes, fragment_size: int = MAX_FRAGMENT, *, bundled: bool = False) -> list[bytes]:
+    """Encoded DATA (BUNDLE when ``bundled``) payloads for ``body``; ValueError when it needs
+    more than 255 fragments."""
     if not 1 <= fragment_size <= MAX_FRAGMENT:
         raise ValueError(f"fragment_size must be 1..{MAX_FRAGMENT}")
-    whole = body + zlib.crc32(body).to_bytes(CRC_SIZE, "little")
+    whole = body + _crc(body, bundled)
     count = -(-len(whole) // fragment_size)
     if count > MAX_FRAGMENTS or len(whole) > 0xFFFF:
         raise ValueError(f"message of {len(body)} bytes exceeds {MAX_FRAGMENTS} fragments of {fragment_size} bytes")
     return [
-        encode_data(Data(msg_id, i, count, len(whole), whole[i * fragment_size:(i + 1) * fragment_size]))
+        encode_data(Data(msg_id, i, count, len(whole), whole[i * fragment_size:(i + 1) * fragment_size], bundled))
         for i in range(count)
     ]
+
+
+def _crc(body: bytes, bundled: bool) -> bytes:
+    """CRC-32 of the body; a bundle's starts from another value, so a damaged kind bit in a
+    header cannot turn a message into a bundle or back."""
+    return zlib.crc32(body, BUNDLE_CRC_START if bundled else 0).to_bytes(CRC_SIZE, "little")
+
+
+_LENGTH = struct.Struct("<H")
+
+
+def bundle(bodies: Sequence[bytes]) -> bytes:
+    """The body of a BUNDLE: each message as ``u16 length`` + its bytes."""
+    return b"".join(_LENGTH.pack(len(body)) + body for body in bodies)
+
+
+def bundled_size(sizes: Sequence[int]) -> int:
+    return sum(sizes) + _LENGTH.size * len(sizes)
+
+
+def unbundle(body: bytes) -> list[bytes]:
+    """The messages of a BUNDLE body; ValueError when the lengths do not add up."""
+    out, at = [], 0
+    while at < len(body):
+        if at + _LENGTH.size > len(body):
+            raise ValueError("truncated bundle")
+        (size,) = _LENGTH.unpack_from(body, at)
+        at += _LENGTH.size
+        if at + size > len(body):
+            raise ValueError("truncated bundle")
+        out.append(body[at:at + size])
+        at += size
+    if not out:
+        raise ValueError("empty bundle")
+    return out
 
 
 @dataclass(slots=True)
@@ -164,9 +223,9 @@ class Transfer:
     """Sender side of one message: what the receiver holds and what to (re)send when."""
 
     def __init__(self, msg_id: int, body: bytes, *, fragment_size: int = MAX_FRAGMENT,
-                 rtt: RttEstimator | None = None, retries: int = 8) -> None:
+                 rtt: RttEstimator | None = None, retries: int = 8, bundled: bool = False) -> None:
         self.msg_id = msg_id
-        self.frames = fragment(msg_id, body, fragment_size)
+        self.frames = fragment(msg_id, body, fragment_size, bundled=bundled)
         self.count = len(self.frames)
         self.rtt = rtt or RttEstimator()
         self.max_retries = retries
@@ -259,6 +318,7 @@ class Transfer:
 class _Partial:
     count: int
     total: int
+    bundle: bool
     chunks: dict[int, bytes]
     last_seen: float
     sack_at: float | None = None
@@ -269,6 +329,7 @@ class _Partial:
 class _Known:
     count: int
     total: int
+    bundle: bool = False
     until: float = 0.0
     last_ack: float = float("-inf")
 
@@ -313,19 +374,20 @@ class Reassembler:
     def on_data(self, peer: Hashable, data: Data, now: float) -> tuple[list[bytes], tuple[Key, bytes] | None]:
         self.stats.fragments += 1
         key = (peer, data.msg_id)
+        shape = (data.count, data.total, data.bundle)
         known = self._done.get(key)
-        if known is not None and (known.count, known.total) == (data.count, data.total) and now < known.until:
+        if known is not None and (known.count, known.total, known.bundle) == shape and now < known.until:
             self.stats.duplicate_fragments += 1
             return self._repeat_ack(known, data, FLAG_DELIVERED | FLAG_COMPLETE, now), None
         if known is not None:
             del self._done[key]
         known = self._delivering.get(key)
-        if known is not None and (known.count, known.total) == (data.count, data.total):
+        if known is not None and (known.count, known.total, known.bundle) == shape:
             self.stats.duplicate_fragments += 1
             return self._repeat_ack(known, data, FLAG_COMPLETE, now), None
 
         partial = self._partial.get(key)
-        if partial is not None and (partial.count, partial.total) != (data.count, data.total):
+        if partial is not None and (partial.count, partial.total, partial.bundle) != shape:
             del self._partial[key]
             partial = None
         if partial is None:
@@ -333,7 +395,7 @@ class Reassembler:
                 oldest = min(self._partial, key=lambda k: self._partial[k].last_seen)
                 del self._partial[oldest]
                 self.stats.evicted += 1
-            partial = self._partial[key] = _Partial(data.count, data.total, {}, now)
+            partial = self._partial[key] = _Partial(data.count, data.total, data.bundle, {}, now)
         if data.index in partial.chunks:
             self.stats.duplicate_fragments += 1
         partial.chunks[data.index] = data.chunk
@@ -343,10 +405,11 @@ class Reassembler:
             del self._partial[key]
             whole = b"".join(partial.chunks[i] for i in range(partial.count))
             body, crc = whole[:-CRC_SIZE], whole[-CRC_SIZE:]
-            if len(whole) != partial.total or zlib.crc32(body).to_bytes(CRC_SIZE, "little") != crc:
+            if len(whole) != partial.total or _crc(body, partial.bundle) != crc \
+                    or partial.bundle and not _is_bundle(body):
                 self.stats.crc_errors += 1
                 return [self._ack(Ack(data.msg_id, data.count, 0, 0))], None
-            self._delivering[key] = _Known(partial.count, partial.total, last_ack=now)
+            self._delivering[key] = _Known(partial.count, partial.total, partial.bundle, last_ack=now)
             self.stats.completed += 1
             return [], (key, body)
 
@@ -357,6 +420,11 @@ class Reassembler:
         partial.sack_gap = self.sack_delay
         partial.sack_at = now + self.sack_delay
         return [], None
+
+    def messages(self, key: Key, body: bytes) -> list[bytes]:
+        """The messages of the reassembled ``body`` of ``key`` (several for a bundle)."""
+        known = self._delivering.get(key)
+        return unbundle(body) if known is not None and known.bundle else [body]
 
     def delivered(self, key: Key, now: float) -> bytes:
         """The engine settled ``key``: remember it and return the DELIVERED acknowledgement."""
@@ -417,6 +485,14 @@ class Reassembler:
         return encode_ack(ack)
 
 
+def _is_bundle(body: bytes) -> bool:
+    try:
+        unbundle(body)
+    except ValueError:
+        return False
+    return True
+
+
 # -- asyncio drivers ------------------------------------------------------------------------
 
 
@@ -426,8 +502,9 @@ class TunnelLink(Protocol):
     stats: dict[str, int]
 
     def send_tunnel(self, payload_type: int, target: tuple[int, int], payload: bytes, *,
-                    bulk: bool) -> Awaitable[float]:
-        """Queue a TUNNEL frame; the awaitable gives the loop time it was written."""
+                    bulk: bool) -> asyncio.Future[float]:
+        """Queue a TUNNEL frame; the future gives the loop time it was written (cancelling it
+        before then takes the frame off the queue)."""
         ...
 
 
@@ -452,7 +529,12 @@ class TunnelSettings:
     rto_max: float = 8.0
     retries: int = 8
     sack_delay: float = 0.25
-    window: int = 2
+    window: int = 8
+    """Transfers (messages or bundles) in flight per sink: enough to keep a radio busy through
+    its round trip (a TDM round, ~240 ms, plus settling); the writer's pacing, not the window,
+    keeps the radio's buffer from overflowing."""
+    bundle: int = 2048
+    """Largest bundle, in bytes of its body; 0 sends every message on its own."""
     reassembly_timeout: float = 60.0
     memory: int = 1024
     memory_ttl: float = 300.0
@@ -462,7 +544,7 @@ class TunnelSettings:
     @classmethod
     def from_settings(cls, raw: Any, *, serial: bool) -> TunnelSettings:
         """The link's defaults with what ``raw`` (the typed ``tunnel:`` options) sets."""
-        base = cls() if serial else cls(rto_min=0.2, sack_delay=0.1)
+        base = cls(fragment_size=SIK_FRAGMENT) if serial else cls(rto_min=0.2, sack_delay=0.1)
         if raw is None:
             return base
         values = {name: getattr(base, name) for name in cls.__slots__}
@@ -477,7 +559,8 @@ class TunnelSettings:
         out = cls(**values)
         if not 1 <= out.fragment_size <= MAX_FRAGMENT:
             raise ValueError(f"tunnel.fragment_size must be 1..{MAX_FRAGMENT}")
-        if out.rto_min <= 0 or out.rto_max < out.rto_min or out.retries < 0 or out.window < 1 or out.rate < 0:
+        if out.rto_min <= 0 or out.rto_max < out.rto_min or out.retries < 0 or out.window < 1 or out.rate < 0 \
+                or out.bundle < 0:
             raise ValueError("tunnel timing settings out of range")
         return out
 
@@ -570,7 +653,8 @@ class TunnelChannel:
         self.reassembler = Reassembler(sack_delay=s.sack_delay, timeout=s.reassembly_timeout, memory=s.memory,
                                        memory_ttl=s.memory_ttl)
         self.routes: dict[str, list[TunnelSource]] = {}
-        self._settled: OrderedDict[Key, set[str]] = OrderedDict()
+        self._settled: OrderedDict[tuple[Key, int], set[str]] = OrderedDict()
+        """Routes that settled each message (key, part) of a transfer not yet settled by all."""
         self._ready: Inbox[tuple[Key, bytes]] = Inbox(1 << 30)
         """Reassembled messages waiting to be settled (bounded by the senders' windows)."""
         self._wake = asyncio.Event()
@@ -642,38 +726,44 @@ class TunnelChannel:
 
     async def _settle(self, batch: list[tuple[Key, bytes]]) -> None:
         loop = asyncio.get_running_loop()
-        settled_by = [self._settled.pop(key, set()) for key, _ in batch]
+        messages = [((key, part), body) for key, whole in batch
+                    for part, body in enumerate(self.reassembler.messages(key, whole))]
+        settled_by = [self._settled.pop(slot, set()) for slot, _ in messages]
         wanted: dict[TunnelSource, list[int]] = {}
-        for position, (key, _) in enumerate(batch):
+        for position, ((key, _), _) in enumerate(messages):
             for source in self.readers(cast(tuple[int, int], key[0])):
                 if source.route not in settled_by[position]:
                     wanted.setdefault(source, []).append(position)
         readers = list(wanted)
-        results = await asyncio.gather(*(source.deliver_batch([self._inbound(*batch[i]) for i in wanted[source]])
+        results = await asyncio.gather(*(source.deliver_batch([self._inbound(*messages[i]) for i in wanted[source]])
                                          for source in readers))
-        pending = [0] * len(batch)
+        unsettled: set[Key] = set()
         for source, result in zip(readers, results):
             for position, ok in zip(wanted[source], result):
                 if ok:
                     settled_by[position].add(source.route)
                 else:
-                    pending[position] += 1
-        for position, (key, _) in enumerate(batch):
-            peer = cast(tuple[int, int], key[0])
-            if pending[position] or not self.readers(peer):
-                self._settled[key] = settled_by[position]
-                while len(self._settled) > self.reassembler.memory:
-                    self._settled.popitem(last=False)
+                    unsettled.add(messages[position][0][0])
+        for key, _ in batch:
+            if not self.readers(cast(tuple[int, int], key[0])):
+                unsettled.add(key)
+        for position, (slot, _) in enumerate(messages):
+            if slot[0] in unsettled:  # what some routes settled, they do not get again
+                self._settled[slot] = settled_by[position]
+        while len(self._settled) > self.reassembler.memory:
+            self._settled.popitem(last=False)
+        for key, _ in batch:
+            if key in unsettled:
                 self.reassembler.failed(key)
                 self.hub.count("tunnel_deliver_failed")
                 continue
             self.hub.count("tunnel_delivered")
-            self._send_ack(peer, self.reassembler.delivered(key, loop.time()))
+            self._send_ack(cast(tuple[int, int], key[0]), self.reassembler.delivered(key, loop.time()))
 
-    def _inbound(self, key: Key, body: bytes) -> Inbound:
-        peer, msg_id = cast(tuple[int, int], key[0]), key[1]
+    def _inbound(self, slot: tuple[Key, int], body: bytes) -> Inbound:
+        (peer, msg_id), part = cast(tuple[tuple[int, int], int], slot[0]), slot[1]
         return Inbound(body=body, meta={"message": "TUNNEL", "system_id": peer[0], "component_id": peer[1],
-                                        "payload_type": self.payload_type, "tunnel_id": msg_id})
+                                        "payload_type": self.payload_type, "tunnel_id": msg_id, "tunnel_part": part})
 
 
 class TunnelSink(Sink):
@@ -688,23 +778,77 @@ class TunnelSink(Sink):
         hub.add_sender(payload_type)
 
     async def send(self, message: Outbound) -> None:
+        await self.send_bytes(self._body(message))
+
+    @staticmethod
+    def _body(message: Outbound) -> bytes:
         """The canonical bytes, or the JSON of what ``sink.mapping`` made of them."""
         if message.fields is message.canonical:
-            await self.send_bytes(message.body)
-            return
+            return message.body
         try:
-            body = canonical_bytes(message.fields)
+            return canonical_bytes(message.fields)
         except SchemaError as exc:
             raise MessageRejected(f"tunnel: {exc}") from None
-        await self.send_bytes(body)
 
-    async def send_bytes(self, body: bytes) -> None:
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        results: list[BaseException | None] = [None] * len(messages)
+        bodies: list[tuple[int, bytes]] = []
+        for index, message in enumerate(messages):
+            try:
+                bodies.append((index, self._body(message)))
+            except MessageRejected as exc:
+                results[index] = exc
+        for (index, _), result in zip(bodies, await self.send_many([body for _, body in bodies])):
+            results[index] = result
+        return results
+
+    async def send_many(self, bodies: Sequence[bytes]) -> list[BaseException | None]:
+        """Send ``bodies`` in bundles (see the module's docstring), up to ``window`` of them
+        in flight at once: a radio's round trip is a TDM round or more, so one transfer after
+        another would leave it idle. ``result[i]`` is None once ``bodies[i]`` was delivered."""
+        groups = self._bundles(bodies)
+        outcomes = await asyncio.gather(*(self._send_group([bodies[i] for i in group]) for group in groups),
+                                        return_exceptions=True)
+        results: list[BaseException | None] = [None] * len(bodies)
+        for group, outcome in zip(groups, outcomes):
+            if isinstance(outcome, BaseException) and not isinstance(outcome, Exception):
+                raise outcome
+            for index in group:
+                results[index] = outcome
+        return results
+
+    def _bundles(self, bodies: Sequence[bytes]) -> list[list[int]]:
+        """Consecutive bodies grouped while a group's bundle stays within ``bundle`` bytes
+        and the fragments a transfer can have."""
+        settings = self.hub.settings
+        limit = min(settings.bundle, MAX_FRAGMENTS * settings.fragment_size - CRC_SIZE)
+        groups: list[list[int]] = []
+        size = 0
+        for index, body in enumerate(bodies):
+            cost = bundled_size([len(body)])
+            if groups and size + cost <= limit:
+                groups[-1].append(index)
+                size += cost
+            else:
+                groups.append([index])
+                size = cost
+        return groups
+
+    async def _send_group(self, bodies: list[bytes]) -> None:
+        if len(bodies) == 1:
+            await self.send_bytes(bodies[0])
+        else:
+            await self.send_bytes(bundle(bodies), bundled=True, messages=len(bodies))
+
+    async def send_bytes(self, body: bytes, *, bundled: bool = False, messages: int = 1) -> None:
+        """Send one transfer (one message, or a bundle of ``messages``); returns once the
+        receiver acknowledged it DELIVERED."""
         hub, settings = self.hub, self.hub.settings
         async with self._window:
             msg_id = hub.new_id(self.payload_type)
             try:
                 transfer = Transfer(msg_id, body, fragment_size=settings.fragment_size,
-                                    rtt=hub.rtt(self.payload_type), retries=settings.retries)
+                                    rtt=hub.rtt(self.payload_type), retries=settings.retries, bundled=bundled)
             except ValueError as exc:  # larger than a tunnel message can be: never deliverable
                 raise MessageRejected(f"tunnel: {exc}") from None
             acks: asyncio.Queue[Ack] = asyncio.Queue()
@@ -714,7 +858,7 @@ class TunnelSink(Sink):
             finally:
                 hub.unwatch(self.payload_type, msg_id)
                 hub.count("tunnel_retransmissions", transfer.retransmissions)
-        hub.count("tunnel_sent")
+        hub.count("tunnel_sent", messages)
 
     async def _run(self, transfer: Transfer, acks: asyncio.Queue[Ack]) -> None:
         loop = asyncio.get_running_loop()
@@ -725,15 +869,29 @@ class TunnelSink(Sink):
 
         while True:
             while pending and not transfer.delivered:
-                index = pending.pop(0)
-                if transfer.is_held(index) and index != transfer.probe:
-                    continue
-                if index == transfer.probe:
-                    transfer.probe = None
-                sent = await self.hub.link.send_tunnel(self.payload_type, self.target, transfer.frames[index], bulk=True)
-                transfer.on_sent(index, sent)
-                while not acks.empty():
-                    plan(transfer.on_ack(acks.get_nowait(), loop.time()))
+                # Every pending fragment is queued at once, so the writer sends a transfer's
+                # fragments back to back: transfers in flight complete one after another (the
+                # receiver can settle and answer the first while the next is on the air)
+                # rather than all together at the end.
+                queued: list[tuple[int, asyncio.Future[float]]] = []
+                while pending:
+                    index = pending.pop(0)
+                    if transfer.is_held(index) and index != transfer.probe:
+                        continue
+                    if index == transfer.probe:
+                        transfer.probe = None
+                    queued.append((index, asyncio.ensure_future(self.hub.link.send_tunnel(
+                        self.payload_type, self.target, transfer.frames[index], bulk=True))))
+                try:
+                    for index, written in queued:
+                        transfer.on_sent(index, await written)
+                        while not acks.empty():
+                            plan(transfer.on_ack(acks.get_nowait(), loop.time()))
+                        if transfer.delivered:
+                            break
+                finally:
+                    for _, written in queued:  # not written yet and no longer wanted: the writer skips them
+                        written.cancel()
             if transfer.delivered:
                 return
             deadline = transfer.deadline()
