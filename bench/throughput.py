@@ -38,9 +38,9 @@ from bench.systems import gnss_json
 Properties = Basic.Properties
 
 REPO = Path(__file__).resolve().parent.parent
-GNSS_MAPPING = "{type: 'position', agent_id: agent, stamp: stamp, lat: lat, lon: lon, alt_msl: alt}"
+GNSS_MAPPING = "{type: 'position', agent_id: agent, stamp: to_stamp(stamp), lat: lat, lon: lon, alt_msl: alt}"
 MAVLINK_POSITION_MAPPING = (
-    "{type: 'position', agent_id: 'uav1', stamp: now(), time_boot_ms: time_boot_ms, "
+    "{type: 'position', agent_id: 'uav1', stamp: stamp_boot_ms(time_boot_ms), time_boot_ms: time_boot_ms, "
     "lat: deg_e7_to_deg(lat), lon: deg_e7_to_deg(lon), alt_msl: mm_to_m(alt), alt_rel: mm_to_m(relative_alt), "
     "velocity_enu: ned_to_enu([cm_to_m(vx), cm_to_m(vy), cm_to_m(vz)]), heading: heading_cdeg_to_deg(hdg)}"
 )
@@ -327,8 +327,25 @@ async def drain_ros2_source(broker: Broker, system: str, count: int, domain: int
     return result
 
 
-async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds: float) -> dict[str, Any]:
-    """MAVLink (UDP) -> AMQP: the highest paced rate at which every message arrived."""
+def udp_drops(port: int) -> int:
+    """Datagrams the kernel dropped at the socket bound to ``port`` (its receive buffer was full)."""
+    for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
+        fields = line.split()
+        if int(fields[1].rsplit(":", 1)[1], 16) == port:
+            return int(fields[-1])
+    return 0
+
+
+async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds: float,
+                         attempts: int = 2) -> dict[str, Any]:
+    """MAVLink (UDP) -> AMQP: the highest paced rate at which every message arrived.
+
+    Every system climbs the same ladder in the same way: each rate is sent for ``seconds``
+    by a fresh sender; a step with loss (or a sender that fell behind) is tried again, up to
+    ``attempts`` times, since on a shared machine one pause of a few hundred ms fills any UDP
+    receive buffer; the climb ends at the first rate that fails every attempt. Each step
+    records the kernel's drops at the bridge's socket (``udp_drops``): loss there means the
+    bridge did not read in time, loss elsewhere is the bridge's own."""
     tag = uuid.uuid4().hex[:8]
     names = await broker.topology(tag)
     port = free_udp_port()
@@ -341,17 +358,24 @@ async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds:
             async with child(system, args):
                 delivered_before = 0
                 for rate in rates:
-                    count = int(rate * seconds)
-                    sender = Child("mavlink-sender", {"port": port, "rate": rate, "count": count})
-                    await sender.wait_for("sent", timeout=seconds * 4 + 30)
-                    sent_line = sender.lines[-1]
-                    achieved = count / float(sent_line.split()[-1])
-                    result = await observe(lambda: broker.count(names["sink"]), delivered_before + count, stall=2.0)
-                    delivered = result["delivered"] - delivered_before
-                    delivered_before = result["delivered"]
-                    steps.append({"rate": rate, "sent_rate": achieved, "sent": count, "delivered": delivered,
-                                  "lost": count - delivered})
-                    if delivered < count or achieved < rate * 0.9:
+                    for attempt in range(1, attempts + 1):
+                        count = int(rate * seconds)
+                        drops_before = udp_drops(port)
+                        sender = Child("mavlink-sender", {"port": port, "rate": rate, "count": count})
+                        await sender.wait_for("sent", timeout=seconds * 4 + 30)
+                        sent_line = sender.lines[-1]
+                        achieved = count / float(sent_line.split()[-1])
+                        result = await observe(lambda: broker.count(names["sink"]), delivered_before + count,
+                                               stall=2.0, first=10.0)
+                        delivered = result["delivered"] - delivered_before
+                        delivered_before = result["delivered"]
+                        step = {"rate": rate, "attempt": attempt, "sent_rate": achieved, "sent": count,
+                                "delivered": delivered, "lost": count - delivered,
+                                "udp_drops": udp_drops(port) - drops_before}
+                        steps.append(step)
+                        if delivered >= count and achieved >= rate * 0.9:
+                            break
+                    if step["lost"] or step["sent_rate"] < rate * 0.9:
                         break
     finally:
         await broker.drop(names)
