@@ -444,6 +444,7 @@ async def mavlink_sender(args: dict[str, Any]) -> None:
     rate, count = float(args["rate"]), int(args["count"])
     frames = [mav.global_position_int_encode(i, -224123456 + i, -475654321, 612340, 35000, 120, -35, 4, 27000).pack(mav)
               for i in range(min(count, 1000))]
+    print("sending", flush=True)
     began = time.monotonic()
     for index in range(count):
         sock.sendto(frames[index % len(frames)], target)

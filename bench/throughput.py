@@ -171,7 +171,7 @@ async def observe(counter: Any, total: int, stall: float = STALL_S, first: float
     start = next(((t, n) for t, n in samples if n >= total * 0.1), samples[0])
     end = next(((t, n) for t, n in samples if n >= seen), samples[-1])
     rate = (end[1] - start[1]) / (end[0] - start[0]) if end[0] > start[0] else float("nan")
-    return {"msg_per_s": rate, "delivered": seen, "sent": total, "lost": max(0, total - seen)}
+    return {"msg_per_s": rate, "delivered": seen, "sent": total, "lost": max(0, total - seen), "done_at": end[0]}
 
 
 class RosCounter:
@@ -338,10 +338,14 @@ def udp_drops(port: int) -> int:
 
 async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds: float,
                          attempts: int = 2) -> dict[str, Any]:
-    """MAVLink (UDP) -> AMQP: the highest paced rate at which every message arrived.
+    """MAVLink (UDP) -> AMQP: the highest paced rate the bridge sustains with zero loss.
 
-    Every system climbs the same ladder in the same way: each rate is sent for ``seconds``
-    by a fresh sender; a step with loss (or a sender that fell behind) is tried again, up to
+    A step passes when every message arrived and the sink kept up: the messages reached it
+    at no less than 90 % of the paced rate, from the sender's first frame to the last
+    message at the sink (a bridge that only queues what it cannot carry would otherwise pass
+    a short step and fall behind for good on a long one). Every system climbs the same
+    ladder in the same way: each rate is sent for ``seconds`` by a fresh sender; a step
+    that fails (or whose sender fell behind) is tried again, up to
     ``attempts`` times, since on a shared machine one pause of a few hundred ms fills any UDP
     receive buffer; the climb ends at the first rate that fails every attempt. Each step
     records the kernel's drops at the bridge's socket (``udp_drops``): loss there means the
@@ -362,8 +366,9 @@ async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds:
                         count = int(rate * seconds)
                         drops_before = udp_drops(port)
                         sender = Child("mavlink-sender", {"port": port, "rate": rate, "count": count})
-                        await sender.wait_for("sent", timeout=seconds * 4 + 30)
-                        sent_line = sender.lines[-1]
+                        await sender.wait_for("sending", timeout=30)
+                        began = time.monotonic()
+                        sent_line = await sender.wait_for("sent", timeout=seconds * 4 + 30)
                         achieved = count / float(sent_line.split()[-1])
                         result = await observe(lambda: broker.count(names["sink"]), delivered_before + count,
                                                stall=2.0, first=10.0)
@@ -371,15 +376,18 @@ async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds:
                         delivered_before = result["delivered"]
                         step = {"rate": rate, "attempt": attempt, "sent_rate": achieved, "sent": count,
                                 "delivered": delivered, "lost": count - delivered,
+                                "sink_rate": delivered / max(1e-3, result["done_at"] - began),
                                 "udp_drops": udp_drops(port) - drops_before}
+                        step["passed"] = (not step["lost"] and achieved >= rate * 0.9
+                                          and step["sink_rate"] >= rate * 0.9)
                         steps.append(step)
-                        if delivered >= count and achieved >= rate * 0.9:
+                        if step["passed"]:
                             break
-                    if step["lost"] or step["sent_rate"] < rate * 0.9:
+                    if not step["passed"]:
                         break
     finally:
         await broker.drop(names)
-    zero_loss = [s for s in steps if s["lost"] == 0 and s["sent_rate"] >= s["rate"] * 0.9]
+    zero_loss = [s for s in steps if s["passed"]]
     return {"msg_per_s": max((s["rate"] for s in zero_loss), default=0), "steps": steps,
             "lost": 0 if zero_loss else steps[-1]["lost"]}
 
