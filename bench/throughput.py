@@ -87,6 +87,20 @@ class Child:
         self.stderr.seek(0)
         return self.stderr.read()[-3000:]
 
+    def cpu_seconds(self) -> float:
+        """CPU time (user + system) the child's processes have used so far."""
+        total = 0
+        for entry in Path("/proc").iterdir():
+            if not entry.name.isdigit():
+                continue
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == self.process.pid:  # the process group (start_new_session)
+                total += int(fields[11]) + int(fields[12])
+        return total / os.sysconf("SC_CLK_TCK")
+
     async def stop(self, timeout: float = 20.0) -> None:
         if self.process.poll() is None:
             os.killpg(self.process.pid, 15)
