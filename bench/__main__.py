@@ -129,7 +129,7 @@ def main() -> None:
     parser.add_argument("--count", type=int, default=6000,
                         help="messages per throughput drain (well above the prefetch of 1,000)")
     parser.add_argument("--mavlink-rates", type=lambda s: [int(x) for x in s.split(",")],
-                        default=[1000, 2000, 3000, 4500, 6000, 8000], help="the MAVLink ladder (msg/s)")
+                        default=[1000, 2000, 3000, 4000, 5000, 6000, 7000, 8000, 10000, 12000, 14000, 17000, 20000], help="the MAVLink ladder (msg/s)")
     parser.add_argument("--half-rate-seconds", type=float, default=4.0)
     parser.add_argument("--sik-count", type=int, default=400,
                         help="250-byte messages through the emulated SiK radio (the link's fill and drain, a few "

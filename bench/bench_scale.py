@@ -25,7 +25,6 @@ import tempfile
 import time
 import uuid
 from pathlib import Path
-from typing import Any
 
 import aio_pika
 import aiormq
@@ -155,7 +154,7 @@ async def throughput(cluster: LocalCluster, work: Path, count: int, repeat: int,
     passes = [await throughput_pass(cluster, work, count, prefetch) for _ in range(repeat)]
     medians = {label: statistics.median(p[label] for p in passes) for label in passes[0]}
     ratios = [p["2 instances"] / p["1 instance"] for p in passes]
-    print(f"  medians: " + ", ".join(f"{label} {rate:.0f} msg/s" for label, rate in medians.items())
+    print("  medians: " + ", ".join(f"{label} {rate:.0f} msg/s" for label, rate in medians.items())
           + f"; 2/1 per pass: {', '.join(f'{r:.2f}' for r in ratios)}")
     return medians
 

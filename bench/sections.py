@@ -100,7 +100,9 @@ async def many_routes(broker: tp.Broker, counts: list[int], messages: int) -> li
                 started = await engine.wait_for("started", timeout=300)
                 await engine.wait_for("ready", timeout=60)
                 _, load_s, rss_kib = started.split()
+                cpu_before = engine.cpu_seconds()
                 drained = await tp.observe_source(broker, first, messages)
+                drain_cpu_s = engine.cpu_seconds() - cpu_before
                 arrived = await tp.observe(lambda: broker.count(names["sink"]), messages)
             finally:
                 await engine.stop(timeout=60)
@@ -118,11 +120,12 @@ async def many_routes(broker: tp.Broker, counts: list[int], messages: int) -> li
         rows.append({"routes": routes, "check_s": check_s, "load_s": float(load_s),
                      "reload_existing_queues_s": float(restarted.split()[1]), "rss_mib": int(rss_kib) / 1024,
                      "msg_per_s": drained["msg_per_s"], "us_per_msg": 1e6 / drained["msg_per_s"],
-                     "lost": arrived["lost"]})
+                     "cpu_us_per_msg": drain_cpu_s * 1e6 / messages, "lost": arrived["lost"]})
     rows = rows[1:]
-    base = rows[0]["us_per_msg"]
+    base, base_cpu = rows[0]["us_per_msg"], rows[0]["cpu_us_per_msg"]
     for row in rows:
         row["cost_vs_one_route"] = row["us_per_msg"] / base
+        row["cpu_vs_one_route"] = row["cpu_us_per_msg"] / base_cpu if base_cpu else None
     return rows
 
 

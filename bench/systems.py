@@ -36,6 +36,8 @@ from typing import Any
 
 from pamqp.commands import Basic
 
+from engine.stamps import from_ns, to_stamp
+
 Properties = Basic.Properties
 
 REPO = Path(__file__).resolve().parent.parent
@@ -101,7 +103,7 @@ def position_from_global_position_int(msg: Any) -> dict[str, Any]:
     """What the engine's uav1-position mapping computes, written by hand."""
     vx, vy, vz = msg.vx / 100, msg.vy / 100, msg.vz / 100
     return {
-        "type": "position", "agent_id": "uav1", "stamp": time.time(), "time_boot_ms": msg.time_boot_ms,
+        "type": "position", "agent_id": "uav1", "stamp": from_ns(time.time_ns()), "time_boot_ms": msg.time_boot_ms,
         "lat": msg.lat / 1e7, "lon": msg.lon / 1e7, "alt_msl": msg.alt / 1000, "alt_rel": msg.relative_alt / 1000,
         "velocity_enu": [vy, vx, -vz], "heading": None if msg.hdg == 65535 else msg.hdg / 100,
     }
@@ -268,8 +270,12 @@ async def ref_ros2_amqp(args: dict[str, Any]) -> None:
 
 async def ref_mavlink_amqp(args: dict[str, Any]) -> None:
     os.environ["MAVLINK20"] = "1"
+    import socket
+
     import aiormq
     import orjson
+
+    from engine.endpoints.mavlink.links import UDP_RECEIVE_BUFFER
     from pymavlink.dialects.v20 import common as mavlink2
 
     connection = await aiormq.connect(args["url"])
@@ -287,6 +293,8 @@ async def ref_mavlink_amqp(args: dict[str, Any]) -> None:
 
     loop = asyncio.get_running_loop()
     transport, _ = await loop.create_datagram_endpoint(Datagrams, local_addr=("127.0.0.1", args["port"]))
+    # the same kernel receive buffer as the engine's UDP link asks for
+    transport.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
     task = asyncio.create_task(batcher.run())
     await _until_stopped()
     task.cancel()
@@ -298,7 +306,7 @@ async def ref_mavlink_amqp(args: dict[str, Any]) -> None:
 
 def to_canonical(data: dict[str, Any]) -> dict[str, Any]:
     """The GNSS route's mapping, written by hand (the paper's converters are code, not routes)."""
-    return {"type": "position", "agent_id": data["agent"], "stamp": data["stamp"],
+    return {"type": "position", "agent_id": data["agent"], "stamp": to_stamp(data["stamp"]),
             "lat": data["lat"], "lon": data["lon"], "alt_msl": data["alt"]}
 
 
@@ -436,6 +444,7 @@ async def mavlink_sender(args: dict[str, Any]) -> None:
     rate, count = float(args["rate"]), int(args["count"])
     frames = [mav.global_position_int_encode(i, -224123456 + i, -475654321, 612340, 35000, 120, -35, 4, 27000).pack(mav)
               for i in range(min(count, 1000))]
+    print("sending", flush=True)
     began = time.monotonic()
     for index in range(count):
         sock.sendto(frames[index % len(frames)], target)

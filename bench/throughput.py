@@ -38,9 +38,9 @@ from bench.systems import gnss_json
 Properties = Basic.Properties
 
 REPO = Path(__file__).resolve().parent.parent
-GNSS_MAPPING = "{type: 'position', agent_id: agent, stamp: stamp, lat: lat, lon: lon, alt_msl: alt}"
+GNSS_MAPPING = "{type: 'position', agent_id: agent, stamp: to_stamp(stamp), lat: lat, lon: lon, alt_msl: alt}"
 MAVLINK_POSITION_MAPPING = (
-    "{type: 'position', agent_id: 'uav1', stamp: now(), time_boot_ms: time_boot_ms, "
+    "{type: 'position', agent_id: 'uav1', stamp: stamp_boot_ms(time_boot_ms), time_boot_ms: time_boot_ms, "
     "lat: deg_e7_to_deg(lat), lon: deg_e7_to_deg(lon), alt_msl: mm_to_m(alt), alt_rel: mm_to_m(relative_alt), "
     "velocity_enu: ned_to_enu([cm_to_m(vx), cm_to_m(vy), cm_to_m(vz)]), heading: heading_cdeg_to_deg(hdg)}"
 )
@@ -86,6 +86,20 @@ class Child:
     def errors(self) -> str:
         self.stderr.seek(0)
         return self.stderr.read()[-3000:]
+
+    def cpu_seconds(self) -> float:
+        """CPU time (user + system) the child's processes have used so far."""
+        total = 0
+        for entry in Path("/proc").iterdir():
+            if not entry.name.isdigit():
+                continue
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == self.process.pid:  # the process group (start_new_session)
+                total += int(fields[11]) + int(fields[12])
+        return total / os.sysconf("SC_CLK_TCK")
 
     async def stop(self, timeout: float = 20.0) -> None:
         if self.process.poll() is None:
@@ -171,7 +185,7 @@ async def observe(counter: Any, total: int, stall: float = STALL_S, first: float
     start = next(((t, n) for t, n in samples if n >= total * 0.1), samples[0])
     end = next(((t, n) for t, n in samples if n >= seen), samples[-1])
     rate = (end[1] - start[1]) / (end[0] - start[0]) if end[0] > start[0] else float("nan")
-    return {"msg_per_s": rate, "delivered": seen, "sent": total, "lost": max(0, total - seen)}
+    return {"msg_per_s": rate, "delivered": seen, "sent": total, "lost": max(0, total - seen), "done_at": end[0]}
 
 
 class RosCounter:
@@ -327,8 +341,29 @@ async def drain_ros2_source(broker: Broker, system: str, count: int, domain: int
     return result
 
 
-async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds: float) -> dict[str, Any]:
-    """MAVLink (UDP) -> AMQP: the highest paced rate at which every message arrived."""
+def udp_drops(port: int) -> int:
+    """Datagrams the kernel dropped at the socket bound to ``port`` (its receive buffer was full)."""
+    for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
+        fields = line.split()
+        if int(fields[1].rsplit(":", 1)[1], 16) == port:
+            return int(fields[-1])
+    return 0
+
+
+async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds: float,
+                         attempts: int = 2) -> dict[str, Any]:
+    """MAVLink (UDP) -> AMQP: the highest paced rate the bridge sustains with zero loss.
+
+    A step passes when every message arrived and the sink kept up: the messages reached it
+    at no less than 90 % of the paced rate, from the sender's first frame to the last
+    message at the sink (a bridge that only queues what it cannot carry would otherwise pass
+    a short step and fall behind for good on a long one). Every system climbs the same
+    ladder in the same way: each rate is sent for ``seconds`` by a fresh sender; a step
+    that fails (or whose sender fell behind) is tried again, up to
+    ``attempts`` times, since on a shared machine one pause of a few hundred ms fills any UDP
+    receive buffer; the climb ends at the first rate that fails every attempt. Each step
+    records the kernel's drops at the bridge's socket (``udp_drops``): loss there means the
+    bridge did not read in time, loss elsewhere is the bridge's own."""
     tag = uuid.uuid4().hex[:8]
     names = await broker.topology(tag)
     port = free_udp_port()
@@ -341,21 +376,32 @@ async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds:
             async with child(system, args):
                 delivered_before = 0
                 for rate in rates:
-                    count = int(rate * seconds)
-                    sender = Child("mavlink-sender", {"port": port, "rate": rate, "count": count})
-                    await sender.wait_for("sent", timeout=seconds * 4 + 30)
-                    sent_line = sender.lines[-1]
-                    achieved = count / float(sent_line.split()[-1])
-                    result = await observe(lambda: broker.count(names["sink"]), delivered_before + count, stall=2.0)
-                    delivered = result["delivered"] - delivered_before
-                    delivered_before = result["delivered"]
-                    steps.append({"rate": rate, "sent_rate": achieved, "sent": count, "delivered": delivered,
-                                  "lost": count - delivered})
-                    if delivered < count or achieved < rate * 0.9:
+                    for attempt in range(1, attempts + 1):
+                        count = int(rate * seconds)
+                        drops_before = udp_drops(port)
+                        sender = Child("mavlink-sender", {"port": port, "rate": rate, "count": count})
+                        await sender.wait_for("sending", timeout=30)
+                        began = time.monotonic()
+                        sent_line = await sender.wait_for("sent", timeout=seconds * 4 + 30)
+                        achieved = count / float(sent_line.split()[-1])
+                        result = await observe(lambda: broker.count(names["sink"]), delivered_before + count,
+                                               stall=2.0, first=10.0)
+                        delivered = result["delivered"] - delivered_before
+                        delivered_before = result["delivered"]
+                        step = {"rate": rate, "attempt": attempt, "sent_rate": achieved, "sent": count,
+                                "delivered": delivered, "lost": count - delivered,
+                                "sink_rate": delivered / max(1e-3, result["done_at"] - began),
+                                "udp_drops": udp_drops(port) - drops_before}
+                        step["passed"] = (not step["lost"] and achieved >= rate * 0.9
+                                          and step["sink_rate"] >= rate * 0.9)
+                        steps.append(step)
+                        if step["passed"]:
+                            break
+                    if not step["passed"]:
                         break
     finally:
         await broker.drop(names)
-    zero_loss = [s for s in steps if s["lost"] == 0 and s["sent_rate"] >= s["rate"] * 0.9]
+    zero_loss = [s for s in steps if s["passed"]]
     return {"msg_per_s": max((s["rate"] for s in zero_loss), default=0), "steps": steps,
             "lost": 0 if zero_loss else steps[-1]["lost"]}
 

@@ -404,6 +404,36 @@ async def _settle_frame(method: Any, tag: int | None, **kwargs: Any) -> None:
         pass  # the channel is gone: the broker requeues whatever was not acked
 
 
+class PublishProperties(spec.Basic.Properties):
+    """The properties of a message a sink publishes. All but ``message_id`` are the same for
+    every message of a route generation (content type, delivery mode, the route's headers), so
+    they are validated and encoded once (:meth:`fixed`); pamqp would re-encode the headers
+    table of every message, a tenth of the publish cost. ``message_id`` comes last on the wire."""
+
+    def __init__(self, fixed: tuple[spec.Basic.Properties, bytes, bytes], message_id: str | None) -> None:
+        template, self._with_id, self._without_id = fixed
+        self.content_type, self.headers, self.delivery_mode = template.content_type, template.headers, template.delivery_mode
+        self.content_encoding = self.priority = self.correlation_id = self.reply_to = self.expiration = None
+        self.timestamp = self.message_type = self.user_id = self.app_id = None
+        self.cluster_id = ""
+        self.message_id = message_id
+
+    @staticmethod
+    def fixed(content_type: str, delivery_mode: int, headers: dict[str, Any]) -> tuple[spec.Basic.Properties, bytes, bytes]:
+        """(template, encoding up to a message id, encoding without one), from pamqp itself."""
+        template = spec.Basic.Properties(content_type=content_type, delivery_mode=delivery_mode, headers=headers)
+        with_id = spec.Basic.Properties(content_type=content_type, delivery_mode=delivery_mode, headers=headers,
+                                        message_id="x").marshal()[:-2]  # less the short string "x"
+        return template, with_id, template.marshal()
+
+    def marshal(self) -> bytes:
+        message_id = self.message_id
+        if not message_id:
+            return self._without_id
+        encoded = message_id.encode()
+        return self._with_id + len(encoded).to_bytes(1, "big") + encoded
+
+
 class AmqpSink(Sink):
     """Publishes without the mandatory flag: as in AMQP itself, an exchange with no matching
     binding drops the message (RabbitMQ's alternate exchanges are the way to keep those)."""
@@ -416,6 +446,7 @@ class AmqpSink(Sink):
         self._routing_key = compile_template(options.routing_key)
         self._content_type = options.content_type
         self._delivery_mode = 2 if options.persistent else 1
+        self._properties: dict[tuple[str, int], tuple[spec.Basic.Properties, bytes, bytes]] = {}
 
     async def send(self, message: Outbound) -> None:
         error = (await self.send_batch((message,)))[0]
@@ -434,14 +465,14 @@ class AmqpSink(Sink):
                 results[index] = MessageRejected(str(exc))
                 continue
             meta = message.meta
-            properties = spec.Basic.Properties(
-                content_type=self._content_type,
-                delivery_mode=self._delivery_mode,
-                message_id=message.message_id,
-                headers={"x-rabbitros-route": meta["route"], "x-rabbitros-generation": meta["generation"]},
-            )
+            key = (meta["route"], meta["generation"])
+            fixed = self._properties.get(key)
+            if fixed is None:
+                fixed = self._properties[key] = PublishProperties.fixed(
+                    self._content_type, self._delivery_mode,
+                    {"x-rabbitros-route": key[0], "x-rabbitros-generation": key[1]})
             publishable.append(index)
-            batch.append((routing_key, body, properties))
+            batch.append((routing_key, body, PublishProperties(fixed, message.message_id)))
         if batch:
             for index, error in zip(publishable, await self._connection.publish_batch(self._exchange, batch, self._kind, self._durable)):
                 results[index] = error

@@ -41,7 +41,7 @@ import threading
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, Literal, Mapping
+from typing import Any, Callable, Iterator, Literal, Mapping, Sequence
 
 import jmespath
 import rclpy
@@ -638,6 +638,21 @@ class Ros2Sink(Sink):
         return publisher
 
     async def send(self, message: Outbound) -> None:
+        self._publish(message)
+
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        """Publishing is synchronous: one pass over the batch, no coroutine per message."""
+        results: list[BaseException | None] = []
+        for message in messages:
+            try:
+                self._publish(message)
+            except Exception as error:  # classified by the engine's delivery policy
+                results.append(error)
+            else:
+                results.append(None)
+        return results
+
+    def _publish(self, message: Outbound) -> None:
         topic = self._template if self._topic_for is None else self._topic_for(message.canonical, self._where)
         publisher = self._publisher(topic)
         try:

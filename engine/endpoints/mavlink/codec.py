@@ -8,8 +8,9 @@ fields. Both use pymavlink's ``common`` dialect tables, MAVLink 2.
 from __future__ import annotations
 
 import math
+import operator
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -116,12 +117,34 @@ def build_message(cls: type[mavlink2.MAVLink_message], fields: Any,
 def message_fields(msg: mavlink2.MAVLink_message) -> dict[str, Any]:
     """``to_dict()`` without ``mavpackettype``: strings decoded, arrays as lists, and NaN or
     infinite floats (MAVLink's "unknown", e.g. HIL or GPS fields) as None, as rosbridge does,
-    so the message can become JSON."""
-    fields = {name: msg.format_attr(name) for name in msg.get_fieldnames()}
-    for name, value in fields.items():
-        if isinstance(value, float) and not math.isfinite(value):
+    so the message can become JSON. Integer fields are read in one C call (the telemetry hot
+    path); only strings, floats and arrays are looked at one by one."""
+    names = msg.get_fieldnames()
+    plan = _READ_PLANS.get(type(msg))
+    if plan is None or plan[0] is not names:
+        plan = _READ_PLANS[type(msg)] = _read_plan(type(msg), names)
+    _, read, checked = plan
+    values = read(msg)
+    fields = dict(zip(names, values)) if len(names) != 1 else {names[0]: values}
+    for name in checked:
+        value = fields[name]
+        if isinstance(value, bytes):
+            fields[name] = value.decode(errors="backslashreplace").rstrip("\x00")
+        elif isinstance(value, float) and not math.isfinite(value):
             fields[name] = None
         elif isinstance(value, list) and any(isinstance(v, float) and not math.isfinite(v) for v in value):
             fields[name] = [None if isinstance(v, float) and not math.isfinite(v) else v for v in value]
     return fields
 
+
+_READ_PLANS: dict[type, tuple[list[str], Callable[[Any], Any], tuple[str, ...]]] = {}
+
+
+def _read_plan(cls: type, names: list[str]) -> tuple[list[str], Callable[[Any], Any], tuple[str, ...]]:
+    """How :func:`message_fields` reads ``cls``: every field at once, then the fields that
+    may need care (anything but a plain integer: strings, floats, arrays) one by one."""
+    kinds = dict(zip(getattr(cls, "ordered_fieldnames", ()), zip(getattr(cls, "fieldtypes", ()),
+                                                                 getattr(cls, "array_lengths", ()))))
+    checked = tuple(name for name in names
+                    if kinds.get(name, ("", 1))[1] or kinds.get(name, ("", 1))[0] not in _INT_RANGES)
+    return names, operator.attrgetter(*names) if names else (lambda msg: ()), checked

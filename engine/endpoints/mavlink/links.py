@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import socket
 import termios
 import time
 from collections import OrderedDict
@@ -25,6 +26,10 @@ PEER_TTL = 30.0
 READ_CHUNK = 4096
 UDP_CLOSE_TIMEOUT = 1.0
 """Bound on waiting for asyncio to close a UDP socket (it takes one loop turn)."""
+UDP_RECEIVE_BUFFER = 4 << 20
+"""Bytes of kernel receive buffer asked for a UDP link (the kernel caps it at
+``net.core.rmem_max``). The default (~200 KB) holds about 250 small datagrams, 40 ms of
+telemetry at 6,000 msg/s: any longer pause of the loop (a reload, a busy CPU) drops frames."""
 
 OnBytes = Callable[[bytes, Hashable], None]
 
@@ -215,6 +220,8 @@ class UdpLink(Link):
                 transport, protocol = await loop.create_datagram_endpoint(lambda: _Datagrams(self), remote_addr=where)
         except OSError as exc:
             raise EndpointError(f"cannot open {self.address.kind}:{where[0]}:{where[1]}: {exc.strerror}") from None
+        with contextlib.suppress(OSError, AttributeError):
+            transport.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
         self._transport = transport
         self._protocol = protocol
         self.local_address = transport.get_extra_info("sockname")[:2]

@@ -21,8 +21,12 @@ if TYPE_CHECKING:
     from engine.endpoints.mavlink.options import MavlinkSinkOptions
 
 MISSION_ACK = mavlink2.MAVLINK_MSG_ID_MISSION_ACK
-BATCH = 256
-"""Most messages handed to the route in one ``Deliver.batch``."""
+BATCH = 1024
+"""Most messages handed to the route in one ``Deliver.batch``. A batch waits for its sink
+(an AMQP sink: the broker's confirms) before the next one starts, so a backlogged route
+carries at most BATCH per confirm round trip: 256 held the engine to ~3,300 msg/s where
+the broker's round trip was ~80 ms under load, 1,024 keeps up with the plain pymavlink ->
+aiormq reference (bench/throughput.py, mavlink_ladder)."""
 STOP_DRAIN = 2.0
 """Seconds :meth:`MessageSource.stop` keeps handing queued telemetry to the route; what is
 still queued after that is dropped and counted (a reload must not wait on a stuck sink)."""
