@@ -6,7 +6,6 @@ AMQP keeps its dead letters in a local spool."""
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import os
 import time
