@@ -351,7 +351,7 @@ def udp_drops(port: int) -> int:
 
 
 async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds: float,
-                         attempts: int = 2) -> dict[str, Any]:
+                         attempts: int = 2, refine: int = 2) -> dict[str, Any]:
     """MAVLink (UDP) -> AMQP: the highest paced rate the bridge sustains with zero loss.
 
     A step passes when every message arrived and the sink kept up: the messages reached it
@@ -361,7 +361,9 @@ async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds:
     ladder in the same way: each rate is sent for ``seconds`` by a fresh sender; a step
     that fails (or whose sender fell behind) is tried again, up to
     ``attempts`` times, since on a shared machine one pause of a few hundred ms fills any UDP
-    receive buffer; the climb ends at the first rate that fails every attempt. Each step
+    receive buffer; the climb ends at the first rate that fails every attempt, and ``refine``
+    bisections between it and the last rate passed sharpen the result (1,000 msg/s steps
+    alone would move a ratio by a sixth). Each step
     records the kernel's drops at the bridge's socket (``udp_drops``): loss there means the
     bridge did not read in time, loss elsewhere is the bridge's own."""
     tag = uuid.uuid4().hex[:8]
@@ -374,8 +376,9 @@ async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds:
             if system == "engine":
                 args["routes"] = str(routes_file(Path(work), "mavlink-amqp", names, broker.url, domain_id(), port=port).parent)
             async with child(system, args):
-                delivered_before = 0
-                for rate in rates:
+                delivered = [0]
+
+                async def passes(rate: int) -> bool:
                     for attempt in range(1, attempts + 1):
                         count = int(rate * seconds)
                         drops_before = udp_drops(port)
@@ -384,21 +387,35 @@ async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds:
                         began = time.monotonic()
                         sent_line = await sender.wait_for("sent", timeout=seconds * 4 + 30)
                         achieved = count / float(sent_line.split()[-1])
-                        result = await observe(lambda: broker.count(names["sink"]), delivered_before + count,
+                        result = await observe(lambda: broker.count(names["sink"]), delivered[0] + count,
                                                stall=2.0, first=10.0)
-                        delivered = result["delivered"] - delivered_before
-                        delivered_before = result["delivered"]
+                        arrived = result["delivered"] - delivered[0]
+                        delivered[0] = result["delivered"]
                         step = {"rate": rate, "attempt": attempt, "sent_rate": achieved, "sent": count,
-                                "delivered": delivered, "lost": count - delivered,
-                                "sink_rate": delivered / max(1e-3, result["done_at"] - began),
+                                "delivered": arrived, "lost": count - arrived,
+                                "sink_rate": arrived / max(1e-3, result["done_at"] - began),
                                 "udp_drops": udp_drops(port) - drops_before}
                         step["passed"] = (not step["lost"] and achieved >= rate * 0.9
                                           and step["sink_rate"] >= rate * 0.9)
                         steps.append(step)
                         if step["passed"]:
-                            break
-                    if not step["passed"]:
+                            return True
+                    return False
+
+                passed, failed = 0, None
+                for rate in rates:
+                    if not await passes(rate):
+                        failed = rate
                         break
+                    passed = rate
+                for _ in range(refine if failed is not None else 0):  # between the last rate passed and the first failed
+                    middle = (passed + failed) // 2
+                    if middle in (passed, failed):
+                        break
+                    if await passes(middle):
+                        passed = middle
+                    else:
+                        failed = middle
     finally:
         await broker.drop(names)
     zero_loss = [s for s in steps if s["passed"]]
