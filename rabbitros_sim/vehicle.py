@@ -56,6 +56,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound  # noqa: E402
 from engine.endpoints.mavlink.links import configure_tty  # noqa: E402
 from engine.endpoints.mavlink.port import MavlinkPort  # noqa: E402
+from engine.endpoints.mavlink.options import MavlinkTunnel  # noqa: E402
 from engine.endpoints.mavlink.settings import LinkConfig, SigningConfig, parse_address  # noqa: E402
 from engine.endpoints.mavlink.tunnel import (  # noqa: E402
     DEFAULT_PAYLOAD_TYPE,
@@ -440,7 +441,7 @@ async def _amain(args: argparse.Namespace) -> VehicleStats:
     key = bytes.fromhex(args.signing_key) if args.signing_key else None
     network = args.device.partition(":")[0] in ("udpin", "udpout", "tcp")
     settings = TunnelSettings.from_settings(
-        {"window": args.tunnel_window} if args.tunnel_window else None, serial=not network)
+        MavlinkTunnel(window=args.tunnel_window) if args.tunnel_window else None, serial=not network)
     vehicle = SimVehicle(args.device, baud=args.baud, system_id=args.system_id, component_id=args.component_id,
                          store=args.store, signing_key=key, link_id=args.link_id,
                          echo_frames=args.echo_frames, payload_type=args.payload_type, tunnel_rate=args.tunnel_rate,
@@ -454,7 +455,13 @@ async def _amain(args: argparse.Namespace) -> VehicleStats:
     await vehicle.open()
     print(json.dumps({"event": "ready", "device": args.device, "system_id": args.system_id}), flush=True)
     await vehicle.run(stop, args.duration)
+    # Stopped: a further SIGINT/SIGTERM changes nothing. Under ``timeout`` the signal it gets
+    # goes to this process and to its process group, so a second copy may arrive after asyncio
+    # put the default handlers back and turn a clean exit into death by signal. (Only the
+    # CLI runs this; the mask would be inherited by processes started afterwards.)
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     return vehicle.stats
+
 
 
 def main(argv: Sequence[str] | None = None) -> int:
