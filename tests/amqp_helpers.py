@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import uuid
-from typing import Any
+from typing import Any, AsyncIterator
 
 import aio_pika
 
@@ -48,3 +49,18 @@ async def publish(channel: Any, exchange: str, routing_key: str, bodies: list[by
         await target.publish(
             aio_pika.Message(body, content_type="application/json", message_id=f"m{index}"), routing_key
         )
+
+
+@contextlib.asynccontextmanager
+async def started_with_client(engine: Any, amqp_url: str) -> AsyncIterator[aio_pika.abc.AbstractConnection]:
+    """Start ``engine`` (an engine.runtime.Engine) and open a plain aio-pika connection beside
+    it; on the way out close the connection, then stop the engine."""
+    await engine.start()
+    try:
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            yield connection
+        finally:
+            await connection.close()
+    finally:
+        await engine.stop()

@@ -13,7 +13,7 @@ import aiormq.exceptions
 import pytest
 
 from engine.runtime import Engine
-from tests.amqp_helpers import Collector, publish
+from tests.amqp_helpers import Collector, publish, started_with_client
 
 ROUTES = """
 connections:
@@ -58,9 +58,7 @@ def test_bindings_and_queues_follow_the_routes(amqp_url: str, tmp_path: Path, sc
     async def scenario() -> None:
         engine = Engine(routes, schemas_dir)
         engine.retire_after_s = 0.05
-        await engine.start()
-        connection = await aio_pika.connect(amqp_url)
-        try:
+        async with started_with_client(engine, amqp_url) as connection:
             channel = await connection.channel()
             out = await Collector.bind(channel, n["outbox"])
             await publish(channel, n["inbox"], "old", [b'{"k": "old-1"}'])
@@ -89,9 +87,6 @@ def test_bindings_and_queues_follow_the_routes(amqp_url: str, tmp_path: Path, sc
             await publish(channel, n["inbox"], "new", [b'{"k": "new-2"}'])
             await asyncio.sleep(0.3)
             assert await queue_exists(connection, n["queue"]) == 0, "a named queue is kept, without its bindings"
-        finally:
-            await connection.close()
-            await engine.stop()
 
     asyncio.run(scenario())
 
@@ -110,9 +105,7 @@ def test_a_route_missing_for_a_moment_keeps_its_binding(amqp_url: str, tmp_path:
 
     async def scenario() -> list[bytes]:
         engine = Engine(routes, schemas_dir)
-        await engine.start()
-        connection = await aio_pika.connect(amqp_url)
-        try:
+        async with started_with_client(engine, amqp_url) as connection:
             channel = await connection.channel()
             out = await Collector.bind(channel, n["outbox"])
             farm.write_text("")
@@ -122,9 +115,6 @@ def test_a_route_missing_for_a_moment_keeps_its_binding(amqp_url: str, tmp_path:
             assert await engine.reload() and set(engine.runners) == {"named"}
             await engine.topology_settled()
             return [m.body for m in await out.wait_for(1)]
-        finally:
-            await connection.close()
-            await engine.stop()
 
     assert asyncio.run(scenario()) == [b'{"k": "meanwhile"}']
 

@@ -19,7 +19,7 @@ import aio_pika
 import pytest
 
 from engine.runtime import Engine
-from tests.amqp_helpers import Collector, publish
+from tests.amqp_helpers import Collector, publish, started_with_client
 from tests.engine_process import EngineProcess
 from tests.udp_vehicle import Vehicle, free_udp_port, telemetry_routes
 
@@ -178,30 +178,27 @@ def test_udpin_settings_change_while_telemetry_flows_is_break_before_make(
 
     async def scenario() -> tuple[list[int], dict[str, Any], int]:
         engine = Engine(routes, schemas_dir)
-        await engine.start()
         vehicle = Vehicle(port, rate)
-        connection = await aio_pika.connect(amqp_url)
-        try:
+        async with started_with_client(engine, amqp_url) as connection:
             channel = await connection.channel()
             out = await Collector.bind(channel, n["outbox"], "telemetry")
             vehicle.start()
-            await out.wait_for(50)
-            assert len(out.messages) >= 50, "no telemetry before the change"
-            other = engine.runners["other"]
-            (routes / "radio.yaml").write_text(radio_routes(n, port, heartbeat=2))
-            assert await engine.reload(), engine.reloads.last_error
-            sent_at_reload = vehicle.sent
-            assert engine.runners["other"] is other, "a route on another connection was touched"
-            radio = next(c for (name, _), c in engine._connections.items() if name == "radio")
-            assert radio.config.heartbeat == 2.0
-            await out.wait_for(len(out.messages) + 50)
-            seqs = [json.loads(m.body)["seq"] for m in out.messages]
-            assert max(seqs) > sent_at_reload, "no telemetry after the change"
-            return seqs, engine.reloads.last_handovers[0], sent_at_reload
-        finally:
-            vehicle.stop.set()
-            await connection.close()
-            await engine.stop()
+            try:
+                await out.wait_for(50)
+                assert len(out.messages) >= 50, "no telemetry before the change"
+                other = engine.runners["other"]
+                (routes / "radio.yaml").write_text(radio_routes(n, port, heartbeat=2))
+                assert await engine.reload(), engine.reloads.last_error
+                sent_at_reload = vehicle.sent
+                assert engine.runners["other"] is other, "a route on another connection was touched"
+                radio = next(c for (name, _), c in engine._connections.items() if name == "radio")
+                assert radio.config.heartbeat == 2.0
+                await out.wait_for(len(out.messages) + 50)
+                seqs = [json.loads(m.body)["seq"] for m in out.messages]
+                assert max(seqs) > sent_at_reload, "no telemetry after the change"
+                return seqs, engine.reloads.last_handovers[0], sent_at_reload
+            finally:
+                vehicle.stop.set()
 
     seqs, handover, sent_at_reload = asyncio.run(scenario())
     missed = sorted(set(range(max(seqs))) - set(seqs))
@@ -224,24 +221,21 @@ def test_udpin_handover_that_cannot_open_restores_the_old_link(
 
     async def scenario() -> None:
         engine = Engine(routes, schemas_dir)
-        await engine.start()
         vehicle = Vehicle(port, 100.0)
-        connection = await aio_pika.connect(amqp_url)
-        try:
+        async with started_with_client(engine, amqp_url) as connection:
             out = await Collector.bind(await connection.channel(), n["outbox"], "telemetry")
             vehicle.start()
-            assert len(await out.wait_for(20)) >= 20, "no telemetry before the change"
-            (routes / "radio.yaml").write_text(radio_routes(n, port, host="192.0.2.1"))
-            assert not await engine.reload(), "binding an address this host lacks cannot succeed"
-            assert "cannot open udpin:192.0.2.1" in engine.reloads.last_error[0], engine.reloads.last_error
-            assert engine.generation == 1 and set(engine.runners) == {"telemetry", "other"}
-            sent = vehicle.sent
-            await out.wait_for(len(out.messages) + 20)
-            assert max(json.loads(m.body)["seq"] for m in out.messages) > sent, "the old link was not restored"
-        finally:
-            vehicle.stop.set()
-            await connection.close()
-            await engine.stop()
+            try:
+                assert len(await out.wait_for(20)) >= 20, "no telemetry before the change"
+                (routes / "radio.yaml").write_text(radio_routes(n, port, host="192.0.2.1"))
+                assert not await engine.reload(), "binding an address this host lacks cannot succeed"
+                assert "cannot open udpin:192.0.2.1" in engine.reloads.last_error[0], engine.reloads.last_error
+                assert engine.generation == 1 and set(engine.runners) == {"telemetry", "other"}
+                sent = vehicle.sent
+                await out.wait_for(len(out.messages) + 20)
+                assert max(json.loads(m.body)["seq"] for m in out.messages) > sent, "the old link was not restored"
+            finally:
+                vehicle.stop.set()
 
     asyncio.run(scenario())
 
@@ -266,23 +260,15 @@ connections:
 """)
 
     async def scenario() -> list[Any]:
-        engine = Engine(routes, schemas_dir)
-        await engine.start()
-        connection = await aio_pika.connect(amqp_url)
-        try:
+        async with started_with_client(Engine(routes, schemas_dir), amqp_url) as connection:
             channel = await connection.channel()
             out = await Collector.bind(channel, n["outbox"])
             await publish(channel, n["inbox"], "l.x", [b'{"agent": "uav1", "lat": -22.5, "lon": -47.25}'])
             return await out.wait_for(1)
-        finally:
-            await connection.close()
-            await engine.stop()
 
     (message,) = asyncio.run(scenario())
     assert message.routing_key == "legacy.uav1", "the routing key still comes from the canonical message"
     assert message.body == b'{"robot":"uav1","where":[-22.5,-47.25]}'
-
-
 
 
 def test_a_new_signing_key_written_over_the_key_file_takes_effect(amqp_url: str, tmp_path: Path):
