@@ -66,7 +66,7 @@ class LeaseOptions:
                               description="lease shared by routes that must fail over together (one robot's topics); default: the route name")
 
 
-ENDPOINT_DESCRIPTION = "exactly one of amqp / ros2 / mavlink"
+ENDPOINT_DESCRIPTION = "exactly one of " + " / ".join(endpoints.PROTOCOLS)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -78,7 +78,7 @@ class RouteOptions:
     description: str | None = option(None)
     max_attempts: int = option(DEFAULT_MAX_ATTEMPTS, minimum=1,
                                description="deliveries tried on transient sink failures (across redeliveries) before dead-lettering")
-    overflow: Literal["block", "drop_oldest", "drop_newest"] = option("block", description="when a ROS 2 source's in-memory queue is full")
+    overflow: Literal["block", "drop_oldest", "drop_newest"] = option("block", description="when a ROS 2 source's in-memory queue is full (an MQTT QoS 0 source drops the newest unless drop_oldest)")
     buffer: Literal[False] | BufferOptions | None = option(
         None, description="messages held while the sink is down (default for ROS 2 and MAVLink sources: in memory, 10000); false: none")
     source: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
@@ -420,7 +420,7 @@ def _compile_connections(
             where = ("connections", name)
             protocols = [p for p in endpoints.PROTOCOLS if p in body]
             if len(protocols) != 1:
-                problems.append(document.problem(where, f"connection {name!r} must name exactly one of amqp, ros2, mavlink"))
+                problems.append(document.problem(where, f"connection {name!r} must name exactly one of {', '.join(endpoints.PROTOCOLS)}"))
                 continue
             protocol = protocols[0]
             if name in connections:
@@ -749,7 +749,7 @@ def _endpoint(
 ) -> EndpointSpec | None:
     protocols = [p for p in endpoints.PROTOCOLS if p in body]
     if len(protocols) != 1:
-        problems.append(document.problem(where, f"route {route!r}: {where[-1]} must name exactly one of amqp, ros2, mavlink"))
+        problems.append(document.problem(where, f"route {route!r}: {where[-1]} must name exactly one of {', '.join(endpoints.PROTOCOLS)}"))
         return None
     protocol = protocols[0]
     side = where[-1]
