@@ -140,10 +140,10 @@ class MqttConnection(Connection):
     def __init__(self, name: str, settings: MqttConnectionOptions | Mapping[str, Any]) -> None:
         super().__init__(name, typed(MqttConnectionOptions, settings, f"mqtt connection {name!r}"))
         try:
-            self.endpoint = Endpoint.parse(self.settings)
+            self._broker = Endpoint.parse(self.settings)  # not ``endpoint``: the status shows that attribute
         except ValueError as exc:
             raise EndpointError(f"mqtt connection {name!r}: {exc}") from None
-        self.where = f"mqtt connection {name!r} ({self.endpoint.shown()})"
+        self.where = f"mqtt connection {name!r} ({self._broker.shown()})"
         self.v5 = self.settings.protocol == 5
         self.persistent = self.settings.client_id is not None
         self.max_batch = max(1, self.settings.receive_maximum // 2)
@@ -177,7 +177,7 @@ class MqttConnection(Connection):
 
     def _failed(self, error: BaseException) -> None:
         text = describe(error)
-        password = self.endpoint.password
+        password = self._broker.password
         self._last_error = text.replace(password, MASK) if password else text
 
     # -- connecting and staying connected
@@ -197,7 +197,7 @@ class MqttConnection(Connection):
         self._keeper = asyncio.create_task(self._keep(), name=f"mqtt-keep:{self.name}")
 
     def _client(self) -> aiomqtt.Client:
-        settings, endpoint = self.settings, self.endpoint
+        settings, endpoint = self.settings, self._broker
         arguments: dict[str, Any] = {}
         if self.v5:
             properties = Properties(PacketTypes.CONNECT)
