@@ -14,15 +14,13 @@ TEMPORARILY_REJECTED sends again after ``retry_delay`` (counted as a retry); any
 from __future__ import annotations
 
 import asyncio
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
 from engine.endpoints.mavlink.codec import build_message, mavlink2
+from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name, enum_or_number
 from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions
-
-if TYPE_CHECKING:
-    from engine.endpoints.mavlink.connection import MavlinkConnection
 
 _ACK = (mavlink2.MAVLINK_MSG_ID_COMMAND_ACK,)
 
@@ -30,7 +28,7 @@ _ACK = (mavlink2.MAVLINK_MSG_ID_COMMAND_ACK,)
 class AcknowledgedCommandSink(Sink):
     """One command per message, retried until the target acknowledges it."""
 
-    def __init__(self, connection: MavlinkConnection, cls: type[mavlink2.MAVLink_message],
+    def __init__(self, connection: SharedLink, cls: type[mavlink2.MAVLink_message],
                  options: TransactionOptions) -> None:
         self.connection = connection
         self.cls = cls

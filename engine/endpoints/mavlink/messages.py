@@ -12,12 +12,12 @@ from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.base import Deliver, Inbound, Inbox, Outbound, Sink, Source
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, message_fields, mavlink2
+from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.command import AcknowledgedCommandSink
 from engine.endpoints.mavlink.mission import MissionUploadSink
 from engine.endpoints.mavlink.transaction import TransactionOptions
 
 if TYPE_CHECKING:
-    from engine.endpoints.mavlink.connection import MavlinkConnection
     from engine.endpoints.mavlink.options import MavlinkSinkOptions
 
 MISSION_ACK = mavlink2.MAVLINK_MSG_ID_MISSION_ACK
@@ -45,7 +45,7 @@ class MessageSource(Source):
     Drops, and messages the route could not settle, are counted with ``Deliver.dropped``.
     """
 
-    def __init__(self, connection: MavlinkConnection, route: str, msg_id: int | None,
+    def __init__(self, connection: SharedLink, route: str, msg_id: int | None,
                  system_id: int | None = None, component_id: int | None = None) -> None:
         self.connection = connection
         self.route = route
@@ -139,7 +139,7 @@ class MessageSource(Source):
 class MessageSink(Sink):
     """Encodes ``Outbound.fields`` as one message; accepted once written to the link."""
 
-    def __init__(self, connection: MavlinkConnection, cls: type[mavlink2.MAVLink_message],
+    def __init__(self, connection: SharedLink, cls: type[mavlink2.MAVLink_message],
                  defaults: Mapping[str, Any]) -> None:
         self.connection = connection
         self.cls = cls
@@ -150,7 +150,7 @@ class MessageSink(Sink):
 
 
 
-def sink_for(connection: MavlinkConnection, route: str, options: MavlinkSinkOptions) -> Sink:
+def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) -> Sink:
     """The sink the (already checked) options describe."""
     if options.mission is not None:
         return MissionUploadSink(connection, TransactionOptions.parse(options)[0])

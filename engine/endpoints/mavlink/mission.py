@@ -24,15 +24,13 @@ from __future__ import annotations
 import asyncio
 import math
 from collections.abc import Iterator, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
 from engine.endpoints.mavlink.codec import build_message, mavlink2
+from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name, enum_or_number
 from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions
-
-if TYPE_CHECKING:
-    from engine.endpoints.mavlink.connection import MavlinkConnection
 
 ITEM = mavlink2.MAVLink_mission_item_int_message
 _ANSWERS = (mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_INT, mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST,
@@ -116,7 +114,7 @@ def mission_items(fields: Any, options: TransactionOptions) -> list[mavlink2.MAV
 class MissionUploadSink(Sink):
     """Uploads each message's mission to one target; returns once the vehicle accepted it."""
 
-    def __init__(self, connection: MavlinkConnection, options: TransactionOptions) -> None:
+    def __init__(self, connection: SharedLink, options: TransactionOptions) -> None:
         self.connection = connection
         self.options = options
 
@@ -149,7 +147,7 @@ class MissionUploadSink(Sink):
                 tries += 1
                 if tries > options.retries:
                     stats["mission_timeouts"] = stats.get("mission_timeouts", 0) + 1
-                    connection.port.post(mavlink2.MAVLink_mission_ack_message(
+                    connection.post(mavlink2.MAVLink_mission_ack_message(
                         target_system, target_component, mavlink2.MAV_MISSION_OPERATION_CANCELLED, options.mission_type))
                     raise EndpointError(f"mavlink connection {connection.name!r}: vehicle {target_system}/{target_component} "
                                         f"did not answer the mission upload ({len(items)} items) after {options.retries} "
