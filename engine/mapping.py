@@ -71,6 +71,14 @@ class FieldFunctions(functions.Functions):
         return fallback if value is None else value
 
     @functions.signature()
+    def _func_nan(self) -> float:
+        """MAVLink's explicit "unset" for a float field where the message or command defines it
+        (MAV_CMD_DO_REPOSITION's yaw: NaN keeps the current heading). A sink mapping must say
+        it: a null is refused, never sent as 0. JSON has no NaN, so a canonical message cannot
+        hold it (its schema stage rejects it)."""
+        return math.nan
+
+    @functions.signature()
     def _func_now(self) -> float:
         return time.time()
 

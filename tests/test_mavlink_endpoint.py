@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import time
 from collections.abc import Awaitable, Callable
@@ -183,6 +184,12 @@ def test_check_source_and_sink_options() -> None:
     assert list(TRANSPORT.check_sink({"message": "COMMAND_LONG"}, "payload")) == []
     problems = list(TRANSPORT.check_sink({"message": "COMMAND_LONG"}, "{command: `400`, param8: `1`}"))
     assert len(problems) == 1 and "param8" in problems[0][1]
+    [(_, typo)] = TRANSPORT.check_sink({"message": "COMMAND_LONG"}, "{command: `400`, parma1: `1`}")
+    assert "sets 'parma1', which COMMAND_LONG does not have; did you mean 'param1'?" in typo
+    [(_, null)] = TRANSPORT.check_sink({"message": "COMMAND_LONG"}, "{command: `400`, param1: `null`}")
+    assert "field 'param1' is null" in null
+    [(_, unused)] = TRANSPORT.check_sink({"mission": "upload"}, "{item: x}")
+    assert unused.endswith("'item' is not used; did you mean 'items'?")
     assert [k for k, _ in TRANSPORT.check_sink({"message": "COMMAND_LONGG"}, None)] == ["message"]
     assert [k for k, _ in TRANSPORT.check_sink({"message": "HEARTBEAT", "target_system": 1}, None)] == ["target_system"]
     assert list(TRANSPORT.check_sink({}, None))
@@ -202,9 +209,38 @@ def test_build_message_defaults_types_and_errors() -> None:
     with pytest.raises(MessageRejected, match="outside"):
         mavlink.build_message(cls, {"command": 70000})
     with pytest.raises(MessageRejected, match="number"):
-        mavlink.build_message(cls, {"command": "arm"})
+        mavlink.build_message(cls, {"command": 400, "confirmation": "1"})
     with pytest.raises(MessageRejected, match="object"):
         mavlink.build_message(cls, [1, 2])
+
+
+def test_build_message_refuses_nulls_and_takes_enum_names() -> None:
+    """A null is never a 0 (param1 0 of COMPONENT_ARM_DISARM disarms); a field left out is 0;
+    NaN passes where the mapping says nan(); an enum field takes a name, a misspelt one gets
+    the close names, as does a field the message lacks."""
+    cls = mavlink.MESSAGES["COMMAND_LONG"]
+    for fields, named in (({"command": 400, "param1": None}, "field 'param1' is null"),
+                          ({"command": None}, "field 'command' is null"),
+                          ({"command": 400, "param1": None, "param2": None}, "fields 'param1', 'param2' are null")):
+        with pytest.raises(MessageRejected, match=named):
+            mavlink.build_message(cls, fields, {"target_system": 1})
+    with pytest.raises(MessageRejected, match=r"field 'target_system' is null"):
+        mavlink.build_message(cls, {"command": 400, "param1": 1, "target_system": None}, {"target_system": 1})
+    with pytest.raises(MessageRejected, match=r"field 'payload\[1\]' is null"):
+        mavlink.build_message(mavlink.MESSAGES["TUNNEL"], {"payload": [1, None], "payload_length": 2})
+    with pytest.raises(MessageRejected, match="field 'text' is null"):
+        mavlink.build_message(mavlink.MESSAGES["STATUSTEXT"], {"severity": 6, "text": None})
+    left_out = mavlink.build_message(cls, {"command": "MAV_CMD_COMPONENT_ARM_DISARM", "param1": 1})
+    assert (left_out.command, left_out.param1, left_out.param2, left_out.target_system) == (400, 1.0, 0.0, 0)
+    unset = mavlink.build_message(cls, {"command": "DO_REPOSITION", "param4": math.nan, "param5": 1.5})
+    assert unset.command == mavlink2.MAV_CMD_DO_REPOSITION and math.isnan(unset.param4) and unset.param5 == 1.5
+    with pytest.raises(MessageRejected, match=r"'MAV_CMD_COMPONENT_ARM_DISARN' is not a MAV_CMD name; "
+                                              r"did you mean 'MAV_CMD_COMPONENT_ARM_DISARM'\?"):
+        mavlink.build_message(cls, {"command": "MAV_CMD_COMPONENT_ARM_DISARN", "param1": 1})
+    with pytest.raises(MessageRejected, match=r"no field\(s\) 'paramm1'; did you mean 'param1'\?"):
+        mavlink.build_message(cls, {"command": 400, "paramm1": 1})
+    with pytest.raises(MessageRejected, match="not an integer"):
+        mavlink.build_message(cls, {"command": math.nan})
 
 
 # -- sources and sinks over UDP -------------------------------------------------------------------

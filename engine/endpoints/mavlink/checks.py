@@ -10,10 +10,11 @@ import jmespath
 from jmespath import exceptions as jmespath_errors
 
 from engine.endpoints.base import EndpointError, typed_or_problem
-from engine.endpoints.mavlink.codec import MESSAGES
+from engine.endpoints.mavlink.codec import MESSAGES, null_problem
 from engine.endpoints.mavlink.options import MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.transaction import TransactionOptions
 from engine.options import given
+from engine.suggest import did_you_mean
 
 _SENDER = {"system_id", "component_id"}
 _TARGET = {"target_system", "target_component"}
@@ -91,10 +92,13 @@ def sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tupl
     for key in ("target_system", "target_component"):
         if key in given(options) and key not in cls.fieldnames:
             problems.append((key, f"{name} has no field {key!r}"))
-    for key in _mapping_keys(mapping):
+    for key, value in _mapping_pairs(mapping):
         if key not in cls.fieldnames:
             fields = ", ".join(cls.fieldnames)
-            problems.append((None, f"sink mapping sets {key!r}, which {name} does not have (fields: {fields})"))
+            problems.append((None, f"sink mapping sets {key!r}, which {name} does not have"
+                                   f"{did_you_mean(key, cls.fieldnames)} (fields: {fields})"))
+        elif _is_null_literal(value):
+            problems.append((None, null_problem(name, [key])))
     return problems
 
 
@@ -103,14 +107,15 @@ def _mission_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[
     if options.mission != "upload":
         problems.append(("mission", "mission must be 'upload'"))
     problems += TransactionOptions.parse(options)[1]
-    for key in _mapping_keys(mapping):
+    for key, _ in _mapping_pairs(mapping):
         if key != "items":
             problems.append((None, f"a mission sink mapping produces {{items: [...]}} (or a canonical mission); "
-                                   f"{key!r} is not used"))
+                                   f"{key!r} is not used{did_you_mean(key, ['items'])}"))
     return problems
 
 
-def _mapping_keys(mapping: str | None) -> list[str]:
+def _mapping_pairs(mapping: str | None) -> list[tuple[str, dict[str, Any]]]:
+    """The (key, value expression) pairs of a ``{a: x, b: y}`` sink mapping; [] for another shape."""
     if not mapping:
         return []
     try:
@@ -119,7 +124,12 @@ def _mapping_keys(mapping: str | None) -> list[str]:
         return []
     if node.get("type") != "multi_select_dict":
         return []
-    return [child["value"] for child in node["children"] if child.get("type") == "key_val_pair"]
+    return [(child["value"], child["children"][0]) for child in node["children"] if child.get("type") == "key_val_pair"]
+
+
+def _is_null_literal(node: dict[str, Any]) -> bool:
+    """A value written as `` `null` ``: every message would be refused at the sink mapping stage."""
+    return node.get("type") == "literal" and node.get("value") is None
 
 
 def source_options(route: str, options: MavlinkSourceOptions | Mapping[str, Any]) -> MavlinkSourceOptions:
