@@ -189,6 +189,14 @@ def test_check_source_and_sink_options() -> None:
     [(_, null)] = TRANSPORT.check_sink({"message": "COMMAND_LONG"}, "{command: `400`, param1: `null`}")
     assert "field 'param1' is null" in null
     [(_, unused)] = TRANSPORT.check_sink({"mission": "upload"}, "{item: x}")
+    names = list(TRANSPORT.check_sink({"message": "COMMAND_INT"}, "{command: mav_enum_value('COMPONENT_ARM_DISARN', "
+                                      "'MAV_CMD'), frame: 'GLOBAL_RELATIVE_ALT_INTT'}"))
+    assert [text for _, text in names] == [
+        "sink mapping 'command': 'COMPONENT_ARM_DISARN' is not a MAV_CMD name; did you mean 'MAV_CMD_COMPONENT_ARM_DISARM'?",
+        "sink mapping 'frame': 'GLOBAL_RELATIVE_ALT_INTT' is not a MAV_FRAME name; "
+        "did you mean 'MAV_FRAME_GLOBAL_RELATIVE_ALT_INT'?"]
+    assert list(TRANSPORT.check_sink({"message": "COMMAND_INT"}, "{command: 'DO_REPOSITION', frame: mav_enum_value("
+                                     "'GLOBAL_INT', 'MAV_FRAME'), param4: nan()}")) == []
     assert unused.endswith("'item' is not used; did you mean 'items'?")
     assert [k for k, _ in TRANSPORT.check_sink({"message": "COMMAND_LONGG"}, None)] == ["message"]
     assert [k for k, _ in TRANSPORT.check_sink({"message": "HEARTBEAT", "target_system": 1}, None)] == ["target_system"]

@@ -11,6 +11,7 @@ from jmespath import exceptions as jmespath_errors
 
 from engine.endpoints.base import EndpointError, typed_or_problem
 from engine.endpoints.mavlink.codec import MESSAGES, null_problem
+from engine.endpoints.mavlink.enums import mav_enum_value
 from engine.endpoints.mavlink.options import MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.transaction import TransactionOptions
 from engine.options import given
@@ -99,6 +100,9 @@ def sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tupl
                                    f"{did_you_mean(key, cls.fieldnames)} (fields: {fields})"))
         elif _is_null_literal(value):
             problems.append((None, null_problem(name, [key])))
+        else:
+            problems.extend((None, f"sink mapping {key!r}: {problem}")
+                            for problem in _enum_name_problems(value, cls.fieldenums_by_name.get(key)))
     return problems
 
 
@@ -125,6 +129,24 @@ def _mapping_pairs(mapping: str | None) -> list[tuple[str, dict[str, Any]]]:
     if node.get("type") != "multi_select_dict":
         return []
     return [(child["value"], child["children"][0]) for child in node["children"] if child.get("type") == "key_val_pair"]
+
+
+def _enum_name_problems(node: dict[str, Any], enum: str | None) -> list[str]:
+    """A misspelt enum name written in the mapping itself, found before any message: a name
+    given to an enum field (``command: 'MAV_CMD_DO_REPOSITON'``) or to ``mav_enum_value`` with
+    both arguments written out. Names that come from the message are checked as it arrives."""
+    if node.get("type") == "literal" and isinstance(node.get("value"), str) and enum is not None:
+        name = node["value"]
+    elif node.get("type") == "function_expression" and node.get("value") == "mav_enum_value" \
+            and [child.get("type") for child in node["children"]] == ["literal", "literal"]:
+        name, enum = (child["value"] for child in node["children"])
+    else:
+        return []
+    try:
+        mav_enum_value(name, enum)  # type: ignore[arg-type]
+    except ValueError as exc:
+        return [str(exc)]
+    return []
 
 
 def _is_null_literal(node: dict[str, Any]) -> bool:
