@@ -72,10 +72,8 @@ class FieldFunctions(functions.Functions):
 
     @functions.signature()
     def _func_nan(self) -> float:
-        """MAVLink's explicit "unset" for a float field where the message or command defines it
-        (MAV_CMD_DO_REPOSITION's yaw: NaN keeps the current heading). A sink mapping must say
-        it: a null is refused, never sent as 0. JSON has no NaN, so a canonical message cannot
-        hold it (its schema stage rejects it)."""
+        """NaN, said explicitly: a typed sink refuses the null a mapping gives for a missing
+        path, so a float meant as "unknown" (NavSatFix altitude) must be written as nan()."""
         return math.nan
 
     @functions.signature()

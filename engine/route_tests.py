@@ -281,7 +281,7 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
             try:
                 build(outbound.fields)
             except MessageRejected as exc:
-                raise ConversionError("sink", str(exc)) from None
+                raise ConversionError(exc.stage, str(exc)) from None
             return None
 
         return mavlink

@@ -36,7 +36,14 @@ class EndpointError(Exception):
 
 class MessageRejected(EndpointError):
     """This message can never be accepted by this sink (a field the type lacks, a value out
-    of range). Retrying cannot help, so the engine dead-letters it instead of redelivering."""
+    of range). Retrying cannot help, so the engine dead-letters it instead of redelivering.
+
+    ``stage`` is what the dead letter names: ``sink`` by default, ``sink mapping`` when the
+    sink mapping's output is what cannot be carried (a typed field it set to null)."""
+
+    def __init__(self, message: str, stage: str = "sink") -> None:
+        super().__init__(message)
+        self.stage = stage
 
 
 OVERFLOW_POLICIES = ("block", "drop_oldest", "drop_newest")

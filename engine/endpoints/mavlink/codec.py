@@ -132,13 +132,13 @@ def null_problem(what: str, nulls: list[str]) -> str:
 
 
 def refuse_nulls(msgname: str, fields: Any) -> None:
-    """MessageRejected naming every field of ``fields`` set to null; what the pipeline runs on a
+    """MessageRejected (stage ``sink mapping``) naming every field of ``fields`` set to null; what the pipeline runs on a
     MAVLink message sink's mapping output (its ``sink mapping`` stage), and :func:`build_message`
     again before encoding."""
     if isinstance(fields, Mapping):
         nulls = null_fields(fields)
         if nulls:
-            raise MessageRejected(null_problem(msgname, nulls))
+            raise MessageRejected(null_problem(msgname, nulls), stage="sink mapping")
 
 
 def build_message(cls: type[mavlink2.MAVLink_message], fields: Any,

@@ -122,7 +122,7 @@ def refuse_mission_nulls(fields: Any) -> None:
     if isinstance(fields, Mapping):
         nulls = mission_nulls(fields)
         if nulls:
-            raise MessageRejected(null_problem("mission", nulls))
+            raise MessageRejected(null_problem("mission", nulls), stage="sink mapping")
 
 
 def mission_items(fields: Any, options: TransactionOptions) -> list[mavlink2.MAVLink_message]:
