@@ -130,9 +130,10 @@ def test_null_or_absent_command_field_sends_nothing_and_is_dead_lettered(tmp_pat
         assert MISSPELT_ERROR in errors[2], errors
         assert [json.loads(m.body)["id"] for m in letters[key]] == [ARM_NULL["id"], ARM_ABSENT["id"], ARM_MISSPELT["id"]]
     assert letters["goto"] == []
-    latency = {("goto" if msg.command == 192 else "arm"): at for at, msg in received}
-    assert latency, published  # the figure (publish -> vehicle) is printed for the record with -s
-    print(f"publish -> vehicle: goto {1000 * (latency['goto'] - published['goto']):.1f} ms")
+    [arrived] = [at for at, msg in received if msg.command == 192]
+    goto_ms = 1000 * (arrived - published["goto"])
+    print(f"publish -> vehicle: goto {goto_ms:.1f} ms")  # the figure, for the record (pytest -s)
+    assert goto_ms < 5000, goto_ms
 
     # rabbitros-engine test on the same routes: the same errors, word for word
     (routes / "routes.test.yaml").write_text(json.dumps({"tests": [

@@ -10,7 +10,7 @@ import jmespath
 from jmespath import exceptions as jmespath_errors
 
 from engine.endpoints.base import EndpointError, typed_or_problem
-from engine.endpoints.mavlink.codec import MESSAGES, null_problem
+from engine.endpoints.mavlink.codec import MESSAGES, NEVER_GUESSED
 from engine.endpoints.mavlink.enums import mav_enum_value
 from engine.endpoints.mavlink.options import MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.transaction import TransactionOptions
@@ -99,7 +99,7 @@ def sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tupl
             problems.append((None, f"sink mapping sets {key!r}, which {name} does not have"
                                    f"{did_you_mean(key, cls.fieldnames)} (fields: {fields})"))
         elif _is_null_literal(value):
-            problems.append((None, null_problem(name, [key])))
+            problems.append((None, f"sink mapping sets {key!r} to `null`: every message would be refused; {NEVER_GUESSED}"))
         else:
             problems.extend((None, f"sink mapping {key!r}: {problem}")
                             for problem in _enum_name_problems(value, cls.fieldenums_by_name.get(key)))

@@ -132,9 +132,9 @@ def null_problem(what: str, nulls: list[str]) -> str:
 
 
 def refuse_nulls(msgname: str, fields: Any) -> None:
-    """MessageRejected (stage ``sink mapping``) naming every field of ``fields`` set to null; what the pipeline runs on a
-    MAVLink message sink's mapping output (its ``sink mapping`` stage), and :func:`build_message`
-    again before encoding."""
+    """MessageRejected (stage ``sink mapping``) naming every field of ``fields`` set to null:
+    what the pipeline runs on a MAVLink message sink's mapping output (the sink's field check),
+    and :func:`build_message` again before encoding."""
     if isinstance(fields, Mapping):
         nulls = null_fields(fields)
         if nulls:

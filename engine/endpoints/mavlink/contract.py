@@ -13,7 +13,7 @@ import asyncio
 from collections.abc import Callable, Hashable
 from typing import Protocol
 
-from engine.endpoints.mavlink.codec import mavlink2
+from engine.endpoints.mavlink.dialect import mavlink2
 from engine.endpoints.mavlink.settings import LinkConfig
 
 Listener = Callable[[mavlink2.MAVLink_message], None]
