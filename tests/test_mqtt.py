@@ -115,11 +115,13 @@ routes:
 """
 
 
-def test_mqtt_to_amqp_with_a_wildcard(tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str) -> None:
+@pytest.mark.parametrize("qos", [1, 0])
+def test_mqtt_to_amqp_with_a_wildcard(tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str, qos: int) -> None:
     """Every message on farm/+/weather reaches AMQP once, in order per agent; a topic the
     filter does not match (farm/a/soil, farm/a/b/weather) does not."""
     outbox = f"w-{uuid.uuid4().hex[:8]}"
-    routes = routes_dir(tmp_path, TO_AMQP.format(mqtt=mosquitto.url, amqp=amqp_url, outbox=outbox, client_id="wx-1"))
+    text = TO_AMQP.format(mqtt=mosquitto.url, amqp=amqp_url, outbox=outbox, client_id="wx-1")
+    routes = routes_dir(tmp_path, text.replace("qos: 1", f"qos: {qos}"))
 
     async def scenario() -> tuple[list[Any], dict[str, Any]]:
         engine = Engine(routes, REPO / "schemas")
@@ -145,6 +147,40 @@ def test_mqtt_to_amqp_with_a_wildcard(tmp_path: Path, mosquitto: LocalMosquitto,
     assert {m.routing_key for m in received} == {"weather.a0", "weather.a1", "weather.a2"}
     health = status["connections"]["field"]
     assert health["state"] == "up" and health["session"] == "persistent" and "held" not in health
+
+
+def test_reload_to_another_topic_unsubscribes_the_old_one_from_the_session(
+        tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str) -> None:
+    """A reload that changes the route's filter subscribes the new one before the old source
+    stops, and once the old source is retired removes its filter from the persistent
+    session: a message on the old topic is then not sent to the engine at all (none held)."""
+    outbox = f"r-{uuid.uuid4().hex[:8]}"
+    text = TO_AMQP.format(mqtt=mosquitto.url, amqp=amqp_url, outbox=outbox, client_id="reload-1")
+    routes = routes_dir(tmp_path, text)
+
+    async def scenario() -> tuple[list[int], dict[str, Any]]:
+        engine = Engine(routes, REPO / "schemas")
+        engine.retire_after_s = 0.1
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            out = await Collector.bind(await connection.channel(), outbox, "#")
+            await publish(mosquitto, [weather("a1", 1)])
+            await out.wait_for(1, 20)
+            (routes / "r.yaml").write_text(text.replace("farm/+/weather", "farm/+/wind"))
+            assert await engine.reload()
+            await engine.topology_settled()
+            await publish(mosquitto, [weather("a1", 2), ("farm/a1/wind", {"agent_id": "a1", "seq": 3})])
+            await out.wait_for(2, 20)
+            await asyncio.sleep(0.5)  # the old topic's message would be here by now
+            return [json.loads(m.body)["seq"] for m in out.messages], engine.status()["connections"]["field"]
+        finally:
+            await connection.close()
+            await engine.stop()
+
+    seqs, health = asyncio.run(asyncio.wait_for(scenario(), 90))
+    assert seqs == [1, 3]
+    assert "held" not in health and "unrouted" not in health, health
 
 
 # ------------------------------------------------------------ a schema failure, dead-lettered
@@ -525,15 +561,18 @@ def test_two_engines_with_one_shared_group_split_the_stream_every_message_once(
 
 def test_check_names_mqtt_option_problems(tmp_path: Path) -> None:
     """``check`` reports, with file:line, a filter that is not one, QoS 2 on a source, a
-    wildcard in a sink topic and a session_expiry that keeps no session."""
+    wildcard in a sink topic, a session_expiry that keeps no session, and two connections
+    that would take one session (client_id) from each other."""
     (tmp_path / "bad.yaml").write_text("""
 connections:
   field: {mqtt: {url: "mqtt://localhost:1883", session_expiry: 60}}
+  one: {mqtt: {url: "mqtt://127.0.0.1:1884", client_id: engine-1}}
+  two: {mqtt: {url: "mqtt://127.0.0.1:1884", client_id: engine-1}}
 routes:
   - name: bad-filter
-    source: {mqtt: {topic: "farm/#/weather", qos: 2}}
+    source: {mqtt: {connection: field, topic: "farm/#/weather", qos: 2}}
     schema: raw_json
-    sink: {mqtt: {topic: "farm/+/cmd"}}
+    sink: {mqtt: {connection: field, topic: "farm/+/cmd"}}
 """)
     result = cli("check", "--routes", str(tmp_path), "--schemas", str(REPO / "schemas"))
     assert result.returncode == 1
@@ -542,6 +581,7 @@ routes:
     assert "'farm/#/weather' is not an MQTT topic filter" in out
     assert "qos 2 is not offered on a source" in out
     assert "a message is published on one topic, never on a filter" in out
+    assert "connection 'two': mqtt:127.0.0.1:1884/engine-1 is already used by connection 'one'" in out
 
 
 def test_route_test_renders_the_mqtt_topic_and_refuses_a_missing_field(tmp_path: Path) -> None:
