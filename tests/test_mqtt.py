@@ -115,12 +115,14 @@ routes:
 """
 
 
-@pytest.mark.parametrize("qos", [1, 0])
-def test_mqtt_to_amqp_with_a_wildcard(tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str, qos: int) -> None:
+@pytest.mark.parametrize("qos, protocol", [(1, "5"), (0, "5"), (1, "'3.1.1'")])
+def test_mqtt_to_amqp_with_a_wildcard(tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str,
+                                      qos: int, protocol: str) -> None:
     """Every message on farm/+/weather reaches AMQP once, in order per agent; a topic the
-    filter does not match (farm/a/soil, farm/a/b/weather) does not."""
+    filter does not match (farm/a/soil, farm/a/b/weather) does not. MQTT 5 routes by
+    subscription identifier, 3.1.1 by matching the topic."""
     outbox = f"w-{uuid.uuid4().hex[:8]}"
-    text = TO_AMQP.format(mqtt=mosquitto.url, amqp=amqp_url, outbox=outbox, client_id="wx-1")
+    text = TO_AMQP.format(mqtt=mosquitto.url, amqp=amqp_url, outbox=outbox, client_id=f"wx-1, protocol: {protocol}")
     routes = routes_dir(tmp_path, text.replace("qos: 1", f"qos: {qos}"))
 
     async def scenario() -> tuple[list[Any], dict[str, Any]]:
@@ -377,13 +379,16 @@ def kill(engine: EngineProcess) -> None:
     engine.process.wait(30)
 
 
-def test_qos1_engine_killed_twice_mid_stream_loses_nothing(tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str) -> None:
+@pytest.mark.parametrize("protocol", ["5", "'3.1.1'"])
+def test_qos1_engine_killed_twice_mid_stream_loses_nothing(tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str,
+                                                            protocol: str) -> None:
     """A publisher streams 4,000 QoS 1 messages while the engine (a persistent session) is
     killed with -9 twice and restarted: every message reaches AMQP. What the engine held
     unacknowledged comes again from the broker right after CONNACK (before the route
     subscribes), and what was published while it was down is delivered when it is back."""
     outbox = f"k-{uuid.uuid4().hex[:8]}"
-    routes = routes_dir(tmp_path, TO_AMQP.format(mqtt=mosquitto.url, amqp=amqp_url, outbox=outbox, client_id="kill-1"))
+    routes = routes_dir(tmp_path, TO_AMQP.format(mqtt=mosquitto.url, amqp=amqp_url, outbox=outbox,
+                                                 client_id=f"kill-1, protocol: {protocol}"))
 
     async def scenario() -> dict[str, Any]:
         connection = await aio_pika.connect(amqp_url)
@@ -421,7 +426,7 @@ def test_qos1_engine_killed_twice_mid_stream_loses_nothing(tmp_path: Path, mosqu
                 "lost": KILL_TOTAL - len(set(counts) & set(range(KILL_TOTAL))), "killed_after": kills}
 
     figures = asyncio.run(asyncio.wait_for(scenario(), 600))
-    print(f"\nmqtt qos1, engine kill -9 x2: {figures}")
+    print(f"\nmqtt {protocol} qos1, engine kill -9 x2: {figures}")
     assert figures["sent"] == KILL_TOTAL
     assert figures["lost"] == 0 and figures["delivered"] == KILL_TOTAL
     assert len(figures["killed_after"]) == 2 and all(n < KILL_TOTAL for n in figures["killed_after"])
