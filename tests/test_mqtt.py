@@ -265,19 +265,20 @@ routes:
     mapping: "{{agent_id: header.frame_id, lat: latitude, lon: longitude, alt_msl: altitude}}"
     schema: position
     sink:
-      mqtt: {{topic: "farm/{{agent_id}}/position", qos: 1}}
+      mqtt: {{topic: "farm/{{agent_id}}/position", qos: 1, retain: true}}
 """
 
 
 def test_ros2_to_mqtt_topic_from_a_canonical_field(tmp_path: Path, mosquitto: LocalMosquitto) -> None:
-    """NavSatFix on ROS 2 becomes a canonical position published on farm/<frame_id>/position."""
+    """NavSatFix on ROS 2 becomes a canonical position published on farm/<frame_id>/position,
+    retained: a subscriber that comes later gets each agent's last position."""
     tag = "m" + uuid.uuid4().hex[:8]
     routes = routes_dir(tmp_path, ROS_TO_MQTT.format(domain=DOMAIN, tag=tag, mqtt=mosquitto.url))
     peer = Peer()
     publisher = peer.publisher(NavSatFix, f"/{tag}/fix")
     peer.start()
 
-    async def scenario() -> list[aiomqtt.Message]:
+    async def scenario() -> tuple[list[aiomqtt.Message], list[aiomqtt.Message]]:
         engine = Engine(routes, REPO / "schemas")
         await engine.start()
         try:
@@ -288,14 +289,18 @@ def test_ros2_to_mqtt_topic_from_a_canonical_field(tmp_path: Path, mosquitto: Lo
                     fix.header.frame_id = f"uav{seq % 2}"
                     fix.latitude, fix.longitude, fix.altitude = -22.0 + seq * 1e-4, -47.9, 600.0 + seq
                     publisher.publish(fix)
-                return list(await subscriber.wait_for(20))
+                live = list(await subscriber.wait_for(20))
+            async with Subscriber(mosquitto, "farm/+/position") as late:
+                return live, list(await late.wait_for(2))
         finally:
             await engine.stop()
 
     try:
-        messages = asyncio.run(asyncio.wait_for(scenario(), 90))
+        messages, retained = asyncio.run(asyncio.wait_for(scenario(), 90))
     finally:
         peer.close()
+    assert sorted((str(m.topic), json.loads(m.payload)["alt_msl"], m.retain) for m in retained) == [
+        ("farm/uav0/position", 618.0, True), ("farm/uav1/position", 619.0, True)]
     assert len(messages) == 20
     by_topic = Counter(str(m.topic) for m in messages)
     assert by_topic == {"farm/uav0/position": 10, "farm/uav1/position": 10}
@@ -450,7 +455,7 @@ routes:
       amqp: {{exchange: {inbox}, binding_key: "#", queue: {inbox}-q}}
     schema: raw_json
     sink:
-      mqtt: {{topic: "farm/{{agent_id}}/cmd"}}
+      mqtt: {{topic: "farm/{{agent_id}}/cmd", qos: 2}}
 """
 
 
@@ -464,7 +469,7 @@ def free_port() -> int:
 def test_mosquitto_stopped_and_started_routes_resume_and_healthz_follows(
         tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str, session: str) -> None:
     """While mosquitto is down /healthz is 503 naming the MQTT connection; once it is back it
-    is 200 again and both directions flow: a persistent session keeps its subscription in
+    is 200 again and both directions flow (the sink at QoS 2): a persistent session keeps its subscription in
     the broker's persistence file, a clean one is subscribed again by the engine."""
     tag = uuid.uuid4().hex[:8]
     client_id = ", client_id: restart-1" if session == "persistent" else ""
