@@ -88,7 +88,6 @@ class MavlinkSinkOptions(MavlinkSourceOptions):
     acknowledged: bool = option(False, show_default=False,
                                 description="COMMAND_LONG/COMMAND_INT: accepted only once the target's COMMAND_ACK says so")
     home_placeholder: bool = option(False, show_default=False, description="ArduPilot: a seq-0 home item first")
-    default_alt: float | None = option(None, description="metres, for waypoints without alt")
     mission_type: str | int | None = option(None)
     timeout: float | None = option(None, description="seconds per answer before sending again")
     retries: int | None = option(None, schema={"minimum": 0})
