@@ -45,3 +45,23 @@ def test_the_tutorial_route_and_its_test_are_the_files_it_shows():
     assert result.returncode == 0, result.stdout + result.stderr
     assert result.stdout.splitlines()[-1] == "2 passed, 0 failed"
     assert "[docs/](docs/README.md)" in (REPO / "README.md").read_text()
+
+
+def _anchors(text: str) -> set[str]:
+    """GitHub's heading anchors (lowercase, punctuation dropped, spaces to hyphens) and explicit ids."""
+    slugs = {re.sub(r"[^a-z0-9 _-]", "", line.lstrip("#").strip().lower()).replace(" ", "-")
+             for line in text.splitlines() if line.startswith("#")}
+    return slugs | set(re.findall(r'<a id="([^"]+)"></a>', text))
+
+
+def test_links_between_the_docs_resolve():
+    """Every relative link of README.md and docs/*.md names a file that exists and, with a
+    #fragment, a heading or anchor it has (route-language.md links into route-keys.md)."""
+    broken = []
+    for page in [REPO / "README.md", *sorted(DOCS.glob("*.md"))]:
+        for target, fragment in re.findall(r"\]\(((?!https?:)[^)#\s]*)(?:#([^)\s]+))?\)", page.read_text()):
+            linked = (page.parent / target).resolve() if target else page
+            if not linked.exists() or (fragment and linked.suffix == ".md" and fragment not in _anchors(linked.read_text())):
+                broken.append(f"{page.relative_to(REPO)}: {target}#{fragment}")
+    assert broken == []
+    assert "(route-keys.md)" in (DOCS / "route-language.md").read_text()
