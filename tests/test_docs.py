@@ -7,8 +7,10 @@ import re
 import subprocess
 import sys
 
+import pytest
+
 from engine.mapping import compile_mapping, known_functions
-from engine.schemas import SchemaRegistry
+from engine.schemas import SchemaError, SchemaRegistry
 from tests.conftest import REPO
 
 DOCS = REPO / "docs"
@@ -65,3 +67,21 @@ def test_links_between_the_docs_resolve():
                 broken.append(f"{page.relative_to(REPO)}: {target}#{fragment}")
     assert broken == []
     assert "(route-keys.md)" in (DOCS / "route-language.md").read_text()
+
+
+def test_the_shared_types_are_defined_and_the_stamp_is_what_the_schemas_accept():
+    """schemas.md defines every shared type of envelope.v1.json that the tables name, and what
+    it says a stamp is (and is not) is what validation does."""
+    text = (DOCS / "schemas.md").read_text()
+    shared = json.loads((REPO / "schemas" / "envelope.v1.json").read_text())["$defs"]
+    for name in set(shared) - {"header"}:
+        assert f"### `{name}`" in text, name
+    position = SchemaRegistry(REPO / "schemas").get("position")
+    fix = {"agent_id": "uav1", "lat": -22.0, "lon": -47.9}
+    position.validate({**fix, "stamp": {"sec": 1700000000, "nanosec": 500000000}})
+    stamp_section = text.split("### `stamp`", 1)[1].split("###", 1)[0]
+    for refused, shown in ((1700000000.5, "`1700000000.5`"), ("2023-11-14T22:13:20Z", "ISO 8601"), ({"sec": 1700000000}, "`{sec}` without")):
+        assert shown in stamp_section
+        with pytest.raises(SchemaError):
+            position.validate({**fix, "stamp": refused})
+    assert "UNIX seconds" not in text.split("| `stamp` |", 1)[1].split("\n", 1)[0]
