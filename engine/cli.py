@@ -107,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--status-file", type=Path, help="the engine's --status-file (printed as JSON)")
     status.add_argument("--json", action="store_true", help="print the raw status document")
 
-    tap = commands.add_parser("tap", help="print, as JSON lines, every message through a route of a running engine")
+    tap = commands.add_parser("tap", help="print, as JSON lines, every message through a route of a running engine; "
+                              "stderr says 'listening' once it is attached, exit 1 when the engine goes away")
     tap.add_argument("route")
     tap.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", required=True, help="the engine's --admin address")
     tap.add_argument("--count", type=int, default=0, help="stop after this many messages (default: until interrupted)")
