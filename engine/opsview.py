@@ -46,6 +46,10 @@ def _age(at: Any, now: float) -> str:
     return f"{seconds:.0f}s ago" if seconds < 120 else f"{seconds / 60:.0f}m ago"
 
 
+SHOWN_PROBLEMS = 5
+"""Problems of a rejected reload the table shows; ``status --json`` has every one."""
+
+
 def status_table(status: dict[str, Any], last_canonical: bool = False, width: int = 60) -> Group:
     """The status document as a rich table (and a header line)."""
     now = time.time()
@@ -87,7 +91,21 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
             last = route.get("last_canonical")
             row.append("" if last is None else json.dumps(last, separators=(",", ":"), default=str))
         table.add_row(*row)
-    return Group(header, table)
+    return Group(header, *_rejected_reload(status), table)
+
+
+def _rejected_reload(status: dict[str, Any]) -> list[Text]:
+    """The last rejected reload's problems, ``file:line: message`` each on a line of its own
+    (``print_status`` never wraps them: an operator greps or copies them); nothing once a later
+    reload applied or the files are back to what runs."""
+    problems = (status.get("reloads") or {}).get("last_error") or []
+    if not problems:
+        return []
+    lines = [Text.assemble(("last reload rejected", "red"), (f" (generation {status.get('generation')} keeps running):", "dim"))]
+    lines += [Text(f"  {problem}", "red") for problem in problems[:SHOWN_PROBLEMS]]
+    if len(problems) > SHOWN_PROBLEMS:
+        lines.append(Text(f"  ... and {len(problems) - SHOWN_PROBLEMS} more (status --json lists them all)", "dim"))
+    return lines
 
 
 def print_status(address: tuple[str, int], raw: bool) -> int:
@@ -99,7 +117,8 @@ def print_status(address: tuple[str, int], raw: bool) -> int:
     if raw:
         print(json.dumps(status, indent=2))
         return 0
-    Console(width=None if sys.stdout.isatty() else 200).print(status_table(status))
+    # soft_wrap: the header's lines (a rejected reload's file:line: message) are never wrapped or cut
+    Console(width=None if sys.stdout.isatty() else 200).print(status_table(status), soft_wrap=True)
     return 0
 
 

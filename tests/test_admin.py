@@ -367,3 +367,41 @@ def test_healthz_follows_the_broker(tmp_path: Path):
         engine.stop()
         broker.keep_dir = False
         broker.stop()
+
+
+def test_status_shows_why_the_last_reload_was_rejected_and_the_log_says_when_it_cleared(amqp_url: str, tmp_path: Path):
+    """``status`` names each problem of a rejected reload as ``file:line: message`` (not just
+    "1 rejected"); a later reload that applies says in the log that the error is gone, and the
+    status stops showing it."""
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    good = ROUTES.split("  - name: throttled")[0].replace("admin-", "rejected-")
+    (routes / "r.yaml").write_text(good)
+    port = free_port()
+    engine = EngineProcess(routes, tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url}, "--admin", str(port))
+
+    def status_table() -> str:
+        shown = subprocess.run([sys.executable, "-m", "engine", "status", "--admin", str(port)], capture_output=True,
+                               text=True, timeout=60, cwd=REPO)
+        assert shown.returncode == 0, shown.stderr
+        return shown.stdout
+
+    try:
+        engine.wait_started()
+        (routes / "r.yaml").write_text(good.replace("schema: weed_detection", "schema: weed_detektion"))
+        wait_until(lambda: (engine.status() or {}).get("reloads", {}).get("rejected") == 1, 30, "the reload to be rejected")
+        table = status_table()
+        assert "0 ok / 1 rejected" in table and "last reload rejected (generation 1 keeps running):" in table, table
+        problem = next(line.strip() for line in table.splitlines() if "weed_detektion" in line)
+        assert re.fullmatch(rf"{re.escape(str(routes / 'r.yaml'))}:\d+: route 'counted': unknown schema 'weed_detektion'.*", problem), problem
+        assert "reload error cleared" not in engine.log()
+
+        (routes / "r.yaml").write_text(good.replace("prefetch: 64", "prefetch: 32"))
+        wait_until(lambda: (engine.status() or {}).get("generation") == 2, 30, "the fixed files to be applied")
+        cleared = wait_until(lambda: [json.loads(line) for line in engine.log().splitlines()
+                                      if '"reload error cleared"' in line], 10, "the log to say the error cleared")
+        assert cleared[0]["by"] == "a reload applied" and "weed_detektion" in cleared[0]["was"][0]
+        table = status_table()
+        assert "1 ok / 1 rejected" in table and "last reload rejected" not in table, table
+    finally:
+        engine.stop()
