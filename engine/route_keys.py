@@ -8,6 +8,11 @@ schema becomes one section (``connections.<name>.amqp``, ``routes[].sink.mavlink
 per key: the key, its value (type, bounds, enum), its default (or "required") and its
 description.
 
+A page of its own rather than a generated section of docs/route-language.md: some 130 rows
+would bury that page's explanations, and a file that is generated whole is compared byte for
+byte (no markers to keep) and, after a merge that touched declarations, regenerated instead of
+merged by hand. route-language.md explains and links to its sections (``anchor``).
+
     python -m engine.route_schema --write     # regenerates the schema and this reference
 """
 
