@@ -244,7 +244,7 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
             write_status()
             await asyncio.sleep(args.stats_interval)
             for name, route in engine.status()["routes"].items():
-                log.info("route counters", extra={"route": name, **{k: route[k] for k in COUNTERS}})
+                log.info("route counters", extra={"route": name, **{k: route[k] for k in (*COUNTERS, "dead_lettered")}})
 
     tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
     if not args.no_watch:
