@@ -211,6 +211,8 @@ class RouteRunner:
             await self._send(pipeline, [message], settled, dead)
             if dead:
                 await self._dead_letter(dead, settled)
+            if not settled[0]:  # the route stopped meanwhile; its source cannot have it again
+                self.observer.dropped += 1
         finally:
             pipeline.leave()
 
