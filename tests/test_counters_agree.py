@@ -32,7 +32,6 @@ from typing import Any, Callable
 import aio_pika
 
 from engine.local_broker import LocalBroker
-from tests.conftest import REPO
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, Tally, robust, wait_for
 
