@@ -126,16 +126,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def check(routes: Path, schemas: Path) -> int:
     try:
-        config, cases, problems = load_checked(routes, SchemaRegistry(schemas))
+        config, cases, problems, warnings = load_checked(routes, SchemaRegistry(schemas))
     except Exception as error:  # what the loader did not foresee still gets one line, not a traceback
         print(f"{routes}: cannot load: {type(error).__name__}: {error}", file=sys.stderr)
         return 1
-    for problem in problems:
-        print(problem, file=sys.stderr)
+    shown = [(p.file, p.line, str(p)) for p in problems] + [(w.file, w.line, f"{w.file}:{w.line}: warning: {w.message}") for w in warnings]
+    for _, _, line in sorted(shown):  # every problem and warning of the run, in file order
+        print(line, file=sys.stderr)
     if config is None or problems:
         return 1
-    for warning in config.warnings:
-        print(f"{warning.file}:{warning.line}: warning: {warning.message}", file=sys.stderr)
     tests = f", {len(cases)} tests" if cases else ""
     print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections{tests}, config {config.content_hash}: ok")
     return 0
@@ -144,7 +143,7 @@ def check(routes: Path, schemas: Path) -> int:
 def run_route_tests(routes: Path, schemas_dir: Path) -> int:
     """``rabbitros-engine test``: one line per case, a diff per failure; 0 pass, 1 fail, 2 invalid."""
     schemas = SchemaRegistry(schemas_dir)
-    config, cases, problems = load_checked(routes, schemas)
+    config, cases, problems, _ = load_checked(routes, schemas)
     for problem in problems:
         print(problem, file=sys.stderr)
     if config is None or problems:
