@@ -264,7 +264,7 @@ def _compile_connections(
             protocol = protocols[0]
             if name in connections:
                 first = connections[name]
-                problems.append(document.problem(where, f"connection {name!r} is already defined at {first.file}:{first.line}"))
+                problems.append(document.problem(where, f"connection {name!r} is already defined at {first.file}:{first.line}{_together(document, first.file)}"))
                 continue
             misplaced = _misplaced(protocol, body)
             if misplaced is not None:  # reported, and left out of the options: routes still find the connection
@@ -283,6 +283,14 @@ def _compile_connections(
                 problems.append(document.problem(where + (protocol,), f"connection {name!r}: {connection.exclusive} is already used by connection {holder.name!r} at {holder.file}:{holder.line}"))
             connections[name] = connection
     return connections
+
+
+def _together(document: Document, other_file: str) -> str:
+    """For a name defined in two files: why both count (alternatives side by side, as two
+    versions of one example, collide)."""
+    if other_file == document.file:
+        return ""
+    return " (every file of a routes directory is loaded together: keep alternative files in separate directories)"
 
 
 def _items(document: Document, key: str, kind: type) -> Iterator[Any]:
@@ -435,7 +443,7 @@ def _compile_routes(
             name = route.name
             if name in routes:
                 first = routes[name]
-                problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first.file}:{first.line}"))
+                problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first.file}:{first.line}{_together(document, first.file)}"))
             source, source_complete = _endpoint(document, where + ("source",), name, route.source, connections, problems)
             sink, sink_complete = _endpoint(document, where + ("sink",), name, route.sink, connections, problems)
             mapping, schema_name, sink_mapping = route.mapping, route.schema, route.sink.get("mapping")

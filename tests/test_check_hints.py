@@ -81,9 +81,29 @@ def test_unknown_key_suggests_the_allowed_one(tmp_path: Path):
     assert str(invalid.value.problems[0]).endswith("; did you mean 'prefetch'?")
 
 
-def test_shipped_examples_read_only_fields_their_types_have():
-    for routes in (REPO / "routes", REPO / "examples" / "farm_uav_gcs.yaml", REPO / "examples" / "farm_routes_mavlink.yaml"):
-        load_routes(routes, SchemaRegistry(REPO / "schemas"))
+def test_shipped_routes_and_examples_pass_check_without_a_warning(tmp_path: Path):
+    """``check --routes examples/`` (the farm and its tests), ``routes/``, the fragment alone and
+    the fragment beside routes/gcs.yaml, as its header says to use it."""
+    beside = tmp_path / "gcs"
+    beside.mkdir()
+    for source in (REPO / "routes" / "gcs.yaml", REPO / "examples" / "fragments" / "farm_routes_mavlink.yaml"):
+        (beside / source.name).write_text(source.read_text())
+    for routes in ("routes/", "examples/", "examples/fragments/farm_routes_mavlink.yaml", str(beside)):
+        result = subprocess.run([sys.executable, "-m", "engine", "check", "--routes", routes, "--schemas", "schemas"],
+                                capture_output=True, text=True, timeout=120, cwd=REPO)
+        assert result.returncode == 0 and result.stderr == "" and result.stdout.endswith(": ok\n"), (routes, result.stderr)
+    assert "17 tests" in subprocess.run([sys.executable, "-m", "engine", "check", "--routes", "examples/"],
+                                        capture_output=True, text=True, timeout=120, cwd=REPO).stdout
+
+
+def test_two_versions_of_one_example_side_by_side_say_why_they_collide(tmp_path: Path):
+    for name in ("farm.yaml", "farm_copy.yaml"):
+        (tmp_path / name).write_text((REPO / "examples" / "fragments" / "farm_routes_mavlink.yaml").read_text())
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
+    first = str(invalid.value.problems[0]).removeprefix(f"{tmp_path}/")
+    assert first == (f"farm_copy.yaml:16: connection 'radio' is already defined at {tmp_path}/farm.yaml:16 "
+                     "(every file of a routes directory is loaded together: keep alternative files in separate directories)")
 
 
 def test_paths_read_from_the_source():
