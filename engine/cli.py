@@ -18,7 +18,7 @@ from engine.admin import AdminServer, parse_address, status_document
 from engine.endpoints.amqp import redact
 from engine.opsview import print_status, print_tap
 from engine.endpoints.base import EndpointError
-from engine.local_broker import BrokerError, LocalBroker, LocalCluster
+from engine.local_broker import LOCAL_BROKER_ENV, BrokerError, LocalBroker, LocalCluster
 from engine.logs import setup_logging
 from engine.loop import run as run_loop
 from engine.route_tests import format_result, load_checked, run_tests
@@ -29,6 +29,8 @@ from engine.watch import watch_routes
 
 log = logging.getLogger("engine.cli")
 COMMANDS = ("run", "check", "test", "status", "tap")
+CHECK_BROKER_URL = "amqp://guest:guest@local-broker.invalid/"
+"""``check --local-broker``'s stand-in for the private node's URL (``.invalid`` is never a host)."""
 
 
 def default_schemas(routes: Path) -> Path:
@@ -71,6 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
     common(check)
+    check.add_argument("--local-broker", action="store_true",
+                       help="check as run --local-broker would load the routes: warn about AMQP connections that name another broker")
 
     test = commands.add_parser(
         "test", help="run the *.test.yaml cases through the routes' conversion, connecting to nothing; "
@@ -103,6 +107,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         args_list.insert(0, "run")
     args = build_parser().parse_args(args_list)
     if args.command == "check":
+        if args.local_broker:  # the private node's URL is not known before it starts: a stand-in no route file names
+            os.environ.update({"RABBITROS_AMQP_URL": CHECK_BROKER_URL, LOCAL_BROKER_ENV: ""})
+            os.environ.pop("RABBITROS_AMQP_URLS", None)
         return check(args.routes, args.schemas or default_schemas(args.routes))
     if args.command == "test":
         return run_route_tests(args.routes, args.schemas or default_schemas(args.routes))
@@ -176,6 +183,7 @@ async def run(args: argparse.Namespace) -> int:
         if len(urls) > 1:
             os.environ["RABBITROS_AMQP_URLS"] = " ".join(urls)
         nodes = [n.node for n in broker.nodes] if isinstance(broker, LocalCluster) else [broker.node]
+        os.environ[LOCAL_BROKER_ENV] = ", ".join(nodes)  # the loader warns about AMQP connections that go elsewhere
         log.info("local broker started", extra={"urls": [redact(u) for u in urls], "nodes": nodes})
         if args.broker_url_file:
             _write_atomically(args.broker_url_file, "\n".join(urls) + "\n")

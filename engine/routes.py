@@ -27,7 +27,8 @@ from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hin
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
 from engine.options import OptionError, describe, evolve, fields_of, given, option, parse
-from engine.redaction import Secret, has_url_password, json_default, revealed
+from engine.local_broker import LOCAL_BROKER_ENV, elsewhere
+from engine.redaction import Secret, has_url_password, json_default, redact_urls, reveal, revealed
 from engine.route_yaml import Document, Path_, Problem, parse_document
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
@@ -240,6 +241,7 @@ def load_routes(
     routes = _compile_routes(documents, connections, schemas, problems, warnings)
     dead_letters = _compile_dead_letters(documents, connections, problems)
     warnings.extend(_competing_consumers(routes))
+    warnings.extend(_private_broker_warnings(connections, env))
     if problems:
         raise RoutesInvalid(sorted(set(problems)), sorted(set(warnings)))
     digest.update(json.dumps(sorted((n, r.fingerprint) for n, r in routes.items())).encode())  # schemas, key files
@@ -391,6 +393,30 @@ def _default_connection(protocol: str) -> ConnectionSpec:
     except OptionError as exc:
         raise EndpointError(f"default {protocol} connection: {exc}") from None
     return _identified(ConnectionSpec(f"default-{protocol}", protocol, settings, options=options))
+
+
+def _private_broker_warnings(connections: Mapping[str, ConnectionSpec], env: Mapping[str, str]) -> list[Problem]:
+    """With ``--local-broker``, each AMQP connection that names a broker other than the private
+    node: it keeps going where it says (a route file means what it says, and one with two
+    brokers must not become one with a single broker under a flag), so say so at load."""
+    node = env.get(LOCAL_BROKER_ENV)
+    if node is None:
+        return []
+    private = env.get("RABBITROS_AMQP_URLS", "").split() or [env.get("RABBITROS_AMQP_URL", "")]
+    named = f"--local-broker's private node ({node})" if node else "--local-broker's private node"
+    warnings = []
+    for spec in connections.values():
+        if spec.protocol != "amqp" or spec.options is None or spec.name.startswith("default-"):
+            continue
+        urls = [reveal(url) for url in ([spec.options.url] if spec.options.url else spec.options.urls or ())]
+        other = elsewhere(urls, private)
+        if other:
+            shown_urls = ", ".join(redact_urls(url) for url in other)
+            warnings.append(Problem(spec.file, spec.line, (
+                f"connection {spec.name!r} names its own broker ({shown_urls}), so {named} does not serve it "
+                "and its routes use that broker; to use the private node, write the URL as "
+                "\"${RABBITROS_AMQP_URL:-<the URL>}\", or leave the connection out")))
+    return warnings
 
 
 def _identified(spec: ConnectionSpec) -> ConnectionSpec:
