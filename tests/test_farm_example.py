@@ -82,4 +82,17 @@ def test_farm_example_end_to_end(tmp_path: Path):
     assert uav_sent and len(uav_sent) - 1 <= len(uav_acks) <= len(uav_sent), (uav_sent, uav_acks)
     assert all(ack["result"] == "accepted" and ack["detail"] == "MAV_MISSION_ACCEPTED" for ack in uav_acks), uav_acks
     assert status["uav1-missions"]["delivered"] == len(uav_acks) or status["uav1-missions"]["delivered"] == len(uav_sent)
+
+    # The supervisor's command reached the UAV's companion computer through the radio (route
+    # uav1-commands): its weed detector runs only once commanded, so the weeds above prove it too.
+    assert re.findall(r"gcs -> command\.uav1: detect_weeds", out) == ["gcs -> command.uav1: detect_weeds"], out[-3000:]
+    assert status["uav1-commands"]["received"] == status["uav1-commands"]["delivered"] == 1, status["uav1-commands"]
+
+    # Every flow the demo promises carried messages (the demo exits 1 otherwise, naming them).
+    assert all(route["delivered"] > 0 for route in status.values()), status
+    sys.path.insert(0, str(REPO / "examples"))
+    from farm_demo import unkept_promises
+    assert unkept_promises(status) == []
+    idle = {**status, "uav1-commands": {**status["uav1-commands"], "delivered": 0}}
+    assert unkept_promises(idle) == ["flows that carried nothing: uav1-commands"]
     print(f"weeds {len(numbers)}, missions {sent}, acks {len(acks)}, uav missions {uav_sent}, uav acks {len(uav_acks)}")
