@@ -175,6 +175,21 @@ def _undeclared(written: Written | None, declared: Any, label: str, path: FieldP
             yield from _undeclared(value, declared.child(key), label, path + (key,))
 
 
+def undeclared_path(path: str, declared: Any, label: str) -> str | None:
+    """``'agent_idd', which schema position does not declare; did you mean 'agent_id'?`` for
+    a dotted canonical field path (a template placeholder, throttle's ``per``), or None."""
+    steps = tuple(path.split("."))
+    for depth, step in enumerate(steps):
+        if declared.open:
+            return None
+        if step not in declared.keys:
+            guess = closest(step, declared.keys)
+            hint = f"; did you mean {_dotted(steps[:depth] + (guess,))!r}?" if guess else f" (it declares: {', '.join(declared.keys)})"
+            return f"{_dotted(steps[:depth + 1])!r}, which schema {label!r} does not declare{hint}"
+        declared = declared.child(step)
+    return None
+
+
 def mapping_field_problems(protocol: str, options: Any, mapping: str | None) -> Iterator[str]:
     """``mapping reads 'x', which T does not have; did you mean 'y'?`` for a typed source."""
     if not mapping:

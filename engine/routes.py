@@ -23,7 +23,7 @@ from engine import endpoints
 from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, DeadLetterSpec, DeadLettersOptions, RouteDelivery
 from engine.buffer import BufferOptions, BufferSpec
 from engine.endpoints.base import EndpointError, Transport
-from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hint, undeclared_keys
+from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hint, undeclared_keys, undeclared_path
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
 from engine.options import OptionError, describe, evolve, fields_of, given, option, parse
@@ -537,15 +537,35 @@ def _route_checks(
     elif schemas.get(schema_name) is None:
         problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"))
     else:
-        declared = schemas.declared(schema_name)
-        if declared is not None:
-            for message in undeclared_keys(mapping_writes(mapping), declared, schema_name):
-                warnings.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
+        warnings.extend(_schema_warnings(document, where, route, sink, schemas))
     _endpoint_checks(document, where, name, source if complete[0] else None, sink if complete[1] else None,
                      mapping, sink_mapping, problems)
     if source:  # fields a typed source does not have
         for message in mapping_field_problems(source.protocol, source.options, mapping):
             problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
+
+
+def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None,
+                     schemas: SchemaRegistry) -> Iterator[Problem]:
+    """Canonical field names the schema does not declare: keys the mapping sets, and fields the
+    throttle and the sink's templates read (their messages would be dead-lettered)."""
+    name, schema_name = route.name, route.schema
+    declared = schemas.declared(schema_name) if schema_name else None
+    if declared is None:
+        return
+    for message in undeclared_keys(mapping_writes(route.mapping), declared, schema_name):
+        yield document.problem(where + ("mapping",), f"route {name!r}: {message}")
+    reads: list[tuple[Path_, str, str]] = []
+    if route.throttle is not None and route.throttle.per:
+        reads.append((where + ("throttle", "per"), "throttle per", route.throttle.per))
+    if sink is not None:
+        transport = endpoints.transport(sink.protocol)
+        reads.extend((where + ("sink", sink.protocol, key), f"sink {key}", field_path)
+                     for key, field_path in transport.canonical_fields(sink.options))
+    for key_path, what, field_path in reads:
+        problem = undeclared_path(field_path, declared, schema_name)
+        if problem is not None:
+            yield document.problem(key_path, f"route {name!r}: {what} reads {problem}")
 
 
 def _parse_leniently(

@@ -175,7 +175,8 @@ def test_check_reports_every_problem_of_a_file_in_one_run(tmp_path: Path):
 
 def test_keys_a_mapping_sets_that_the_schema_does_not_declare(tmp_path: Path):
     """A misspelt optional canonical field passes validation (the schemas allow extra keys):
-    ``check`` warns, top-level, nested (through $ref), in list elements and in merge()."""
+    ``check`` warns, top-level, nested (through $ref), in list elements and in merge(); and
+    about fields a throttle or a sink's routing key or topic reads that the schema lacks."""
     (tmp_path / "r.yaml").write_text("""connections:
   gcs: {amqp: "amqp://localhost/"}
 routes:
@@ -199,6 +200,15 @@ routes:
     schema: command
     mapping: "{agent_id: a, command: c, params: {whatever: `1`}, targte: t}"
     sink: {amqp: {exchange: farm}}
+  - name: templates
+    source: {amqp: {queue: e}}
+    schema: position
+    throttle: {max_rate: 1, per: agentid}
+    sink: {amqp: {exchange: farm, routing_key: "canonical.{stamp.secs}.{agent_id}"}}
+  - name: topic
+    source: {amqp: {queue: f}}
+    schema: mission
+    sink: {ros2: {topic: "/{agent}/mission"}}
 """)
     config = load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
     assert [str(w).removeprefix(f"{tmp_path}/") for w in config.warnings] == [
@@ -207,6 +217,9 @@ routes:
         "r.yaml:12: route 'weeds': mapping sets 'agnt_id', which schema 'weed_detection' does not declare; did you mean 'agent_id'?",
         "r.yaml:12: route 'weeds': mapping sets 'points[].specis', which schema 'weed_detection' does not declare; did you mean 'points[].species'?",
         "r.yaml:22: route 'cmd': mapping sets 'targte', which schema 'command' does not declare; did you mean 'target'?",
+        "r.yaml:27: route 'templates': throttle per reads 'agentid', which schema 'position' does not declare; did you mean 'agent_id'?",
+        "r.yaml:28: route 'templates': sink routing_key reads 'stamp.secs', which schema 'position' does not declare; did you mean 'stamp.sec'?",
+        "r.yaml:32: route 'topic': sink topic reads 'agent', which schema 'mission' does not declare; did you mean 'agent_id'?",
     ]
 
 
