@@ -99,9 +99,11 @@ def parse_document(
         problems.append(Problem(file, _recursive_alias_line(text), "invalid YAML: an alias inside its own anchor (recursive alias), or nesting too deep"))
         return None
     data = data if data is not None else {}
-    _fit_substitutions(data, reader.substituted, validator)
+    errors = list(validator.iter_errors(shown(data)))
+    if errors and _fit_substitutions(data, reader.substituted, validator, errors):
+        errors = list(validator.iter_errors(shown(data)))
     document = Document(file, data, reader.lines)
-    rejected = [found for error in validator.iter_errors(shown(data)) for found in _schema_problems(error)]
+    rejected = [found for error in errors for found in _schema_problems(error)]
     problems.extend(document.problem(path, message) for path, message in rejected)
     if not rejected:
         return document
@@ -171,16 +173,18 @@ def _yaml_scalar(text: str) -> Any:
     return value if isinstance(value, (int, float, bool)) else text
 
 
-def _fit_substitutions(data: Any, substituted: Mapping[Path_, str], validator: jsonschema.protocols.Validator) -> None:
-    """Give each substituted value the type its key expects: where the schema rejects one, its
-    other reading (the text, or the text read as a YAML number/boolean) replaces it if the
-    schema accepts that. Guided by the schema's own errors, so it costs nothing without
-    ``${VAR}`` and never changes a value the schema already accepts."""
-    if not substituted:
-        return
+def _fit_substitutions(
+    data: Any, substituted: Mapping[Path_, str], validator: jsonschema.protocols.Validator,
+    errors: list[jsonschema.ValidationError],
+) -> bool:
+    """Give each substituted value the schema rejected the type its key expects: its other
+    reading (the text, or the text read as a YAML number/boolean) replaces it if the schema
+    accepts that there. Guided by the schema's errors, so a file the schema accepts costs
+    nothing more, and a value the schema accepts is never changed. True if one changed."""
+    changed = False
     for _ in range(len(substituted)):
-        changed = False
-        for error in validator.iter_errors(shown(data)):
+        fitted = False
+        for error in errors:
             for leaf in _with_context(error):
                 path = tuple(leaf.absolute_path)
                 if path not in substituted:
@@ -189,10 +193,13 @@ def _fit_substitutions(data: Any, substituted: Mapping[Path_, str], validator: j
                 other = _yaml_scalar(substituted[path]) if isinstance(current, str) else substituted[path]
                 if type(other) is not type(current) and validator.evolve(schema=leaf.schema).is_valid(other):
                     _put(data, path, other)
-                    changed = True
+                    fitted = True
                     break
-        if not changed:
-            return
+        if not fitted:
+            return changed
+        changed = True
+        errors = list(validator.iter_errors(shown(data)))
+    return changed
 
 
 def _with_context(error: jsonschema.ValidationError) -> Iterator[jsonschema.ValidationError]:

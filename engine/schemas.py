@@ -152,6 +152,7 @@ class SchemaRegistry:
         self.problems: list[tuple[Path, str]] = []
         self._documents: dict[Path, dict[str, Any]] = {}
         self._by_id: dict[str, Any] = {}
+        self._declared: dict[Path, Declared] = {}
         self._load()
         self._by_id.update((urldefrag(doc["$id"])[0], doc) for doc in self._documents.values())
 
@@ -245,8 +246,10 @@ class SchemaRegistry:
         entry = self._schemas.get(name)
         if entry is None or entry.path not in self._documents:
             return None
-        document = self._documents[entry.path]
-        return Declared([(document, document["$id"])], self._by_id)
+        if entry.path not in self._declared:  # one per schema file: every route using it shares it
+            document = self._documents[entry.path]
+            self._declared[entry.path] = Declared([(document, document["$id"])], self._by_id)
+        return self._declared[entry.path]
 
     def get(self, name: str) -> CanonicalSchema | None:
         return self._schemas.get(name)
@@ -268,20 +271,25 @@ class Declared:
         self._properties: dict[str, list[tuple[Any, str]]] = {}
         self._items: list[tuple[Any, str]] = []
         self._open = False
+        self._children: dict[str, Declared] = {}
+        self._elements: Declared | None = None
         seen: set[int] = set()
         for node, base in nodes:
             self._collect(node, base, seen)
         self.open = self._open or not self._properties
-
-    @property
-    def keys(self) -> list[str]:
-        return sorted(self._properties)
+        self.keys = sorted(self._properties)
 
     def child(self, key: str) -> Declared:
-        return Declared(self._properties.get(key, []), self._by_id)
+        """What the schema declares inside ``key``'s value (built once, then kept)."""
+        if key not in self._children:
+            self._children[key] = Declared(self._properties.get(key, []), self._by_id)
+        return self._children[key]
 
     def items(self) -> Declared:
-        return Declared(self._items, self._by_id)
+        """What the schema declares for the elements of a list value."""
+        if self._elements is None:
+            self._elements = Declared(self._items, self._by_id)
+        return self._elements
 
     def _collect(self, node: Any, base: str, seen: set[int]) -> None:
         if not isinstance(node, dict) or id(node) in seen:
