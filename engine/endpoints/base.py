@@ -23,7 +23,7 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
+from typing import Any, Callable, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
 
 from engine.options import OptionError, describe, dotted, option, parse
 
@@ -36,7 +36,14 @@ class EndpointError(Exception):
 
 class MessageRejected(EndpointError):
     """This message can never be accepted by this sink (a field the type lacks, a value out
-    of range). Retrying cannot help, so the engine dead-letters it instead of redelivering."""
+    of range). Retrying cannot help, so the engine dead-letters it instead of redelivering.
+
+    ``stage`` is what the dead letter names: ``sink`` by default, ``sink mapping`` when the
+    sink mapping's output is what cannot be carried (a typed field it set to null)."""
+
+    def __init__(self, message: str, stage: str = "sink") -> None:
+        super().__init__(message)
+        self.stage = stage
 
 
 OVERFLOW_POLICIES = ("block", "drop_oldest", "drop_newest")
@@ -241,7 +248,8 @@ CheckResult = Iterable[tuple[str | None, str]]
 class EndpointOptions:
     """What every source and sink option class has (engine/options.py declares the rest)."""
 
-    connection: str | None = option(None, description="name of a connection from any file of the directory")
+    connection: str | None = option(None, description="name of a connection from any file of the directory; default: the only "
+                                                       "connection of the protocol, else the protocol's default connection")
 
 
 O = TypeVar("O")
@@ -312,6 +320,15 @@ class Transport(ABC):
 
     def sink_problems(self, options: Any, mapping: str | None) -> CheckResult:
         return ()
+
+    def sink_field_check(self, options: Any) -> Callable[[Any], None] | None:
+        """What a sink with these (typed, checked) options refuses in its sink mapping's output
+        before anything is sent: a typed sink raises :class:`MessageRejected` naming a field set
+        to null (a null, or a path the message lacks) instead of guessing a value for it. The
+        pipeline runs it as the last step of its ``sink mapping`` stage, so the run and
+        ``rabbitros-engine test`` report the same error, and the message never reaches the
+        throttle, the buffer or the sink. None (the default): the sink takes what it is given."""
+        return None
 
     def exclusive_resource(self, settings: Any) -> str | None:
         """The operating-system resource only one open connection can hold (a listening port,
