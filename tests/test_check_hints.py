@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from engine.fieldcheck import mapping_reads
 from engine.routes import RoutesInvalid, load_routes
@@ -92,8 +93,9 @@ def test_shipped_routes_and_examples_pass_check_without_a_warning(tmp_path: Path
         result = subprocess.run([sys.executable, "-m", "engine", "check", "--routes", routes, "--schemas", "schemas"],
                                 capture_output=True, text=True, timeout=120, cwd=REPO)
         assert result.returncode == 0 and result.stderr == "" and result.stdout.endswith(": ok\n"), (routes, result.stderr)
-    assert "17 tests" in subprocess.run([sys.executable, "-m", "engine", "check", "--routes", "examples/"],
-                                        capture_output=True, text=True, timeout=120, cwd=REPO).stdout
+    cases = len(yaml.safe_load((REPO / "examples" / "farm_uav_gcs.test.yaml").read_text())["tests"])
+    assert f"11 routes, 3 connections, {cases} tests" in subprocess.run(
+        [sys.executable, "-m", "engine", "check", "--routes", "examples/"], capture_output=True, text=True, timeout=120, cwd=REPO).stdout
 
 
 def test_two_versions_of_one_example_side_by_side_say_why_they_collide(tmp_path: Path):
