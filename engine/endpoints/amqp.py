@@ -47,7 +47,7 @@ from engine.endpoints.base import (
 )
 from engine.endpoints import amqp_cluster
 from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
-from engine.mapping import MappingError, compile_template
+from engine.mapping import MappingError, compile_template, template_fields
 from engine.options import given
 from engine.redaction import redact_urls
 from engine.schemas import SchemaError, canonical_bytes
@@ -516,6 +516,9 @@ class AmqpTransport(Transport):
         from engine.endpoints.amqp_topology import retire_source
 
         await retire_source(connection, route, options, remaining)
+
+    def canonical_fields(self, options: AmqpSinkOptions) -> Iterable[tuple[str, str]]:
+        return [("routing_key", name) for name in template_fields(options.routing_key)]
 
     def competing_consumers(self, route: str, options: AmqpSourceOptions) -> str | None:
         queue = options.queue
