@@ -45,8 +45,8 @@ from engine.endpoints.base import (
     Transport,
     typed,
 )
-from engine.endpoints import amqp_cluster
-from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
+import engine.endpoints.amqp.cluster as amqp_cluster
+from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template, template_fields
 from engine.options import given
 from engine.redaction import redact_urls
@@ -513,7 +513,7 @@ class AmqpTransport(Transport):
         self, connection: Connection, route: str, options: Mapping[str, Any],
         remaining: Iterable[tuple[str, Mapping[str, Any]]],
     ) -> None:
-        from engine.endpoints.amqp_topology import retire_source
+        from engine.endpoints.amqp.topology import retire_source
 
         await retire_source(connection, route, options, remaining)
 
