@@ -10,6 +10,7 @@ from engine.endpoints.base import CheckResult, Connection, Transport
 from engine.endpoints.mqtt.connection import Endpoint, MqttConnection
 from engine.endpoints.mqtt.options import MqttConnectionOptions, MqttSinkOptions, MqttSourceOptions
 from engine.endpoints.mqtt.topics import filter_problems, subscription, template_problems
+from engine.mapping import template_fields
 from engine.options import given
 from engine.redaction import reveal
 
@@ -57,6 +58,9 @@ class MqttTransport(Transport):
     def sink_problems(self, options: MqttSinkOptions, mapping: str | None) -> CheckResult:
         for message in template_problems(options.topic):
             yield "topic", message
+
+    def canonical_fields(self, options: MqttSinkOptions) -> Iterable[tuple[str, str]]:
+        return [("topic", name) for name in template_fields(options.topic)]
 
     def exclusive_resource(self, settings: MqttConnectionOptions) -> str | None:
         """A client_id names one session on one broker: two connections holding it would take
