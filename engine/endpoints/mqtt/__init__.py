@@ -1,4 +1,4 @@
-"""MQTT (5 and 3.1.1) endpoint on aiomqtt and paho-mqtt 2; see connection.py for the session,
+"""MQTT (5 and 3.1.1) endpoint on aiomqtt and paho-mqtt 2; see link.py for the session,
 acknowledgement and dispatch, source.py and sink.py for the routes' two ends, errors.py for
 the one table of library failures, broker.py for a private mosquitto.
 

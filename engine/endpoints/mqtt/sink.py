@@ -13,14 +13,14 @@ from __future__ import annotations
 from typing import Sequence
 
 from engine.endpoints.base import MessageRejected, Outbound, Sink
-from engine.endpoints.mqtt.connection import MqttConnection
+from engine.endpoints.mqtt.link import MqttLink
 from engine.endpoints.mqtt.options import MqttSinkOptions
 from engine.endpoints.mqtt.topics import topic_renderer
 from engine.schemas import SchemaError, canonical_bytes
 
 
 class MqttSink(Sink):
-    def __init__(self, connection: MqttConnection, route: str, options: MqttSinkOptions) -> None:
+    def __init__(self, connection: MqttLink, route: str, options: MqttSinkOptions) -> None:
         self._connection = connection
         self._where = f"route {route!r}: mqtt sink"
         self._topic = topic_renderer(options.topic, self._where)

@@ -23,7 +23,7 @@ from typing import Any
 
 from engine.backoff import Backoff
 from engine.endpoints.base import Deliver, Inbound, Inbox, Source
-from engine.endpoints.mqtt.connection import MqttConnection, Received
+from engine.endpoints.mqtt.link import MqttLink, Received
 from engine.endpoints.mqtt.options import MqttSourceOptions
 from engine.endpoints.mqtt.topics import matcher, subscription, subscription_id
 
@@ -31,7 +31,7 @@ log = logging.getLogger("engine.mqtt")
 
 
 class MqttSource(Source):
-    def __init__(self, connection: MqttConnection, route: str, options: MqttSourceOptions) -> None:
+    def __init__(self, connection: MqttLink, route: str, options: MqttSourceOptions) -> None:
         self._connection = connection
         self.route = route
         self.qos = options.qos

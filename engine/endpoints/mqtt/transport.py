@@ -7,7 +7,8 @@ from typing import Any, Iterable, Mapping
 from urllib.parse import urlsplit
 
 from engine.endpoints.base import CheckResult, Connection, Transport
-from engine.endpoints.mqtt.connection import Endpoint, MqttConnection
+from engine.endpoints.mqtt.connection import MqttConnection
+from engine.endpoints.mqtt.link import Endpoint
 from engine.endpoints.mqtt.options import MqttConnectionOptions, MqttSinkOptions, MqttSourceOptions
 from engine.endpoints.mqtt.topics import filter_problems, subscription, template_problems
 from engine.mapping import template_fields
