@@ -36,7 +36,7 @@ import logging
 import ssl
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Mapping, Protocol, Sequence
 from urllib.parse import unquote, urlsplit
 
@@ -78,7 +78,7 @@ class Endpoint:
     port: int
     tls: bool
     username: str | None
-    password: str | None
+    password: str | None = field(repr=False)
 
     @classmethod
     def parse(cls, settings: MqttConnectionOptions) -> Endpoint:
