@@ -32,6 +32,7 @@ from engine.local_broker import LOCAL_BROKER_ENV, elsewhere
 from engine.redaction import Secret, has_url_password, json_default, redact_urls, reveal, revealed
 from engine.route_yaml import Document, Path_, Problem, parse_document
 from engine.schemas import SchemaRegistry
+from engine.replies import ReplyOptions
 from engine.suggest import did_you_mean
 from engine.throttle import ThrottleOptions
 
@@ -90,6 +91,7 @@ class RouteOptions:
                                                   "version) or NAME.vN (pinned), from schemas/; raw_json passes any object")
     throttle: ThrottleOptions | None = option(None)
     sink: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
+    reply: ReplyOptions | None = option(None)
     ordered: bool = option(False, description="AMQP source: single active consumer, so one engine instance at a time carries the route, in order")
     instances: tuple[str, ...] | None = option(None, min_items=1,
                                                description="run the route only on these engine instances (--instance NAME, default the host name)")
@@ -154,6 +156,8 @@ class RouteSpec:
     """Where messages wait while the sink is down (``buffer:``); the fingerprint covers it."""
     placement: Placement = field(default_factory=lambda: Placement())
     """Which engine instances carry the route (scale-out); the default: every instance."""
+    reply: ReplyOptions | None = None
+    """How the sink's answers to a request are shaped (``reply:``; engine/replies.py)."""
 
 
 @dataclass(frozen=True)
@@ -493,7 +497,8 @@ def _compile_routes(
             fingerprint = hashlib.sha256(
                 json.dumps(
                     [body, {k: (v.fingerprint, v.max_message_bytes) if v else None for k, v in used.items()},
-                     schema.digest if schema else None],
+                     schema.digest if schema else None,
+                     _reply_schema_digest(route, schemas)],
                     sort_keys=True,
                     default=json_default,
                 ).encode()
@@ -511,9 +516,17 @@ def _compile_routes(
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
                 document.file, document.line(where), throttle=route.throttle, delivery=delivery, buffer=buffer,
-                placement=placement,
+                placement=placement, reply=route.reply,
             )
     return routes
+
+
+def _reply_schema_digest(route: RouteOptions, schemas: SchemaRegistry) -> str | None:
+    """A new version of the reply schema is a change of the route (as for its own schema)."""
+    if route.reply is None or not route.reply.schema:
+        return None
+    schema = schemas.get(route.reply.schema)
+    return schema.digest if schema is not None else None
 
 
 def _route_checks(
@@ -547,9 +560,34 @@ def _route_checks(
         warnings.extend(_schema_warnings(document, where, route, sink, schemas))
     _endpoint_checks(document, where, name, source if complete[0] else None, sink if complete[1] else None,
                      mapping, sink_mapping, problems)
+    _reply_checks(document, where, route, source, schemas, problems)
     if source:  # fields a typed source does not have
         for message in mapping_field_problems(source.protocol, source.options, mapping):
             problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
+
+
+def _reply_checks(document: Document, where: Path_, route: RouteOptions, source: EndpointSpec | None,
+                  schemas: SchemaRegistry, problems: list[Problem]) -> None:
+    """``reply:`` needs a source that can answer its sender; its mapping compiles, its schema exists."""
+    reply, name = route.reply, route.name
+    if reply is None:
+        return
+    if source is not None and not endpoints.transport(source.protocol).replies:
+        able = [p for p in endpoints.PROTOCOLS if _replies(p)]
+        problems.append(document.problem(where + ("reply",), f"route {name!r}: reply: a {source.protocol} source cannot "
+                                                             f"answer its sender (sources that can: {', '.join(able)})"))
+    for message in _mapping_problems(reply.mapping):
+        problems.append(document.problem(where + ("reply", "mapping"), f"route {name!r}: reply: {message}"))
+    if reply.schema is not None and schemas.get(reply.schema) is None:
+        problems.append(document.problem(where + ("reply", "schema"), f"route {name!r}: reply: unknown schema {reply.schema!r}"
+                                                                      f"{did_you_mean(reply.schema, schemas.names())}"))
+
+
+def _replies(protocol: str) -> bool:
+    try:
+        return endpoints.transport(protocol).replies
+    except EndpointError:
+        return False
 
 
 def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None,

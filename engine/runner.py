@@ -39,6 +39,7 @@ from engine.endpoints.base import Connection, EndpointError, Inbound, Outbound, 
 from engine.logs import ReportLimiter
 from engine.observe import Observers
 from engine.pipeline import Pipeline
+from engine.replies import Replies
 
 if TYPE_CHECKING:
     from engine.routes import RouteSpec
@@ -104,6 +105,8 @@ class RouteRunner:
         self.buffer: HoldingBuffer | None = None if spec.buffer is None else host.buffers.acquire(
             spec.name, spec.buffer, spec.delivery.max_attempts, self)
         """Holds the route's messages while its sink is down (``buffer:``; engine/buffer.py)."""
+        self.replies = Replies(spec.name, source)
+        """The route's replies to requests (engine/replies.py), through this runner's source."""
         self.state = "created"
         """created, waiting (for a connection that is not open yet), running, stopped."""
         self._starter: asyncio.Task[None] | None = None
@@ -186,6 +189,7 @@ class RouteRunner:
             failure = Failure("size", f"canonical message of {len(outbound.body)} bytes exceeds the sink "
                               f"connection's max_message_bytes {delivery.sink_max_message_bytes}", True)
             return _Message(index, inbound, outbound, prior + 1, pipeline, failure)
+        outbound.reply = self.replies.bind(pipeline.reply_shape, inbound.meta)
         if prior >= delivery.max_attempts:
             failure = Failure("sink", f"already attempted {prior} times (max_attempts {delivery.max_attempts})", False)
             return _Message(index, inbound, outbound, prior, pipeline, failure)
@@ -347,6 +351,10 @@ class RouteRunner:
             failure = message.failure
             self.observer.dead_letter(message.inbound, message.outbound, failure.stage, failure.error)  # type: ignore[union-attr]
         self._report_failure(dead[-1].failure, len(dead))  # type: ignore[arg-type]
+        for message in dead:  # a request that failed for good: its caller gets one error reply
+            if message.inbound.meta.get("reply_to"):
+                reply = message.outbound.reply if message.outbound is not None else None
+                await self.replies.failed(reply, message.inbound.meta, message.failure.stage, message.failure.error)  # type: ignore[union-attr]
 
     def _report_retry(self, failure: Failure, count: int) -> None:
         if self._retry_report.ready():
@@ -458,6 +466,7 @@ class RouteRunner:
             "state": self.state,
             "waiting_for": self.missing_connections() if self.state == "waiting" else [],
             "buffer": stats_dict(self.buffer) if self.buffer is not None else None,
+            "replies": self.replies.counters(),
         }
 
 

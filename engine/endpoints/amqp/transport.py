@@ -361,6 +361,19 @@ class AmqpSource(Source):
             else:
                 await _settle_frame(message.channel.basic_nack, message.delivery_tag, requeue=True)
 
+    async def reply(self, meta: Mapping[str, Any], kind: str, body: bytes) -> None:
+        """The AMQP request/reply convention: to the default exchange, routing key = the
+        request's ``reply_to``, with its ``correlation_id``; headers ``x-rabbitros-reply`` (the
+        kind) and ``x-rabbitros-route``. Transient and not mandatory: a caller that is gone
+        (RabbitMQ's direct reply-to ``amq.rabbitmq.reply-to.*`` when its channel closed) is not
+        waited for. Published on the connection's confirm channel; accepted once confirmed."""
+        properties = spec.Basic.Properties(
+            content_type="application/json", correlation_id=meta.get("correlation_id"),
+            headers={"x-rabbitros-reply": kind, "x-rabbitros-route": self._route}, delivery_mode=1)
+        error = (await self._connection.publish_batch("", [(str(meta["reply_to"]), body, properties)], "direct"))[0]
+        if error is not None:
+            raise error
+
     async def stop(self) -> None:
         """Cancel the consumer, settle what was received, then close the channel so anything
         the broker sent but we did not take is requeued."""
@@ -392,6 +405,8 @@ def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
             "headers": properties.headers,
             "content_type": properties.content_type,
             "redelivered": message.redelivered,
+            "reply_to": properties.reply_to,
+            "correlation_id": properties.correlation_id,
         },
         received_ns=received_ns,
     )
@@ -482,6 +497,7 @@ class AmqpSink(Sink):
 class AmqpTransport(Transport):
     name = "amqp"
     default_settings = {"url": "amqp://guest:guest@localhost:5672/"}
+    replies = True
     accepts_secrets = True
     connection_options = AmqpConnectionOptions
     source_options = AmqpSourceOptions
