@@ -121,7 +121,7 @@ def classify(error: BaseException, stage: str = "sink") -> Failure:
     if isinstance(error, ConversionError):
         return Failure(error.stage, error.detail, True)
     if isinstance(error, MessageRejected):
-        return Failure(stage, str(error), True)
+        return Failure(error.stage, str(error), True)
     if isinstance(error, EndpointError):
         return Failure(stage, str(error), False)
     text = str(error)

@@ -71,6 +71,12 @@ class FieldFunctions(functions.Functions):
         return fallback if value is None else value
 
     @functions.signature()
+    def _func_nan(self) -> float:
+        """NaN, said explicitly: a typed sink refuses the null a mapping gives for a missing
+        path, so a float meant as "unknown" (NavSatFix altitude) must be written as nan()."""
+        return math.nan
+
+    @functions.signature()
     def _func_now(self) -> float:
         return time.time()
 

@@ -171,10 +171,14 @@ class RouteRunner:
             log.error("throttled message failed", extra={"route": self.spec.name, "error": repr(error)})
 
     async def sink_ready(self) -> bool:
-        """Wait while the sink's connection is known to be down; False once the route stops."""
-        sink_connection = self.connections[-1]
-        while not self._stopping.is_set() and not sink_connection.healthy:
-            await self.pause(HEALTH_POLL)
+        """Wait while the sink's connection is known to be down or the sink is not ready (a
+        ROS 2 topic no subscriber has matched); False once the route stops, or once a reload
+        swapped the pipeline meanwhile (the messages go back to the source or to the buffer,
+        for the new one: a reload must not wait for a subscriber)."""
+        sink_connection, pipeline = self.connections[-1], self.pipeline
+        while not (sink_connection.healthy and pipeline.sink.ready):
+            if not await self.pause(HEALTH_POLL) or self.pipeline is not pipeline:
+                return False
         return not self._stopping.is_set()
 
     async def pause(self, seconds: float) -> bool:
@@ -265,7 +269,8 @@ class RouteRunner:
         if buffer is None:
             return False
         sink_connection = self.connections[-1]
-        return buffer.holding or not (sink_connection.healthy and self.engine.is_open(sink_connection))
+        return buffer.holding or not (sink_connection.healthy and self.engine.is_open(sink_connection)
+                                      and self.pipeline.sink.ready)
 
     async def hold(self, outbounds: Sequence[Outbound]) -> None:
         """Hand messages to the buffer, in order; each is settled for its source once held."""
@@ -544,7 +549,7 @@ class Engine:
                 spill_dir=spec.spill_dir,
                 fsync_interval=spec.fsync_interval,
                 max_attempts=runner.spec.delivery.max_attempts,
-                ready=lambda: sink_connection.healthy and self.is_open(sink_connection),
+                ready=lambda: sink_connection.healthy and self.is_open(sink_connection) and current().pipeline.sink.ready,
                 on_delivered=lambda count: current().held_delivered(count),
                 on_rejected=lambda message, error, attempts: current().held_rejected(message, error, attempts),
             )
@@ -885,6 +890,7 @@ class Engine:
                     "source": runner.source.status(),
                     "state": runner.state,
                     "waiting_for": runner.missing_connections() if runner.state == "waiting" else [],
+                    "sink_not_ready": runner.pipeline.sink.not_ready_reason(),
                     "buffer": stats_dict(runner.buffer) if runner.buffer is not None else None,
                 }
                 for name, runner in sorted(self.runners.items())

@@ -10,6 +10,10 @@ time (``await deliver(inbound)``). Either returns once the messages are *settled
 by the sink or dead-lettered. Which failures are retried and which are dead-lettered is
 decided by the engine (engine/delivery.py), never by a source or a sink: endpoints only
 raise :class:`EndpointError` (transient) or :class:`MessageRejected` (permanent) at the edge.
+A sink whose destination cannot take messages yet though its connection is up (a ROS 2 topic
+no subscriber has matched) says so with :attr:`Sink.ready`; the engine then holds the route's
+messages as it does while the connection is down: not sent, not acknowledged to the source,
+no delivery attempt spent, the reason (:meth:`Sink.not_ready_reason`) in the status.
 A message ``batch`` reports as not settled (or for which ``deliver`` raised) was not
 delivered - this happens only while the route stops, or when even the dead letters fail -
 and the source must let it be redelivered if it can (AMQP: nack with requeue); a source
@@ -36,7 +40,14 @@ class EndpointError(Exception):
 
 class MessageRejected(EndpointError):
     """This message can never be accepted by this sink (a field the type lacks, a value out
-    of range). Retrying cannot help, so the engine dead-letters it instead of redelivering."""
+    of range). Retrying cannot help, so the engine dead-letters it instead of redelivering.
+
+    ``stage`` is what the dead letter names: ``sink`` by default, ``sink mapping`` when the
+    sink mapping's output is what cannot be carried (a typed field it set to null)."""
+
+    def __init__(self, message: str, stage: str = "sink") -> None:
+        super().__init__(message)
+        self.stage = stage
 
 
 OVERFLOW_POLICIES = ("block", "drop_oldest", "drop_newest")
@@ -169,6 +180,18 @@ class Sink(ABC):
     @abstractmethod
     async def send(self, message: Outbound) -> None:
         """Return once the destination has accepted the message; raise EndpointError if not."""
+
+    @property
+    def ready(self) -> bool:
+        """False while the destination cannot take messages though the connection is up (a
+        ROS 2 topic without a matched subscriber): the engine waits, polling this every
+        ``HEALTH_POLL``, instead of sending and spending attempts. Asked before every batch,
+        so it must cost no more than a counter read."""
+        return True
+
+    def not_ready_reason(self) -> str | None:
+        """Why :attr:`ready` is False, for the status (None while ready)."""
+        return None
 
     async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
         """Deliver several messages; ``result[i]`` is None when ``messages[i]`` was accepted,
