@@ -4,8 +4,10 @@ counted while valid messages keep flowing, and check errors that name the route.
 from __future__ import annotations
 
 import asyncio
+import io
 import json
 import os
+import re
 import time
 import uuid
 from pathlib import Path
@@ -216,6 +218,9 @@ def test_a_prefilled_queue_reaches_a_subscriber_that_starts_before_or_after_the_
     Subscriber first (the issue's measurement: all 10,000 lost) or 5 s after the engine
     (meanwhile the route holds, says why in its status, spends no CPU): every message arrives,
     in order, and the queue is empty afterwards."""
+    from rich.console import Console
+
+    from engine.opsview import status_table
     from tests.engine_process import EngineProcess
     from tests.test_ros2_endpoint import DOMAIN, Peer, String
 
@@ -256,6 +261,9 @@ def test_a_prefilled_queue_reaches_a_subscriber_that_starts_before_or_after_the_
             route = engine.status()["routes"]["backlog-to-ros"]
             assert route["delivered"] == 0 and route["failed"] == 0, route
             assert route["sink_not_ready"].startswith(f"no subscriber has matched /{tag}/backlog"), route
+            table = Console(width=250, record=True, file=io.StringIO())
+            table.print(status_table(engine.status()))
+            assert re.search(r"backlog-to-ros +│ holding .*│ no subscriber has matched", table.export_text()), table.export_text()
             assert asyncio.run(ready_count()) >= BACKLOG - 256  # at most a prefetch window taken, none acked
             assert figures["cpu_while_waiting"] < 0.10, figures
             peer = Peer()
@@ -394,3 +402,64 @@ def test_a_stopping_route_does_not_wait_for_a_reader(amqp_url: str, tmp_path: Pa
 
     took, left = asyncio.run(asyncio.wait_for(scenario(), 60))
     assert took < 1.0 and left == 50, (took, left)
+
+
+def test_a_subscriber_that_leaves_makes_the_route_hold_again(amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """A matched subscriber that goes away (its node closes: DDS says so at once) makes the
+    route hold again; what is queued meanwhile waits on AMQP and reaches the next subscriber."""
+    from tests.test_ros2_endpoint import DOMAIN, Peer, String
+
+    monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
+    tag = "l" + uuid.uuid4().hex[:8]
+    names = {"domain": DOMAIN, "tag": tag, "queue": f"leaving-{tag}"}
+    (tmp_path / "waiting.yaml").write_text(WAITING.format(generation=1, **names))
+
+    async def wait_for(predicate: Any, what: str, timeout: float = 20.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            assert time.monotonic() < deadline, f"timed out waiting for {what}"
+            await asyncio.sleep(0.05)
+
+    async def scenario() -> tuple[list[int], list[int], float]:
+        engine = Engine(tmp_path, REPO / "schemas")
+        await engine.start()
+        first = second = None
+        try:
+            connection = await aio_pika.connect(amqp_url)
+            async with connection:
+                channel = await connection.channel(publisher_confirms=True)
+
+                async def send(seqs: range) -> None:
+                    for i in seqs:
+                        await channel.default_exchange.publish(aio_pika.Message(b'{"seq": %d}' % i), names["queue"])
+
+                first = Peer()
+                got_first = first.subscribe(String, f"/{tag}/waiting")
+                first.start()
+                await send(range(100))
+                await wait_for(lambda: len(got_first) == 100, "the first subscriber's 100")
+                first.close()
+                first = None
+                sink = engine.runners["waits-for-reader"].pipeline.sink
+                began = time.monotonic()
+                await wait_for(lambda: not sink.ready, "the route to notice the subscriber left")
+                noticed = time.monotonic() - began
+                await send(range(100, 200))
+                await asyncio.sleep(1.0)
+                assert engine.status()["routes"]["waits-for-reader"]["delivered"] == 100
+                second = Peer()
+                got_second = second.subscribe(String, f"/{tag}/waiting")
+                second.start()
+                await wait_for(lambda: len(got_second) == 100, "the second subscriber's 100")
+                await asyncio.sleep(0.3)
+                return ([json.loads(m.data)["seq"] for m in got_first], [json.loads(m.data)["seq"] for m in got_second],
+                        noticed)
+        finally:
+            await engine.stop()
+            for peer in (first, second):
+                if peer is not None:
+                    peer.close()
+
+    first, second, noticed = asyncio.run(asyncio.wait_for(scenario(), 90))
+    print(f"\nthe sink saw the subscriber leave after {noticed:.2f} s")
+    assert first == list(range(100)) and second == list(range(100, 200))
