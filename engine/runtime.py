@@ -839,6 +839,8 @@ class Engine:
                 runner.state = "stopped"
                 if runner._starter is not None:
                     runner._starter.cancel()
+                if not runner.pipeline.sink.ready:  # nothing drains into it: what it holds goes back at once
+                    runner._stopping.set()
             sources = asyncio.ensure_future(asyncio.gather(*(r.source.stop() for r in runners), return_exceptions=True))
             if not await _finished(sources, deadline):
                 log.warning("drain timeout: what is not settled yet is requeued (AMQP) or dropped and counted (ROS 2, MAVLink)")

@@ -364,9 +364,10 @@ def test_a_reload_while_the_sink_waits_for_a_reader_completes_and_loses_nothing(
     assert {m["generation"] for m in got} == {2}
 
 
-def test_a_stopping_route_does_not_wait_for_a_reader(amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    """A route whose sink has no reader is stopped at once (its held batch goes back to the
-    queue), not after the drain timeout."""
+def test_an_engine_stops_at_once_while_a_route_waits_for_a_reader(amqp_url: str, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch):
+    """Nothing can drain into a sink without a reader: the engine stops at once (measured:
+    10.0 s, the drain timeout, before), and the held messages are back in the queue."""
     from tests.test_ros2_endpoint import DOMAIN
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
@@ -390,10 +391,10 @@ def test_a_stopping_route_does_not_wait_for_a_reader(amqp_url: str, tmp_path: Pa
                     assert time.monotonic() < deadline, "the route took nothing"
                     await asyncio.sleep(0.05)
                 began = time.monotonic()
-                await runner.stop()
+                await engine.stop(drain_timeout=10.0)
                 took = time.monotonic() - began
                 stopped = True
-                await asyncio.sleep(0.5)  # the nack reaches the queue
+                await asyncio.sleep(0.5)  # the requeue reaches the queue
                 declared = await (await connection.channel()).declare_queue(names["queue"], passive=True)
                 return took, declared.declaration_result.message_count
         finally:
@@ -401,7 +402,7 @@ def test_a_stopping_route_does_not_wait_for_a_reader(amqp_url: str, tmp_path: Pa
                 await engine.stop()
 
     took, left = asyncio.run(asyncio.wait_for(scenario(), 60))
-    assert took < 1.0 and left == 50, (took, left)
+    assert took < 2.0 and left == 50, (took, left)
 
 
 def test_a_subscriber_that_leaves_makes_the_route_hold_again(amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
