@@ -1,5 +1,10 @@
 """A route compiled into a chain of small callables: decode, map, validate, encode, sink-map.
 
+The sink-mapping stage ends with the sink's field check (``Transport.sink_field_check``): a typed
+sink refuses a field set to null there, so the message is dead-lettered as a ``sink mapping``
+error before the throttle, the buffer or the sink see it, and ``rabbitros-engine test`` (which
+compiles this same pipeline) reports the same error.
+
 Everything that can be prepared is prepared here once (JMESPath expressions, the schema
 validator, the sink); per message only the compiled steps run. A pipeline is immutable
 and belongs to one configuration generation: a reload builds a new one and swaps it in,
@@ -11,9 +16,10 @@ from __future__ import annotations
 import asyncio
 import os
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
-from engine.endpoints.base import Inbound, Outbound, Sink
+from engine.endpoints import transport
+from engine.endpoints.base import Inbound, MessageRejected, Outbound, Sink
 from engine.mapping import MappingError, Mapper, compile_mapping
 from engine.schemas import CanonicalSchema, SchemaError, canonical_bytes, parse_json
 from engine.throttle import Throttle
@@ -40,6 +46,8 @@ class Pipeline:
     sink: Sink
     mapper: Mapper | None = None
     sink_mapper: Mapper | None = None
+    sink_check: Callable[[Any], None] | None = None
+    """What the sink refuses in the sink mapping's output (MessageRejected), or None."""
     throttle: Throttle | None = None
     in_flight: int = 0
     _drained: asyncio.Event = field(default_factory=asyncio.Event)
@@ -54,6 +62,7 @@ class Pipeline:
             sink=sink,
             mapper=compile_mapping(spec.mapping),
             sink_mapper=compile_mapping(spec.sink_mapping),
+            sink_check=transport(spec.sink.protocol).sink_field_check(spec.sink.options),
             throttle=Throttle.from_options(spec.throttle),
         )
 
@@ -87,10 +96,13 @@ class Pipeline:
         except Exception as exc:
             raise ConversionError("schema", _unexpected(exc)) from None
         fields = data
-        if self.sink_mapper is not None:
+        if self.sink_mapper is not None or self.sink_check is not None:
             try:
-                fields = self.sink_mapper(data)
-            except MappingError as exc:
+                if self.sink_mapper is not None:
+                    fields = self.sink_mapper(data)
+                if self.sink_check is not None:
+                    self.sink_check(fields)
+            except (MappingError, MessageRejected) as exc:
                 raise ConversionError("sink mapping", str(exc)) from None
             except Exception as exc:
                 raise ConversionError("sink mapping", _unexpected(exc)) from None

@@ -222,16 +222,17 @@ def _typed_source(spec: RouteSpec) -> Callable[[Any], dict[str, Any]] | None:
         return ros
     if spec.source.protocol == "mavlink" and not options.json_tunnel and options.message:
         from engine.endpoints.mavlink import MESSAGES, build_message, message_fields
-        from engine.endpoints.mavlink.codec import ADDED_FIELDS
+        from engine.endpoints.mavlink.codec import ADDED_FIELDS, received_nan
 
         mav_cls = MESSAGES[options.message]
         added = ADDED_FIELDS.get(options.message, ())
 
         def mavlink(value: Any) -> dict[str, Any]:
-            """The message as the source gives it: its own fields, plus those the source adds."""
+            """The message as the source gives it: its own fields (a null float is the NaN the
+            source shows as null), plus those the source adds."""
             if not isinstance(value, Mapping):
                 return message_fields(build_message(mav_cls, value))
-            own = {k: v for k, v in value.items() if k not in added}
+            own = received_nan(mav_cls, {k: v for k, v in value.items() if k not in added})
             return {**message_fields(build_message(mav_cls, own)), **{k: value[k] for k in added if k in value}}
 
         return mavlink
@@ -272,36 +273,16 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
             return rendered
 
         return ros
-    if protocol == "mavlink" and options.mission == "upload":
-        from engine.endpoints.mavlink.mission import mission_items
-        from engine.endpoints.mavlink.transaction import TransactionOptions
+    if protocol == "mavlink":
+        from engine.endpoints.mavlink.messages import dry_run
 
-        transaction, _ = TransactionOptions.parse(options)
-
-        def mission(outbound: Outbound) -> str | None:
-            try:
-                mission_items(outbound.fields, transaction)
-            except MessageRejected as exc:
-                raise ConversionError("sink", str(exc)) from None
-            return None
-
-        return mission
-    if protocol == "mavlink" and not options.json_tunnel:
-        from engine.endpoints.mavlink import MESSAGES, build_message
-        from engine.endpoints.mavlink.enums import enum_or_number
-        from engine.endpoints.mavlink.messages import message_defaults
-
-        mav_cls = MESSAGES[options.message]
-        defaults = message_defaults(options)
+        build = dry_run(options)
 
         def mavlink(outbound: Outbound) -> str | None:
-            fields = outbound.fields
             try:
-                if isinstance(fields, Mapping) and isinstance(fields.get("command"), str):  # a command by name
-                    fields = {**fields, "command": enum_or_number(fields["command"], "MAV_CMD", "command")}
-                build_message(mav_cls, fields, defaults)
-            except (MessageRejected, ValueError) as exc:
-                raise ConversionError("sink", str(exc)) from None
+                build(outbound.fields)
+            except MessageRejected as exc:
+                raise ConversionError(exc.stage, str(exc)) from None
             return None
 
         return mavlink
@@ -325,7 +306,8 @@ def format_result(result: Result, base: Path | None = None) -> list[str]:
 
 def same(expected: Any, actual: Any) -> bool:
     """Equal as JSON, numbers within 1e-9 (relative) so float arithmetic in a mapping
-    (``90.00000000000001``) does not fail a test; booleans are not numbers."""
+    (``90.00000000000001``) does not fail a test, NaN equal to NaN (``.nan`` in YAML: what
+    ``nan()`` gives a MAVLink sink); booleans are not numbers."""
     if isinstance(expected, dict) and isinstance(actual, dict):
         return expected.keys() == actual.keys() and all(same(v, actual[k]) for k, v in expected.items())
     if isinstance(expected, list) and isinstance(actual, list):
@@ -333,7 +315,7 @@ def same(expected: Any, actual: Any) -> bool:
     numbers = (int, float)
     if (isinstance(expected, numbers) and isinstance(actual, numbers)
             and not isinstance(expected, bool) and not isinstance(actual, bool)):
-        return math.isclose(expected, actual, rel_tol=1e-9, abs_tol=1e-12)
+        return math.isclose(expected, actual, rel_tol=1e-9, abs_tol=1e-12) or (expected != expected and actual != actual)
     return type(expected) is type(actual) and expected == actual
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import time
 from collections.abc import Awaitable, Callable
@@ -28,6 +29,13 @@ def run(coro: Awaitable[Any], timeout: float = 30.0) -> Any:
         return await asyncio.wait_for(coro, timeout)
 
     return asyncio.run(bounded())
+
+
+async def until(condition: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        await asyncio.sleep(0.02)
 
 
 def outbound(fields: Any = None, body: bytes = b"{}") -> Outbound:
@@ -176,6 +184,20 @@ def test_check_source_and_sink_options() -> None:
     assert list(TRANSPORT.check_sink({"message": "COMMAND_LONG"}, "payload")) == []
     problems = list(TRANSPORT.check_sink({"message": "COMMAND_LONG"}, "{command: `400`, param8: `1`}"))
     assert len(problems) == 1 and "param8" in problems[0][1]
+    [(_, typo)] = TRANSPORT.check_sink({"message": "COMMAND_LONG"}, "{command: `400`, parma1: `1`}")
+    assert "sets 'parma1', which COMMAND_LONG does not have; did you mean 'param1'?" in typo
+    [(_, null)] = TRANSPORT.check_sink({"message": "COMMAND_LONG"}, "{command: `400`, param1: `null`}")
+    assert null.startswith("sink mapping sets 'param1' to `null`: every message would be refused; a MAVLink field is never guessed")
+    [(_, unused)] = TRANSPORT.check_sink({"mission": "upload"}, "{item: x}")
+    names = list(TRANSPORT.check_sink({"message": "COMMAND_INT"}, "{command: mav_enum_value('COMPONENT_ARM_DISARN', "
+                                      "'MAV_CMD'), frame: 'GLOBAL_RELATIVE_ALT_INTT'}"))
+    assert [text for _, text in names] == [
+        "sink mapping 'command': 'COMPONENT_ARM_DISARN' is not a MAV_CMD name; did you mean 'MAV_CMD_COMPONENT_ARM_DISARM'?",
+        "sink mapping 'frame': 'GLOBAL_RELATIVE_ALT_INTT' is not a MAV_FRAME name; "
+        "did you mean 'MAV_FRAME_GLOBAL_RELATIVE_ALT_INT'?"]
+    assert list(TRANSPORT.check_sink({"message": "COMMAND_INT"}, "{command: 'DO_REPOSITION', frame: mav_enum_value("
+                                     "'GLOBAL_INT', 'MAV_FRAME'), param4: nan()}")) == []
+    assert unused.endswith("'item' is not used; did you mean 'items'?")
     assert [k for k, _ in TRANSPORT.check_sink({"message": "COMMAND_LONGG"}, None)] == ["message"]
     assert [k for k, _ in TRANSPORT.check_sink({"message": "HEARTBEAT", "target_system": 1}, None)] == ["target_system"]
     assert list(TRANSPORT.check_sink({}, None))
@@ -195,9 +217,38 @@ def test_build_message_defaults_types_and_errors() -> None:
     with pytest.raises(MessageRejected, match="outside"):
         mavlink.build_message(cls, {"command": 70000})
     with pytest.raises(MessageRejected, match="number"):
-        mavlink.build_message(cls, {"command": "arm"})
+        mavlink.build_message(cls, {"command": 400, "confirmation": "1"})
     with pytest.raises(MessageRejected, match="object"):
         mavlink.build_message(cls, [1, 2])
+
+
+def test_build_message_refuses_nulls_and_takes_enum_names() -> None:
+    """A null is never a 0 (param1 0 of COMPONENT_ARM_DISARM disarms); a field left out is 0;
+    NaN passes where the mapping says nan(); an enum field takes a name, a misspelt one gets
+    the close names, as does a field the message lacks."""
+    cls = mavlink.MESSAGES["COMMAND_LONG"]
+    for fields, named in (({"command": 400, "param1": None}, "field 'param1' is null"),
+                          ({"command": None}, "field 'command' is null"),
+                          ({"command": 400, "param1": None, "param2": None}, "fields 'param1', 'param2' are null")):
+        with pytest.raises(MessageRejected, match=named):
+            mavlink.build_message(cls, fields, {"target_system": 1})
+    with pytest.raises(MessageRejected, match=r"field 'target_system' is null"):
+        mavlink.build_message(cls, {"command": 400, "param1": 1, "target_system": None}, {"target_system": 1})
+    with pytest.raises(MessageRejected, match=r"field 'payload\[1\]' is null"):
+        mavlink.build_message(mavlink.MESSAGES["TUNNEL"], {"payload": [1, None], "payload_length": 2})
+    with pytest.raises(MessageRejected, match="field 'text' is null"):
+        mavlink.build_message(mavlink.MESSAGES["STATUSTEXT"], {"severity": 6, "text": None})
+    left_out = mavlink.build_message(cls, {"command": "MAV_CMD_COMPONENT_ARM_DISARM", "param1": 1})
+    assert (left_out.command, left_out.param1, left_out.param2, left_out.target_system) == (400, 1.0, 0.0, 0)
+    unset = mavlink.build_message(cls, {"command": "DO_REPOSITION", "param4": math.nan, "param5": 1.5})
+    assert unset.command == mavlink2.MAV_CMD_DO_REPOSITION and math.isnan(unset.param4) and unset.param5 == 1.5
+    with pytest.raises(MessageRejected, match=r"'MAV_CMD_COMPONENT_ARM_DISARN' is not a MAV_CMD name; "
+                                              r"did you mean 'MAV_CMD_COMPONENT_ARM_DISARM'\?"):
+        mavlink.build_message(cls, {"command": "MAV_CMD_COMPONENT_ARM_DISARN", "param1": 1})
+    with pytest.raises(MessageRejected, match=r"no field\(s\) 'paramm1'; did you mean 'param1'\?"):
+        mavlink.build_message(cls, {"command": 400, "paramm1": 1})
+    with pytest.raises(MessageRejected, match="not an integer"):
+        mavlink.build_message(cls, {"command": math.nan})
 
 
 # -- sources and sinks over UDP -------------------------------------------------------------------
@@ -289,6 +340,39 @@ def test_tcp_server_and_client_share_messages() -> None:
             assert [i.fields["command"] for i in got.items] == list(range(20))
         finally:
             await source.stop()
+            await client.close()
+            await server.close()
+
+    run(scenario())
+
+
+def test_tcp_client_reconnects_to_a_restarted_server() -> None:
+    """The server goes away and comes back on the same port: the client counts the loss and
+    reconnects with the engine's backoff (first wait 0.5-1 s), and messages flow again."""
+    async def scenario() -> None:
+        server = TRANSPORT.connect("srv", {"url": "tcpin:127.0.0.1:0", "heartbeat": 0})
+        await server.open()
+        port = server.address[1]
+        client = TRANSPORT.connect("cli", {"url": f"tcp:127.0.0.1:{port}", "source_system": 1, "heartbeat": 0})
+        await client.open()
+        sink = client.sink("r", {"message": "COMMAND_LONG", "target_system": 255})
+        try:
+            await server.close()
+            await until(lambda: client.stats.get("link_lost") == 1, 5, "the client to notice the server left")
+            lost_at = time.monotonic()
+            server = TRANSPORT.connect("srv", {"url": f"tcpin:127.0.0.1:{port}", "heartbeat": 0})
+            await server.open()
+            got = Collector()
+            source = server.source("r", {"message": "COMMAND_LONG"})
+            await source.start(got)
+            await until(lambda: client.port.ready, 5, "the client to reconnect")
+            reconnected_s = time.monotonic() - lost_at
+            await sink.send(outbound({"command": 7}))
+            await got.wait_for(1)
+            await source.stop()
+            assert got.items[0].fields["command"] == 7
+            assert reconnected_s < 2.5, f"reconnected after {reconnected_s:.2f} s"
+        finally:
             await client.close()
             await server.close()
 

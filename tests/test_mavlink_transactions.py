@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import socket
 import time
 import uuid
@@ -349,10 +350,17 @@ def test_mission_items_mapping_legacy_requests_and_bad_input() -> None:
                                   ({"items": [{"command": "MAV_CMD_FLY_TO_THE_MOON"}]}, "not a MAV_CMD name"),
                                   ({"items": [{"command": 16, "x": 2**40}]}, "outside int32_t"),
                                   ({"agent_id": "uav1", "waypoints": [{"lat": 1.0, "lon": 2.0}]}, "no alt"),
-                                  ({"agent_id": "uav1", "waypoints": []}, "no waypoints")):
-                with pytest.raises(MessageRejected, match=error.replace("(", r"\(").replace(")", r"\)")):
+                                  ({"agent_id": "uav1", "waypoints": []}, "no waypoints"),
+                                  ({"items": [{"command": 16, "x": 1}, {"command": 16, "param4": None}]},
+                                   "field 'items[1].param4' is null"),
+                                  ({"items": [{"command": 16, "lon": 1}]}, "unknown field(s) lon (fields"),
+                                  ({"items": [{"command": 16, "parma1": 1}]}, "parma1; did you mean 'param1'?"),
+                                  ({"agent_id": "uav1", "waypoints": [{"lat": 1.0, "lon": 2.0, "alt": None}]},
+                                   "field 'waypoints[0].alt' is null")):
+                with pytest.raises(MessageRejected, match=re.escape(error)):
                     await sink.send(outbound(fields))
             assert gcs.stats["missions_uploaded"] == 1
+            assert len(sim.autopilot.mission) == 4, "nothing of the refused missions was uploaded"
 
     run(scenario(), 30)
 

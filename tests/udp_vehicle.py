@@ -60,3 +60,48 @@ routes:
     schema: raw_json
     sink: {{amqp: {{connection: gcs, exchange: {outbox}, routing_key: telemetry}}}}
 """
+
+
+class CommandVehicle(threading.Thread):
+    """A vehicle on plain pymavlink (system 1, component 1) behind a UDP socket: it sends its
+    HEARTBEAT every 0.2 s to whoever wrote to it last, records every COMMAND_LONG and
+    COMMAND_INT it receives (with ``time.monotonic()`` of arrival) and acknowledges each with
+    MAV_RESULT_ACCEPTED. Nothing of the engine is used to parse, so what it records is what
+    went over the wire."""
+
+    def __init__(self) -> None:
+        super().__init__(daemon=True)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.port: int = self.sock.getsockname()[1]
+        self.commands: list[tuple[float, mavlink2.MAVLink_message]] = []
+        self.lock = threading.Lock()
+        self.stop = threading.Event()
+
+    def received(self) -> list[tuple[float, mavlink2.MAVLink_message]]:
+        with self.lock:
+            return list(self.commands)
+
+    def run(self) -> None:
+        mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        peer: tuple[str, int] | None = None
+        beat = 0.0
+        with self.sock:
+            while not self.stop.is_set():
+                if peer is not None and time.monotonic() >= beat:
+                    beat = time.monotonic() + 0.2
+                    heartbeat = mav.heartbeat_encode(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC,
+                                                     0, 0, mavlink2.MAV_STATE_STANDBY)
+                    self.sock.sendto(heartbeat.pack(mav), peer)
+                try:
+                    data, peer = self.sock.recvfrom(65535)
+                except TimeoutError:
+                    continue
+                for msg in mav.parse_buffer(data) or ():
+                    if msg.get_type() in ("COMMAND_LONG", "COMMAND_INT") and msg.target_system == 1:
+                        with self.lock:
+                            self.commands.append((time.monotonic(), msg))
+                        ack = mav.command_ack_encode(msg.command, mavlink2.MAV_RESULT_ACCEPTED, 0, 0,
+                                                     msg.get_srcSystem(), msg.get_srcComponent())
+                        self.sock.sendto(ack.pack(mav), peer)

@@ -41,24 +41,29 @@ a bounded inbox (the route's ``overflow``; ``block`` drops the oldest, as a radi
 paused); a JSON tunnel message is acknowledged to its sender only once every route settled it.
 Sinks raise :class:`~engine.endpoints.base.MessageRejected` for what can never be sent (a field
 out of range, a message too large for the tunnel, a refusal) and
-:class:`~engine.endpoints.base.EndpointError` when the far end does not answer.
+:class:`~engine.endpoints.base.EndpointError` when the far end does not answer. A field the sink
+mapping sets to null is refused before that, at the pipeline's ``sink mapping`` stage
+(:meth:`MavlinkTransport.sink_field_check`): a field is never guessed (:mod:`.codec`).
 
-Modules, one per concern: :mod:`.settings` (connection settings), :mod:`.links` (serial, UDP,
-TCP), :mod:`.signing`, :mod:`.codec` (messages as dicts), :mod:`.port` (paced writer and reader),
-:mod:`.connection` (heartbeat, vehicles heard, dispatch), :mod:`.messages` (route endpoints),
-:mod:`.mission` and :mod:`.command` (transactions the vehicle acknowledges), :mod:`.enums`
-(enum names for mappings), :mod:`.checks` (static checks), :mod:`.tunnel` (JSON over TUNNEL).
+Modules, one per concern: :mod:`.dialect` (pymavlink's tables), :mod:`.settings` (connection
+settings), :mod:`.links` (serial, UDP, TCP), :mod:`.signing`, :mod:`.codec` (messages as dicts),
+:mod:`.port` (paced writer and reader), :mod:`.connection` (heartbeat, vehicles heard, dispatch),
+:mod:`.contract` (what the route endpoints need of the connection), :mod:`.messages` (route
+endpoints), :mod:`.mission` and :mod:`.command` (transactions the vehicle acknowledges),
+:mod:`.enums` (enum names for mappings), :mod:`.checks` (static checks), :mod:`.tunnel` (JSON
+over TUNNEL). No module imports one that imports it back.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, ClassVar
 
 from engine.endpoints.base import CheckResult, Transport, typed_or_problem
 from engine.endpoints.mavlink.checks import sink_problems, source_problems
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, field_specs, message_fields, mavlink2
 from engine.endpoints.mavlink.connection import MavlinkConnection
+from engine.endpoints.mavlink.messages import field_check
 from engine.endpoints.mavlink import settings as _settings
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
@@ -82,6 +87,9 @@ class MavlinkTransport(Transport):
 
     def sink_problems(self, options: MavlinkSinkOptions, mapping: str | None) -> CheckResult:
         return sink_problems(options, mapping)
+
+    def sink_field_check(self, options: MavlinkSinkOptions) -> Callable[[Any], None] | None:
+        return field_check(options)
 
     def exclusive_resource(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> str | None:
         options, _ = typed_or_problem(MavlinkConnectionOptions, settings)

@@ -10,10 +10,12 @@ import jmespath
 from jmespath import exceptions as jmespath_errors
 
 from engine.endpoints.base import EndpointError, typed_or_problem
-from engine.endpoints.mavlink.codec import MESSAGES
+from engine.endpoints.mavlink.codec import MESSAGES, NEVER_GUESSED
+from engine.endpoints.mavlink.enums import mav_enum_value
 from engine.endpoints.mavlink.options import MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.transaction import TransactionOptions
 from engine.options import given
+from engine.suggest import did_you_mean
 
 _SENDER = {"system_id", "component_id"}
 _TARGET = {"target_system", "target_component"}
@@ -91,10 +93,16 @@ def sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tupl
     for key in ("target_system", "target_component"):
         if key in given(options) and key not in cls.fieldnames:
             problems.append((key, f"{name} has no field {key!r}"))
-    for key in _mapping_keys(mapping):
+    for key, value in _mapping_pairs(mapping):
         if key not in cls.fieldnames:
             fields = ", ".join(cls.fieldnames)
-            problems.append((None, f"sink mapping sets {key!r}, which {name} does not have (fields: {fields})"))
+            problems.append((None, f"sink mapping sets {key!r}, which {name} does not have"
+                                   f"{did_you_mean(key, cls.fieldnames)} (fields: {fields})"))
+        elif _is_null_literal(value):
+            problems.append((None, f"sink mapping sets {key!r} to `null`: every message would be refused; {NEVER_GUESSED}"))
+        else:
+            problems.extend((None, f"sink mapping {key!r}: {problem}")
+                            for problem in _enum_name_problems(value, cls.fieldenums_by_name.get(key)))
     return problems
 
 
@@ -103,14 +111,15 @@ def _mission_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[
     if options.mission != "upload":
         problems.append(("mission", "mission must be 'upload'"))
     problems += TransactionOptions.parse(options)[1]
-    for key in _mapping_keys(mapping):
+    for key, _ in _mapping_pairs(mapping):
         if key != "items":
             problems.append((None, f"a mission sink mapping produces {{items: [...]}} (or a canonical mission); "
-                                   f"{key!r} is not used"))
+                                   f"{key!r} is not used{did_you_mean(key, ['items'])}"))
     return problems
 
 
-def _mapping_keys(mapping: str | None) -> list[str]:
+def _mapping_pairs(mapping: str | None) -> list[tuple[str, dict[str, Any]]]:
+    """The (key, value expression) pairs of a ``{a: x, b: y}`` sink mapping; [] for another shape."""
     if not mapping:
         return []
     try:
@@ -119,7 +128,30 @@ def _mapping_keys(mapping: str | None) -> list[str]:
         return []
     if node.get("type") != "multi_select_dict":
         return []
-    return [child["value"] for child in node["children"] if child.get("type") == "key_val_pair"]
+    return [(child["value"], child["children"][0]) for child in node["children"] if child.get("type") == "key_val_pair"]
+
+
+def _enum_name_problems(node: dict[str, Any], enum: str | None) -> list[str]:
+    """A misspelt enum name written in the mapping itself, found before any message: a name
+    given to an enum field (``command: 'MAV_CMD_DO_REPOSITON'``) or to ``mav_enum_value`` with
+    both arguments written out. Names that come from the message are checked as it arrives."""
+    if node.get("type") == "literal" and isinstance(node.get("value"), str) and enum is not None:
+        name = node["value"]
+    elif node.get("type") == "function_expression" and node.get("value") == "mav_enum_value" \
+            and [child.get("type") for child in node["children"]] == ["literal", "literal"]:
+        name, enum = (child["value"] for child in node["children"])
+    else:
+        return []
+    try:
+        mav_enum_value(name, enum)  # type: ignore[arg-type]
+    except ValueError as exc:
+        return [str(exc)]
+    return []
+
+
+def _is_null_literal(node: dict[str, Any]) -> bool:
+    """A value written as `` `null` ``: every message would be refused at the sink mapping stage."""
+    return node.get("type") == "literal" and node.get("value") is None
 
 
 def source_options(route: str, options: MavlinkSourceOptions | Mapping[str, Any]) -> MavlinkSourceOptions:

@@ -14,37 +14,32 @@ TEMPORARILY_REJECTED sends again after ``retry_delay`` (counted as a retry); any
 from __future__ import annotations
 
 import asyncio
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import Any
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
-from engine.endpoints.mavlink.codec import build_message, mavlink2
-from engine.endpoints.mavlink.enums import enum_name, enum_or_number
+from engine.endpoints.mavlink.codec import mavlink2
+from engine.endpoints.mavlink.contract import SharedLink
+from engine.endpoints.mavlink.enums import enum_name
 from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions
 
-if TYPE_CHECKING:
-    from engine.endpoints.mavlink.connection import MavlinkConnection
-
 _ACK = (mavlink2.MAVLINK_MSG_ID_COMMAND_ACK,)
+Encoder = Callable[[Any], mavlink2.MAVLink_message]
+"""The sink mapping's fields -> the message to send (engine/endpoints/mavlink/messages.py
+``message_encoder``); raises MessageRejected for what the message cannot carry."""
 
 
 class AcknowledgedCommandSink(Sink):
     """One command per message, retried until the target acknowledges it."""
 
-    def __init__(self, connection: MavlinkConnection, cls: type[mavlink2.MAVLink_message],
-                 options: TransactionOptions) -> None:
+    def __init__(self, connection: SharedLink, encode: Encoder, options: TransactionOptions) -> None:
         self.connection = connection
-        self.cls = cls
+        self.encode = encode
         self.options = options
-        self.defaults = {"target_system": options.target_system, "target_component": options.target_component}
 
     def _build(self, fields: Any, confirmation: int) -> mavlink2.MAVLink_message:
-        if isinstance(fields, dict) and isinstance(fields.get("command"), str):
-            try:
-                fields = {**fields, "command": enum_or_number(fields["command"], "MAV_CMD", "command")}
-            except ValueError as exc:
-                raise MessageRejected(str(exc)) from None
-        msg = build_message(self.cls, fields, self.defaults)
-        if self.cls is mavlink2.MAVLink_command_long_message:
+        msg = self.encode(fields)
+        if isinstance(msg, mavlink2.MAVLink_command_long_message):
             msg.confirmation = min(255, msg.confirmation + confirmation)
         return msg
 

@@ -11,13 +11,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Hashable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
 from engine.endpoints.base import Connection, EndpointError, Sink, Source, typed
 from engine.endpoints.mavlink.checks import sink_options, source_options
 from engine.endpoints.mavlink.codec import MESSAGES, TUNNEL, mavlink2
+from engine.endpoints.mavlink.contract import Listener
 from engine.endpoints.mavlink.enums import enum_name
 from engine.endpoints.mavlink.messages import MessageSource, sink_for
 from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
@@ -36,9 +37,6 @@ counts the systems/components whose HEARTBEAT came in. Tunnel counters (``tunnel
 REJECTION_STATS = ("bad_crc", "bad_data", "unsigned_rejected", "bad_signature", "replayed", "not_for_us")
 """What the link received and threw away, shown together in the status."""
 
-Listener = Callable[[mavlink2.MAVLink_message], None]
-
-
 @dataclass(slots=True)
 class VehicleSeen:
     """A MAVLink component heard on the link, from its HEARTBEAT."""
@@ -52,7 +50,8 @@ class VehicleSeen:
 
 
 class MavlinkConnection(Connection):
-    """One MAVLink link shared by every route that names it."""
+    """One MAVLink link shared by every route that names it (the
+    :class:`~.contract.SharedLink` its route endpoints use)."""
 
     def __init__(self, name: str, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> None:
         config, problems = settings_problems(settings)
@@ -69,7 +68,7 @@ class MavlinkConnection(Connection):
         source gives it as ``ref_id`` (MISSION_ACK itself carries no reference)."""
         self._heard: list[asyncio.Future[None]] = []
         self._listeners: dict[int | None, list[Listener]] = {}
-        self._locks: dict[Any, asyncio.Lock] = {}
+        self._locks: dict[Hashable, asyncio.Lock] = {}
         self._tasks: list[asyncio.Task[None]] = []
 
     @property
@@ -131,6 +130,9 @@ class MavlinkConnection(Connection):
 
     async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False) -> float:
         return await self.port.enqueue(msg, bulk=bulk)
+
+    def post(self, msg: mavlink2.MAVLink_message) -> None:
+        self.port.post(msg)
 
     async def _heartbeat(self) -> None:
         period = 1.0 / self.config.heartbeat
@@ -203,7 +205,7 @@ class MavlinkConnection(Connection):
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(heard, left)
 
-    def transaction_lock(self, key: Any) -> asyncio.Lock:
+    def transaction_lock(self, key: Hashable) -> asyncio.Lock:
         """One mission upload (or command) at a time per target, as the protocols require."""
         lock = self._locks.get(key)
         if lock is None:

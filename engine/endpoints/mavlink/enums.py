@@ -9,13 +9,14 @@ from __future__ import annotations
 
 from functools import cache
 
-from engine.endpoints.mavlink.codec import mavlink2
+from engine.endpoints.mavlink.dialect import mavlink2
+from engine.suggest import closest, did_you_mean
 
 
 def _table(enum: str) -> dict[int, object]:
     table = mavlink2.enums.get(enum)
     if table is None:
-        raise ValueError(f"unknown MAVLink enum {enum!r} (dialect: common)")
+        raise ValueError(f"unknown MAVLink enum {enum!r} (dialect: common){did_you_mean(enum, mavlink2.enums)}")
     return table
 
 
@@ -35,8 +36,17 @@ def mav_enum_value(name: str, enum: str) -> int:
     names = _by_name(enum)
     value = names.get(name, names.get(f"{enum}_{name}"))
     if value is None:
-        raise ValueError(f"{name!r} is not a {enum} name")
+        raise ValueError(f"{name!r} is not a {enum} name{_suggestion(str(name), enum)}")
     return value
+
+
+def _suggestion(name: str, enum: str) -> str:
+    """Did-you-mean over the names without the enum's prefix, which every name shares and which
+    would make any short guess look close (``ARM`` is not like ``MAV_CMD_NAV_ROI``)."""
+    prefix = f"{enum}_"
+    short = {full[len(prefix):] if full.startswith(prefix) else full: full for full in _by_name(enum)}
+    match = closest(name[len(prefix):] if name.startswith(prefix) else name, short)
+    return f"; did you mean {short[match]!r}?" if match is not None else ""
 
 
 def mav_flags(value: int, enum: str) -> list[str]:

@@ -3,8 +3,9 @@
 
 A link hands every received chunk to ``on_bytes(data, peer)`` and writes whole frames with
 ``transmit``; it translates OS errors into :class:`EndpointError` and reconnects on its own
-(a serial device that disappears is reopened every second, a TCP client backs off). Used by
-the engine's connections and by the simulated vehicle alike.
+(a serial device that disappears is reopened, a TCP client reconnects, both waiting with the
+engine's one backoff, :mod:`engine.backoff`). Used by the engine's connections and by the
+simulated vehicle alike.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from typing import Any
 
+from engine.backoff import Backoff
 from engine.endpoints.base import EndpointError
 from engine.endpoints.mavlink.settings import Address
 
@@ -30,6 +32,16 @@ UDP_RECEIVE_BUFFER = 4 << 20
 """Bytes of kernel receive buffer asked for a UDP link (the kernel caps it at
 ``net.core.rmem_max``). The default (~200 KB) holds about 250 small datagrams, 40 ms of
 telemetry at 6,000 msg/s: any longer pause of the loop (a reload, a busy CPU) drops frames."""
+
+REOPEN_FIRST_S = 0.5
+REOPEN_CAP_S = 2.0
+"""A serial device that went away is tried again after 0.25-0.5 s, then at most every 1-2 s:
+a USB radio plugged back in is read again within about two seconds, and a device that stays
+away costs an open() call per second or two."""
+RECONNECT_FIRST_S = 1.0
+RECONNECT_CAP_S = 10.0
+"""A TCP client whose server went away tries again after 0.5-1 s, doubling to 5-10 s: an
+autopilot or SITL restarting takes seconds, and many links do not retry in step."""
 
 OnBytes = Callable[[bytes, Hashable], None]
 
@@ -132,9 +144,10 @@ class SerialLink(Link):
             self._reopen = loop.create_task(self._reopen_loop())
 
     async def _reopen_loop(self) -> None:
+        backoff = Backoff(REOPEN_FIRST_S, REOPEN_CAP_S)
         try:
             while not self.closed:
-                await asyncio.sleep(1.0)
+                await asyncio.sleep(backoff.next())
                 with contextlib.suppress(OSError, termios.error):
                     self._open()
                     return
@@ -299,18 +312,18 @@ class TcpLink(Link):
         await self._pump(reader, writer)
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        delay = 1.0
+        backoff = Backoff(RECONNECT_FIRST_S, RECONNECT_CAP_S)
         while not self.closed:
             await self._pump(reader, writer)
             self._count("link_lost")
+            backoff.reset()
             while not self.closed:
-                await asyncio.sleep(delay)
+                await asyncio.sleep(backoff.next())
                 try:
                     reader, writer = await asyncio.open_connection(self.address.host, self.address.port)
-                    delay = 1.0
                     break
                 except OSError:
-                    delay = min(delay * 2, 10.0)
+                    pass
 
     async def _pump(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername") or id(writer)

@@ -1,23 +1,28 @@
 """Route endpoints for single MAVLink messages: telemetry in (one type, or all, as field dicts)
 and one message out per canonical message; ``sink_for`` picks the transactional sinks (mission
-upload, acknowledged commands) where the options ask for them."""
+upload, acknowledged commands) where the options ask for them.
+
+What every kind of sink refuses before anything is sent (:func:`field_check`: a field set to
+null) and how it builds what it sends (:func:`message_encoder`, :func:`dry_run`) are decided here
+once, for the run and for ``rabbitros-engine test`` alike."""
 
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.base import Deliver, Inbound, Inbox, Outbound, Sink, Source
-from engine.endpoints.mavlink.codec import MESSAGES, build_message, message_fields, mavlink2
-from engine.endpoints.mavlink.command import AcknowledgedCommandSink
-from engine.endpoints.mavlink.mission import MissionUploadSink
+from engine.endpoints.mavlink.codec import MESSAGES, build_message, message_fields, mavlink2, refuse_nulls
+from engine.endpoints.mavlink.command import AcknowledgedCommandSink, Encoder
+from engine.endpoints.mavlink.contract import SharedLink
+from engine.endpoints.mavlink.mission import MissionUploadSink, mission_items, refuse_mission_nulls
 from engine.endpoints.mavlink.transaction import TransactionOptions
 
 if TYPE_CHECKING:
-    from engine.endpoints.mavlink.connection import MavlinkConnection
     from engine.endpoints.mavlink.options import MavlinkSinkOptions
 
 MISSION_ACK = mavlink2.MAVLINK_MSG_ID_MISSION_ACK
@@ -45,7 +50,7 @@ class MessageSource(Source):
     Drops, and messages the route could not settle, are counted with ``Deliver.dropped``.
     """
 
-    def __init__(self, connection: MavlinkConnection, route: str, msg_id: int | None,
+    def __init__(self, connection: SharedLink, route: str, msg_id: int | None,
                  system_id: int | None = None, component_id: int | None = None) -> None:
         self.connection = connection
         self.route = route
@@ -139,27 +144,56 @@ class MessageSource(Source):
 class MessageSink(Sink):
     """Encodes ``Outbound.fields`` as one message; accepted once written to the link."""
 
-    def __init__(self, connection: MavlinkConnection, cls: type[mavlink2.MAVLink_message],
-                 defaults: Mapping[str, Any]) -> None:
+    def __init__(self, connection: SharedLink, encode: Encoder) -> None:
         self.connection = connection
-        self.cls = cls
-        self.defaults = dict(defaults)
+        self.encode = encode
 
     async def send(self, message: Outbound) -> None:
-        await self.connection.send_message(build_message(self.cls, message.fields, self.defaults))
+        await self.connection.send_message(self.encode(message.fields))
 
 
-
-def sink_for(connection: MavlinkConnection, route: str, options: MavlinkSinkOptions) -> Sink:
+def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) -> Sink:
     """The sink the (already checked) options describe."""
     if options.mission is not None:
         return MissionUploadSink(connection, TransactionOptions.parse(options)[0])
-    cls = MESSAGES[options.message]
     if options.acknowledged:
-        return AcknowledgedCommandSink(connection, cls, TransactionOptions.parse(options)[0])
-    return MessageSink(connection, cls, message_defaults(options))
+        return AcknowledgedCommandSink(connection, message_encoder(options), TransactionOptions.parse(options)[0])
+    return MessageSink(connection, message_encoder(options))
+
+
+def message_encoder(options: MavlinkSinkOptions) -> Encoder:
+    """How a message sink (plain or acknowledged) builds its message from the sink mapping's
+    fields: the target fields the mapping leaves out come from the sink's options (an
+    acknowledged command's default to 1/1, the vehicle that acknowledges), the rest are 0."""
+    if options.acknowledged:
+        transaction = TransactionOptions.parse(options)[0]
+        defaults = {"target_system": transaction.target_system, "target_component": transaction.target_component}
+    else:
+        defaults = message_defaults(options)
+    return functools.partial(build_message, MESSAGES[options.message], defaults=defaults)
 
 
 def message_defaults(options: MavlinkSinkOptions) -> dict[str, int]:
     """The target fields a message sink fills in when the mapping does not."""
     return {key: getattr(options, key) for key in ("target_system", "target_component") if getattr(options, key) is not None}
+
+
+def field_check(options: MavlinkSinkOptions) -> Callable[[Any], None] | None:
+    """What the sink refuses in the sink mapping's output before anything is sent: a field set
+    to null (MessageRejected naming it; the pipeline reports it at its ``sink mapping`` stage).
+    A JSON tunnel carries JSON, where null is a value like any other: nothing to refuse."""
+    if options.json_tunnel:
+        return None
+    if options.mission is not None:
+        return refuse_mission_nulls
+    return functools.partial(refuse_nulls, options.message)
+
+
+def dry_run(options: MavlinkSinkOptions) -> Callable[[Any], object]:
+    """What the sink would send, built and thrown away (``rabbitros-engine test``): raises
+    MessageRejected where the sink would. A JSON tunnel sends the canonical JSON as it is."""
+    if options.json_tunnel:
+        return lambda fields: None
+    if options.mission is not None:
+        return functools.partial(mission_items, options=TransactionOptions.parse(options)[0])
+    return message_encoder(options)

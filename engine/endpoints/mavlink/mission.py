@@ -24,21 +24,22 @@ from __future__ import annotations
 import asyncio
 import math
 from collections.abc import Iterator, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
-from engine.endpoints.mavlink.codec import build_message, mavlink2
+from engine.endpoints.mavlink.codec import build_message, mavlink2, null_fields, null_problem
+from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name, enum_or_number
 from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions
-
-if TYPE_CHECKING:
-    from engine.endpoints.mavlink.connection import MavlinkConnection
+from engine.suggest import did_you_mean
 
 ITEM = mavlink2.MAVLink_mission_item_int_message
 _ANSWERS = (mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_INT, mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST,
             mavlink2.MAVLINK_MSG_ID_MISSION_ACK)
 _ITEM_KEYS = {"command", "frame", "x", "y", "z", "param1", "param2", "param3", "param4", "autocontinue", "current"}
 _MAX_ITEMS = 65535
+_WAYPOINT_KEYS = ("lat", "lon", "alt", "hold_s")
+"""What the sink reads of a canonical waypoint (other keys, such as ``action``, it leaves alone)."""
 
 
 def _number(value: Any, what: str) -> float:
@@ -80,7 +81,8 @@ def explicit_items(raw: Any) -> list[dict[str, Any]]:
     for where, item in _objects(raw, "items"):
         unknown = sorted(set(item) - _ITEM_KEYS)
         if unknown:
-            raise MessageRejected(f"{where}: unknown field(s) {', '.join(unknown)} (fields: {', '.join(sorted(_ITEM_KEYS))})")
+            named = ", ".join(f"{key}{did_you_mean(key, _ITEM_KEYS)}" for key in unknown)
+            raise MessageRejected(f"{where}: unknown field(s) {named} (fields: {', '.join(sorted(_ITEM_KEYS))})")
         if "command" not in item:
             raise MessageRejected(f"{where}: no command")
         fields = {"frame": mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, "autocontinue": 1, **item}
@@ -93,11 +95,42 @@ def explicit_items(raw: Any) -> list[dict[str, Any]]:
     return items
 
 
+def mission_nulls(fields: Mapping[str, Any]) -> list[str]:
+    """What the mission sets to null among what the sink reads: ``items[i].param1`` of explicit
+    items, ``waypoints[i].alt`` of a canonical mission (lat, lon, alt, hold_s), or the list."""
+    if "items" in fields:
+        name, entries, read = "items", fields["items"], None
+    else:
+        name, entries, read = "waypoints", fields.get("waypoints"), _WAYPOINT_KEYS
+    if entries is None:
+        return [name] if name in fields else []
+    if not isinstance(entries, list):
+        return []
+    nulls = []
+    for index, entry in enumerate(entries):
+        if entry is None:
+            nulls.append(f"{name}[{index}]")
+        elif isinstance(entry, Mapping):
+            nulls.extend(f"{name}[{index}].{key}" for key in null_fields(entry) if read is None or key in read)
+    return nulls
+
+
+def refuse_mission_nulls(fields: Any) -> None:
+    """MessageRejected naming every null the sink would read (see :func:`mission_nulls`): a
+    waypoint's altitude or an item's parameter is never guessed. The pipeline runs it as the
+    sink's field check (its ``sink mapping`` stage); :func:`mission_items` runs it again."""
+    if isinstance(fields, Mapping):
+        nulls = mission_nulls(fields)
+        if nulls:
+            raise MessageRejected(null_problem("mission", nulls), stage="sink mapping")
+
+
 def mission_items(fields: Any, options: TransactionOptions) -> list[mavlink2.MAVLink_message]:
     """The MISSION_ITEM_INT messages of one upload, in order; MessageRejected when the fields
     cannot make a mission (also what ``rabbitros-engine test`` runs as the sink's dry run)."""
     if not isinstance(fields, Mapping):
         raise MessageRejected(f"a mission sink needs an object, got {type(fields).__name__}")
+    refuse_mission_nulls(fields)
     if "items" in fields:
         items = explicit_items(fields["items"])
     else:
@@ -116,7 +149,7 @@ def mission_items(fields: Any, options: TransactionOptions) -> list[mavlink2.MAV
 class MissionUploadSink(Sink):
     """Uploads each message's mission to one target; returns once the vehicle accepted it."""
 
-    def __init__(self, connection: MavlinkConnection, options: TransactionOptions) -> None:
+    def __init__(self, connection: SharedLink, options: TransactionOptions) -> None:
         self.connection = connection
         self.options = options
 
@@ -149,7 +182,7 @@ class MissionUploadSink(Sink):
                 tries += 1
                 if tries > options.retries:
                     stats["mission_timeouts"] = stats.get("mission_timeouts", 0) + 1
-                    connection.port.post(mavlink2.MAVLink_mission_ack_message(
+                    connection.post(mavlink2.MAVLink_mission_ack_message(
                         target_system, target_component, mavlink2.MAV_MISSION_OPERATION_CANCELLED, options.mission_type))
                     raise EndpointError(f"mavlink connection {connection.name!r}: vehicle {target_system}/{target_component} "
                                         f"did not answer the mission upload ({len(items)} items) after {options.retries} "

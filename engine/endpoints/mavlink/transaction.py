@@ -14,10 +14,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.mavlink.codec import mavlink2
+from engine.endpoints.mavlink.contract import SharedLink
 from engine.options import given
 
 if TYPE_CHECKING:
-    from engine.endpoints.mavlink.connection import MavlinkConnection
     from engine.endpoints.mavlink.options import MavlinkSinkOptions
 
 SERIAL_TIMEOUT = 1.5
@@ -71,7 +71,7 @@ class TransactionOptions:
                 values["mission_type"] = value
         return cls(**values), problems
 
-    def answer_timeout(self, connection: MavlinkConnection) -> float:
+    def answer_timeout(self, connection: SharedLink) -> float:
         if self.timeout is not None:
             return self.timeout
         return SERIAL_TIMEOUT if connection.config.address.kind == "serial" else NETWORK_TIMEOUT
@@ -84,7 +84,7 @@ class TransactionOptions:
 class Conversation:
     """Messages of ``msg_ids`` from ``target`` addressed to us (or to everyone), queued while open."""
 
-    def __init__(self, connection: MavlinkConnection, target: tuple[int, int], msg_ids: Iterable[int]) -> None:
+    def __init__(self, connection: SharedLink, target: tuple[int, int], msg_ids: Iterable[int]) -> None:
         self.connection = connection
         self.target = target
         self.msg_ids = tuple(msg_ids)
