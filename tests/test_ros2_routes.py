@@ -146,7 +146,7 @@ def test_a_null_from_the_sink_mapping_is_dead_lettered_naming_the_field_and_test
     assert received == [good]
     assert len(dead_letters) == 1 and dead_letters[0].body == canonical_bytes(no_altitude)
     headers = dead_letters[0].headers
-    error = f"route 'position-to-ros', ros2 topic '/{names['tag']}/fix': field altitude: null (the sink mapping gave no value"
+    error = f"ros2 topic '/{names['tag']}/fix': field altitude: null (the sink mapping gave no value"
     assert headers["x-rabbitros-stage"] == "sink mapping" and headers["x-rabbitros-error"].startswith(error), headers
 
     (directory / "typed.test.yaml").write_text(f"""tests:

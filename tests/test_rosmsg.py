@@ -20,7 +20,7 @@ import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
 from engine.endpoints.rosmsg import (  # noqa: E402
-    MessageError, NullValue, field_names, from_dict, nested_type, resolve_type, to_dict, type_name,
+    MessageError, NullValue, field_names, from_dict, null_path, nested_type, resolve_type, to_dict, type_name,
 )
 
 String = resolve_type("std_msgs/msg/String")
@@ -257,6 +257,8 @@ def test_a_null_from_a_sink_mapping_is_refused_wherever_it_is():
             from_dict(cls, data, null_as_nan=False)
         assert err.value.field == field, (data, err.value.field)
         assert str(err.value).startswith(f"field {field}: null (the sink mapping gave no value")
+        assert null_path(data) == err.value.path  # what the pipeline refuses before the sink
+    assert null_path({"pose": {"pose": {"position": {"x": 1.5}}}, "poses": [{}, [1, "a"]]}) is None
     odometry = cdr_round_trip(from_dict(Odometry, {"pose": {"pose": {"position": {"x": 1.5}}}}, null_as_nan=False))
     assert (odometry.pose.pose.position.x, odometry.pose.pose.orientation.w, odometry.twist.twist.linear.x) == (1.5, 1.0, 0.0)
     assert math.isnan(from_dict(NavSatFix, {"altitude": math.nan}, null_as_nan=False).altitude)  # nan() said so

@@ -336,13 +336,15 @@ class Transport(ABC):
     def sink_problems(self, options: Any, mapping: str | None) -> CheckResult:
         return ()
 
-    def sink_field_check(self, options: Any) -> Callable[[Any], None] | None:
+    def sink_field_check(self, options: Any, mapping: str | None = None) -> Callable[[Any], None] | None:
         """What a sink with these (typed, checked) options refuses in its sink mapping's output
         before anything is sent: a typed sink raises :class:`MessageRejected` naming a field set
         to null (a null, or a path the message lacks) instead of guessing a value for it. The
         pipeline runs it as the last step of its ``sink mapping`` stage, so the run and
         ``rabbitros-engine test`` report the same error, and the message never reaches the
-        throttle, the buffer or the sink. None (the default): the sink takes what it is given."""
+        throttle, the buffer or the sink (nor waits there for a reader). ``mapping``: the
+        route's sink mapping (None: the sink is given the canonical message). None (the
+        default): the sink takes what it is given."""
         return None
 
     def exclusive_resource(self, settings: Any) -> str | None:

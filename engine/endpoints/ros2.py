@@ -247,6 +247,22 @@ class Ros2Transport(Transport):
             for message in _check_mapping_keys(tree, cls, ""):
                 yield "mapping", message
 
+    def sink_field_check(self, options: Ros2SinkOptions, mapping: str | None = None) -> Callable[[Any], None] | None:
+        """A typed sink with a sink mapping refuses a null anywhere in the mapping's output (a
+        ``sink mapping`` error naming the field; see :func:`typed_message`), before the route
+        waits for a reader or throttles. A String sink carries JSON, where null is a value;
+        without a sink mapping a null float is NaN (the canonical form of a ROS NaN)."""
+        if mapping is None or rosmsg.type_name(rosmsg.resolve_type(options.type)) == STRING_TYPE:
+            return None
+        where = f"ros2 topic {options.topic!r}"
+
+        def refuse_nulls(fields: Any) -> None:
+            path = rosmsg.null_path(fields)
+            if path is not None:
+                raise MessageRejected(f"{where}: {rosmsg.NullValue(path)}", stage="sink mapping")
+
+        return refuse_nulls
+
     def connect(self, name: str, settings: Ros2ConnectionOptions | Mapping[str, Any]) -> Connection:
         return Ros2Connection(name, settings)
 

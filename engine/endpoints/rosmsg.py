@@ -44,7 +44,7 @@ from typing import Any, Callable
 import numpy
 from rosidl_parser import definition as idl
 
-__all__ = ["MessageError", "NullValue", "resolve_type", "type_name", "field_names", "nested_type", "to_dict", "from_dict"]
+__all__ = ["MessageError", "NullValue", "null_path", "resolve_type", "type_name", "field_names", "nested_type", "to_dict", "from_dict"]
 
 
 class MessageError(ValueError):
@@ -110,6 +110,28 @@ def nested_type(cls: type, field: str) -> type | None:
     for name, slot_type in zip(cls.get_fields_and_field_types(), cls.SLOT_TYPES):
         if name == field and isinstance(slot_type, idl.NamespacedType):
             return _class_of(slot_type)
+    return None
+
+
+def null_path(data: Any) -> list[str | int] | None:
+    """Where the first null in ``data`` is (``["pose", "pose", "position", "x"]``, ``[]`` for
+    ``data`` itself), or None: what ``from_dict(..., null_as_nan=False)`` refuses, found
+    without building the message."""
+    if data is None:
+        return []
+    if isinstance(data, Mapping):
+        items: Any = data.items()
+    elif isinstance(data, (list, tuple)):
+        items = enumerate(data)
+    else:
+        return None
+    for key, value in items:
+        if value is None:
+            return [key]
+        if isinstance(value, (Mapping, list, tuple)):
+            inner = null_path(value)
+            if inner is not None:
+                return [key, *inner]
     return None
 
 
