@@ -163,13 +163,13 @@ class AdminServer:
         observer = self.engine.observers.get(route)
         tap = Tap(route)
         response = web.StreamResponse(headers={"Content-Type": "application/x-ndjson", "Cache-Control": "no-cache"})
-        await response.prepare(request)
-        observer.attach(tap)
+        observer.attach(tap)  # before the headers go out: a client that has them misses nothing from then on
         started = time.monotonic()
         task = asyncio.current_task()
         assert task is not None
         self._taps.add(task)
         try:
+            await response.prepare(request)
             while True:
                 lines = [await tap.lines.get()]
                 while not tap.lines.empty() and len(lines) < 256:

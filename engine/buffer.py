@@ -86,7 +86,11 @@ class BufferSpec:
 class BufferOptions:
     """A route's ``buffer:`` as written (``buffer: false`` is none at all)."""
 
-    max_messages: int = option(DEFAULT_MAX_MESSAGES, minimum=1)
+    __schema_description__ = ("messages of a ROS 2 or MAVLink source (which cannot redeliver) held, in order, while "
+                              "the sink is down, and sent when it is back")
+
+    max_messages: int = option(DEFAULT_MAX_MESSAGES, minimum=1,
+                               description="held at most; when full, the source waits (and its overflow applies)")
     spill_dir: str | None = option(None, description="keep held messages on disk here (relative to the routes directory), replayed at start")
     fsync_interval: float = option(1.0, minimum=0, description="seconds between fsyncs of the spill files (each message is written before the source is acknowledged)")
 

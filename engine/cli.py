@@ -40,34 +40,58 @@ def default_schemas(routes: Path) -> Path:
     return Path("schemas")
 
 
+class _TopLevelParser(argparse.ArgumentParser):
+    """``rabbitros-engine --help`` shows how to run, not only the commands: ``run`` is the
+    default command, so its options follow the command list."""
+
+    run_parser: argparse.ArgumentParser | None = None
+
+    def format_help(self) -> str:
+        text = super().format_help()
+        if self.run_parser is None:
+            return text
+        formatter = self.run_parser._get_formatter()
+        formatter.start_section("run options (run is the default command: rabbitros-engine [run] [OPTIONS])")
+        formatter.add_arguments([a for a in self.run_parser._actions if not isinstance(a, argparse._HelpAction)])
+        formatter.end_section()
+        formatter.add_text("Example: rabbitros-engine --routes routes/ --local-broker --admin 9180. "
+                           "Each command's own options: rabbitros-engine COMMAND --help.")
+        return text + "\n" + formatter.format_help()
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _TopLevelParser(
         prog="rabbitros-engine",
+        usage="%(prog)s [run] [--routes DIR] [--local-broker] [--admin [HOST:]PORT] [OPTIONS]\n"
+              "       %(prog)s {check,test,status,tap} ...",
         description="Routes messages between RabbitMQ, ROS 2 and MAVLink as declared in YAML route files.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    commands = parser.add_subparsers(dest="command", metavar="{run,check,test,status,tap}")
+    commands = parser.add_subparsers(dest="command", metavar="{run,check,test,status,tap}", title="commands")
 
     def common(sub: argparse.ArgumentParser) -> None:
-        sub.add_argument("--routes", type=Path, default=Path("routes"), help="routes directory (or one file); default ./routes")
-        sub.add_argument("--schemas", type=Path, help="canonical schemas directory; default: schemas/ beside the routes")
+        sub.add_argument("--routes", type=Path, default=Path("routes"), metavar="DIR", help="routes directory (or one file); default ./routes")
+        sub.add_argument("--schemas", type=Path, metavar="DIR", help="canonical schemas directory; default: schemas/ beside the routes")
 
     run = commands.add_parser("run", help="run the routes (the default command)")
     common(run)
     run.add_argument("--local-broker", action="store_true", help="start a private RabbitMQ node and use it as the default AMQP connection")
-    run.add_argument("--broker-url-file", type=Path, help="with --local-broker: write the broker's URL to this file")
+    run.add_argument("--broker-url-file", type=Path, metavar="FILE", help="with --local-broker: write the broker's URL to this file")
     run.add_argument("--cluster", type=int, default=1, metavar="N",
                      help="with --local-broker: start N nodes joined in one cluster (default 1); the default AMQP connection lists them all")
-    run.add_argument("--status-file", type=Path, help="keep the live status (generation, config hash, counters) in this JSON file")
+    run.add_argument("--status-file", type=Path, metavar="FILE", help="keep the live status (generation, config hash, counters) in this JSON file")
     run.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT",
                      help="serve /metrics, /healthz, /status and /tap/ROUTE over HTTP (a bare port binds 127.0.0.1); off by default")
     run.add_argument("--instance", metavar="NAME", help="this engine's name among instances sharing the routes (routes' instances:); default the host name")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
-    run.add_argument("--stats-interval", type=float, default=10.0, help="seconds between status updates and counter logs")
-    run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
-    run.add_argument("--log-format", default="text", choices=["text", "json"])
+    run.add_argument("--stats-interval", type=float, default=10.0, metavar="SECONDS",
+                     help="seconds between status-file updates and the log's route counter lines; default 10")
+    run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"], help="default info")
+    run.add_argument("--log-format", default="text", choices=["text", "json"],
+                     help="text lines, or one JSON object per line (for a log collector); default text")
     run.add_argument("--require-connections", action="store_true", help="exit 1 when a connection cannot be opened at start (default: retry it in the background while the other routes run)")
-    run.add_argument("--drain-timeout", type=float, default=10.0, help="seconds a stop (SIGTERM, SIGINT) waits for in-flight messages before requeueing the rest; default 10")
+    run.add_argument("--drain-timeout", type=float, default=10.0, metavar="SECONDS", help="seconds a stop (SIGTERM, SIGINT) waits for in-flight messages before requeueing the rest; default 10")
+    parser.run_parser = run
 
     check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
     common(check)
@@ -83,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--status-file", type=Path, help="the engine's --status-file (printed as JSON)")
     status.add_argument("--json", action="store_true", help="print the raw status document")
 
-    tap = commands.add_parser("tap", help="print, as JSON lines, every message through a route of a running engine")
+    tap = commands.add_parser("tap", help="print, as JSON lines, every message through a route of a running engine; "
+                              "stderr says 'listening' once it is attached, exit 1 when the engine goes away")
     tap.add_argument("route")
     tap.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", required=True, help="the engine's --admin address")
     tap.add_argument("--count", type=int, default=0, help="stop after this many messages (default: until interrupted)")

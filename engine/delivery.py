@@ -91,7 +91,7 @@ class DeadLettersOptions:
     connection: str | None = option(None, description="an AMQP connection: exchange and queue rabbitros.dead-letter, routing key = route name")
     max_length: int = option(DEFAULT_DEAD_LETTER_MAX_LENGTH, minimum=1, description="x-max-length of the dead-letter queue (oldest dropped beyond it)")
     spool_dir: str | None = option(None, description="directory of rotated JSON-lines files; default ~/.local/state/rabbitros-engine/dead-letters")
-    spool_max_bytes: int = option(DEFAULT_SPOOL_MAX_BYTES, minimum=4096)
+    spool_max_bytes: int = option(DEFAULT_SPOOL_MAX_BYTES, minimum=4096, description="bytes of the spool's rotated files together (the newest dead letters are kept)")
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ an event loop.
 
 from __future__ import annotations
 
+import http.client
 import json
 import sys
 import time
@@ -43,6 +44,10 @@ def _age(at: Any, now: float) -> str:
         return ""
     seconds = max(0.0, now - at)
     return f"{seconds:.0f}s ago" if seconds < 120 else f"{seconds / 60:.0f}m ago"
+
+
+SHOWN_PROBLEMS = 5
+"""Problems of a rejected reload the table shows; ``status --json`` has every one."""
 
 
 def status_table(status: dict[str, Any], last_canonical: bool = False, width: int = 60) -> Group:
@@ -89,7 +94,21 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
             last = route.get("last_canonical")
             row.append("" if last is None else json.dumps(last, separators=(",", ":"), default=str))
         table.add_row(*row)
-    return Group(header, table)
+    return Group(header, *_rejected_reload(status), table)
+
+
+def _rejected_reload(status: dict[str, Any]) -> list[Text]:
+    """The last rejected reload's problems, ``file:line: message`` each on a line of its own
+    (``print_status`` never wraps them: an operator greps or copies them); nothing once a later
+    reload applied or the files are back to what runs."""
+    problems = (status.get("reloads") or {}).get("last_error") or []
+    if not problems:
+        return []
+    lines = [Text.assemble(("last reload rejected", "red"), (f" (generation {status.get('generation')} keeps running):", "dim"))]
+    lines += [Text(f"  {problem}", "red") for problem in problems[:SHOWN_PROBLEMS]]
+    if len(problems) > SHOWN_PROBLEMS:
+        lines.append(Text(f"  ... and {len(problems) - SHOWN_PROBLEMS} more (status --json lists them all)", "dim"))
+    return lines
 
 
 def print_status(address: tuple[str, int], raw: bool) -> int:
@@ -101,22 +120,30 @@ def print_status(address: tuple[str, int], raw: bool) -> int:
     if raw:
         print(json.dumps(status, indent=2))
         return 0
-    Console(width=None if sys.stdout.isatty() else 200).print(status_table(status))
+    # soft_wrap: the header's lines (a rejected reload's file:line: message) are never wrapped or cut
+    Console(width=None if sys.stdout.isatty() else 200).print(status_table(status), soft_wrap=True)
     return 0
 
 
 def print_tap(address: tuple[str, int], route: str, count: int) -> int:
-    """Print the tap's JSON lines as they come; ``count`` > 0 stops after that many."""
+    """Print the tap's JSON lines (stdout) as they come; ``count`` > 0 stops after that many.
+
+    Once the engine has attached the tap (it does so before answering), a line on stderr says
+    so: a script can wait for ``listening`` and then publish, without losing the first
+    messages. The stream ends only when the engine stops (or its admin endpoint does), so an
+    end before ``count`` lines, or a connection lost, is an error (exit 1) that says so."""
     url = admin_url(address, f"/tap/{urllib.request.quote(route, safe='')}")
     seen = 0
     try:
         with urllib.request.urlopen(url, timeout=None) as response:
+            print(f"tap {route}: listening on {url}" + (f" for {count} messages" if count else " (Ctrl-C stops)"),
+                  file=sys.stderr, flush=True)
             for line in response:
                 sys.stdout.write(line.decode("utf-8"))
                 sys.stdout.flush()
                 seen += 1
                 if count and seen >= count:
-                    break
+                    return 0
     except urllib.error.HTTPError as exc:
         detail = exc.read().decode("utf-8", errors="replace")
         try:
@@ -125,9 +152,21 @@ def print_tap(address: tuple[str, int], route: str, count: int) -> int:
             pass
         print(f"{url}: {exc.code}: {detail}", file=sys.stderr)
         return 1
-    except (OSError, urllib.error.URLError) as exc:
-        print(f"{url}: {getattr(exc, 'reason', exc)}", file=sys.stderr)
+    except urllib.error.URLError as exc:
+        print(f"tap {route}: cannot reach the engine's admin endpoint at {url}: {exc.reason} "
+              "(is the engine running with --admin on that port?)", file=sys.stderr)
+        return 1
+    except (OSError, http.client.HTTPException) as exc:
+        print(f"tap {route}: lost the engine at {url} after {seen} messages: {_reason(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        pass
-    return 0
+        return 0
+    print(f"tap {route}: the engine went away after {seen} messages (it stopped or was killed; "
+          f"the tap ends with it)", file=sys.stderr)
+    return 1
+
+
+def _reason(exc: BaseException) -> str:
+    if isinstance(exc, http.client.IncompleteRead):
+        return "the connection closed mid-message (the engine died?)"
+    return str(exc) or type(exc).__name__

@@ -81,9 +81,11 @@ def option(
 ) -> Any:
     """A dataclass field with what the schema and the parser need.
 
-    ``show_default=False`` keeps a default out of the schema (where it depends on context, as
-    a ROS 2 node name does). ``secret``: a :class:`Secret` passes as a string. ``internal``:
-    set by the engine, never by a route file (not parsed, not in the schema). ``schema``:
+    ``show_default=False`` keeps a default out of the schema (and docs/route-keys.md) where the
+    declared value is not what applies: the description then says what does. ``secret``: a
+    :class:`Secret` passes as a string. ``internal``: set by the engine, never by a route file
+    (not parsed, not in the schema). ``description``: what the key does, shown in editors and
+    in docs/route-keys.md (tests/test_route_schema.py requires one for every key). ``schema``:
     JSON Schema keywords for the schema only, merged as they are: bounds a check reports in
     its own words (the parser does not read them; the loader validates with the schema)."""
     metadata = {

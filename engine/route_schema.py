@@ -6,11 +6,13 @@ protocol's connection, source and sink options (``Transport.connection_options``
 ``RouteOptions``, ``ConnectionLimits``, ``LeaseOptions``; ``BufferOptions``,
 ``ThrottleOptions``, ``DeadLettersOptions`` in the modules that use them). This module puts
 them together into ``engine/route_file.schema.json``, which the loader validates with (so
-editors and ``check`` agree) and which ships with the package; ``tests/test_route_schema.py``
-fails when the shipped file is not what this module generates.
+editors and ``check`` agree) and which ships with the package, and into the key reference
+``docs/route-keys.md`` (engine/route_keys.py renders it from this schema, so the docs list
+exactly the keys the loader accepts); ``tests/test_route_schema.py`` fails when either file is
+not what this module generates.
 
-    python -m engine.route_schema --write     # regenerate engine/route_file.schema.json
-    python -m engine.route_schema --check     # exit 1 if the shipped file is stale
+    python -m engine.route_schema --write     # regenerate the schema and docs/route-keys.md
+    python -m engine.route_schema --check     # exit 1 if either is stale
 """
 
 from __future__ import annotations
@@ -25,10 +27,15 @@ from engine import endpoints
 from engine.delivery import DeadLettersOptions
 from engine.endpoints.base import Transport
 from engine.options import property_schema, schema
+from engine.route_keys import render_keys
 from engine.routes import ENDPOINT_DESCRIPTION, NAME_PATTERN, ConnectionLimits, RouteOptions
 
 SCHEMA_PATH = Path(__file__).with_name("route_file.schema.json")
+KEYS_PATH = Path(__file__).resolve().parent.parent / "docs" / "route-keys.md"
+"""The generated key reference; in a source checkout only (an installed package has no docs/)."""
 REGENERATE = "python -m engine.route_schema --write"
+CONNECTION_DESCRIPTION = ("exactly one protocol key (amqp / ros2 / mavlink); the keys of a protocol whose options sit "
+                          "beside it (mavlink) and the limits every protocol has")
 
 
 def _transports() -> list[Transport]:
@@ -45,7 +52,7 @@ def _connection_entry(transports: list[Transport]) -> dict[str, Any]:
         if transport.options_beside:
             shorthand = transport.connection_shorthand or ""
             properties[transport.name] = property_schema(cls, shorthand)
-            beside.update({name: prop for name, prop in schema(cls)["properties"].items() if name != shorthand})
+            beside.update({name: _only(transport.name, prop) for name, prop in schema(cls)["properties"].items() if name != shorthand})
         elif transport.connection_shorthand:
             properties[transport.name] = {"anyOf": [{"type": "string"}, schema(cls)]}
         else:
@@ -56,9 +63,18 @@ def _connection_entry(transports: list[Transport]) -> dict[str, Any]:
         "type": "object",
         "additionalProperties": False,
         "minProperties": 1,
-        "description": ENDPOINT_DESCRIPTION,
+        "description": CONNECTION_DESCRIPTION,
         "properties": properties,
     }
+
+
+def _only(protocol: str, prop: dict[str, Any]) -> dict[str, Any]:
+    """A key beside a protocol's key applies to that protocol's connections only: say so."""
+    return {**prop, "description": f"{protocol} connections: {prop.get('description', '')}".rstrip(": ")}
+
+
+SINK_MAPPING_DESCRIPTION = ("JMESPath from the canonical message to the sink's fields (a typed ROS 2 or MAVLink "
+                            "message, a mission's items); absent or null: the canonical message")
 
 
 def _endpoint(transports: list[Transport], side: str) -> dict[str, Any]:
@@ -66,7 +82,7 @@ def _endpoint(transports: list[Transport], side: str) -> dict[str, Any]:
     also has ``mapping`` (the sink mapping)."""
     properties = {t.name: schema(t.source_options if side == "source" else t.sink_options) for t in transports}
     if side == "sink":
-        properties["mapping"] = schema(RouteOptions)["properties"]["mapping"]
+        properties["mapping"] = {**schema(RouteOptions)["properties"]["mapping"], "description": SINK_MAPPING_DESCRIPTION}
     return {"type": "object", "additionalProperties": False, "properties": properties,
             "description": ENDPOINT_DESCRIPTION}
 
@@ -86,11 +102,12 @@ def route_file_schema() -> dict[str, Any]:
         "properties": {
             "connections": {
                 "type": "object",
+                "description": "named connections, shared by every file of the directory",
                 "propertyNames": {"type": "string", "pattern": NAME_PATTERN},
                 "additionalProperties": _connection_entry(transports),
             },
             "dead_letters": schema(DeadLettersOptions),
-            "routes": {"type": "array", "items": route},
+            "routes": {"type": "array", "items": route, "description": "the routes of this file; names unique across the directory"},
         },
     }
 
@@ -99,23 +116,33 @@ def render() -> str:
     return json.dumps(route_file_schema(), indent=2, ensure_ascii=False) + "\n"
 
 
+def render_reference() -> str:
+    """docs/route-keys.md: the key reference, from the same schema."""
+    return render_keys(route_file_schema())
+
+
+def generated() -> dict[Path, str]:
+    """Each generated file and the text it must hold."""
+    return {SCHEMA_PATH: render(), KEYS_PATH: render_reference()}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m engine.route_schema", description=__doc__.split("\n\n")[0])
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--write", action="store_true", help=f"write {SCHEMA_PATH.name}")
-    group.add_argument("--check", action="store_true", help="exit 1 if the shipped schema is stale")
+    group.add_argument("--write", action="store_true", help=f"write {SCHEMA_PATH.name} and docs/{KEYS_PATH.name}")
+    group.add_argument("--check", action="store_true", help="exit 1 if the shipped schema or the key reference is stale")
     args = parser.parse_args(argv)
-    text = render()
     if args.write:
-        SCHEMA_PATH.write_text(text, encoding="utf-8")
-        print(f"wrote {SCHEMA_PATH}")
+        for path, text in generated().items():
+            path.write_text(text, encoding="utf-8")
+            print(f"wrote {path}")
         return 0
     if args.check:
-        if SCHEMA_PATH.read_text(encoding="utf-8") != text:
-            print(f"{SCHEMA_PATH} is stale; regenerate it with: {REGENERATE}", file=sys.stderr)
-            return 1
-        return 0
-    sys.stdout.write(text)
+        stale = [path for path, text in generated().items() if not path.is_file() or path.read_text(encoding="utf-8") != text]
+        for path in stale:
+            print(f"{path} is stale; regenerate it with: {REGENERATE}", file=sys.stderr)
+        return 1 if stale else 0
+    sys.stdout.write(render())
     return 0
 
 

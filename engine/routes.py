@@ -74,16 +74,21 @@ class RouteOptions:
     """One item of ``routes:``. ``source`` and ``sink`` hold one protocol key each, whose
     options the protocol's transport declares (``Transport.source_options``/``sink_options``)."""
 
-    name: str = option(pattern=NAME_PATTERN, description="unique across the directory")
-    description: str | None = option(None)
+    name: str = option(pattern=NAME_PATTERN, description="unique across the directory; names the route in logs, metrics, "
+                                                         "dead-letter headers and /tap/NAME")
+    description: str | None = option(None, description="free text")
     max_attempts: int = option(DEFAULT_MAX_ATTEMPTS, minimum=1,
                                description="deliveries tried on transient sink failures (across redeliveries) before dead-lettering")
-    overflow: Literal["block", "drop_oldest", "drop_newest"] = option("block", description="when a ROS 2 source's in-memory queue is full")
+    overflow: Literal["block", "drop_oldest", "drop_newest"] = option(
+        "block", description="when a ROS 2 or MAVLink source's in-memory queue is full: block stops taking (DDS history holds "
+                             "the rest; a radio cannot be paused, so MAVLink drops the oldest), or drop the oldest / newest (counted)")
     buffer: Literal[False] | BufferOptions | None = option(
         None, description="messages held while the sink is down (default for ROS 2 and MAVLink sources: in memory, 10000); false: none")
     source: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
-    mapping: str | None = option(None, nullable=True, description="JMESPath expression; absent or null means identity")
-    schema: str | None = option(None, description="canonical schema: name or name.vN, from schemas/")
+    mapping: str | None = option(None, nullable=True, description="JMESPath from the source message to the canonical message; "
+                                                                  "absent or null: identity (the original bytes are forwarded)")
+    schema: str | None = option(None, description="required: the canonical schema the mapping's result must satisfy, NAME (newest "
+                                                  "version) or NAME.vN (pinned), from schemas/; raw_json passes any object")
     throttle: ThrottleOptions | None = option(None)
     sink: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
     ordered: bool = option(False, description="AMQP source: single active consumer, so one engine instance at a time carries the route, in order")

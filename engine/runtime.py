@@ -434,7 +434,7 @@ class Engine:
                 log.exception("loading the routes failed")
                 return self._rejected([f"{self.routes_dir}: cannot load: {type(error).__name__}: {error}"])
             if self.config is not None and config.content_hash == self.config.content_hash:
-                self.reloads.last_error = []  # the files are back to what runs
+                self._error_cleared("the files are back to what runs")
                 return True
             try:
                 await self._apply(config, schemas)
@@ -444,7 +444,7 @@ class Engine:
                 log.exception("reload failed")
                 return self._rejected([f"{type(error).__name__}: {error}"])
             self.reloads.succeeded += 1
-            self.reloads.last_error = []
+            self._error_cleared("a reload applied")
             self.reloads.last_reload_s = time.monotonic() - began
             return True
 
@@ -462,6 +462,12 @@ class Engine:
             except OSError:
                 pass
         return False
+
+    def _error_cleared(self, how: str) -> None:
+        """Forget the last rejection, saying so in the log: the status stops showing it."""
+        if self.reloads.last_error:
+            log.info("reload error cleared", extra={"by": how, "generation": self.generation, "was": self.reloads.last_error})
+        self.reloads.last_error = []
 
     def _rejected(self, problems: list[str]) -> bool:
         """Count and report a rejected reload, once per rejection: the same problems found again

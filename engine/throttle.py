@@ -31,7 +31,7 @@ class ThrottleOptions:
     __schema_description__ = ("at most max_rate messages/s per value of the canonical field 'per'; "
                               "between slots only the latest is kept (conflation)")
 
-    max_rate: float = option(exclusive_minimum=0)
+    max_rate: float = option(exclusive_minimum=0, description="messages per second per slot")
     per: str | None = option(None, pattern=r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$",
                              description="canonical field (a.b) whose values get a slot each; none: one slot for the route")
 

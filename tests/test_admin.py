@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import queue
+import re
+import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -255,18 +260,86 @@ def test_status_and_tap_commands(admin: Admin):
     assert raw["generation"] == 1 and "tapped" in raw["routes"]
     assert json.loads(cli("status", "--status-file", str(admin.engine.status_file)).stdout)["generation"] == 1
 
-    tap = subprocess.Popen([sys.executable, "-m", "engine", "tap", "tapped", "--admin", str(admin.port), "--count", "3"],
-                           stdout=subprocess.PIPE, text=True, cwd=REPO)
-    try:
-        wait_until(lambda: admin.status()["routes"]["tapped"]["taps"] == 1, 20, "the tap command to attach")
-        asyncio.run(_publish(admin.url, "tapped.x", [json.dumps({"agent": "cli", "seq": i}).encode() for i in range(5)]))
-        out, _ = tap.communicate(timeout=30)
-    finally:
-        tap.kill()
-    lines = [json.loads(line) for line in out.splitlines()]
-    assert [line["canonical"]["agent_id"] for line in lines] == ["cli"] * 3
     missing = cli("tap", "nope", "--admin", str(admin.port))
     assert missing.returncode == 1 and "unknown route 'nope'" in missing.stderr
+    nobody = cli("tap", "tapped", "--admin", str(free_port()))
+    assert nobody.returncode == 1 and "cannot reach the engine's admin endpoint" in nobody.stderr, nobody.stderr
+
+
+class TapCommand:
+    """``rabbitros-engine tap`` as a child process; its stderr read by a thread, so a test
+    can wait for a line with a deadline."""
+
+    def __init__(self, port: int, route: str, *extra: str) -> None:
+        self.process = subprocess.Popen(
+            ["timeout", "-s", "KILL", "120", sys.executable, "-m", "engine", "tap", route, "--admin", str(port), *extra],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+        self.errors: queue.Queue[str] = queue.Queue()
+        self.stderr: list[str] = []
+        self._reader = threading.Thread(target=self._read_stderr, daemon=True)
+        self._reader.start()
+
+    def _read_stderr(self) -> None:
+        assert self.process.stderr is not None
+        for line in self.process.stderr:
+            self.stderr.append(line)
+            self.errors.put(line)
+
+    def wait_for(self, text: str, timeout: float) -> str:
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                line = self.errors.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise AssertionError(f"the tap never printed {text!r}: {''.join(self.stderr)!r}") from None
+            if text in line:
+                return line
+
+    def finish(self, timeout: float = 30) -> tuple[int, str, str]:
+        try:
+            code = self.process.wait(timeout)  # its output fits the pipe: lines of a few messages
+        finally:
+            self.process.kill()
+        assert self.process.stdout is not None
+        out = self.process.stdout.read()
+        self._reader.join(10)  # stderr to its end (communicate() would race the reader for it)
+        return code, out, "".join(self.stderr)
+
+
+def test_tap_command_says_when_it_listens_and_misses_nothing_after(admin: Admin):
+    """The tutorial's ``tap ... &`` then publish: messages published as soon as the tap says
+    ``listening`` all reach it (no wait on the engine's status)."""
+    tap = TapCommand(admin.port, "tapped", "--count", "3")
+    listening = tap.wait_for("listening", 20)
+    assert listening.startswith("tap tapped: listening on http://127.0.0.1:") and "for 3 messages" in listening
+    asyncio.run(_publish(admin.url, "tapped.x", [json.dumps({"agent": "cli", "seq": i}).encode() for i in range(3)]))
+    code, out, _ = tap.finish()
+    assert code == 0
+    assert [json.loads(line)["canonical"]["seq"] for line in out.splitlines()] == [0, 1, 2]
+
+
+@pytest.mark.parametrize("how", ["stopped", "killed"])
+def test_tap_command_fails_clearly_when_the_engine_goes_away(amqp_url: str, tmp_path: Path, how: str):
+    """Stopped (SIGTERM: the engine closes the stream) or killed (-9: the connection drops),
+    the tap exits 1 and says what happened instead of exiting 0 in silence."""
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text(ROUTES.split("  - name: throttled")[0].replace("admin-", "gone-"))
+    port = free_port()
+    engine = EngineProcess(routes, tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url}, "--admin", str(port))
+    try:
+        engine.wait_started()
+        tap = TapCommand(port, "tapped")
+        tap.wait_for("listening", 20)
+        if how == "killed":
+            os.killpg(engine.process.pid, signal.SIGKILL)
+        else:
+            engine.stop()
+        code, out, err = tap.finish()
+    finally:
+        engine.stop()
+    assert code == 1 and out == "", err
+    assert re.search(r"^tap tapped: (the engine went away|lost the engine at \S+) after 0 messages", err, re.M), err
 
 
 def test_healthz_follows_the_broker(tmp_path: Path):
@@ -294,3 +367,41 @@ def test_healthz_follows_the_broker(tmp_path: Path):
         engine.stop()
         broker.keep_dir = False
         broker.stop()
+
+
+def test_status_shows_why_the_last_reload_was_rejected_and_the_log_says_when_it_cleared(amqp_url: str, tmp_path: Path):
+    """``status`` names each problem of a rejected reload as ``file:line: message`` (not just
+    "1 rejected"); a later reload that applies says in the log that the error is gone, and the
+    status stops showing it."""
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    good = ROUTES.split("  - name: throttled")[0].replace("admin-", "rejected-")
+    (routes / "r.yaml").write_text(good)
+    port = free_port()
+    engine = EngineProcess(routes, tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url}, "--admin", str(port))
+
+    def status_table() -> str:
+        shown = subprocess.run([sys.executable, "-m", "engine", "status", "--admin", str(port)], capture_output=True,
+                               text=True, timeout=60, cwd=REPO)
+        assert shown.returncode == 0, shown.stderr
+        return shown.stdout
+
+    try:
+        engine.wait_started()
+        (routes / "r.yaml").write_text(good.replace("schema: weed_detection", "schema: weed_detektion"))
+        wait_until(lambda: (engine.status() or {}).get("reloads", {}).get("rejected") == 1, 30, "the reload to be rejected")
+        table = status_table()
+        assert "0 ok / 1 rejected" in table and "last reload rejected (generation 1 keeps running):" in table, table
+        problem = next(line.strip() for line in table.splitlines() if "weed_detektion" in line)
+        assert re.fullmatch(rf"{re.escape(str(routes / 'r.yaml'))}:\d+: route 'counted': unknown schema 'weed_detektion'.*", problem), problem
+        assert "reload error cleared" not in engine.log()
+
+        (routes / "r.yaml").write_text(good.replace("prefetch: 64", "prefetch: 32"))
+        wait_until(lambda: (engine.status() or {}).get("generation") == 2, 30, "the fixed files to be applied")
+        cleared = wait_until(lambda: [json.loads(line) for line in engine.log().splitlines()
+                                      if '"reload error cleared"' in line], 10, "the log to say the error cleared")
+        assert cleared[0]["by"] == "a reload applied" and "weed_detektion" in cleared[0]["was"][0]
+        table = status_table()
+        assert "1 ok / 1 rejected" in table and "last reload rejected" not in table, table
+    finally:
+        engine.stop()

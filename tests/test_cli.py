@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import json
 import os
@@ -16,6 +17,7 @@ from pathlib import Path
 import aio_pika
 
 from engine import __version__
+from engine.cli import COMMANDS, build_parser
 from tests.amqp_helpers import Collector, publish
 from tests.conftest import REPO
 
@@ -39,6 +41,44 @@ def test_version_and_help():
     assert cli("--version").stdout.strip() == f"rabbitros-engine {__version__}"
     help_text = cli("--help").stdout
     assert "check" in help_text and "run" in help_text
+
+
+def _commands() -> dict[str, argparse.ArgumentParser]:
+    parser = build_parser()
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+
+
+def _options(parser: argparse.ArgumentParser) -> list[str]:
+    return [option for action in parser._actions for option in action.option_strings if option not in ("-h", "--help")]
+
+
+def test_top_level_help_shows_how_to_run():
+    """``rabbitros-engine --help`` lists every command and every run option (run is the default
+    command, so hiding its options hid how to run)."""
+    result = cli("--help")
+    assert result.returncode == 0
+    commands = _commands()
+    assert set(commands) == set(COMMANDS)
+    for command in COMMANDS:
+        assert re.search(rf"^\s+{command}\s+\S", result.stdout, re.M), command
+    run_options = result.stdout.split("run options", 1)[1]
+    for option in _options(commands["run"]):
+        assert re.search(rf"^\s+{re.escape(option)}\b", run_options, re.M), option
+    assert "--local-broker" in result.stdout.splitlines()[0]  # the usage line
+
+
+def test_operations_documents_every_option_of_every_command():
+    """docs/operations.md names every option engine/cli.py accepts: the run options in its
+    Running table, the other commands' in its Commands block."""
+    text = (REPO / "docs" / "operations.md").read_text()
+    running = text.split("## Running", 1)[1].split("\n## ", 1)[0]
+    for option in _options(_commands()["run"]):
+        assert f"| `{option}" in running, f"run option {option} is not in docs/operations.md#running"
+    commands = text.split("## Commands", 1)[1]
+    for name, parser in _commands().items():
+        if name != "run":
+            for option in _options(parser):
+                assert f"rabbitros-engine {name} " in commands and option in commands, f"{name} {option}"
 
 
 BROKEN = {

@@ -4,6 +4,7 @@ the parser of those declarations reports every problem with its key path."""
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -15,7 +16,9 @@ from engine import endpoints
 from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSourceOptions
 from engine.options import OptionError, evolve, given, option, parse, schema
 from engine.redaction import Secret
-from engine.route_schema import REGENERATE, SCHEMA_PATH, render, route_file_schema
+from engine import route_schema
+from engine.route_keys import anchor
+from engine.route_schema import KEYS_PATH, REGENERATE, SCHEMA_PATH, render, render_reference, route_file_schema
 from engine.routes import RoutesInvalid, load_routes
 from engine.schemas import SchemaRegistry
 
@@ -35,7 +38,7 @@ def test_generated_schema_is_valid_and_covers_every_protocol() -> None:
     assert {"baud", "signing", "tunnel", "max_message_bytes"} <= set(connection)  # beside mavlink:, and every protocol's
     assert connection["amqp"]["anyOf"][0] == {"type": "string"}  # the url shorthand
     assert route["source"]["properties"]["amqp"]["properties"]["prefetch"] == {
-        "type": "integer", "minimum": 1, "maximum": 65535, "default": 256}
+        "type": "integer", "minimum": 1, "maximum": 65535, "default": 256, "description": "unacknowledged messages in flight from the broker"}
     assert "ordered" not in route["source"]["properties"]["amqp"]["properties"]  # internal: set by the loader
 
 
@@ -44,6 +47,99 @@ def test_a_declaration_change_makes_the_shipped_schema_stale(monkeypatch: pytest
     before = render()
     monkeypatch.setattr(endpoints.transport("amqp"), "sink_options", AmqpSourceOptions)
     assert render() != before
+
+
+# --- the key reference, docs/route-keys.md -------------------------------------------------------
+
+
+def schema_keys(node: Any, path: str = "") -> dict[str, dict[str, Any]]:
+    """Every key of the schema by its path (``routes[].sink.mavlink.retries``), walked here
+    independently of engine/route_keys.py: ``properties``, a list's ``items``, a mapping's
+    ``additionalProperties`` (``<name>``) and the alternatives of ``anyOf``."""
+    found: dict[str, dict[str, Any]] = {}
+    if not isinstance(node, dict):
+        return found
+    for key, prop in node.get("properties", {}).items():
+        found[f"{path}.{key}".lstrip(".")] = prop
+        found.update(schema_keys(prop, f"{path}.{key}".lstrip(".")))
+    if isinstance(node.get("additionalProperties"), dict):
+        found[f"{path}.<name>"] = node["additionalProperties"]
+        found.update(schema_keys(node["additionalProperties"], f"{path}.<name>"))
+    if isinstance(node.get("items"), dict):
+        found.update(schema_keys(node["items"], f"{path}[]"))
+    for alternative in node.get("anyOf", ()):
+        found.update(schema_keys(alternative, path))
+    return found
+
+
+def reference_keys(text: str) -> set[str]:
+    """The key paths docs/route-keys.md documents: each section's path and its rows' keys."""
+    keys, section = set(), None
+    for line in text.splitlines():
+        if line.startswith("## "):
+            section = "" if line == "## Top level" else line[3:].strip("`")
+        elif line.startswith("| `") and section is not None:
+            key = line.split("`")[1]
+            keys.add(f"{section}.{key}".lstrip("."))
+    return keys
+
+
+def test_shipped_key_reference_is_the_generated_one() -> None:
+    shipped = KEYS_PATH.read_text(encoding="utf-8")
+    assert shipped == render_reference(), f"docs/{KEYS_PATH.name} is stale; regenerate it with: {REGENERATE}"
+
+
+def test_the_key_reference_documents_every_key_the_schema_accepts() -> None:
+    """The 93 distinct keys (129 key paths) the schema had when this test was written, and
+    whatever is declared since: every one is a row of its section, and no row is not a key."""
+    keys = schema_keys(route_file_schema())
+    assert len(keys) >= 130 and {"routes[].sink.mavlink.acknowledged", "routes[].buffer.spill_dir",
+                                 "connections.<name>.amqp.urls", "dead_letters.spool_dir"} <= set(keys)
+    assert reference_keys(KEYS_PATH.read_text(encoding="utf-8")) == set(keys)
+
+
+def test_every_key_has_a_description() -> None:
+    """What an editor shows and the reference's meaning column: add ``description=`` to the
+    option() of a key listed here (or ``__schema_description__`` to its option class)."""
+    def described(prop: dict[str, Any]) -> bool:
+        return bool(prop.get("description")) or any(a.get("description") for a in prop.get("anyOf", ()))
+    undocumented = sorted(path for path, prop in schema_keys(route_file_schema()).items() if not described(prop))
+    assert undocumented == []
+
+
+def test_a_declaration_change_makes_the_key_reference_stale(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The freshness test can fail: an option added, or a description changed, is in the
+    generated reference and not in the shipped one; ``--check`` says so and ``--write`` fixes it."""
+    shipped = KEYS_PATH.read_text(encoding="utf-8")
+
+    @dataclass(frozen=True, kw_only=True)
+    class WithPriority(AmqpSourceOptions):
+        priority: int = option(0, minimum=0, maximum=255, description="AMQP message priority")
+
+    monkeypatch.setattr(endpoints.transport("amqp"), "sink_options", WithPriority)
+    changed = render_reference()
+    assert changed != shipped
+    assert "| `priority` | integer, 0..255 | `0` | AMQP message priority |" in changed.split('id="routes-sink-amqp"')[1]
+    assert "routes[].sink.amqp.priority" in reference_keys(changed)
+    assert "routes[].sink.amqp.priority" not in reference_keys(shipped)
+    monkeypatch.undo()
+
+    prefetch = AmqpSourceOptions.__dataclass_fields__["prefetch"]
+    monkeypatch.setattr(prefetch, "metadata", {**prefetch.metadata, "description": "a changed description"})
+    monkeypatch.setattr(route_schema, "SCHEMA_PATH", tmp_path / SCHEMA_PATH.name)
+    monkeypatch.setattr(route_schema, "KEYS_PATH", tmp_path / KEYS_PATH.name)
+    (tmp_path / SCHEMA_PATH.name).write_text(SCHEMA_PATH.read_text(encoding="utf-8"), encoding="utf-8")
+    (tmp_path / KEYS_PATH.name).write_text(shipped, encoding="utf-8")
+    assert route_schema.main(["--check"]) == 1
+    assert route_schema.main(["--write"]) == 0 and route_schema.main(["--check"]) == 0
+    assert "a changed description" in (tmp_path / KEYS_PATH.name).read_text(encoding="utf-8")
+
+
+def test_the_key_reference_links_resolve() -> None:
+    text = KEYS_PATH.read_text(encoding="utf-8")
+    ids = set(re.findall(r'<a id="([^"]+)"></a>', text))
+    assert set(re.findall(r"\]\(#([^)]+)\)", text)) <= ids
+    assert anchor("routes[].source.amqp") == "routes-source-amqp" and anchor("connections.<name>.amqp") == "connections-name-amqp"
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -25,9 +25,12 @@ QueueType = Literal["classic", "quorum"]
 class AmqpConnectionOptions:
     """``connections.<name>.amqp``: one broker (``url``, also the string shorthand) or a cluster."""
 
-    url: str | None = option(None, secret=True)
-    publisher_confirms: bool = option(True)
-    heartbeat: int = option(30, minimum=0, show_default=False)
+    __schema_description__ = "a RabbitMQ connection (aio-pika, reconnects by itself): url (one node) or urls (a cluster)"
+
+    url: str | None = option(None, secret=True,
+                             description="amqp://USER:PASSWORD@HOST:PORT/VHOST (amqps:// for TLS); `amqp: URL` is short for `amqp: {url: URL}`; the password is never logged")
+    publisher_confirms: bool = option(True, description="a sink's send returns once the broker confirmed the message (at-least-once); false: once written to the socket")
+    heartbeat: int = option(30, minimum=0, description="AMQP heartbeat timeout in seconds, negotiated with the broker (a silent peer is dropped after it); 0: none")
     reconnect_interval: float = option(RECONNECT_INTERVAL, exclusive_minimum=0,
                                        description="seconds between reconnection attempts after the connection is lost")
     urls: tuple[str, ...] | None = option(None, min_items=1, secret=True,
@@ -37,13 +40,15 @@ class AmqpConnectionOptions:
 
 @dataclass(frozen=True, kw_only=True)
 class AmqpSourceOptions(EndpointOptions):
-    exchange: str | None = option(None, description="exchange name ('' is the default exchange)")
-    exchange_type: ExchangeType = option("topic")
-    durable: bool = option(True)
-    queue: str | None = option(None, description="queue to consume; declared durable; default rabbitros.<route>")
-    binding_key: str = option("#", show_default=False, description="binds the queue to the exchange; default '#'")
-    prefetch: int = option(256, minimum=1, maximum=65535)
-    queue_arguments: dict[str, Any] | None = option(None)
+    __schema_description__ = "consume a queue; a message is acknowledged only once it is settled (route-language.md, Delivery semantics)"
+
+    exchange: str | None = option(None, description="exchange to bind the queue to ('' is the default exchange); a source needs a queue, an exchange, or both")
+    exchange_type: ExchangeType = option("topic", description="type the exchange is declared with")
+    durable: bool = option(True, description="declare the queue and exchange durable (they survive a broker restart)")
+    queue: str | None = option(None, description="queue to consume, declared (durable unless durable: false); default rabbitros.<route>")
+    binding_key: str = option("#", description="binds the queue to the exchange ('#': every routing key of a topic exchange)")
+    prefetch: int = option(256, minimum=1, maximum=65535, description="unacknowledged messages in flight from the broker")
+    queue_arguments: dict[str, Any] | None = option(None, description="x- arguments the queue is declared with, e.g. {x-max-length: 10000}")
     queue_type: QueueType | None = option(None, description="quorum: replicated by Raft over the cluster; default: the connection's queue_type")
     ordered: bool = option(False, internal=True)
     """Set by the loader from the route's ``ordered: true`` (single active consumer)."""
@@ -51,9 +56,11 @@ class AmqpSourceOptions(EndpointOptions):
 
 @dataclass(frozen=True, kw_only=True)
 class AmqpSinkOptions(EndpointOptions):
-    exchange: str = option("", show_default=False, description="exchange name ('' is the default exchange)")
-    exchange_type: ExchangeType = option("topic")
-    durable: bool = option(True)
-    routing_key: str = option("", show_default=False, description="may interpolate canonical fields: canonical.weeds.{agent_id}")
-    content_type: str = option("application/json")
-    persistent: bool = option(True)
+    __schema_description__ = "publish to an exchange; accepted once the broker confirmed (publisher confirms)"
+
+    exchange: str = option("", description="exchange to publish to ('' is the default exchange, which routes to the queue named by the routing key)")
+    exchange_type: ExchangeType = option("topic", description="type the exchange is declared with")
+    durable: bool = option(True, description="declare the exchange durable (it survives a broker restart)")
+    routing_key: str = option("", description="may interpolate canonical fields: canonical.weeds.{agent_id}; a message lacking one is dead-lettered")
+    content_type: str = option("application/json", description="content_type property of every message")
+    persistent: bool = option(True, description="delivery mode 2: the broker writes the message to disk in durable queues")

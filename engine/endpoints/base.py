@@ -264,7 +264,8 @@ CheckResult = Iterable[tuple[str | None, str]]
 class EndpointOptions:
     """What every source and sink option class has (engine/options.py declares the rest)."""
 
-    connection: str | None = option(None, description="name of a connection from any file of the directory")
+    connection: str | None = option(None, description="name of a connection from any file of the directory; default: the only "
+                                                       "connection of the protocol, else the protocol's default connection")
 
 
 O = TypeVar("O")

@@ -102,26 +102,35 @@ def _env_domain_id() -> int:
 class Ros2ConnectionOptions:
     """``connections.<name>.ros2``: the node the engine creates, in its own DDS domain."""
 
-    domain_id: int | None = option(None, schema={"minimum": 0, "maximum": 232})
+    __schema_description__ = "one rclpy context and node per connection"
+
+    domain_id: int | None = option(None, schema={"minimum": 0, "maximum": 232},
+                                   description="DDS domain; default $ROS_DOMAIN_ID, else 0 (as every ROS 2 program)")
     """None: ``ROS_DOMAIN_ID`` (else 0), as every ROS 2 program. The bounds are checked with
     the node name (``connection_problems``), so both are reported."""
-    node: str = option("rabbitros_engine", show_default=False)
-    namespace: str = option("", show_default=False)
+    node: str = option("rabbitros_engine", description="name of the engine's node (what ros2 node list shows)")
+    namespace: str = option("", description="namespace of the node: relative topic names resolve in it")
 
 
 @dataclass(frozen=True, kw_only=True)
 class Ros2Qos:
-    reliability: Literal["reliable", "best_effort"] = option("reliable", show_default=False)
-    durability: Literal["volatile", "transient_local"] = option("volatile", show_default=False)
-    depth: int = option(DEFAULT_DEPTH, minimum=1, show_default=False)
+    __schema_description__ = "the topic's quality of service; a reader and a writer match only when theirs are compatible"
+
+    reliability: Literal["reliable", "best_effort"] = option(
+        "reliable", description="reliable: lost samples are resent to matched readers; best_effort: never resent")
+    durability: Literal["volatile", "transient_local"] = option(
+        "volatile", description="transient_local: a sink keeps its last depth messages for readers that join later")
+    depth: int = option(DEFAULT_DEPTH, minimum=1, description="keep-last history of the reader or writer (a transient_local sink resends up to this many to late joiners)")
 
 
 @dataclass(frozen=True, kw_only=True)
 class Ros2EndpointOptions(EndpointOptions):
     """A ROS 2 source or sink: one topic of one message type."""
 
-    topic: str = option(description="may interpolate canonical fields in sinks: /{agent_id}/weeds")
-    type: str = option(STRING_TYPE, description="pkg/msg/Type or pkg/Type")
+    __schema_description__ = "a ROS 2 topic of one message type"
+
+    topic: str = option(description="topic name; a sink's may interpolate canonical fields (/{agent_id}/weeds); {node} and {ns} are left to rcl")
+    type: str = option(STRING_TYPE, description="any installed message type, pkg/msg/Type or pkg/Type; std_msgs/msg/String carries the canonical JSON in data, byte for byte")
     qos: Ros2Qos = option(Ros2Qos())
 
 
