@@ -60,10 +60,10 @@ async def measure(url: str, count: int, confirms: bool) -> dict[str, float]:
         started = time.perf_counter()
         await engine.start()
         runner = engine.runners["weeds"]
-        while runner.stats.delivered < count:
+        while runner.observer.delivered < count:
             await asyncio.sleep(0.01)
         elapsed = time.perf_counter() - started
-        stats = runner.stats
+        stats = runner.observer
         await engine.stop()
     await connection.close()
     return {

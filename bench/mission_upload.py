@@ -36,7 +36,7 @@ TIMEOUT = 1.5
 
 def waypoints(count: int) -> dict[str, Any]:
     return {"agent_id": "uav1", "waypoints": [
-        {"lat": -22.0 + i * 1e-5, "lon": -47.9 + (i % 7) * 1e-5, "alt": 20.0, "hold_s": 1.0} for i in range(count)]}
+        {"lat": -22.0 + i * 1e-5, "lon": -47.9 + (i % 7) * 1e-5, "alt_rel": 20.0, "hold_s": 1.0} for i in range(count)]}
 
 
 async def engine_upload(link: str, count: int) -> tuple[float, dict[str, int]]:
@@ -83,7 +83,7 @@ def reference_upload(link: str, count: int) -> float:
         points = waypoints(count)["waypoints"]
         items = [mavlink2.MAVLink_mission_item_int_message(
             1, 1, seq, mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mavlink2.MAV_CMD_NAV_WAYPOINT, 0, 1, p["hold_s"],
-            0, 0, 0, round(p["lat"] * 1e7), round(p["lon"] * 1e7), p["alt"], 0) for seq, p in enumerate(points)]
+            0, 0, 0, round(p["lat"] * 1e7), round(p["lon"] * 1e7), p["alt_rel"], 0) for seq, p in enumerate(points)]
         answer(time.monotonic() + 1.0)  # let the vehicle's telemetry settle into the parser
         started = time.perf_counter()
         last: Any = mavlink2.MAVLink_mission_count_message(1, 1, count, 0)

@@ -3,8 +3,9 @@
 Served by aiohttp on the engine's own event loop:
 
 * ``GET /metrics``: Prometheus text format through prometheus_client. A custom collector
-  reads the routes' observers and the engine at scrape time, so the hot path only
-  increments plain integers (no prometheus_client lock per message);
+  reads the routes' counters (engine/observe.py: the same fields the status and the log's
+  counter line show) and the engine at scrape time, so the hot path only increments plain
+  integers (no prometheus_client lock per message);
 * ``GET /healthz``: 200 when every connection is up, 503 naming those that are down;
 * ``GET /status``: the status document (generation, config hash, reloads, each route's
   counters, rates, state and last error, the connections);
@@ -28,7 +29,7 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
-from engine.observe import LATENCY_BUCKETS, OUTCOMES, Tap
+from engine.observe import LATENCY_BUCKETS, Tap
 
 if TYPE_CHECKING:
     from engine.runtime import Engine
@@ -78,19 +79,21 @@ class EngineCollector:
         dead = CounterMetricFamily("rabbitros_dead_letters", "Dead-lettered messages per route and stage", labels=["route", "stage"])
         latency = HistogramMetricFamily("rabbitros_route_latency_seconds", "Reception to sink acceptance", labels=["route"])
         dropped = CounterMetricFamily("rabbitros_tap_dropped", "Tap lines dropped for slow clients", labels=["route"])
+        sink_errors = CounterMetricFamily("rabbitros_sink_errors", "Transient sink failures per route", labels=["route"])
         for name in sorted(engine.runners):
             observer = engine.observers.get(name)
-            for outcome in OUTCOMES:
-                messages.add_metric([name, outcome], observer.counts[outcome])
-            for stage, count in sorted(observer.dead_letters.items()):
+            for outcome, count in observer.outcomes().items():
+                messages.add_metric([name, outcome], count)
+            for stage, count in sorted(observer.dead_lettered.items()):
                 dead.add_metric([name, stage], count)
+            sink_errors.add_metric([name], observer.sink_errors)
             cumulative, buckets = 0, []
             for bound, count in zip((*LATENCY_BUCKETS, float("inf")), observer.latency_buckets):
                 cumulative += count
                 buckets.append(("+Inf" if bound == float("inf") else repr(bound), cumulative))
-            latency.add_metric([name], buckets, observer.latency_sum)
+            latency.add_metric([name], buckets, observer.latency_ns_total / 1e9)
             dropped.add_metric([name], observer.tap_dropped + sum(t.dropped for t in observer.taps))
-        yield from (messages, dead, latency, dropped)
+        yield from (messages, dead, latency, dropped, sink_errors)
         reloads = CounterMetricFamily("rabbitros_reloads", "Configuration reloads", labels=["result"])
         reloads.add_metric(["succeeded"], engine.reloads.succeeded)
         reloads.add_metric(["rejected"], engine.reloads.rejected)

@@ -5,8 +5,12 @@ transiently (the broker is down, a link is out) the route's runner hands the con
 message to its :class:`HoldingBuffer` and the source moves on. While the buffer holds
 anything, new messages queue behind it, so order is kept. One task per buffer retries the
 oldest messages with exponential backoff (and without trying at all while the sink's
-connection reports itself unhealthy), in batches sent concurrently, and counts each
-delivered message for the route.
+connection reports itself unhealthy), in batches sent concurrently, and hands each
+delivered message back to the route, which counts it. Which failures are retried and which
+are dead-lettered is the delivery policy's classification (engine/delivery.py); the waits
+between attempts are the engine's one backoff (engine/backoff.py). A buffer outlives a
+reload that replaces its route's runner (:class:`Buffers`): the held messages move with the
+route.
 
 Bounded: at most ``max_messages`` are held; a full buffer makes ``hold`` wait (back-pressure
 to the source, whose own bounded queue then applies its overflow policy).
@@ -39,11 +43,13 @@ import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Awaitable, Callable, Iterator
+from typing import Any, Awaitable, Callable, Iterator, Protocol
 
 import orjson
 
-from engine.endpoints.base import EndpointError, MessageRejected, Outbound
+from engine.backoff import Backoff
+from engine.delivery import classify
+from engine.endpoints.base import EndpointError, Outbound
 from engine.options import option
 
 log = logging.getLogger("engine.buffer")
@@ -53,11 +59,13 @@ SEGMENT_MESSAGES = 1_000
 BATCH = 64
 RETRY_FIRST, RETRY_MAX = 0.1, 2.0
 IDLE_POLL = 0.1
-"""Seconds between looks at an unhealthy sink's connection: a look costs nothing, and it
-bounds the time from the connection's return to the first message sent."""
+"""Seconds between looks at a sink that cannot take messages: a look costs nothing, and it
+bounds the time from the sink's return to the first message sent."""
 
 SendBatch = Callable[[list[Outbound]], Awaitable[list[BaseException | None]]]
 """Sends messages in order; ``result[i]`` is None when ``messages[i]`` was accepted."""
+Held = tuple[Outbound, int | None]
+"""A held message and when it was received (wall-clock ns, so it survives a restart), or None."""
 
 
 @dataclass(frozen=True)
@@ -123,7 +131,7 @@ class HoldingBuffer:
         fsync_interval: float = 1.0,
         max_attempts: int | None = None,
         ready: Callable[[], bool] = lambda: True,
-        on_delivered: Callable[[int], None] = lambda count: None,
+        on_delivered: Callable[[list[Held]], None] = lambda held: None,
         on_rejected: Callable[[Outbound, BaseException, int], Awaitable[None]] | None = None,
     ) -> None:
         self.route = route
@@ -147,6 +155,10 @@ class HoldingBuffer:
         self._task: asyncio.Task[None] | None = None
         self._closed = False
         self._last_report = 0.0
+        self._head_attempts = 0
+        """Transient failures of the oldest message while the sink looked able to take it."""
+        self._sent_ahead: set[int] = set()
+        """Indexes (in the next batch) of messages accepted behind one that failed."""
 
     @property
     def spills(self) -> bool:
@@ -171,13 +183,13 @@ class HoldingBuffer:
         self._update_room()
         self._task = asyncio.create_task(self._deliver_loop(), name=f"buffer-{self.route}")
 
-    async def hold(self, message: Outbound) -> None:
-        """Keep ``message`` until the sink takes it; returns once it is held (written, when
-        spilling), waiting while the buffer is full."""
+    async def hold(self, message: Outbound, received_at_ns: int | None = None) -> None:
+        """Keep ``message`` (received at ``received_at_ns``, wall clock) until the sink takes
+        it; returns once it is held (written, when spilling), waiting while the buffer is full."""
         while self.stats.held >= self.max_messages:
             self._room.clear()
             await self._room.wait()
-        self._store.append(message)
+        self._store.append((message, received_at_ns))
         self.stats.held += 1
         self.stats.held_total += 1
         self._update_room()
@@ -215,9 +227,7 @@ class HoldingBuffer:
             self._room.set()
 
     async def _deliver_loop(self) -> None:
-        delay = RETRY_FIRST
-        head_attempts = 0
-        sent_ahead: set[int] = set()
+        backoff = Backoff(RETRY_FIRST, RETRY_MAX)
         while not self._closed:
             if not self.holding:
                 self._changed.clear()
@@ -230,52 +240,70 @@ class HoldingBuffer:
             if not batch:  # the count says more than the files hold (corrupt lines)
                 self.stats.held = 0
                 continue
-            to_send = [m for i, m in enumerate(batch) if i not in sent_ahead]
-            try:
-                sent = iter(await self._send(to_send))
-            except Exception as error:  # the sink's contract is to return errors; be safe anyway
-                sent = iter([error] * len(to_send))
-            results = [None if i in sent_ahead else next(sent) for i in range(len(batch))]
-            settled = delivered = 0
-            failure: BaseException | None = None
-            for message, result in zip(batch, results):
-                if result is None:
-                    delivered += 1
-                elif isinstance(result, MessageRejected) or not isinstance(result, EndpointError):
-                    await self._reject(message, result, head_attempts + 1)
-                else:
-                    failure = result
-                    break
-                settled += 1
-            if settled:
-                self._store.pop(settled)
-                self.stats.held -= settled
-                self.stats.delivered += delivered
-                self._on_delivered(delivered)
-                self._update_room()
-                head_attempts = 0
-            # accepted behind the failed one: not sent again while they wait for it
-            sent_ahead = {i - settled for i in range(settled + 1, len(batch)) if results[i] is None}
+            failure = await self._send_batch(batch)
             if failure is None:
-                delay = RETRY_FIRST
-                continue
-            self.stats.retries += 1
-            if self._ready():  # the connection looks fine, so this counts against the message
-                head_attempts += 1
-                if self.max_attempts is not None and settled == 0 and head_attempts >= self.max_attempts:
-                    await self._reject(batch[0], EndpointError(f"gave up after {head_attempts} attempts: {failure}"), head_attempts)
-                    self._store.pop(1)
-                    self.stats.held -= 1
-                    sent_ahead = {i - 1 for i in sent_ahead if i > 0}
-                    self._update_room()
-                    head_attempts = 0
-                    continue
-            now = time.monotonic()
-            if now - self._last_report > 10.0:
-                self._last_report = now
-                log.warning("sink down; holding messages", extra={"route": self.route, "held": self.stats.held, "error": str(failure)})
-            await self._pause(delay)
-            delay = min(delay * 2, RETRY_MAX)
+                backoff.reset()
+            elif not await self._gave_up_on_head(failure):
+                self._report_holding(failure)
+                await self._pause(backoff.next())
+
+    async def _send_batch(self, batch: list[Held]) -> BaseException | None:
+        """Send the oldest messages; settle the accepted and the rejected ones up to the first
+        that failed transiently, and return that failure (None when all were settled)."""
+        sent_ahead = self._sent_ahead
+        to_send = [message for i, (message, _) in enumerate(batch) if i not in sent_ahead]
+        try:
+            outcomes = iter(await self._send(to_send))
+        except Exception as error:  # the sink's contract is to return errors; be safe anyway
+            outcomes = iter([error] * len(to_send))
+        results = [None if i in sent_ahead else next(outcomes) for i in range(len(batch))]
+        settled, failure, delivered = 0, None, []
+        for held, result in zip(batch, results):
+            if result is None:
+                delivered.append(held)
+            elif classify(result).permanent:
+                await self._reject(held[0], result, self._head_attempts + 1)
+            else:
+                failure = result
+                break
+            settled += 1
+        if settled:
+            self._settled(settled, delivered)
+        # accepted behind the failed one: not sent again while they wait for it
+        self._sent_ahead = {i - settled for i in range(settled + 1, len(batch)) if results[i] is None}
+        return failure
+
+    def _settled(self, count: int, delivered: list[Held]) -> None:
+        self._store.pop(count)
+        self.stats.held -= count
+        self.stats.delivered += len(delivered)
+        self._on_delivered(delivered)
+        self._update_room()
+        self._head_attempts = 0
+
+    async def _gave_up_on_head(self, failure: BaseException) -> bool:
+        """Count a transient failure against the oldest message while the sink looks able to
+        take messages; dead-letter it once it used ``max_attempts`` (True: go on at once)."""
+        self.stats.retries += 1
+        if not self._ready():  # the sink is down: not the message's fault
+            return False
+        self._head_attempts += 1
+        if self.max_attempts is None or self._head_attempts < self.max_attempts:
+            return False
+        head = self._store.peek(1)[0][0]
+        await self._reject(head, EndpointError(f"gave up after {self._head_attempts} attempts: {failure}"), self._head_attempts)
+        self._store.pop(1)
+        self.stats.held -= 1
+        self._sent_ahead = {i - 1 for i in self._sent_ahead if i > 0}
+        self._update_room()
+        self._head_attempts = 0
+        return True
+
+    def _report_holding(self, failure: BaseException) -> None:
+        now = time.monotonic()
+        if now - self._last_report > 10.0:
+            self._last_report = now
+            log.warning("sink down; holding messages", extra={"route": self.route, "held": self.stats.held, "error": str(failure)})
 
     async def _reject(self, message: Outbound, error: BaseException, attempts: int) -> None:
         self.stats.rejected += 1
@@ -294,7 +322,84 @@ class HoldingBuffer:
             pass
 
 
-def encode(message: Outbound) -> bytes:
+class BufferOwner(Protocol):
+    """The runner that sends a shared buffer's messages: the route's live one."""
+
+    async def send_held(self, messages: list[Outbound]) -> list[BaseException | None]: ...
+
+    def sink_can_take(self) -> bool: ...
+
+    def held_delivered(self, held: list[Held]) -> None: ...
+
+    async def held_rejected(self, message: Outbound, error: BaseException, attempts: int) -> None: ...
+
+
+class _Shared:
+    __slots__ = ("buffer", "users", "owner")
+
+    def __init__(self, buffer: HoldingBuffer, owner: BufferOwner) -> None:
+        self.buffer, self.users, self.owner = buffer, 0, owner
+
+
+class Buffers:
+    """Every route's buffer by route name, shared by the runners of a route across a reload
+    (the runner replacing another takes its held messages over); the buffer's messages are
+    sent by the route's live runner (:meth:`hand_to`), and it closes with its last user."""
+
+    def __init__(self) -> None:
+        self._shared: dict[str, _Shared] = {}
+
+    def acquire(self, route: str, spec: BufferSpec, max_attempts: int, owner: BufferOwner) -> HoldingBuffer:
+        """The route's buffer (made for ``owner`` when it has none); its settings change at
+        the next start."""
+        shared = self._shared.get(route)
+        if shared is None:
+            shared = self._shared[route] = self._make(route, spec, max_attempts, owner)
+        shared.users += 1
+        return shared.buffer
+
+    @staticmethod
+    def _make(route: str, spec: BufferSpec, max_attempts: int, owner: BufferOwner) -> _Shared:
+        def send(messages: list[Outbound]) -> Awaitable[list[BaseException | None]]:
+            return shared.owner.send_held(messages)
+
+        def rejected(message: Outbound, error: BaseException, attempts: int) -> Awaitable[None]:
+            return shared.owner.held_rejected(message, error, attempts)
+
+        buffer = HoldingBuffer(
+            route, send, max_messages=spec.max_messages, spill_dir=spec.spill_dir,
+            fsync_interval=spec.fsync_interval, max_attempts=max_attempts,
+            ready=lambda: shared.owner.sink_can_take(),
+            on_delivered=lambda held: shared.owner.held_delivered(held), on_rejected=rejected,
+        )
+        shared = _Shared(buffer, owner)
+        return shared
+
+    def hand_to(self, route: str, buffer: HoldingBuffer, owner: BufferOwner) -> None:
+        """``owner`` is the route's live runner now: it sends what ``buffer`` holds."""
+        shared = self._shared.get(route)
+        if shared is not None and shared.buffer is buffer:
+            shared.owner = owner
+
+    def release(self, route: str, buffer: HoldingBuffer) -> bool:
+        """True when no other runner uses ``buffer`` any more (the caller closes it)."""
+        shared = self._shared.get(route)
+        if shared is None or shared.buffer is not buffer:
+            return False
+        shared.users -= 1
+        if shared.users > 0:
+            return False
+        del self._shared[route]
+        return True
+
+    def take_all(self) -> list[HoldingBuffer]:
+        """Every buffer, forgotten here (the engine stops: the caller closes them)."""
+        buffers = [shared.buffer for shared in self._shared.values()]
+        self._shared.clear()
+        return buffers
+
+
+def encode(message: Outbound, received_at_ns: int | None = None) -> bytes:
     """One JSON line for a held message."""
     try:
         body: dict[str, str] = {"b": message.body.decode("utf-8")}
@@ -303,27 +408,33 @@ def encode(message: Outbound) -> bytes:
     record = {**body, "id": message.message_id, "c": message.canonical, "m": dict(message.meta)}
     if message.fields is not message.canonical:
         record["f"] = message.fields
+    if received_at_ns is not None:
+        record["t"] = received_at_ns
     return orjson.dumps(record, default=str, option=orjson.OPT_APPEND_NEWLINE)
 
 
 def decode(line: bytes) -> Outbound:
+    return decode_held(line)[0]
+
+
+def decode_held(line: bytes) -> Held:
     record = orjson.loads(line)
     body = record["b"].encode() if "b" in record else base64.b64decode(record["b64"])
     canonical = record["c"]
-    return Outbound(body, canonical, record.get("f", canonical), record["id"], record["m"])
+    return Outbound(body, canonical, record.get("f", canonical), record["id"], record["m"]), record.get("t")
 
 
 class _MemoryStore:
     def __init__(self) -> None:
-        self._messages: collections.deque[Outbound] = collections.deque()
+        self._messages: collections.deque[Held] = collections.deque()
 
     def load(self) -> tuple[int, int]:
         return len(self._messages), 0
 
-    def append(self, message: Outbound) -> None:
-        self._messages.append(message)
+    def append(self, held: Held) -> None:
+        self._messages.append(held)
 
-    def peek(self, count: int) -> list[Outbound]:
+    def peek(self, count: int) -> list[Held]:
         return [self._messages[i] for i in range(min(count, len(self._messages)))]
 
     def pop(self, count: int) -> None:
@@ -347,7 +458,7 @@ class _SpillStore:
         self._dirty = False
         self._last_sync = time.monotonic()
         self._read: tuple[int, int] = (0, 0)  # (segment, byte offset) of the oldest held message
-        self._peeked: list[tuple[Outbound, int, int]] = []  # message, segment, offset after it
+        self._peeked: list[tuple[Held, int, int]] = []  # message, segment, offset after it
 
     def load(self) -> tuple[int, int]:
         self.directory.mkdir(parents=True, exist_ok=True)
@@ -389,11 +500,11 @@ class _SpillStore:
         except FileNotFoundError:
             return
 
-    def append(self, message: Outbound) -> None:
+    def append(self, held: Held) -> None:
         if self._write_fd is None or self._write_count >= SEGMENT_MESSAGES:
             self._roll()
         assert self._write_fd is not None
-        os.write(self._write_fd, encode(message))
+        os.write(self._write_fd, encode(*held))
         self._write_count += 1
         self._next_seq += 1
         self._dirty = True
@@ -420,7 +531,7 @@ class _SpillStore:
         self._dirty = False
         self._last_sync = now
 
-    def peek(self, count: int) -> list[Outbound]:
+    def peek(self, count: int) -> list[Held]:
         """The oldest ``count`` messages (skipping torn lines), remembering where each ends."""
         self._peeked = []
         segment_index = 0
@@ -437,7 +548,7 @@ class _SpillStore:
                     break  # being written
                 position += len(line)
                 try:
-                    message = decode(line)
+                    message = decode_held(line)
                 except (ValueError, KeyError, TypeError):
                     log.error("spill: skipping a corrupt line", extra={"file": str(self._path(seg))})
                     continue

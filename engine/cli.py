@@ -20,6 +20,7 @@ from engine.opsview import print_status, print_tap
 from engine.endpoints.base import EndpointError
 from engine.local_broker import BrokerError, LocalBroker, LocalCluster
 from engine.logs import setup_logging
+from engine.observe import COUNTERS
 from engine.loop import run as run_loop
 from engine.route_tests import format_result, load_checked, run_tests
 from engine.routes import RoutesInvalid
@@ -268,7 +269,7 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
             write_status()
             await asyncio.sleep(args.stats_interval)
             for name, route in engine.status()["routes"].items():
-                log.info("route counters", extra={"route": name, **{k: route[k] for k in ("received", "delivered", "failed", "sink_errors")}})
+                log.info("route counters", extra={"route": name, **{k: route[k] for k in (*COUNTERS, "dead_lettered")}})
 
     tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
     if not args.no_watch:

@@ -79,9 +79,10 @@ def setup_logging(level: str = "info", fmt: str = "text") -> logging.handlers.Qu
     return listener
 
 
-class Throttle:
+class ReportLimiter:
     """Allows one report per ``interval`` seconds and counts what it held back, so a flood
-    of bad messages is reported without logging each one."""
+    of bad messages is reported without logging each one. (A route's ``throttle:`` is
+    engine/throttle.py; this one limits log lines.)"""
 
     def __init__(self, interval: float = 1.0) -> None:
         self.interval = interval

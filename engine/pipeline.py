@@ -18,23 +18,17 @@ import os
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable
 
+from engine.delivery import ConversionError
 from engine.endpoints import transport
 from engine.endpoints.base import Inbound, MessageRejected, Outbound, Sink
 from engine.mapping import MappingError, Mapper, compile_mapping
 from engine.schemas import CanonicalSchema, SchemaError, canonical_bytes, parse_json
 from engine.throttle import Throttle
 
-if TYPE_CHECKING:  # routes imports the delivery policy, which imports ConversionError from here
+if TYPE_CHECKING:
     from engine.routes import RouteSpec
 
-
-class ConversionError(Exception):
-    """A message cannot be converted; ``stage`` says where (decode, mapping, schema, ...)."""
-
-    def __init__(self, stage: str, detail: str) -> None:
-        super().__init__(f"{stage}: {detail}")
-        self.stage = stage
-        self.detail = detail
+__all__ = ["ConversionError", "Pipeline"]
 
 
 @dataclass(eq=False)
@@ -48,7 +42,8 @@ class Pipeline:
     sink_mapper: Mapper | None = None
     sink_check: Callable[[Any], None] | None = None
     """What the sink refuses in the sink mapping's output (MessageRejected), or None."""
-    throttle: Throttle | None = None
+    throttle: Throttle[Any] | None = None
+    """The route's throttle stage (engine/throttle.py): one per generation, closed when it retires."""
     in_flight: int = 0
     _drained: asyncio.Event = field(default_factory=asyncio.Event)
 

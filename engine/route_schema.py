@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from engine import endpoints
-from engine.delivery import DeadLettersOptions
+from engine.dead_letters import DeadLettersOptions
 from engine.endpoints.base import Transport
 from engine.options import property_schema, schema
 from engine.route_keys import render_keys

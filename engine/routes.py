@@ -22,8 +22,9 @@ import jsonschema
 import yaml
 
 from engine import endpoints
-from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, DeadLetterSpec, DeadLettersOptions, RouteDelivery
 from engine.buffer import BufferOptions, BufferSpec
+from engine.dead_letters import DeadLetterSpec, DeadLettersOptions
+from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, RouteDelivery
 from engine.endpoints.base import EndpointError, Transport
 from engine.fieldcheck import mapping_field_problems, option_hint
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource

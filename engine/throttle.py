@@ -1,11 +1,13 @@
-"""Throttling with conflation, for telemetry over slow radio links.
+"""Throttling with conflation, for telemetry over slow radio links: a stage of the route.
 
 ``throttle: {max_rate: 2, per: agent_id}`` lets at most ``max_rate`` messages per second
 through for each distinct value of the canonical field ``per`` (one slot for the whole route
-without ``per``). A message arriving while its slot is closed is parked; a newer one for
-the same slot replaces it (conflation: the older one is counted as ``conflated``), and the
-parked message is delivered when the slot opens. Only the latest value crosses the radio,
-at the rate it can carry, and no backlog builds up.
+without ``per``). The stage sits between conversion and the sink (engine/runner.py): a
+converted message arriving while its slot is closed is parked; a newer one for the same slot
+replaces it (conflation: the older one is counted as ``conflated``), and the parked message
+goes to the sink when the slot opens. Only the latest value crosses the radio, at the rate
+it can carry, and no backlog builds up. A parked message is converted and counted once: what
+the slot releases is the message already converted, handed to the route's sink path.
 
 Parking never blocks the source: sources that hand messages over one at a time (MAVLink,
 ROS 2) go on reading, so conflation really keeps the latest. The price is that a parked
@@ -17,11 +19,12 @@ from __future__ import annotations
 
 import asyncio
 from dataclasses import dataclass, field
-from typing import Any, Mapping, Protocol
+from typing import Any, Generic, Mapping, Protocol, TypeVar
 
-from engine.endpoints.base import Inbound, Outbound
-from engine.observe import CONFLATED
 from engine.options import option, parse
+
+T = TypeVar("T")
+T_contra = TypeVar("T_contra", contravariant=True)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -36,28 +39,31 @@ class ThrottleOptions:
                              description="canonical field (a.b) whose values get a slot each; none: one slot for the route")
 
 
-class Redeliver(Protocol):
-    def redeliver(self, inbound: Inbound) -> None: ...
+class ThrottleStage(Protocol[T_contra]):
+    """What the throttle hands parked messages back to (the route's runner)."""
 
-    def observe(self, inbound: Inbound, outbound: Outbound | None, outcome: str, error: BaseException | None) -> None: ...
+    def released(self, item: T_contra) -> None:
+        """The item's slot opened (or the throttle closed): send it now."""
+
+    def conflated(self, item: T_contra) -> None:
+        """A newer item replaced this parked one."""
 
 
 @dataclass
-class _Slot:
+class _Slot(Generic[T]):
     opens: float = 0.0
-    parked: tuple[Inbound, Outbound] | None = None
+    parked: T | None = None
     timer: asyncio.TimerHandle | None = None
 
 
 @dataclass
-class Throttle:
+class Throttle(Generic[T]):
     max_rate: float
     per: tuple[str, ...] | None
-    slots: dict[Any, _Slot] = field(default_factory=dict)
-    _released: set[int] = field(default_factory=set)
+    slots: dict[Any, _Slot[T]] = field(default_factory=dict)
 
     @classmethod
-    def from_options(cls, options: ThrottleOptions | Mapping[str, Any] | None) -> Throttle | None:
+    def from_options(cls, options: ThrottleOptions | Mapping[str, Any] | None) -> Throttle[Any] | None:
         if not options:
             return None
         options = parse(ThrottleOptions, options)
@@ -75,14 +81,12 @@ class Throttle:
             value = value.get(part) if isinstance(value, dict) else None
         return value if isinstance(value, (str, int, float, bool)) or value is None else repr(value)
 
-    def admit(self, inbound: Inbound, outbound: Outbound, runner: Redeliver) -> bool:
-        """True: send now. False: parked (sent when its slot opens) or conflated later."""
-        if self._released and id(inbound) in self._released:
-            self._released.discard(id(inbound))
-            return True
+    def admit(self, item: T, canonical: Any, stage: ThrottleStage[T]) -> bool:
+        """True: send ``item`` now. False: parked, handed to ``stage.released`` when its slot
+        opens unless a newer item replaces it first (``stage.conflated``)."""
         loop = asyncio.get_running_loop()
         now = loop.time()
-        key = self.key(outbound.canonical)
+        key = self.key(canonical)
         slot = self.slots.get(key)
         if slot is None:
             slot = self.slots[key] = _Slot()
@@ -90,27 +94,24 @@ class Throttle:
             slot.opens = now + self.interval
             return True
         if slot.parked is not None:
-            runner.observe(*slot.parked, CONFLATED, None)
+            stage.conflated(slot.parked)
         else:
-            slot.timer = loop.call_at(slot.opens, self._open, slot, runner)
-        slot.parked = (inbound, outbound)
+            slot.timer = loop.call_at(slot.opens, self._open, slot, stage)
+        slot.parked = item
         return False
 
-    def _open(self, slot: _Slot, runner: Redeliver) -> None:
+    def _open(self, slot: _Slot[T], stage: ThrottleStage[T]) -> None:
         parked, slot.parked, slot.timer = slot.parked, None, None
         if parked is None:
             return
         slot.opens = asyncio.get_running_loop().time() + self.interval
-        self._released.add(id(parked[0]))
-        runner.redeliver(parked[0])
+        stage.released(parked)
 
-    def close(self, runner: Redeliver) -> None:
+    def close(self, stage: ThrottleStage[T]) -> None:
         """The pipeline retires: what is parked goes out now rather than being lost."""
         for slot in self.slots.values():
             if slot.timer is not None:
                 slot.timer.cancel()
-            if slot.parked is not None:
-                inbound = slot.parked[0]
-                slot.parked = slot.timer = None
-                self._released.add(id(inbound))
-                runner.redeliver(inbound)
+            parked, slot.parked, slot.timer = slot.parked, None, None
+            if parked is not None:
+                stage.released(parked)

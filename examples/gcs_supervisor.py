@@ -20,7 +20,8 @@ import aio_pika
 
 UAV_FLOWS = ("position.uav1", "attitude.uav1", "battery.uav1", "status.uav1", "weeds.uav1", "ack.uav1")
 UAV_ALT_M = 20.0
-"""Spraying height above home of the UAV's missions."""
+"""Spraying height of the UAV's missions above home: the waypoints' ``alt_rel``, which the engine
+uploads in MAV_FRAME_GLOBAL_RELATIVE_ALT_INT (``alt_msl`` would be above mean sea level)."""
 
 
 def canonical_stamp() -> dict[str, int]:
@@ -60,7 +61,7 @@ async def main(url: str, duration: float, robot: str, record: str | None = None,
             print(f"gcs -> mission.ground.{robot}: {mission['mission_id']} ({len(mission['waypoints'])} waypoints)", flush=True)
             if missions <= 2:
                 uav = {**mission, "agent_id": body["agent_id"], "id": uuid.uuid4().hex, "mission_id": f"uav-spray-{missions}",
-                       "waypoints": [{"lat": p["lat"], "lon": p["lon"], "alt": UAV_ALT_M, "hold_s": 2.0} for p in body["points"]]}
+                       "waypoints": [{"lat": p["lat"], "lon": p["lon"], "alt_rel": UAV_ALT_M, "hold_s": 2.0} for p in body["points"]]}
                 await farm.publish(aio_pika.Message(json.dumps(uav).encode(), content_type="application/json"),
                                    f"mission.uav.{uav['agent_id']}")
                 print(f"gcs -> mission.uav.{uav['agent_id']}: {uav['mission_id']} ({len(uav['waypoints'])} waypoints)", flush=True)

@@ -437,7 +437,7 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-async def _amain(args: argparse.Namespace) -> VehicleStats:
+async def _amain(args: argparse.Namespace) -> SimVehicle:
     key = bytes.fromhex(args.signing_key) if args.signing_key else None
     network = args.device.partition(":")[0] in ("udpin", "udpout", "tcp")
     settings = TunnelSettings.from_settings(
@@ -460,15 +460,17 @@ async def _amain(args: argparse.Namespace) -> VehicleStats:
     # put the default handlers back and turn a clean exit into death by signal. (Only the
     # CLI runs this; the mask would be inherited by processes started afterwards.)
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
-    return vehicle.stats
+    return vehicle
 
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI entry: prints a ready line, then the counters as JSON when it stops."""
+    """CLI entry: prints a ready line, then the counters and the mission it holds (the items'
+    frame, x, y, z, as uploaded) as JSON when it stops."""
     args = _parser().parse_args(argv)
-    stats = asyncio.run(_amain(args))
-    print(json.dumps({"event": "stopped", "stats": asdict(stats)}), flush=True)
+    vehicle = asyncio.run(_amain(args))
+    mission = [{key: item[key] for key in ("seq", "command", "frame", "x", "y", "z")} for item in vehicle.autopilot.mission]
+    print(json.dumps({"event": "stopped", "stats": asdict(vehicle.stats), "mission": mission}), flush=True)
     return 0
 
 

@@ -325,7 +325,7 @@ def test_mavlink_source_bad_values_and_damaged_frames(harness: Harness, cases: l
     """Frames that fail their CRC never become messages (counted on the connection); a
     truncated frame is followed by filler without a start byte, so the next frame parses."""
     h = harness
-    connection = next(c for c in h.engine._connections.values() if c.name == "uav")
+    connection = next(c for _, c in h.engine.connections.items() if c.name == "uav")
     damaged_before = connection.stats["bad_crc"] + connection.stats["bad_data"]
     damaged = 0
     h.begin()

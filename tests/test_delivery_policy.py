@@ -19,7 +19,8 @@ import rclpy.executors
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from engine.delivery import BACKOFF_FIRST, DeadLetterSpool
+from engine.dead_letters import DeadLetterSpool
+from engine.delivery import BACKOFF_FIRST
 from engine.endpoints.rosmsg import resolve_type
 from engine.runtime import Engine
 from tests.amqp_helpers import Collector

@@ -14,6 +14,7 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+from engine.endpoints.mavlink.dialect import mavlink2
 from engine.schemas import SchemaRegistry
 from tests.conftest import REPO
 
@@ -82,4 +83,9 @@ def test_farm_example_end_to_end(tmp_path: Path):
     assert uav_sent and len(uav_sent) - 1 <= len(uav_acks) <= len(uav_sent), (uav_sent, uav_acks)
     assert all(ack["result"] == "accepted" and ack["detail"] == "MAV_MISSION_ACCEPTED" for ack in uav_acks), uav_acks
     assert status["uav1-missions"]["delivered"] == len(uav_acks) or status["uav1-missions"]["delivered"] == len(uav_sent)
+    # ... and the vehicle holds the last one at the supervisor's 20 m above home (alt_rel), not 20 m above the sea.
+    [stopped] = [event for event in map(json.loads, (work / "vehicle.log").read_text().splitlines())
+                 if event.get("event") == "stopped"]
+    assert stopped["mission"] and {(item["frame"], item["z"]) for item in stopped["mission"]} == \
+        {(mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 20.0)}, stopped["mission"]
     print(f"weeds {len(numbers)}, missions {sent}, acks {len(acks)}, uav missions {uav_sent}, uav acks {len(uav_acks)}")

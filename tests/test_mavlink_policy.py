@@ -306,7 +306,7 @@ routes:
   - name: goto
     source: {mavlink: {connection: radio, json_tunnel: true, target_system: 1}}
     schema: raw_json
-    sink: {mavlink: {connection: radio, message: COMMAND_LONG, default_alt: 20, retries: 3}}
+    sink: {mavlink: {connection: radio, message: COMMAND_LONG, home_placeholder: true, retries: 3}}
   - name: echo
     source: {mavlink: {connection: radio, json_tunnel: true}}
     schema: raw_json
@@ -326,7 +326,7 @@ def test_check_reports_mavlink_options_the_endpoint_does_not_use(
     for line, text in ((6, "'payload_type' is not used by a message source: it applies to json_tunnel"),
                        (8, "acknowledged applies to COMMAND_LONG and COMMAND_INT sinks"),
                        (10, "'target_system' is not used by a json_tunnel source"),
-                       (12, "'default_alt' is not used by a message sink: it applies to mission sinks"),
+                       (12, "'home_placeholder' is not used by a message sink: it applies to mission sinks"),
                        (12, "'retries' is not used by a message sink: it applies to acknowledged commands"),
                        (16, "'system_id' is not used by a json_tunnel sink")):
         assert any(f"radio.yaml:{line}" in row and text in row for row in err.splitlines()), (line, text, err)

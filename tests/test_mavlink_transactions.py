@@ -13,6 +13,8 @@ import json
 import os
 import re
 import socket
+import subprocess
+import sys
 import time
 import uuid
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -34,6 +36,7 @@ from engine.runtime import Engine  # noqa: E402
 from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 from rabbitros_sim.vehicle import SimVehicle  # noqa: E402
 from tests.amqp_helpers import Collector  # noqa: E402
+from tests.conftest import REPO  # noqa: E402
 from tests.mavsdk_vehicle import MavsdkAutopilot  # noqa: E402
 
 WEEDS = [(-22.0004563, -47.9001234), (-22.0004571, -47.9001301), (-21.99951234, -47.89987651)]
@@ -51,10 +54,15 @@ def canonical_stamp() -> dict[str, int]:
     return {"sec": now // 1_000_000_000, "nanosec": now % 1_000_000_000}
 
 
-def canonical_mission(points: list[tuple[float, float]], alt: float = 15.0) -> dict[str, Any]:
+def canonical_mission(points: list[tuple[float, float]], alt_rel: float = 15.0) -> dict[str, Any]:
+    """Waypoints ``alt_rel + i`` metres above home, holding ``2 + i`` s."""
+    return canonical_waypoints([{"lat": lat, "lon": lon, "alt_rel": alt_rel + i, "hold_s": 2.0 + i}
+                                for i, (lat, lon) in enumerate(points)])
+
+
+def canonical_waypoints(waypoints: list[dict[str, Any]]) -> dict[str, Any]:
     return {"type": "mission", "agent_id": "uav1", "id": uuid.uuid4().hex, "stamp": canonical_stamp(),
-            "mission_id": "spray-1", "task": "spray",
-            "waypoints": [{"lat": lat, "lon": lon, "alt": alt + i, "hold_s": 2.0 + i} for i, (lat, lon) in enumerate(points)]}
+            "mission_id": "spray-1", "task": "spray", "waypoints": waypoints}
 
 
 def outbound(fields: Any) -> Outbound:
@@ -110,9 +118,10 @@ def amqp_route(name: str, tag: str, binding_key: str, schema: str) -> str:
 
 
 def test_canonical_mission_and_arm_through_rabbitmq_to_mavsdk(tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
-    """MAVSDK's MissionRawServer receives the waypoints in order, as NAV_WAYPOINT in
-    GLOBAL_RELATIVE_ALT_INT with degE7 rounded; its ActionServer acknowledges the arm command;
-    both AMQP messages are acknowledged once."""
+    """MAVSDK's MissionRawServer receives the waypoints in order, as NAV_WAYPOINT with degE7
+    rounded, each in the frame of its altitude (the first ``alt_msl``: GLOBAL_INT, the others
+    ``alt_rel``: GLOBAL_RELATIVE_ALT_INT); its ActionServer acknowledges the arm command; both
+    AMQP messages are acknowledged once."""
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
     routes = write_routes(tmp_path / "routes", amqp_url, f"udpout:127.0.0.1:{port}", amqp_route(
@@ -124,6 +133,8 @@ def test_canonical_mission_and_arm_through_rabbitmq_to_mavsdk(tmp_path: Path, am
       mapping: "{{command: mav_enum_value('MAV_CMD_COMPONENT_ARM_DISARM', 'MAV_CMD'), param1: `1`}}"
 """)
     mission = canonical_mission(WEEDS)
+    first = mission["waypoints"][0]
+    first["alt_msl"] = 615.0 + first.pop("alt_rel")
     command = {"type": "command", "agent_id": "uav1", "id": uuid.uuid4().hex, "stamp": canonical_stamp(), "command": "arm"}
     autopilot = MavsdkAutopilot(port)
 
@@ -156,10 +167,10 @@ def test_canonical_mission_and_arm_through_rabbitmq_to_mavsdk(tmp_path: Path, am
     finally:
         autopilot.close()
     items = autopilot.missions[-1]
-    assert [(i.seq, i.frame, i.command) for i in items] == \
-        [(n, mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mavlink2.MAV_CMD_NAV_WAYPOINT) for n in range(len(WEEDS))]
+    assert [(i.seq, i.frame, i.command) for i in items] == [(0, mavlink2.MAV_FRAME_GLOBAL_INT, mavlink2.MAV_CMD_NAV_WAYPOINT)] + \
+        [(n, mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mavlink2.MAV_CMD_NAV_WAYPOINT) for n in range(1, len(WEEDS))]
     assert [(i.x, i.y) for i in items] == [(round(lat * 1e7), round(lon * 1e7)) for lat, lon in WEEDS]
-    assert [(i.z, i.param1) for i in items] == [(15.0 + n, 2.0 + n) for n in range(len(WEEDS))]
+    assert [(i.z, i.param1) for i in items] == [(630.0, 2.0)] + [(15.0 + n, 2.0 + n) for n in range(1, len(WEEDS))]
     assert [arm.arm for arm in autopilot.arm_requests] == [True]
     for name in (f"mission-{tag}", f"arm-{tag}"):
         route = status["routes"][name]
@@ -277,6 +288,89 @@ def test_refused_mission_and_command_are_dead_lettered_with_the_result_name(tmp_
     assert sim.autopilot.commands[0]["x"] == -220001000 and sim.autopilot.commands[0]["message"] == "COMMAND_INT"
 
 
+FIELD_M = 392.0
+"""A field this many metres above sea level: 20 m above it is alt_rel 20 or alt_msl 412."""
+MIXED = [{"lat": -22.0004, "lon": -47.9004, "alt_msl": FIELD_M + 20, "hold_s": 1.0},
+         {"lat": -22.0005, "lon": -47.9005, "alt_rel": 20.0}]
+"""One height two ways in one mission: each waypoint keeps its own reference."""
+UNSAID = {
+    "neither": ([MIXED[0], {"lat": -22.0005, "lon": -47.9005}],
+                "mission: 'waypoints[1]' gives no altitude: set one of 'alt_msl' (metres above mean sea level, "
+                "MAV_FRAME_GLOBAL_INT) or 'alt_rel' (metres above home, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT); "
+                "an altitude is never guessed"),
+    "both": ([{**MIXED[1], "alt_msl": FIELD_M + 20}], "mission: 'waypoints[0]' gives both 'alt_msl' and 'alt_rel': "),
+    "bare alt": ([{"lat": -22.0006, "lon": -47.9006, "alt": FIELD_M + 20}],  # above the sea? or 412 m above home?
+                 "mission: 'waypoints[0]' gives no altitude, only 'alt', which does not say above what: "),
+}
+"""Missions whose altitude would have to be guessed, and the start of their error (all of it for one)."""
+
+
+def test_each_waypoint_flies_in_the_frame_of_its_altitude_and_none_is_guessed(tmp_path: Path, amqp_url: str,
+                                                                           schemas_dir: Path) -> None:
+    """``alt_msl`` arrives as MISSION_ITEM_INT in MAV_FRAME_GLOBAL_INT with z = alt_msl, ``alt_rel``
+    in MAV_FRAME_GLOBAL_RELATIVE_ALT_INT with z = alt_rel, mixed in one mission; a mission with a
+    waypoint giving no altitude, a bare ``alt`` or both is dead-lettered at the ``sink mapping``
+    stage naming the waypoint, and nothing of it reaches the vehicle (published before the good
+    one, on the same route). ``rabbitros-engine test`` on the same routes reports the same errors."""
+    port = free_udp_port()
+    tag = uuid.uuid4().hex[:8]
+    routes = write_routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", amqp_route(
+        "mission", tag, "mission.uav1", "mission") + """\
+    sink: {mavlink: {connection: uav, mission: upload}}
+""")
+    refused = {name: canonical_waypoints(points) for name, (points, _) in UNSAID.items()}
+    good = canonical_waypoints(MIXED)
+
+    async def scenario() -> tuple[list[Any], dict[str, Any], SimVehicle]:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        sim = SimVehicle(f"udpout:127.0.0.1:{port}")
+        stop = asyncio.Event()
+        running = asyncio.create_task(sim.run(stop))
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            dead = await Collector.bind(channel, "rabbitros.dead-letter", f"mission-{tag}")
+            farm = await channel.declare_exchange(f"farm-{tag}", aio_pika.ExchangeType.TOPIC, durable=True)
+            for mission in (*refused.values(), good):
+                await farm.publish(aio_pika.Message(json.dumps(mission).encode()), "mission.uav1")
+            route = lambda: engine.status()["routes"][f"mission-{tag}"]  # noqa: E731
+            await until(lambda: route()["delivered"] + route()["failed"] == len(refused) + 1, 30, "every mission settled")
+            letters = await dead.wait_for(len(refused), 10)
+            status = route()
+        finally:
+            await engine.stop()
+            stop.set()
+            await running
+            await connection.close()
+        return letters, status, sim
+
+    letters, status, sim = run(scenario(), 60)
+    assert (status["received"], status["delivered"], status["failed"]) == (4, 1, 3), status
+    assert [(i["seq"], i["command"], i["frame"], i["x"], i["y"], i["z"], i["param1"]) for i in sim.autopilot.mission] == [
+        (0, mavlink2.MAV_CMD_NAV_WAYPOINT, mavlink2.MAV_FRAME_GLOBAL_INT, -220004000, -479004000, 412.0, 1.0),
+        (1, mavlink2.MAV_CMD_NAV_WAYPOINT, mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, -220005000, -479005000, 20.0, 0.0)]
+    assert (sim.stats.missions_accepted, sim.stats.mission_items_received) == (1, 2), "nothing of the refused ones was uploaded"
+    errors = {json.loads(m.body)["id"]: (m.headers["x-rabbitros-stage"], m.headers["x-rabbitros-error"]) for m in letters}
+    assert set(errors) == {mission["id"] for mission in refused.values()}, errors
+    for name, (_, error) in UNSAID.items():
+        stage, got = errors[refused[name]["id"]]
+        assert stage == "sink mapping" and got.startswith(error), (name, stage, got)
+
+    # rabbitros-engine test on the same routes: the same errors, word for word
+    cases = [{"name": name, "route": f"mission-{tag}", "input": refused[name], "expect_error": "sink mapping"}
+             for name in UNSAID]
+    cases += [{"name": "mixed", "route": f"mission-{tag}", "input": good, "expect": good},
+              {"name": "expects the guess", "route": f"mission-{tag}", "input": refused["neither"], "expect": refused["neither"]}]
+    (routes / "routes.test.yaml").write_text(json.dumps({"tests": cases}))
+    result = subprocess.run([sys.executable, "-m", "engine", "test", "--routes", str(routes), "--schemas", str(schemas_dir)],
+                            capture_output=True, text=True, timeout=120, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    lines = result.stdout.splitlines()
+    assert result.returncode == 1 and lines[-1] == "4 passed, 1 failed", result.stdout + result.stderr
+    [failed] = [line for line in lines if line.startswith("FAIL")]
+    assert failed.endswith(f"expects the guess: expected it to pass, got a sink mapping error: {UNSAID['neither'][1]}"), failed
+
+
 def test_silent_vehicle_is_a_transient_failure_for_the_delivery_policy(tmp_path: Path, amqp_url: str,
                                                                        schemas_dir: Path) -> None:
     """No answer after the retries: the sink raises EndpointError, so the engine's delivery
@@ -349,14 +443,15 @@ def test_mission_items_mapping_legacy_requests_and_bad_input() -> None:
             for fields, error in (({"items": [{"command": 16, "lat": 1}]}, "unknown field(s) lat"),
                                   ({"items": [{"command": "MAV_CMD_FLY_TO_THE_MOON"}]}, "not a MAV_CMD name"),
                                   ({"items": [{"command": 16, "x": 2**40}]}, "outside int32_t"),
-                                  ({"agent_id": "uav1", "waypoints": [{"lat": 1.0, "lon": 2.0}]}, "no alt"),
+                                  ({"agent_id": "uav1", "waypoints": [{"lat": 1.0, "lon": 2.0}]},
+                                   "'waypoints[0]' gives no altitude: set one of 'alt_msl'"),
                                   ({"agent_id": "uav1", "waypoints": []}, "no waypoints"),
                                   ({"items": [{"command": 16, "x": 1}, {"command": 16, "param4": None}]},
                                    "field 'items[1].param4' is null"),
                                   ({"items": [{"command": 16, "lon": 1}]}, "unknown field(s) lon (fields"),
                                   ({"items": [{"command": 16, "parma1": 1}]}, "parma1; did you mean 'param1'?"),
-                                  ({"agent_id": "uav1", "waypoints": [{"lat": 1.0, "lon": 2.0, "alt": None}]},
-                                   "field 'waypoints[0].alt' is null")):
+                                  ({"agent_id": "uav1", "waypoints": [{"lat": 1.0, "lon": 2.0, "alt_rel": None}]},
+                                   "field 'waypoints[0].alt_rel' is null")):
                 with pytest.raises(MessageRejected, match=re.escape(error)):
                     await sink.send(outbound(fields))
             assert gcs.stats["missions_uploaded"] == 1

@@ -191,7 +191,7 @@ def test_udpin_settings_change_while_telemetry_flows_is_break_before_make(
                 assert await engine.reload(), engine.reloads.last_error
                 sent_at_reload = vehicle.sent
                 assert engine.runners["other"] is other, "a route on another connection was touched"
-                radio = next(c for (name, _), c in engine._connections.items() if name == "radio")
+                radio = next(c for (name, _), c in engine.connections.items() if name == "radio")
                 assert radio.config.heartbeat == 2.0
                 await out.wait_for(len(out.messages) + 50)
                 seqs = [json.loads(m.body)["seq"] for m in out.messages]

@@ -331,7 +331,7 @@ def test_a_reload_while_the_sink_waits_for_a_reader_completes_and_loses_nothing(
                     await channel.default_exchange.publish(aio_pika.Message(body), names["queue"])
             runner = engine.runners["waits-for-reader"]
             deadline = time.monotonic() + 10
-            while runner.stats.received == 0:  # a batch is in settle, waiting for a reader
+            while runner.observer.received == 0:  # a batch is in settle, waiting for a reader
                 assert time.monotonic() < deadline, "the route took nothing"
                 await asyncio.sleep(0.05)
             await asyncio.sleep(0.5)
@@ -387,7 +387,7 @@ def test_an_engine_stops_at_once_while_a_route_waits_for_a_reader(amqp_url: str,
                     await channel.default_exchange.publish(aio_pika.Message(b'{"seq": %d}' % i), names["queue"])
                 runner = engine.runners["waits-for-reader"]
                 deadline = time.monotonic() + 10
-                while runner.stats.received == 0:
+                while runner.observer.received == 0:
                     assert time.monotonic() < deadline, "the route took nothing"
                     await asyncio.sleep(0.05)
                 began = time.monotonic()
@@ -464,3 +464,63 @@ def test_a_subscriber_that_leaves_makes_the_route_hold_again(amqp_url: str, tmp_
     first, second, noticed = asyncio.run(asyncio.wait_for(scenario(), 90))
     print(f"\nthe sink saw the subscriber leave after {noticed:.2f} s")
     assert first == list(range(100)) and second == list(range(100, 200))
+
+
+TEMPLATED = """
+connections:
+  ros: {{ros2: {{domain_id: {domain}, node: engine_{tag}}}}}
+routes:
+  - name: per-robot
+    max_attempts: 1
+    source: {{amqp: {{queue: {queue}}}}}
+    schema: raw_json
+    sink: {{ros2: {{topic: "/{{agent_id}}/{tag}"}}}}
+"""
+
+
+def test_a_templated_topic_waits_for_its_robot_without_spending_attempts(amqp_url: str, tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch):
+    """The first message for /uav1/... creates the publisher, finds no subscriber and is
+    refused; the route then waits for that robot. With max_attempts 1, a refusal counted as an
+    attempt would dead-letter it: nothing is, and every message reaches the robot that
+    subscribes 2 s later."""
+    from tests.test_ros2_endpoint import DOMAIN, Peer, String
+
+    monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
+    tag = "t" + uuid.uuid4().hex[:8]
+    queue = f"per-robot-{tag}"
+    (tmp_path / "robots.yaml").write_text(TEMPLATED.format(domain=DOMAIN, tag=tag, queue=queue))
+    bodies = [json.dumps({"agent_id": "uav1", "seq": i}) for i in range(20)]
+
+    async def scenario() -> tuple[list[str], dict[str, Any]]:
+        engine = Engine(tmp_path, REPO / "schemas")
+        await engine.start()
+        peer = None
+        try:
+            connection = await aio_pika.connect(amqp_url)
+            async with connection:
+                channel = await connection.channel(publisher_confirms=True)
+                for body in bodies:
+                    await channel.default_exchange.publish(aio_pika.Message(body.encode()), queue)
+            deadline = time.monotonic() + 10
+            while not engine.status()["routes"]["per-robot"]["sink_not_ready"]:
+                assert time.monotonic() < deadline, engine.status()["routes"]["per-robot"]
+                await asyncio.sleep(0.05)
+            assert f"no subscriber has matched /uav1/{tag}" in engine.status()["routes"]["per-robot"]["sink_not_ready"]
+            await asyncio.sleep(2.0)
+            peer = Peer()
+            received = peer.subscribe(String, f"/uav1/{tag}")
+            peer.start()
+            deadline = time.monotonic() + 30
+            while len(received) < len(bodies) and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(0.3)
+            return [m.data for m in received], engine.status()["routes"]["per-robot"]
+        finally:
+            await engine.stop()
+            if peer is not None:
+                peer.close()
+
+    received, route = asyncio.run(asyncio.wait_for(scenario(), 90))
+    assert route["failed"] == 0 and route["delivered"] == len(bodies), route
+    assert received == bodies

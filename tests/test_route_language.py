@@ -112,7 +112,8 @@ def test_ambiguous_connection_and_duplicate_yaml_keys(tmp_path: Path, schemas_di
 def test_delivery_keys_and_the_dead_letter_destination(tmp_path: Path, schemas_dir: Path):
     """max_attempts, overflow and max_message_bytes reach the route's delivery settings and
     its fingerprint; dead_letters resolves to one destination, with file:line errors."""
-    from engine.delivery import DeadLetterSpec, RouteDelivery
+    from engine.dead_letters import DeadLetterSpec
+    from engine.delivery import RouteDelivery
 
     (tmp_path / "a.yaml").write_text(
         "connections:\n  gcs: {amqp: 'amqp://a/', max_message_bytes: 1000}\n  ros: {ros2: {}}\n"

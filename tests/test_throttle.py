@@ -4,30 +4,27 @@ from __future__ import annotations
 
 import asyncio
 
-from engine.endpoints.base import Inbound, Outbound
-from engine.observe import CONFLATED
 from engine.throttle import Throttle
 
 
 class Runner:
-    """Records what the throttle hands back, as RouteRunner would redeliver it."""
+    """The throttle's stage, as the route's runner is: records what is released and conflated."""
 
     def __init__(self) -> None:
-        self.redelivered: list[tuple[float, Inbound]] = []
-        self.observed: list[tuple[Inbound, str]] = []
+        self.out: list[tuple[float, dict]] = []
+        self.replaced: list[dict] = []
         self.arrived = asyncio.Event()
 
-    def redeliver(self, inbound: Inbound) -> None:
-        self.redelivered.append((asyncio.get_running_loop().time(), inbound))
+    def released(self, item: dict) -> None:
+        self.out.append((asyncio.get_running_loop().time(), item))
         self.arrived.set()
 
-    def observe(self, inbound: Inbound, outbound: Outbound | None, outcome: str, error: BaseException | None) -> None:
-        self.observed.append((inbound, outcome))
+    def conflated(self, item: dict) -> None:
+        self.replaced.append(item)
 
 
-def message(agent: str, seq: int) -> tuple[Inbound, Outbound]:
-    canonical = {"agent_id": agent, "seq": seq}
-    return Inbound(body=b"{}"), Outbound(b"{}", canonical, canonical, str(seq), {})
+def message(agent: str, seq: int) -> dict:
+    return {"agent_id": agent, "seq": seq}
 
 
 def test_latest_per_slot_is_kept_and_sent_when_the_slot_opens():
@@ -35,23 +32,23 @@ def test_latest_per_slot_is_kept_and_sent_when_the_slot_opens():
         throttle = Throttle.from_options({"max_rate": 5, "per": "agent_id"})
         assert throttle is not None and throttle.interval == 0.2
         runner = Runner()
-        first = message("uav1", 0)
         began = asyncio.get_running_loop().time()
-        assert throttle.admit(*first, runner) is True
+        first = message("uav1", 0)
+        assert throttle.admit(first, first, runner) is True
         burst = [message("uav1", seq) for seq in range(1, 6)]
-        assert [throttle.admit(*m, runner) for m in burst] == [False] * 5
-        assert throttle.admit(*message("uav2", 0), runner) is True, "another agent has its own slot"
-        assert [outcome for _, outcome in runner.observed] == [CONFLATED] * 4
-        assert [inbound for inbound, _ in runner.observed] == [m[0] for m in burst[:4]]
+        assert [throttle.admit(m, m, runner) for m in burst] == [False] * 5
+        other = message("uav2", 0)
+        assert throttle.admit(other, other, runner) is True, "another agent has its own slot"
+        assert runner.replaced == burst[:4], "each newer one conflates the parked one"
         await asyncio.wait_for(runner.arrived.wait(), 2)
-        at, inbound = runner.redelivered[0]
-        assert inbound is burst[-1][0], "the latest is the one sent"
+        at, item = runner.out[0]
+        assert item is burst[-1], "the latest is the one released, as it was parked (converted once)"
         assert at - began >= 0.19
-        assert throttle.admit(inbound, burst[-1][1], runner) is True, "a released message goes through"
-        assert throttle.admit(*message("uav1", 7), runner) is False, "the slot closed again"
+        later = message("uav1", 7)
+        assert throttle.admit(later, later, runner) is False, "the slot closed again when it released one"
         throttle.close(runner)
-        assert len(runner.redelivered) == 2, "what is parked at close goes out"
-        assert throttle.admit(runner.redelivered[1][1], message("uav1", 7)[1], runner) is True
+        assert [item for _, item in runner.out] == [burst[-1], later], "what is parked at close goes out"
+        assert runner.replaced == burst[:4]
 
     asyncio.run(scenario())
 
@@ -60,8 +57,10 @@ def test_without_per_one_slot_for_the_route():
     async def scenario() -> None:
         throttle = Throttle.from_options({"max_rate": 1})
         runner = Runner()
-        assert throttle is not None and throttle.admit(*message("a", 0), runner) is True
-        assert throttle.admit(*message("b", 0), runner) is False
+        a, b = message("a", 0), message("b", 0)
+        assert throttle is not None and throttle.admit(a, a, runner) is True
+        assert throttle.admit(b, b, runner) is False
         assert Throttle.from_options(None) is None
+        throttle.close(runner)
 
     asyncio.run(scenario())

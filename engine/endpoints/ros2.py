@@ -662,8 +662,9 @@ class Ros2Sink(Sink):
 
     A fixed topic's publisher is created with the sink, so discovery is under way before the
     first message. A templated topic's publisher exists only once a message names it: that
-    message is refused (a transient error: one delivery attempt) and the sink is not ready
-    until the topic has a subscriber. A subscriber that goes away makes the sink not ready
+    message is refused (a transient error, which the engine does not count as an attempt
+    because the sink then says it is not ready) and the sink is not ready until the topic has
+    a subscriber. A subscriber that goes away makes the sink not ready
     again, at the next batch; DDS notices one that crashed only when its lease expires, and
     what was published to it meanwhile is lost (for commands that must arrive, have the
     robot answer on a topic of its own).

@@ -20,7 +20,7 @@ from engine.suggest import did_you_mean
 _SENDER = {"system_id", "component_id"}
 _TARGET = {"target_system", "target_component"}
 _TRANSACTION_OPTIONS = {"timeout", "retries", "vehicle_timeout"}
-_MISSION_ONLY = {"mission", "home_placeholder", "default_alt", "mission_type"}
+_MISSION_ONLY = {"mission", "home_placeholder", "mission_type"}
 _MISSION_OPTIONS = {*_MISSION_ONLY, *_TARGET, *_TRANSACTION_OPTIONS}
 _COMMAND_OPTIONS = {"acknowledged", "in_progress_timeout", "retry_delay", *_TRANSACTION_OPTIONS}
 

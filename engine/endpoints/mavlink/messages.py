@@ -19,7 +19,7 @@ from engine.endpoints.base import Deliver, Inbound, Inbox, Outbound, Sink, Sourc
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, message_fields, mavlink2, refuse_nulls
 from engine.endpoints.mavlink.command import AcknowledgedCommandSink, Encoder
 from engine.endpoints.mavlink.contract import SharedLink
-from engine.endpoints.mavlink.mission import MissionUploadSink, mission_items, refuse_mission_nulls
+from engine.endpoints.mavlink.mission import MissionUploadSink, mission_items, refuse_unguessed
 from engine.endpoints.mavlink.transaction import TransactionOptions
 
 if TYPE_CHECKING:
@@ -180,12 +180,13 @@ def message_defaults(options: MavlinkSinkOptions) -> dict[str, int]:
 
 def field_check(options: MavlinkSinkOptions) -> Callable[[Any], None] | None:
     """What the sink refuses in the sink mapping's output before anything is sent: a field set
-    to null (MessageRejected naming it; the pipeline reports it at its ``sink mapping`` stage).
-    A JSON tunnel carries JSON, where null is a value like any other: nothing to refuse."""
+    to null, and for a mission a waypoint without exactly one altitude (MessageRejected naming
+    it; the pipeline reports it at its ``sink mapping`` stage). A JSON tunnel carries JSON,
+    where null is a value like any other: nothing to refuse."""
     if options.json_tunnel:
         return None
     if options.mission is not None:
-        return refuse_mission_nulls
+        return refuse_unguessed
     return functools.partial(refuse_nulls, options.message)
 
 

@@ -3,9 +3,12 @@ mission protocol, acknowledged only when the vehicle accepts it.
 
     sink: {mavlink: {connection: radio, mission: upload, target_system: 1, target_component: 1}}
 
-Each canonical waypoint becomes a MISSION_ITEM_INT ``MAV_CMD_NAV_WAYPOINT`` in
-``MAV_FRAME_GLOBAL_RELATIVE_ALT_INT``: x, y = degrees x 1e7 rounded, z = ``alt`` in metres
-(``default_alt`` where a waypoint has none), param1 = ``hold_s``, in list order. A
+Each canonical waypoint becomes a MISSION_ITEM_INT ``MAV_CMD_NAV_WAYPOINT``: x, y = degrees x 1e7
+rounded, z = its one altitude in metres in the frame that says what it is measured from
+(``alt_msl``: ``MAV_FRAME_GLOBAL_INT``, above mean sea level; ``alt_rel``:
+``MAV_FRAME_GLOBAL_RELATIVE_ALT_INT``, above home), param1 = ``hold_s``, in list order. A waypoint
+with neither altitude, or both, is refused naming it: the same number is 20 m above the field or
+372 m below it at a field 392 m above sea level, so the reference is never guessed. A
 ``sink.mapping`` producing ``{items: [{command, frame, x, y, z, param1..param4, autocontinue}]}``
 gives full control (command and frame by name or number). ``home_placeholder: true`` puts
 ArduPilot's seq-0 home item first.
@@ -38,7 +41,12 @@ _ANSWERS = (mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_INT, mavlink2.MAVLINK_MSG_ID
             mavlink2.MAVLINK_MSG_ID_MISSION_ACK)
 _ITEM_KEYS = {"command", "frame", "x", "y", "z", "param1", "param2", "param3", "param4", "autocontinue", "current"}
 _MAX_ITEMS = 65535
-_WAYPOINT_KEYS = ("lat", "lon", "alt", "hold_s")
+ALTITUDE_FRAMES = {"alt_msl": mavlink2.MAV_FRAME_GLOBAL_INT, "alt_rel": mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT}
+"""The altitudes a canonical waypoint may carry (exactly one), with the frame that says their
+reference: the names of the canonical position's altitudes."""
+_ALTITUDE_CHOICE = ("set one of 'alt_msl' (metres above mean sea level, MAV_FRAME_GLOBAL_INT) or 'alt_rel' "
+                    "(metres above home, MAV_FRAME_GLOBAL_RELATIVE_ALT_INT); an altitude is never guessed")
+_WAYPOINT_KEYS = ("lat", "lon", *ALTITUDE_FRAMES, "hold_s")
 """What the sink reads of a canonical waypoint (other keys, such as ``action``, it leaves alone)."""
 
 
@@ -58,18 +66,18 @@ def _objects(raw: Any, name: str) -> Iterator[tuple[str, Mapping[str, Any]]]:
         yield f"{name}[{index}]", entry
 
 
-def waypoint_items(mission: Mapping[str, Any], default_alt: float | None) -> list[dict[str, Any]]:
-    """Canonical waypoints -> MISSION_ITEM_INT fields (without seq and targets)."""
+def waypoint_items(mission: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """Canonical waypoints -> MISSION_ITEM_INT fields (without seq and targets); each waypoint
+    has exactly one altitude (:func:`refuse_unguessed` ran first)."""
     items = []
     for where, point in _objects(mission.get("waypoints"), "waypoints"):
-        alt = point.get("alt", default_alt)
-        if alt is None:
-            raise MessageRejected(f"{where}: no alt, and the sink sets no default_alt")
+        altitude = "alt_msl" if "alt_msl" in point else "alt_rel"
         items.append({
-            "command": mavlink2.MAV_CMD_NAV_WAYPOINT, "frame": mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            "command": mavlink2.MAV_CMD_NAV_WAYPOINT, "frame": ALTITUDE_FRAMES[altitude],
             "x": round(_number(point.get("lat"), f"{where}.lat") * 1e7),
             "y": round(_number(point.get("lon"), f"{where}.lon") * 1e7),
-            "z": _number(alt, f"{where}.alt"), "param1": _number(point.get("hold_s", 0), f"{where}.hold_s"),
+            "z": _number(point[altitude], f"{where}.{altitude}"),
+            "param1": _number(point.get("hold_s", 0), f"{where}.hold_s"),
             "autocontinue": 1,
         })
     return items
@@ -97,7 +105,8 @@ def explicit_items(raw: Any) -> list[dict[str, Any]]:
 
 def mission_nulls(fields: Mapping[str, Any]) -> list[str]:
     """What the mission sets to null among what the sink reads: ``items[i].param1`` of explicit
-    items, ``waypoints[i].alt`` of a canonical mission (lat, lon, alt, hold_s), or the list."""
+    items, ``waypoints[i].alt_rel`` of a canonical mission (lat, lon, alt_msl, alt_rel, hold_s),
+    or the list."""
     if "items" in fields:
         name, entries, read = "items", fields["items"], None
     else:
@@ -115,14 +124,38 @@ def mission_nulls(fields: Mapping[str, Any]) -> list[str]:
     return nulls
 
 
-def refuse_mission_nulls(fields: Any) -> None:
-    """MessageRejected naming every null the sink would read (see :func:`mission_nulls`): a
-    waypoint's altitude or an item's parameter is never guessed. The pipeline runs it as the
-    sink's field check (its ``sink mapping`` stage); :func:`mission_items` runs it again."""
-    if isinstance(fields, Mapping):
-        nulls = mission_nulls(fields)
-        if nulls:
-            raise MessageRejected(null_problem("mission", nulls), stage="sink mapping")
+def altitude_problems(fields: Mapping[str, Any]) -> list[str]:
+    """Each canonical waypoint that does not give exactly one altitude (see ``ALTITUDE_FRAMES``),
+    named ``waypoints[i]``; a mission of explicit ``items`` says its frames itself."""
+    waypoints = fields.get("waypoints")
+    if "items" in fields or not isinstance(waypoints, list):
+        return []
+    problems = []
+    for index, point in enumerate(waypoints):
+        if not isinstance(point, Mapping):
+            continue  # not a waypoint at all: waypoint_items says so
+        given = [key for key in ALTITUDE_FRAMES if key in point]
+        if len(given) == 2:
+            problems.append(f"'waypoints[{index}]' gives both 'alt_msl' and 'alt_rel'")
+        elif not given:
+            unsaid = ", only 'alt', which does not say above what" if "alt" in point else ""
+            problems.append(f"'waypoints[{index}]' gives no altitude{unsaid}")
+    return problems
+
+
+def refuse_unguessed(fields: Any) -> None:
+    """MessageRejected (stage ``sink mapping``) naming every null the sink would read (see
+    :func:`mission_nulls`) and every waypoint without exactly one altitude: a waypoint's altitude,
+    its reference or an item's parameter is never guessed. The pipeline runs it as the sink's
+    field check; :func:`mission_items` runs it again."""
+    if not isinstance(fields, Mapping):
+        return
+    nulls = mission_nulls(fields)
+    if nulls:
+        raise MessageRejected(null_problem("mission", nulls), stage="sink mapping")
+    problems = altitude_problems(fields)
+    if problems:
+        raise MessageRejected(f"mission: {'; '.join(problems)}: {_ALTITUDE_CHOICE}", stage="sink mapping")
 
 
 def mission_items(fields: Any, options: TransactionOptions) -> list[mavlink2.MAVLink_message]:
@@ -130,11 +163,11 @@ def mission_items(fields: Any, options: TransactionOptions) -> list[mavlink2.MAV
     cannot make a mission (also what ``rabbitros-engine test`` runs as the sink's dry run)."""
     if not isinstance(fields, Mapping):
         raise MessageRejected(f"a mission sink needs an object, got {type(fields).__name__}")
-    refuse_mission_nulls(fields)
+    refuse_unguessed(fields)
     if "items" in fields:
         items = explicit_items(fields["items"])
     else:
-        items = waypoint_items(fields, options.default_alt)
+        items = waypoint_items(fields)
     if options.home_placeholder:
         first = items[0]
         items.insert(0, {"command": mavlink2.MAV_CMD_NAV_WAYPOINT, "frame": mavlink2.MAV_FRAME_GLOBAL_INT,

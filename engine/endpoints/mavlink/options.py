@@ -114,13 +114,13 @@ class MavlinkSinkOptions(MavlinkSourceOptions):
                               "(mission: upload) or canonical JSON (json_tunnel: true)")
 
     mission: str | None = option(None, schema={"enum": ["upload"]},
-                                 description="upload: the canonical mission's waypoints (or the items sink.mapping produces) "
-                                             "with the MAVLink mission protocol, accepted once the vehicle's MISSION_ACK says so")
+                                 description="upload: the canonical mission's waypoints (each at its one altitude: alt_msl in "
+                                             "MAV_FRAME_GLOBAL_INT or alt_rel in MAV_FRAME_GLOBAL_RELATIVE_ALT_INT), or the items "
+                                             "sink.mapping produces, with the MAVLink mission protocol, accepted once the "
+                                             "vehicle's MISSION_ACK says so")
     acknowledged: bool = option(False, description="COMMAND_LONG/COMMAND_INT: accepted only once the target's COMMAND_ACK says "
                                                    "MAV_RESULT_ACCEPTED; a refusal is dead-lettered, silence is retried")
     home_placeholder: bool = option(False, description="mission: ArduPilot's seq-0 home item first")
-    default_alt: float | None = option(None, description="mission: metres above home for waypoints without alt (without it, such a "
-                                                         "mission is dead-lettered)")
     mission_type: str | int | None = option(None, description="mission: MAV_MISSION_TYPE_MISSION (default), _FENCE or _RALLY, "
                                                               "by name, short name (fence) or number")
     timeout: float | None = option(None, description="acknowledged commands, missions: seconds to wait for each answer before "

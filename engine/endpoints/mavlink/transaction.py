@@ -40,7 +40,6 @@ class TransactionOptions:
     retry_delay: float = 1.0
     """Commands: wait before resending after MAV_RESULT_TEMPORARILY_REJECTED."""
     home_placeholder: bool = False
-    default_alt: float | None = None
     mission_type: int = mavlink2.MAV_MISSION_TYPE_MISSION
 
     @classmethod
@@ -52,7 +51,7 @@ class TransactionOptions:
         written = given(options)
         for key, kind, low in (("timeout", float, 0.05), ("retries", int, 0), ("vehicle_timeout", float, 0.0),
                                ("in_progress_timeout", float, 0.0), ("retry_delay", float, 0.0),
-                               ("default_alt", float, -1e6), ("target_system", int, 1), ("target_component", int, 0)):
+                               ("target_system", int, 1), ("target_component", int, 0)):
             if key in written:
                 value = getattr(options, key)
                 if value < low:
