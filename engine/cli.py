@@ -18,7 +18,7 @@ from engine.admin import AdminServer, parse_address, status_document
 from engine.endpoints.amqp import redact
 from engine.opsview import print_status, print_tap
 from engine.endpoints.base import EndpointError
-from engine.local_broker import BrokerError, LocalBroker, LocalCluster
+from engine.local_broker import LOCAL_BROKER_ENV, BrokerError, LocalBroker, LocalCluster
 from engine.logs import setup_logging
 from engine.observe import COUNTERS
 from engine.loop import run as run_loop
@@ -30,6 +30,8 @@ from engine.watch import watch_routes
 
 log = logging.getLogger("engine.cli")
 COMMANDS = ("run", "check", "test", "status", "tap")
+CHECK_BROKER_URL = "amqp://guest:guest@local-broker.invalid/"
+"""``check --local-broker``'s stand-in for the private node's URL (``.invalid`` is never a host)."""
 
 
 def default_schemas(routes: Path) -> Path:
@@ -96,6 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
     common(check)
+    check.add_argument("--local-broker", action="store_true",
+                       help="check as run --local-broker would load the routes: warn about AMQP connections that name another broker")
 
     test = commands.add_parser(
         "test", help="run the *.test.yaml cases through the routes' conversion, connecting to nothing; "
@@ -129,6 +133,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         args_list.insert(0, "run")
     args = build_parser().parse_args(args_list)
     if args.command == "check":
+        if args.local_broker:  # the private node's URL is not known before it starts: a stand-in no route file names
+            os.environ.update({"RABBITROS_AMQP_URL": CHECK_BROKER_URL, LOCAL_BROKER_ENV: ""})
+            os.environ.pop("RABBITROS_AMQP_URLS", None)
         return check(args.routes, args.schemas or default_schemas(args.routes))
     if args.command == "test":
         return run_route_tests(args.routes, args.schemas or default_schemas(args.routes))
@@ -152,16 +159,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def check(routes: Path, schemas: Path) -> int:
     try:
-        config, cases, problems = load_checked(routes, SchemaRegistry(schemas))
+        config, cases, problems, warnings = load_checked(routes, SchemaRegistry(schemas))
     except Exception as error:  # what the loader did not foresee still gets one line, not a traceback
         print(f"{routes}: cannot load: {type(error).__name__}: {error}", file=sys.stderr)
         return 1
-    for problem in problems:
-        print(problem, file=sys.stderr)
+    shown = [(p.file, p.line, str(p)) for p in problems] + [(w.file, w.line, f"{w.file}:{w.line}: warning: {w.message}") for w in warnings]
+    for _, _, line in sorted(shown):  # every problem and warning of the run, in file order
+        print(line, file=sys.stderr)
     if config is None or problems:
         return 1
-    for warning in config.warnings:
-        print(f"{warning.file}:{warning.line}: warning: {warning.message}", file=sys.stderr)
     tests = f", {len(cases)} tests" if cases else ""
     print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections{tests}, config {config.content_hash}: ok")
     return 0
@@ -170,7 +176,7 @@ def check(routes: Path, schemas: Path) -> int:
 def run_route_tests(routes: Path, schemas_dir: Path) -> int:
     """``rabbitros-engine test``: one line per case, a diff per failure; 0 pass, 1 fail, 2 invalid."""
     schemas = SchemaRegistry(schemas_dir)
-    config, cases, problems = load_checked(routes, schemas)
+    config, cases, problems, _ = load_checked(routes, schemas)
     for problem in problems:
         print(problem, file=sys.stderr)
     if config is None or problems:
@@ -203,6 +209,7 @@ async def run(args: argparse.Namespace) -> int:
         if len(urls) > 1:
             os.environ["RABBITROS_AMQP_URLS"] = " ".join(urls)
         nodes = [n.node for n in broker.nodes] if isinstance(broker, LocalCluster) else [broker.node]
+        os.environ[LOCAL_BROKER_ENV] = ", ".join(nodes)  # the loader warns about AMQP connections that go elsewhere
         log.info("local broker started", extra={"urls": [redact(u) for u in urls], "nodes": nodes})
         if args.broker_url_file:
             _write_atomically(args.broker_url_file, "\n".join(urls) + "\n")

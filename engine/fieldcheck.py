@@ -9,6 +9,12 @@ a function's result is not the source message and is left alone); each path is r
 against the type: ROS 2 by rosidl introspection (nested and sequence-of-message fields),
 MAVLink from pymavlink's generated message classes.
 
+The other direction, for every route: the keys a mapping *sets* (:func:`mapping_writes`,
+read from the same tree: multi-select hashes, projections, ``merge``) against the properties
+its canonical schema declares (:class:`engine.schemas.Declared`); ``check`` warns about the
+ones the schema does not name, since the schemas allow extra keys and a misspelt optional
+field would otherwise pass every message unnoticed.
+
 Also here: did-you-mean hints for a misspelt ROS 2 type or MAVLink message name.
 """
 
@@ -89,6 +95,98 @@ def _walk(node: dict[str, Any], context: FieldPath | None, found: list[FieldPath
         return None
     for child in children:  # multi-selects, functions, comparisons, and/or/not
         _walk(child, context, found)
+    return None
+
+
+Written = dict[str, Any]
+"""The keys a mapping's result is known to have: key -> what is known of its value (another
+``Written``, or None); :data:`ELEMENT` -> what is known of each element of a list result."""
+
+
+def mapping_writes(expression: str | None) -> Written | None:
+    """The keys a mapping sets, read from its JMESPath tree: ``{a: x, b: {c: y}}`` (multi-select
+    hashes), ``l[].{e: f}`` (projections), ``merge(@, {h: ...})``, ``a || {m: n}``, JSON
+    literals and the right side of a pipe; None when nothing is known (a bare field, identity)."""
+    if not expression:
+        return None
+    try:
+        tree = jmespath.compile(expression).parsed
+    except jmespath_errors.JMESPathError:
+        return None
+    return _writes(tree)
+
+
+def _writes(node: dict[str, Any]) -> Written | None:
+    kind = node.get("type")
+    children = node.get("children", [])
+    if kind == "multi_select_dict":
+        return {child["value"]: _writes(child["children"][0]) for child in children}
+    if kind == "literal":
+        return _literal_writes(node.get("value"))
+    if kind in ("projection", "filter_projection"):
+        element = _writes(children[1])
+        return None if element is None else {ELEMENT: element}
+    if kind in ("pipe", "subexpression", "and_expression"):
+        return _writes(children[-1])
+    if kind == "or_expression" or (kind == "function_expression" and node.get("value") == "merge"):
+        return _union([_writes(child) for child in children])
+    return None
+
+
+def _literal_writes(value: Any) -> Written | None:
+    if isinstance(value, dict):
+        return {str(key): _literal_writes(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return _union([{ELEMENT: found} for found in map(_literal_writes, value) if found is not None])
+    return None
+
+
+def _union(shapes: list[Written | None]) -> Written | None:
+    known = [shape for shape in shapes if shape is not None]
+    if not known:
+        return None
+    out: Written = {}
+    for shape in known:
+        for key, value in shape.items():
+            out[key] = _union([out.get(key), value])
+    return out
+
+
+def undeclared_keys(written: Written | None, declared: Any, label: str) -> Iterator[str]:
+    """``mapping sets 'heding', which schema position does not declare; did you mean
+    'heading'?`` for every key the mapping sets that the schema (``declared``, a
+    :class:`engine.schemas.Declared`) does not name, nested keys included."""
+    yield from _undeclared(written, declared, label, ())
+
+
+def _undeclared(written: Written | None, declared: Any, label: str, path: FieldPath) -> Iterator[str]:
+    if not written or declared.open and ELEMENT not in written:
+        return
+    for key, value in written.items():
+        if key == ELEMENT:
+            yield from _undeclared(value, declared.items(), label, path + (ELEMENT,))
+        elif declared.open:
+            continue
+        elif key not in declared.keys:
+            guess = closest(key, declared.keys)
+            hint = f"; did you mean {_dotted(path + (guess,))!r}?" if guess else f" (it declares: {', '.join(declared.keys)})"
+            yield f"mapping sets {_dotted(path + (key,))!r}, which schema {label!r} does not declare{hint}"
+        else:
+            yield from _undeclared(value, declared.child(key), label, path + (key,))
+
+
+def undeclared_path(path: str, declared: Any, label: str) -> str | None:
+    """``'agent_idd', which schema position does not declare; did you mean 'agent_id'?`` for
+    a dotted canonical field path (a template placeholder, throttle's ``per``), or None."""
+    steps = tuple(path.split("."))
+    for depth, step in enumerate(steps):
+        if declared.open:
+            return None
+        if step not in declared.keys:
+            guess = closest(step, declared.keys)
+            hint = f"; did you mean {_dotted(steps[:depth] + (guess,))!r}?" if guess else f" (it declares: {', '.join(declared.keys)})"
+            return f"{_dotted(steps[:depth + 1])!r}, which schema {label!r} does not declare{hint}"
+        declared = declared.child(step)
     return None
 
 

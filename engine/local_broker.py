@@ -23,6 +23,8 @@ import threading
 import time
 import uuid
 from pathlib import Path
+from typing import Iterable
+from urllib.parse import urlsplit
 
 SERVER_GLOB = "/usr/lib/rabbitmq/lib/rabbitmq_server-*/sbin/rabbitmq-server"
 QUIET_SCHEDULERS = "+sbwt none +sbwtdcpu none +sbwtdio none"
@@ -30,8 +32,31 @@ QUIET_SCHEDULERS = "+sbwt none +sbwtdcpu none +sbwtdio none"
 would burn a core between them doing nothing."""
 
 
+LOCAL_BROKER_ENV = "RABBITROS_LOCAL_BROKER"
+"""Set by ``run --local-broker`` to the private node's name (``check --local-broker``: empty,
+as no node is started), beside ``RABBITROS_AMQP_URL(S)`` holding its URL(s): the route
+loader then warns about every AMQP connection that leads elsewhere."""
+_LOOPBACK = frozenset({"localhost", "127.0.0.1", "::1", "ip6-localhost"})
+
+
 class BrokerError(RuntimeError):
     pass
+
+
+def node_address(url: str) -> tuple[str, int]:
+    """``(host, port)`` a URL connects to; every loopback name is one host."""
+    try:
+        parts = urlsplit(url)
+        host, port = (parts.hostname or "localhost").lower(), parts.port
+    except ValueError:
+        return url, 0
+    return ("localhost" if host in _LOOPBACK else host), port or (5671 if parts.scheme == "amqps" else 5672)
+
+
+def elsewhere(urls: Iterable[str], private: Iterable[str]) -> list[str]:
+    """The URLs among ``urls`` that lead to none of the ``private`` nodes' URLs."""
+    nodes = {node_address(url) for url in private}
+    return [url for url in urls if node_address(url) not in nodes]
 
 
 def find_server() -> str:

@@ -193,7 +193,8 @@ def _typed(hint: Any, meta: Mapping[str, Any], value: Any, path: KeyPath) -> Any
     if origin is Literal:
         choices = typing.get_args(hint)
         if not any(value == choice and type(value) is type(choice) for choice in choices):
-            raise OptionError(path, f"{_shown(value)} is not one of {list(choices)!r}")
+            hint = did_you_mean(value, [str(choice) for choice in choices]) if isinstance(value, str) else ""
+            raise OptionError(path, f"{_shown(value)} is not one of {list(choices)!r}{hint}")
         return value
     if origin is tuple:
         if not isinstance(value, (list, tuple)):

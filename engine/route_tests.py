@@ -27,7 +27,8 @@ import jsonschema
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound, Sink
 from engine.mapping import MappingError, compile_template
 from engine.pipeline import ConversionError, Pipeline
-from engine.routes import Problem, RoutesConfig, RoutesInvalid, RouteSpec, _parse_document, load_routes
+from engine.route_yaml import Problem, parse_document
+from engine.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
 
@@ -110,7 +111,7 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
         except (OSError, UnicodeDecodeError) as exc:
             problems.append(Problem(str(path), 0, f"cannot read: {exc}"))
             continue
-        document = _parse_document(str(path), text, env, problems, _VALIDATOR)
+        document = parse_document(str(path), text, env, problems, _VALIDATOR)
         if document is None:
             continue
         for index, body in enumerate(document.data.get("tests") or ()):
@@ -134,16 +135,17 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
     return cases, problems
 
 
-def load_checked(routes: Path, schemas: SchemaRegistry) -> tuple[RoutesConfig | None, list[Case], list[Problem]]:
+def load_checked(routes: Path, schemas: SchemaRegistry) -> tuple[RoutesConfig | None, list[Case], list[Problem], list[Problem]]:
     """The routes and their tests, as ``check`` and ``test`` see them: the config (None when
-    the routes do not compile), the cases, and every problem of both, sorted."""
+    the routes do not compile), the cases, every problem of both, sorted, and the routes'
+    warnings (given whether or not they compile)."""
     try:
         config = load_routes(routes, schemas)
     except RoutesInvalid as invalid:
         _, problems = load_tests(routes, None)
-        return None, [], sorted(invalid.problems + problems)
+        return None, [], sorted(invalid.problems + problems), invalid.warnings
     cases, problems = load_tests(routes, config)
-    return config, cases, problems
+    return config, cases, problems, list(config.warnings)
 
 
 class DrySink(Sink):
@@ -253,6 +255,18 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
                 raise ConversionError("sink", str(exc)) from None
 
         return amqp
+    if protocol == "mqtt":
+        from engine.endpoints.mqtt.topics import topic_renderer
+
+        render_topic = topic_renderer(options.topic, f"route {spec.name!r}: mqtt sink")
+
+        def mqtt(outbound: Outbound) -> str | None:
+            try:
+                return render_topic(outbound.canonical)
+            except MessageRejected as exc:
+                raise ConversionError("sink", str(exc)) from None
+
+        return mqtt
     if protocol == "ros2":
         from engine.endpoints import rosmsg
         from engine.endpoints.ros2 import STRING_TYPE, _topic_template, typed_message

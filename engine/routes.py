@@ -12,25 +12,25 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
-from dataclasses import dataclass, field, replace
+from dataclasses import MISSING, dataclass, field, replace
 from importlib import resources
 from pathlib import Path
-from typing import Any, Iterator, Literal, Mapping
+from typing import Any, Callable, Iterator, Literal, Mapping
 
 import jsonschema
-import yaml
 
 from engine import endpoints
 from engine.buffer import BufferOptions, BufferSpec
 from engine.dead_letters import DeadLetterSpec, DeadLettersOptions
 from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, RouteDelivery
 from engine.endpoints.base import EndpointError, Transport
-from engine.fieldcheck import mapping_field_problems, option_hint
+from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hint, undeclared_keys, undeclared_path
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
-from engine.options import OptionError, describe, dotted, evolve, fields_of, given, option, parse, unknown_key
-from engine.redaction import MASK, Secret, has_url_password, is_secret_name, json_default, redact_urls, revealed, shown
+from engine.options import OptionError, describe, evolve, fields_of, given, option, parse
+from engine.local_broker import LOCAL_BROKER_ENV, elsewhere
+from engine.redaction import Secret, has_url_password, json_default, redact_urls, reveal, revealed
+from engine.route_yaml import Document, Path_, Problem, parse_document
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
 from engine.throttle import ThrottleOptions
@@ -39,11 +39,8 @@ ROUTE_FILE_SCHEMA: dict[str, Any] = json.loads(
     resources.files("engine").joinpath("route_file.schema.json").read_text(encoding="utf-8")
 )
 _ROUTE_FILE_VALIDATOR = jsonschema.Draft202012Validator(ROUTE_FILE_SCHEMA)
-_ENV_REFERENCE = re.compile(r"\$\$|\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
 NAME_PATTERN = "^[A-Za-z0-9_][A-Za-z0-9_.-]*$"
 """Connection, route and lease names: safe in queue names, file names and metrics labels."""
-
-Path_ = tuple[str | int, ...]
 
 
 # The route file's own keys, declared once (engine/options.py); engine/route_schema.py builds
@@ -67,7 +64,7 @@ class LeaseOptions:
                               description="lease shared by routes that must fail over together (one robot's topics); default: the route name")
 
 
-ENDPOINT_DESCRIPTION = "exactly one of amqp / ros2 / mavlink"
+ENDPOINT_DESCRIPTION = "exactly one of " + " / ".join(endpoints.PROTOCOLS)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -82,7 +79,8 @@ class RouteOptions:
                                description="deliveries tried on transient sink failures (across redeliveries) before dead-lettering")
     overflow: Literal["block", "drop_oldest", "drop_newest"] = option(
         "block", description="when a ROS 2 or MAVLink source's in-memory queue is full: block stops taking (DDS history holds "
-                             "the rest; a radio cannot be paused, so MAVLink drops the oldest), or drop the oldest / newest (counted)")
+                             "the rest; a radio cannot be paused, so MAVLink drops the oldest; nor can an MQTT QoS 0 stream, which drops the newest "
+                             "unless drop_oldest), or drop the oldest / newest (counted)")
     buffer: Literal[False] | BufferOptions | None = option(
         None, description="messages held while the sink is down (default for ROS 2 and MAVLink sources: in memory, 10000); false: none")
     source: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
@@ -99,22 +97,14 @@ class RouteOptions:
     lease: LeaseOptions | None = option(None)
 
 
-@dataclass(frozen=True, order=True)
-class Problem:
-    file: str
-    line: int
-    message: str
-
-    def __str__(self) -> str:
-        return f"{self.file}:{self.line}: {self.message}"
-
-
 class RoutesInvalid(Exception):
-    """The directory does not compile; ``problems`` lists every reason."""
+    """The directory does not compile; ``problems`` lists every reason, ``warnings`` what
+    ``check`` would warn about as well."""
 
-    def __init__(self, problems: list[Problem]) -> None:
+    def __init__(self, problems: list[Problem], warnings: list[Problem] | None = None) -> None:
         super().__init__("\n".join(map(str, problems)))
         self.problems = problems
+        self.warnings = warnings or []
 
 
 @dataclass(frozen=True)
@@ -237,7 +227,7 @@ def load_routes(
     """Compile ``directory``; raise :class:`RoutesInvalid` listing every problem."""
     env = os.environ if env is None else env
     problems: list[Problem] = []
-    documents: list[_Document] = []
+    documents: list[Document] = []
     digest = hashlib.sha256()
     if not directory.exists():
         raise RoutesInvalid([Problem(str(directory), 0, "routes directory does not exist")])
@@ -248,199 +238,51 @@ def load_routes(
             problems.append(Problem(str(path), 0, f"cannot read: {exc}"))
             continue
         digest.update(path.name.encode() + b"\0" + text.encode() + b"\0")
-        document = _parse_document(str(path), text, env, problems)
+        document = parse_document(str(path), text, env, problems, _ROUTE_FILE_VALIDATOR, keep_invalid=True)
         if document is not None:
             documents.append(document)
     for schema_path, message in schemas.problems:
         problems.append(Problem(str(schema_path), 0, message))
     connections = _compile_connections(documents, problems)
-    routes = _compile_routes(documents, connections, schemas, problems)
+    warnings: list[Problem] = []
+    routes = _compile_routes(documents, connections, schemas, problems, warnings)
     dead_letters = _compile_dead_letters(documents, connections, problems)
+    warnings.extend(_competing_consumers(routes))
+    warnings.extend(_private_broker_warnings(connections, env))
     if problems:
-        raise RoutesInvalid(sorted(set(problems)))
+        raise RoutesInvalid(sorted(set(problems)), sorted(set(warnings)))
     digest.update(json.dumps(sorted((n, r.fingerprint) for n, r in routes.items())).encode())  # schemas, key files
     return RoutesConfig(directory, connections, routes, digest.hexdigest()[:12],
-                        warnings=_competing_consumers(routes), dead_letters=dead_letters)
-
-
-@dataclass
-class _Document:
-    file: str
-    data: dict[str, Any]
-    lines: dict[Path_, int]
-
-    def line(self, path: Path_) -> int:
-        while path not in self.lines and path:
-            path = path[:-1]
-        return self.lines.get(path, 1)
-
-    def problem(self, path: Path_, message: str) -> Problem:
-        return Problem(self.file, self.line(path), message)
-
-
-_Loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-"""libyaml's parser where PyYAML was built with it (the wheels are): the same nodes and line
-marks, parsed several times faster (1,000 routes: check 0.85 s -> 0.27 s here)."""
-
-
-def _parse_document(
-    file: str, text: str, env: Mapping[str, str], problems: list[Problem],
-    validator: jsonschema.protocols.Validator = _ROUTE_FILE_VALIDATOR,
-) -> _Document | None:
-    loader = _Loader(text)
-    try:
-        root = loader.get_single_node()
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        line = mark.line + 1 if mark else 1
-        problems.append(Problem(file, line, f"invalid YAML: {exc.problem or exc.context}"))
-        return None
-    except yaml.YAMLError as exc:
-        problems.append(Problem(file, 1, f"invalid YAML: {exc}"))
-        return None
-    finally:
-        loader.dispose()
-    if root is None:
-        return _Document(file, {}, {})
-    lines: dict[Path_, int] = {}
-    try:
-        data = _to_python(loader, root, (), lines, env, file, problems)
-    except RecursionError:
-        problems.append(Problem(file, _recursive_alias_line(text), "invalid YAML: an alias inside its own anchor (recursive alias), or nesting too deep"))
-        return None
-    document = _Document(file, data if data is not None else {}, lines)
-    errors = [p for error in validator.iter_errors(shown(data)) for p in _schema_problems(document, error)]
-    problems.extend(errors)
-    return None if errors else document
-
-
-def _to_python(
-    loader: yaml.SafeLoader,
-    node: yaml.Node,
-    path: Path_,
-    lines: dict[Path_, int],
-    env: Mapping[str, str],
-    file: str,
-    problems: list[Problem],
-) -> Any:
-    lines.setdefault(path, node.start_mark.line + 1)
-    if isinstance(node, yaml.MappingNode):
-        out: dict[str, Any] = {}
-        for key_node, value_node in node.value:
-            key = loader.construct_object(key_node)
-            if not isinstance(key, str):
-                problems.append(Problem(file, key_node.start_mark.line + 1, f"key {key!r} must be a string"))
-                continue
-            if key in out:
-                problems.append(Problem(file, key_node.start_mark.line + 1, f"duplicate key {key!r}"))
-                continue
-            lines[path + (key,)] = key_node.start_mark.line + 1
-            out[key] = _to_python(loader, value_node, path + (key,), lines, env, file, problems)
-        return out
-    if isinstance(node, yaml.SequenceNode):
-        return [
-            _to_python(loader, item, path + (index,), lines, env, file, problems)
-            for index, item in enumerate(node.value)
-        ]
-    value = loader.construct_object(node)
-    if isinstance(value, str) and "$" in value:
-        try:
-            substituted, masked = _substitute_masked(value, env)
-        except KeyError as exc:
-            problems.append(
-                Problem(file, node.start_mark.line + 1, f"environment variable {exc.args[0]} is not set (use ${{{exc.args[0]}:-default}} for a default)")
-            )
-            return value
-        if masked != substituted or has_url_password(substituted):
-            return Secret(substituted, redact_urls(masked) if MASK in masked or has_url_password(masked) else MASK)
-        return _typed(substituted) if not node.style else substituted  # plain: None (Python) or "" (libyaml)
-    if isinstance(value, str) and has_url_password(value):
-        return Secret(value)
-    return value
-
-
-def _recursive_alias_line(text: str) -> int:
-    """Where the recursive structure starts: the first anchor, as YAML's own marks are lost."""
-    for number, line in enumerate(text.splitlines(), 1):
-        if re.search(r"(^|[\s\[{,:-])&[^\s]", line):
-            return number
-    return 1
-
-
-def _typed(text: str) -> Any:
-    """An unquoted ``${VAR}`` takes the YAML type of its value (``domain_id: ${ROS_DOMAIN_ID}``
-    is a number); quoting it keeps a string."""
-    try:
-        value = yaml.safe_load(text)
-    except yaml.YAMLError:
-        return text
-    return value if isinstance(value, (int, float, bool)) and not isinstance(value, str) else text
-
-
-def substitute_env(text: str, env: Mapping[str, str]) -> str:
-    """``${VAR}`` and ``${VAR:-default}``; ``$$`` is a literal ``$``. Unset without default raises."""
-    return _substitute_masked(text, env)[0]
-
-
-def _substitute_masked(text: str, env: Mapping[str, str]) -> tuple[str, str]:
-    """The substituted text, and the same with every secret-named variable's value as ``***``
-    (see engine/redaction.py for the rule)."""
-
-    def value(match: re.Match[str]) -> str:
-        if match.group(0) == "$$":
-            return "$"
-        name, default = match.group(1), match.group(2)
-        if name in env:
-            return env[name]
-        if default is not None:
-            return default
-        raise KeyError(name)
-
-    def masked(match: re.Match[str]) -> str:
-        found = value(match)
-        return MASK if match.group(1) and is_secret_name(match.group(1)) and found else found
-
-    return _ENV_REFERENCE.sub(value, text), _ENV_REFERENCE.sub(masked, text)
-
-
-def _schema_problems(document: _Document, error: jsonschema.ValidationError) -> Iterator[Problem]:
-    path = tuple(error.absolute_path)
-    if error.validator == "additionalProperties" and isinstance(error.instance, dict):
-        allowed = sorted(error.schema.get("properties", {}))
-        for key in error.instance:
-            if key not in allowed:
-                yield document.problem(path + (key,), unknown_key(key, path, allowed))
-        return
-    if error.context:
-        error = jsonschema.exceptions.best_match(error.context)
-        path = tuple(error.absolute_path)
-    yield document.problem(path, f"{dotted(path)}: {error.message}")
+                        warnings=tuple(sorted(set(warnings))), dead_letters=dead_letters)
 
 
 def _compile_connections(
-    documents: list[_Document], problems: list[Problem]
+    documents: list[Document], problems: list[Problem]
 ) -> dict[str, ConnectionSpec]:
     connections: dict[str, ConnectionSpec] = {}
     for document in documents:
-        for name, body in (document.data.get("connections") or {}).items():
+        for name, body in _items(document, "connections", dict):
             where = ("connections", name)
+            if not isinstance(body, dict):
+                continue  # the schema said what it should be
             protocols = [p for p in endpoints.PROTOCOLS if p in body]
             if len(protocols) != 1:
-                problems.append(document.problem(where, f"connection {name!r} must name exactly one of amqp, ros2, mavlink"))
+                if not document.reported(where):
+                    problems.append(document.problem(where, f"connection {name!r} must name exactly one of {', '.join(endpoints.PROTOCOLS)}"))
                 continue
             protocol = protocols[0]
             if name in connections:
                 first = connections[name]
-                problems.append(document.problem(where, f"connection {name!r} is already defined at {first.file}:{first.line}"))
+                problems.append(document.problem(where, f"connection {name!r} is already defined at {first.file}:{first.line}{_together(document, first.file)}"))
                 continue
             misplaced = _misplaced(protocol, body)
-            if misplaced is not None:
+            if misplaced is not None:  # reported, and left out of the options: routes still find the connection
                 problems.append(document.problem(where + (misplaced[0],), f"{misplaced[0]!r} applies only to {misplaced[1]} connections"))
-                continue
             settings, options, checks = _connection_options(protocol, body)
             for key, message in checks:
-                key_path = key if isinstance(key, tuple) else (protocol,) if key is None else (protocol, key)
-                problems.append(document.problem(where + key_path, f"connection {name!r}: {message}"))
+                key_path = where + (key if isinstance(key, tuple) else (protocol,) if key is None else (protocol, key))
+                if not document.reported(key_path) and not document.reported(where + (protocol,)):
+                    problems.append(document.problem(key_path, f"connection {name!r}: {message}"))
             connection = _identified(ConnectionSpec(
                 name, protocol, settings, document.file, document.line(where),
                 max_message_bytes=body.get("max_message_bytes", ConnectionLimits.max_message_bytes), options=options,
@@ -450,6 +292,23 @@ def _compile_connections(
                 problems.append(document.problem(where + (protocol,), f"connection {name!r}: {connection.exclusive} is already used by connection {holder.name!r} at {holder.file}:{holder.line}"))
             connections[name] = connection
     return connections
+
+
+def _together(document: Document, other_file: str) -> str:
+    """For a name defined in two files: why both count (alternatives side by side, as two
+    versions of one example, collide)."""
+    if other_file == document.file:
+        return ""
+    return " (every file of a routes directory is loaded together: keep alternative files in separate directories)"
+
+
+def _items(document: Document, key: str, kind: type) -> Iterator[Any]:
+    """``connections`` (a mapping's items) or ``routes`` (a list's items, numbered) of a
+    document; nothing when the value is of another shape (the schema reported it)."""
+    value = document.data.get(key)
+    if not isinstance(value, kind):
+        return iter(())
+    return iter(value.items()) if kind is dict else enumerate(value)
 
 
 def _beside_keys(transport: Transport) -> frozenset[str]:
@@ -493,7 +352,7 @@ def _connection_options(protocol: str, body: Mapping[str, Any]) -> tuple[dict[st
         transport = endpoints.transport(protocol)
     except EndpointError as exc:
         value = body[protocol]
-        return ({"url": value} if isinstance(value, (str, Secret)) else dict(value or {})), None, [(None, str(exc))]
+        return ({"url": value} if isinstance(value, (str, Secret)) else dict(value) if isinstance(value, Mapping) else {}), None, [(None, str(exc))]
     settings = _connection_settings(transport, body)
     if not transport.accepts_secrets:
         settings = revealed(settings)
@@ -515,7 +374,7 @@ def _connection_settings(transport: Transport, body: Mapping[str, Any]) -> dict[
     if isinstance(value, (str, Secret)) and transport.connection_shorthand:
         settings: dict[str, Any] = {transport.connection_shorthand: value}
     else:
-        settings = dict(value or {})
+        settings = dict(value) if isinstance(value, Mapping) else {}  # another shape: the schema reported it
     settings.update({key: body[key] for key in _beside_keys(transport) if key in body})
     return settings
 
@@ -541,6 +400,30 @@ def _default_connection(protocol: str) -> ConnectionSpec:
     except OptionError as exc:
         raise EndpointError(f"default {protocol} connection: {exc}") from None
     return _identified(ConnectionSpec(f"default-{protocol}", protocol, settings, options=options))
+
+
+def _private_broker_warnings(connections: Mapping[str, ConnectionSpec], env: Mapping[str, str]) -> list[Problem]:
+    """With ``--local-broker``, each AMQP connection that names a broker other than the private
+    node: it keeps going where it says (a route file means what it says, and one with two
+    brokers must not become one with a single broker under a flag), so say so at load."""
+    node = env.get(LOCAL_BROKER_ENV)
+    if node is None:
+        return []
+    private = env.get("RABBITROS_AMQP_URLS", "").split() or [env.get("RABBITROS_AMQP_URL", "")]
+    named = f"--local-broker's private node ({node})" if node else "--local-broker's private node"
+    warnings = []
+    for spec in connections.values():
+        if spec.protocol != "amqp" or spec.options is None or spec.name.startswith("default-"):
+            continue
+        urls = [reveal(url) for url in ([spec.options.url] if spec.options.url else spec.options.urls or ())]
+        other = elsewhere(urls, private)
+        if other:
+            shown_urls = ", ".join(redact_urls(url) for url in other)
+            warnings.append(Problem(spec.file, spec.line, (
+                f"connection {spec.name!r} names its own broker ({shown_urls}), so {named} does not serve it "
+                "and its routes use that broker; to use the private node, write the URL as "
+                "\"${RABBITROS_AMQP_URL:-<the URL>}\", or leave the connection out")))
+    return warnings
 
 
 def _identified(spec: ConnectionSpec) -> ConnectionSpec:
@@ -575,44 +458,31 @@ def _competing_consumers(routes: Mapping[str, RouteSpec]) -> tuple[Problem, ...]
 
 
 def _compile_routes(
-    documents: list[_Document],
+    documents: list[Document],
     connections: dict[str, ConnectionSpec],
     schemas: SchemaRegistry,
     problems: list[Problem],
+    warnings: list[Problem],
 ) -> dict[str, RouteSpec]:
     routes: dict[str, RouteSpec] = {}
     for document in documents:
-        for index, body in enumerate(document.data.get("routes") or ()):
+        for index, body in _items(document, "routes", list):
             where: Path_ = ("routes", index)
             body = revealed(body)  # secrets belong to connections; route options are plain text
-            try:
-                route = parse(RouteOptions, body, where)
-            except OptionError as exc:
-                problems.extend(document.problem(path, describe(path, message))
-                                for path, message in exc.problems)
+            before = len(problems)
+            route, complete = _parse_leniently(document, RouteOptions, body, where, problems)
+            if route is None:
                 continue
             name = route.name
-            before = len(problems)
             if name in routes:
                 first = routes[name]
-                problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first.file}:{first.line}"))
-            source = _endpoint(document, where + ("source",), name, route.source, connections, problems)
-            sink = _endpoint(document, where + ("sink",), name, route.sink, connections, problems)
-            mapping = route.mapping
-            sink_mapping = route.sink.get("mapping")
-            for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
-                for message in _mapping_problems(expression):
-                    problems.append(document.problem(key_path, f"route {name!r}: {message}"))
-            schema_name = route.schema
-            if schema_name is None:
-                problems.append(document.problem(where, f"route {name!r}: 'schema' is required (use raw_json to pass any object)"))
-            elif schemas.get(schema_name) is None:
-                problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"))
-            if source and sink:
-                _endpoint_checks(document, where, name, source, sink, mapping, sink_mapping, problems)
-            if source:  # fields a typed source does not have
-                for message in mapping_field_problems(source.protocol, source.options, mapping):
-                    problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
+                problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first.file}:{first.line}{_together(document, first.file)}"))
+            source, source_complete = _endpoint(document, where + ("source",), name, route.source, connections, problems)
+            sink, sink_complete = _endpoint(document, where + ("sink",), name, route.sink, connections, problems)
+            mapping, schema_name, sink_mapping = route.mapping, route.schema, route.sink.get("mapping")
+            _route_checks(document, where, route, source, sink, (source_complete, sink_complete), schemas, problems, warnings)
+            if not (complete and source_complete and sink_complete):
+                continue
             placement = _placement(document, where, route, source, sink, connections, problems) if source and sink else None
             if len(problems) > before or not (source and sink and placement):
                 continue
@@ -646,8 +516,90 @@ def _compile_routes(
     return routes
 
 
+def _route_checks(
+    document: Document,
+    where: Path_,
+    route: RouteOptions,
+    source: EndpointSpec | None,
+    sink: EndpointSpec | None,
+    complete: tuple[bool, bool],
+    schemas: SchemaRegistry,
+    problems: list[Problem],
+    warnings: list[Problem],
+) -> None:
+    """What can be known of a route before anything flows: its mappings compile and call
+    known functions, its schema exists, its endpoints accept their options, a typed source
+    has the fields the mapping reads; and (warnings) the schema declares the keys it sets.
+    Each part is checked even when another failed, so one run shows every problem; an
+    endpoint with an option at fault (``complete`` false) still tells the mapping check its
+    type, but its transport's checks wait for the option to be fixed (they would only
+    repeat the fault in other words)."""
+    name, mapping, sink_mapping = route.name, route.mapping, route.sink.get("mapping")
+    for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
+        for message in _mapping_problems(expression):
+            problems.append(document.problem(key_path, f"route {name!r}: {message}"))
+    schema_name = route.schema
+    if schema_name is None:
+        problems.append(document.problem(where, f"route {name!r}: 'schema' is required (use raw_json to pass any object)"))
+    elif schemas.get(schema_name) is None:
+        problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"))
+    else:
+        warnings.extend(_schema_warnings(document, where, route, sink, schemas))
+    _endpoint_checks(document, where, name, source if complete[0] else None, sink if complete[1] else None,
+                     mapping, sink_mapping, problems)
+    if source:  # fields a typed source does not have
+        for message in mapping_field_problems(source.protocol, source.options, mapping):
+            problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
+
+
+def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None,
+                     schemas: SchemaRegistry) -> Iterator[Problem]:
+    """Canonical field names the schema does not declare: keys the mapping sets, and fields the
+    throttle and the sink's templates read (their messages would be dead-lettered)."""
+    name, schema_name = route.name, route.schema
+    declared = schemas.declared(schema_name) if schema_name else None
+    if declared is None:
+        return
+    for message in undeclared_keys(mapping_writes(route.mapping), declared, schema_name):
+        yield document.problem(where + ("mapping",), f"route {name!r}: {message}")
+    reads: list[tuple[Path_, str, str]] = []
+    if route.throttle is not None and route.throttle.per:
+        reads.append((where + ("throttle", "per"), "throttle per", route.throttle.per))
+    if sink is not None:
+        transport = endpoints.transport(sink.protocol)
+        reads.extend((where + ("sink", sink.protocol, key), f"sink {key}", field_path)
+                     for key, field_path in transport.canonical_fields(sink.options))
+    for key_path, what, field_path in reads:
+        problem = undeclared_path(field_path, declared, schema_name)
+        if problem is not None:
+            yield document.problem(key_path, f"route {name!r}: {what} reads {problem}")
+
+
+def _parse_leniently(
+    document: Document, cls: type[Any], body: Any, where: Path_, problems: list[Problem],
+    label: Callable[[Path_, str], str] = describe,
+) -> tuple[Any, bool]:
+    """``(options, complete)``: ``body`` parsed as ``cls``. On problems (reported here unless
+    the schema reported the key already) it is parsed again without the keys at fault, so the
+    rest of the item can still be checked; ``complete`` is then false and the item must not
+    run. ``(None, False)`` when even that fails (a required key is at fault)."""
+    try:
+        return parse(cls, body, where), True
+    except OptionError as exc:
+        problems.extend(document.problem(path, label(path, message))
+                        for path, message in exc.problems if not document.reported(path))
+        at_fault = {path[len(where)] for path, _ in exc.problems if len(path) > len(where)}
+    required = {f.name for f in fields_of(cls) if f.default is MISSING and f.default_factory is MISSING}
+    if not isinstance(body, Mapping) or not at_fault or at_fault & required:
+        return None, False
+    try:
+        return parse(cls, {key: value for key, value in body.items() if key not in at_fault}, where), False
+    except OptionError:
+        return None, False
+
+
 def _compile_dead_letters(
-    documents: list[_Document], connections: dict[str, ConnectionSpec], problems: list[Problem]
+    documents: list[Document], connections: dict[str, ConnectionSpec], problems: list[Problem]
 ) -> DeadLetterSpec:
     """``dead_letters: {connection, max_length}`` or ``{spool_dir, spool_max_bytes}``, from at
     most one file; default: the only AMQP connection, else the local spool."""
@@ -661,18 +613,15 @@ def _compile_dead_letters(
         options = parse(DeadLettersOptions, body, ("dead_letters",))
     except OptionError as exc:
         assert document is not None
-        problems.extend(document.problem(path, describe(path, message)) for path, message in exc.problems)
+        problems.extend(document.problem(path, describe(path, message)) for path, message in exc.problems if not document.reported(path))
         return DeadLetterSpec()
     amqp = sorted(name for name, spec in connections.items() if spec.protocol == "amqp")
     name = options.connection
     spec = DeadLetterSpec(max_length=options.max_length, spool_dir=options.spool_dir, spool_max_bytes=options.spool_max_bytes)
     if name is not None:
-        if name not in connections:
+        if name not in connections or connections[name].protocol != "amqp":
             assert document is not None
-            problems.append(document.problem(("dead_letters", "connection"), f"dead_letters: unknown connection {name!r}"))
-        elif connections[name].protocol != "amqp":
-            assert document is not None
-            problems.append(document.problem(("dead_letters", "connection"), f"dead_letters: connection {name!r} is {connections[name].protocol}, not amqp"))
+            problems.append(document.problem(("dead_letters", "connection"), f"dead_letters: {_wrong_connection(name, 'amqp', connections)}"))
         return DeadLetterSpec(name, spec.max_length, spec.spool_dir, spec.spool_max_bytes)
     if options.spool_dir is not None or not amqp:
         return spec
@@ -688,7 +637,7 @@ def _base_dir(file: str) -> Path:
 
 
 def _placement(
-    document: _Document,
+    document: Document,
     where: Path_,
     options: RouteOptions,
     source: EndpointSpec,
@@ -719,7 +668,7 @@ def _placement(
                 else:
                     lease_connection = amqp[0]
         elif lease_connection not in connections or connections[lease_connection].protocol != "amqp":
-            problems.append(document.problem(where + ("lease", "connection"), f"route {route!r}: lease connection {lease_connection!r} is not an AMQP connection"))
+            problems.append(document.problem(where + ("lease", "connection"), f"route {route!r}: lease: {_wrong_connection(lease_connection, 'amqp', connections)}"))
     if len(problems) > before:
         return None
     lease = lease or LeaseOptions()
@@ -746,35 +695,39 @@ def _mapping_problems(expression: str | None) -> Iterator[str]:
 
 
 def _endpoint(
-    document: _Document,
+    document: Document,
     where: Path_,
     route: str,
     body: Mapping[str, Any],
     connections: dict[str, ConnectionSpec],
     problems: list[Problem],
-) -> EndpointSpec | None:
+) -> tuple[EndpointSpec | None, bool]:
+    """``(spec, complete)`` of a route's source or sink; an incomplete spec (an option at
+    fault left out) serves only to check the rest of the route."""
     protocols = [p for p in endpoints.PROTOCOLS if p in body]
     if len(protocols) != 1:
-        problems.append(document.problem(where, f"route {route!r}: {where[-1]} must name exactly one of amqp, ros2, mavlink"))
-        return None
+        if not document.reported(where):
+            problems.append(document.problem(where, f"route {route!r}: {where[-1]} must name exactly one of {', '.join(endpoints.PROTOCOLS)}"))
+        return None, False
     protocol = protocols[0]
     side = where[-1]
     try:
         transport = endpoints.transport(protocol)
-        options = parse(transport.source_options if side == "source" else transport.sink_options, body[protocol], where + (protocol,))
     except EndpointError as exc:
         problems.append(document.problem(where + (protocol,), f"route {route!r}: {side}: {exc}"))
-        return None
-    except OptionError as exc:
-        problems.extend(document.problem(path, message if message.startswith("unknown key") else f"route {route!r}: {describe(path, message)}")
-                        for path, message in exc.problems)
-        return None
+        return None, False
+    options, complete = _parse_leniently(
+        document, transport.source_options if side == "source" else transport.sink_options, body[protocol],
+        where + (protocol,), problems,
+        lambda path, message: message if message.startswith("unknown key") else f"route {route!r}: {describe(path, message)}")
+    if options is None:
+        return None, False
     wanted = options.connection
     if wanted is None:
         candidates = sorted(n for n, c in connections.items() if c.protocol == protocol)
         if len(candidates) > 1:
             problems.append(document.problem(where + (protocol,), f"route {route!r}: several {protocol} connections ({', '.join(candidates)}); name one with 'connection:'"))
-            return None
+            return None, False
         if candidates:
             wanted = candidates[0]
         else:
@@ -782,30 +735,47 @@ def _endpoint(
                 default = _default_connection(protocol)
             except EndpointError as exc:
                 problems.append(document.problem(where + (protocol,), f"route {route!r}: {exc}"))
-                return None
+                return None, False
             connections.setdefault(default.name, default)
             wanted = default.name
     connection = connections.get(wanted)
-    if connection is None:
-        problems.append(document.problem(where + (protocol, "connection"), f"route {route!r}: unknown connection {wanted!r}{did_you_mean(wanted, connections)}"))
-        return None
-    if connection.protocol != protocol:
-        problems.append(document.problem(where + (protocol, "connection"), f"route {route!r}: connection {wanted!r} is {connection.protocol}, not {protocol}"))
-        return None
-    return EndpointSpec(protocol, wanted, options)
+    if connection is None or connection.protocol != protocol:
+        problems.append(document.problem(where + (protocol, "connection"), f"route {route!r}: {_wrong_connection(wanted, protocol, connections)}"))
+        return None, False
+    return EndpointSpec(protocol, wanted, options), complete
+
+
+def _wrong_connection(wanted: str, protocol: str, connections: Mapping[str, ConnectionSpec]) -> str:
+    """Why ``wanted`` cannot serve a ``protocol`` endpoint, and the names that could."""
+    same = sorted(name for name, spec in connections.items() if spec.protocol == protocol and not name.startswith("default-"))
+    if wanted in connections:
+        problem = f"connection {wanted!r} is {connections[wanted].protocol}, not {protocol}"
+    else:
+        problem = f"unknown connection {wanted!r}"
+    hint = did_you_mean(wanted, same) if wanted not in connections else ""
+    if hint:
+        return problem + hint
+    if wanted not in connections and (guess := did_you_mean(wanted, connections)):
+        return problem + guess
+    if same:
+        return f"{problem} ({protocol} connections: {', '.join(same)})"
+    return f"{problem} (no {protocol} connection is defined; leave 'connection' out for the default one)"
 
 
 def _endpoint_checks(
-    document: _Document,
+    document: Document,
     where: Path_,
     route: str,
-    source: EndpointSpec,
-    sink: EndpointSpec,
+    source: EndpointSpec | None,
+    sink: EndpointSpec | None,
     mapping: str | None,
     sink_mapping: str | None,
     problems: list[Problem],
 ) -> None:
+    """The transport's own checks of each endpoint that parsed (the other may not have)."""
     for side, spec, expression in (("source", source, mapping), ("sink", sink, sink_mapping)):
+        if spec is None:
+            continue
         base = where + (side, spec.protocol)
         try:
             transport = endpoints.transport(spec.protocol)

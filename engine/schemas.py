@@ -150,10 +150,14 @@ class SchemaRegistry:
         self.directory = directory
         self._schemas: dict[str, CanonicalSchema] = {}
         self.problems: list[tuple[Path, str]] = []
+        self._documents: dict[Path, dict[str, Any]] = {}
+        self._by_id: dict[str, Any] = {}
+        self._declared: dict[Path, Declared] = {}
         self._load()
+        self._by_id.update((urldefrag(doc["$id"])[0], doc) for doc in self._documents.values())
 
     def _load(self) -> None:
-        documents: dict[Path, dict[str, Any]] = {}
+        documents = self._documents
         if not self.directory.is_dir():
             self.problems.append((self.directory, "schema directory does not exist"))
             return
@@ -176,6 +180,7 @@ class SchemaRegistry:
             document.setdefault("$id", path.resolve().as_uri())
         closures = self._closures(documents)
         documents = {path: doc for path, doc in documents.items() if path in closures}
+        self._documents = documents
         try:
             registry = jsonschema_rs.Registry([(doc["$id"], doc) for doc in documents.values()])
         except (jsonschema_rs.ReferencingError, ValueError) as exc:  # a reference form we do not follow
@@ -236,8 +241,93 @@ class SchemaRegistry:
     def names(self) -> list[str]:
         return sorted(self._schemas)
 
+    def declared(self, name: str) -> Declared | None:
+        """The keys schema ``name`` declares (for ``check``'s warnings); None if it is unknown."""
+        entry = self._schemas.get(name)
+        if entry is None or entry.path not in self._documents:
+            return None
+        if entry.path not in self._declared:  # one per schema file: every route using it shares it
+            document = self._documents[entry.path]
+            self._declared[entry.path] = Declared([(document, document["$id"])], self._by_id)
+        return self._declared[entry.path]
+
     def get(self, name: str) -> CanonicalSchema | None:
         return self._schemas.get(name)
+
+
+class Declared:
+    """The object keys a schema declares, for ``check`` to warn about a key a mapping sets
+    that the schema never names (a misspelt optional field passes validation unnoticed).
+
+    Read from the schema's JSON: ``properties`` wherever they are (through ``$ref``,
+    ``allOf``/``anyOf``/``oneOf``, ``then``/``else``, ``dependentSchemas``), a key declared
+    in any branch counting as declared; ``items`` for the elements of arrays. A schema is
+    *open* (any key goes, nothing to warn about) when it declares no property at all, or
+    allows more on purpose (``additionalProperties`` other than false, ``patternProperties``).
+    """
+
+    def __init__(self, nodes: list[tuple[Any, str]], by_id: dict[str, Any]) -> None:
+        self._by_id = by_id
+        self._properties: dict[str, list[tuple[Any, str]]] = {}
+        self._items: list[tuple[Any, str]] = []
+        self._open = False
+        self._children: dict[str, Declared] = {}
+        self._elements: Declared | None = None
+        seen: set[int] = set()
+        for node, base in nodes:
+            self._collect(node, base, seen)
+        self.open = self._open or not self._properties
+        self.keys = sorted(self._properties)
+
+    def child(self, key: str) -> Declared:
+        """What the schema declares inside ``key``'s value (built once, then kept)."""
+        if key not in self._children:
+            self._children[key] = Declared(self._properties.get(key, []), self._by_id)
+        return self._children[key]
+
+    def items(self) -> Declared:
+        """What the schema declares for the elements of a list value."""
+        if self._elements is None:
+            self._elements = Declared(self._items, self._by_id)
+        return self._elements
+
+    def _collect(self, node: Any, base: str, seen: set[int]) -> None:
+        if not isinstance(node, dict) or id(node) in seen:
+            self._open = self._open or node is True
+            return
+        seen.add(id(node))
+        base = urljoin(base, node["$id"]) if isinstance(node.get("$id"), str) else base
+        if isinstance(node.get("$ref"), str):
+            target, target_base = self._resolve(urljoin(base, node["$ref"]))
+            if target is None:
+                self._open = True  # a reference not followed here: assume it allows anything
+            else:
+                self._collect(target, target_base, seen)
+        for key, subschema in (node.get("properties") or {}).items():
+            self._properties.setdefault(key, []).append((subschema, base))
+        more = node.get("additionalProperties", False)
+        if more is not False and more != {"not": {}} or node.get("patternProperties"):
+            self._open = True
+        for keyword in ("allOf", "anyOf", "oneOf"):
+            for branch in node.get(keyword) or ():
+                self._collect(branch, base, seen)
+        for keyword in ("then", "else"):
+            if keyword in node:
+                self._collect(node[keyword], base, seen)
+        for branch in (node.get("dependentSchemas") or {}).values():
+            self._collect(branch, base, seen)
+        items = node.get("items")
+        if isinstance(items, (dict, bool)):
+            self._items.append((items, base))
+        self._items.extend((item, base) for item in node.get("prefixItems") or ())
+
+    def _resolve(self, uri: str) -> tuple[Any, str]:
+        document_uri, fragment = urldefrag(uri)
+        node = self._by_id.get(document_uri)
+        for token in (fragment.split("/")[1:] if fragment.startswith("/") else []):
+            token = token.replace("~1", "/").replace("~0", "~")
+            node = node.get(token) if isinstance(node, dict) else None
+        return node, document_uri
 
 
 @functools.lru_cache(maxsize=512)
@@ -273,6 +363,7 @@ def _validating(label: str, validator: Any) -> Callable[[Any], None]:
 
 __all__ = [
     "CanonicalSchema",
+    "Declared",
     "SchemaError",
     "SchemaRegistry",
     "canonical_bytes",

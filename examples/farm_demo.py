@@ -10,6 +10,10 @@
 On a terminal the demo shows, in place, each route's rates and counts and its last canonical
 message (from the engine's admin endpoint); otherwise (or with ``--plain``) it prints plain lines.
 
+It exits 0 only when every flow it promises carried messages: the supervisor saw every canonical
+flow, and every route of ``farm_uav_gcs.yaml`` delivered at least one message and dead-lettered
+none (the engine's final status); otherwise it names the flows that did not and exits 1.
+
     .venv/bin/python examples/farm_demo.py [--duration 30] [--work DIR] [--plain]
 """
 
@@ -138,8 +142,9 @@ def main() -> int:
             processes.append(supervisor)
             wait_for(work / "supervisor.ready", supervisor, 60)
             # The UAV comes up once the ground station watches, so every detection it sends can be counted.
+            # Its weed detector starts when the supervisor's command reaches it (route uav1-commands).
             processes.append(spawn([PYTHON, "-m", "rabbitros_sim.vehicle", "--device", radio.link_b, "--baud", "57600",
-                                    "--weeds-every", "6"], env, work / "vehicle.log"))
+                                    "--weeds-on-command"], env, work / "vehicle.log"))
             if live:
                 follow(robot, lines)
                 reader = follow(supervisor, lines)
@@ -154,7 +159,21 @@ def main() -> int:
     for name, route in status["routes"].items():
         print(f"  {name:22} received {route['received']:5}  delivered {route['delivered']:5}  failed {route['failed']}")
     print(f"farm: logs and records in {work}")
-    return supervisor.returncode
+    broken = unkept_promises(status["routes"])
+    for line in broken:
+        print(f"farm: {line}", file=sys.stderr)
+    if supervisor.returncode:
+        print(f"farm: the supervisor exited {supervisor.returncode} (flows it did not see are above)", file=sys.stderr)
+    return 1 if broken or supervisor.returncode else 0
+
+
+def unkept_promises(routes: dict[str, Any]) -> list[str]:
+    """Every route of the farm is a flow the demo shows working: one that delivered nothing, or
+    dead-lettered a message, is a failure of the demo (not something to find in its output)."""
+    idle = [name for name, route in routes.items() if not route["delivered"]]
+    dead = [f"{name} ({route['failed']})" for name, route in routes.items() if route["failed"]]
+    return ([f"flows that carried nothing: {', '.join(idle)}"] if idle else []) + \
+        ([f"flows that dead-lettered messages: {', '.join(dead)}"] if dead else [])
 
 
 if __name__ == "__main__":

@@ -1,9 +1,12 @@
 """The supervisory software of the farm demo, speaking only AMQP and canonical JSON.
 
-It watches every canonical message on the ``farm`` exchange; when the UAV reports weeds it
-turns the detections into a spraying mission for the ground robot (the paper's scenario) and
-one for the UAV itself (the engine uploads it to the vehicle with the MAVLink mission protocol;
-the vehicle's MISSION_ACK comes back as a canonical ack), and it exits with a summary after ``--duration`` seconds: 0 when every flow was seen.
+It watches every canonical message on the ``farm`` exchange. When the UAV first reports, it
+commands the UAV's companion computer to start its weed detector (a canonical command on
+``command.uav1``, which the engine carries to the vehicle through the radio's JSON tunnel).
+When the UAV reports weeds it turns the detections into a spraying mission for the ground robot
+(the paper's scenario) and one for the UAV itself (the engine uploads it to the vehicle with the
+MAVLink mission protocol; the vehicle's MISSION_ACK comes back as a canonical ack), and it exits
+with a summary after ``--duration`` seconds: 0 when every flow was seen.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ UAV_FLOWS = ("position.uav1", "attitude.uav1", "battery.uav1", "status.uav1", "w
 UAV_ALT_M = 20.0
 """Spraying height of the UAV's missions above home: the waypoints' ``alt_rel``, which the engine
 uploads in MAV_FRAME_GLOBAL_RELATIVE_ALT_INT (``alt_msl`` would be above mean sea level)."""
+DETECT_EVERY_S = 6.0
+"""Seconds between the UAV's weed detections, set by the ground station's command."""
 
 
 def canonical_stamp() -> dict[str, int]:
@@ -38,6 +43,7 @@ async def main(url: str, duration: float, robot: str, record: str | None = None,
     await queue.bind(farm, "canonical.#")
     seen: collections.Counter[str] = collections.Counter()
     missions = 0
+    commanded: set[str] = set()
     recording = open(record, "a", encoding="utf-8") if record else None
 
     async def on_message(message: aio_pika.abc.AbstractIncomingMessage) -> None:
@@ -49,6 +55,14 @@ async def main(url: str, duration: float, robot: str, record: str | None = None,
             recording.write(json.dumps({"t": time.time(), "routing_key": message.routing_key, "body": body}) + "\n")
         if seen[kind] == 1 or kind.startswith(("weeds", "ack")):
             print(f"gcs <- {message.routing_key}: {message.body.decode()[:160]}", flush=True)
+        agent = body.get("agent_id", "")
+        if kind.startswith("status.") and agent.startswith("uav") and agent not in commanded:
+            commanded.add(agent)  # the UAV is up: start its weed detector
+            command = {"agent_id": agent, "id": uuid.uuid4().hex, "type": "command", "stamp": canonical_stamp(),
+                       "command": "detect_weeds", "params": {"every_s": DETECT_EVERY_S}, "target": agent}
+            await farm.publish(aio_pika.Message(json.dumps(command).encode(), content_type="application/json"),
+                               f"command.{agent}")
+            print(f"gcs -> command.{agent}: detect_weeds every {DETECT_EVERY_S:g} s", flush=True)
         if kind.startswith("weeds") and missions < 3:
             missions += 1
             mission = {

@@ -18,6 +18,10 @@ one line (the message's bytes, then ``\n``), acknowledges it DELIVERED only afte
 sends it back to its sender as a new reliable message (retransmitted on SACK and timeout). Its
 DATA frames are paced (``--tunnel-rate``, half the serial rate by default on serial links, slower
 while the radio's RADIO_STATUS reports a filling buffer) so they do not overflow a SiK radio.
+With ``--weeds-every N`` it also sends a canonical weed detection every N s; with
+``--weeds-on-command`` too, it is the farm demo's companion computer: the detector starts when
+the ground station's command ``detect_weeds`` arrives through the tunnel, and JSON commands are
+acted on instead of echoed.
 
 ``--echo-frames`` instead sends every TUNNEL with ``payload_type >= 32768`` addressed to this
 system (or broadcast) back unchanged, frame by frame; ``--store`` then gets each payload as a
@@ -199,6 +203,8 @@ class VehicleStats:
     mission_requests_sent: int = 0
     """MISSION_REQUEST_INT sent, repeats after a timeout included."""
     commands_received: int = 0
+    json_commands: int = 0
+    """``--weeds-on-command``: JSON commands acted on (not echoed)."""
 
 
 class SimVehicle:
@@ -208,6 +214,11 @@ class SimVehicle:
     ``tunnel_rate`` paces JSON tunnel DATA frames in bytes/s (None: half the serial rate, unpaced
     on networks); ``tunnel_settings`` tunes the protocol as the engine's ``tunnel:`` connection
     setting does; ``mission_result``/``command_results`` set the autopilot's answers.
+
+    ``weeds_on_command``: the companion computer of the farm demo. Its weed detector waits for
+    the ground station's canonical command ``{"command": "detect_weeds", "params": {"every_s":
+    N}}`` through the tunnel (then sends a detection every N s, default ``weeds_every``), and a
+    JSON command is acted on, never echoed back.
     """
 
     def __init__(self, device: str, *, baud: int = 57600, system_id: int = 1, component_id: int = 1,
@@ -216,7 +227,7 @@ class SimVehicle:
                  payload_type: int = DEFAULT_PAYLOAD_TYPE, tunnel_rate: float | None = None,
                  tunnel_settings: TunnelSettings | None = None, weeds_every: float | None = None,
                  mission_result: str = "MAV_MISSION_ACCEPTED", command_results: Sequence[str] = ("MAV_RESULT_ACCEPTED",),
-                 legacy_requests: bool = False) -> None:
+                 legacy_requests: bool = False, weeds_on_command: bool = False) -> None:
         address = parse_address(device, baud if not device.partition(":")[1] else None)
         serial = address.kind == "serial"
         settings = tunnel_settings or TunnelSettings.from_settings(None, serial=serial)
@@ -239,6 +250,8 @@ class SimVehicle:
         self.echo_frames = echo_frames
         self.payload_type = payload_type
         self.weeds_every = weeds_every
+        self.weeds_on_command = weeds_on_command
+        self._detector: asyncio.Task[None] | None = None
         self.autopilot = Autopilot(self.port, system_id, component_id, mission_result=mission_result,
                                    command_results=command_results, legacy_requests=legacy_requests)
         self._boot = 0.0
@@ -307,7 +320,24 @@ class SimVehicle:
             with self.store.open("ab") as f:
                 f.write(body + b"\n")
         self._stats.json_received += 1
+        if self.weeds_on_command and self._command(body):
+            return
         self._echoes.put_nowait(((inbound.meta["system_id"], inbound.meta["component_id"]), body))
+
+    def _command(self, body: bytes) -> bool:
+        """Act on a canonical command for the companion computer; False if ``body`` is none."""
+        try:
+            message = json.loads(body)
+        except ValueError:
+            return False
+        if not isinstance(message, dict) or not isinstance(message.get("command"), str):
+            return False
+        self._stats.json_commands += 1
+        params = message.get("params") if isinstance(message.get("params"), dict) else {}
+        if message["command"] == "detect_weeds" and self._detector is None and self._loop is not None:
+            every = float(params.get("every_s") or self.weeds_every or 6.0)
+            self._detector = self._loop.create_task(self._weed_detector(every), name="vehicle-weeds")
+        return True
 
     async def _echo_worker(self) -> None:
         """Send stored messages back, each as a new reliable message to the peer it came from;
@@ -386,7 +416,7 @@ class SimVehicle:
                 await source.start(FunctionDeliver(self._received_json))
                 tasks += [loop.create_task(self._echo_worker(), name="vehicle-echo")
                           for _ in range(self.config.tunnel.window)]
-                if self.weeds_every:
+                if self.weeds_every and not self.weeds_on_command:
                     tasks.append(loop.create_task(self._weed_detector(self.weeds_every), name="vehicle-weeds"))
             deadline = math.inf if duration is None else self._boot + duration
             per_slow = max(1, round(1 / self.position_period))
@@ -398,6 +428,8 @@ class SimVehicle:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(stop.wait(), max(0.0, wake - loop.time()))
         finally:
+            if self._detector is not None:
+                tasks.append(self._detector)
             for task in tasks:
                 task.cancel()
             if source is not None:
@@ -425,6 +457,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="JSON messages the vehicle sends back concurrently (default: the engine's default)")
     parser.add_argument("--weeds-every", type=float, default=None,
                         help="send a weed detection (canonical JSON over the tunnel) every this many seconds")
+    parser.add_argument("--weeds-on-command", action="store_true",
+                        help="start the weed detector when the ground station's command detect_weeds arrives "
+                             "through the tunnel (JSON commands are acted on, not echoed)")
     parser.add_argument("--signing-key", default=None, help="32-byte MAVLink 2 signing key as 64 hex digits")
     parser.add_argument("--link-id", type=int, default=0, help="signing link id")
     parser.add_argument("--mission-result", default="MAV_MISSION_ACCEPTED",
@@ -447,7 +482,7 @@ async def _amain(args: argparse.Namespace) -> SimVehicle:
                          echo_frames=args.echo_frames, payload_type=args.payload_type, tunnel_rate=args.tunnel_rate,
                          tunnel_settings=settings, weeds_every=args.weeds_every,
                          mission_result=args.mission_result, command_results=args.command_result.split(","),
-                         legacy_requests=args.legacy_requests)
+                         legacy_requests=args.legacy_requests, weeds_on_command=args.weeds_on_command)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):

@@ -140,11 +140,49 @@ def test_duplicate_route_names_and_unknown_connection(tmp_path: Path):
     assert "already defined at" in result.stderr and "unknown connection 'nope'" in result.stderr
 
 
+ELSEWHERE = """# a connection that names its own broker: --local-broker's node does not serve it
+connections:
+  own: {{amqp: "amqp://guest:guest@127.0.0.1:{port}/"}}
+dead_letters: {{connection: gcs}}
+routes:
+  - name: elsewhere
+    source: {{amqp: {{queue: q-elsewhere, connection: own}}}}
+    schema: raw_json
+    sink: {{amqp: {{exchange: e, connection: own}}}}
+"""
+
+
+def _unused_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def test_check_local_broker_names_connections_that_go_elsewhere(tmp_path: Path):
+    (tmp_path / "gcs.yaml").write_text((REPO / "routes" / "gcs.yaml").read_text())
+    (tmp_path / "own.yaml").write_text(ELSEWHERE.format(port=5999))
+    plain = cli("check", "--routes", str(tmp_path), "--schemas", str(REPO / "schemas"))
+    assert plain.returncode == 0 and plain.stderr == "", plain.stderr
+    result = cli("check", "--local-broker", "--routes", str(tmp_path), "--schemas", str(REPO / "schemas"))
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.splitlines() == [
+        f"{tmp_path}/own.yaml:3: warning: connection 'own' names its own broker (amqp://guest:***@127.0.0.1:5999/), "
+        "so --local-broker's private node does not serve it and its routes use that broker; to use the private node, "
+        "write the URL as \"${RABBITROS_AMQP_URL:-<the URL>}\", or leave the connection out"]
+
+
 def test_run_with_local_broker_routes_and_stops_cleanly(tmp_path: Path):
+    """routes/ (whose connection is ``${RABBITROS_AMQP_URL:-...}``) beside a file whose connection
+    names its own URL: the first goes to the private node, the second is named in a warning at
+    start, with the private node, and the others keep running."""
     url_file = tmp_path / "broker-url"
     status_file = tmp_path / "status.json"
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "gcs.yaml").write_text((REPO / "routes" / "gcs.yaml").read_text())
+    (routes / "own.yaml").write_text(ELSEWHERE.format(port=_unused_port()))
     process = subprocess.Popen(
-        [sys.executable, "-m", "engine", "--routes", "routes/", "--local-broker",
+        [sys.executable, "-m", "engine", "--routes", str(routes), "--schemas", "schemas", "--local-broker",
          "--broker-url-file", str(url_file), "--status-file", str(status_file), "--log-format", "json"],
         cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True,
     )
@@ -168,12 +206,15 @@ def test_run_with_local_broker_routes_and_stops_cleanly(tmp_path: Path):
         bodies = asyncio.run(roundtrip())
         assert bodies == [b'{"agent_id":"uav1","id":"d1","points":[{"lat":1.0,"lon":2.0,"p":0.9}],"stamp":{"nanosec":500000000,"sec":1},"type":"weed_detection"}']
         status = json.loads(status_file.read_text())
-        assert status["generation"] == 1 and set(status["routes"]) == {"uav-weeds", "gcs-commands"}
+        assert status["generation"] == 1 and set(status["routes"]) == {"uav-weeds", "gcs-commands", "elsewhere"}
         process.send_signal(signal.SIGTERM)
         _, stderr = process.communicate(timeout=60)
         assert process.returncode == 0, stderr
         records = [json.loads(line) for line in stderr.splitlines() if line.startswith("{")]
-        assert any(r["msg"] == "local broker started" for r in records)
+        started = next(r for r in records if r["msg"] == "local broker started")
+        warnings = [r["problem"] for r in records if r["msg"] == "route warning"]
+        assert len(warnings) == 1 and f"own.yaml:3: connection 'own' names its own broker" in warnings[0] \
+            and f"--local-broker's private node ({started['nodes'][0]}) does not serve it" in warnings[0], warnings
         assert "guest:guest" not in stderr, "a password reached the log"
     finally:
         if process.poll() is None:

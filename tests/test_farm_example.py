@@ -88,4 +88,17 @@ def test_farm_example_end_to_end(tmp_path: Path):
                  if event.get("event") == "stopped"]
     assert stopped["mission"] and {(item["frame"], item["z"]) for item in stopped["mission"]} == \
         {(mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, 20.0)}, stopped["mission"]
+
+    # The supervisor's command reached the UAV's companion computer through the radio (route
+    # uav1-commands): its weed detector runs only once commanded, so the weeds above prove it too.
+    assert re.findall(r"gcs -> command\.uav1: detect_weeds", out) == ["gcs -> command.uav1: detect_weeds"], out[-3000:]
+    assert status["uav1-commands"]["received"] == status["uav1-commands"]["delivered"] == 1, status["uav1-commands"]
+
+    # Every flow the demo promises carried messages (the demo exits 1 otherwise, naming them).
+    assert all(route["delivered"] > 0 for route in status.values()), status
+    sys.path.insert(0, str(REPO / "examples"))
+    from farm_demo import unkept_promises
+    assert unkept_promises(status) == []
+    idle = {**status, "uav1-commands": {**status["uav1-commands"], "delivered": 0}}
+    assert unkept_promises(idle) == ["flows that carried nothing: uav1-commands"]
     print(f"weeds {len(numbers)}, missions {sent}, acks {len(acks)}, uav missions {uav_sent}, uav acks {len(uav_acks)}")

@@ -1,5 +1,5 @@
 """Telemetry from the simulated vehicle, over the emulated SiK radio, through the routes of
-``examples/farm_routes_mavlink.yaml``, to AMQP as canonical position / attitude / battery / status.
+``examples/fragments/farm_routes_mavlink.yaml``, to AMQP as canonical position / attitude / battery / status.
 
 Every canonical value is checked against values computed here from ``expected_state(t)``, with
 ``t`` from the message's ``time_boot_ms``, by math written in this file (numpy rotation matrices),
@@ -29,7 +29,7 @@ from rabbitros_sim.vehicle import expected_state
 from tests.amqp_helpers import Collector
 
 REPO = Path(__file__).resolve().parents[1]
-EXAMPLE = REPO / "examples" / "farm_routes_mavlink.yaml"
+EXAMPLE = REPO / "examples" / "fragments" / "farm_routes_mavlink.yaml"
 
 NED_TO_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 """World axes: east = NED y, north = NED x, up = -down."""

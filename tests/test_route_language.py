@@ -8,7 +8,8 @@ import pytest
 
 from engine.mapping import MappingError, compile_mapping, compile_template, top_level_keys, unknown_functions
 from engine.redaction import reveal
-from engine.routes import RoutesInvalid, load_routes, substitute_env
+from engine.route_yaml import substitute_env
+from engine.routes import RoutesInvalid, load_routes
 from engine.schemas import SchemaError, SchemaRegistry, parse_json
 
 
@@ -28,6 +29,60 @@ def test_unquoted_env_values_take_their_yaml_type(tmp_path: Path, schemas_dir: P
     )
     config = load_routes(tmp_path, SchemaRegistry(schemas_dir), env={"DOMAIN": "12"})
     assert config.connections["ros"].settings == {"domain_id": 12, "node": "n42"}
+
+
+def test_env_values_take_the_type_their_key_expects(tmp_path: Path, schemas_dir: Path):
+    """Quoted or not, ``${VAR}`` becomes a number or boolean where the key wants one and text
+    where it wants text; a free mapping keeps YAML's reading (unquoted typed, quoted text)."""
+    (tmp_path / "a.yaml").write_text(
+        "connections:\n"
+        "  ros:\n    ros2:\n      domain_id: \"${ROS_DOMAIN_ID:-0}\"\n"
+        "  gcs: {amqp: {url: \"amqp://localhost/\", publisher_confirms: \"${CONFIRMS:-false}\", heartbeat: '${BEAT}'}}\n"
+        "routes:\n"
+        "  - name: r\n"
+        "    source: {ros2: {topic: /a}}\n"
+        "    schema: raw_json\n"
+        "    sink:\n      amqp:\n        connection: gcs\n        exchange: ${EXCHANGE}\n"
+        "    max_attempts: \"${ATTEMPTS}\"\n"
+        "  - name: q\n"
+        "    source:\n"
+        "      amqp:\n        queue: q\n        connection: gcs\n        queue_arguments:\n"
+        "          x-max-length: ${LIMIT}\n          x-note: \"${LIMIT}\"\n"
+        "    schema: raw_json\n"
+        "    sink: {amqp: {exchange: e, connection: gcs}}\n"
+    )
+    env = {"EXCHANGE": "42", "BEAT": "5", "ATTEMPTS": "7", "LIMIT": "100"}
+    config = load_routes(tmp_path, SchemaRegistry(schemas_dir), env=env)
+    assert config.connections["ros"].settings == {"domain_id": 0}
+    assert config.connections["ros"].options.domain_id == 0
+    gcs = config.connections["gcs"].options
+    assert gcs.publisher_confirms is False and gcs.heartbeat == 5
+    assert config.routes["r"].delivery.max_attempts == 7
+    assert config.routes["r"].sink.options.exchange == "42"
+    assert config.routes["q"].source.options.queue_arguments == {"x-max-length": 100, "x-note": "100"}
+
+    (tmp_path / "a.yaml").write_text("connections:\n  ros: {ros2: {domain_id: \"${DOMAIN}\"}}\n")
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(schemas_dir), env={"DOMAIN": "seven"})
+    assert [str(p).removeprefix(f"{tmp_path}/") for p in invalid.value.problems] == [
+        "a.yaml:2: connections.ros.ros2.domain_id: 'seven' is not of type 'integer'"]
+
+
+def test_unquoted_env_in_a_flow_mapping_says_to_quote_it(tmp_path: Path, schemas_dir: Path):
+    (tmp_path / "a.yaml").write_text(
+        "connections:\n  ros:\n    ros2: {node: n,\n           domain_id: ${ROS_DOMAIN_ID:-0}}\n"
+        "routes: [a, x${Y}]\n")
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(schemas_dir), env={})
+    assert [str(p).removeprefix(f"{tmp_path}/") for p in invalid.value.problems] == [
+        "a.yaml:4: invalid YAML: did not find expected ',' or '}'; inside a flow mapping ({...}) an unquoted ${VAR} "
+        "is read as a nested mapping: quote the value, \"${ROS_DOMAIN_ID:-0}\" (a quoted ${VAR} still becomes a "
+        "number or boolean where the key expects one)"]
+    (tmp_path / "a.yaml").write_text("routes: [a, x${Y}]\n")
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(schemas_dir), env={})
+    assert "inside a flow list ([...]) an unquoted ${VAR} is read as a nested mapping: quote the value, \"x${Y}\"" \
+        in str(invalid.value.problems[0])
 
 
 def test_field_functions():

@@ -13,7 +13,7 @@ import jsonschema
 import pytest
 
 from engine import endpoints
-from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSourceOptions
+from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSourceOptions
 from engine.options import OptionError, evolve, given, option, parse, schema
 from engine.redaction import Secret
 from engine import route_schema

@@ -368,6 +368,12 @@ class Transport(ABC):
         undo on ``connection`` what only it needed (AMQP: bindings, an auto-named queue).
         ``remaining`` are the (route, options) of the sources configured on that connection now."""
 
+    def canonical_fields(self, options: Any) -> Iterable[tuple[str, str]]:
+        """``(option key, dotted field path)`` of each canonical field a sink's options
+        interpolate (``routing_key: canonical.{agent_id}``): ``check`` warns about one the
+        route's schema does not declare, as a message without it is dead-lettered."""
+        return ()
+
     def competing_consumers(self, route: str, options: Any) -> str | None:
         """For a source whose consumers compete for messages (an AMQP queue), the name of what
         it consumes; ``check`` warns when two routes name the same one."""

@@ -41,7 +41,7 @@ import threading
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, Literal, Mapping, Sequence
+from typing import Any, Callable, Iterable, Iterator, Literal, Mapping, Sequence
 
 import jmespath
 import rclpy
@@ -274,6 +274,9 @@ class Ros2Transport(Transport):
 
     def connect(self, name: str, settings: Ros2ConnectionOptions | Mapping[str, Any]) -> Connection:
         return Ros2Connection(name, settings)
+
+    def canonical_fields(self, options: Ros2EndpointOptions) -> Iterable[tuple[str, str]]:
+        return [("topic", name) for name in _PLACEHOLDER.findall(options.topic or "") if name not in _RCL_SUBSTITUTIONS]
 
 
 TRANSPORT = Ros2Transport()

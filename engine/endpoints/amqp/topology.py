@@ -1,6 +1,6 @@
 """AMQP topology follows the configuration: what a retired source leaves behind goes.
 
-A source declares its queue and binds it when it starts (engine/endpoints/amqp.py). When a
+A source declares its queue and binds it when it starts (engine/endpoints/amqp/transport.py). When a
 route is removed, or its source replaced (say its ``binding_key`` changed), the broker would
 otherwise keep the old binding for ever: messages published with the old key keep flowing,
 and a removed route's durable queue fills. So, once the old source has stopped:
@@ -21,7 +21,7 @@ import aiormq.exceptions
 from aio_pika.exceptions import AMQPError
 
 from engine.endpoints.base import Connection
-from engine.endpoints.amqp_options import AmqpSourceOptions
+from engine.endpoints.amqp.options import AmqpSourceOptions
 
 log = logging.getLogger("engine.amqp")
 _ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError)

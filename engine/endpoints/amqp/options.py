@@ -1,6 +1,6 @@
 """The AMQP endpoint's options, declared once (engine/options.py): connection, source, sink.
 
-Apart from engine/endpoints/amqp.py so the cluster helpers (amqp_cluster.py, amqp_topology.py)
+Apart from engine/endpoints/amqp/transport.py so the cluster helpers (cluster.py, topology.py)
 can use them without importing the endpoint itself.
 """
 

@@ -24,7 +24,7 @@ from yarl import URL
 
 from engine.endpoints.base import EndpointError
 from engine.redaction import reveal
-from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSourceOptions
+from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSourceOptions
 
 log = logging.getLogger("engine.amqp")
 

@@ -45,9 +45,9 @@ from engine.endpoints.base import (
     Transport,
     typed,
 )
-from engine.endpoints import amqp_cluster
-from engine.endpoints.amqp_options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
-from engine.mapping import MappingError, compile_template
+import engine.endpoints.amqp.cluster as amqp_cluster
+from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
+from engine.mapping import MappingError, compile_template, template_fields
 from engine.options import given
 from engine.redaction import redact_urls
 from engine.schemas import SchemaError, canonical_bytes
@@ -513,9 +513,12 @@ class AmqpTransport(Transport):
         self, connection: Connection, route: str, options: Mapping[str, Any],
         remaining: Iterable[tuple[str, Mapping[str, Any]]],
     ) -> None:
-        from engine.endpoints.amqp_topology import retire_source
+        from engine.endpoints.amqp.topology import retire_source
 
         await retire_source(connection, route, options, remaining)
+
+    def canonical_fields(self, options: AmqpSinkOptions) -> Iterable[tuple[str, str]]:
+        return [("routing_key", name) for name in template_fields(options.routing_key)]
 
     def competing_consumers(self, route: str, options: AmqpSourceOptions) -> str | None:
         queue = options.queue
