@@ -59,12 +59,12 @@ from rclpy.validate_full_topic_name import validate_full_topic_name
 from rclpy.validate_namespace import validate_namespace
 from rclpy.validate_node_name import validate_node_name
 
-from engine.endpoints import rosmsg
+from engine.endpoints import ros2_calls, rosmsg
 from engine.endpoints.base import (
     CheckResult, Connection, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
     Source, Transport, typed,
 )
-from engine.options import option
+from engine.options import given, option
 from engine.suggest import did_you_mean
 
 log = logging.getLogger("engine.ros2")
@@ -129,8 +129,10 @@ class Ros2EndpointOptions(EndpointOptions):
 
     __schema_description__ = "a ROS 2 topic of one message type"
 
-    topic: str = option(description="topic name; a sink's may interpolate canonical fields (/{agent_id}/weeds); {node} and {ns} are left to rcl")
-    type: str = option(STRING_TYPE, description="any installed message type, pkg/msg/Type or pkg/Type; std_msgs/msg/String carries the canonical JSON in data, byte for byte")
+    topic: str | None = option(None, description="topic name (required, except for a sink that names a service); a sink's may "
+                                                 "interpolate canonical fields (/{agent_id}/weeds); {node} and {ns} are left to rcl")
+    type: str = option(STRING_TYPE, description="any installed message type, pkg/msg/Type or pkg/Type; std_msgs/msg/String carries the "
+                                                "canonical JSON in data, byte for byte; with service: the service type, pkg/srv/Type")
     qos: Ros2Qos = option(Ros2Qos())
 
 
@@ -145,6 +147,14 @@ class Ros2SinkOptions(Ros2EndpointOptions):
     in the engine's memory, for readers that ask for transient_local themselves, while the
     source has already acknowledged them; holding until the first reader matches loses none
     of them, and the writer's history still serves the readers that join later."""
+    service: str | None = option(None, description="call this service instead of publishing on a topic (type: pkg/srv/Type): the "
+                                                   "response is the call's reply (route-language.md, Calls)")
+    timeout: float = option(ros2_calls.DEFAULT_CALL_TIMEOUT, exclusive_minimum=0,
+                            description="service: seconds from sending a request to its response, waiting for a server included; "
+                                        "then the caller gets an error reply")
+    max_in_flight: int = option(ros2_calls.DEFAULT_MAX_IN_FLIGHT, minimum=1,
+                                description="service: calls in flight at once (the default matches ROS 2's default service "
+                                            "queue depth, 10; raise it with the servers' depth)")
 
 
 # ---------------------------------------------------------------- static checks
@@ -186,6 +196,25 @@ def _check_endpoint(options: Ros2EndpointOptions, sink: bool) -> Iterator[tuple[
     for message in _check_topic(options.topic, allow_template=sink):
         yield "topic", message
     yield from _check_type(options.type)
+
+
+def _check_service(options: Ros2SinkOptions) -> Iterator[tuple[str | None, str]]:
+    """A service sink: a valid service name, an installed pkg/srv/Type, no topic."""
+    if options.topic is not None:
+        yield "service", "a ros2 sink names a topic or a service, not both"
+    for message in _check_topic(options.service, allow_template=False):
+        yield "service", message.replace("topic", "service")
+    try:
+        ros2_calls.resolve_service(options.type)
+    except rosmsg.MessageError as exc:
+        yield "type", str(exc)
+
+
+def _sink_class(options: Ros2SinkOptions) -> type:
+    """What a sink's mapping builds: the message of its topic, or its service's request."""
+    if options.service is not None:
+        return ros2_calls.resolve_service(options.type).Request
+    return rosmsg.resolve_type(options.type)
 
 
 def _check_mapping_keys(node: Mapping[str, Any], cls: type, prefix: str) -> Iterator[str]:
@@ -243,12 +272,18 @@ class Ros2Transport(Transport):
     def source_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
         yield from _check_endpoint(options, sink=False)
 
-    def sink_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
-        yield from _check_endpoint(options, sink=True)
+    def sink_problems(self, options: Ros2SinkOptions, mapping: str | None) -> CheckResult:
+        if options.service is not None:
+            yield from _check_service(options)
+        else:
+            yield from _check_endpoint(options, sink=True)
+            for key in ("timeout", "max_in_flight"):
+                if key in given(options):
+                    yield key, f"{key} applies to a sink that calls a service"
         if not mapping or options.type == STRING_TYPE:
             return
         try:
-            cls = rosmsg.resolve_type(options.type)
+            cls = _sink_class(options)
             tree = jmespath.compile(mapping).parsed
         except (rosmsg.MessageError, jmespath.exceptions.JMESPathError):
             return  # reported by the type check and by the route loader
@@ -261,9 +296,9 @@ class Ros2Transport(Transport):
         ``sink mapping`` error naming the field; see :func:`typed_message`), before the route
         waits for a reader or throttles. A String sink carries JSON, where null is a value;
         without a sink mapping a null float is NaN (the canonical form of a ROS NaN)."""
-        if mapping is None or rosmsg.type_name(rosmsg.resolve_type(options.type)) == STRING_TYPE:
+        if mapping is None or options.service is None and rosmsg.type_name(rosmsg.resolve_type(options.type)) == STRING_TYPE:
             return None
-        where = f"ros2 topic {options.topic!r}"
+        where = f"ros2 service {options.service!r}" if options.service is not None else f"ros2 topic {options.topic!r}"
 
         def refuse_nulls(fields: Any) -> None:
             path = rosmsg.null_path(fields)
@@ -304,6 +339,7 @@ class Ros2Connection(Connection):
         self._sources: set[Ros2Source] = set()
         self._sinks: set[Ros2Sink] = set()
         self._publishers: dict[tuple[str, str, tuple[Any, ...]], tuple[Any, int]] = {}
+        self._calls: ros2_calls.CallNode | None = None
 
     @property
     def node(self) -> Node:
@@ -339,9 +375,20 @@ class Ros2Connection(Connection):
         return Ros2Source(self, route, options)
 
     def sink(self, route: str, options: Ros2SinkOptions | Mapping[str, Any]) -> Sink:
+        typed_options = typed(Ros2SinkOptions, options, f"route {route!r}: ros2 sink")
+        if typed_options.service is not None:
+            return ros2_calls.ServiceSink(self.calls(), route, typed_options.service, typed_options.type,
+                                          typed_options.timeout, typed_options.max_in_flight)
         sink = Ros2Sink(self, route, options)
         self._sinks.add(sink)
         return sink
+
+    def calls(self) -> ros2_calls.CallNode:
+        """The node of this connection's service calls, made on first use (engine/endpoints/ros2_calls.py)."""
+        if self._calls is None:
+            self.node  # raises EndpointError when not open
+            self._calls = ros2_calls.CallNode(self._context, self.settings.node, self.settings.namespace)
+        return self._calls
 
     def acquire_publisher(self, cls: type, topic: str, qos: QoSProfile) -> Any:
         """Publishers are shared by every sink of the connection with the same topic, type and
@@ -376,6 +423,9 @@ class Ros2Connection(Connection):
             await source.stop()
         for sink in list(self._sinks):
             await sink.close()
+        if self._calls is not None:
+            calls, self._calls = self._calls, None
+            await asyncio.to_thread(calls.close)
         self._closing = True
         self._guard.trigger()
         self._taken.set()
