@@ -117,6 +117,15 @@ class Pipeline:
             meta=meta,
         )
 
+    def cancel_request(self, inbound: Inbound) -> Outbound:
+        """A cancel for a sink that understands it (``Sink.cancels``): not converted, as its
+        body is not a request (engine/endpoints/base.py)."""
+        meta = inbound.meta
+        meta["route"] = self.route
+        meta["generation"] = self.generation
+        return Outbound(body=b"", canonical=None, fields=None,
+                        message_id=meta.get("message_id") or os.urandom(16).hex(), meta=meta)
+
     def enter(self) -> None:
         self.in_flight += 1
         self._drained.clear()

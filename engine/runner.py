@@ -182,7 +182,10 @@ class RouteRunner:
             failure = Failure("size", f"{len(body)} bytes exceed max_message_bytes {delivery.max_message_bytes}", True)
             return _Message(index, inbound, None, prior + 1, pipeline, failure)
         try:
-            outbound = pipeline.convert(inbound)
+            if pipeline.sink.cancels and inbound.meta.get("cancel") is not None:
+                outbound = pipeline.cancel_request(inbound)
+            else:
+                outbound = pipeline.convert(inbound)
         except Exception as error:  # ConversionError, or anything the pipeline did not foresee
             return _Message(index, inbound, None, prior + 1, pipeline, classify(error, "convert"))
         if len(outbound.body) > delivery.sink_max_message_bytes:

@@ -163,3 +163,47 @@ routes:
     assert "a.yaml:6: route 'from-ros': reply: a ros2 source cannot answer its sender (sources that can: amqp)" in problems
     assert any(p.startswith("a.yaml:11: route 'from-amqp': reply: bad JMESPath '{ok: '") for p in problems), problems
     assert "a.yaml:11: route 'from-amqp': reply: unknown schema 'comand'; did you mean 'command'?" in problems, problems
+
+
+def test_route_test_cases_give_a_response_and_expect_the_reply(tmp_path: Path, schemas_dir: Path) -> None:
+    """``rabbitros-engine test``: a case's ``response`` (the service's answer) goes through the
+    route's ``reply:`` and is compared with ``expect_reply``; a reply the mapping refuses is an
+    ``expect_error: reply mapping``; the request is built as the service's Request (a key the
+    type lacks is a ``sink`` error)."""
+    from engine.route_tests import format_result, load_checked, run_tests
+    from engine.schemas import SchemaRegistry
+
+    (tmp_path / "calls.yaml").write_text("""\
+routes:
+  - name: spray
+    source: {amqp: {queue: spray}}
+    schema: raw_json
+    sink:
+      ros2: {service: /robot1/set_spray, type: test_msgs/srv/BasicTypes, timeout: 5}
+      mapping: "{bool_value: spray}"
+    reply: {mapping: "{ok: bool_value, why: string_value, size: length(string_value)}"}
+""")
+    (tmp_path / "calls.test.yaml").write_text("""\
+tests:
+  - route: spray
+    input: {spray: true}
+    expect_sink: {bool_value: true}
+    response: {bool_value: true, string_value: spraying}
+    expect_reply: {ok: true, why: spraying, size: 8}
+  - route: spray
+    name: a reply the mapping cannot shape
+    input: {spray: true}
+    response: {bool_value: true, string_value: 3}
+    expect_error: reply mapping
+  - route: spray
+    name: wrong reply
+    input: {spray: false}
+    response: {bool_value: false, string_value: ""}
+    expect_reply: {ok: true}
+""")
+    schemas = SchemaRegistry(schemas_dir)
+    config, cases, problems, _ = load_checked(tmp_path, schemas)
+    assert config is not None and problems == [], problems
+    results = list(run_tests(cases, config, schemas))
+    assert [r.passed for r in results] == [True, True, False], [format_result(r) for r in results]
+    assert results[2].reason == "reply differs", results[2].reason

@@ -181,7 +181,127 @@ def test_service_sink_options_are_checked() -> None:
     assert list(check({"service": "/a", "type": "test_msgs/srv/BasicType"}, None)) == [
         ("type", "service type 'test_msgs/srv/BasicType' is not installed")]
     assert list(check({"service": "/a", "topic": "/b", "type": "test_msgs/srv/BasicTypes"}, None)) == [
-        ("service", "a ros2 sink names a topic or a service, not both")]
+        ("service", "a ros2 sink names one of topic, service or action")]
     assert list(check({"topic": "/b", "timeout": 3}, None)) == [("timeout", "timeout applies to a sink that calls a service")]
     problems = list(check({"service": "/a", "type": "test_msgs/srv/BasicTypes"}, "{int64_valu: n}"))
     assert problems and "did you mean 'int64_value'" in problems[0][1], problems
+    assert list(check({"action": "/f", "type": "test_msgs/action/Fibonaci"}, None)) == [
+        ("type", "action type 'test_msgs/action/Fibonaci' is not installed")]
+    problems = list(check({"action": "/f", "type": "test_msgs/action/Fibonacci"}, "{ordr: n}"))
+    assert problems and "did you mean 'order'" in problems[0][1], problems
+
+
+class FibonacciServer:
+    """``test_msgs/action/Fibonacci`` on a MultiThreadedExecutor: one feedback per step
+    (``step_s`` apart), cancelable between steps; refuses an order above 100. Records the
+    feedback it published per order."""
+
+    def __init__(self, domain_id: int, action: str, step_s: float) -> None:
+        from rclpy.action import ActionServer, CancelResponse, GoalResponse
+        from rclpy.callback_groups import ReentrantCallbackGroup
+        from rclpy.executors import MultiThreadedExecutor
+        from test_msgs.action import Fibonacci
+
+        self.Fibonacci, self.step_s = Fibonacci, step_s
+        self.feedback_sent: dict[int, int] = {}
+        self.context = Context()
+        rclpy.init(args=[], context=self.context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = Node("fibonacci_server", context=self.context, start_parameter_services=False)
+        self.server = ActionServer(
+            self.node, Fibonacci, action, self._execute, callback_group=ReentrantCallbackGroup(),
+            goal_callback=lambda goal: GoalResponse.REJECT if goal.order > 100 else GoalResponse.ACCEPT,
+            cancel_callback=lambda _: CancelResponse.ACCEPT)
+        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except ExternalShutdownException:
+            pass
+
+    def _execute(self, goal_handle: Any) -> Any:
+        order = goal_handle.request.order
+        sequence = [0, 1]
+        for _ in range(1, order):
+            if goal_handle.is_cancel_requested:
+                goal_handle.canceled()
+                return self.Fibonacci.Result(sequence=sequence)
+            sequence.append(sequence[-1] + sequence[-2])
+            goal_handle.publish_feedback(self.Fibonacci.Feedback(sequence=sequence))
+            self.feedback_sent[order] = self.feedback_sent.get(order, 0) + 1
+            time.sleep(self.step_s)
+        goal_handle.succeed()
+        return self.Fibonacci.Result(sequence=sequence)
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2)
+        self.thread.join(5)
+        self.server.destroy()
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+def test_fibonacci_goals_accepted_feedback_result_rejected_and_canceled(tmp_path: Path, amqp_url: str) -> None:
+    """A goal gets ``accepted``, every feedback the server published (in order) and the right
+    ``result`` with SUCCEEDED; a goal the server refuses gets one ``rejected``; a message with
+    ``x-rabbitros-cancel: <its correlation id>`` (no reply_to, body ignored) cancels a goal
+    mid-way, whose own caller gets ``result`` with CANCELED."""
+    tag = "a" + uuid.uuid4().hex[:8]
+    domain = 101 + os.getpid() % 100
+    action = f"/{tag}/fibonacci"
+    (tmp_path / "actions.yaml").write_text(f"""\
+connections:
+  bus: {{amqp: "{amqp_url}"}}
+  ros: {{ros2: {{domain_id: {domain}, node: engine_{tag}}}}}
+routes:
+  - name: fib-{tag}
+    source: {{amqp: {{connection: bus, queue: fib-{tag}}}}}
+    schema: raw_json
+    sink:
+      ros2: {{connection: ros, action: {action}, type: test_msgs/action/Fibonacci, timeout: 30}}
+      mapping: "{{order: order}}"
+""")
+    server = FibonacciServer(domain, action, step_s=0.1)
+
+    def kinds(replies: list[Any]) -> list[str]:
+        return [m.headers["x-rabbitros-reply"] for m in replies]
+
+    async def scenario() -> tuple[Caller, str, str, str]:
+        engine = Engine(tmp_path, REPO / "schemas")
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            caller = await Caller.open(channel)
+            done = await caller.call("", f"fib-{tag}", b'{"order": 6}')
+            refused = await caller.call("", f"fib-{tag}", b'{"order": 500}')
+            long = await caller.call("", f"fib-{tag}", b'{"order": 60}')
+            await caller.wait(lambda r: len(r.get(long, [])) >= 3, 20, "the long goal's feedback")
+            await caller.call("", f"fib-{tag}", b"{}", reply_to=None, headers={"x-rabbitros-cancel": long})
+            await caller.wait(lambda r: "result" in kinds(r.get(done, [])) and refused in r
+                              and "result" in kinds(r.get(long, [])), 30, "every goal's end")
+            await channel.queue_delete(f"fib-{tag}")
+        finally:
+            await engine.stop()
+            await connection.close()
+        return caller, done, refused, long
+
+    try:
+        caller, done, refused, long = asyncio.run(asyncio.wait_for(scenario(), 90))
+    finally:
+        server.close()
+    replies = [(m.headers["x-rabbitros-reply"], json.loads(m.body)) for m in caller.replies[done]]
+    assert replies[0] == ("accepted", {"kind": "accepted"})
+    feedback = [body["feedback"]["sequence"] for kind, body in replies if kind == "feedback"]
+    expected = [0, 1, 1, 2, 3, 5, 8]
+    assert feedback == [expected[:n] for n in range(3, 8)] and len(feedback) == server.feedback_sent[6]
+    assert replies[-1] == ("result", {"kind": "result", "status": "SUCCEEDED", "result": {"sequence": expected}})
+    assert [(m.headers["x-rabbitros-reply"], json.loads(m.body)) for m in caller.replies[refused]] == [
+        ("rejected", {"kind": "rejected"})]
+    long_replies = [(m.headers["x-rabbitros-reply"], json.loads(m.body)) for m in caller.replies[long]]
+    kind, end = long_replies[-1]
+    assert kind == "result" and end["status"] == "CANCELED" and len(end["result"]["sequence"]) < 61, end
+    assert kinds(caller.replies[long]).count("accepted") == 1

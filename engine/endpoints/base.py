@@ -28,6 +28,9 @@ calls it with a kind of :data:`REPLY_KINDS` and the answer as plain JSON data. T
 shapes it by the route's ``reply:`` mapping and schema and hands it to the source that received
 the request; a request that fails for good (dead-lettered) gets one ``error`` reply from the
 runner, so a caller never waits forever. Sinks never know who asked, or over what protocol.
+The meta keys of a call: ``reply_to`` (where replies go: only the source reads it),
+``correlation_id`` (the caller's name for the request) and ``cancel`` (this message cancels
+the request with that correlation id; see :attr:`Sink.cancels`).
 """
 
 from __future__ import annotations
@@ -211,6 +214,11 @@ class Source(ABC):
 
 
 class Sink(ABC):
+    cancels: ClassVar[bool] = False
+    """True when the sink understands a cancel: a message whose source marked it
+    ``meta["cancel"] = <correlation id of an earlier request>`` reaches the sink unconverted
+    (its body is not the request's: ``Outbound.canonical`` and ``fields`` are None) and stops
+    that request (a ROS 2 action goal). Other sinks get such a message converted as any other."""
     @abstractmethod
     async def send(self, message: Outbound) -> None:
         """Return once the destination has accepted the message; raise EndpointError if not."""

@@ -149,9 +149,12 @@ class Ros2SinkOptions(Ros2EndpointOptions):
     of them, and the writer's history still serves the readers that join later."""
     service: str | None = option(None, description="call this service instead of publishing on a topic (type: pkg/srv/Type): the "
                                                    "response is the call's reply (route-language.md, Calls)")
+    action: str | None = option(None, description="send each message as a goal of this action (type: pkg/action/Type): accepted, "
+                                                  "feedback and result are the call's replies (route-language.md, Calls)")
     timeout: float = option(ros2_calls.DEFAULT_CALL_TIMEOUT, exclusive_minimum=0,
-                            description="service: seconds from sending a request to its response, waiting for a server included; "
-                                        "then the caller gets an error reply")
+                            description="service: seconds from sending a request to its response; action: from sending the goal to "
+                                        "its result (then the goal is canceled); waiting for a server included; then the caller "
+                                        "gets an error reply")
     max_in_flight: int = option(ros2_calls.DEFAULT_MAX_IN_FLIGHT, minimum=1,
                                 description="service: calls in flight at once (the default matches ROS 2's default service "
                                             "queue depth, 10; raise it with the servers' depth)")
@@ -199,21 +202,26 @@ def _check_endpoint(options: Ros2EndpointOptions, sink: bool) -> Iterator[tuple[
 
 
 def _check_service(options: Ros2SinkOptions) -> Iterator[tuple[str | None, str]]:
-    """A service sink: a valid service name, an installed pkg/srv/Type, no topic."""
-    if options.topic is not None:
-        yield "service", "a ros2 sink names a topic or a service, not both"
-    for message in _check_topic(options.service, allow_template=False):
-        yield "service", message.replace("topic", "service")
+    """A service or action sink: one valid name, an installed pkg/srv/Type or pkg/action/Type."""
+    key = "service" if options.service is not None else "action"
+    if sum(value is not None for value in (options.topic, options.service, options.action)) > 1:
+        yield key, "a ros2 sink names one of topic, service or action"
+    if key == "action" and "max_in_flight" in given(options):
+        yield "max_in_flight", "max_in_flight applies to a sink that calls a service (goals are bounded by the server)"
+    for message in _check_topic(getattr(options, key), allow_template=False):
+        yield key, message.replace("topic", key)
     try:
-        ros2_calls.resolve_service(options.type)
+        (ros2_calls.resolve_service if key == "service" else ros2_calls.resolve_action)(options.type)
     except rosmsg.MessageError as exc:
         yield "type", str(exc)
 
 
 def _sink_class(options: Ros2SinkOptions) -> type:
-    """What a sink's mapping builds: the message of its topic, or its service's request."""
+    """What a sink's mapping builds: the message of its topic, its service's request, its action's goal."""
     if options.service is not None:
         return ros2_calls.resolve_service(options.type).Request
+    if options.action is not None:
+        return ros2_calls.resolve_action(options.type).Goal
     return rosmsg.resolve_type(options.type)
 
 
@@ -273,7 +281,7 @@ class Ros2Transport(Transport):
         yield from _check_endpoint(options, sink=False)
 
     def sink_problems(self, options: Ros2SinkOptions, mapping: str | None) -> CheckResult:
-        if options.service is not None:
+        if options.service is not None or options.action is not None:
             yield from _check_service(options)
         else:
             yield from _check_endpoint(options, sink=True)
@@ -296,9 +304,11 @@ class Ros2Transport(Transport):
         ``sink mapping`` error naming the field; see :func:`typed_message`), before the route
         waits for a reader or throttles. A String sink carries JSON, where null is a value;
         without a sink mapping a null float is NaN (the canonical form of a ROS NaN)."""
-        if mapping is None or options.service is None and rosmsg.type_name(rosmsg.resolve_type(options.type)) == STRING_TYPE:
+        calls = options.service is not None or options.action is not None
+        if mapping is None or not calls and rosmsg.type_name(rosmsg.resolve_type(options.type)) == STRING_TYPE:
             return None
-        where = f"ros2 service {options.service!r}" if options.service is not None else f"ros2 topic {options.topic!r}"
+        where = (f"ros2 service {options.service!r}" if options.service is not None else
+                 f"ros2 action {options.action!r}" if options.action is not None else f"ros2 topic {options.topic!r}")
 
         def refuse_nulls(fields: Any) -> None:
             path = rosmsg.null_path(fields)
@@ -379,6 +389,8 @@ class Ros2Connection(Connection):
         if typed_options.service is not None:
             return ros2_calls.ServiceSink(self.calls(), route, typed_options.service, typed_options.type,
                                           typed_options.timeout, typed_options.max_in_flight)
+        if typed_options.action is not None:
+            return ros2_calls.ActionSink(self.calls(), route, typed_options.action, typed_options.type, typed_options.timeout)
         sink = Ros2Sink(self, route, options)
         self._sinks.add(sink)
         return sink

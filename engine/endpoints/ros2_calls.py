@@ -1,4 +1,4 @@
-"""ROS 2 calls: the engine as a client of a ROS 2 service (issue 19), a sink of the ros2 transport.
+"""ROS 2 calls: the engine as a client of a ROS 2 service or action (issue 19), sinks of the ros2 transport.
 
     sink: {ros2: {service: /robot1/set_spray, type: std_srvs/srv/SetBool, timeout: 5, max_in_flight: 10}}
 
@@ -36,6 +36,7 @@ import re
 import threading
 from typing import Any, Sequence
 
+from rclpy.action import ActionClient
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -52,6 +53,9 @@ DEFAULT_CALL_TIMEOUT = 10.0
 DEFAULT_MAX_IN_FLIGHT = 10
 """The depth of ROS 2's default service QoS: see the module docstring."""
 _SERVICE_TYPE = re.compile(r"^([a-z][a-z0-9_]*)/srv/([A-Z][A-Za-z0-9]*)$")
+_ACTION_TYPE = re.compile(r"^([a-z][a-z0-9_]*)/action/([A-Z][A-Za-z0-9]*)$")
+GOAL_STATUS = {4: "SUCCEEDED", 5: "CANCELED", 6: "ABORTED"}
+"""action_msgs/msg/GoalStatus: the terminal states a result reply names."""
 _AVAILABLE_FIRST, _AVAILABLE_MAX = 0.01, 0.25
 """Backoff between looks for a server that is not there yet (a look costs microseconds)."""
 
@@ -78,6 +82,22 @@ def service_qos(max_in_flight: int) -> QoSProfile:
                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
 
+def resolve_action(name: Any) -> type:
+    """The action class of ``pkg/action/Type``; MessageError if it is not installed."""
+    match = _ACTION_TYPE.match(name.strip()) if isinstance(name, str) else None
+    if match is None:
+        raise rosmsg.MessageError(f"action type {name!r} is not of the form pkg/action/Type")
+    pkg, cls_name = match.groups()
+    try:
+        module = importlib.import_module(f"{pkg}.action")
+    except ImportError:
+        raise rosmsg.MessageError(f"action type '{pkg}/action/{cls_name}' is not installed") from None
+    cls = getattr(module, cls_name, None)
+    if not isinstance(cls, type) or not hasattr(cls, "Goal"):
+        raise rosmsg.MessageError(f"action type '{pkg}/action/{cls_name}' is not installed")
+    return cls
+
+
 class CallNode:
     """The node of a connection's calls and the executor thread that serves its responses."""
 
@@ -96,6 +116,25 @@ class CallNode:
             pass
         except Exception as exc:  # the context went away under it
             log.error("ros2 calls node %r stopped: %s", self.node.get_name(), exc)
+
+    def submit(self, work: Any) -> asyncio.Future[Any]:
+        """Run ``work()`` on the executor's thread (rclpy's action client registers a goal's
+        future only after sending it, so a response taken by the executor in between would be
+        ignored: sending from the executor's own thread closes that window); its return value,
+        or its error, comes back as an asyncio future."""
+        loop = asyncio.get_running_loop()
+        done: asyncio.Future[Any] = loop.create_future()
+
+        def run() -> None:
+            try:
+                result = work()
+            except Exception as exc:
+                loop.call_soon_threadsafe(_fail, done, exc)
+            else:
+                loop.call_soon_threadsafe(_succeed, done, result)
+
+        self.executor.create_task(run)
+        return done
 
     def close(self) -> None:
         """Blocking (the connection runs it in a thread): stop the executor, then the node."""
@@ -179,6 +218,174 @@ class ServiceSink(Sink):
     async def close(self) -> None:
         try:
             self._calls.node.destroy_client(self._client)
+        except Exception:  # the node is gone with its connection
+            pass
+
+
+def bridged(future: Any) -> asyncio.Future[Any]:
+    """An rclpy future as an asyncio future of the running loop."""
+    loop = asyncio.get_running_loop()
+    answered: asyncio.Future[Any] = loop.create_future()
+    future.add_done_callback(lambda done: loop.call_soon_threadsafe(_settle, answered, done))
+    return answered
+
+
+def _succeed(future: asyncio.Future[Any], result: Any) -> None:
+    if not future.done():
+        future.set_result(result)
+
+
+def _fail(future: asyncio.Future[Any], error: BaseException) -> None:
+    if not future.done():
+        future.set_exception(EndpointError(str(error)))
+
+
+class ActionSink(Sink):
+    """Sends one goal per message (see the module docstring of the reply kinds).
+
+    A message is accepted once the server accepted or rejected its goal (replies ``accepted``
+    or ``rejected``), so the route's source moves on and a cancel can follow on the same route;
+    the goal is then followed in a task of its own: each feedback is a ``feedback`` reply
+    ``{kind, feedback}`` (rosbridge JSON), the end a ``result`` reply ``{kind, status, result}``
+    with ``status`` SUCCEEDED, ABORTED or CANCELED. ``timeout`` bounds the whole goal, from
+    sending to result: then the goal is canceled on the server and the caller gets an ``error``
+    reply (after acceptance it is no dead letter: the request was settled). A message whose
+    source marks it a cancel (``meta["cancel"]``: the AMQP header ``x-rabbitros-cancel``
+    naming the goal's correlation id) cancels that goal; the goal's ``result`` with CANCELED
+    goes to the goal's own caller. Closing the sink (a reload, the engine stopping) cancels the
+    goals it follows and tells their callers with an ``error`` reply."""
+
+    cancels = True
+
+    def __init__(self, calls: CallNode, route: str, action: str, type_name: str, timeout: float) -> None:
+        self._where = f"route {route!r}, ros2 action {action!r}"
+        try:
+            self._cls = resolve_action(type_name)
+        except rosmsg.MessageError as exc:
+            raise EndpointError(f"{self._where}: {exc}") from None
+        self._calls = calls
+        self._timeout = timeout
+        self._goals: dict[str, Any] = {}
+        """Goal handles in flight by the correlation id of their request (what a cancel names)."""
+        self._following: set[asyncio.Task[None]] = set()
+        try:
+            self._client = ActionClient(calls.node, self._cls, action)
+        except Exception as exc:
+            raise EndpointError(f"{self._where}: cannot create the client: {exc}") from exc
+
+    async def send(self, message: Outbound) -> None:
+        error = (await self.send_batch((message,)))[0]
+        if error is not None:
+            raise error
+
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        return list(await asyncio.gather(*(self._settled(message) for message in messages)))
+
+    async def _settled(self, message: Outbound) -> BaseException | None:
+        try:
+            cancel = message.meta.get("cancel")
+            if cancel is not None:
+                await self._cancel(str(cancel))
+            else:
+                await self._send_goal(message)
+        except EndpointError as error:
+            return error
+        return None
+
+    def _goal(self, message: Outbound) -> Any:
+        mapped = message.fields is not message.canonical
+        try:
+            return rosmsg.from_dict(self._cls.Goal, message.fields if message.fields is not None else {}, null_as_nan=not mapped)
+        except rosmsg.NullValue as exc:
+            raise MessageRejected(f"{self._where}: {exc}", stage="sink mapping") from exc
+        except rosmsg.MessageError as exc:
+            raise MessageRejected(f"{self._where}: {exc}") from exc
+
+    async def _send_goal(self, message: Outbound) -> None:
+        goal, reply = self._goal(message), message.reply
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self._timeout
+        backoff = Backoff(_AVAILABLE_FIRST, _AVAILABLE_MAX)
+        while not self._client.server_is_ready():
+            if loop.time() >= deadline:
+                raise MessageRejected(f"{self._where}: not available (no server within {self._timeout:g} s)")
+            await asyncio.sleep(min(deadline - loop.time(), backoff.next()))
+        events: asyncio.Queue[tuple[str, Any]] = asyncio.Queue()
+
+        def feedback(msg: Any) -> None:  # the executor's thread
+            loop.call_soon_threadsafe(events.put_nowait, ("feedback", rosmsg.to_dict(msg.feedback)))
+
+        try:
+            sent = await asyncio.wait_for(self._calls.submit(lambda: self._client.send_goal_async(goal, feedback)),
+                                          max(0.0, deadline - loop.time()))
+            handle = await asyncio.wait_for(bridged(sent), max(0.0, deadline - loop.time()))
+        except asyncio.TimeoutError:
+            raise MessageRejected(f"{self._where}: the goal was not answered within {self._timeout:g} s") from None
+        if not handle.accepted:
+            if reply is not None:
+                await reply("rejected", {"kind": "rejected"})
+            return
+        if reply is not None:
+            await reply("accepted", {"kind": "accepted"})
+        correlation_id = message.meta.get("correlation_id")
+        if correlation_id:
+            self._goals[str(correlation_id)] = handle
+        task = asyncio.create_task(self._follow(handle, events, reply, deadline, correlation_id))
+        self._following.add(task)
+        task.add_done_callback(self._following.discard)
+
+    async def _follow(self, handle: Any, events: asyncio.Queue[tuple[str, Any]], reply: Any, deadline: float,
+                      correlation_id: Any) -> None:
+        """Feedback and result, in the order the executor took them, until the result or the deadline."""
+        loop = asyncio.get_running_loop()
+        try:
+            requested = await self._calls.submit(handle.get_result_async)
+            requested.add_done_callback(lambda done: loop.call_soon_threadsafe(events.put_nowait, ("result", done)))
+            while True:
+                kind, data = await asyncio.wait_for(events.get(), max(0.0, deadline - loop.time()))
+                if kind == "feedback":
+                    if reply is not None:
+                        await reply("feedback", {"kind": "feedback", "feedback": data})
+                    continue
+                if data.exception() is not None:
+                    raise EndpointError(str(data.exception()))
+                answer = data.result()
+                if reply is not None:
+                    await reply("result", {"kind": "result", "status": GOAL_STATUS.get(answer.status, str(answer.status)),
+                                           "result": rosmsg.to_dict(answer.result)})
+                return
+        except (asyncio.TimeoutError, asyncio.CancelledError) as exc:
+            if isinstance(exc, asyncio.TimeoutError):
+                why = f"goal not done within {self._timeout:g} s; canceled on the server"
+            else:
+                why = "goal canceled on the server: the route stopped or was reloaded"
+            try:
+                await asyncio.wait_for(self._calls.submit(handle.cancel_goal_async), 2.0)
+            except (asyncio.TimeoutError, EndpointError):
+                why += " (the cancel request could not be sent)"
+            if reply is not None:
+                await reply("error", {"stage": "sink", "error": f"{self._where}: {why}"})
+        except EndpointError as exc:
+            if reply is not None:
+                await reply("error", {"stage": "sink", "error": f"{self._where}: {exc}"})
+        finally:
+            if correlation_id:
+                self._goals.pop(str(correlation_id), None)
+
+    async def _cancel(self, correlation_id: str) -> None:
+        handle = self._goals.get(correlation_id)
+        if handle is None:
+            raise MessageRejected(f"{self._where}: no goal in flight for correlation id {correlation_id!r} to cancel")
+        requested = await self._calls.submit(handle.cancel_goal_async)
+        await asyncio.wait_for(bridged(requested), self._timeout)
+
+    async def close(self) -> None:
+        following = list(self._following)
+        for task in following:
+            task.cancel()
+        await asyncio.gather(*following, return_exceptions=True)
+        try:
+            self._client.destroy()
         except Exception:  # the node is gone with its connection
             pass
 
