@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+import yaml
 
 from engine.endpoints.mavlink.dialect import mavlink2
 from engine.endpoints.mqtt.broker import LocalMosquitto
@@ -33,6 +33,7 @@ from engine.runtime import Engine
 from engine.schemas import SchemaRegistry
 from tests.conftest import REPO
 from tests.faults_harness import wait_for
+from tests.test_cli import cli
 from tests.test_mqtt import Subscriber, publish
 from tests.test_ros2_endpoint import DOMAIN, Peer
 
@@ -40,7 +41,6 @@ EXAMPLE = REPO / "examples" / "vda5050"
 Path_ = resolve_type("nav_msgs/msg/Path")
 BatteryState = resolve_type("sensor_msgs/msg/BatteryState")
 PoseWithCovarianceStamped = resolve_type("geometry_msgs/msg/PoseWithCovarianceStamped")
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 # ------------------------------------------------------------------ the schemas as a family
@@ -71,6 +71,23 @@ def test_the_vda_schemas_load_as_a_family_and_only_one_level_deep(tmp_path: Path
     assert registry.names() == ["fine/z", "fine/z.v3"]
     assert [(path.relative_to(tmp_path).as_posix(), text) for path, text in registry.problems] == [
         ("Bad-Family/x.v1.json", "schema file names must look like name.v1.json")]
+
+
+# ------------------------------------------------------------------ the example, offline
+
+
+def test_the_example_checks_clean_and_every_route_has_passing_route_tests() -> None:
+    """``check`` without a warning and ``test`` green, as the README says to run them (the schemas
+    found as schemas/ of the working directory); every route has at least one case."""
+    checked = cli("check", "--routes", "examples/vda5050", timeout=120)
+    assert checked.returncode == 0 and checked.stderr == "", checked.stderr
+    assert checked.stdout.endswith(": ok\n") and "10 routes, 3 connections" in checked.stdout, checked.stdout
+    tested = cli("test", "--routes", "examples/vda5050", timeout=120)
+    assert tested.returncode == 0, tested.stdout[-3000:] + tested.stderr
+    cases = yaml.safe_load((EXAMPLE / "vda5050.test.yaml").read_text())["tests"]
+    routes = [route["name"] for route in yaml.safe_load((EXAMPLE / "vda5050.yaml").read_text())["routes"]]
+    assert f"{len(cases)} passed, 0 failed" in tested.stdout
+    assert sorted({case["route"] for case in cases}) == sorted(routes)
 
 
 # ------------------------------------------------------------------ the example, running
@@ -139,8 +156,7 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
     schemas = SchemaRegistry(REPO / "schemas")
 
     peer = Peer()
-    goals: list[Any] = []
-    peer.node.create_subscription(Path_, "/robot1/goal", goals.append, LATCHED)
+    goals = peer.subscribe(Path_, "/robot1/goal")
     battery = peer.publisher(BatteryState, "/robot1/battery")
     pose = peer.publisher(PoseWithCovarianceStamped, "/robot1/pose")
     peer.start()
@@ -159,10 +175,11 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
                 await wait_for(lambda: battery.get_subscription_count() > 0 and pose.get_subscription_count() > 0,
                                20, "the engine's ROS 2 subscriptions")
                 started = time.monotonic()
-                await publish(mosquitto, [("uagv/v2/rabbitros/uav1/order", UAV_ORDER),
-                                          ("uagv/v2/rabbitros/robot1/order", ROBOT_ORDER)])
+                await publish(mosquitto, [("uagv/v2/rabbitros/uav1/order", UAV_ORDER)])
                 await wait_for(lambda: delivered("uav1-order") == 1, 20, "the UAV to accept its mission")
                 figures["order_to_mission_accepted_s"] = time.monotonic() - started
+                started = time.monotonic()
+                await publish(mosquitto, [("uagv/v2/rabbitros/robot1/order", ROBOT_ORDER)])
                 await wait_for(lambda: len(goals) == 1, 20, "the robot's Path")
                 figures["order_to_robot_goal_s"] = time.monotonic() - started
 
