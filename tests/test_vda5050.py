@@ -31,6 +31,7 @@ from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.endpoints.rosmsg import resolve_type
 from engine.runtime import Engine
 from engine.schemas import SchemaRegistry
+from engine.watch import watch_routes
 from tests.conftest import REPO
 from tests.faults_harness import wait_for
 from tests.test_cli import cli
@@ -71,6 +72,29 @@ def test_the_vda_schemas_load_as_a_family_and_only_one_level_deep(tmp_path: Path
     assert registry.names() == ["fine/z", "fine/z.v3"]
     assert [(path.relative_to(tmp_path).as_posix(), text) for path, text in registry.problems] == [
         ("Bad-Family/x.v1.json", "schema file names must look like name.v1.json")]
+
+
+def test_an_edit_of_a_family_schema_is_seen_by_the_watcher(tmp_path: Path) -> None:
+    """A running engine reloads when schemas/vda5050/state.v2.json changes, as for any schema."""
+    routes, family = tmp_path / "routes", tmp_path / "schemas" / "vda5050"
+    routes.mkdir()
+    family.mkdir(parents=True)
+    (family / "state.v2.json").write_text('{"type": "object"}')
+
+    async def scenario() -> int:
+        calls: list[float] = []
+        stop = asyncio.Event()
+        task = asyncio.create_task(watch_routes(routes, lambda: calls.append(time.monotonic()), stop, tmp_path / "schemas"))
+        try:
+            await asyncio.sleep(0.3)  # the watch is set up
+            (family / "state.v2.json").write_text('{"type": "object", "required": ["headerId"]}')
+            await wait_for(lambda: len(calls) > 0, 10, "the watcher to see the family schema's edit")
+            return len(calls)
+        finally:
+            stop.set()
+            await asyncio.wait_for(task, 10)
+
+    assert asyncio.run(scenario()) >= 1
 
 
 # ------------------------------------------------------------------ the example, offline
