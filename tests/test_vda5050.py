@@ -3,7 +3,8 @@ is, against a private mosquitto, a ROS 2 robot (rclpy) and the simulated UAV ove
 
 A master control (a plain aiomqtt client) sends an order to each vehicle: the robot's ROS 2
 subscriber gets its nav_msgs/Path, the UAV holds the uploaded mission (the simulator reports
-it when it stops); a startPause reaches the UAV as an acknowledged command; every `state`,
+it when it stops); a startPause reaches the UAV as an acknowledged command and the robot's
+driver as JSON; every `state`,
 `visualization` and `connection` message the engine publishes validates against the VDA's own
 schema, and says what the vehicles reported.
 """
@@ -36,7 +37,7 @@ from tests.conftest import REPO
 from tests.faults_harness import wait_for
 from tests.test_cli import cli
 from tests.test_mqtt import Subscriber, publish
-from tests.test_ros2_endpoint import DOMAIN, Peer
+from tests.test_ros2_endpoint import DOMAIN, Peer, String
 
 EXAMPLE = REPO / "examples" / "vda5050"
 Path_ = resolve_type("nav_msgs/msg/Path")
@@ -181,6 +182,7 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
 
     peer = Peer()
     goals = peer.subscribe(Path_, "/robot1/goal")
+    driver = peer.subscribe(String, "/robot1/instant_actions")
     battery = peer.publisher(BatteryState, "/robot1/battery")
     pose = peer.publisher(PoseWithCovarianceStamped, "/robot1/pose")
     peer.start()
@@ -211,6 +213,8 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
                 await publish(mosquitto, [("uagv/v2/rabbitros/uav1/instantActions", PAUSE)])
                 await wait_for(lambda: delivered("uav1-instant-actions") == 1, 20, "the UAV to acknowledge the pause")
                 figures["pause_to_command_ack_s"] = time.monotonic() - started
+                await publish(mosquitto, [("uagv/v2/rabbitros/robot1/instantActions", {**PAUSE, "serialNumber": "robot1"})])
+                await wait_for(lambda: len(driver) == 1, 20, "the robot's driver to get the pause")
 
                 message = BatteryState()
                 message.header.stamp.sec, message.header.frame_id = 1_763_917_200, "base_link"
@@ -251,6 +255,8 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
     assert goal.header.frame_id == "map" and len(goal.poses) == 2
     assert (goal.poses[1].pose.position.x, goal.poses[1].pose.position.y) == (11.0, 2.0)
     assert math.isclose(goal.poses[1].pose.orientation.z, math.sqrt(0.5)) and math.isclose(goal.poses[1].pose.orientation.w, math.sqrt(0.5))
+
+    assert json.loads(driver[0].data) == {**PAUSE, "serialNumber": "robot1"}
 
     # the UAV holds the two released nodes, 15 m above home, where the farm map puts them
     assert stopped, "the vehicle exited before the end of the test"
