@@ -4,9 +4,8 @@ is, against a private mosquitto, a ROS 2 robot (rclpy) and the simulated UAV ove
 A master control (a plain aiomqtt client) sends an order to each vehicle: the robot's ROS 2
 subscriber gets its nav_msgs/Path, the UAV holds the uploaded mission (the simulator reports
 it when it stops); a startPause reaches the UAV as an acknowledged command and the robot's
-driver as JSON; every `state`,
-`visualization` and `connection` message the engine publishes validates against the VDA's own
-schema, and says what the vehicles reported.
+driver as JSON; every `state`, `visualization` and `connection` message the engine publishes
+validates against the VDA's own schema, and says what the vehicles reported.
 """
 
 from __future__ import annotations
