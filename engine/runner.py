@@ -361,10 +361,11 @@ class RouteRunner:
             failure = message.failure
             self.observer.dead_letter(message.inbound, message.outbound, failure.stage, failure.error)  # type: ignore[union-attr]
         self._report_failure(dead[-1].failure, len(dead))  # type: ignore[arg-type]
-        for message in dead:  # a request that failed for good: its caller gets one error reply
-            if message.inbound.meta.get("reply_to"):
-                reply = message.outbound.reply if message.outbound is not None else None
-                await self.replies.failed(reply, message.inbound.meta, message.failure.stage, message.failure.error)  # type: ignore[union-attr]
+        calls = [m for m in dead if m.inbound.meta.get("reply_to")]
+        if calls:  # each request that failed for good: its caller gets one error reply, published together
+            await asyncio.gather(*(self.replies.failed(m.outbound.reply if m.outbound is not None else None,
+                                                       m.inbound.meta, m.failure.stage, m.failure.error)  # type: ignore[union-attr]
+                                   for m in calls))
 
     def _report_retry(self, failure: Failure, count: int) -> None:
         if self._retry_report.ready():
