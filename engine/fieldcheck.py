@@ -210,7 +210,12 @@ def _resolver(protocol: str, options: Any) -> Any:
         try:
             from engine.endpoints import rosmsg
 
-            cls = rosmsg.resolve_type(type_name)
+            if getattr(options, "service", None) is not None:  # an offered service: the mapping reads its request
+                from engine.endpoints.ros2_calls import resolve_service
+
+                cls = resolve_service(type_name).Request
+            else:
+                cls = rosmsg.resolve_type(type_name)
         except Exception:  # not installed or misspelt: reported by the type check
             return None
         if rosmsg.type_name(cls) == "std_msgs/msg/String":

@@ -572,10 +572,11 @@ def _reply_checks(document: Document, where: Path_, route: RouteOptions, source:
     reply, name = route.reply, route.name
     if reply is None:
         return
-    if source is not None and not endpoints.transport(source.protocol).replies:
+    if source is not None and not endpoints.transport(source.protocol).source_answers(source.options):
         able = [p for p in endpoints.PROTOCOLS if _replies(p)]
-        problems.append(document.problem(where + ("reply",), f"route {name!r}: reply: a {source.protocol} source cannot "
-                                                             f"answer its sender (sources that can: {', '.join(able)})"))
+        problems.append(document.problem(where + ("reply",), f"route {name!r}: reply: this {source.protocol} source cannot "
+                                                             f"answer its sender (protocols whose sources can: {', '.join(able)}; "
+                                                             "see Calls in route-language.md)"))
     for message in _mapping_problems(reply.mapping):
         problems.append(document.problem(where + ("reply", "mapping"), f"route {name!r}: reply: {message}"))
     if reply.schema is not None and schemas.get(reply.schema) is None:

@@ -305,3 +305,80 @@ routes:
     kind, end = long_replies[-1]
     assert kind == "result" and end["status"] == "CANCELED" and len(end["result"]["sequence"]) < 61, end
     assert kinds(caller.replies[long]).count("accepted") == 1
+
+
+def test_a_ros2_client_calls_the_engines_service_and_gets_the_amqp_workers_answer(tmp_path: Path, amqp_url: str) -> None:
+    """The engine offers ``test_msgs/srv/BasicTypes``; each call is an AMQP request (direct
+    reply-to) on the worker's queue, and the worker's answer, through ``reply.mapping``, is the
+    response the rclpy client gets. A call the worker leaves unanswered gets no response (ROS 2
+    has no error response: the client's own wait ends it) and is counted as failed."""
+    tag = "o" + uuid.uuid4().hex[:8]
+    domain = 101 + os.getpid() % 100
+    service = f"/{tag}/offered"
+    (tmp_path / "offered.yaml").write_text(f"""\
+connections:
+  bus: {{amqp: "{amqp_url}"}}
+  ros: {{ros2: {{domain_id: {domain}, node: engine_{tag}}}}}
+routes:
+  - name: offer-{tag}
+    source: {{ros2: {{connection: ros, service: {service}, type: test_msgs/srv/BasicTypes}}}}
+    mapping: "{{n: int64_value, ask: string_value}}"
+    schema: raw_json
+    sink: {{amqp: {{connection: bus, routing_key: work-{tag}, timeout: 2}}}}
+    reply: {{mapping: "{{int64_value: answer, string_value: note}}"}}
+""")
+    client_node = BasicTypesServer.__new__(BasicTypesServer)  # a context and an executor thread, no service
+    client_node.context = Context()
+    rclpy.init(args=[], context=client_node.context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    client_node.node = Node("offered_client", context=client_node.context, start_parameter_services=False)
+    client = client_node.node.create_client(BasicTypes, service)
+    client_node.executor = SingleThreadedExecutor(context=client_node.context)
+    client_node.executor.add_node(client_node.node)
+    client_node.thread = threading.Thread(target=client_node._spin, daemon=True)
+    client_node.thread.start()
+
+    def call(n: int, ask: str, wait: float) -> Any:
+        done = threading.Event()
+        future = client.call_async(BasicTypes.Request(int64_value=n, string_value=ask))
+        future.add_done_callback(lambda _: done.set())
+        answered = done.wait(wait)
+        if not answered:
+            client.remove_pending_request(future)
+        return future.result() if answered else None
+
+    async def scenario() -> tuple[list[Any], Any, dict[str, Any]]:
+        engine = Engine(tmp_path, REPO / "schemas")
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            work = await channel.declare_queue(f"work-{tag}", exclusive=True)
+
+            async def worker(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+                request = json.loads(message.body)
+                if request["ask"] == "ignore me":
+                    return
+                await channel.default_exchange.publish(aio_pika.Message(
+                    json.dumps({"answer": request["n"] * 3, "note": f"{request['ask']} done"}).encode(),
+                    correlation_id=message.correlation_id), message.reply_to)
+
+            await work.consume(worker, no_ack=True)
+            ready = await asyncio.to_thread(client.wait_for_service, timeout_sec=10)
+            assert ready, "the engine does not offer the service"
+            answers = await asyncio.gather(*(asyncio.to_thread(call, n, f"task{n}", 10) for n in range(5)))
+            ignored = await asyncio.to_thread(call, 7, "ignore me", 4)
+            status = engine.status()["routes"][f"offer-{tag}"]
+        finally:
+            await engine.stop()
+            await connection.close()
+        return answers, ignored, status
+
+    try:
+        answers, ignored, status = asyncio.run(asyncio.wait_for(scenario(), 60))
+    finally:
+        client_node.close()
+    assert None not in answers, (answers, {k: status[k] for k in ("received", "delivered", "failed", "dead_lettered", "replies", "source")})
+    assert [(a.int64_value, a.string_value) for a in answers] == [(3 * n, f"task{n} done") for n in range(5)]
+    assert ignored is None
+    assert status["source"] == {"calls": 6, "answered": 5, "failed": 1}, status
+    assert status["replies"]["sent"] == 6 and status["replies"]["errors"] == 1, status

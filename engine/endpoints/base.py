@@ -352,6 +352,11 @@ class Transport(ABC):
     replies: ClassVar[bool] = False
     """True when this protocol's sources can answer a request's sender (:meth:`Source.reply`):
     only then may a route with such a source have ``reply:`` (the loader checks)."""
+    def source_answers(self, options: Any) -> bool:
+        """Whether a source with these (typed) options can answer its sender (``reply:`` is
+        allowed): by default, whether the protocol's sources can (:attr:`replies`)."""
+        return self.replies
+
     accepts_secrets: ClassVar[bool] = False
     """True when the connection settings may hold engine.redaction.Secret values, which the
     endpoint reveals only where it connects; otherwise the loader hands it plain values."""

@@ -134,6 +134,9 @@ class Ros2EndpointOptions(EndpointOptions):
     type: str = option(STRING_TYPE, description="any installed message type, pkg/msg/Type or pkg/Type; std_msgs/msg/String carries the "
                                                 "canonical JSON in data, byte for byte; with service: the service type, pkg/srv/Type")
     qos: Ros2Qos = option(Ros2Qos())
+    service: str | None = option(None, description="instead of a topic (type: pkg/srv/Type): a source offers this service, each call "
+                                                   "answered by the route's reply; a sink calls it, the response is the call's reply "
+                                                   "(route-language.md, Calls)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -147,8 +150,6 @@ class Ros2SinkOptions(Ros2EndpointOptions):
     in the engine's memory, for readers that ask for transient_local themselves, while the
     source has already acknowledged them; holding until the first reader matches loses none
     of them, and the writer's history still serves the readers that join later."""
-    service: str | None = option(None, description="call this service instead of publishing on a topic (type: pkg/srv/Type): the "
-                                                   "response is the call's reply (route-language.md, Calls)")
     action: str | None = option(None, description="send each message as a goal of this action (type: pkg/action/Type): accepted, "
                                                   "feedback and result are the call's replies (route-language.md, Calls)")
     timeout: float = option(ros2_calls.DEFAULT_CALL_TIMEOUT, exclusive_minimum=0,
@@ -260,6 +261,8 @@ class Ros2Transport(Transport):
     name = "ros2"
     default_settings = {"node": "rabbitros_engine", "namespace": "", "domain_id": _env_domain_id()}
     connection_options = Ros2ConnectionOptions
+    replies = True
+    """A source that offers a service answers its callers (engine/endpoints/ros2_calls.py)."""
     source_options = Ros2EndpointOptions
     sink_options = Ros2SinkOptions
 
@@ -277,8 +280,21 @@ class Ros2Transport(Transport):
         if domain_id is not None and not 0 <= domain_id <= 232:
             yield "domain_id", f"domain_id must be an integer in 0..232, not {domain_id!r}"
 
+    def source_answers(self, options: Ros2EndpointOptions) -> bool:
+        return options.service is not None  # a topic's publishers await no answer
+
     def source_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
-        yield from _check_endpoint(options, sink=False)
+        if options.service is None:
+            yield from _check_endpoint(options, sink=False)
+            return
+        if options.topic is not None:
+            yield "service", "a ros2 source names a topic or a service, not both"
+        for message in _check_topic(options.service, allow_template=False):
+            yield "service", message.replace("topic", "service")
+        try:
+            ros2_calls.resolve_service(options.type)
+        except rosmsg.MessageError as exc:
+            yield "type", str(exc)
 
     def sink_problems(self, options: Ros2SinkOptions, mapping: str | None) -> CheckResult:
         if options.service is not None or options.action is not None:
@@ -382,6 +398,9 @@ class Ros2Connection(Connection):
         self._context, self._node, self._guard = context, node, guard
 
     def source(self, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> Source:
+        typed_options = typed(Ros2EndpointOptions, options, f"route {route!r}: ros2 source")
+        if typed_options.service is not None:
+            return ros2_calls.ServiceSource(self.calls(), route, typed_options.service, typed_options.type)
         return Ros2Source(self, route, options)
 
     def sink(self, route: str, options: Ros2SinkOptions | Mapping[str, Any]) -> Sink:

@@ -31,21 +31,24 @@ from __future__ import annotations
 
 import asyncio
 import importlib
+import json
 import logging
 import re
 import threading
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from rclpy.action import ActionClient
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future as RclpyFuture
 
 from engine.backoff import Backoff
 from engine.endpoints import rosmsg
-from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
+from engine.endpoints.base import Deliver, EndpointError, Inbound, Inbox, MessageRejected, Outbound, Sink, Source
 
 log = logging.getLogger("engine.ros2")
 
@@ -106,16 +109,25 @@ class CallNode:
                          parameter_overrides=[Parameter("start_type_description_service", value=False)])
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
+        self._closing = False
         self._thread = threading.Thread(target=self._spin, name=f"ros2-calls-{node_name}", daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except ExternalShutdownException:
-            pass
-        except Exception as exc:  # the context went away under it
-            log.error("ros2 calls node %r stopped: %s", self.node.get_name(), exc)
+        while True:
+            try:
+                self.executor.spin()
+                return
+            except NoResponse:
+                continue  # a served call ended without a response (ServiceSource)
+            except ExternalShutdownException:
+                return
+            except Exception as exc:
+                if self._closing or not self.node.context.ok():
+                    return
+                # an entity destroyed while the executor held it (a route's service or client
+                # removed by a reload): rclpy raises it from spin; the other calls go on
+                log.warning("ros2 calls node %r: %s", self.node.get_name(), exc)
 
     def submit(self, work: Any) -> asyncio.Future[Any]:
         """Run ``work()`` on the executor's thread (rclpy's action client registers a goal's
@@ -138,6 +150,7 @@ class CallNode:
 
     def close(self) -> None:
         """Blocking (the connection runs it in a thread): stop the executor, then the node."""
+        self._closing = True
         self.executor.shutdown(timeout_sec=2.0)
         self._thread.join(5.0)
         self.node.destroy_node()
@@ -398,3 +411,117 @@ def _settle(answered: asyncio.Future[Any], done: Any) -> None:
         answered.set_exception(EndpointError(str(error)))
     else:
         answered.set_result(done.result())
+
+
+class NoResponse(Exception):
+    """Ends a served call without a response (see :class:`ServiceSource`)."""
+
+
+class ServiceSource(Source):
+    """The engine as a ROS 2 service server backed by the route's sink (an AMQP worker):
+
+        source: {ros2: {service: /robot1/plan, type: pkg/srv/Type}}
+
+    Each call becomes a message (the request in rosbridge JSON) with a ``reply_to`` of its own;
+    the sink's answer, shaped by the route's ``reply:`` mapping, is built as the service's
+    ``Response`` and sent. ROS 2 services have no error response: an ``error`` reply (the sink
+    gave no answer within its timeout, the request failed conversion, the answer does not fit
+    the Response) sends nothing, counts the call as failed, and the client's own wait ends it.
+
+    rclpy sends whatever a service callback returns; the only way to send nothing is for the
+    callback to fail, which the executor re-raises from ``spin``: the calls thread catches
+    exactly :class:`NoResponse` and spins on (:meth:`CallNode._spin`)."""
+
+    def __init__(self, calls: CallNode, route: str, service: str, type_name: str) -> None:
+        self._where = f"route {route!r}, ros2 service {service!r}"
+        try:
+            self._cls = resolve_service(type_name)
+        except rosmsg.MessageError as exc:
+            raise EndpointError(f"{self._where}: {exc}") from None
+        self._calls, self._service_name = calls, service
+        self._service: Any = None
+        self._inbox: Inbox[Inbound] = Inbox(1 << 30)
+        self._pending: dict[str, Any] = {}
+        """rclpy futures of the calls waiting for their answer, by reply_to token."""
+        self._serial = 0
+        self._loop: asyncio.Task[None] | None = None
+        self.counters = {"calls": 0, "answered": 0, "failed": 0}
+
+    async def start(self, deliver: Deliver) -> None:
+        self._inbox = Inbox(deliver.queue_limit, deliver.overflow)
+        running = asyncio.get_running_loop()
+
+        async def serve(request: Any, response: Any) -> Any:  # the executor's thread
+            answered = RclpyFuture(executor=self._calls.executor)
+            running.call_soon_threadsafe(self._offer, rosmsg.to_dict(request), answered)
+            await answered
+            if answered.exception() is not None:
+                raise NoResponse(str(answered.exception()))
+            return answered.result()
+
+        try:
+            self._service = self._calls.node.create_service(  # reentrant: many calls wait for their answers at once
+                self._cls, self._service_name, serve, qos_profile=service_qos(DEFAULT_MAX_IN_FLIGHT),
+                callback_group=ReentrantCallbackGroup())
+        except Exception as exc:
+            raise EndpointError(f"{self._where}: cannot offer the service: {exc}") from exc
+        self._loop = asyncio.create_task(self._run(deliver))
+
+    def _offer(self, fields: dict[str, Any], answered: Any) -> None:
+        self._serial += 1
+        token = f"ros2-call-{self._serial}"
+        self._pending[token] = answered
+        self.counters["calls"] += 1
+        self._inbox.offer(Inbound(fields=fields, meta={"reply_to": token, "correlation_id": token}))
+        self._inbox.wake()
+
+    async def _run(self, deliver: Deliver) -> None:
+        while batch := await self._inbox.take(256):
+            try:
+                settled = await deliver.batch(batch)
+            except Exception as exc:  # a bug in the engine must not leave callers hanging forever
+                log.error("%s: settling a batch failed: %s", self._where, exc)
+                settled = [False] * len(batch)
+            for inbound, done in zip(batch, settled):
+                if not done:
+                    self._end(str(inbound.meta["reply_to"]), None, "not settled (route stopping)")
+
+    async def reply(self, meta: Mapping[str, Any], kind: str, body: bytes) -> None:
+        token = str(meta["reply_to"])
+        if kind == "error":
+            self._end(token, None, body.decode("utf-8", "replace"))
+            return
+        try:
+            response = rosmsg.from_dict(self._cls.Response, json.loads(body))
+        except (rosmsg.MessageError, ValueError) as exc:
+            self._end(token, None, str(exc))
+            raise EndpointError(f"{self._where}: the answer is not a {rosmsg.type_name(self._cls.Response)}: {exc}") from None
+        self._end(token, response, None)
+
+    def _end(self, token: str, response: Any, error: str | None) -> None:
+        answered = self._pending.pop(token, None)
+        if answered is None:
+            return
+        if error is None:
+            self.counters["answered"] += 1
+            answered.set_result(response)
+        else:
+            self.counters["failed"] += 1
+            answered.set_exception(NoResponse(error))
+        self._calls.executor.wake()  # the waiting callback resumes only when the executor wakes
+
+    def status(self) -> dict[str, Any]:
+        return dict(self.counters)
+
+    async def stop(self) -> None:
+        if self._service is not None:
+            try:
+                self._calls.node.destroy_service(self._service)
+            except Exception:
+                pass
+            self._service = None
+        self._inbox.close()
+        if self._loop is not None:
+            await self._loop
+        for token in list(self._pending):
+            self._end(token, None, "the route stopped")

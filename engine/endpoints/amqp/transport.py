@@ -46,6 +46,7 @@ from engine.endpoints.base import (
     typed,
 )
 import engine.endpoints.amqp.cluster as amqp_cluster
+from engine.endpoints.amqp.calls import AmqpCaller
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template, template_fields
 from engine.options import given
@@ -463,6 +464,9 @@ class AmqpSink(Sink):
         self._content_type = options.content_type
         self._delivery_mode = 2 if options.persistent else 1
         self._properties: dict[tuple[str, int], tuple[spec.Basic.Properties, bytes, bytes]] = {}
+        self._caller = None if options.timeout is None else AmqpCaller(
+            connection, f"route {route!r}: amqp sink", options.timeout)
+        """Calls: messages that ask for a reply are requests (engine/endpoints/amqp/calls.py)."""
 
     async def send(self, message: Outbound) -> None:
         error = (await self.send_batch((message,)))[0]
@@ -470,6 +474,35 @@ class AmqpSink(Sink):
             raise error
 
     async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        if self._caller is not None and any(message.meta.get("reply_to") for message in messages):
+            return list(await asyncio.gather(*(self._call(message) if message.meta.get("reply_to")
+                                               else self._publish_one(message) for message in messages)))
+        return await self._publish(messages)
+
+    async def _publish_one(self, message: Outbound) -> BaseException | None:
+        return (await self._publish((message,)))[0]
+
+    async def _call(self, message: Outbound) -> BaseException | None:
+        """A request and its answer, the call's reply."""
+        assert self._caller is not None
+        try:
+            routing_key = self._routing_key(message.canonical)
+            body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)
+            answer = await self._caller.call(self._exchange, self._kind, self._durable, routing_key, body,
+                                             self._content_type, message.message_id)
+        except (MappingError, SchemaError) as exc:
+            return MessageRejected(str(exc))
+        except EndpointError as exc:
+            return exc
+        if message.reply is not None:
+            await message.reply("result", answer)
+        return None
+
+    async def close(self) -> None:
+        if self._caller is not None:
+            await self._caller.close()
+
+    async def _publish(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
         results: list[BaseException | None] = [None] * len(messages)
         publishable: list[int] = []
         batch: list[tuple[str, bytes, spec.Basic.Properties]] = []
