@@ -88,6 +88,9 @@ class RouteOptions:
     schema: str | None = option(None, description="required: the canonical schema the mapping's result must satisfy, NAME (newest "
                                                   "version) or NAME.vN (pinned), from schemas/; raw_json passes any object")
     throttle: ThrottleOptions | None = option(None)
+    max_age: float | None = option(None, exclusive_minimum=0, description=(
+        "seconds from reception after which a message is worthless (telemetry): one older when it would be sent (from "
+        "the buffer after an outage, a throttle slot, a retry) is dropped and counted expired; absent: every message arrives"))
     sink: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
     ordered: bool = option(False, description="AMQP source: single active consumer, so one engine instance at a time carries the route, in order")
     instances: tuple[str, ...] | None = option(None, min_items=1,
@@ -502,6 +505,7 @@ def _compile_routes(
                 overflow=route.overflow,
                 max_message_bytes=connections[source.connection].max_message_bytes,
                 sink_max_message_bytes=connections[sink.connection].max_message_bytes,
+                max_age_ns=None if route.max_age is None else int(route.max_age * 1e9),
             )
             buffer = BufferSpec.parse(route.buffer, source.protocol, _base_dir(document.file))
             if buffer is not None and buffer.spill_dir is not None and buffer.spill_dir.exists() and not buffer.spill_dir.is_dir():
