@@ -255,6 +255,18 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
                 raise ConversionError("sink", str(exc)) from None
 
         return amqp
+    if protocol == "mqtt":
+        from engine.endpoints.mqtt.topics import topic_renderer
+
+        render_topic = topic_renderer(options.topic, f"route {spec.name!r}: mqtt sink")
+
+        def mqtt(outbound: Outbound) -> str | None:
+            try:
+                return render_topic(outbound.canonical)
+            except MessageRejected as exc:
+                raise ConversionError("sink", str(exc)) from None
+
+        return mqtt
     if protocol == "ros2":
         from engine.endpoints import rosmsg
         from engine.endpoints.ros2 import STRING_TYPE, _topic_template
