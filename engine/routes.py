@@ -89,6 +89,9 @@ class RouteOptions:
     schema: str | None = option(None, description="required: the canonical schema the mapping's result must satisfy, NAME (newest "
                                                   "version) or NAME.vN (pinned), from schemas/; raw_json passes any object")
     throttle: ThrottleOptions | None = option(None)
+    priority: Literal["high", "normal", "low"] = option(
+        "normal", description="on a link several routes share (a MAVLink radio), the order of what is sent next: high before "
+                              "normal before low, tunnel routes included; commands and missions always go first")
     max_age: float | None = option(None, exclusive_minimum=0, description=(
         "seconds from reception after which a message is worthless (telemetry): one older when it would be sent (from "
         "the buffer after an outage, a throttle slot, a retry) is dropped and counted expired; absent: every message arrives"))
@@ -491,6 +494,8 @@ def _compile_routes(
                 continue
             if placement.ordered and source.protocol == "amqp":
                 source = EndpointSpec(source.protocol, source.connection, evolve(source.options, ordered=True))
+            if route.priority != "normal":  # the sink orders its link's writes by it (engine/endpoints/base.py)
+                sink = EndpointSpec(sink.protocol, sink.connection, evolve(sink.options, priority=route.priority))
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
             schema = schemas.get(schema_name)
             fingerprint = hashlib.sha256(
