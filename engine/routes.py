@@ -574,6 +574,9 @@ def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink
     reads: list[tuple[Path_, str, str]] = []
     if route.throttle is not None and route.throttle.per:
         reads.append((where + ("throttle", "per"), "throttle per", route.throttle.per))
+    latest_only = route.buffer.latest_only if route.buffer else None
+    if latest_only is not None and latest_only.per:
+        reads.append((where + ("buffer", "latest_only", "per"), "buffer latest_only per", latest_only.per))
     if sink is not None:
         transport = endpoints.transport(sink.protocol)
         reads.extend((where + ("sink", sink.protocol, key), f"sink {key}", field_path)

@@ -171,3 +171,25 @@ def wait_for_sync(read: Any, want: int, what: str, timeout: float = 15.0) -> Non
         if time.monotonic() > deadline:
             raise AssertionError(f"{what}: {read()} != {want}")
         time.sleep(0.1)
+
+
+def test_check_warns_when_latest_only_reads_a_field_the_schema_lacks(tmp_path: Path) -> None:
+    from engine.routes import load_routes
+    from engine.schemas import SchemaRegistry
+    from tests.conftest import REPO
+
+    (tmp_path / "r.yaml").write_text("""
+routes:
+  - name: pos
+    source: {amqp: {queue: a}}
+    schema: position
+    max_age: 5
+    buffer: {latest_only: {per: agentid}}
+    sink: {amqp: {exchange: farm}}
+""")
+    config = load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
+    assert config.routes["pos"].delivery.max_age_ns == 5_000_000_000
+    assert config.routes["pos"].buffer is not None and config.routes["pos"].buffer.latest_per == ("agentid",)
+    assert [str(w).removeprefix(f"{tmp_path}/") for w in config.warnings] == [
+        "r.yaml:7: route 'pos': buffer latest_only per reads 'agentid', which schema 'position' does not declare; "
+        "did you mean 'agent_id'?"]
