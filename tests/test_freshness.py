@@ -11,6 +11,9 @@ read the same ROS 2 topic and publish to the same broker:
   Messages published once the broker is back are delivered.
 * ``latest`` (``latest_only: {per: id}``): of the held messages only the newest per ``id``
   is delivered, the rest are counted ``conflated``.
+
+The other two places a message waits, a throttle slot and a retry, are tested in the engine
+itself against the shared broker (``test_max_age_expires_what_waited_in_a_throttle_slot_or_for_a_retry``).
 """
 
 from __future__ import annotations
@@ -193,3 +196,73 @@ routes:
     assert [str(w).removeprefix(f"{tmp_path}/") for w in config.warnings] == [
         "r.yaml:7: route 'pos': buffer latest_only per reads 'agentid', which schema 'position' does not declare; "
         "did you mean 'agent_id'?"]
+
+
+THROTTLE_AND_RETRY = """
+connections:
+  gcs: {{amqp: "{url}"}}
+routes:
+  - name: slotted
+    source: {{amqp: {{exchange: {tag}-in, binding_key: "slot", queue: {tag}-slot}}}}
+    schema: raw_json
+    throttle: {{max_rate: 0.5}}
+    max_age: 0.5
+    sink: {{amqp: {{exchange: {tag}-out, routing_key: slotted}}}}
+  - name: retried
+    source: {{amqp: {{exchange: {tag}-in, binding_key: "retry", queue: {tag}-retry}}}}
+    schema: raw_json
+    max_attempts: 50
+    max_age: 0.4
+    sink: {{amqp: {{exchange: "", routing_key: {tag}-full}}}}
+"""
+
+
+def test_max_age_expires_what_waited_in_a_throttle_slot_or_for_a_retry(tmp_path: Path, amqp_url: str,
+                                                                      schemas_dir: Path) -> None:
+    """In the engine itself: ``slotted`` lets one message through every 2 s; of three sent at
+    once the first goes, the second is parked and replaced by the third (conflated), which
+    is 2 s old when its slot opens: expired. ``retried``'s sink refuses every publish (a queue
+    of length 0 that rejects: transient), so the message is tried with backoff until it is
+    older than 0.4 s: expired, neither dead-lettered nor tried 50 times."""
+    import aio_pika
+
+    from engine.runtime import Engine
+    from tests.amqp_helpers import Collector as AmqpCollector
+
+    tag = "ft" + uuid.uuid4().hex[:8]
+    (tmp_path / "r.yaml").write_text(THROTTLE_AND_RETRY.format(url=amqp_url, tag=tag))
+
+    async def scenario() -> dict[str, Any]:
+        connection = await aio_pika.connect(amqp_url)
+        channel = await connection.channel()
+        await channel.declare_queue(f"{tag}-full", arguments={"x-max-length": 0, "x-overflow": "reject-publish"},
+                                    auto_delete=True)
+        out = await AmqpCollector.bind(channel, f"{tag}-out", "#")
+        dead = await AmqpCollector.bind(channel, "rabbitros.dead-letter", "retried")
+        engine = Engine(tmp_path, schemas_dir)
+        await engine.start()
+        try:
+            inbox = await channel.declare_exchange(f"{tag}-in", aio_pika.ExchangeType.TOPIC, durable=True)
+            for n in range(3):
+                await inbox.publish(aio_pika.Message(b'{"n": %d}' % n), "slot")
+            await inbox.publish(aio_pika.Message(b'{"n": 9}'), "retry")
+            deadline = time.monotonic() + 20
+
+            def routes() -> dict[str, Any]:
+                return engine.status()["routes"]
+
+            while routes()["slotted"]["expired"] < 1 or routes()["retried"]["expired"] < 1:
+                assert time.monotonic() < deadline, routes()
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(0.3)  # nothing else arrives
+            return {"out": [m.body for m in out.messages], "dead": len(dead.messages), **routes()}
+        finally:
+            await engine.stop()
+            await connection.close()
+
+    seen = asyncio.run(scenario())
+    assert seen["out"] == [b'{"n": 0}'], seen["out"]
+    slotted, retried = seen["slotted"], seen["retried"]
+    assert (slotted["received"], slotted["delivered"], slotted["conflated"], slotted["expired"]) == (3, 1, 1, 1), slotted
+    assert (retried["received"], retried["delivered"], retried["failed"], retried["expired"]) == (1, 0, 0, 1), retried
+    assert 1 <= retried["retries"] < 10 and seen["dead"] == 0, retried
