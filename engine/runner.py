@@ -117,6 +117,8 @@ class RouteRunner:
         self._report = ReportLimiter()
         self._retry_report = ReportLimiter()
         self._released: set[asyncio.Task[None]] = set()
+        self._replying: set[asyncio.Task[None]] = set()
+        """Error replies to expired calls, on their way."""
         """Messages the throttle released from their slot, on their way to the sink."""
 
     # -- the Deliver contract a source sees
@@ -284,6 +286,7 @@ class RouteRunner:
             if self.too_old(now_ns - message.inbound.received_ns):
                 settled[message.index] = True
                 self.observer.expire(message.inbound, message.outbound)  # type: ignore[arg-type]
+                self._expired_call(message.outbound)  # type: ignore[arg-type]
             else:
                 fresh.append(message)
         return fresh
@@ -368,6 +371,17 @@ class RouteRunner:
     def held_expired(self, held: list[Held]) -> None:
         for outbound, _ in held:
             self.observer.expire(None, outbound)
+            self._expired_call(outbound)
+
+    def _expired_call(self, outbound: Outbound) -> None:
+        """An expired request is settled without a dead letter; its caller still hears the end:
+        one ``error`` reply (stage ``max_age``), sent beside the route's work."""
+        if not outbound.meta.get("reply_to"):
+            return
+        age = f"older than the route's max_age ({self.spec.delivery.max_age_ns / 1e9:g} s) before it could be sent"  # type: ignore[operator]
+        task = asyncio.create_task(self.replies.failed(outbound.reply, outbound.meta, "max_age", age))
+        self._replying.add(task)
+        task.add_done_callback(self._replying.discard)
 
     def held_conflated(self, held: list[Held]) -> None:
         for outbound, _ in held:

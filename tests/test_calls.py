@@ -208,3 +208,40 @@ tests:
     results = list(run_tests(cases, config, schemas))
     assert [r.passed for r in results] == [True, True, False], [format_result(r) for r in results]
     assert results[2].reason == "reply differs", results[2].reason
+
+
+def test_a_call_that_expires_under_max_age_gets_an_error_reply(tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """A command to a vehicle that never answers is retried (transient) until it is older than
+    the route's ``max_age``: it expires (no dead letter), and its caller gets one ``error`` reply
+    with stage ``max_age`` instead of waiting forever."""
+    port = free_udp_port()
+    tag = uuid.uuid4().hex[:8]
+    routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag)
+    text = (routes / "routes.yaml").read_text().replace(
+        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3}").replace(
+        f"  - name: arm-{tag}\n", f"  - name: arm-{tag}\n    max_age: 1\n    max_attempts: 50\n")
+    (routes / "routes.yaml").write_text(text)
+
+    async def scenario() -> tuple[Caller, str, dict[str, Any], float]:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            caller = await Caller.open(channel)
+            started = asyncio.get_running_loop().time()
+            arm = await caller.call("", f"arm-{tag}", _command())
+            await caller.wait(lambda r: arm in r, 20, "the expired call's error reply")
+            elapsed = asyncio.get_running_loop().time() - started
+            status = engine.status()["routes"][f"arm-{tag}"]
+            await channel.queue_delete(f"arm-{tag}")
+        finally:
+            await engine.stop()
+            await connection.close()
+        return caller, arm, status, elapsed
+
+    caller, arm, status, elapsed = run(scenario(), 60)
+    [(kind, error)] = [_reply(m) for m in caller.replies[arm]]
+    assert kind == "error" and error["stage"] == "max_age" and error["route"] == f"arm-{tag}", error
+    assert 1.0 <= elapsed < 5.0, elapsed
+    assert status["failed"] == 0 and status["replies"]["errors"] == 1, status
