@@ -59,9 +59,9 @@ from rclpy.validate_full_topic_name import validate_full_topic_name
 from rclpy.validate_namespace import validate_namespace
 from rclpy.validate_node_name import validate_node_name
 
-from engine.endpoints import rosmsg
+from engine.endpoints import ros2_contract, rosmsg
 from engine.endpoints.base import (
-    CheckResult, Connection, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
+    CheckResult, Connection, FieldProblem, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
     Source, Transport, typed,
 )
 from engine.options import option
@@ -247,6 +247,20 @@ class Ros2Transport(Transport):
 
     def canonical_fields(self, options: Ros2EndpointOptions) -> Iterable[tuple[str, str]]:
         return [("topic", name) for name in _PLACEHOLDER.findall(options.topic or "") if name not in _RCL_SUBSTITUTIONS]
+
+    # What the core's checks and dry runs ask (engine/endpoints/ros2_contract.py).
+
+    def sink_dry_run(self, route: str, options: Ros2EndpointOptions) -> Callable[[Outbound], str | None]:
+        return ros2_contract.sink_dry_run(route, options.topic, options.type, _topic_template(options.topic))
+
+    def test_input(self, options: Ros2EndpointOptions) -> Callable[[Any], dict[str, Any]] | None:
+        return ros2_contract.test_input(options.type)
+
+    def field_problem(self, options: Ros2EndpointOptions) -> FieldProblem | None:
+        return ros2_contract.field_problem(options.type)
+
+    def suggest(self, key: str, value: str) -> str | None:
+        return ros2_contract.suggest_type(value) if key == "type" else None
 
 
 TRANSPORT = Ros2Transport()
@@ -722,3 +736,6 @@ def _topic_template(topic: str) -> Callable[[Any, str], str] | None:
         return "".join(out)
 
     return resolve
+
+
+Ros2Transport.connection_type = Ros2Connection  # defined below the transport

@@ -21,7 +21,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 from urllib.parse import urlsplit
 
 import aio_pika
@@ -48,7 +48,7 @@ from engine.endpoints.base import (
 import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template, template_fields
-from engine.options import given
+from engine.options import evolve, given
 from engine.redaction import redact_urls
 from engine.schemas import SchemaError, canonical_bytes
 
@@ -74,6 +74,7 @@ hold the engine's start for the TCP timeout, minutes)."""
 
 class AmqpConnection(Connection):
     keeps_dead_letters = True
+    holds_leases = True
 
     settings: AmqpConnectionOptions
 
@@ -254,6 +255,9 @@ class AmqpConnection(Connection):
     def lease(self, name: str, instance: str, heartbeat: float) -> amqp_cluster.AmqpLease:
         """The broker-held lease of an ``active_standby`` route (see :class:`AmqpLease`)."""
         return amqp_cluster.AmqpLease(self, name, instance, heartbeat, self.queue_type)
+
+    def dead_letter_destination(self) -> str:
+        return f"amqp connection {self.name!r}, queue rabbitros.dead-letter"
 
     def sink(self, route: str, options: AmqpSinkOptions | Mapping[str, Any]) -> Sink:
         return AmqpSink(self, route, typed(AmqpSinkOptions, options, f"route {route!r}: amqp sink"))
@@ -481,6 +485,7 @@ class AmqpSink(Sink):
 
 class AmqpTransport(Transport):
     name = "amqp"
+    connection_type = AmqpConnection
     default_settings = {"url": "amqp://guest:guest@localhost:5672/"}
     accepts_secrets = True
     connection_options = AmqpConnectionOptions
@@ -519,6 +524,28 @@ class AmqpTransport(Transport):
 
     def canonical_fields(self, options: AmqpSinkOptions) -> Iterable[tuple[str, str]]:
         return [("routing_key", name) for name in template_fields(options.routing_key)]
+
+    def redelivers(self, options: AmqpSourceOptions) -> bool:
+        """The broker requeues what the engine did not acknowledge."""
+        return True
+
+    supports_ordered = True
+    shares_sources = True
+
+    def ordered_source(self, options: AmqpSourceOptions) -> AmqpSourceOptions:
+        """A single active consumer: one instance at a time consumes the queue, in order."""
+        return evolve(options, ordered=True)
+
+    def sink_dry_run(self, route: str, options: AmqpSinkOptions) -> Callable[[Outbound], str | None]:
+        render = compile_template(options.routing_key)
+
+        def routing_key(outbound: Outbound) -> str | None:
+            try:
+                return render(outbound.canonical)
+            except MappingError as exc:
+                raise MessageRejected(str(exc)) from None
+
+        return routing_key
 
     def competing_consumers(self, route: str, options: AmqpSourceOptions) -> str | None:
         queue = options.queue
