@@ -13,9 +13,9 @@ import tempfile
 from pathlib import Path
 from typing import Sequence
 
-from engine import __version__
+from engine import __version__, endpoints
 from engine.admin import AdminServer, parse_address, status_document
-from engine.endpoints.amqp import redact
+from engine.redaction import redact_urls
 from engine.opsview import print_status, print_tap
 from engine.endpoints.base import EndpointError
 from engine.local_broker import LOCAL_BROKER_ENV, BrokerError, LocalBroker, LocalCluster
@@ -67,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="rabbitros-engine",
         usage="%(prog)s [run] [--routes DIR] [--local-broker] [--admin [HOST:]PORT] [OPTIONS]\n"
               "       %(prog)s {check,test,status,tap} ...",
-        description="Routes messages between RabbitMQ, ROS 2 and MAVLink as declared in YAML route files.",
+        description="Routes messages between " + ", ".join(endpoints.PROTOCOLS) + " endpoints as declared in YAML route files.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="{run,check,test,status,tap}", title="commands")
@@ -210,7 +210,7 @@ async def run(args: argparse.Namespace) -> int:
             os.environ["RABBITROS_AMQP_URLS"] = " ".join(urls)
         nodes = [n.node for n in broker.nodes] if isinstance(broker, LocalCluster) else [broker.node]
         os.environ[LOCAL_BROKER_ENV] = ", ".join(nodes)  # the loader warns about AMQP connections that go elsewhere
-        log.info("local broker started", extra={"urls": [redact(u) for u in urls], "nodes": nodes})
+        log.info("local broker started", extra={"urls": [redact_urls(u) for u in urls], "nodes": nodes})
         if args.broker_url_file:
             _write_atomically(args.broker_url_file, "\n".join(urls) + "\n")
     try:

@@ -1,0 +1,35 @@
+"""The core asks the endpoint contract, not the protocol's name: a source that redelivers
+needs no buffer by default (per its options), and the dead-letter and lease defaults are the
+connections whose class keeps dead letters / holds leases."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from engine.buffer import BufferSpec
+from engine.routes import load_routes
+from engine.schemas import SchemaRegistry
+
+REPO = Path(__file__).resolve().parents[1]
+
+ROUTES = """
+connections:
+  field: {mqtt: "mqtt://127.0.0.1:1883"}
+  broker: {amqp: "amqp://guest:guest@127.0.0.1:5672/"}
+routes:
+  - {name: qos0, source: {mqtt: {topic: farm/+/weather, qos: 0}}, schema: raw_json, sink: {amqp: {exchange: e}}}
+  - {name: qos1, source: {mqtt: {topic: farm/+/soil, qos: 1}}, schema: raw_json, sink: {amqp: {exchange: e}}}
+  - {name: queue, source: {amqp: {queue: q}}, schema: raw_json, sink: {mqtt: {topic: "farm/{agent_id}/cmd"}}}
+  - {name: standby, active_standby: true, source: {mqtt: {topic: farm/+/cmd, qos: 1}}, schema: raw_json, sink: {mqtt: {topic: out}}}
+"""
+
+
+def test_the_default_buffer_follows_whether_the_source_redelivers(tmp_path: Path):
+    """An MQTT QoS 0 message is delivered once: its route keeps the buffer a QoS 1 or AMQP route
+    does without (their broker keeps what the engine has not acknowledged)."""
+    (tmp_path / "r.yaml").write_text(ROUTES)
+    config = load_routes(tmp_path, SchemaRegistry(REPO / "schemas"), env={})
+    assert config.routes["qos0"].buffer == BufferSpec()
+    assert config.routes["qos1"].buffer is None and config.routes["queue"].buffer is None
+    assert config.dead_letters.connection == "broker"  # the only connection that keeps dead letters
+    assert config.routes["standby"].placement.lease_connection == "broker"  # the only one that holds leases
