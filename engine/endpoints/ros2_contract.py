@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from engine.endpoints import rosmsg
-from engine.endpoints.base import ELEMENT, FieldPath, FieldProblem, MessageRejected, Outbound
+from engine.endpoints.base import ELEMENT, FieldPath, FieldProblem, Outbound
 from engine.suggest import closest
 
 STRING_TYPE = "std_msgs/msg/String"
@@ -31,20 +31,18 @@ def test_input(type_name: str) -> Callable[[Any], dict[str, Any]] | None:
     return received
 
 
-def sink_dry_run(route: str, topic: str, type_name: str,
-                 resolve: Callable[[Any, str], str] | None) -> Callable[[Outbound], str | None]:
-    """The topic the sink would publish on, and the message built from the fields."""
+def sink_dry_run(route: str, topic: str, type_name: str, resolve: Callable[[Any, str], str] | None,
+                 build: Callable[[type, Outbound, str], Any]) -> Callable[[Outbound], str | None]:
+    """The topic the sink would publish on, and the message ``build`` makes from the fields as
+    the sink does (raising MessageRejected where the sink would)."""
     cls = rosmsg.resolve_type(type_name)
     typed = rosmsg.type_name(cls) != STRING_TYPE
-    where = f"route {route!r}"
+    where = f"route {route!r}, ros2 topic {topic!r}"  # as the sink names it
 
     def built(outbound: Outbound) -> str | None:
-        try:
-            rendered = topic if resolve is None else resolve(outbound.canonical, where)
-            if typed:
-                rosmsg.from_dict(cls, outbound.fields)
-        except rosmsg.MessageError as exc:
-            raise MessageRejected(str(exc)) from None
+        rendered = topic if resolve is None else resolve(outbound.canonical, where)
+        if typed:
+            build(cls, outbound, where)
         return rendered
 
     return built
@@ -79,11 +77,43 @@ def _resolve(cls: type, path: FieldPath) -> str | None:
             return None
         fields = _fields(current)
         if step not in fields:
-            guess = closest(step, fields)
-            hint = f"; did you mean {_dotted(path[:depth] + (guess,))!r}?" if guess else f" (fields: {', '.join(fields)})"
-            return f"mapping reads {_dotted(path[:depth + 1])!r}, which {rosmsg.type_name(current)} does not have{hint}"
+            return (f"mapping reads {_dotted(path[:depth + 1])!r}, which {rosmsg.type_name(current)} does not have"
+                    f"{_hint(current, path, depth)}")
         current, in_list = fields[step]
     return None
+
+
+NESTED_SEARCH_DEPTH = 3
+"""How many message levels below a missing field ``check`` looks for it: Odometry's
+``pose.pose.orientation`` is two below ``pose``; deeper guesses would be guesses."""
+
+
+def _hint(cls: type, path: FieldPath, depth: int) -> str:
+    """Where the field ``path[depth]`` is: in a message nested below ``cls`` (a level left
+    out: ``pose.orientation`` of a nav_msgs/Odometry is ``pose.pose.orientation``), else a
+    field of ``cls`` spelt alike, else the list of its fields."""
+    step, rest = path[depth], path[depth + 1:]
+    found = _nested_paths(cls, step, rest)
+    if found:
+        shown = [_dotted(path[:depth] + prefix + (step,)) for prefix in found[:3]]
+        return f"; did you mean {shown[0]!r}?" if len(shown) == 1 else f"; did you mean one of {', '.join(map(repr, shown))}?"
+    fields = _fields(cls)
+    guess = closest(step, fields)
+    return f"; did you mean {_dotted(path[:depth] + (guess,))!r}?" if guess else f" (fields: {', '.join(fields)})"
+
+
+def _nested_paths(cls: type, step: str, rest: FieldPath) -> list[FieldPath]:
+    """The shortest field paths ``p`` below ``cls`` (through nested messages, not sequences)
+    such that ``p + (step,) + rest`` is a path of ``cls``."""
+    level: list[tuple[FieldPath, type]] = [((), cls)]
+    for _ in range(NESTED_SEARCH_DEPTH):
+        level = [(prefix + (name,), nested) for prefix, message in level
+                 for name, (nested, in_list) in _fields(message).items() if nested is not None and not in_list]
+        found = [prefix for prefix, message in level if step in _fields(message)
+                 and _resolve(message, (step,) + rest) is None]
+        if found:
+            return found
+    return []
 
 
 @lru_cache(maxsize=None)

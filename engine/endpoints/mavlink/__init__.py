@@ -97,7 +97,7 @@ class MavlinkTransport(Transport):
     def sink_problems(self, options: MavlinkSinkOptions, mapping: str | None) -> CheckResult:
         return sink_problems(options, mapping)
 
-    def sink_field_check(self, options: MavlinkSinkOptions) -> Callable[[Any], None] | None:
+    def sink_field_check(self, options: MavlinkSinkOptions, mapping: str | None = None) -> Callable[[Any], None] | None:
         return field_check(options)
 
     def sink_dry_run(self, route: str, options: MavlinkSinkOptions) -> Callable[[Outbound], str | None]:
