@@ -59,7 +59,7 @@ from rclpy.validate_full_topic_name import validate_full_topic_name
 from rclpy.validate_namespace import validate_namespace
 from rclpy.validate_node_name import validate_node_name
 
-from engine.endpoints import ros2_contract, rosmsg
+from engine.endpoints.ros2 import contract as ros2_contract, rosmsg
 from engine.endpoints.base import (
     CheckResult, Connection, FieldProblem, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
     Source, Transport, typed,
@@ -278,7 +278,7 @@ class Ros2Transport(Transport):
     def canonical_fields(self, options: Ros2EndpointOptions) -> Iterable[tuple[str, str]]:
         return [("topic", name) for name in _PLACEHOLDER.findall(options.topic or "") if name not in _RCL_SUBSTITUTIONS]
 
-    # What the core's checks and dry runs ask (engine/endpoints/ros2_contract.py).
+    # What the core's checks and dry runs ask (contract.py).
 
     def sink_dry_run(self, route: str, options: Ros2EndpointOptions) -> Callable[[Outbound], str | None]:
         return ros2_contract.sink_dry_run(route, options.topic, options.type, _topic_template(options.topic), typed_message)
@@ -809,7 +809,7 @@ def typed_message(cls: type, message: Outbound, where: str) -> Any:
     ``sink mapping`` error naming the field): JMESPath gives null for a path the message
     lacks, and neither a default nor NaN may stand in for a value that was not found.
     Without a sink mapping the canonical message is the data, and a null float is NaN (the
-    ROS -> JSON -> ROS round trip; see engine/endpoints/rosmsg.py)."""
+    ROS -> JSON -> ROS round trip; see rosmsg.py)."""
     mapped = message.fields is not message.canonical
     try:
         return rosmsg.from_dict(cls, message.fields, null_as_nan=not mapped)

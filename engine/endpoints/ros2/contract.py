@@ -10,7 +10,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from engine.endpoints import rosmsg
+from engine.endpoints.ros2 import rosmsg
 from engine.endpoints.base import ELEMENT, FieldPath, FieldProblem, Outbound
 from engine.suggest import closest
 
