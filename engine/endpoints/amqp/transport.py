@@ -29,7 +29,6 @@ import aio_pika.abc
 import aiormq.abc
 import aiormq.exceptions
 from aiormq import spec
-from aio_pika.exceptions import AMQPError
 
 from engine.endpoints.base import (
     CheckResult,
@@ -46,13 +45,13 @@ from engine.endpoints.base import (
     typed,
 )
 import engine.endpoints.amqp.cluster as amqp_cluster
+from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template, template_fields
 from engine.options import evolve, given
 from engine.redaction import redact_urls
 from engine.schemas import SchemaError, canonical_bytes
 
-_ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError, RuntimeError)
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
 log = logging.getLogger("engine.amqp")
 
@@ -141,7 +140,7 @@ class AmqpConnection(Connection):
             self._publish_channel = await self._connection.channel(
                 publisher_confirms=self.settings.publisher_confirms
             )
-        except _ERRORS as exc:
+        except LIBRARY_ERRORS as exc:
             self._failed(exc)
             if self._connection is not None:
                 await self.close()
@@ -187,8 +186,8 @@ class AmqpConnection(Connection):
             await self.exchange(exchange_name, kind, durable)
             assert self._publish_channel is not None
             channel = await self._publish_channel.get_underlay_channel()
-        except _ERRORS as exc:
-            error = EndpointError(f"amqp publish to {exchange_name!r} on {self.name!r}: {exc}")
+        except LIBRARYLIBRARY_ERRORS as exc:
+            error = edge_error(exc, f"amqp publish to {exchange_name!r} on {self.name!r}")
             return [error] * len(messages)
         confirms = self._publish_channel.publisher_confirms
         if len(messages) == 1:  # the common case at low rates: no task, one loop iteration less
@@ -236,8 +235,8 @@ class AmqpConnection(Connection):
                 await queue.bind(DEAD_LETTER_EXCHANGE, "#")
             finally:
                 await channel.close()
-        except _ERRORS as exc:
-            raise EndpointError(f"amqp connection {self.name!r}: cannot declare the dead-letter queue: {exc}") from exc
+        except LIBRARYLIBRARY_ERRORS as exc:
+            raise edge_error(exc, f"amqp connection {self.name!r}: cannot declare the dead-letter queue") from exc
 
     async def dead_letter(self, route: str, messages: Sequence[tuple[bytes, Mapping[str, Any]]]) -> None:
         """One confirmed batch to ``rabbitros.dead-letter``, routing key = route name."""
@@ -267,7 +266,7 @@ class AmqpConnection(Connection):
         if self._connection is not None:
             try:
                 await self._connection.close()
-            except _ERRORS:
+            except LIBRARY_ERRORS:
                 pass
             self._connection = None
 
@@ -311,10 +310,10 @@ class AmqpSource(Source):
             self._loop = asyncio.create_task(self._run(deliver), name=f"amqp-source:{self._route}")
             await self._consume()
             self._channel.reopen_callbacks.add(self._reconsume)
-        except _ERRORS as exc:
+        except LIBRARY_ERRORS as exc:
             self._stopping = True
             self._received.close()
-            raise EndpointError(f"route {self._route!r}: amqp source queue {self.queue_name!r}: {exc}") from exc
+            raise edge_error(exc, f"route {self._route!r}: amqp source queue {self.queue_name!r}") from exc
 
     async def _consume(self) -> None:
         """Consume on the channel's aiormq channel: no aio-pika message object or task per
@@ -330,7 +329,7 @@ class AmqpSource(Source):
             return
         try:
             await self._consume()
-        except _ERRORS as exc:
+        except LIBRARY_ERRORS as exc:
             log.error("route %r: cannot consume %r again after reconnecting: %s", self._route, self.queue_name, exc)
 
     async def _on_message(self, message: aiormq.abc.DeliveredMessage) -> None:
@@ -373,7 +372,7 @@ class AmqpSource(Source):
             channel, tag = self._consumer
             try:
                 await channel.basic_cancel(tag)
-            except _ERRORS:
+            except LIBRARY_ERRORS:
                 pass
         self._received.close()
         if self._loop is not None:
@@ -381,7 +380,7 @@ class AmqpSource(Source):
         if self._channel is not None:
             try:
                 await self._channel.close()
-            except _ERRORS:
+            except LIBRARY_ERRORS:
                 pass
 
 
@@ -404,7 +403,7 @@ def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
 async def _settle_frame(method: Any, tag: int | None, **kwargs: Any) -> None:
     try:
         await method(tag, **kwargs)
-    except _ERRORS:
+    except LIBRARY_ERRORS:
         pass  # the channel is gone: the broker requeues whatever was not acked
 
 
