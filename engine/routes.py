@@ -28,8 +28,8 @@ from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hin
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
 from engine.options import OptionError, describe, fields_of, given, option, parse
-from engine.local_broker import LOCAL_BROKER_ENV, elsewhere
-from engine.redaction import Secret, has_url_password, json_default, redact_urls, reveal, revealed
+from engine.local_broker import LOCAL_BROKER_ENV
+from engine.redaction import Secret, json_default, revealed
 from engine.route_yaml import Document, Path_, Problem, parse_document
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
@@ -192,11 +192,6 @@ class RoutesConfig:
     def key_files(self) -> frozenset[Path]:
         """Every key file a connection reads: a new key written there is a configuration change."""
         return frozenset(path for connection in self.connections.values() for path in connection.key_files)
-
-
-def default_amqp_url() -> str | Secret:
-    url = os.environ.get("RABBITROS_AMQP_URL", "amqp://guest:guest@localhost:5672/")
-    return Secret(url) if has_url_password(url) else url
 
 
 def route_files(directory: Path) -> list[Path]:
@@ -387,13 +382,7 @@ def _connection_key(transport: Transport, path: Path_) -> Path_:
 
 def _default_connection(protocol: str) -> ConnectionSpec:
     transport = endpoints.transport(protocol)
-    settings = dict(transport.default_settings)
-    if protocol == "amqp":
-        settings["url"] = default_amqp_url()
-        cluster = os.environ.get("RABBITROS_AMQP_URLS", "").split()
-        if cluster:  # a local cluster (--local-broker --cluster N): every node, replicated queues
-            del settings["url"]
-            settings.update(urls=[Secret(url) if has_url_password(url) else url for url in cluster], queue_type="quorum")
+    settings = dict(transport.default_connection_settings(os.environ))
     try:
         options = parse(transport.connection_options, settings)
     except OptionError as exc:
@@ -402,26 +391,24 @@ def _default_connection(protocol: str) -> ConnectionSpec:
 
 
 def _private_broker_warnings(connections: Mapping[str, ConnectionSpec], env: Mapping[str, str]) -> list[Problem]:
-    """With ``--local-broker``, each AMQP connection that names a broker other than the private
-    node: it keeps going where it says (a route file means what it says, and one with two
-    brokers must not become one with a single broker under a flag), so say so at load."""
+    """With ``--local-broker``, each connection that names a broker other than the private one
+    (its transport says, ``Transport.private_broker_warning``): it keeps going where it says (a
+    route file means what it says, and one with two brokers must not become one with a single
+    broker under a flag), so say so at load."""
     node = env.get(LOCAL_BROKER_ENV)
     if node is None:
         return []
-    private = env.get("RABBITROS_AMQP_URLS", "").split() or [env.get("RABBITROS_AMQP_URL", "")]
     named = f"--local-broker's private node ({node})" if node else "--local-broker's private node"
     warnings = []
     for spec in connections.values():
-        if spec.protocol != "amqp" or spec.options is None or spec.name.startswith("default-"):
+        if spec.options is None or spec.name.startswith("default-"):
             continue
-        urls = [reveal(url) for url in ([spec.options.url] if spec.options.url else spec.options.urls or ())]
-        other = elsewhere(urls, private)
-        if other:
-            shown_urls = ", ".join(redact_urls(url) for url in other)
-            warnings.append(Problem(spec.file, spec.line, (
-                f"connection {spec.name!r} names its own broker ({shown_urls}), so {named} does not serve it "
-                "and its routes use that broker; to use the private node, write the URL as "
-                "\"${RABBITROS_AMQP_URL:-<the URL>}\", or leave the connection out")))
+        try:
+            warning = endpoints.transport(spec.protocol).private_broker_warning(spec.options, env)
+        except EndpointError:
+            continue
+        if warning:
+            warnings.append(Problem(spec.file, spec.line, f"connection {spec.name!r} {warning.replace('{private}', named)}"))
     return warnings
 
 

@@ -422,6 +422,18 @@ class Transport(ABC):
         it consumes; ``check`` warns when two routes name the same one."""
         return None
 
+    def default_connection_settings(self, env: Mapping[str, str]) -> Mapping[str, Any]:
+        """The settings of the protocol's default connection (``default-<protocol>``, used by
+        routes that name none): :attr:`default_settings`, or what ``env`` says (the private
+        broker ``--local-broker`` started)."""
+        return self.default_settings
+
+    def private_broker_warning(self, settings: Any, env: Mapping[str, str]) -> str | None:
+        """Under ``--local-broker`` (``env`` as it set it): when a connection with these typed
+        settings names its own broker instead of the private one, why, for a load warning that
+        begins with the connection's name (``{private}`` stands for the private broker's)."""
+        return None
+
     def redelivers(self, options: Any) -> bool:
         """True when a source with these (typed) options gets back every message the engine did
         not settle (a broker keeps what was not acknowledged): its route needs no buffer while

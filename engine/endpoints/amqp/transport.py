@@ -49,7 +49,8 @@ from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template, template_fields
 from engine.options import evolve, given
-from engine.redaction import redact_urls
+from engine.local_broker import elsewhere
+from engine.redaction import Secret, has_url_password, redact_urls, reveal
 from engine.schemas import SchemaError, canonical_bytes
 
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
@@ -482,6 +483,16 @@ class AmqpSink(Sink):
         return results
 
 
+URL_ENV = "RABBITROS_AMQP_URL"
+"""The default connection's URL; ``run --local-broker`` sets it to the private node's."""
+URLS_ENV = "RABBITROS_AMQP_URLS"
+"""Every node's URL of ``run --local-broker --cluster N`` (space-separated)."""
+
+
+def _secret(url: str) -> str | Secret:
+    return Secret(url) if has_url_password(url) else url
+
+
 class AmqpTransport(Transport):
     name = "amqp"
     connection_type = AmqpConnection
@@ -523,6 +534,24 @@ class AmqpTransport(Transport):
 
     def canonical_fields(self, options: AmqpSinkOptions) -> Iterable[tuple[str, str]]:
         return [("routing_key", name) for name in template_fields(options.routing_key)]
+
+    def default_connection_settings(self, env: Mapping[str, str]) -> Mapping[str, Any]:
+        """``RABBITROS_AMQP_URL`` (``--local-broker`` sets it), else localhost; a local cluster
+        (``--local-broker --cluster N`` sets ``RABBITROS_AMQP_URLS``): every node, replicated queues."""
+        cluster = env.get(URLS_ENV, "").split()
+        if cluster:
+            return {"urls": [_secret(url) for url in cluster], "queue_type": "quorum"}
+        return {"url": _secret(env.get(URL_ENV, self.default_settings["url"]))}
+
+    def private_broker_warning(self, settings: AmqpConnectionOptions, env: Mapping[str, str]) -> str | None:
+        private = env.get(URLS_ENV, "").split() or [env.get(URL_ENV, "")]
+        urls = [reveal(url) for url in ([settings.url] if settings.url else settings.urls or ())]
+        other = elsewhere(urls, private)
+        if not other:
+            return None
+        return (f"names its own broker ({', '.join(redact_urls(url) for url in other)}), so {{private}} does not serve it "
+                "and its routes use that broker; to use the private node, write the URL as "
+                f"\"${{{URL_ENV}:-<the URL>}}\", or leave the connection out")
 
     def redelivers(self, options: AmqpSourceOptions) -> bool:
         """The broker requeues what the engine did not acknowledge."""
