@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 import aio_pika
 
-from engine.local_broker import LocalCluster
+from engine.endpoints.amqp.broker import LocalCluster
 from tests.engine_process import EngineProcess
 
 CLIENT_NODE = 2

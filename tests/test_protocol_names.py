@@ -23,10 +23,7 @@ PROTOCOL_WORDS = {
 CEILINGS = {
     "mqtt": 0,
     "ros2": 0,
-    # What is left is --local-broker, which starts RabbitMQ: cli.py's options and help and the
-    # RABBITROS_AMQP_URL(S) it sets, and local_broker.py's node URL. They go when each protocol
-    # contributes its private broker (the AMQP transport already reads those variables).
-    "amqp": 10,
+    "amqp": 0,
     # MAVLink's time and enum functions for mappings (mapping.py, stamps.py): they go when each
     # transport contributes its JMESPath functions without importing pymavlink at every load.
     "mavlink": 5,

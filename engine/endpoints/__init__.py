@@ -14,6 +14,11 @@ _MODULES = {
     "mqtt": "engine.endpoints.mqtt",
 }
 PROTOCOLS: tuple[str, ...] = tuple(_MODULES)
+PRIVATE_BROKERS: dict[str, str] = {
+    "amqp": "engine.endpoints.amqp.broker",
+}
+"""The module of each protocol's ``--local-broker`` (engine/local_broker.py): its
+``private_broker(cluster)`` and ``CHECK_ENV``. Imported only under ``--local-broker``."""
 
 
 def transport(protocol: str) -> Transport:

@@ -49,7 +49,7 @@ from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template, template_fields
 from engine.options import evolve, given
-from engine.local_broker import elsewhere
+from engine.endpoints.amqp.broker import URL_ENV, URLS_ENV, elsewhere
 from engine.redaction import Secret, has_url_password, redact_urls, reveal
 from engine.schemas import SchemaError, canonical_bytes
 
@@ -481,12 +481,6 @@ class AmqpSink(Sink):
             for index, error in zip(publishable, await self._connection.publish_batch(self._exchange, batch, self._kind, self._durable)):
                 results[index] = error
         return results
-
-
-URL_ENV = "RABBITROS_AMQP_URL"
-"""The default connection's URL; ``run --local-broker`` sets it to the private node's."""
-URLS_ENV = "RABBITROS_AMQP_URLS"
-"""Every node's URL of ``run --local-broker --cluster N`` (space-separated)."""
 
 
 def _secret(url: str) -> str | Secret:
