@@ -33,3 +33,19 @@ def test_the_default_buffer_follows_whether_the_source_redelivers(tmp_path: Path
     assert config.routes["qos1"].buffer is None and config.routes["queue"].buffer is None
     assert config.dead_letters.connection == "broker"  # the only connection that keeps dead letters
     assert config.routes["standby"].placement.lease_connection == "broker"  # the only one that holds leases
+
+
+def test_each_protocols_mapping_functions_are_the_ones_it_declares():
+    """A protocol's mapping functions load only for a mapping that calls one of the names the
+    registry lists: a name missing there would be an unknown function until another loaded them."""
+    import importlib
+
+    from engine import endpoints
+    from engine.mapping import compile_mapping
+
+    from jmespath import functions
+
+    builtin = set(functions.Functions.FUNCTION_TABLE)
+    for module, names in endpoints.MAPPING_FUNCTIONS.items():
+        assert set(importlib.import_module(module).Functions.FUNCTION_TABLE) - builtin == set(names), module
+    assert compile_mapping("stamp_boot_ms(`5`).sec")({}) > 0
