@@ -23,7 +23,7 @@ from engine.logs import setup_logging
 from engine.observe import COUNTERS
 from engine.loop import run as run_loop
 from engine.route_tests import format_result, load_checked, run_tests
-from engine.routes import RoutesInvalid
+from engine.routes import RoutesInvalid, load_routes
 from engine.runtime import Engine
 from engine.schemas import SchemaRegistry
 from engine.watch import watch_routes
@@ -196,7 +196,7 @@ async def run(args: argparse.Namespace) -> int:
         return 2
     try:
         if args.local_broker:
-            for broker in private_brokers(args.cluster):
+            for broker in private_brokers(args.cluster, _protocols_used(args)):
                 try:
                     await asyncio.to_thread(broker.start)
                 except BrokerError as exc:
@@ -214,6 +214,21 @@ async def run(args: argparse.Namespace) -> int:
     finally:
         for broker in reversed(started):
             await asyncio.to_thread(broker.stop)
+
+
+def _protocols_used(args: argparse.Namespace) -> set[str] | None:
+    """The protocols of the routes' connections (each protocol's private broker starts only
+    when used, unless it always does); None when the routes do not load (every broker)."""
+    saved = dict(os.environ)
+    try:
+        stand_in_for_check()
+        config = load_routes(args.routes, SchemaRegistry(args.schemas or default_schemas(args.routes)))
+    except (RoutesInvalid, OSError, EndpointError):
+        return None
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    return {connection.protocol for connection in config.connections.values()}
 
 
 async def serve(args: argparse.Namespace) -> int:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import importlib
 import os
-from typing import Mapping, Protocol, Sequence
+from typing import Any, Iterable, Mapping, Protocol, Sequence
 
 LOCAL_BROKER_ENV = "RABBITROS_LOCAL_BROKER"
 """Set by ``run --local-broker`` to the private brokers' names (``check --local-broker``:
@@ -43,15 +43,22 @@ class PrivateBroker(Protocol):
     def stop(self) -> None: ...
 
 
-def _modules() -> list[object]:
+def _modules(protocols: Iterable[str] | None = None) -> list[Any]:
+    """The private-broker module of each protocol that has one (of ``protocols``, if given)."""
     from engine import endpoints
 
-    return [importlib.import_module(name) for name in endpoints.PRIVATE_BROKERS.values()]
+    wanted = endpoints.PRIVATE_BROKERS if protocols is None else {
+        protocol: name for protocol, name in endpoints.PRIVATE_BROKERS.items() if protocol in protocols}
+    return [importlib.import_module(name) for name in wanted.values()]
 
 
-def private_brokers(cluster: int = 1) -> list[PrivateBroker]:
-    """One private broker per protocol that has one (``cluster`` nodes where it can cluster)."""
-    return [module.private_broker(cluster) for module in _modules()]  # type: ignore[attr-defined]
+def private_brokers(cluster: int = 1, used: Iterable[str] | None = None) -> list[PrivateBroker]:
+    """A private broker for each protocol that has one and is ``used`` by the routes (None:
+    unknown, every one) or starts always (its module's ``ALWAYS``: the default connection of
+    routes that name none); ``cluster`` nodes where the broker can cluster."""
+    used = None if used is None else set(used)
+    return [module.private_broker(cluster) for module in _modules()
+            if used is None or module.ALWAYS or module in _modules(used)]
 
 
 def stand_in_for_check() -> None:

@@ -49,3 +49,16 @@ def test_each_protocols_mapping_functions_are_the_ones_it_declares():
     for module, names in endpoints.MAPPING_FUNCTIONS.items():
         assert set(importlib.import_module(module).Functions.FUNCTION_TABLE) - builtin == set(names), module
     assert compile_mapping("stamp_boot_ms(`5`).sec")({}) > 0
+
+
+def test_local_broker_warns_about_an_mqtt_connection_naming_its_own_broker(tmp_path: Path):
+    """Under --local-broker a connection without a url uses the private mosquitto; one with a url
+    keeps its broker, and the loader says so (the MQTT transport's private_broker_warning)."""
+    from engine.local_broker import LOCAL_BROKER_ENV
+
+    (tmp_path / "r.yaml").write_text(
+        "connections:\n  own: {mqtt: \"mqtt://10.0.0.5:1883\"}\n  private: {mqtt: {client_id: engine-1}}\n"
+        "routes:\n  - {name: a, source: {mqtt: {connection: own, topic: a}}, schema: raw_json, sink: {mqtt: {connection: private, topic: b}}}\n")
+    warnings = [str(w) for w in load_routes(tmp_path, SchemaRegistry(REPO / "schemas"), env={LOCAL_BROKER_ENV: ""}).warnings]
+    assert len(warnings) == 1 and "r.yaml:2: connection 'own' names its own broker (mqtt://10.0.0.5:1883)" in warnings[0], warnings
+    assert load_routes(tmp_path, SchemaRegistry(REPO / "schemas"), env={}).warnings == ()

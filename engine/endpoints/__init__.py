@@ -22,6 +22,7 @@ engine/mapping.py imports it only for a mapping that calls one (tests/test_endpo
 that the names match the class)."""
 PRIVATE_BROKERS: dict[str, str] = {
     "amqp": "engine.endpoints.amqp.broker",
+    "mqtt": "engine.endpoints.mqtt.broker",
 }
 """The module of each protocol's ``--local-broker`` (engine/local_broker.py): its
 ``private_broker(cluster)`` and ``CHECK_ENV``. Imported only under ``--local-broker``."""

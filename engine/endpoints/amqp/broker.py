@@ -39,6 +39,8 @@ URL_ENV = "RABBITROS_AMQP_URL"
 """The default connection's URL; ``run --local-broker`` sets it to the private node's."""
 URLS_ENV = "RABBITROS_AMQP_URLS"
 """Every node's URL of ``run --local-broker --cluster N`` (space-separated)."""
+ALWAYS = True
+"""Started by every ``--local-broker`` (the default connection, and the dead letters' broker)."""
 CHECK_ENV: dict[str, str | None] = {URL_ENV: "amqp://guest:guest@local-broker.invalid/", URLS_ENV: None}
 """``check --local-broker``'s stand-in for the private node's URL (``.invalid`` is never a host)."""
 _LOOPBACK = frozenset({"localhost", "127.0.0.1", "::1", "ip6-localhost"})

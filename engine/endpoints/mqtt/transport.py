@@ -13,7 +13,7 @@ from engine.endpoints.mqtt.options import MqttConnectionOptions, MqttSinkOptions
 from engine.endpoints.mqtt.topics import filter_problems, subscription, template_problems, topic_renderer
 from engine.mapping import template_fields
 from engine.options import given
-from engine.redaction import reveal
+from engine.redaction import redact_urls, reveal
 
 QOS2_SOURCE = ("qos 2 is not offered on a source: paho acknowledges a QoS 2 message (PUBREC) as it arrives, "
                "before the route settled it, so an engine stopped meanwhile would lose it; qos 1 is at-least-once "
@@ -60,6 +60,13 @@ class MqttTransport(Transport):
     def sink_problems(self, options: MqttSinkOptions, mapping: str | None) -> CheckResult:
         for message in template_problems(options.topic):
             yield "topic", message
+
+    def private_broker_warning(self, settings: MqttConnectionOptions, env: Mapping[str, str]) -> str | None:
+        """A connection with a ``url`` keeps its broker; one without uses the private mosquitto."""
+        if settings.url is None:
+            return None
+        return (f"names its own broker ({redact_urls(reveal(settings.url))}), so {{private}} does not serve it; "
+                "to use the private broker, leave its url out")
 
     def redelivers(self, options: MqttSourceOptions) -> bool:
         """QoS 1: the broker resends what was not acknowledged (PUBACK after the route settled);
