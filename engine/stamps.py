@@ -12,6 +12,7 @@ its package (engine/endpoints/mavlink/functions.py), into this form.
 
 from __future__ import annotations
 
+import datetime
 import math
 import time
 from typing import Any
@@ -44,3 +45,9 @@ def to_stamp(value: Any) -> dict[str, int]:
         return {"sec": value, "nanosec": 0}
     sec = math.floor(value)  # a double holds UNIX seconds to about 0.2 us: round to the microsecond
     return from_ns(sec * NS + round((value - sec) * 1_000_000) * 1000)
+
+
+def to_iso8601(stamp: dict[str, int]) -> str:
+    """``{sec, nanosec}`` -> ISO 8601 UTC with milliseconds, ``Z`` for UTC."""
+    moment = datetime.datetime.fromtimestamp(stamp["sec"], datetime.timezone.utc)
+    return moment.strftime("%Y-%m-%dT%H:%M:%S") + f".{stamp['nanosec'] // 1_000_000:03d}Z"
