@@ -192,7 +192,7 @@ def test_check_reports_every_problem_of_a_file_in_one_run(tmp_path: Path):
         "r.yaml:23: route 'leased': unknown schema 'postion' (known: ack, attitude, battery, command, envelope, mission, "
         "position, raw_json, status, vda5050/connection, vda5050/instant_actions, vda5050/order, vda5050/state, "
         "vda5050/visualization, weed_detection); did you mean 'position'?",
-        "r.yaml:25: route 'leased': lease: connection 'ros' is ros2, not amqp (amqp connections: gcs)",
+        "r.yaml:25: route 'leased': lease: connection 'ros' (ros2) is not one that holds leases (connections that do: gcs)",
     ]
     warnings = [str(w).removeprefix(f"{tmp_path}/") for w in invalid.value.warnings]
     assert warnings == ["r.yaml:19: route 'other': mapping sets 'heding', which schema 'position' does not declare; did you mean 'heading'?"]
