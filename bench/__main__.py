@@ -80,7 +80,7 @@ async def throughput(broker: tp.Broker, count: int, mavlink_rates: list[int], ha
 
 
 async def run(args: argparse.Namespace) -> Path:
-    from engine.local_broker import LocalBroker
+    from engine.endpoints.amqp.broker import LocalBroker
 
     only = set(args.only.split(",")) if args.only else set(SECTIONS)
     out_dir = Path(args.out) if args.out else REPO / "bench" / "results" / datetime.date.today().isoformat()

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import aio_pika
 
-from engine.local_broker import LocalBroker
+from engine.endpoints.amqp.broker import LocalBroker
 from engine.runtime import Engine
 
 REPO = Path(__file__).resolve().parent.parent

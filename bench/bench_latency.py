@@ -28,7 +28,7 @@ import aio_pika
 
 from bench.roundtrip_ros2 import make_message
 from engine.endpoints.base import Inbound, Outbound
-from engine.local_broker import LocalBroker
+from engine.endpoints.amqp.broker import LocalBroker
 from engine.runtime import Engine
 
 REPO = Path(__file__).resolve().parent.parent

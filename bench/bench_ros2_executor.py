@@ -45,7 +45,7 @@ def publisher(args: argparse.Namespace) -> None:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
 
-    from engine.endpoints.rosmsg import resolve_type
+    from engine.endpoints.ros2.rosmsg import resolve_type
 
     cls = resolve_type(args.type)
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
@@ -143,7 +143,7 @@ async def start_poll_baseline(args: argparse.Namespace, meter: Meter) -> Any:
     from rclpy.signals import SignalHandlerOptions
 
     from engine.endpoints.base import Inbound
-    from engine.endpoints.rosmsg import resolve_type, to_dict
+    from engine.endpoints.ros2.rosmsg import resolve_type, to_dict
 
     cls = resolve_type(args.type)
     is_string = cls.__name__ == "String"
@@ -174,7 +174,7 @@ async def start_poll_baseline(args: argparse.Namespace, meter: Meter) -> Any:
 
 async def bench_sink(connection: Any, type_name: str, count: int) -> tuple[float, float]:
     from engine.endpoints.base import Outbound
-    from engine.endpoints.rosmsg import resolve_type, to_dict
+    from engine.endpoints.ros2.rosmsg import resolve_type, to_dict
 
     sink = connection.sink("bench-sink", {"topic": "/bench/sink", "type": type_name})
     cls = resolve_type(type_name)

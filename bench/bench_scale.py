@@ -29,7 +29,7 @@ from pathlib import Path
 import aio_pika
 import aiormq
 
-from engine.local_broker import LocalCluster
+from engine.endpoints.amqp.broker import LocalCluster
 from tests.engine_process import EngineProcess
 from tests.test_cluster import TimedCollector, publish_seq
 

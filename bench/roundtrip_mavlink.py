@@ -11,7 +11,7 @@ back) and compared byte for byte; the three versions go to one CSV per run and s
     python -m bench.roundtrip_mavlink --loss 0.05 --outage 20:3      # 5 % packet loss, 3 s outage 20 s into each batch
     python -m bench.roundtrip_mavlink --runs 1 --rate 4              # fast
 
-The broker is a private node started for the run (``engine.local_broker``), the radios run in
+The broker is a private node started for the run (``engine.endpoints.amqp.broker``), the radios run in
 this process (a thread), the vehicle in its own process on radio B, the engine in this process
 on radio A. ``--outage START:DURATION`` is applied to every batch (run x size), START seconds
 after its first message, so every size is measured through an outage. Exit status is 0 only if
@@ -184,7 +184,7 @@ async def vehicle_process(link: str, store: Path, budget: float, window: int | N
 async def run_experiment(settings: Settings, amqp_url: str | None = None) -> dict[str, Any]:
     """Run every batch; returns the batches, radio and vehicle counters. Starts a private
     broker unless ``amqp_url`` is given (tests share their session's node)."""
-    from engine.local_broker import LocalBroker
+    from engine.endpoints.amqp.broker import LocalBroker
 
     if amqp_url is not None:
         return await _with_broker(settings, amqp_url)

@@ -59,7 +59,7 @@ async def gcs_side(args: argparse.Namespace) -> dict[str, Any]:
     """Runs inside the GCS namespace: private broker, engine, generator and recorder."""
     import aio_pika
 
-    from engine.local_broker import LocalBroker
+    from engine.endpoints.amqp.broker import LocalBroker
     from engine.runtime import Engine
 
     out = Path(args.out)

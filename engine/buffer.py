@@ -89,11 +89,11 @@ class BufferSpec:
     """``latest_only``: the canonical field whose values keep only their newest message (``()``: one for the route)."""
 
     @classmethod
-    def parse(cls, value: BufferOptions | bool | None, source_protocol: str, base: Path) -> BufferSpec | None:
+    def parse(cls, value: BufferOptions | bool | None, source_redelivers: bool, base: Path) -> BufferSpec | None:
         """``buffer: false`` is none; absent is the default for sources that cannot have a
-        message redelivered (ROS 2, MAVLink) and none for AMQP and MQTT, whose broker keeps
-        what the engine has not acknowledged."""
-        if value is False or (value is None and source_protocol in ("amqp", "mqtt")):
+        message redelivered (ROS 2, MAVLink, MQTT QoS 0) and none for those whose broker keeps
+        what the engine has not acknowledged (``Transport.redelivers``: AMQP, MQTT QoS 1)."""
+        if value is False or (value is None and source_redelivers):
             return None
         value = value if isinstance(value, BufferOptions) else BufferOptions()
         return cls(
@@ -119,7 +119,7 @@ class LatestOnlyOptions:
 class BufferOptions:
     """A route's ``buffer:`` as written (``buffer: false`` is none at all)."""
 
-    __schema_description__ = ("messages of a ROS 2 or MAVLink source (which cannot redeliver) held, in order, while "
+    __schema_description__ = ("messages of a source that cannot redeliver held, in order, while "
                               "the sink is down, and sent when it is back")
 
     max_messages: int = option(DEFAULT_MAX_MESSAGES, minimum=1,

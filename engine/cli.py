@@ -13,25 +13,23 @@ import tempfile
 from pathlib import Path
 from typing import Sequence
 
-from engine import __version__
+from engine import __version__, endpoints
 from engine.admin import AdminServer, parse_address, status_document
-from engine.endpoints.amqp import redact
+from engine.redaction import redact_urls
 from engine.opsview import print_status, print_tap
 from engine.endpoints.base import EndpointError
-from engine.local_broker import LOCAL_BROKER_ENV, BrokerError, LocalBroker, LocalCluster
+from engine.local_broker import LOCAL_BROKER_ENV, BrokerError, PrivateBroker, private_brokers, stand_in_for_check
 from engine.logs import setup_logging
 from engine.observe import COUNTERS
 from engine.loop import run as run_loop
 from engine.route_tests import format_result, load_checked, run_tests
-from engine.routes import RoutesInvalid
+from engine.routes import RoutesInvalid, load_routes
 from engine.runtime import Engine
 from engine.schemas import SchemaRegistry
 from engine.watch import watch_routes
 
 log = logging.getLogger("engine.cli")
 COMMANDS = ("run", "check", "test", "status", "tap")
-CHECK_BROKER_URL = "amqp://guest:guest@local-broker.invalid/"
-"""``check --local-broker``'s stand-in for the private node's URL (``.invalid`` is never a host)."""
 
 
 def default_schemas(routes: Path) -> Path:
@@ -67,7 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="rabbitros-engine",
         usage="%(prog)s [run] [--routes DIR] [--local-broker] [--admin [HOST:]PORT] [OPTIONS]\n"
               "       %(prog)s {check,test,status,tap} ...",
-        description="Routes messages between RabbitMQ, ROS 2 and MAVLink as declared in YAML route files.",
+        description="Routes messages between " + ", ".join(endpoints.PROTOCOLS) + " endpoints as declared in YAML route files.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", metavar="{run,check,test,status,tap}", title="commands")
@@ -78,10 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = commands.add_parser("run", help="run the routes (the default command)")
     common(run)
-    run.add_argument("--local-broker", action="store_true", help="start a private RabbitMQ node and use it as the default AMQP connection")
-    run.add_argument("--broker-url-file", type=Path, metavar="FILE", help="with --local-broker: write the broker's URL to this file")
+    run.add_argument("--local-broker", action="store_true", help="start the private broker of each protocol that has one and use it as that protocol's default connection")
+    run.add_argument("--broker-url-file", type=Path, metavar="FILE", help="with --local-broker: write the brokers' URLs to this file, one a line")
     run.add_argument("--cluster", type=int, default=1, metavar="N",
-                     help="with --local-broker: start N nodes joined in one cluster (default 1); the default AMQP connection lists them all")
+                     help="with --local-broker: start N nodes of each broker joined in one cluster (default 1); the default connection lists them all")
     run.add_argument("--status-file", type=Path, metavar="FILE", help="keep the live status (generation, config hash, counters) in this JSON file")
     run.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT",
                      help="serve /metrics, /healthz, /status and /tap/ROUTE over HTTP (a bare port binds 127.0.0.1); off by default")
@@ -99,7 +97,7 @@ def build_parser() -> argparse.ArgumentParser:
     check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
     common(check)
     check.add_argument("--local-broker", action="store_true",
-                       help="check as run --local-broker would load the routes: warn about AMQP connections that name another broker")
+                       help="check as run --local-broker would load the routes: warn about connections that name another broker")
 
     test = commands.add_parser(
         "test", help="run the *.test.yaml cases through the routes' conversion, connecting to nothing; "
@@ -133,9 +131,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         args_list.insert(0, "run")
     args = build_parser().parse_args(args_list)
     if args.command == "check":
-        if args.local_broker:  # the private node's URL is not known before it starts: a stand-in no route file names
-            os.environ.update({"RABBITROS_AMQP_URL": CHECK_BROKER_URL, LOCAL_BROKER_ENV: ""})
-            os.environ.pop("RABBITROS_AMQP_URLS", None)
+        if args.local_broker:  # the private brokers' URLs are not known before they start: stand-ins no route file names
+            stand_in_for_check()
         return check(args.routes, args.schemas or default_schemas(args.routes))
     if args.command == "test":
         return run_route_tests(args.routes, args.schemas or default_schemas(args.routes))
@@ -193,31 +190,45 @@ def run_route_tests(routes: Path, schemas_dir: Path) -> int:
 
 
 async def run(args: argparse.Namespace) -> int:
-    broker: LocalBroker | LocalCluster | None = None
+    started: list[PrivateBroker] = []
     if args.cluster < 1 or (args.cluster > 1 and not args.local_broker):
         log.error("--cluster N needs --local-broker and N >= 1")
         return 2
-    if args.local_broker:
-        broker = LocalCluster(args.cluster) if args.cluster > 1 else LocalBroker()
-        try:
-            await asyncio.to_thread(broker.start)
-        except BrokerError as exc:
-            log.error("local broker failed to start", extra={"error": str(exc)})
-            return 1
-        urls = broker.urls if isinstance(broker, LocalCluster) else [broker.url]
-        os.environ["RABBITROS_AMQP_URL"] = urls[0]
-        if len(urls) > 1:
-            os.environ["RABBITROS_AMQP_URLS"] = " ".join(urls)
-        nodes = [n.node for n in broker.nodes] if isinstance(broker, LocalCluster) else [broker.node]
-        os.environ[LOCAL_BROKER_ENV] = ", ".join(nodes)  # the loader warns about AMQP connections that go elsewhere
-        log.info("local broker started", extra={"urls": [redact(u) for u in urls], "nodes": nodes})
-        if args.broker_url_file:
-            _write_atomically(args.broker_url_file, "\n".join(urls) + "\n")
     try:
+        if args.local_broker:
+            for broker in private_brokers(args.cluster, _protocols_used(args)):
+                try:
+                    await asyncio.to_thread(broker.start)
+                except BrokerError as exc:
+                    log.error("local broker failed to start", extra={"error": str(exc)})
+                    return 1
+                started.append(broker)
+                os.environ.update(broker.environment)
+            urls = [url for broker in started for url in broker.urls]
+            nodes = [node for broker in started for node in broker.nodes]
+            os.environ[LOCAL_BROKER_ENV] = ", ".join(nodes)  # the loader warns about connections that go elsewhere
+            log.info("local broker started", extra={"urls": [redact_urls(u) for u in urls], "nodes": nodes})
+            if args.broker_url_file:
+                _write_atomically(args.broker_url_file, "\n".join(urls) + "\n")
         return await serve(args)
     finally:
-        if broker is not None:
+        for broker in reversed(started):
             await asyncio.to_thread(broker.stop)
+
+
+def _protocols_used(args: argparse.Namespace) -> set[str] | None:
+    """The protocols of the routes' connections (each protocol's private broker starts only
+    when used, unless it always does); None when the routes do not load (every broker)."""
+    saved = dict(os.environ)
+    try:
+        stand_in_for_check()
+        config = load_routes(args.routes, SchemaRegistry(args.schemas or default_schemas(args.routes)))
+    except (RoutesInvalid, OSError, EndpointError):
+        return None
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    return {connection.protocol for connection in config.connections.values()}
 
 
 async def serve(args: argparse.Namespace) -> int:

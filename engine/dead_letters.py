@@ -41,9 +41,9 @@ Letter = tuple[bytes, Mapping[str, Any]]
 class DeadLettersOptions:
     """``dead_letters:`` as written in a route file (resolved into :class:`DeadLetterSpec`)."""
 
-    __schema_description__ = "the engine's one dead-letter destination; default: the only AMQP connection, else a local spool"
+    __schema_description__ = "the engine's one dead-letter destination; default: the only connection that keeps dead letters (a broker), else a local spool"
 
-    connection: str | None = option(None, description="an AMQP connection: exchange and queue rabbitros.dead-letter, routing key = route name")
+    connection: str | None = option(None, description="a connection that keeps dead letters (a broker: exchange and queue rabbitros.dead-letter, routing key = route name)")
     max_length: int = option(DEFAULT_DEAD_LETTER_MAX_LENGTH, minimum=1, description="x-max-length of the dead-letter queue (oldest dropped beyond it)")
     spool_dir: str | None = option(None, description="directory of rotated JSON-lines files; default ~/.local/state/rabbitros-engine/dead-letters")
     spool_max_bytes: int = option(DEFAULT_SPOOL_MAX_BYTES, minimum=4096, description="bytes of the spool's rotated files together (the newest dead letters are kept)")
@@ -168,7 +168,7 @@ class DeadLetters:
     @property
     def where(self) -> str:
         if self.connection is not None:
-            return f"amqp connection {self.connection.name!r}, queue rabbitros.dead-letter"
+            return self.connection.dead_letter_destination()
         return f"spool {self.spool.directory}"
 
     def status(self) -> dict[str, Any]:

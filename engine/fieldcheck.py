@@ -6,8 +6,8 @@ reports it with a did-you-mean instead of letting the schema reject every messag
 field. The mapping's JMESPath tree is walked for the field paths it reads from the source
 message (through sub-expressions, indexes, projections and filters; what follows a pipe or
 a function's result is not the source message and is left alone); each path is resolved
-against the type: ROS 2 by rosidl introspection (nested and sequence-of-message fields),
-MAVLink from pymavlink's generated message classes.
+against the type by its transport (``Transport.field_problem``: ROS 2 by rosidl introspection,
+MAVLink from pymavlink's generated message classes).
 
 The other direction, for every route: the keys a mapping *sets* (:func:`mapping_writes`,
 read from the same tree: multi-select hashes, projections, ``merge``) against the properties
@@ -15,25 +15,20 @@ its canonical schema declares (:class:`engine.schemas.Declared`); ``check`` warn
 ones the schema does not name, since the schemas allow extra keys and a misspelt optional
 field would otherwise pass every message unnoticed.
 
-Also here: did-you-mean hints for a misspelt ROS 2 type or MAVLink message name.
+Also here: did-you-mean hints for a misspelt type or message name (``Transport.suggest``).
 """
 
 from __future__ import annotations
 
-import re
-import sys
-from functools import lru_cache
-from pathlib import Path
 from typing import Any, Iterator
 
 import jmespath
 from jmespath import exceptions as jmespath_errors
 
+from engine import endpoints
+from engine.endpoints.base import ELEMENT, EndpointError, FieldPath, FieldProblem
 from engine.suggest import closest
 
-FieldPath = tuple[str, ...]
-ELEMENT = "[]"
-"""A path step into the elements of a list."""
 _BARE_LITERALS = frozenset({"null", "true", "false"})
 """JMESPath reads bare ``null`` as a field that is never there, which gives null: the idiom
 ``x || null`` works, so it is not reported as a missing field."""
@@ -203,170 +198,25 @@ def mapping_field_problems(protocol: str, options: Any, mapping: str | None) -> 
             yield problem
 
 
-def _resolver(protocol: str, options: Any) -> Any:
-    """``options``: the source's typed options (engine/options.py)."""
-    if protocol == "ros2":
-        type_name = options.type
-        try:
-            from engine.endpoints import rosmsg
-
-            if getattr(options, "service", None) is not None:  # an offered service: the mapping reads its request
-                from engine.endpoints.ros2_calls import resolve_service
-
-                cls = resolve_service(type_name).Request
-            else:
-                cls = rosmsg.resolve_type(type_name)
-        except Exception:  # not installed or misspelt: reported by the type check
-            return None
-        if rosmsg.type_name(cls) == "std_msgs/msg/String":
-            return None  # a byte source: the mapping reads the JSON inside
-        return lambda path: _resolve_ros(cls, path)
-    if protocol == "mavlink" and not options.json_tunnel and options.message:
-        fields = mavlink_fields(options.message)
-        if fields is None:
-            return None
-        return lambda path: _resolve_flat(f"MAVLink {options.message}", fields, path)
-    return None
+def _resolver(protocol: str, options: Any) -> FieldProblem | None:
+    """``options``: the source's typed options (engine/options.py); its transport knows its fields."""
+    try:
+        return endpoints.transport(protocol).field_problem(options)
+    except EndpointError:  # not installed: reported where the route's endpoints are checked
+        return None
 
 
 def _dotted(path: FieldPath) -> str:
     return ".".join(path).replace(f".{ELEMENT}", ELEMENT)
 
 
-def _resolve_ros(cls: type, path: FieldPath) -> str | None:
-    from engine.endpoints import rosmsg
-
-    current: type | None = cls
-    in_list = False
-    for depth, step in enumerate(path):
-        if current is None:
-            return None  # a primitive or an array of them: nothing more to check
-        if step == ELEMENT:
-            if not in_list:
-                return None  # indexing a message: JMESPath gives null, not ours to judge
-            in_list = False
-            continue
-        if in_list:
-            return None
-        fields = _ros_fields(current)
-        if step not in fields:
-            return (f"mapping reads {_dotted(path[:depth + 1])!r}, which {rosmsg.type_name(current)} does not have"
-                    f"{_ros_hint(current, path, depth)}")
-        current, in_list = fields[step]
-    return None
-
-
-NESTED_SEARCH_DEPTH = 3
-"""How many message levels below a missing field ``check`` looks for it: Odometry's
-``pose.pose.orientation`` is two below ``pose``; deeper guesses would be guesses."""
-
-
-def _ros_hint(cls: type, path: FieldPath, depth: int) -> str:
-    """Where the field ``path[depth]`` is: in a message nested below ``cls`` (a level left
-    out: ``pose.orientation`` of a nav_msgs/Odometry is ``pose.pose.orientation``), else a
-    field of ``cls`` spelt alike, else the list of its fields."""
-    step, rest = path[depth], path[depth + 1:]
-    found = _nested_paths(cls, step, rest)
-    if found:
-        shown = [_dotted(path[:depth] + prefix + (step,)) for prefix in found[:3]]
-        return f"; did you mean {shown[0]!r}?" if len(shown) == 1 else f"; did you mean one of {', '.join(map(repr, shown))}?"
-    fields = _ros_fields(cls)
-    guess = closest(step, fields)
-    return f"; did you mean {_dotted(path[:depth] + (guess,))!r}?" if guess else f" (fields: {', '.join(fields)})"
-
-
-def _nested_paths(cls: type, step: str, rest: FieldPath) -> list[FieldPath]:
-    """The shortest field paths ``p`` below ``cls`` (through nested messages, not sequences)
-    such that ``p + (step,) + rest`` is a path of ``cls``."""
-    level: list[tuple[FieldPath, type]] = [((), cls)]
-    for _ in range(NESTED_SEARCH_DEPTH):
-        level = [(prefix + (name,), nested) for prefix, message in level
-                 for name, (nested, in_list) in _ros_fields(message).items() if nested is not None and not in_list]
-        found = [prefix for prefix, message in level if step in _ros_fields(message)
-                 and _resolve_ros(message, (step,) + rest) is None]
-        if found:
-            return found
-    return []
-
-
-@lru_cache(maxsize=None)
-def _ros_fields(cls: type) -> dict[str, tuple[type | None, bool]]:
-    """field -> (message class of the field or of its elements, is a sequence of messages)."""
-    from rosidl_parser import definition as idl
-
-    from engine.endpoints import rosmsg
-
-    out: dict[str, tuple[type | None, bool]] = {}
-    for name, slot in zip(cls.get_fields_and_field_types(), cls.SLOT_TYPES):
-        if isinstance(slot, idl.NamespacedType):
-            out[name] = (rosmsg.resolve_type(f"{slot.namespaces[0]}/{slot.name}"), False)
-        elif isinstance(slot, idl.AbstractNestedType) and isinstance(slot.value_type, idl.NamespacedType):
-            value = slot.value_type
-            out[name] = (rosmsg.resolve_type(f"{value.namespaces[0]}/{value.name}"), True)
-        else:
-            out[name] = (None, False)
-    return out
-
-
-def _resolve_flat(label: str, fields: tuple[str, ...], path: FieldPath) -> str | None:
-    if not path or path[0] == ELEMENT or path[0] in fields:
-        return None
-    guess = closest(path[0], fields)
-    hint = f"; did you mean {guess!r}?" if guess else f" (fields: {', '.join(fields)})"
-    return f"mapping reads {path[0]!r}, which {label} does not have{hint}"
-
-
-# ---------------------------------------------------------------- MAVLink and ROS 2 names
-# MAVLink knowledge is read from pymavlink's tables, plus the fields the MAVLink source adds.
-
-@lru_cache(maxsize=1)
-def _mavlink_messages() -> dict[str, tuple[str, ...]]:
-    from pymavlink.dialects.v20 import common
-
-    from engine.endpoints.mavlink.codec import ADDED_FIELDS
-
-    return {cls.msgname: tuple(cls.fieldnames) + ADDED_FIELDS.get(cls.msgname, ()) for cls in common.mavlink_map.values()}
-
-
-def mavlink_fields(message: str) -> tuple[str, ...] | None:
-    try:
-        return _mavlink_messages().get(message)
-    except ImportError:
-        return None
-
-
-@lru_cache(maxsize=1)
-def installed_ros_types() -> tuple[str, ...]:
-    """``pkg/msg/Type`` of every installed message package, read from the generated
-    ``msg/__init__.py`` files without importing them (only used to suggest a name)."""
-    names: set[str] = set()
-    pattern = re.compile(r"^from \S+ import (\w+)", re.M)
-    for entry in sys.path:
-        base = Path(entry or ".")
-        if not base.is_dir():
-            continue
-        for init in base.glob("*/msg/__init__.py"):
-            try:
-                text = init.read_text(encoding="utf-8", errors="replace")
-            except OSError:
-                continue
-            names.update(f"{init.parent.parent.name}/msg/{cls}" for cls in pattern.findall(text))
-    return tuple(sorted(names))
-
-
 def option_hint(protocol: str, key: str | None, options: Any) -> str:
-    """A did-you-mean for a misspelt ``type`` (ROS 2) or ``message`` (MAVLink) option."""
+    """A did-you-mean for a misspelt name option (a type, a message) of an endpoint, from its transport."""
     value = getattr(options, key, None) if key else None
-    if not isinstance(value, str):
+    if not isinstance(value, str) or key is None:
         return ""
-    if protocol == "ros2" and key == "type":
-        full = re.sub(r"^([a-z][a-z0-9_]*)/(?!msg/)", r"\1/msg/", value.strip())
-        guess = closest(full, installed_ros_types())
-    elif protocol == "mavlink" and key == "message":
-        try:
-            guess = closest(value, _mavlink_messages())
-        except ImportError:
-            return ""
-    else:
+    try:
+        guess = endpoints.transport(protocol).suggest(key, value)
+    except (EndpointError, ImportError):
         return ""
     return f"; did you mean {guess!r}?" if guess and guess != value else ""

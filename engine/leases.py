@@ -5,20 +5,20 @@ from __future__ import annotations
 
 from typing import Any, Iterable
 
-from engine.endpoints.base import Connection
+from engine.endpoints.base import Connection, Lease
 
 
 class Leases:
     def __init__(self, instance: str) -> None:
         self.instance = instance
-        self._leases: dict[tuple[int, str], Any] = {}
+        self._leases: dict[tuple[int, str], Lease] = {}
 
-    async def take(self, connection: Connection, name: str, heartbeat: float) -> Any:
+    async def take(self, connection: Connection, name: str, heartbeat: float) -> Lease:
         """The lease ``name`` on ``connection``, started when this is its first route."""
         key = (id(connection), name)
         lease = self._leases.get(key)
         if lease is None:
-            lease = connection.lease(name, self.instance, heartbeat)  # type: ignore[attr-defined]
+            lease = connection.lease(name, self.instance, heartbeat)
             await lease.start()
             self._leases[key] = lease
         return lease

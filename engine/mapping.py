@@ -7,10 +7,12 @@ custom functions. Unit and frame conversions live in :mod:`engine.frames`.
 
 from __future__ import annotations
 
+import importlib
 import math
 import re
 import time
 import uuid
+from functools import lru_cache
 from typing import Any, Callable
 
 import jmespath
@@ -90,13 +92,6 @@ class FieldFunctions(functions.Functions):
     def _func_to_stamp(self, value: Any) -> dict[str, int]:
         return _stamps().to_stamp(value)
 
-    @functions.signature({"types": ["number"]})
-    def _func_stamp_usec(self, time_usec: int) -> dict[str, int]:
-        return _stamps().from_time_usec(time_usec)
-
-    @functions.signature({"types": ["number"]})
-    def _func_stamp_boot_ms(self, time_boot_ms: int) -> dict[str, int]:
-        return _stamps().from_time_boot_ms(time_boot_ms)
 
     @functions.signature({"types": ["number", "object"]})
     def _func_iso8601(self, value: Any) -> str:
@@ -205,27 +200,40 @@ class FieldFunctions(functions.Functions):
     def _func_wrap_pi(self, angle: float) -> float:
         return _frames().wrap_pi(angle)
 
-    # MAVLink enums by name, from pymavlink's dialect tables (imported on first use)
-    @functions.signature({"types": ["number"]}, {"types": ["string"]})
-    def _func_mav_enum(self, value: int, enum: str) -> str | None:
-        from engine.endpoints.mavlink import enums
-
-        return enums.mav_enum(value, enum)
-
-    @functions.signature({"types": ["string"]}, {"types": ["string"]})
-    def _func_mav_enum_value(self, name: str, enum: str) -> int:
-        from engine.endpoints.mavlink import enums
-
-        return enums.mav_enum_value(name, enum)
-
-    @functions.signature({"types": ["number"]}, {"types": ["string"]})
-    def _func_mav_flags(self, value: int, enum: str) -> list[str]:
-        from engine.endpoints.mavlink import enums
-
-        return enums.mav_flags(value, enum)
-
 
 _OPTIONS = jmespath.Options(custom_functions=FieldFunctions())
+"""The functions every route has; a protocol's own (endpoints.MAPPING_FUNCTIONS) join only in
+:func:`_options_for` an expression that calls one, so their libraries load only then."""
+
+
+@lru_cache(maxsize=1)
+def _all_options() -> jmespath.Options:
+    """Ours and every protocol's functions (each protocol's module imported now)."""
+    from engine import endpoints
+
+    mixins = [importlib.import_module(module).Functions for module in endpoints.MAPPING_FUNCTIONS]
+    return jmespath.Options(custom_functions=type("RouteFunctions", (FieldFunctions, *mixins), {})())
+
+
+def _called(parsed: Any) -> set[str]:
+    names: set[str] = set()
+
+    def walk(node: Any) -> None:
+        if isinstance(node, dict):
+            if node.get("type") == "function_expression":
+                names.add(node["value"])
+            for child in node.get("children", ()):
+                walk(child)
+
+    walk(parsed)
+    return names
+
+
+def _options_for(parsed: Any) -> jmespath.Options:
+    from engine import endpoints
+
+    protocol_functions = {name for names in endpoints.MAPPING_FUNCTIONS.values() for name in names}
+    return _all_options() if _called(parsed) & protocol_functions else _OPTIONS
 
 
 def compile_mapping(expression: str | None) -> Mapper | None:
@@ -237,7 +245,7 @@ def compile_mapping(expression: str | None) -> Mapper | None:
         parsed = jmespath.compile(expression)
     except jmespath_errors.JMESPathError as exc:
         raise MappingError(_one_line(exc)) from None
-    evaluate = compile_parsed(parsed, _OPTIONS)
+    evaluate = compile_parsed(parsed, _options_for(parsed.parsed))
 
     def apply(data: Any) -> Any:
         try:
@@ -251,8 +259,8 @@ def compile_mapping(expression: str | None) -> Mapper | None:
 
 
 def known_functions() -> list[str]:
-    """Every function a mapping may call: JMESPath's own and ours."""
-    return sorted(_OPTIONS.custom_functions.FUNCTION_TABLE)
+    """Every function a mapping may call: JMESPath's own, ours and the protocols'."""
+    return sorted(_all_options().custom_functions.FUNCTION_TABLE)
 
 
 def unknown_functions(expression: str) -> list[str]:
@@ -261,18 +269,11 @@ def unknown_functions(expression: str) -> list[str]:
     JMESPath resolves function names only when evaluating; a typo in a route must
     fail ``check`` instead of the first message.
     """
-    known = set(_OPTIONS.custom_functions.FUNCTION_TABLE)
-    names: list[str] = []
-
-    def walk(node: Any) -> None:
-        if isinstance(node, dict):
-            if node.get("type") == "function_expression" and node["value"] not in known:
-                names.append(node["value"])
-            for child in node.get("children", ()):
-                walk(child)
-
-    walk(jmespath.compile(expression).parsed)
-    return names
+    called = _called(jmespath.compile(expression).parsed)
+    unknown = called - set(_OPTIONS.custom_functions.FUNCTION_TABLE)
+    if unknown:  # a protocol's function, or a typo
+        unknown -= set(_all_options().custom_functions.FUNCTION_TABLE)
+    return sorted(unknown)
 
 
 def top_level_keys(expression: str | None) -> list[str] | None:

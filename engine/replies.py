@@ -32,13 +32,12 @@ log = logging.getLogger("engine.runtime")
 
 @dataclass(frozen=True, kw_only=True)
 class ReplyOptions:
-    __schema_description__ = ("the replies to requests that carry a reply address (AMQP reply_to): the sink's answer "
-                              "(a ROS 2 service response, an action's feedback and result, a MAVLink acknowledgement) "
-                              "shaped by mapping and checked by schema; error replies are never mapped")
+    __schema_description__ = ("the replies to requests that carry a reply address: the sink's answer shaped by mapping "
+                              "and checked by schema; error replies are never mapped (route-language.md, Calls)")
 
-    mapping: str | None = option(None, nullable=True, description="JMESPath from the sink's answer (a ROS 2 response in rosbridge JSON; "
-                                                                  "{kind, status, feedback, result} for an action; {kind, result, command} "
-                                                                  "for a MAVLink command) to the reply body; absent: the answer itself")
+    mapping: str | None = option(None, nullable=True, description="JMESPath from the sink's answer (what each sink answers: "
+                                                                  "route-language.md, Calls) to the reply body; absent: the "
+                                                                  "answer itself")
     schema: str | None = option(None, description="canonical schema the reply body must satisfy (NAME or NAME.vN); a reply that "
                                                   "fails it becomes an error reply (stage reply schema)")
 

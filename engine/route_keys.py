@@ -34,8 +34,8 @@ is generated from the same option declarations as the route-file JSON Schema
 fit together (defaults of connections, delivery, throttling, route tests, functions) is in
 [route-language.md](route-language.md).
 
-A key path like `routes[].source.amqp` is the one an error message names
-(`routes[0].source.amqp.prefetch: 0 is less than the minimum of 1`).
+A key path like `routes[].sink` is the one an error message names
+(`routes[0].max_attempts: 0 is less than the minimum of 1`).
 """
 
 

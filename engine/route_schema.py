@@ -34,8 +34,12 @@ SCHEMA_PATH = Path(__file__).with_name("route_file.schema.json")
 KEYS_PATH = Path(__file__).resolve().parent.parent / "docs" / "route-keys.md"
 """The generated key reference; in a source checkout only (an installed package has no docs/)."""
 REGENERATE = "python -m engine.route_schema --write"
-CONNECTION_DESCRIPTION = ("exactly one protocol key (amqp / ros2 / mavlink); the keys of a protocol whose options sit "
-                          "beside it (mavlink) and the limits every protocol has")
+
+
+def _connection_description(transports: list[Transport]) -> str:
+    beside = [transport.name for transport in transports if transport.options_beside]
+    return (f"exactly one protocol key ({' / '.join(transport.name for transport in transports)}); the keys of a protocol "
+            f"whose options sit beside it ({', '.join(beside)}) and the limits every protocol has")
 
 
 def _transports() -> list[Transport]:
@@ -63,7 +67,7 @@ def _connection_entry(transports: list[Transport]) -> dict[str, Any]:
         "type": "object",
         "additionalProperties": False,
         "minProperties": 1,
-        "description": CONNECTION_DESCRIPTION,
+        "description": _connection_description(transports),
         "properties": properties,
     }
 
@@ -73,8 +77,8 @@ def _only(protocol: str, prop: dict[str, Any]) -> dict[str, Any]:
     return {**prop, "description": f"{protocol} connections: {prop.get('description', '')}".rstrip(": ")}
 
 
-SINK_MAPPING_DESCRIPTION = ("JMESPath from the canonical message to the sink's fields (a typed ROS 2 or MAVLink "
-                            "message, a mission's items); absent or null: the canonical message")
+SINK_MAPPING_DESCRIPTION = ("JMESPath from the canonical message to the sink's fields (a typed message, "
+                            "a mission's items); absent or null: the canonical message")
 
 
 def _endpoint(transports: list[Transport], side: str) -> dict[str, Any]:

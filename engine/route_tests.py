@@ -24,8 +24,8 @@ from typing import Any, Callable, Iterator, Mapping
 
 import jsonschema
 
+from engine import endpoints
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound, Sink
-from engine.mapping import MappingError, compile_template
 from engine.pipeline import ConversionError, Pipeline
 from engine.replies import ReplyFailed
 from engine.route_yaml import Problem, parse_document
@@ -59,9 +59,8 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
                     "expect_sink": {"description": "the sink mapping's output"},
                     "expect_routing_key": {"type": "string", "description": "the rendered routing key or topic"},
                     "expect_error": {"enum": list(STAGES)},
-                    "response": {"description": "the sink's answer to the request, as the route's reply: mapping reads it "
-                                                "(a ROS 2 service response in rosbridge JSON; {kind, status, feedback, result} "
-                                                "for an action; {kind, result, command} for a MAVLink command)"},
+                    "response": {"description": "the sink's answer to the request, which the route's reply: mapping reads "
+                                                "(what each sink answers: route-language.md, Calls)"},
                     "expect_reply": {"description": "the reply body the route makes of response"},
                 },
             },
@@ -226,102 +225,22 @@ def source_message(spec: RouteSpec, body: Mapping[str, Any]) -> Inbound:
 
 
 def _typed_source(spec: RouteSpec) -> Callable[[Any], dict[str, Any]] | None:
-    options = spec.source.options
-    if spec.source.protocol == "ros2":
-        type_name = options.type
-        from engine.endpoints import rosmsg
-
-        cls = rosmsg.resolve_type(type_name)
-        if rosmsg.type_name(cls) == "std_msgs/msg/String":
-            return None
-
-        def ros(value: Any) -> dict[str, Any]:
-            if not isinstance(value, Mapping):
-                raise ValueError(f"{type_name} input must be a mapping of fields")
-            return rosmsg.to_dict(rosmsg.from_dict(cls, value))
-
-        return ros
-    if spec.source.protocol == "mavlink" and not options.json_tunnel and options.message:
-        from engine.endpoints.mavlink import MESSAGES, build_message, message_fields
-        from engine.endpoints.mavlink.codec import ADDED_FIELDS, received_nan
-
-        mav_cls = MESSAGES[options.message]
-        added = ADDED_FIELDS.get(options.message, ())
-
-        def mavlink(value: Any) -> dict[str, Any]:
-            """The message as the source gives it: its own fields (a null float is the NaN the
-            source shows as null), plus those the source adds."""
-            if not isinstance(value, Mapping):
-                return message_fields(build_message(mav_cls, value))
-            own = received_nan(mav_cls, {k: v for k, v in value.items() if k not in added})
-            return {**message_fields(build_message(mav_cls, own)), **{k: value[k] for k in added if k in value}}
-
-        return mavlink
-    return None
+    return endpoints.transport(spec.source.protocol).test_input(spec.source.options)
 
 
 def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
-    """What the sink would do short of sending: the rendered routing key or topic, and for a
-    typed sink the message built from the fields; a failure is a ``sink`` error."""
-    protocol, options = spec.sink.protocol, spec.sink.options
-    if protocol == "amqp":
-        render = compile_template(options.routing_key)
+    """What the sink would do short of sending (its transport's ``sink_dry_run``): the
+    rendered routing key or topic, and for a typed sink the message built from the fields;
+    what the sink would refuse is an error of the stage it names (``sink`` by default)."""
+    dry_run = endpoints.transport(spec.sink.protocol).sink_dry_run(spec.name, spec.sink.options)
 
-        def amqp(outbound: Outbound) -> str | None:
-            try:
-                return render(outbound.canonical)
-            except MappingError as exc:
-                raise ConversionError("sink", str(exc)) from None
+    def sink(outbound: Outbound) -> str | None:
+        try:
+            return dry_run(outbound)
+        except MessageRejected as exc:
+            raise ConversionError(exc.stage, str(exc)) from None
 
-        return amqp
-    if protocol == "mqtt":
-        from engine.endpoints.mqtt.topics import topic_renderer
-
-        render_topic = topic_renderer(options.topic, f"route {spec.name!r}: mqtt sink")
-
-        def mqtt(outbound: Outbound) -> str | None:
-            try:
-                return render_topic(outbound.canonical)
-            except MessageRejected as exc:
-                raise ConversionError("sink", str(exc)) from None
-
-        return mqtt
-    if protocol == "ros2":
-        from engine.endpoints import rosmsg
-        from engine.endpoints.ros2 import STRING_TYPE, _sink_class, _topic_template, typed_message
-
-        calls = options.service or options.action
-        topic = options.topic if calls is None else calls  # a call's name is never a template
-        resolve = _topic_template(topic) if calls is None else None
-        cls = _sink_class(options)
-        typed = calls is not None or rosmsg.type_name(cls) != STRING_TYPE
-        kind = "topic" if calls is None else "service" if options.service else "action"
-        where = f"route {spec.name!r}, ros2 {kind} {topic!r}"  # as the sink names it
-
-        def ros(outbound: Outbound) -> str | None:
-            try:
-                rendered = topic if resolve is None else resolve(outbound.canonical, where)
-                if typed:
-                    typed_message(cls, outbound, where)
-            except MessageRejected as exc:
-                raise ConversionError(exc.stage, str(exc)) from None
-            return rendered
-
-        return ros
-    if protocol == "mavlink":
-        from engine.endpoints.mavlink.messages import dry_run
-
-        build = dry_run(options)
-
-        def mavlink(outbound: Outbound) -> str | None:
-            try:
-                build(outbound.fields)
-            except MessageRejected as exc:
-                raise ConversionError(exc.stage, str(exc)) from None
-            return None
-
-        return mavlink
-    return lambda outbound: None
+    return sink
 
 
 def run_tests(cases: list[Case], config: RoutesConfig, schemas: SchemaRegistry) -> Iterator[Result]:

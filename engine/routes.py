@@ -28,8 +28,8 @@ from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hin
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
 from engine.options import OptionError, describe, evolve, fields_of, given, option, parse
-from engine.local_broker import LOCAL_BROKER_ENV, elsewhere
-from engine.redaction import Secret, has_url_password, json_default, redact_urls, reveal, revealed
+from engine.local_broker import LOCAL_BROKER_ENV
+from engine.redaction import Secret, json_default, revealed
 from engine.route_yaml import Document, Path_, Problem, parse_document
 from engine.schemas import SchemaRegistry
 from engine.replies import ReplyOptions
@@ -59,7 +59,7 @@ class ConnectionLimits:
 class LeaseOptions:
     __schema_description__ = "active_standby: the lease queue's connection and timing"
 
-    connection: str | None = option(None, description="AMQP connection holding the lease; default: the only one")
+    connection: str | None = option(None, description="connection holding the lease (one that holds leases: a broker); default: the sink's if it can, else the only one that can")
     heartbeat: float = option(1.0, exclusive_minimum=0, description="seconds between the active instance's heartbeats")
     name: str | None = option(None, pattern=NAME_PATTERN,
                               description="lease shared by routes that must fail over together (one robot's topics); default: the route name")
@@ -79,11 +79,10 @@ class RouteOptions:
     max_attempts: int = option(DEFAULT_MAX_ATTEMPTS, minimum=1,
                                description="deliveries tried on transient sink failures (across redeliveries) before dead-lettering")
     overflow: Literal["block", "drop_oldest", "drop_newest"] = option(
-        "block", description="when a ROS 2 or MAVLink source's in-memory queue is full: block stops taking (DDS history holds "
-                             "the rest; a radio cannot be paused, so MAVLink drops the oldest; nor can an MQTT QoS 0 stream, which drops the newest "
-                             "unless drop_oldest), or drop the oldest / newest (counted)")
+        "block", description="when the in-memory queue of a source that pushes messages is full: block stops taking (where the "
+                             "protocol can be paused; each source's description says what it does otherwise), or drop the oldest / newest (counted)")
     buffer: Literal[False] | BufferOptions | None = option(
-        None, description="messages held while the sink is down (default for ROS 2 and MAVLink sources: in memory, 10000); false: none")
+        None, description="messages held while the sink is down (default for sources that cannot redeliver: in memory, 10000); false: none")
     source: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
     mapping: str | None = option(None, nullable=True, description="JMESPath from the source message to the canonical message; "
                                                                   "absent or null: identity (the original bytes are forwarded)")
@@ -91,14 +90,14 @@ class RouteOptions:
                                                   "version) or NAME.vN (pinned), from schemas/; raw_json passes any object")
     throttle: ThrottleOptions | None = option(None)
     priority: Literal["high", "normal", "low"] = option(
-        "normal", description="on a link several routes share (a MAVLink radio), the order of what is sent next: high before "
+        "normal", description="on a link several routes share (a telemetry radio), the order of what is sent next: high before "
                               "normal before low, tunnel routes included; commands and missions always go first")
     max_age: float | None = option(None, exclusive_minimum=0, description=(
         "seconds from reception after which a message is worthless (telemetry): one older when it would be sent (from "
         "the buffer after an outage, a throttle slot, a retry) is dropped and counted expired; absent: every message arrives"))
     sink: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
     reply: ReplyOptions | None = option(None)
-    ordered: bool = option(False, description="AMQP source: single active consumer, so one engine instance at a time carries the route, in order")
+    ordered: bool = option(False, description="one engine instance at a time carries the route, in order (sources whose broker offers it: a single active consumer)")
     instances: tuple[str, ...] | None = option(None, min_items=1,
                                                description="run the route only on these engine instances (--instance NAME, default the host name)")
     active_standby: bool = option(False, description="every instance runs the source, only the holder of the broker lease forwards")
@@ -203,11 +202,6 @@ class RoutesConfig:
     def key_files(self) -> frozenset[Path]:
         """Every key file a connection reads: a new key written there is a configuration change."""
         return frozenset(path for connection in self.connections.values() for path in connection.key_files)
-
-
-def default_amqp_url() -> str | Secret:
-    url = os.environ.get("RABBITROS_AMQP_URL", "amqp://guest:guest@localhost:5672/")
-    return Secret(url) if has_url_password(url) else url
 
 
 def route_files(directory: Path) -> list[Path]:
@@ -398,13 +392,7 @@ def _connection_key(transport: Transport, path: Path_) -> Path_:
 
 def _default_connection(protocol: str) -> ConnectionSpec:
     transport = endpoints.transport(protocol)
-    settings = dict(transport.default_settings)
-    if protocol == "amqp":
-        settings["url"] = default_amqp_url()
-        cluster = os.environ.get("RABBITROS_AMQP_URLS", "").split()
-        if cluster:  # a local cluster (--local-broker --cluster N): every node, replicated queues
-            del settings["url"]
-            settings.update(urls=[Secret(url) if has_url_password(url) else url for url in cluster], queue_type="quorum")
+    settings = dict(transport.default_connection_settings(os.environ))
     try:
         options = parse(transport.connection_options, settings)
     except OptionError as exc:
@@ -413,26 +401,24 @@ def _default_connection(protocol: str) -> ConnectionSpec:
 
 
 def _private_broker_warnings(connections: Mapping[str, ConnectionSpec], env: Mapping[str, str]) -> list[Problem]:
-    """With ``--local-broker``, each AMQP connection that names a broker other than the private
-    node: it keeps going where it says (a route file means what it says, and one with two
-    brokers must not become one with a single broker under a flag), so say so at load."""
+    """With ``--local-broker``, each connection that names a broker other than the private one
+    (its transport says, ``Transport.private_broker_warning``): it keeps going where it says (a
+    route file means what it says, and one with two brokers must not become one with a single
+    broker under a flag), so say so at load."""
     node = env.get(LOCAL_BROKER_ENV)
     if node is None:
         return []
-    private = env.get("RABBITROS_AMQP_URLS", "").split() or [env.get("RABBITROS_AMQP_URL", "")]
     named = f"--local-broker's private node ({node})" if node else "--local-broker's private node"
     warnings = []
     for spec in connections.values():
-        if spec.protocol != "amqp" or spec.options is None or spec.name.startswith("default-"):
+        if spec.options is None or spec.name.startswith("default-"):
             continue
-        urls = [reveal(url) for url in ([spec.options.url] if spec.options.url else spec.options.urls or ())]
-        other = elsewhere(urls, private)
-        if other:
-            shown_urls = ", ".join(redact_urls(url) for url in other)
-            warnings.append(Problem(spec.file, spec.line, (
-                f"connection {spec.name!r} names its own broker ({shown_urls}), so {named} does not serve it "
-                "and its routes use that broker; to use the private node, write the URL as "
-                "\"${RABBITROS_AMQP_URL:-<the URL>}\", or leave the connection out")))
+        try:
+            warning = endpoints.transport(spec.protocol).private_broker_warning(spec.options, env)
+        except EndpointError:
+            continue
+        if warning:
+            warnings.append(Problem(spec.file, spec.line, f"connection {spec.name!r} {warning.replace('{private}', named)}"))
     return warnings
 
 
@@ -496,8 +482,8 @@ def _compile_routes(
             placement = _placement(document, where, route, source, sink, connections, problems) if source and sink else None
             if len(problems) > before or not (source and sink and placement):
                 continue
-            if placement.ordered and source.protocol == "amqp":
-                source = EndpointSpec(source.protocol, source.connection, evolve(source.options, ordered=True))
+            if placement.ordered:
+                source = EndpointSpec(source.protocol, source.connection, endpoints.transport(source.protocol).ordered_source(source.options))
             if route.priority != "normal":  # the sink orders its link's writes by it (engine/endpoints/base.py)
                 sink = EndpointSpec(sink.protocol, sink.connection, evolve(sink.options, priority=route.priority))
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
@@ -518,7 +504,7 @@ def _compile_routes(
                 sink_max_message_bytes=connections[sink.connection].max_message_bytes,
                 max_age_ns=None if route.max_age is None else int(route.max_age * 1e9),
             )
-            buffer = BufferSpec.parse(route.buffer, source.protocol, _base_dir(document.file))
+            buffer = BufferSpec.parse(route.buffer, endpoints.transport(source.protocol).redelivers(source.options), _base_dir(document.file))
             if buffer is not None and buffer.spill_dir is not None and buffer.spill_dir.exists() and not buffer.spill_dir.is_dir():
                 problems.append(document.problem(where + ("buffer", "spill_dir"), f"route {name!r}: spill_dir {str(buffer.spill_dir)!r} is not a directory"))
                 continue
@@ -653,7 +639,8 @@ def _compile_dead_letters(
     documents: list[Document], connections: dict[str, ConnectionSpec], problems: list[Problem]
 ) -> DeadLetterSpec:
     """``dead_letters: {connection, max_length}`` or ``{spool_dir, spool_max_bytes}``, from at
-    most one file; default: the only AMQP connection, else the local spool."""
+    most one file; default: the only connection that keeps dead letters (a broker's, see
+    ``Connection.keeps_dead_letters``), else the local spool."""
     found = [(document, document.data["dead_letters"]) for document in documents if document.data.get("dead_letters")]
     if len(found) > 1:
         first = found[0][0]
@@ -666,21 +653,48 @@ def _compile_dead_letters(
         assert document is not None
         problems.extend(document.problem(path, describe(path, message)) for path, message in exc.problems if not document.reported(path))
         return DeadLetterSpec()
-    amqp = sorted(name for name, spec in connections.items() if spec.protocol == "amqp")
+    keepers = _capable(connections, "keeps_dead_letters")
     name = options.connection
     spec = DeadLetterSpec(max_length=options.max_length, spool_dir=options.spool_dir, spool_max_bytes=options.spool_max_bytes)
     if name is not None:
-        if name not in connections or connections[name].protocol != "amqp":
+        if name not in keepers:
             assert document is not None
-            problems.append(document.problem(("dead_letters", "connection"), f"dead_letters: {_wrong_connection(name, 'amqp', connections)}"))
+            problems.append(document.problem(("dead_letters", "connection"), f"dead_letters: {_incapable(name, 'keeps dead letters', keepers, connections)}"))
         return DeadLetterSpec(name, spec.max_length, spec.spool_dir, spec.spool_max_bytes)
-    if options.spool_dir is not None or not amqp:
+    if options.spool_dir is not None or not keepers:
         return spec
-    if len(amqp) > 1:
+    if len(keepers) > 1:
         where = document or documents[0]
-        problems.append(where.problem(("dead_letters",), f"several amqp connections ({', '.join(amqp)}) could keep dead letters; name one with dead_letters: {{connection: ...}}"))
+        problems.append(where.problem(("dead_letters",), f"several connections ({', '.join(keepers)}) could keep dead letters; name one with dead_letters: {{connection: ...}}"))
         return spec
-    return DeadLetterSpec(amqp[0], spec.max_length, spec.spool_dir, spec.spool_max_bytes)
+    return DeadLetterSpec(keepers[0], spec.max_length, spec.spool_dir, spec.spool_max_bytes)
+
+
+def _capable(connections: Mapping[str, ConnectionSpec], capability: str) -> list[str]:
+    """The connections whose protocol's connections have ``capability`` (a
+    :class:`~engine.endpoints.base.Connection` class attribute such as ``keeps_dead_letters``)."""
+    capable = []
+    for name, spec in sorted(connections.items()):
+        try:
+            connection_type = endpoints.transport(spec.protocol).connection_type
+        except EndpointError:  # not installed: reported where its routes are checked
+            continue
+        if getattr(connection_type, capability):
+            capable.append(name)
+    return capable
+
+
+def _incapable(wanted: str, doing: str, capable: list[str], connections: Mapping[str, ConnectionSpec]) -> str:
+    """Why ``wanted`` is no connection that ``doing`` (keeps dead letters...), and those that do."""
+    if wanted not in connections:
+        hint = did_you_mean(wanted, capable) or did_you_mean(wanted, connections)
+        if hint:
+            return f"unknown connection {wanted!r}{hint}"
+        problem = f"unknown connection {wanted!r}"
+    else:
+        problem = f"connection {wanted!r} ({connections[wanted].protocol}) is not one that {doing}"
+    named = [name for name in capable if not name.startswith("default-")]
+    return f"{problem} (connections that do: {', '.join(named)})" if named else f"{problem} (no connection {doing})"
 
 
 def _base_dir(file: str) -> Path:
@@ -700,26 +714,26 @@ def _placement(
     before = len(problems)
     route, ordered, active_standby = options.name, options.ordered, options.active_standby
     lease = options.lease if options.lease is not None and given(options.lease) else None
-    if ordered and source.protocol != "amqp":
-        problems.append(document.problem(where + ("ordered",), f"route {route!r}: ordered applies to AMQP sources (a {source.protocol} source is carried by one instance: use instances or active_standby)"))
-    if active_standby and source.protocol == "amqp":
-        problems.append(document.problem(where + ("active_standby",), f"route {route!r}: an AMQP source is shared by competing consumers; use ordered: true for one instance at a time"))
+    source_transport = endpoints.transport(source.protocol)
+    if ordered and not source_transport.supports_ordered:
+        problems.append(document.problem(where + ("ordered",), f"route {route!r}: ordered does not apply to a {source.protocol} source (it is carried by one instance: use instances or active_standby)"))
+    if active_standby and source_transport.shares_sources:
+        problems.append(document.problem(where + ("active_standby",), f"route {route!r}: a {source.protocol} source is shared by competing consumers; use ordered: true for one instance at a time"))
     if lease and not active_standby:
         problems.append(document.problem(where + ("lease",), f"route {route!r}: lease needs active_standby: true"))
     lease_connection = None
     if active_standby:
         lease_connection = lease.connection if lease is not None else None
+        holders = _capable(connections, "holds_leases")
         if lease_connection is None:
-            if sink.protocol == "amqp":
+            if sink.connection in holders:
                 lease_connection = sink.connection
+            elif len(holders) != 1:
+                problems.append(document.problem(where + ("active_standby",), f"route {route!r}: active_standby needs a connection that holds leases (a broker) for its lease; name one with lease: {{connection: NAME}}" + (f" ({', '.join(holders)})" if holders else "")))
             else:
-                amqp = sorted(n for n, c in connections.items() if c.protocol == "amqp")
-                if len(amqp) != 1:
-                    problems.append(document.problem(where + ("active_standby",), f"route {route!r}: active_standby needs an AMQP connection for its lease; name one with lease: {{connection: NAME}}" + (f" ({', '.join(amqp)})" if amqp else "")))
-                else:
-                    lease_connection = amqp[0]
-        elif lease_connection not in connections or connections[lease_connection].protocol != "amqp":
-            problems.append(document.problem(where + ("lease", "connection"), f"route {route!r}: lease: {_wrong_connection(lease_connection, 'amqp', connections)}"))
+                lease_connection = holders[0]
+        elif lease_connection not in holders:
+            problems.append(document.problem(where + ("lease", "connection"), f"route {route!r}: lease: {_incapable(lease_connection, 'holds leases', holders, connections)}"))
     if len(problems) > before:
         return None
     lease = lease or LeaseOptions()

@@ -513,7 +513,7 @@ class Engine:
         sources = asyncio.ensure_future(asyncio.gather(*(r.source.stop() for r in runners), return_exceptions=True))
         if await _finished(sources, deadline):
             return
-        log.warning("drain timeout: what is not settled yet is requeued (AMQP) or dropped and counted (ROS 2, MAVLink)")
+        log.warning("drain timeout: what is not settled yet is redelivered by its broker, or dropped and counted where the source cannot redeliver")
         for runner in runners:
             runner.halt()
         if not await _finished(sources, asyncio.get_running_loop().time() + STOP_GRACE):

@@ -6,11 +6,8 @@ and nanoseconds as one integer do not fit a double), and it is what ROS 2's
 ``builtin_interfaces/Time`` is in rosbridge's JSON, so a header stamp maps without
 conversion.
 
-MAVLink's ``time_usec`` is UNIX time or time since boot, told apart by magnitude (as the
-MAVLink spec says); ``time_boot_ms`` is always since boot. A boot-relative time cannot be
-placed on the UNIX time line without a clock offset (MAVROS learns it from TIMESYNC), so
-such stamps are the reception time, as MAVROS does before it is synchronised; the vehicle's
-own clock stays available in the message (``time_boot_ms``).
+A protocol's own time fields (MAVLink's ``time_usec`` and ``time_boot_ms``) are converted by
+its package (engine/endpoints/mavlink/functions.py), into this form.
 """
 
 from __future__ import annotations
@@ -21,9 +18,6 @@ import time
 from typing import Any
 
 NS = 1_000_000_000
-UNIX_USEC_FROM = 1_000_000_000_000_000
-"""``time_usec`` at or above this (September 2001 as UNIX time, 31 years as time since boot)
-is UNIX time."""
 
 
 class StampError(ValueError):
@@ -57,19 +51,3 @@ def to_iso8601(stamp: dict[str, int]) -> str:
     """``{sec, nanosec}`` -> ISO 8601 UTC with milliseconds, ``Z`` for UTC."""
     moment = datetime.datetime.fromtimestamp(stamp["sec"], datetime.timezone.utc)
     return moment.strftime("%Y-%m-%dT%H:%M:%S") + f".{stamp['nanosec'] // 1_000_000:03d}Z"
-
-
-def from_time_usec(time_usec: Any) -> dict[str, int]:
-    """MAVLink ``time_usec``: exact when it is UNIX time, the reception time when since boot."""
-    if isinstance(time_usec, bool) or not isinstance(time_usec, (int, float)) or time_usec < 0:
-        raise StampError(f"stamp_usec: {time_usec!r} is not a MAVLink time_usec")
-    if time_usec >= UNIX_USEC_FROM:
-        return from_ns(int(time_usec) * 1000)
-    return now()
-
-
-def from_time_boot_ms(time_boot_ms: Any) -> dict[str, int]:
-    """MAVLink ``time_boot_ms``: the reception time (no clock offset without TIMESYNC)."""
-    if isinstance(time_boot_ms, bool) or not isinstance(time_boot_ms, (int, float)) or time_boot_ms < 0:
-        raise StampError(f"stamp_boot_ms: {time_boot_ms!r} is not a MAVLink time_boot_ms")
-    return now()

@@ -10,7 +10,7 @@ from typing import Iterator
 import pytest
 
 from engine.endpoints.mqtt.broker import LocalMosquitto
-from engine.local_broker import LocalBroker, LocalCluster
+from engine.endpoints.amqp.broker import LocalBroker, LocalCluster
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterator
 import aio_pika
 import pytest
 
-from engine.local_broker import LocalBroker
+from engine.endpoints.amqp.broker import LocalBroker
 from tests.amqp_helpers import Collector, publish
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess

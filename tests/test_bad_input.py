@@ -23,7 +23,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from rclpy.signals import SignalHandlerOptions
 
-from engine.endpoints.rosmsg import resolve_type
+from engine.endpoints.ros2.rosmsg import resolve_type
 from tests.faults_harness import (
     LoopThread, Recorder, dead_letter_key, free_udp_port, outputs_by_route, ros_domain, start_engine, wait_for,
 )
@@ -301,7 +301,7 @@ def test_ros_typed_source_fields_that_break_mapping_or_schema(harness: Harness, 
 def _fix_json(cdr: bytes) -> bytes:
     from rclpy.serialization import deserialize_message
 
-    from engine.endpoints.rosmsg import to_dict
+    from engine.endpoints.ros2.rosmsg import to_dict
 
     return json.dumps(to_dict(deserialize_message(cdr, NavSatFix)), default=str, ensure_ascii=False).encode()
 

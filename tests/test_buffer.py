@@ -246,7 +246,7 @@ routes:
     config = load_routes(tmp_path, registry, env={})
     assert config.routes["held"].buffer == BufferSpec(50, (tmp_path / "spill").resolve(), 1.0)
     assert config.routes["plain"].buffer is None and config.routes["none"].buffer is None
-    assert BufferSpec.parse(None, "ros2", tmp_path) == BufferSpec() and BufferSpec.parse(False, "mavlink", tmp_path) is None
+    assert BufferSpec.parse(None, False, tmp_path) == BufferSpec() and BufferSpec.parse(False, False, tmp_path) is None
     (tmp_path / "a.yaml").write_text(route.replace("spill_dir: spill", "spill_dir: not-a-dir"))
     with pytest.raises(RoutesInvalid) as invalid:
         load_routes(tmp_path, registry, env={})

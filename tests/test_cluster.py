@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 import aio_pika
 
-from engine.local_broker import LocalCluster
+from engine.endpoints.amqp.broker import LocalCluster
 from tests.engine_process import EngineProcess
 
 CLIENT_NODE = 2
@@ -397,7 +397,7 @@ routes:
     assert "S3cretPass" not in out + result.stdout
     for expected in ("URL 2: not an amqp:// URL: 'http://farmer:***@h2/'", "URL 3:", "same node twice",
                      "quorum queue is always durable", "x-max-priority", "x-queue-mode",
-                     "'standby-on-amqp'", "use ordered: true", "'ordered-ros': ordered applies to AMQP sources"):
+                     "'standby-on-amqp'", "use ordered: true", "'ordered-ros': ordered does not apply to a ros2 source"):
         assert expected in out, (expected, out)
     assert all(line.startswith(str(tmp_path / "bad.yaml") + ":") for line in out.strip().splitlines())
 

@@ -31,7 +31,7 @@ from typing import Any, Callable
 
 import aio_pika
 
-from engine.local_broker import LocalBroker
+from engine.endpoints.amqp.broker import LocalBroker
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, Tally, robust, wait_for
 

@@ -21,7 +21,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from engine.dead_letters import DeadLetterSpool
 from engine.delivery import BACKOFF_FIRST
-from engine.endpoints.rosmsg import resolve_type
+from engine.endpoints.ros2.rosmsg import resolve_type
 from engine.runtime import Engine
 from tests.amqp_helpers import Collector
 from tests.faults_harness import wait_for

@@ -27,7 +27,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from engine.local_broker import LocalBroker
+from engine.endpoints.amqp.broker import LocalBroker
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, Tally, robust, wait_for
 from tests.test_counters_agree import TapReader, free_port

@@ -249,7 +249,7 @@ def test_a_payload_that_fails_its_schema_is_dead_lettered_and_acknowledged(
 
 import rclpy  # noqa: E402,F401  (a missing rclpy fails the run, never skips it)
 
-from engine.endpoints.rosmsg import resolve_type  # noqa: E402
+from engine.endpoints.ros2.rosmsg import resolve_type  # noqa: E402
 from tests.test_ros2_endpoint import DOMAIN, Peer  # noqa: E402
 
 NavSatFix = resolve_type("sensor_msgs/msg/NavSatFix")

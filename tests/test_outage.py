@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from engine.local_broker import LocalBroker
+from engine.endpoints.amqp.broker import LocalBroker
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, RosPeer, Tally, publish_reliably, robust, wait_for

@@ -26,7 +26,7 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from test_msgs.srv import BasicTypes
 
-from engine.endpoints.ros2_calls import service_qos
+from engine.endpoints.ros2.calls import service_qos
 from engine.runtime import Engine
 from tests.amqp_helpers import Caller
 from tests.conftest import REPO

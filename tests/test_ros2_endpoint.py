@@ -26,7 +26,7 @@ from rclpy.signals import SignalHandlerOptions  # noqa: E402
 
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
 from engine.endpoints.ros2 import TRANSPORT  # noqa: E402
-from engine.endpoints.rosmsg import resolve_type, to_dict  # noqa: E402
+from engine.endpoints.ros2.rosmsg import resolve_type, to_dict  # noqa: E402
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 
 DOMAIN = 1 + os.getpid() % 100

@@ -19,7 +19,7 @@ import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
-from engine.endpoints.rosmsg import (  # noqa: E402
+from engine.endpoints.ros2.rosmsg import (  # noqa: E402
     MessageError, NullValue, field_names, from_dict, null_path, nested_type, resolve_type, to_dict, type_name,
 )
 

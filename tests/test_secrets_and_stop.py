@@ -15,7 +15,7 @@ from pathlib import Path
 
 import aio_pika
 
-from engine.local_broker import LocalBroker
+from engine.endpoints.amqp.broker import LocalBroker
 from engine.logs import JsonFormatter, LogfmtFormatter
 from engine.redaction import Secret, redact_urls, reveal
 from tests.conftest import REPO

@@ -1,8 +1,12 @@
 """The small contract every protocol endpoint implements.
 
 The engine core (routes, pipeline, runtime) knows only these types. Each protocol lives in
-one module of this package that subclasses them and translates its library's exceptions
-into :class:`EndpointError` at the edge, so a new protocol means one new file.
+one package of this package that subclasses them and translates its library's exceptions
+into :class:`EndpointError` at the edge (one table per package), so a new protocol means one
+new package and one line in the registry (engine/endpoints/__init__.py). Every question the
+core has about a protocol (does its source redeliver, can it keep dead letters or hold a
+lease, what does its sink do in a dry run, which fields does its source give) is a method or
+class attribute here: the core asks, and never names a protocol.
 
 Delivery contract: a :class:`Source` hands messages to the :class:`Deliver` it was started
 with, in batches (``await deliver.batch(inbounds)``, everything it has ready) or one at a
@@ -43,6 +47,7 @@ from dataclasses import dataclass, field
 from typing import Any, Awaitable, Callable, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
 
 from engine.options import OptionError, describe, dotted, option, parse
+from engine.suggest import closest
 
 
 class EndpointError(Exception):
@@ -297,6 +302,41 @@ class Connection(ABC):
         """Store ``(body, headers)`` dead letters of ``route``; raise EndpointError if not stored."""
         raise NotImplementedError
 
+    def dead_letter_destination(self) -> str:
+        """Where :meth:`dead_letter` stores, for the status (only where ``keeps_dead_letters``)."""
+        return f"connection {self.name!r}"
+
+    holds_leases: ClassVar[bool] = False
+    """True where :meth:`lease` gives a lease other instances see (a broker queue), so an
+    ``active_standby`` route can fail over through this connection."""
+
+    def lease(self, name: str, instance: str, heartbeat: float) -> Lease:
+        """The lease ``name`` of an ``active_standby`` route (only where ``holds_leases``)."""
+        raise NotImplementedError
+
+
+class Lease(Protocol):
+    """What :meth:`Connection.lease` returns; engine/leases.py starts and stops it."""
+
+    async def start(self) -> None: ...
+
+    async def stop(self) -> None: ...
+
+
+FieldPath = tuple[str, ...]
+"""A path a mapping reads, one step per field; :data:`ELEMENT` steps into a list's elements."""
+ELEMENT = "[]"
+FieldProblem = Callable[[FieldPath], "str | None"]
+"""What a source's message says about a path a mapping reads: None, or why it has no such field."""
+
+
+def flat_field_problem(label: str, fields: Sequence[str], path: FieldPath) -> str | None:
+    """:data:`FieldProblem` of a flat message (``label``) with these ``fields``."""
+    if not path or path[0] == ELEMENT or path[0] in fields:
+        return None
+    guess = closest(path[0], fields)
+    hint = f"; did you mean {guess!r}?" if guess else f" (fields: {', '.join(fields)})"
+    return f"mapping reads {path[0]!r}, which {label} does not have{hint}"
 
 CheckResult = Iterable[tuple[str | None, str]]
 """``(option key or None, message)`` pairs; the route loader attaches file and line."""
@@ -343,6 +383,9 @@ class Transport(ABC):
     """What the engine knows about a protocol before connecting: defaults and static checks."""
 
     name: ClassVar[str]
+    connection_type: ClassVar[type[Connection]] = Connection
+    """The class :meth:`connect` returns: the core reads its capabilities (``keeps_dead_letters``,
+    ``holds_leases``) at load, before anything connects."""
     default_settings: ClassVar[Mapping[str, Any]]
     connection_options: ClassVar[type]
     """The option class of ``connections.<name>.<protocol>`` (engine/options.py)."""
@@ -431,6 +474,64 @@ class Transport(ABC):
     def competing_consumers(self, route: str, options: Any) -> str | None:
         """For a source whose consumers compete for messages (an AMQP queue), the name of what
         it consumes; ``check`` warns when two routes name the same one."""
+        return None
+
+    def default_connection_settings(self, env: Mapping[str, str]) -> Mapping[str, Any]:
+        """The settings of the protocol's default connection (``default-<protocol>``, used by
+        routes that name none): :attr:`default_settings`, or what ``env`` says (the private
+        broker ``--local-broker`` started)."""
+        return self.default_settings
+
+    def private_broker_warning(self, settings: Any, env: Mapping[str, str]) -> str | None:
+        """Under ``--local-broker`` (``env`` as it set it): when a connection with these typed
+        settings names its own broker instead of the private one, why, for a load warning that
+        begins with the connection's name (``{private}`` stands for the private broker's)."""
+        return None
+
+    def redelivers(self, options: Any) -> bool:
+        """True when a source with these (typed) options gets back every message the engine did
+        not settle (a broker keeps what was not acknowledged): its route needs no buffer while
+        the sink is down. False (the default, and an MQTT QoS 0 subscription): a message not
+        settled is gone, so the route holds messages in a buffer by default."""
+        return False
+
+    supports_ordered: ClassVar[bool] = False
+    """True when a source can be consumed by one engine instance at a time, in order
+    (``ordered: true``; :meth:`ordered_source` says how). Otherwise a route's source is carried
+    by one instance through ``instances`` or ``active_standby``."""
+
+    def ordered_source(self, options: Any) -> Any:
+        """The source options of an ``ordered: true`` route (only where ``supports_ordered``)."""
+        raise NotImplementedError
+
+    shares_sources: ClassVar[bool] = False
+    """True when every instance's source competes for one stream (a broker queue): each
+    message reaches one instance anyway, so ``active_standby`` is refused (use ``ordered``)."""
+
+    def sink_dry_run(self, route: str, options: Any) -> Callable[[Outbound], str | None]:
+        """What the sink would do short of sending, for ``rabbitros-engine test``: the rendered
+        routing key or topic (shown), and for a typed sink the message built from the fields.
+        Raises :class:`MessageRejected` (its ``stage`` is the error's) for what the sink would
+        refuse. The default accepts anything and shows nothing: a protocol with templates or
+        types must override it, or ``test`` passes what the run dead-letters."""
+        return lambda outbound: None
+
+    def test_input(self, options: Any) -> Callable[[Any], dict[str, Any]] | None:
+        """For ``rabbitros-engine test``: the field dict a typed source (these options) hands
+        over for a case's ``input``, after a round trip through the real type, so defaults
+        fill in and a field the type lacks is an error (EndpointError/ValueError/TypeError) as
+        on the wire. None (the default): a byte source, the input is sent as JSON bytes."""
+        return None
+
+    def field_problem(self, options: Any) -> FieldProblem | None:
+        """For ``check``: what a typed source (these options) says about each path its route's
+        mapping reads (a field its message type lacks, with a did-you-mean). None (the
+        default): the source gives bytes or JSON, whose fields nothing declares."""
+        return None
+
+    def suggest(self, key: str, value: str) -> str | None:
+        """For ``check``: the known name closest to a misspelt ``value`` of option ``key`` (a
+        ROS 2 type, a MAVLink message), or None."""
         return None
 
     @abstractmethod

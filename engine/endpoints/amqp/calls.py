@@ -1,5 +1,5 @@
 """The AMQP sink as a caller: a message that asks for a reply (a call to a ROS 2 service the
-engine offers, engine/endpoints/ros2_calls.py) is published as an AMQP request and its worker's
+engine offers, engine.endpoints.ros2.calls.py) is published as an AMQP request and its worker's
 answer is the call's reply.
 
 The request carries ``reply_to: amq.rabbitmq.reply-to`` (RabbitMQ's direct reply-to: no reply

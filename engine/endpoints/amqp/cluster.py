@@ -24,6 +24,7 @@ from yarl import URL
 
 from engine.endpoints.base import EndpointError
 from engine.redaction import reveal
+from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSourceOptions
 
 log = logging.getLogger("engine.amqp")
@@ -83,7 +84,7 @@ async def connect_failover(urls: Sequence[str], **kwargs: Any) -> FailoverConnec
         try:
             await connection.connect(timeout)
             return connection
-        except (ConnectionError, OSError, aio_pika.exceptions.AMQPError, TimeoutError) as exc:
+        except LIBRARY_ERRORS as exc:
             error = exc
             await connection.close()
     assert error is not None
@@ -211,8 +212,8 @@ class AmqpLease:
             self._channel = await raw.channel(publisher_confirms=False)
             queue = await self._channel.declare_queue(self.queue, durable=True, arguments=arguments)
             await queue.consume(self._on_heartbeat, no_ack=True)
-        except (aio_pika.exceptions.AMQPError, ConnectionError, OSError, RuntimeError, asyncio.TimeoutError) as exc:
-            raise EndpointError(f"lease {self.name!r} on amqp connection {self.connection.name!r}: {exc}") from exc
+        except LIBRARY_ERRORS as exc:
+            raise edge_error(exc, f"lease {self.name!r} on amqp connection {self.connection.name!r}") from exc
         self._task = asyncio.create_task(self._beat(), name=f"lease {self.name}")
 
     def _connection_lost(self, *_: Any) -> None:

@@ -17,14 +17,12 @@ import logging
 from dataclasses import dataclass
 from typing import Any, Iterable
 
-import aiormq.exceptions
-from aio_pika.exceptions import AMQPError
 
 from engine.endpoints.base import Connection
+from engine.endpoints.amqp.errors import LIBRARY_ERRORS
 from engine.endpoints.amqp.options import AmqpSourceOptions
 
 log = logging.getLogger("engine.amqp")
-_ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError)
 
 
 @dataclass(frozen=True)
@@ -69,7 +67,7 @@ async def retire_source(
                 declared = await channel.declare_queue(binding.queue, passive=True)
                 await declared.unbind(binding.exchange, binding.key)
                 done["unbound"].append(f"{binding.queue} <- {binding.exchange} [{binding.key}]")
-            except _ERRORS as exc:  # the queue or exchange is already gone: nothing to undo
+            except LIBRARY_ERRORS as exc:  # the queue or exchange is already gone: nothing to undo
                 log.info("binding already gone", extra={"route": route, "queue": binding.queue, "error": str(exc)})
                 channel = await _fresh(channel, factory)
         if auto_named:
@@ -77,13 +75,13 @@ async def retire_source(
                 declared = await channel.declare_queue(queue, passive=True)
                 await declared.delete(if_unused=False, if_empty=True)
                 done["deleted"].append(queue)
-            except _ERRORS as exc:  # not empty (PRECONDITION_FAILED) or already gone
+            except LIBRARY_ERRORS as exc:  # not empty (PRECONDITION_FAILED) or already gone
                 done["kept"].append(f"{queue}: {exc}")
                 channel = await _fresh(channel, factory)
     finally:
         try:
             await channel.close()
-        except _ERRORS:
+        except LIBRARY_ERRORS:
             pass
     if any(done.values()):
         log.info("amqp topology follows the routes", extra={"route": route, **done})

@@ -21,7 +21,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 from urllib.parse import urlsplit
 
 import aio_pika
@@ -29,7 +29,6 @@ import aio_pika.abc
 import aiormq.abc
 import aiormq.exceptions
 from aiormq import spec
-from aio_pika.exceptions import AMQPError
 
 from engine.endpoints.base import (
     CheckResult,
@@ -47,13 +46,14 @@ from engine.endpoints.base import (
 )
 import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.endpoints.amqp.calls import AmqpCaller
+from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template, template_fields
-from engine.options import given
-from engine.redaction import redact_urls
+from engine.options import evolve, given
+from engine.endpoints.amqp.broker import URL_ENV, URLS_ENV, elsewhere
+from engine.redaction import Secret, has_url_password, redact_urls, reveal
 from engine.schemas import SchemaError, canonical_bytes
 
-_ERRORS = (AMQPError, aiormq.exceptions.AMQPError, ConnectionError, OSError, asyncio.TimeoutError, RuntimeError)
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
 log = logging.getLogger("engine.amqp")
 
@@ -75,6 +75,7 @@ hold the engine's start for the TCP timeout, minutes)."""
 
 class AmqpConnection(Connection):
     keeps_dead_letters = True
+    holds_leases = True
 
     settings: AmqpConnectionOptions
 
@@ -141,7 +142,7 @@ class AmqpConnection(Connection):
             self._publish_channel = await self._connection.channel(
                 publisher_confirms=self.settings.publisher_confirms
             )
-        except _ERRORS as exc:
+        except LIBRARY_ERRORS as exc:
             self._failed(exc)
             if self._connection is not None:
                 await self.close()
@@ -187,8 +188,8 @@ class AmqpConnection(Connection):
             await self.exchange(exchange_name, kind, durable)
             assert self._publish_channel is not None
             channel = await self._publish_channel.get_underlay_channel()
-        except _ERRORS as exc:
-            error = EndpointError(f"amqp publish to {exchange_name!r} on {self.name!r}: {exc}")
+        except LIBRARY_ERRORS as exc:
+            error = edge_error(exc, f"amqp publish to {exchange_name!r} on {self.name!r}")
             return [error] * len(messages)
         confirms = self._publish_channel.publisher_confirms
         if len(messages) == 1:  # the common case at low rates: no task, one loop iteration less
@@ -236,8 +237,8 @@ class AmqpConnection(Connection):
                 await queue.bind(DEAD_LETTER_EXCHANGE, "#")
             finally:
                 await channel.close()
-        except _ERRORS as exc:
-            raise EndpointError(f"amqp connection {self.name!r}: cannot declare the dead-letter queue: {exc}") from exc
+        except LIBRARY_ERRORS as exc:
+            raise edge_error(exc, f"amqp connection {self.name!r}: cannot declare the dead-letter queue") from exc
 
     async def dead_letter(self, route: str, messages: Sequence[tuple[bytes, Mapping[str, Any]]]) -> None:
         """One confirmed batch to ``rabbitros.dead-letter``, routing key = route name."""
@@ -256,6 +257,9 @@ class AmqpConnection(Connection):
         """The broker-held lease of an ``active_standby`` route (see :class:`AmqpLease`)."""
         return amqp_cluster.AmqpLease(self, name, instance, heartbeat, self.queue_type)
 
+    def dead_letter_destination(self) -> str:
+        return f"amqp connection {self.name!r}, queue rabbitros.dead-letter"
+
     def sink(self, route: str, options: AmqpSinkOptions | Mapping[str, Any]) -> Sink:
         return AmqpSink(self, route, typed(AmqpSinkOptions, options, f"route {route!r}: amqp sink"))
 
@@ -264,7 +268,7 @@ class AmqpConnection(Connection):
         if self._connection is not None:
             try:
                 await self._connection.close()
-            except _ERRORS:
+            except LIBRARY_ERRORS:
                 pass
             self._connection = None
 
@@ -308,10 +312,10 @@ class AmqpSource(Source):
             self._loop = asyncio.create_task(self._run(deliver), name=f"amqp-source:{self._route}")
             await self._consume()
             self._channel.reopen_callbacks.add(self._reconsume)
-        except _ERRORS as exc:
+        except LIBRARY_ERRORS as exc:
             self._stopping = True
             self._received.close()
-            raise EndpointError(f"route {self._route!r}: amqp source queue {self.queue_name!r}: {exc}") from exc
+            raise edge_error(exc, f"route {self._route!r}: amqp source queue {self.queue_name!r}") from exc
 
     async def _consume(self) -> None:
         """Consume on the channel's aiormq channel: no aio-pika message object or task per
@@ -327,7 +331,7 @@ class AmqpSource(Source):
             return
         try:
             await self._consume()
-        except _ERRORS as exc:
+        except LIBRARY_ERRORS as exc:
             log.error("route %r: cannot consume %r again after reconnecting: %s", self._route, self.queue_name, exc)
 
     async def _on_message(self, message: aiormq.abc.DeliveredMessage) -> None:
@@ -383,7 +387,7 @@ class AmqpSource(Source):
             channel, tag = self._consumer
             try:
                 await channel.basic_cancel(tag)
-            except _ERRORS:
+            except LIBRARY_ERRORS:
                 pass
         self._received.close()
         if self._loop is not None:
@@ -391,7 +395,7 @@ class AmqpSource(Source):
         if self._channel is not None:
             try:
                 await self._channel.close()
-            except _ERRORS:
+            except LIBRARY_ERRORS:
                 pass
 
 
@@ -417,7 +421,7 @@ def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
 async def _settle_frame(method: Any, tag: int | None, **kwargs: Any) -> None:
     try:
         await method(tag, **kwargs)
-    except _ERRORS:
+    except LIBRARY_ERRORS:
         pass  # the channel is gone: the broker requeues whatever was not acked
 
 
@@ -528,8 +532,13 @@ class AmqpSink(Sink):
         return results
 
 
+def _secret(url: str) -> str | Secret:
+    return Secret(url) if has_url_password(url) else url
+
+
 class AmqpTransport(Transport):
     name = "amqp"
+    connection_type = AmqpConnection
     default_settings = {"url": "amqp://guest:guest@localhost:5672/"}
     replies = True
     accepts_secrets = True
@@ -569,6 +578,46 @@ class AmqpTransport(Transport):
 
     def canonical_fields(self, options: AmqpSinkOptions) -> Iterable[tuple[str, str]]:
         return [("routing_key", name) for name in template_fields(options.routing_key)]
+
+    def default_connection_settings(self, env: Mapping[str, str]) -> Mapping[str, Any]:
+        """``RABBITROS_AMQP_URL`` (``--local-broker`` sets it), else localhost; a local cluster
+        (``--local-broker --cluster N`` sets ``RABBITROS_AMQP_URLS``): every node, replicated queues."""
+        cluster = env.get(URLS_ENV, "").split()
+        if cluster:
+            return {"urls": [_secret(url) for url in cluster], "queue_type": "quorum"}
+        return {"url": _secret(env.get(URL_ENV, self.default_settings["url"]))}
+
+    def private_broker_warning(self, settings: AmqpConnectionOptions, env: Mapping[str, str]) -> str | None:
+        private = env.get(URLS_ENV, "").split() or [env.get(URL_ENV, "")]
+        urls = [reveal(url) for url in ([settings.url] if settings.url else settings.urls or ())]
+        other = elsewhere(urls, private)
+        if not other:
+            return None
+        return (f"names its own broker ({', '.join(redact_urls(url) for url in other)}), so {{private}} does not serve it "
+                "and its routes use that broker; to use the private node, write the URL as "
+                f"\"${{{URL_ENV}:-<the URL>}}\", or leave the connection out")
+
+    def redelivers(self, options: AmqpSourceOptions) -> bool:
+        """The broker requeues what the engine did not acknowledge."""
+        return True
+
+    supports_ordered = True
+    shares_sources = True
+
+    def ordered_source(self, options: AmqpSourceOptions) -> AmqpSourceOptions:
+        """A single active consumer: one instance at a time consumes the queue, in order."""
+        return evolve(options, ordered=True)
+
+    def sink_dry_run(self, route: str, options: AmqpSinkOptions) -> Callable[[Outbound], str | None]:
+        render = compile_template(options.routing_key)
+
+        def routing_key(outbound: Outbound) -> str | None:
+            try:
+                return render(outbound.canonical)
+            except MappingError as exc:
+                raise MessageRejected(str(exc)) from None
+
+        return routing_key
 
     def competing_consumers(self, route: str, options: AmqpSourceOptions) -> str | None:
         queue = options.queue

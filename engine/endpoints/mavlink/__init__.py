@@ -57,22 +57,31 @@ over TUNNEL). No module imports one that imports it back.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, ClassVar
 
-from engine.endpoints.base import CheckResult, Transport, typed_or_problem
+from engine.endpoints.base import CheckResult, FieldProblem, Outbound, Transport, flat_field_problem, typed_or_problem
 from engine.endpoints.mavlink.checks import sink_problems, source_problems
-from engine.endpoints.mavlink.codec import MESSAGES, build_message, field_specs, message_fields, mavlink2
+from engine.endpoints.mavlink.codec import ADDED_FIELDS, MESSAGES, build_message, field_specs, message_fields, mavlink2, received_nan
 from engine.endpoints.mavlink.connection import MavlinkConnection
-from engine.endpoints.mavlink.messages import field_check
+from engine.endpoints.mavlink.messages import dry_run, field_check
 from engine.endpoints.mavlink import settings as _settings
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
 from engine.endpoints.mavlink.signing import signing_now
+from engine.suggest import closest
+
+
+@functools.lru_cache(maxsize=1)
+def message_names() -> dict[str, tuple[str, ...]]:
+    """Each message of the dialect with its fields, plus the fields the source adds."""
+    return {name: tuple(cls.fieldnames) + ADDED_FIELDS.get(name, ()) for name, cls in MESSAGES.items()}
 
 
 class MavlinkTransport(Transport):
     name: ClassVar[str] = "mavlink"
+    connection_type = MavlinkConnection
     default_settings: ClassVar[Mapping[str, Any]] = {"url": "udpin:0.0.0.0:14550"}
     connection_options = MavlinkConnectionOptions
     source_options = MavlinkSourceOptions
@@ -91,6 +100,42 @@ class MavlinkTransport(Transport):
 
     def sink_field_check(self, options: MavlinkSinkOptions, mapping: str | None = None) -> Callable[[Any], None] | None:
         return field_check(options)
+
+    def sink_dry_run(self, route: str, options: MavlinkSinkOptions) -> Callable[[Outbound], str | None]:
+        build = dry_run(options)
+
+        def built(outbound: Outbound) -> str | None:
+            build(outbound.fields)
+            return None
+
+        return built
+
+    def test_input(self, options: MavlinkSourceOptions) -> Callable[[Any], dict[str, Any]] | None:
+        """The message as the source gives it: its own fields (a null float is the NaN the
+        source shows as null), plus those the source adds."""
+        if options.json_tunnel or not options.message:
+            return None
+        mav_cls = MESSAGES[options.message]
+        added = ADDED_FIELDS.get(options.message, ())
+
+        def received(value: Any) -> dict[str, Any]:
+            if not isinstance(value, Mapping):
+                return message_fields(build_message(mav_cls, value))
+            own = received_nan(mav_cls, {k: v for k, v in value.items() if k not in added})
+            return {**message_fields(build_message(mav_cls, own)), **{k: value[k] for k in added if k in value}}
+
+        return received
+
+    def field_problem(self, options: MavlinkSourceOptions) -> FieldProblem | None:
+        if options.json_tunnel or not options.message:
+            return None
+        fields = message_names().get(options.message)
+        if fields is None:
+            return None
+        return lambda path: flat_field_problem(f"MAVLink {options.message}", fields, path)
+
+    def suggest(self, key: str, value: str) -> str | None:
+        return closest(value, message_names()) if key == "message" else None
 
     def exclusive_resource(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> str | None:
         options, _ = typed_or_problem(MavlinkConnectionOptions, settings)

@@ -24,6 +24,8 @@ import time
 from pathlib import Path
 from typing import Iterable
 
+from engine.local_broker import BrokerError
+
 MOSQUITTO = "mosquitto"
 INSTALL_HINT = "mosquitto is not installed (apt-get install -y mosquitto), or set MOSQUITTO_BIN to its path"
 
@@ -180,3 +182,44 @@ class LocalMosquitto:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+URL_ENV = "RABBITROS_MQTT_URL"
+"""The broker of an MQTT connection that names no ``url`` (else mqtt://localhost:1883);
+``run --local-broker`` sets it to the private mosquitto's."""
+CHECK_ENV: dict[str, str | None] = {URL_ENV: "mqtt://local-broker.invalid:1883"}
+"""``check --local-broker``'s stand-in for the private broker's URL (``.invalid`` is never a host)."""
+ALWAYS = False
+"""Started by ``--local-broker`` only when the routes have an MQTT connection."""
+
+
+class PrivateMosquitto:
+    """``--local-broker``'s MQTT broker: one mosquitto (it does not cluster)."""
+
+    def __init__(self, cluster: int = 1) -> None:
+        self.broker = LocalMosquitto()
+
+    @property
+    def nodes(self) -> list[str]:
+        return [f"mosquitto on port {self.broker.port}"]
+
+    @property
+    def urls(self) -> list[str]:
+        return [self.broker.url]
+
+    @property
+    def environment(self) -> dict[str, str]:
+        return {URL_ENV: self.broker.url}
+
+    def start(self) -> object:
+        try:
+            return self.broker.start()
+        except MosquittoError as exc:
+            raise BrokerError(str(exc)) from exc
+
+    def stop(self) -> None:
+        self.broker.stop()
+
+
+def private_broker(cluster: int = 1) -> PrivateMosquitto:
+    return PrivateMosquitto(cluster)

@@ -33,6 +33,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import ssl
 import time
 from collections import deque
@@ -48,6 +49,7 @@ from paho.mqtt.subscribeoptions import SubscribeOptions
 
 from engine.backoff import Backoff
 from engine.endpoints.base import Connection, EndpointError, typed
+from engine.endpoints.mqtt.broker import URL_ENV
 from engine.endpoints.mqtt.errors import describe, edge_error, from_code, mapped
 from engine.endpoints.mqtt.options import DEFAULT_URL, MqttConnectionOptions
 from engine.endpoints.mqtt.topics import subscription_id
@@ -82,7 +84,7 @@ class Endpoint:
 
     @classmethod
     def parse(cls, settings: MqttConnectionOptions) -> Endpoint:
-        url = reveal(settings.url) if settings.url is not None else DEFAULT_URL
+        url = reveal(settings.url) if settings.url is not None else os.environ.get(URL_ENV) or DEFAULT_URL
         parts = urlsplit(url)
         if parts.scheme not in SCHEMES or not parts.hostname:
             raise ValueError(f"url {redact_urls(url)!r}: expected mqtt://host[:port] or mqtts://host[:port]")

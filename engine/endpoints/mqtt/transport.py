@@ -3,17 +3,17 @@ exclusive resource of a persistent session, and undoing a removed route's subscr
 
 from __future__ import annotations
 
-from typing import Any, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 from urllib.parse import urlsplit
 
-from engine.endpoints.base import CheckResult, Connection, Transport
+from engine.endpoints.base import CheckResult, Connection, Outbound, Transport
 from engine.endpoints.mqtt.connection import MqttConnection
 from engine.endpoints.mqtt.link import Endpoint
 from engine.endpoints.mqtt.options import MqttConnectionOptions, MqttSinkOptions, MqttSourceOptions
-from engine.endpoints.mqtt.topics import filter_problems, subscription, template_problems
+from engine.endpoints.mqtt.topics import filter_problems, subscription, template_problems, topic_renderer
 from engine.mapping import template_fields
 from engine.options import given
-from engine.redaction import reveal
+from engine.redaction import redact_urls, reveal
 
 QOS2_SOURCE = ("qos 2 is not offered on a source: paho acknowledges a QoS 2 message (PUBREC) as it arrives, "
                "before the route settled it, so an engine stopped meanwhile would lose it; qos 1 is at-least-once "
@@ -22,6 +22,7 @@ QOS2_SOURCE = ("qos 2 is not offered on a source: paho acknowledges a QoS 2 mess
 
 class MqttTransport(Transport):
     name = "mqtt"
+    connection_type = MqttConnection
     default_settings: Mapping[str, Any] = {}
     accepts_secrets = True
     connection_options = MqttConnectionOptions
@@ -59,6 +60,22 @@ class MqttTransport(Transport):
     def sink_problems(self, options: MqttSinkOptions, mapping: str | None) -> CheckResult:
         for message in template_problems(options.topic):
             yield "topic", message
+
+    def private_broker_warning(self, settings: MqttConnectionOptions, env: Mapping[str, str]) -> str | None:
+        """A connection with a ``url`` keeps its broker; one without uses the private mosquitto."""
+        if settings.url is None:
+            return None
+        return (f"names its own broker ({redact_urls(reveal(settings.url))}), so {{private}} does not serve it; "
+                "to use the private broker, leave its url out")
+
+    def redelivers(self, options: MqttSourceOptions) -> bool:
+        """QoS 1: the broker resends what was not acknowledged (PUBACK after the route settled);
+        a QoS 0 message is delivered once, so its route keeps the default buffer."""
+        return options.qos >= 1
+
+    def sink_dry_run(self, route: str, options: MqttSinkOptions) -> Callable[[Outbound], str | None]:
+        render = topic_renderer(options.topic, f"route {route!r}: mqtt sink")
+        return lambda outbound: render(outbound.canonical)
 
     def canonical_fields(self, options: MqttSinkOptions) -> Iterable[tuple[str, str]]:
         return [("topic", name) for name in template_fields(options.topic)]

@@ -47,7 +47,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.task import Future as RclpyFuture
 
 from engine.backoff import Backoff
-from engine.endpoints import rosmsg
+from engine.endpoints.ros2 import rosmsg
 from engine.endpoints.base import Deliver, EndpointError, Inbound, Inbox, MessageRejected, Outbound, Sink, Source
 
 log = logging.getLogger("engine.ros2")

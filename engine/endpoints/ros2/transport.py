@@ -47,7 +47,7 @@ import jmespath
 import rclpy
 from rclpy.context import Context
 from rclpy.duration import Duration
-from rclpy.exceptions import InvalidHandle, NameValidationException
+from rclpy.exceptions import InvalidHandle
 from rclpy.expand_topic_name import expand_topic_name
 from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -59,9 +59,10 @@ from rclpy.validate_full_topic_name import validate_full_topic_name
 from rclpy.validate_namespace import validate_namespace
 from rclpy.validate_node_name import validate_node_name
 
-from engine.endpoints import ros2_calls, rosmsg
+from engine.endpoints.ros2 import calls as ros2_calls, contract as ros2_contract, rosmsg
+from engine.endpoints.ros2.errors import mapped, rcl_reason, setup_error
 from engine.endpoints.base import (
-    CheckResult, Connection, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
+    CheckResult, Connection, FieldProblem, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
     Source, Transport, typed,
 )
 from engine.options import given, option
@@ -163,13 +164,6 @@ class Ros2SinkOptions(Ros2EndpointOptions):
 
 # ---------------------------------------------------------------- static checks
 
-def _rcl_reason(exc: Exception) -> str:
-    """rcl's first line without its repeated prefix and the C source location."""
-    line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-    line = re.sub(r"^(Invalid [a-z ]+: |[a-z ]+ '[^']*' is invalid: )", "", line)
-    return re.sub(r", at /\S+:\d+$", "", line).rstrip(":")
-
-
 def _check_topic(topic: Any, allow_template: bool) -> Iterator[str]:
     if not isinstance(topic, str) or not topic:
         yield "topic is required (a ROS topic name such as /uav1/weeds)"
@@ -186,7 +180,7 @@ def _check_topic(topic: Any, allow_template: bool) -> Iterator[str]:
     try:
         validate_full_topic_name(expand_topic_name(sample, "node", "/"))
     except Exception as exc:  # rcl raises ValueError or InvalidTopicNameException
-        yield f"invalid topic name {topic!r}: {_rcl_reason(exc)}"
+        yield f"invalid topic name {topic!r}: {rcl_reason(exc)}"
 
 
 def _check_type(name: Any) -> Iterator[tuple[str, str]]:
@@ -262,7 +256,7 @@ class Ros2Transport(Transport):
     default_settings = {"node": "rabbitros_engine", "namespace": "", "domain_id": _env_domain_id()}
     connection_options = Ros2ConnectionOptions
     replies = True
-    """A source that offers a service answers its callers (engine/endpoints/ros2_calls.py)."""
+    """A source that offers a service answers its callers (engine.endpoints.ros2.calls.py)."""
     source_options = Ros2EndpointOptions
     sink_options = Ros2SinkOptions
 
@@ -271,12 +265,12 @@ class Ros2Transport(Transport):
         try:
             validate_node_name(node)
         except Exception as exc:
-            yield "node", f"invalid node name {node!r}: {_rcl_reason(exc)}"
+            yield "node", f"invalid node name {node!r}: {rcl_reason(exc)}"
         if namespace:
             try:
                 validate_namespace(namespace if namespace.startswith("/") else "/" + namespace)
             except Exception as exc:
-                yield "namespace", f"invalid namespace {namespace!r}: {_rcl_reason(exc)}"
+                yield "namespace", f"invalid namespace {namespace!r}: {rcl_reason(exc)}"
         if domain_id is not None and not 0 <= domain_id <= 232:
             yield "domain_id", f"domain_id must be an integer in 0..232, not {domain_id!r}"
 
@@ -339,6 +333,33 @@ class Ros2Transport(Transport):
     def canonical_fields(self, options: Ros2EndpointOptions) -> Iterable[tuple[str, str]]:
         return [("topic", name) for name in _PLACEHOLDER.findall(options.topic or "") if name not in _RCL_SUBSTITUTIONS]
 
+    # What the core's checks and dry runs ask (contract.py).
+
+    def sink_dry_run(self, route: str, options: Ros2SinkOptions) -> Callable[[Outbound], str | None]:
+        name = options.service or options.action
+        if name is not None:  # a call: the request or goal built as the sink builds it
+            cls, kind = _sink_class(options), "service" if options.service else "action"
+            where = f"route {route!r}, ros2 {kind} {name!r}"
+            return lambda outbound: (typed_message(cls, outbound, where), name)[1]
+        return ros2_contract.sink_dry_run(route, options.topic, options.type, _topic_template(options.topic), typed_message)
+
+    def test_input(self, options: Ros2EndpointOptions) -> Callable[[Any], dict[str, Any]] | None:
+        if options.service is not None:
+            return None  # an offered service's request as JSON: the case's input is its field dict
+        return ros2_contract.test_input(options.type)
+
+    def field_problem(self, options: Ros2EndpointOptions) -> FieldProblem | None:
+        if options.service is not None:  # an offered service: the mapping reads its request
+            try:
+                cls = ros2_calls.resolve_service(options.type).Request
+            except rosmsg.MessageError:
+                return None
+            return lambda path: ros2_contract._resolve(cls, path)
+        return ros2_contract.field_problem(options.type)
+
+    def suggest(self, key: str, value: str) -> str | None:
+        return ros2_contract.suggest_type(value) if key == "type" else None
+
 
 TRANSPORT = Ros2Transport()
 
@@ -393,8 +414,7 @@ class Ros2Connection(Connection):
             guard = GuardCondition(None, None, context=context)
         except Exception as exc:
             context.try_shutdown()
-            raise EndpointError(f"ros2 connection {self.name!r}: cannot create node "
-                                f"{self.settings.node!r}: {_rcl_reason(exc)}") from exc
+            raise setup_error(exc, f"ros2 connection {self.name!r}: cannot create node {self.settings.node!r}") from exc
         self._context, self._node, self._guard = context, node, guard
 
     def source(self, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> Source:
@@ -415,7 +435,7 @@ class Ros2Connection(Connection):
         return sink
 
     def calls(self) -> ros2_calls.CallNode:
-        """The node of this connection's service calls, made on first use (engine/endpoints/ros2_calls.py)."""
+        """The node of this connection's service calls, made on first use (engine.endpoints.ros2.calls.py)."""
         if self._calls is None:
             self.node  # raises EndpointError when not open
             self._calls = ros2_calls.CallNode(self._context, self.settings.node, self.settings.namespace)
@@ -581,7 +601,7 @@ class Ros2Source(Source):
         try:
             self.subscription = node.create_subscription(self._cls, self._topic, _unused_callback, self._qos)
         except Exception as exc:
-            raise EndpointError(f"{self._where}: cannot subscribe: {_rcl_reason(exc)}") from exc
+            raise setup_error(exc, f"{self._where}: cannot subscribe") from exc
         self._meta = {"topic": self.subscription.topic_name, "type": self._type_name}
         self._pump = asyncio.create_task(self._run(deliver), name=f"ros2-source-{self._route}")
         self._watch = asyncio.create_task(self._watch_types(), name=f"ros2-types-{self._route}")
@@ -819,12 +839,8 @@ class Ros2Sink(Sink):
     def _publisher(self, topic: str) -> Any:
         publisher = self._publishers.get(topic)
         if publisher is None:
-            try:
+            with mapped(f"{self._where}: cannot publish on {topic!r}"):
                 publisher = self._connection.acquire_publisher(self._cls, topic, self._qos)
-            except (NameValidationException, ValueError) as exc:  # a topic built from this message
-                raise MessageRejected(f"{self._where}: cannot publish on {topic!r}: {_rcl_reason(exc)}") from exc
-            except Exception as exc:
-                raise EndpointError(f"{self._where}: cannot publish on {topic!r}: {_rcl_reason(exc)}") from exc
             self._publishers[topic] = publisher
         return publisher
 
@@ -848,10 +864,8 @@ class Ros2Sink(Sink):
         publisher = self._publisher(topic)
         if self._string is not None:
             msg = self._string  # publish() serialises at once, so one instance is reused
-            try:
+            with mapped(self._where):
                 msg.data = _string_data(message)
-            except UnicodeDecodeError as exc:
-                raise MessageRejected(f"{self._where}: {exc}") from exc
         else:
             msg = typed_message(self._cls, message, self._where)
         if publisher is not self._fixed and self._require_subscriber and publisher.get_subscription_count() == 0:
@@ -859,8 +873,8 @@ class Ros2Sink(Sink):
             raise EndpointError(f"{self._where}: no subscriber has matched {topic} yet (require_subscriber)")
         try:
             publisher.publish(msg)
-        except Exception as exc:
-            raise EndpointError(f"{self._where}: publish failed: {_rcl_reason(exc)}") from exc
+        except Exception as exc:  # the message was built: whatever rcl says now is not its fault
+            raise setup_error(exc, f"{self._where}: publish failed") from exc
 
     async def close(self) -> None:
         publishers, self._publishers = list(self._publishers.values()), {}
@@ -876,14 +890,9 @@ def typed_message(cls: type, message: Outbound, where: str) -> Any:
     ``sink mapping`` error naming the field): JMESPath gives null for a path the message
     lacks, and neither a default nor NaN may stand in for a value that was not found.
     Without a sink mapping the canonical message is the data, and a null float is NaN (the
-    ROS -> JSON -> ROS round trip; see engine/endpoints/rosmsg.py)."""
-    mapped = message.fields is not message.canonical
-    try:
-        return rosmsg.from_dict(cls, message.fields, null_as_nan=not mapped)
-    except rosmsg.NullValue as exc:
-        raise MessageRejected(f"{where}: {exc}", stage="sink mapping") from exc
-    except rosmsg.MessageError as exc:
-        raise MessageRejected(f"{where}: {exc}") from exc
+    ROS -> JSON -> ROS round trip; see rosmsg.py)."""
+    with mapped(where):
+        return rosmsg.from_dict(cls, message.fields, null_as_nan=message.fields is message.canonical)
 
 
 def _string_data(message: Outbound) -> str:
@@ -921,3 +930,6 @@ def _topic_template(topic: str) -> Callable[[Any, str], str] | None:
         return "".join(out)
 
     return resolve
+
+
+Ros2Transport.connection_type = Ros2Connection  # defined below the transport

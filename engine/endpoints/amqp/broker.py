@@ -1,0 +1,365 @@
+"""Private RabbitMQ nodes (one, or a cluster) for demos, tests and ``--local-broker``
+(engine/local_broker.py asks :func:`private_broker`), on a machine with no broker set up.
+
+Debian's ``rabbitmq-server`` wrapper switches user and drops the environment, so the
+package's own ``sbin/rabbitmq-server`` is run instead, with its own HOME (the Erlang
+cookie), node name, ports, data and log directories in a temporary directory. The node
+runs in its own process group so it can be stopped, and killed if it will not stop.
+
+A :class:`LocalCluster` runs several such nodes with one cookie and joins them with
+``rabbitmqctl join_cluster``; a node can be killed with -9 and restarted on its data
+directory, which is how the tests lose a broker node mid-stream.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import tempfile
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Iterable
+from urllib.parse import urlsplit
+
+from engine.local_broker import BrokerError
+
+SERVER_GLOB = "/usr/lib/rabbitmq/lib/rabbitmq_server-*/sbin/rabbitmq-server"
+QUIET_SCHEDULERS = "+sbwt none +sbwtdcpu none +sbwtdio none"
+"""Erlang schedulers spin while idle by default; on a small shared machine three idle nodes
+would burn a core between them doing nothing."""
+
+
+URL_ENV = "RABBITROS_AMQP_URL"
+"""The default connection's URL; ``run --local-broker`` sets it to the private node's."""
+URLS_ENV = "RABBITROS_AMQP_URLS"
+"""Every node's URL of ``run --local-broker --cluster N`` (space-separated)."""
+ALWAYS = True
+"""Started by every ``--local-broker`` (the default connection, and the dead letters' broker)."""
+CHECK_ENV: dict[str, str | None] = {URL_ENV: "amqp://guest:guest@local-broker.invalid/", URLS_ENV: None}
+"""``check --local-broker``'s stand-in for the private node's URL (``.invalid`` is never a host)."""
+_LOOPBACK = frozenset({"localhost", "127.0.0.1", "::1", "ip6-localhost"})
+
+
+def node_address(url: str) -> tuple[str, int]:
+    """``(host, port)`` a URL connects to; every loopback name is one host."""
+    try:
+        parts = urlsplit(url)
+        host, port = (parts.hostname or "localhost").lower(), parts.port
+    except ValueError:
+        return url, 0
+    return ("localhost" if host in _LOOPBACK else host), port or (5671 if parts.scheme == "amqps" else 5672)
+
+
+def elsewhere(urls: Iterable[str], private: Iterable[str]) -> list[str]:
+    """The URLs among ``urls`` that lead to none of the ``private`` nodes' URLs."""
+    nodes = {node_address(url) for url in private}
+    return [url for url in urls if node_address(url) not in nodes]
+
+
+def find_server() -> str:
+    configured = os.environ.get("RABBITMQ_SERVER_BIN")
+    if configured:
+        return configured
+    found = sorted(glob.glob(SERVER_GLOB))
+    if not found:
+        raise BrokerError(
+            "rabbitmq-server is not installed (apt-get install -y rabbitmq-server), "
+            "or set RABBITMQ_SERVER_BIN to its sbin/rabbitmq-server"
+        )
+    return found[-1]
+
+
+def _free_port(preferred: int | None = None) -> int:
+    with socket.socket() as sock:
+        try:
+            sock.bind(("127.0.0.1", preferred or 0))
+        except OSError:
+            sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+class LocalBroker:
+    """``with LocalBroker() as broker: broker.url``; stopped and deleted on exit."""
+
+    def __init__(
+        self,
+        keep_dir: bool = False,
+        directory: Path | None = None,
+        node: str | None = None,
+        cookie: str | None = None,
+    ) -> None:
+        self.keep_dir = keep_dir
+        self.directory = directory or Path(tempfile.mkdtemp(prefix="rabbitros-broker-"))
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.port = _free_port()
+        self.dist_port = _free_port(self.port + 20000 if self.port + 20000 < 65536 else None)
+        self.node = node or f"rabbitros-{uuid.uuid4().hex[:8]}@localhost"
+        self.cookie = cookie
+        self._process: subprocess.Popen[bytes] | None = None
+
+    @property
+    def url(self) -> str:
+        return f"amqp://guest:guest@127.0.0.1:{self.port}/"
+
+    @property
+    def log_file(self) -> Path:
+        return self.directory / "server.out"
+
+    def environment(self) -> dict[str, str]:
+        home = self.directory
+        (home / "enabled_plugins").write_text("[].\n")
+        if self.cookie is not None:
+            _write_cookie(home / ".erlang.cookie", self.cookie)
+        return {
+            **os.environ,
+            "HOME": str(home),
+            "RABBITMQ_NODENAME": self.node,
+            "RABBITMQ_NODE_IP_ADDRESS": "127.0.0.1",
+            "RABBITMQ_NODE_PORT": str(self.port),
+            "RABBITMQ_DIST_PORT": str(self.dist_port),
+            "RABBITMQ_MNESIA_BASE": str(home / "mnesia"),
+            "RABBITMQ_LOG_BASE": str(home / "log"),
+            "RABBITMQ_ENABLED_PLUGINS_FILE": str(home / "enabled_plugins"),
+            "RABBITMQ_CONFIG_FILE": str(home / "rabbitmq"),
+            "RABBITMQ_PID_FILE": str(home / "rabbitmq.pid"),
+            "RABBITMQ_SERVER_ADDITIONAL_ERL_ARGS": QUIET_SCHEDULERS,
+        }
+
+    @property
+    def running(self) -> bool:
+        return self._process is not None and self._process.poll() is None
+
+    def start(self, timeout: float = 90.0) -> str:
+        """Start the node (again, after :meth:`kill` or :meth:`halt`: same data directory,
+        node name and ports, so durable queues and persistent messages come back)."""
+        server = find_server()
+        with open(self.log_file, "ab") as out:
+            self._process = subprocess.Popen(
+                [server],
+                env=self.environment(),
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                cwd=self.directory,
+                start_new_session=True,
+            )
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self._process.poll() is not None:
+                raise BrokerError(f"rabbitmq-server exited with {self._process.returncode}: {self._tail()}")
+            try:
+                with socket.create_connection(("127.0.0.1", self.port), timeout=0.5):
+                    return self.url
+            except OSError:
+                time.sleep(0.25)
+        self.stop()
+        raise BrokerError(f"rabbitmq-server did not listen on {self.port} within {timeout:.0f}s: {self._tail()}")
+
+    def kill(self) -> None:
+        """SIGKILL the whole node (beam and its helpers) at once; its data directory stays."""
+        process, self._process = self._process, None
+        if process is not None and process.poll() is None:
+            try:
+                os.killpg(process.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            process.wait()
+
+    def ctl(self, *args: str, timeout: float = 120.0) -> str:
+        """``rabbitmqctl -n NODE ARGS`` with this node's HOME (hence its cookie)."""
+        ctl = str(Path(find_server()).with_name("rabbitmqctl"))
+        result = subprocess.run(
+            ["timeout", "-s", "KILL", str(int(timeout)), ctl, "-n", self.node, *args],
+            env=self.environment(), cwd=self.directory, capture_output=True, text=True,
+        )
+        if result.returncode != 0:
+            raise BrokerError(f"rabbitmqctl -n {self.node} {' '.join(args)}: {(result.stderr or result.stdout).strip()[-800:]}")
+        return result.stdout
+
+    def _tail(self) -> str:
+        try:
+            return " | ".join(self.log_file.read_text(errors="replace").splitlines()[-5:])
+        except OSError:
+            return ""
+
+    def halt(self, timeout: float = 20.0) -> None:
+        """Stop the node cleanly (SIGTERM), keeping its data for a restart."""
+        process, self._process = self._process, None
+        if process is not None and process.poll() is None:
+            try:
+                os.killpg(process.pid, signal.SIGTERM)
+                process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+            except ProcessLookupError:
+                pass
+
+    def stop(self, timeout: float = 20.0) -> None:
+        self.halt(timeout)
+        if not self.keep_dir:
+            shutil.rmtree(self.directory, ignore_errors=True)
+
+    def __enter__(self) -> LocalBroker:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _write_cookie(path: Path, cookie: str) -> None:
+    """Erlang refuses a cookie file others can read: mode 400, as rabbitmq's docs require."""
+    if path.exists():
+        if path.read_text() == cookie:
+            return
+        path.chmod(0o600)
+    path.write_text(cookie)
+    path.chmod(0o400)
+
+
+class LocalCluster:
+    """``with LocalCluster(3) as cluster: cluster.urls``: private nodes joined in one cluster.
+
+    Every node gets the same cookie (a mode-400 ``.erlang.cookie`` in its own HOME) and its
+    own free AMQP and distribution ports; the first node is started, then the others, and
+    each joins the first with ``stop_app; join_cluster; start_app``. :meth:`kill` and
+    :meth:`restart` lose a node with -9 and bring it back on its data directory and ports.
+    """
+
+    def __init__(self, size: int = 3, keep_dir: bool = False) -> None:
+        if size < 1:
+            raise BrokerError("a cluster needs at least one node")
+        self.keep_dir = keep_dir
+        self.directory = Path(tempfile.mkdtemp(prefix="rabbitros-cluster-"))
+        cookie = uuid.uuid4().hex.upper()
+        tag = uuid.uuid4().hex[:6]
+        self.nodes = [
+            LocalBroker(keep_dir=True, directory=self.directory / f"node{index + 1}",
+                        node=f"rabbitros-{tag}-{index + 1}@localhost", cookie=cookie)
+            for index in range(size)
+        ]
+
+    @property
+    def urls(self) -> list[str]:
+        return [node.url for node in self.nodes]
+
+    def start(self, timeout: float = 180.0) -> list[str]:
+        deadline = time.monotonic() + timeout
+        first, *others = self.nodes
+        try:
+            self._start_nodes(self.nodes, deadline)
+            for node in others:
+                node.ctl("stop_app")
+                node.ctl("join_cluster", first.node)
+                node.ctl("start_app")
+            self.wait_running(len(self.nodes), max(5.0, deadline - time.monotonic()))
+        except BaseException:
+            self.stop()
+            raise
+        return self.urls
+
+    @staticmethod
+    def _start_nodes(nodes: list[LocalBroker], deadline: float) -> None:
+        """Start nodes side by side (each takes 10-20 s to boot, mostly waiting)."""
+        errors: list[BaseException] = []
+
+        def boot(node: LocalBroker) -> None:
+            try:
+                node.start(max(5.0, deadline - time.monotonic()))
+            except BaseException as exc:  # reported by the caller
+                errors.append(exc)
+
+        threads = [threading.Thread(target=boot, args=(node,)) for node in nodes]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        if errors:
+            raise errors[0]
+
+    def running_nodes(self) -> list[str]:
+        """The cluster's running nodes, as seen by the first node that answers."""
+        for node in self.nodes:
+            if not node.running:
+                continue
+            try:
+                out = node.ctl("eval", "rabbit_nodes:all_running().", timeout=30)
+            except BrokerError:
+                continue
+            return [name for name in _atoms(out)]
+        return []
+
+    def wait_running(self, count: int, timeout: float = 90.0) -> None:
+        deadline = time.monotonic() + timeout
+        seen: list[str] = []
+        while time.monotonic() < deadline:
+            seen = self.running_nodes()
+            if len(seen) >= count:
+                return
+            time.sleep(0.5)
+        raise BrokerError(f"cluster has {len(seen)} running nodes, wanted {count}: {seen}")
+
+    def kill(self, index: int) -> None:
+        """Lose node ``index`` with SIGKILL; its data directory and ports stay for a restart."""
+        self.nodes[index].kill()
+
+    def restart(self, index: int, timeout: float = 120.0) -> None:
+        """Start a killed node again on its data directory; it rejoins the cluster by itself."""
+        node = self.nodes[index]
+        node.start(timeout)
+        node.ctl("await_startup", timeout=timeout)
+
+    def stop(self) -> None:
+        for node in reversed(self.nodes):
+            node.stop()
+        if not self.keep_dir:
+            shutil.rmtree(self.directory, ignore_errors=True)
+
+    def __enter__(self) -> LocalCluster:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _atoms(erlang_term: str) -> list[str]:
+    """Node names from an Erlang list printed by ``rabbitmqctl eval``: ['a@h','b@h']."""
+    return [part.strip(" '\n[]") for part in erlang_term.strip().strip("[]").split(",") if "@" in part]
+
+
+class PrivateRabbitMQ:
+    """``--local-broker``'s RabbitMQ: one node, or ``cluster`` nodes joined (quorum queues)."""
+
+    def __init__(self, cluster: int = 1) -> None:
+        self.broker = LocalCluster(cluster) if cluster > 1 else LocalBroker()
+
+    @property
+    def nodes(self) -> list[str]:
+        return [node.node for node in self.broker.nodes] if isinstance(self.broker, LocalCluster) else [self.broker.node]
+
+    @property
+    def urls(self) -> list[str]:
+        return self.broker.urls if isinstance(self.broker, LocalCluster) else [self.broker.url]
+
+    @property
+    def environment(self) -> dict[str, str]:
+        urls = self.urls
+        return {URL_ENV: urls[0], **({URLS_ENV: " ".join(urls)} if len(urls) > 1 else {})}
+
+    def start(self) -> object:
+        return self.broker.start()
+
+    def stop(self) -> None:
+        self.broker.stop()
+
+
+def private_broker(cluster: int = 1) -> PrivateRabbitMQ:
+    return PrivateRabbitMQ(cluster)
