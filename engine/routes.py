@@ -26,7 +26,7 @@ from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, Rou
 from engine.endpoints.base import EndpointError, Transport
 from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hint, undeclared_keys, undeclared_path
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
-from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
+from engine.mapping import MappingError, compile_mapping, known_functions, meta_names, unknown_functions
 from engine.options import OptionError, describe, evolve, fields_of, given, option, parse
 from engine.local_broker import LOCAL_BROKER_ENV, elsewhere
 from engine.redaction import Secret, has_url_password, json_default, redact_urls, reveal, revealed
@@ -153,6 +153,9 @@ class RouteSpec:
     """Where messages wait while the sink is down (``buffer:``); the fingerprint covers it."""
     placement: Placement = field(default_factory=lambda: Placement())
     """Which engine instances carry the route (scale-out); the default: every instance."""
+    variables: Mapping[str, Any] = field(default_factory=dict, compare=False)
+    """The route's template variables (its ``for_each`` item; the fingerprint covers them):
+    ``meta(name)`` gives them as constants folded into the compiled mapping."""
 
 
 @dataclass(frozen=True)
@@ -525,6 +528,7 @@ def _route_checks(
     schemas: SchemaRegistry,
     problems: list[Problem],
     warnings: list[Problem],
+    variables: Mapping[str, Any] = {},
 ) -> None:
     """What can be known of a route before anything flows: its mappings compile and call
     known functions, its schema exists, its endpoints accept their options, a typed source
@@ -549,6 +553,28 @@ def _route_checks(
     if source:  # fields a typed source does not have
         for message in mapping_field_problems(source.protocol, source.options, mapping):
             problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
+        for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
+            for message in _meta_problems(source, expression, variables):
+                problems.append(document.problem(key_path, f"route {name!r}: {message}"))
+
+
+def source_meta_names(source: EndpointSpec, variables: Mapping[str, Any]) -> tuple[str, ...]:
+    """What ``meta(name)`` can read on a route with this source: what its protocol's source
+    gives each message (``Transport.meta_names``), then the route's template variables."""
+    try:
+        names = endpoints.transport(source.protocol).meta_names(source.options)
+    except EndpointError:
+        names = ()
+    return tuple(dict.fromkeys((*names, *variables)))
+
+
+def _meta_problems(source: EndpointSpec, expression: str | None, variables: Mapping[str, Any]) -> Iterator[str]:
+    """``meta(name)`` calls naming what the source never gives (the mapping would read null)."""
+    known = source_meta_names(source, variables)
+    for wanted in dict.fromkeys(n for n in meta_names(expression) if n is not None):
+        if wanted not in known:
+            hint = did_you_mean(wanted, known) or f" (it gives {', '.join(known)})" if known else " (it gives none)"
+            yield f"meta({wanted!r}): the {source.protocol} source gives no {wanted!r}{hint}"
 
 
 def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None,

@@ -78,6 +78,11 @@ class MavlinkTransport(Transport):
     sink_options = MavlinkSinkOptions
     connection_shorthand = "url"
     options_beside = True
+    source_meta = ("system_id", "component_id", "message", "connection")
+
+    def meta_names(self, options: MavlinkSourceOptions) -> tuple[str, ...]:
+        """A JSON tunnel's messages carry their sender, not the connection's name."""
+        return ("system_id", "component_id", "message") if options.json_tunnel else self.source_meta
 
     def connection_problems(self, options: MavlinkConnectionOptions) -> CheckResult:
         return settings_problems(options)[1]

@@ -104,6 +104,7 @@ class MessageSource(Source):
         buf = msg.get_msgbuf()
         meta = {
             "message": msg.get_type(), "system_id": header.srcSystem, "component_id": header.srcComponent,
+            "connection": self.connection.name,
             "signed": bool(buf[0] == mavlink2.PROTOCOL_MARKER_V2 and buf[2] & mavlink2.MAVLINK_IFLAG_SIGNED),
         }
         fields = message_fields(msg)
