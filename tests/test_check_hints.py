@@ -114,6 +114,34 @@ def test_paths_read_from_the_source():
         ("g",), ("h",), ("h", "i"), ("q",), ("t",)]
 
 
+def test_a_level_left_out_of_a_nested_ros_path_is_suggested(tmp_path: Path):
+    """``pose.orientation`` of a nav_msgs/Odometry is ``pose.pose.orientation`` (the pose
+    with covariance holds the pose): the hint finds the field a level or two below, checks
+    that the rest of the path holds there, and lists the choices when there are several."""
+    (tmp_path / "r.yaml").write_text("""connections:
+  ros: {ros2: {domain_id: 3}}
+  gcs: {amqp: "amqp://localhost/"}
+routes:
+  - name: odom
+    source:
+      ros2: {topic: /odom, type: nav_msgs/msg/Odometry}
+    schema: raw_json
+    mapping: "{q: pose.orientation, w: pose.orientation.w, v: twist.linear.x, p: position, c: pose.covariancee, x: x}"
+    sink: {amqp: {exchange: farm, routing_key: x}}
+""")
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
+    problems = [str(p).removeprefix(f"{tmp_path}/r.yaml:9: route 'odom': ") for p in invalid.value.problems]
+    assert sorted(problems) == sorted([
+        "mapping reads 'pose.orientation', which geometry_msgs/msg/PoseWithCovariance does not have; did you mean 'pose.pose.orientation'?",
+        "mapping reads 'twist.linear', which geometry_msgs/msg/TwistWithCovariance does not have; did you mean 'twist.twist.linear'?",
+        "mapping reads 'position', which nav_msgs/msg/Odometry does not have; did you mean 'pose.pose.position'?",
+        "mapping reads 'pose.covariancee', which geometry_msgs/msg/PoseWithCovariance does not have; did you mean 'pose.covariance'?",
+        "mapping reads 'x', which nav_msgs/msg/Odometry does not have; did you mean one of 'pose.pose.position.x', "
+        "'pose.pose.orientation.x', 'twist.twist.linear.x'?",
+    ])
+
+
 EVERYTHING_WRONG = """connections:
   ros: {ros2: {domain_id: 3}}
   gcs: {amqp: "amqp://localhost/"}
