@@ -306,13 +306,14 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
 
         return ros
     if protocol == "mavlink":
-        from engine.endpoints.mavlink.messages import dry_run
+        from engine.endpoints.mavlink.messages import dry_run, targeted_fields
 
         build = dry_run(options)
+        fields_of = targeted_fields(options) or (lambda outbound: outbound.fields)
 
         def mavlink(outbound: Outbound) -> str | None:
             try:
-                build(outbound.fields)
+                build(fields_of(outbound))
             except MessageRejected as exc:
                 raise ConversionError(exc.stage, str(exc)) from None
             return None

@@ -63,7 +63,7 @@ from engine.endpoints.base import CheckResult, Transport, typed_or_problem
 from engine.endpoints.mavlink.checks import sink_problems, source_problems
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, field_specs, message_fields, mavlink2
 from engine.endpoints.mavlink.connection import MavlinkConnection
-from engine.endpoints.mavlink.messages import field_check
+from engine.endpoints.mavlink.messages import field_check, target_fields
 from engine.endpoints.mavlink import settings as _settings
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
@@ -95,6 +95,9 @@ class MavlinkTransport(Transport):
 
     def sink_field_check(self, options: MavlinkSinkOptions, mapping: str | None = None) -> Callable[[Any], None] | None:
         return field_check(options)
+
+    def canonical_fields(self, options: MavlinkSinkOptions) -> Iterable[tuple[str, str]]:
+        return target_fields(options)
 
     def exclusive_resource(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> str | None:
         options, _ = typed_or_problem(MavlinkConnectionOptions, settings)
