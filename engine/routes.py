@@ -318,6 +318,8 @@ class ItemFiles:
             except (OSError, UnicodeDecodeError) as exc:
                 self.problems.append(Problem(str(path), 0, f"cannot read for_each file: {exc}"))
                 return None
+        if not is_items_text(text) and not any(line.strip() and not line.lstrip().startswith("#") for line in text.splitlines()):
+            return []  # every item deleted (comments may stay): no routes from the template
         before = len(self.problems)
         document = parse_document(str(path), text, self.env, self.problems, _ITEMS_VALIDATOR)
         if document is None or len(self.problems) > before:

@@ -144,6 +144,10 @@ def test_editing_the_list_plans_only_the_robots_that_changed(tmp_path: Path, sch
     assert plan.swap_pipeline == () and plan.replace_source == ()
     assert plan.keep == ("robot2-battery", "robot3-battery", "supervisor", "uav1-position", "uav2-position")
 
+    (directory / "agents.yaml").write_text("# every robot left the farm\n")
+    emptied = plan_reload(after, load_routes(directory, schemas))
+    assert emptied.remove == ("robot2-battery", "robot3-battery", "robot4-battery") and emptied.add == ()
+
 
 LIVE = """
 connections:
