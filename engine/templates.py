@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
 from engine.route_yaml import Path_, Problem
+from engine.suggest import did_you_mean
 
 FOR_EACH = "for_each"
 _VARIABLE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
@@ -83,6 +84,8 @@ def expand_routes(
         items, source_file = _items(body[FOR_EACH], where, read_items, file, line, problems)
         moved[index] = []
         template = {key: value for key, value in body.items() if key != FOR_EACH}
+        if items and isinstance(template.get("name"), str):
+            problems.extend(_name_problems(file, lines.get(("routes", index, "name"), line), template["name"], items[0]))
         for item in items:
             placeholders: dict[Path_, tuple[str, ...]] = {}
             copy_ = _substitute(template, item, (), placeholders, substituted_at := {})
@@ -122,6 +125,13 @@ def _items(value: Any, where: Path_, read_items: ReadItems, file: str, line: int
             continue
         good.append(item)
     return good, source_file
+
+
+def _name_problems(file: str, line: int, name: str, item: Mapping[str, Any]) -> list[Problem]:
+    """A route's name is fixed at load, so each ``{...}`` in it must be a variable."""
+    return [Problem(file, line, f"route name {name!r}: {{{placeholder}}} is not a for_each variable (variables: "
+                                f"{', '.join(item)}){did_you_mean(placeholder, item)}")
+            for placeholder in dict.fromkeys(_PLACEHOLDER.findall(name)) if placeholder not in item]
 
 
 def _substitute(value: Any, item: Mapping[str, Any], path: Path_,

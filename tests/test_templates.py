@@ -97,7 +97,8 @@ def test_check_reports_template_problems_at_their_lines(tmp_path: Path, schemas_
     bad = (FLEET.replace("for_each: [{n: 1, sys: 1, ex: 7}, {n: 2, sys: 2, ex: 8}]",
                          "for_each: [{n: 1, sys: 1, ex: 7}, oops, {n-x: 3}]")
            .replace('name: "{agent}-battery"', 'name: "battery"')
-           .replace("meta('agent')", "meta('agnet')"))
+           .replace("meta('agent')", "meta('agnet')")
+           .replace('name: "uav{n}-position"', 'name: "uav{nn}-position"'))
     directory = _fleet(tmp_path / "r", ["robot1", "robot2"], bad)
     (directory / "spare.yaml").write_text("- agent: robot5\n")  # a list no route names
     with pytest.raises(RoutesInvalid) as caught:
@@ -107,6 +108,8 @@ def test_check_reports_template_problems_at_their_lines(tmp_path: Path, schemas_
     assert "fleet.yaml:14: routes[1].for_each[2]: variable name 'n-x' must be a letter or _ then letters, digits, _" in shown, shown
     assert any(s.startswith("fleet.yaml:7: route 'battery' is already defined at") and "must hold a variable" in s for s in shown), shown
     assert any("route 'battery': meta('agnet'): the ros2 source gives no 'agnet'; did you mean 'agent'?" in s for s in shown), shown
+    assert "fleet.yaml:13: route name 'uav{nn}-position': {nn} is not a for_each variable (variables: n, sys, ex); did you mean 'n'?" \
+        in shown, shown
     assert [f"{Path(w.file).name}: {w.message}" for w in caught.value.warnings] == [
         "spare.yaml: a YAML list, so not a route file; no route names it in for_each (left out)"]
 
