@@ -49,7 +49,7 @@ def test_three_vehicles_on_one_udp_link(tmp_path: Path, schemas_dir: Path, amqp_
     directory.mkdir()
     (directory / "fleet.yaml").write_text(ROUTES.format(url=amqp_url, port=port, **names))
     vehicles = {system_id: FleetVehicle(system_id, port) for system_id in (1, 2, 3)}
-    wanted = [1, 2, 3, 2, 3, 3, 9]  # 9: no such vehicle on the link
+    wanted = [1, 2, 3, 2, 3, 3, 9]  # 9: a message that names no vehicle (dead-lettered)
 
     async def scenario() -> tuple[list[dict], list[aio_pika.abc.AbstractIncomingMessage]]:
         engine = Engine(directory, schemas_dir)
@@ -62,9 +62,7 @@ def test_three_vehicles_on_one_udp_link(tmp_path: Path, schemas_dir: Path, amqp_
             await positions.wait_for(30)
             exchange = await channel.declare_exchange(names["commands"], aio_pika.ExchangeType.TOPIC, durable=True)
             for number, system_id in enumerate(wanted):
-                body = {"param": number} if system_id != 9 else {"param": number}
-                if system_id != 9:
-                    body["vehicle"] = system_id
+                body = {"param": number} if system_id == 9 else {"param": number, "vehicle": system_id}
                 await exchange.publish(aio_pika.Message(json.dumps(body).encode()), "cmd")
             loop = asyncio.get_running_loop()
             deadline = loop.time() + 20
