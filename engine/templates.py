@@ -86,6 +86,7 @@ def expand_routes(
         template = {key: value for key, value in body.items() if key != FOR_EACH}
         if items and isinstance(template.get("name"), str):
             problems.extend(_name_problems(file, lines.get(("routes", index, "name"), line), template["name"], items[0]))
+        items = _complete_items(file, line, where, template, items, problems, source_file)
         for item in items:
             placeholders: dict[Path_, tuple[str, ...]] = {}
             copy_ = _substitute(template, item, (), placeholders, substituted_at := {})
@@ -125,6 +126,33 @@ def _items(value: Any, where: Path_, read_items: ReadItems, file: str, line: int
             continue
         good.append(item)
     return good, source_file
+
+
+def _complete_items(file: str, line: int, where: Path_, template: Any, items: Items, problems: list[Problem],
+                    source_file: str | None) -> Items:
+    """The items that give every variable the template uses that some item gives: an item
+    without one would leave its ``{var}`` to be read from the canonical message (or in its
+    route's name), which is never what a list of robots means."""
+    given = {key for item in items for key in item}
+    used = {name for name in _placeholders(template) if name in given}
+    complete = []
+    for number, item in enumerate(items):
+        missing = sorted(used - set(item))
+        if missing:
+            named = f"{_dotted(where)}[{number}]" + (f" (in {source_file})" if source_file else "")
+            problems.append(Problem(file, line, f"{named}: no {', '.join(missing)} (the route uses "
+                                                f"{', '.join('{' + name + '}' for name in missing)}, which other items give)"))
+        else:
+            complete.append(item)
+    return complete
+
+
+def _placeholders(value: Any) -> set[str]:
+    if isinstance(value, dict):
+        return {name for key, child in value.items() if key not in _JMESPATH_KEYS for name in _placeholders(child)}
+    if isinstance(value, list):
+        return {name for child in value for name in _placeholders(child)}
+    return set(_PLACEHOLDER.findall(value)) if isinstance(value, str) else set()
 
 
 def _name_problems(file: str, line: int, name: str, item: Mapping[str, Any]) -> list[Problem]:

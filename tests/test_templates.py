@@ -113,6 +113,12 @@ def test_check_reports_template_problems_at_their_lines(tmp_path: Path, schemas_
     assert [f"{Path(w.file).name}: {w.message}" for w in caught.value.warnings] == [
         "spare.yaml: a YAML list, so not a route file; no route names it in for_each (left out)"]
 
+    (directory / "agents.yaml").write_text("- agent: robot1\n- agnet: robot2\n")
+    with pytest.raises(RoutesInvalid) as caught:
+        load_routes(directory, SchemaRegistry(schemas_dir))
+    assert any(p.message == "routes[0].for_each[1] (in agents.yaml): no agent (the route uses {agent}, which other items give)"
+               for p in caught.value.problems), caught.value.problems
+
     (directory / "agents.yaml").unlink()
     with pytest.raises(RoutesInvalid) as caught:
         load_routes(directory, SchemaRegistry(schemas_dir))
