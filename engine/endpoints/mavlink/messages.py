@@ -145,13 +145,16 @@ class MessageSource(Source):
 class MessageSink(Sink):
     """Encodes ``Outbound.fields`` as one message; accepted once written to the link."""
 
-    def __init__(self, connection: SharedLink, encode: Encoder, fields: Callable[[Outbound], Any] | None = None) -> None:
+    def __init__(self, connection: SharedLink, encode: Encoder, priority: str = "normal",
+                 fields: Callable[[Outbound], Any] | None = None) -> None:
         self.connection = connection
         self.encode = encode
+        self.priority = priority
+        """The route's ``priority``: the link's writer sends by it (engine/endpoints/mavlink/port.py)."""
         self.fields = fields or _sink_fields
 
     async def send(self, message: Outbound) -> None:
-        await self.connection.send_message(self.encode(self.fields(message)))
+        await self.connection.send_message(self.encode(self.fields(message)), priority=self.priority)
 
 
 def _sink_fields(message: Outbound) -> Any:
@@ -165,7 +168,7 @@ def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) ->
     if options.acknowledged:
         return AcknowledgedCommandSink(connection, message_encoder(options), TransactionOptions.parse(options)[0],
                                        fields=targeted_fields(options))
-    return MessageSink(connection, message_encoder(options), targeted_fields(options))
+    return MessageSink(connection, message_encoder(options), options.priority, targeted_fields(options))
 
 
 def target_fields(options: MavlinkSinkOptions) -> list[tuple[str, str]]:
