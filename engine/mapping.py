@@ -13,7 +13,8 @@ import re
 import time
 import uuid
 from functools import lru_cache
-from typing import Any, Callable
+from types import MappingProxyType
+from typing import Any, Callable, Mapping
 
 import jmespath
 from jmespath import exceptions as jmespath_errors
@@ -22,7 +23,12 @@ from jmespath import functions
 from engine import frames
 from engine.jmespath_compile import compile_parsed
 
-Mapper = Callable[[Any], Any]
+Mapper = Callable[..., Any]
+"""``mapper(data)``, or ``mapper(data, meta)`` where ``meta`` is this message's source metadata
+(:attr:`engine.endpoints.base.Inbound.meta`), which ``meta(name)`` reads."""
+
+META_FUNCTION = "meta"
+_NO_META: Mapping[str, Any] = MappingProxyType({})
 
 
 class MappingError(ValueError):
@@ -108,6 +114,12 @@ class FieldFunctions(functions.Functions):
     @functions.signature()
     def _func_uuid(self) -> str:
         return uuid.uuid4().hex
+
+    @functions.signature({"types": ["string"]})
+    def _func_meta(self, name: str) -> Any:
+        """Declared so the function is known; a mapping calling it is compiled with its own
+        ``meta`` (:func:`compile_mapping`), which reads the message's metadata."""
+        raise MappingError("meta() is evaluated only by a compiled mapping")
 
     @functions.signature({"types": ["string"]}, {"types": ["object"]})
     def _func_format(self, template: str, values: dict[str, Any]) -> str:
@@ -216,17 +228,8 @@ def _all_options() -> jmespath.Options:
 
 
 def _called(parsed: Any) -> set[str]:
-    names: set[str] = set()
-
-    def walk(node: Any) -> None:
-        if isinstance(node, dict):
-            if node.get("type") == "function_expression":
-                names.add(node["value"])
-            for child in node.get("children", ()):
-                walk(child)
-
-    walk(parsed)
-    return names
+    """The names of the functions an expression calls."""
+    return {node["value"] for node in _calls(parsed)}
 
 
 def _options_for(parsed: Any) -> jmespath.Options:
@@ -236,18 +239,56 @@ def _options_for(parsed: Any) -> jmespath.Options:
     return _all_options() if _called(parsed) & protocol_functions else _OPTIONS
 
 
-def compile_mapping(expression: str | None) -> Mapper | None:
+def compile_mapping(expression: str | None, variables: Mapping[str, Any] | None = None) -> Mapper | None:
     """Compile a JMESPath expression (to closures, see :mod:`engine.jmespath_compile`);
-    ``None`` (identity) stays ``None`` so callers can forward original bytes untouched."""
+    ``None`` (identity) stays ``None`` so callers can forward original bytes untouched.
+
+    ``meta(name)`` gives the message's source metadata: the mapper is called as
+    ``mapper(data, meta)`` with the source's own dict for the message (never copied). The
+    call is compiled to a closure reading one slot of this mapper, which ``apply`` points at
+    the message's dict before evaluating (one attribute store per message, and none for a
+    mapping that does not call ``meta``). A name in ``variables`` (the route's template
+    variables, fixed at load) is folded into a constant. Mappings run on the event loop, one
+    message at a time, so the slot is never shared by two evaluations in flight."""
     if expression is None:
         return None
     try:
         parsed = jmespath.compile(expression)
     except jmespath_errors.JMESPathError as exc:
         raise MappingError(_one_line(exc)) from None
-    evaluate = compile_parsed(parsed, _options_for(parsed.parsed))
+    options = _options_for(parsed.parsed)
+    if not _calls(parsed.parsed, META_FUNCTION):
+        evaluate = compile_parsed(parsed, options)
 
-    def apply(data: Any) -> Any:
+        def apply(data: Any, meta: Mapping[str, Any] = _NO_META) -> Any:
+            try:
+                return evaluate(data)
+            except jmespath_errors.JMESPathError as exc:
+                raise MappingError(_one_line(exc)) from None
+            except (TypeError, ValueError, ArithmeticError) as exc:
+                raise MappingError(str(exc)) from None
+
+        return apply
+    slot = _MetaSlot()
+    constants = dict(variables or {})
+
+    def compile_meta(node: dict[str, Any]) -> Callable[[Any], Any]:
+        name = meta_name(node)
+        if name is None:
+            raise MappingError("meta() takes one name in quotes, as meta('routing_key')")
+        if name in constants:
+            constant = constants[name]
+            return lambda value: constant
+
+        def meta(value: Any) -> Any:
+            return slot.meta.get(name)
+
+        return meta
+
+    evaluate = compile_parsed(parsed, options, {META_FUNCTION: compile_meta})
+
+    def apply_with_meta(data: Any, meta: Mapping[str, Any] = _NO_META) -> Any:
+        slot.meta = meta
         try:
             return evaluate(data)
         except jmespath_errors.JMESPathError as exc:
@@ -255,7 +296,50 @@ def compile_mapping(expression: str | None) -> Mapper | None:
         except (TypeError, ValueError, ArithmeticError) as exc:
             raise MappingError(str(exc)) from None
 
-    return apply
+    return apply_with_meta
+
+
+class _MetaSlot:
+    """Where a compiled ``meta(name)`` finds the metadata of the message being mapped."""
+
+    __slots__ = ("meta",)
+
+    def __init__(self) -> None:
+        self.meta: Mapping[str, Any] = _NO_META
+
+
+def meta_name(node: dict[str, Any]) -> str | None:
+    """The name a ``meta(...)`` call node asks for, or None when it is not one literal string."""
+    children = node.get("children", ())
+    if len(children) == 1 and children[0].get("type") == "literal" and isinstance(children[0].get("value"), str):
+        return children[0]["value"]
+    return None
+
+
+def meta_names(expression: str | None) -> list[str | None]:
+    """The names ``expression`` passes to ``meta()``, in order (None for a call that does not
+    give one literal name); [] for an expression that does not compile."""
+    if not expression:
+        return []
+    try:
+        tree = jmespath.compile(expression).parsed
+    except jmespath_errors.JMESPathError:
+        return []
+    return [meta_name(node) for node in _calls(tree, META_FUNCTION)]
+
+
+def _calls(node: Any, function: str | None = None) -> list[dict[str, Any]]:
+    """The function-call nodes of a parsed expression (of ``function`` only, if given)."""
+    found: list[dict[str, Any]] = []
+    stack = [node]
+    while stack:
+        current = stack.pop()
+        if not isinstance(current, dict):
+            continue
+        if current.get("type") == "function_expression" and function in (None, current.get("value")):
+            found.append(current)
+        stack.extend(reversed(current.get("children", ())))
+    return found
 
 
 def known_functions() -> list[str]:

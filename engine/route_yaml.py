@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from typing import Any, Iterator, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import jsonschema
 import yaml
@@ -51,6 +51,9 @@ class Document:
     lines: dict[Path_, int]
     schema_paths: frozenset[Path_] = field(default=frozenset())
     """Key paths the file's schema rejected (each already reported as a problem)."""
+    expansions: dict[int, Any] = field(default_factory=dict)
+    """What the ``expand`` step of :func:`parse_document` made, by item (route templates:
+    engine/templates.py's ``Expansion`` of each expanded route, by its index)."""
 
     def line(self, path: Path_) -> int:
         while path not in self.lines and path:
@@ -74,9 +77,11 @@ marks, parsed several times faster (1,000 routes: check 0.85 s -> 0.27 s here)."
 def parse_document(
     file: str, text: str, env: Mapping[str, str], problems: list[Problem],
     validator: jsonschema.protocols.Validator, keep_invalid: bool = False,
+    expand: Callable[[Any, dict[Path_, int], dict[Path_, str], list[Problem]], dict[int, Any]] | None = None,
 ) -> Document | None:
     """``text`` as a :class:`Document`, its problems appended to ``problems``; None when it is
-    not YAML, or when the schema rejects it and ``keep_invalid`` is false."""
+    not YAML, or when the schema rejects it and ``keep_invalid`` is false. ``expand`` rewrites
+    the data as read, before it is validated (route templates), moving key lines with it."""
     loader = _Loader(text)
     try:
         root = loader.get_single_node()
@@ -99,10 +104,11 @@ def parse_document(
         problems.append(Problem(file, _recursive_alias_line(text), "invalid YAML: an alias inside its own anchor (recursive alias), or nesting too deep"))
         return None
     data = data if data is not None else {}
+    expansions = expand(data, reader.lines, reader.substituted, problems) if expand is not None else {}
     errors = list(validator.iter_errors(shown(data)))
     if errors and _fit_substitutions(data, reader.substituted, validator, errors):
         errors = list(validator.iter_errors(shown(data)))
-    document = Document(file, data, reader.lines)
+    document = Document(file, data, reader.lines, expansions=expansions)
     rejected = [found for error in errors for found in _schema_problems(error)]
     problems.extend(document.problem(path, message) for path, message in rejected)
     if not rejected:

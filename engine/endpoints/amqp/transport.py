@@ -393,6 +393,8 @@ def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
             "routing_key": message.routing_key,
             "exchange": message.exchange,
             "message_id": properties.message_id,
+            "correlation_id": properties.correlation_id,
+            "reply_to": properties.reply_to,
             "headers": properties.headers,
             "content_type": properties.content_type,
             "redelivered": message.redelivered,
@@ -496,6 +498,7 @@ class AmqpTransport(Transport):
     source_options = AmqpSourceOptions
     sink_options = AmqpSinkOptions
     connection_shorthand = "url"
+    source_meta = ("routing_key", "exchange", "headers", "correlation_id", "reply_to", "message_id")
 
     def connection_problems(self, options: AmqpConnectionOptions) -> CheckResult:
         yield from amqp_cluster.check_urls(options, redact)

@@ -32,10 +32,13 @@ Encoder = Callable[[Any], mavlink2.MAVLink_message]
 class AcknowledgedCommandSink(Sink):
     """One command per message, retried until the target acknowledges it."""
 
-    def __init__(self, connection: SharedLink, encode: Encoder, options: TransactionOptions) -> None:
+    def __init__(self, connection: SharedLink, encode: Encoder, options: TransactionOptions,
+                 fields: Callable[[Outbound], Any] | None = None) -> None:
         self.connection = connection
         self.encode = encode
         self.options = options
+        self.fields = fields
+        """The message's fields with its ``{field}`` targets filled in (messages.targeted_fields)."""
 
     def _build(self, fields: Any, confirmation: int) -> mavlink2.MAVLink_message:
         msg = self.encode(fields)
@@ -44,14 +47,15 @@ class AcknowledgedCommandSink(Sink):
         return msg
 
     async def send(self, message: Outbound) -> None:
-        msg = self._build(message.fields, 0)
+        fields = message.fields if self.fields is None else self.fields(message)
+        msg = self._build(fields, 0)
         target = (msg.target_system, msg.target_component)
         connection, options = self.connection, self.options
         loop = asyncio.get_running_loop()
         async with connection.transaction_lock(("command", target, msg.command)):
             await connection.wait_for_vehicle(*target, loop.time() + options.vehicle_timeout)
             async with Conversation(connection, target, _ACK) as answers:
-                await self._exchange(answers, message.fields, msg)
+                await self._exchange(answers, fields, msg)
 
     async def _exchange(self, answers: Conversation, fields: Any, msg: mavlink2.MAVLink_message) -> None:
         connection, options = self.connection, self.options

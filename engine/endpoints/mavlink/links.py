@@ -47,7 +47,9 @@ OnBytes = Callable[[bytes, Hashable], None]
 
 
 class Link:
-    """A byte pipe: received chunks go to ``on_bytes(data, peer)``; ``transmit`` writes a frame."""
+    """A byte pipe: received chunks go to ``on_bytes(data, peer)``; ``transmit`` writes a frame
+    (to ``peer`` alone where the link can tell peers apart and has heard it lately: a ``udpin``
+    link shared by several vehicles; everywhere else to every peer)."""
 
     def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> None:
         self.address = address
@@ -66,7 +68,7 @@ class Link:
         """Whether a frame written now has somewhere to go."""
         return not self.closed
 
-    async def transmit(self, data: bytes) -> None:
+    async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         raise NotImplementedError
 
     async def close(self) -> None:
@@ -154,7 +156,7 @@ class SerialLink(Link):
         finally:
             self._reopen = None
 
-    async def transmit(self, data: bytes) -> None:
+    async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         view = memoryview(data)
         while view:
             fd = self._fd
@@ -254,13 +256,16 @@ class UdpLink(Link):
                 self.peers.popitem(last=False)
         self.on_bytes(data, addr)
 
-    async def transmit(self, data: bytes) -> None:
+    async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         if self._transport is None or self._transport.is_closing():
             raise EndpointError("udp link is closed")
         if self.address.kind == "udpout":
             self._transport.sendto(data)
             return
         now = time.monotonic()
+        if peer is not None and now - self.peers.get(peer, -PEER_TTL) < PEER_TTL:
+            self._transport.sendto(data, peer)  # a targeted message: only where its vehicle was heard
+            return
         peers = [addr for addr, seen in self.peers.items() if now - seen < PEER_TTL]
         if not peers:
             raise EndpointError(f"udpin:{self.address.host}:{self.address.port} has not heard from any peer yet")
@@ -337,7 +342,7 @@ class TcpLink(Link):
             self.writers.pop(peer, None)
             writer.close()
 
-    async def transmit(self, data: bytes) -> None:
+    async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         if not self.writers:
             raise EndpointError(f"{self.address.kind}:{self.address.host}:{self.address.port} has no connected peer")
         for writer in list(self.writers.values()):

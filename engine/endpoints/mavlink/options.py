@@ -15,6 +15,8 @@ from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelSettings
 from engine.options import option
 
 _BYTE = {"minimum": 0, "maximum": 255}
+TARGET_FIELD = r"^\{[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*\}$"
+"""A sink target read from the canonical message: ``"{vehicle}"``, ``"{target.system}"``."""
 _SERIAL = TunnelSettings.from_settings(None, serial=True)
 _NETWORK = TunnelSettings.from_settings(None, serial=False)
 
@@ -96,11 +98,14 @@ class MavlinkSourceOptions(EndpointOptions):
                                                   "acknowledged: at-least-once over a lossy radio)")
     system_id: int | None = option(None, **_BYTE, description="sources only: accept only messages from this system id")
     component_id: int | None = option(None, **_BYTE, description="sources only: accept only messages from this component id")
-    target_system: int | None = option(None, **_BYTE, description="sinks only: the receiver's system id (the message's target_system "
-                                                                   "when the mapping sets none; 1 for acknowledged commands and missions; "
-                                                                   "0, everyone, for a tunnel)")
-    target_component: int | None = option(None, **_BYTE, description="sinks only: the receiver's component id (as target_system; "
-                                                                      "1 for acknowledged commands and missions)")
+    target_system: int | str | None = option(None, **_BYTE, pattern=TARGET_FIELD,
+                                             description="sinks only: the receiver's system id (the message's target_system "
+                                                         "when the mapping sets none; 1 for acknowledged commands and missions; "
+                                                         "0, everyone, for a tunnel); \"{field}\": a message or command sink "
+                                                         "takes it from that canonical field of each message")
+    target_component: int | str | None = option(None, **_BYTE, pattern=TARGET_FIELD,
+                                                description="sinks only: the receiver's component id (as target_system; "
+                                                            "1 for acknowledged commands and missions)")
     payload_type: int = option(DEFAULT_PAYLOAD_TYPE, minimum=32768, maximum=65535,
                                description="json_tunnel: TUNNEL payload type of the channel (default 0xA900), so several tunnels can share a link")
 

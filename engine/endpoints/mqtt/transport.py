@@ -29,6 +29,7 @@ class MqttTransport(Transport):
     source_options = MqttSourceOptions
     sink_options = MqttSinkOptions
     connection_shorthand = "url"
+    source_meta = ("topic", "qos", "retain")
 
     def connection_problems(self, options: MqttConnectionOptions) -> CheckResult:
         written = given(options)

@@ -219,6 +219,7 @@ class Ros2Transport(Transport):
     connection_options = Ros2ConnectionOptions
     source_options = Ros2EndpointOptions
     sink_options = Ros2SinkOptions
+    source_meta = ("topic",)
 
     def connection_problems(self, options: Ros2ConnectionOptions) -> CheckResult:
         node, namespace, domain_id = options.node, options.namespace, options.domain_id
