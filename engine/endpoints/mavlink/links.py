@@ -2,7 +2,8 @@
 (``tcp`` client, ``tcpin`` server), all driven by asyncio.
 
 A link hands every received chunk to ``on_bytes(data, peer)`` and writes whole frames with
-``transmit``; it translates OS errors into :class:`EndpointError` and reconnects on its own
+``transmit``; it translates OS errors into :class:`EndpointError` (through errors.py, the
+package's one table) and reconnects on its own
 (a serial device that disappears is reopened, a TCP client reconnects, both waiting with the
 engine's one backoff, :mod:`engine.backoff`). Used by the engine's connections and by the
 simulated vehicle alike.
@@ -22,6 +23,7 @@ from typing import Any
 
 from engine.backoff import Backoff
 from engine.endpoints.base import EndpointError
+from engine.endpoints.mavlink.errors import edge_error, mapped
 from engine.endpoints.mavlink.settings import Address
 
 PEER_TTL = 30.0
@@ -100,10 +102,8 @@ class SerialLink(Link):
     _reopen: asyncio.Task[None] | None = None
 
     async def open(self) -> None:
-        try:
+        with mapped(f"cannot open {self.address.device}"):
             self._open()
-        except OSError as exc:
-            raise EndpointError(f"cannot open {self.address.device}: {exc.strerror}") from None
 
     @property
     def ready(self) -> bool:
@@ -168,7 +168,7 @@ class SerialLink(Link):
                 await self._writable(fd)
             except OSError as exc:
                 self._lost()
-                raise EndpointError(f"write to {self.address.device} failed: {exc.strerror}") from None
+                raise edge_error(f"write to {self.address.device} failed", exc) from None
 
     async def _writable(self, fd: int) -> None:
         loop = asyncio.get_running_loop()
@@ -234,7 +234,7 @@ class UdpLink(Link):
             else:
                 transport, protocol = await loop.create_datagram_endpoint(lambda: _Datagrams(self), remote_addr=where)
         except OSError as exc:
-            raise EndpointError(f"cannot open {self.address.kind}:{where[0]}:{where[1]}: {exc.strerror}") from None
+            raise edge_error(f"cannot open {self.address.kind}:{where[0]}:{where[1]}", exc) from None
         with contextlib.suppress(OSError, AttributeError):
             transport.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
         self._transport = transport
@@ -302,7 +302,7 @@ class TcpLink(Link):
                 reader, writer = await asyncio.open_connection(host, port)
                 self._spawn(self._client(reader, writer))
         except OSError as exc:
-            raise EndpointError(f"cannot open {self.address.kind}:{host}:{port}: {exc.strerror or exc}") from None
+            raise edge_error(f"cannot open {self.address.kind}:{host}:{port}", exc) from None
 
     @property
     def ready(self) -> bool:

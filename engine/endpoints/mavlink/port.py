@@ -31,7 +31,8 @@ import contextlib
 from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable
 
-from engine.endpoints.base import EndpointError, MessageRejected
+from engine.endpoints.base import EndpointError
+from engine.endpoints.mavlink.errors import edge_error
 from engine.endpoints.mavlink.codec import RADIO_STATUS, mavlink2
 from engine.endpoints.mavlink.links import Link, make_link
 from engine.endpoints.mavlink.settings import LinkConfig
@@ -200,7 +201,7 @@ class MavlinkPort:
             except Exception as exc:  # pymavlink struct errors: this message can never be sent
                 self.stats["send_errors"] += 1
                 if not future.done():
-                    future.set_exception(MessageRejected(f"{msg.get_type()}: cannot encode: {exc}"))
+                    future.set_exception(edge_error(f"{msg.get_type()}: cannot encode", exc))
                 continue
             target = getattr(msg, "target_system", 0)
             try:
