@@ -47,7 +47,7 @@ from engine.endpoints.base import (
 )
 import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
-from engine.mapping import MappingError, compile_template, template_fields
+from engine.mapping import MappingError, compile_template, template_fields, template_problem
 from engine.options import given
 from engine.redaction import redact_urls
 from engine.schemas import SchemaError, canonical_bytes
@@ -505,6 +505,9 @@ class AmqpTransport(Transport):
         written = given(options)
         if "exchange" not in written and "routing_key" not in written:
             yield None, "an amqp sink needs an exchange and/or a routing_key"
+        problem = template_problem(options.routing_key)
+        if problem:
+            yield "routing_key", problem
         for key in ("exchange_type", "durable"):
             if key in written and not options.exchange:
                 yield key, f"{key} is not used: the default exchange is never declared (name an exchange)"
