@@ -79,8 +79,9 @@ class BufferSpec:
     @classmethod
     def parse(cls, value: BufferOptions | bool | None, source_protocol: str, base: Path) -> BufferSpec | None:
         """``buffer: false`` is none; absent is the default for sources that cannot have a
-        message redelivered (ROS 2, MAVLink) and none for AMQP, whose broker keeps them."""
-        if value is False or (value is None and source_protocol == "amqp"):
+        message redelivered (ROS 2, MAVLink) and none for AMQP and MQTT, whose broker keeps
+        what the engine has not acknowledged."""
+        if value is False or (value is None and source_protocol in ("amqp", "mqtt")):
             return None
         value = value if isinstance(value, BufferOptions) else BufferOptions()
         return cls(

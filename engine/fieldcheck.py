@@ -245,11 +245,43 @@ def _resolve_ros(cls: type, path: FieldPath) -> str | None:
             return None
         fields = _ros_fields(current)
         if step not in fields:
-            guess = closest(step, fields)
-            hint = f"; did you mean {_dotted(path[:depth] + (guess,))!r}?" if guess else f" (fields: {', '.join(fields)})"
-            return f"mapping reads {_dotted(path[:depth + 1])!r}, which {rosmsg.type_name(current)} does not have{hint}"
+            return (f"mapping reads {_dotted(path[:depth + 1])!r}, which {rosmsg.type_name(current)} does not have"
+                    f"{_ros_hint(current, path, depth)}")
         current, in_list = fields[step]
     return None
+
+
+NESTED_SEARCH_DEPTH = 3
+"""How many message levels below a missing field ``check`` looks for it: Odometry's
+``pose.pose.orientation`` is two below ``pose``; deeper guesses would be guesses."""
+
+
+def _ros_hint(cls: type, path: FieldPath, depth: int) -> str:
+    """Where the field ``path[depth]`` is: in a message nested below ``cls`` (a level left
+    out: ``pose.orientation`` of a nav_msgs/Odometry is ``pose.pose.orientation``), else a
+    field of ``cls`` spelt alike, else the list of its fields."""
+    step, rest = path[depth], path[depth + 1:]
+    found = _nested_paths(cls, step, rest)
+    if found:
+        shown = [_dotted(path[:depth] + prefix + (step,)) for prefix in found[:3]]
+        return f"; did you mean {shown[0]!r}?" if len(shown) == 1 else f"; did you mean one of {', '.join(map(repr, shown))}?"
+    fields = _ros_fields(cls)
+    guess = closest(step, fields)
+    return f"; did you mean {_dotted(path[:depth] + (guess,))!r}?" if guess else f" (fields: {', '.join(fields)})"
+
+
+def _nested_paths(cls: type, step: str, rest: FieldPath) -> list[FieldPath]:
+    """The shortest field paths ``p`` below ``cls`` (through nested messages, not sequences)
+    such that ``p + (step,) + rest`` is a path of ``cls``."""
+    level: list[tuple[FieldPath, type]] = [((), cls)]
+    for _ in range(NESTED_SEARCH_DEPTH):
+        level = [(prefix + (name,), nested) for prefix, message in level
+                 for name, (nested, in_list) in _ros_fields(message).items() if nested is not None and not in_list]
+        found = [prefix for prefix, message in level if step in _ros_fields(message)
+                 and _resolve_ros(message, (step,) + rest) is None]
+        if found:
+            return found
+    return []
 
 
 @lru_cache(maxsize=None)

@@ -99,6 +99,18 @@ class FieldFunctions(functions.Functions):
     def _func_stamp_boot_ms(self, time_boot_ms: int) -> dict[str, int]:
         return _stamps().from_time_boot_ms(time_boot_ms)
 
+    @functions.signature({"types": ["number", "object"]})
+    def _func_iso8601(self, value: Any) -> str:
+        """UNIX seconds or a {sec, nanosec} stamp -> ISO 8601 UTC to the millisecond
+        (``2023-11-14T22:13:20.500Z``): the timestamp VDA 5050 messages carry."""
+        return _stamps().to_iso8601(_stamps().to_stamp(value))
+
+    @functions.signature({"types": ["array"]}, {"types": ["array"]})
+    def _func_without(self, items: list[Any], removed: list[Any]) -> list[Any]:
+        """The elements of ``items`` not in ``removed``, in order: the sensors a vehicle
+        enables but does not report healthy (JMESPath's filters cannot read a second array)."""
+        return [item for item in items if item not in removed]
+
     @functions.signature()
     def _func_uuid(self) -> str:
         return uuid.uuid4().hex
@@ -181,6 +193,21 @@ class FieldFunctions(functions.Functions):
     @functions.signature({"types": ["number"]}, {"types": ["number"]}, {"types": ["number"]})
     def _func_attitude_to_enu(self, roll: float, pitch: float, yaw: float) -> Any:
         return _frames().attitude_ned_to_enu(roll, pitch, yaw)
+
+    @functions.signature({"types": ["number"]})
+    def _func_yaw_to_quaternion(self, yaw: float) -> Any:
+        """A heading in the plane (rad, counter-clockwise from x: ENU, a VDA 5050 theta) ->
+        the orientation {x, y, z, w} a ROS 2 pose carries."""
+        return _frames().quaternion_from_rpy(0.0, 0.0, yaw)
+
+    @functions.signature({"types": ["object", "array"]})
+    def _func_quaternion_to_yaw(self, quaternion: Any) -> float:
+        """An orientation ({x,y,z,w} or [w,x,y,z]) -> its yaw (rad, [-pi, pi])."""
+        return _frames().rpy_from_quaternion(quaternion)["yaw"]
+
+    @functions.signature({"types": ["number"]})
+    def _func_wrap_pi(self, angle: float) -> float:
+        return _frames().wrap_pi(angle)
 
     # MAVLink enums by name, from pymavlink's dialect tables (imported on first use)
     @functions.signature({"types": ["number"]}, {"types": ["string"]})

@@ -114,6 +114,9 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
         error = route.get("last_error") or ""
         if error:
             error = f"{error[:80]} ({_age(route.get('last_error_at'), now)})"
+        holding = route.get("sink_not_ready")
+        if holding and state == "running":  # the sink cannot take messages yet: say why
+            state, error = "holding", error or holding
         row = [name, Text(state, "green" if state == "running" else "yellow"),
                _rate(route.get("received_per_s")), _rate(route.get("delivered_per_s")),
                _count(messages.get("received")), _count(messages.get("delivered")),

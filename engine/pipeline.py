@@ -57,7 +57,7 @@ class Pipeline:
             sink=sink,
             mapper=compile_mapping(spec.mapping),
             sink_mapper=compile_mapping(spec.sink_mapping),
-            sink_check=transport(spec.sink.protocol).sink_field_check(spec.sink.options),
+            sink_check=transport(spec.sink.protocol).sink_field_check(spec.sink.options, spec.sink_mapping),
             throttle=Throttle.from_options(spec.throttle),
         )
 

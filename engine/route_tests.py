@@ -255,22 +255,35 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
                 raise ConversionError("sink", str(exc)) from None
 
         return amqp
+    if protocol == "mqtt":
+        from engine.endpoints.mqtt.topics import topic_renderer
+
+        render_topic = topic_renderer(options.topic, f"route {spec.name!r}: mqtt sink")
+
+        def mqtt(outbound: Outbound) -> str | None:
+            try:
+                return render_topic(outbound.canonical)
+            except MessageRejected as exc:
+                raise ConversionError("sink", str(exc)) from None
+
+        return mqtt
     if protocol == "ros2":
         from engine.endpoints import rosmsg
-        from engine.endpoints.ros2 import STRING_TYPE, _topic_template
+        from engine.endpoints.ros2 import STRING_TYPE, _topic_template, typed_message
 
         topic = options.topic
         resolve = _topic_template(topic)
         cls = rosmsg.resolve_type(options.type)
         typed = rosmsg.type_name(cls) != STRING_TYPE
+        where = f"route {spec.name!r}, ros2 topic {topic!r}"  # as the sink names it
 
         def ros(outbound: Outbound) -> str | None:
             try:
-                rendered = topic if resolve is None else resolve(outbound.canonical, f"route {spec.name!r}")
+                rendered = topic if resolve is None else resolve(outbound.canonical, where)
                 if typed:
-                    rosmsg.from_dict(cls, outbound.fields)
-            except (MessageRejected, rosmsg.MessageError) as exc:
-                raise ConversionError("sink", str(exc)) from None
+                    typed_message(cls, outbound, where)
+            except MessageRejected as exc:
+                raise ConversionError(exc.stage, str(exc)) from None
             return rendered
 
         return ros

@@ -64,7 +64,7 @@ class LeaseOptions:
                               description="lease shared by routes that must fail over together (one robot's topics); default: the route name")
 
 
-ENDPOINT_DESCRIPTION = "exactly one of amqp / ros2 / mavlink"
+ENDPOINT_DESCRIPTION = "exactly one of " + " / ".join(endpoints.PROTOCOLS)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -79,7 +79,8 @@ class RouteOptions:
                                description="deliveries tried on transient sink failures (across redeliveries) before dead-lettering")
     overflow: Literal["block", "drop_oldest", "drop_newest"] = option(
         "block", description="when a ROS 2 or MAVLink source's in-memory queue is full: block stops taking (DDS history holds "
-                             "the rest; a radio cannot be paused, so MAVLink drops the oldest), or drop the oldest / newest (counted)")
+                             "the rest; a radio cannot be paused, so MAVLink drops the oldest; nor can an MQTT QoS 0 stream, which drops the newest "
+                             "unless drop_oldest), or drop the oldest / newest (counted)")
     buffer: Literal[False] | BufferOptions | None = option(
         None, description="messages held while the sink is down (default for ROS 2 and MAVLink sources: in memory, 10000); false: none")
     source: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
@@ -267,7 +268,7 @@ def _compile_connections(
             protocols = [p for p in endpoints.PROTOCOLS if p in body]
             if len(protocols) != 1:
                 if not document.reported(where):
-                    problems.append(document.problem(where, f"connection {name!r} must name exactly one of amqp, ros2, mavlink"))
+                    problems.append(document.problem(where, f"connection {name!r} must name exactly one of {', '.join(endpoints.PROTOCOLS)}"))
                 continue
             protocol = protocols[0]
             if name in connections:
@@ -707,7 +708,7 @@ def _endpoint(
     protocols = [p for p in endpoints.PROTOCOLS if p in body]
     if len(protocols) != 1:
         if not document.reported(where):
-            problems.append(document.problem(where, f"route {route!r}: {where[-1]} must name exactly one of amqp, ros2, mavlink"))
+            problems.append(document.problem(where, f"route {route!r}: {where[-1]} must name exactly one of {', '.join(endpoints.PROTOCOLS)}"))
         return None, False
     protocol = protocols[0]
     side = where[-1]

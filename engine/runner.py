@@ -35,7 +35,7 @@ from engine.backoff import Backoff
 from engine.buffer import Buffers, Held, HoldingBuffer, stats_dict
 from engine.dead_letters import DeadLetters, dead_letter_message
 from engine.delivery import HEALTH_POLL, Failure, classify, given_up, prior_attempts, retry_delay
-from engine.endpoints.base import Connection, EndpointError, Inbound, Outbound, Source
+from engine.endpoints.base import Connection, EndpointError, Inbound, MessageRejected, Outbound, Source
 from engine.logs import ReportLimiter
 from engine.observe import Observers
 from engine.pipeline import Pipeline
@@ -226,10 +226,11 @@ class RouteRunner:
 
     def sink_can_take(self, pipeline: Pipeline | None = None) -> bool:
         """The one place the route asks whether its sink can take messages now: its
-        connection is open and does not report itself down. Everything that waits for the
-        sink, holds messages instead of trying it, or lets the buffer try it asks this."""
+        connection is open and does not report itself down, and the sink is ready (a ROS 2
+        topic some subscriber has matched). Everything that waits for the sink, holds
+        messages instead of trying it, or lets the buffer try it asks this."""
         connection = self.connections[-1]
-        return connection.healthy and self.host.is_open(connection)
+        return connection.healthy and self.host.is_open(connection) and (pipeline or self.pipeline).sink.ready
 
     async def _send(self, pipeline: Pipeline, pending: list[_Message], settled: list[bool],
                     dead: list[_Message]) -> None:
@@ -245,7 +246,7 @@ class RouteRunner:
                     await self._hold(pending, settled)
                 return  # the route is stopping: what is left stays unsettled
             results = await pipeline.sink.send_batch([message.outbound for message in pending])  # type: ignore[misc]
-            pending = self._sent(pending, results, settled, dead)
+            pending = self._sent(pending, results, settled, dead, waiting=not self.sink_can_take(pipeline))
             if pending and buffer is not None:  # transient: the buffer retries them, the source moves on
                 await self._hold(pending, settled)
                 return
@@ -255,13 +256,16 @@ class RouteRunner:
                     return
 
     def _sent(self, pending: list[_Message], results: list[BaseException | None], settled: list[bool],
-              dead: list[_Message]) -> list[_Message]:
+              dead: list[_Message], waiting: bool = False) -> list[_Message]:
         """Settle what the sink accepted, move what failed for good to ``dead``; return what
-        is to be tried again."""
+        is to be tried again. ``waiting``: the sink says now that it cannot take messages (a
+        ROS 2 topic a message named has no subscriber yet), so a transient failure is the
+        route waiting, not an attempt (as the buffer counts it)."""
         retry: list[_Message] = []
         max_attempts = self.spec.delivery.max_attempts
         for message, error in zip(pending, results):
-            message.attempts += 1
+            if not (waiting and isinstance(error, EndpointError) and not isinstance(error, MessageRejected)):
+                message.attempts += 1
             if error is None:
                 settled[message.index] = True
                 self._accepted(message.inbound, message.outbound)  # type: ignore[arg-type]
@@ -285,9 +289,12 @@ class RouteRunner:
         self.observer.accepted(inbound, outbound, latency)
 
     async def _sink_ready(self, pipeline: Pipeline) -> bool:
-        """Wait while the sink cannot take messages; False once the route stops."""
-        while not self._stopping.is_set() and not self.sink_can_take(pipeline):
-            await self.pause(HEALTH_POLL)
+        """Wait while the sink cannot take messages; False once the route stops, or once a
+        reload swapped ``pipeline`` out meanwhile (its messages go back to the source or to
+        the buffer, for the new one: a reload must not wait for a subscriber)."""
+        while not self.sink_can_take(pipeline):
+            if not await self.pause(HEALTH_POLL) or self.pipeline is not pipeline:
+                return False
         return not self._stopping.is_set()
 
     async def pause(self, seconds: float) -> bool:
@@ -430,10 +437,14 @@ class RouteRunner:
             self._starter.cancel()
 
     def stop_starting(self) -> None:
-        """Do not start later (the engine stops): the source stops taking messages next."""
+        """Do not start later (the engine stops): the source stops taking messages next. A
+        route whose sink is not ready has nothing to drain into: it lets go of what it holds
+        at once (measured: the whole drain timeout, 10 s, otherwise)."""
         self.state = "stopped"
         if self._starter is not None:
             self._starter.cancel()
+        if not self.pipeline.sink.ready:
+            self._stopping.set()
 
     async def stop(self, drain_timeout: float = 0.0) -> None:
         self.halt()
@@ -457,6 +468,7 @@ class RouteRunner:
             "source": self.source.status(),
             "state": self.state,
             "waiting_for": self.missing_connections() if self.state == "waiting" else [],
+            "sink_not_ready": self.pipeline.sink.not_ready_reason(),
             "buffer": stats_dict(self.buffer) if self.buffer is not None else None,
         }
 

@@ -1,7 +1,9 @@
 """Canonical JSON Schemas: the vocabulary every route maps into.
 
 Schemas are files ``schemas/<name>.v<N>.json``. A route names ``weed_detection`` (the
-newest version) or ``weed_detection.v1`` (pinned). Validators are built once per schema
+newest version) or ``weed_detection.v1`` (pinned). A standard's own schemas keep their family
+in one subdirectory level: ``schemas/vda5050/order.v2.json`` is ``vda5050/order`` (its licence
+and provenance beside it, apart from the project's vocabulary); deeper levels are not read. Validators are built once per schema
 and shared by every route that uses it; ``$ref`` between schema files resolves through a
 registry of the directory, offline, so the envelope is written once.
 
@@ -27,6 +29,8 @@ import jsonschema_rs
 import orjson
 
 _FILE_NAME = re.compile(r"^(?P<name>[a-z][a-z0-9_]*)\.v(?P<version>\d+)\.json$")
+_FAMILY = re.compile(r"^[a-z][a-z0-9_]*$")
+"""A subdirectory of schemas: one standard's family (``vda5050``), named as schema files are."""
 
 
 class SchemaError(ValueError):
@@ -161,8 +165,8 @@ class SchemaRegistry:
         if not self.directory.is_dir():
             self.problems.append((self.directory, "schema directory does not exist"))
             return
-        for path in sorted(self.directory.glob("*.json")):
-            if not _FILE_NAME.match(path.name):
+        for path in sorted(self.directory.glob("*.json")) + sorted(self.directory.glob("*/*.json")):
+            if not _FILE_NAME.match(path.name) or (path.parent != self.directory and not _FAMILY.match(path.parent.name)):
                 self.problems.append((path, "schema file names must look like name.v1.json"))
                 continue
             try:
@@ -190,6 +194,8 @@ class SchemaRegistry:
             match = _FILE_NAME.match(path.name)
             assert match
             name, version = match["name"], int(match["version"])
+            if path.parent != self.directory:
+                name = f"{path.parent.name}/{name}"
             try:
                 validator = jsonschema_rs.validator_for(document, registry=registry, offline=True)
             except (jsonschema_rs.ReferencingError, ValueError) as exc:

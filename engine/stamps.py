@@ -15,6 +15,7 @@ own clock stays available in the message (``time_boot_ms``).
 
 from __future__ import annotations
 
+import datetime
 import math
 import time
 from typing import Any
@@ -50,6 +51,12 @@ def to_stamp(value: Any) -> dict[str, int]:
         return {"sec": value, "nanosec": 0}
     sec = math.floor(value)  # a double holds UNIX seconds to about 0.2 us: round to the microsecond
     return from_ns(sec * NS + round((value - sec) * 1_000_000) * 1000)
+
+
+def to_iso8601(stamp: dict[str, int]) -> str:
+    """``{sec, nanosec}`` -> ISO 8601 UTC with milliseconds, ``Z`` for UTC."""
+    moment = datetime.datetime.fromtimestamp(stamp["sec"], datetime.timezone.utc)
+    return moment.strftime("%Y-%m-%dT%H:%M:%S") + f".{stamp['nanosec'] // 1_000_000:03d}Z"
 
 
 def from_time_usec(time_usec: Any) -> dict[str, int]:

@@ -8,7 +8,9 @@ triggers one reload. A schema edit matters as much as a route edit: a route's fi
 covers the schemas it validates against. So does a new signing key written over the old
 one: a connection's fingerprint covers the contents of its key files, which can live
 anywhere, so their directories are watched too (only those files count), and the watch is
-set up again whenever a reload names other key files.
+set up again whenever a reload names other key files. A schema family's subdirectory
+(``schemas/vda5050/``) is watched as the schemas directory is; one created while the engine
+runs is watched from the next restart.
 """
 
 from __future__ import annotations
@@ -70,13 +72,14 @@ async def watch_routes(
             path = Path(name)
             if path in keys:
                 return True
-            if schemas_dir is not None and path.parent == schemas_dir and _is_schema_file(path):
-                return True
+            if schemas_dir is not None and schemas_dir in (path.parent, path.parent.parent) and _is_schema_file(path):
+                return True  # a schema, or one of a family's (schemas/vda5050/order.v2.json)
             if path.parent == routes_dir:
                 return path == single if single else _is_route_file(path)
             return False
 
-        directories = {d for d in {routes_dir, schemas_dir, *(k.parent for k in keys)} if d is not None and d.is_dir()}
+        families = [d for d in schemas_dir.iterdir() if d.is_dir()] if schemas_dir is not None and schemas_dir.is_dir() else []
+        directories = {d for d in {routes_dir, schemas_dir, *families, *(k.parent for k in keys)} if d is not None and d.is_dir()}
         if not directories:  # all gone: wait for one to come back
             await asyncio.sleep(RETRY_S)
             continue

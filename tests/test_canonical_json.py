@@ -21,6 +21,8 @@ from engine.schemas import SchemaError, SchemaRegistry, canonical_bytes, parse_j
 SCHEMAS = Path(__file__).resolve().parent.parent / "schemas"
 HEADER = {"id": "0f4c2a", "type": "x", "stamp": {"sec": 1732320000, "nanosec": 123456789}}
 
+VDA_HEADER = {"headerId": 1763917200123, "timestamp": "2026-11-23T17:00:00.123Z", "version": "2.0.0",
+              "manufacturer": "rabbitros", "serialNumber": "uav1"}
 EXAMPLES: dict[str, list[Any]] = {
     "ack": [{**HEADER, "agent_id": "robot1", "ref_id": "m-1", "result": "accepted", "detail": "ok ✓"}],
     "attitude": [{**HEADER, "agent_id": "uav1", "quaternion": {"x": 0.0, "y": -0.0, "z": 0.7071067811865476, "w": 0.7071067811865475},
@@ -43,6 +45,24 @@ EXAMPLES: dict[str, list[Any]] = {
                 "autopilot": "PX4", "vehicle_type": "QUADROTOR"}],
     "weed_detection": [{**HEADER, "agent_id": "uav1", "points": [{"lat": -22.0, "lon": -47.9, "p": 0.8, "species": "Amaranthus 🌱"},
                                                                   {"lat": 1.5e-5, "lon": 123.0, "p": 1}]}],
+    # VDA 5050 2.0, the VDA's own schemas (schemas/vda5050/): what examples/vda5050 sends and receives
+    **{f"vda5050/{name}": [{**VDA_HEADER, **body}] for name, body in {
+        "order": {"orderId": "spray-1", "orderUpdateId": 0, "edges": [
+            {"edgeId": "e1", "sequenceId": 1, "released": True, "startNodeId": "p1", "endNodeId": "p2", "actions": []}],
+            "nodes": [{"nodeId": "p1", "sequenceId": 0, "released": True, "nodePosition": {"x": 1032.6215, "y": -1e-7, "mapId": "farm"},
+                       "actions": [{"actionType": "flyAt", "actionId": "f1", "blockingType": "NONE",
+                                    "actionParameters": [{"key": "altRel", "value": 15}]}]},
+                      {"nodeId": "p2", "sequenceId": 2, "released": False, "actions": []}]},
+        "instant_actions": {"actions": [{"actionType": "startPause", "actionId": "a1", "blockingType": "HARD"}]},
+        "state": {"orderId": "", "orderUpdateId": 0, "lastNodeId": "", "lastNodeSequenceId": 0, "nodeStates": [],
+                  "edgeStates": [], "actionStates": [], "driving": False, "operatingMode": "AUTOMATIC",
+                  "batteryState": {"batteryCharge": 87, "charging": False, "batteryVoltage": 12.4},
+                  "errors": [{"errorType": "MAV_SYS_STATUS_SENSOR_GPS", "errorLevel": "FATAL", "errorReferences": []}],
+                  "safetyState": {"eStop": "NONE", "fieldViolation": False}},
+        "connection": {"connectionState": "ONLINE"},
+        "visualization": {"agvPosition": {"x": 3.5, "y": -1.25, "theta": 1.5707963267948966, "mapId": "map",
+                                          "positionInitialized": True}},
+    }.items()},
 }
 
 

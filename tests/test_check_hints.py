@@ -65,7 +65,8 @@ def test_typed_sources_and_misspelt_names(tmp_path: Path):
         "r.yaml:16: route 'poses': mapping reads 'poses[].positon', which geometry_msgs/msg/Pose does not have; did you mean 'poses[].position'?",
         "r.yaml:20: route 'typos': source: type 'sensor_msgs/msg/NavSatFx' is not installed; did you mean 'sensor_msgs/msg/NavSatFix'?",
         "r.yaml:21: route 'typos': unknown schema 'positon' (known: ack, attitude, battery, command, envelope, mission, "
-        "position, raw_json, status, weed_detection); did you mean 'position'?",
+        "position, raw_json, status, vda5050/connection, vda5050/instant_actions, vda5050/order, vda5050/state, "
+        "vda5050/visualization, weed_detection); did you mean 'position'?",
         "r.yaml:25: route 'mav': source: unknown MAVLink message 'GLOBAL_POSITON_INT' (dialect: common); did you mean 'GLOBAL_POSITION_INT'?",
         "r.yaml:32: route 'mav2': mapping reads 'lonn', which MAVLink GLOBAL_POSITION_INT does not have; did you mean 'lon'?",
         "r.yaml:32: route 'mav2': unknown function deg_e7_to_degg() in \"{agent_id: 'u', lat: deg_e7_to_deg(lat), "
@@ -112,6 +113,34 @@ def test_paths_read_from_the_source():
     assert mapping_reads("{a: x.y, b: list[].z, c: list[?k > `1`].v, d: f(g, h.i), e: [@, q] | [0].r, s: sort_by(t, &u)}") == [
         ("x",), ("x", "y"), ("list",), ("list", "[]", "z"), ("list", "[]", "v"), ("list", "[]", "k"),
         ("g",), ("h",), ("h", "i"), ("q",), ("t",)]
+
+
+def test_a_level_left_out_of_a_nested_ros_path_is_suggested(tmp_path: Path):
+    """``pose.orientation`` of a nav_msgs/Odometry is ``pose.pose.orientation`` (the pose
+    with covariance holds the pose): the hint finds the field a level or two below, checks
+    that the rest of the path holds there, and lists the choices when there are several."""
+    (tmp_path / "r.yaml").write_text("""connections:
+  ros: {ros2: {domain_id: 3}}
+  gcs: {amqp: "amqp://localhost/"}
+routes:
+  - name: odom
+    source:
+      ros2: {topic: /odom, type: nav_msgs/msg/Odometry}
+    schema: raw_json
+    mapping: "{q: pose.orientation, w: pose.orientation.w, v: twist.linear.x, p: position, c: pose.covariancee, x: x}"
+    sink: {amqp: {exchange: farm, routing_key: x}}
+""")
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
+    problems = [str(p).removeprefix(f"{tmp_path}/r.yaml:9: route 'odom': ") for p in invalid.value.problems]
+    assert sorted(problems) == sorted([
+        "mapping reads 'pose.orientation', which geometry_msgs/msg/PoseWithCovariance does not have; did you mean 'pose.pose.orientation'?",
+        "mapping reads 'twist.linear', which geometry_msgs/msg/TwistWithCovariance does not have; did you mean 'twist.twist.linear'?",
+        "mapping reads 'position', which nav_msgs/msg/Odometry does not have; did you mean 'pose.pose.position'?",
+        "mapping reads 'pose.covariancee', which geometry_msgs/msg/PoseWithCovariance does not have; did you mean 'pose.covariance'?",
+        "mapping reads 'x', which nav_msgs/msg/Odometry does not have; did you mean one of 'pose.pose.position.x', "
+        "'pose.pose.orientation.x', 'twist.twist.linear.x'?",
+    ])
 
 
 EVERYTHING_WRONG = """connections:
@@ -161,7 +190,8 @@ def test_check_reports_every_problem_of_a_file_in_one_run(tmp_path: Path):
         "r.yaml:18: route 'other': connection 'radio' is mavlink, not amqp (amqp connections: gcs)",
         "r.yaml:19: route 'other': mapping reads 'longitud', which sensor_msgs/msg/NavSatFix does not have; did you mean 'longitude'?",
         "r.yaml:23: route 'leased': unknown schema 'postion' (known: ack, attitude, battery, command, envelope, mission, "
-        "position, raw_json, status, weed_detection); did you mean 'position'?",
+        "position, raw_json, status, vda5050/connection, vda5050/instant_actions, vda5050/order, vda5050/state, "
+        "vda5050/visualization, weed_detection); did you mean 'position'?",
         "r.yaml:25: route 'leased': lease: connection 'ros' is ros2, not amqp (amqp connections: gcs)",
     ]
     warnings = [str(w).removeprefix(f"{tmp_path}/") for w in invalid.value.warnings]

@@ -386,6 +386,43 @@ def test_typed_sink_with_topic_template_created_while_a_source_waits():
     run(body)
 
 
+def test_sink_is_ready_only_once_a_subscriber_has_matched():
+    """A fixed topic's sink is not ready until a subscriber matches (and says why); a
+    templated topic's first message refuses (transient) and makes it not ready until that
+    topic's subscriber matches; require_subscriber: false is always ready."""
+    async def body() -> None:
+        connection = await open_connection()
+        peer = None
+        try:
+            fixed = connection.sink("r-fixed", {"topic": "/t_ready/fixed"})
+            assert not fixed.ready
+            assert fixed.not_ready_reason() == "no subscriber has matched /t_ready/fixed (require_subscriber)"
+            anyway = connection.sink("r-anyway", {"topic": "/t_ready/anyway", "require_subscriber": False})
+            assert anyway.ready and anyway.not_ready_reason() is None
+            templated = connection.sink("r-tpl", {"topic": "/{agent_id}/t_ready"})
+            assert templated.ready  # no topic named yet
+            with pytest.raises(EndpointError, match="no subscriber has matched /uav3/t_ready yet") as refused:
+                await templated.send(outbound(body=b'{"agent_id":"uav3"}', canonical={"agent_id": "uav3"}))
+            assert not isinstance(refused.value, MessageRejected)
+            assert not templated.ready and "/uav3/t_ready" in templated.not_ready_reason()
+
+            peer = Peer()
+            fixed_got = peer.subscribe(String, "/t_ready/fixed")
+            templated_got = peer.subscribe(String, "/uav3/t_ready")
+            peer.start()
+            await wait_until(lambda: fixed.ready and templated.ready, what="both matched")
+            assert fixed.not_ready_reason() is None and templated.not_ready_reason() is None
+            await fixed.send(outbound(body=b'{"n":1}', canonical={"n": 1}))
+            await templated.send(outbound(body=b'{"agent_id":"uav3"}', canonical={"agent_id": "uav3"}))
+            await wait_until(lambda: len(fixed_got) == 1 and len(templated_got) == 1, what="both messages")
+        finally:
+            await connection.close()
+            if peer is not None:
+                peer.close()
+
+    run(body)
+
+
 def test_sink_errors_name_route_topic_and_field():
     async def body() -> None:
         connection = await open_connection()

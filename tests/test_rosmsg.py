@@ -6,8 +6,10 @@ converter writes slots directly and a wrongly typed slot only shows up in C.
 
 from __future__ import annotations
 
+import base64
 import json
 import math
+import re
 import struct
 import time
 
@@ -18,7 +20,7 @@ import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
 from engine.endpoints.rosmsg import (  # noqa: E402
-    MessageError, field_names, from_dict, nested_type, resolve_type, to_dict, type_name,
+    MessageError, NullValue, field_names, from_dict, null_path, nested_type, resolve_type, to_dict, type_name,
 )
 
 String = resolve_type("std_msgs/msg/String")
@@ -134,15 +136,133 @@ def test_byte_arrays_are_base64():
     assert bytes(uuid.uuid) == bytes(range(16))
     assert to_dict(uuid) == {"uuid": "AAECAwQFBgcICQoLDA0ODw=="}
 
-    octets_cls = resolve_type("std_msgs/msg/ByteMultiArray")  # byte[]
+    octets_cls = resolve_type("std_msgs/msg/ByteMultiArray")  # byte[]: a list, as rosbridge gives it
     octets = cdr_round_trip(from_dict(octets_cls, {"data": "AP8="}))
-    assert to_dict(octets)["data"] == "AP8="
+    assert to_dict(octets)["data"] == [0, 255]
+    assert to_dict(cdr_round_trip(from_dict(octets_cls, {"data": [0, 255]})))["data"] == [0, 255]
 
     with pytest.raises(MessageError, match="base64") as err:
         from_dict(Image, {"data": "not base64!"})
     assert err.value.field == "data"
     with pytest.raises(MessageError, match="16 items"):
         from_dict(uuid_cls, {"uuid": "AAE="})
+
+
+TEST_MSGS = ("Arrays", "BasicTypes", "BoundedPlainSequences", "BoundedSequences", "Builtins", "Constants",
+             "Defaults", "Empty", "MultiNested", "Nested", "Strings", "UnboundedSequences", "WStrings")
+
+
+def rosbridge_base64(field_type: str) -> bool:
+    """rosbridge_library message_conversion.py's rule, read from the type string rclpy gives
+    (``get_fields_and_field_types``): after rewriting ``uint8[N]`` / ``char[N]`` to ``[]``,
+    base64 iff the type is ``uint8[]``, ``char[]``, ``sequence<uint8>`` or ``sequence<char>``.
+    A ``.msg`` ``char`` is an IDL ``uint8``; ``byte`` is ``octet``, never base64."""
+    for binary, bracketed in (("uint8[]", r"uint8\[[^\]]*\]"), ("char[]", r"char\[[^\]]*\]")):
+        if re.sub(bracketed, binary, field_type) in ("uint8[]", "char[]", "sequence<uint8>", "sequence<char>"):
+            return True
+    return False
+
+
+def byte_kinds(cls: type, prefix: str = "") -> list[tuple[str, str]]:
+    """(path, type string) of every uint8/octet array or sequence in ``cls``, nested included."""
+    found = []
+    for name, kind in cls.get_fields_and_field_types().items():
+        nested = nested_type(cls, name)
+        if nested is not None:
+            found += byte_kinds(nested, f"{prefix}{name}.")
+        elif re.match(r"^(sequence<(uint8|octet)(, \d+)?>|(uint8|octet)\[\d*\])$", kind):
+            found.append((prefix + name, kind))
+    return found
+
+
+def at(data: dict, path: str):
+    for key in path.split("."):
+        data = data[key]
+    return data
+
+
+@pytest.mark.parametrize("name", TEST_MSGS)
+def test_byte_fields_are_what_rosbridge_gives(name):
+    """Every uint8/char/byte array or sequence of test_msgs (fixed, bounded, unbounded), with
+    its non-trivial defaults: base64 exactly where rosbridge base64-encodes, else a list of
+    ints; and either form reads back to the same message."""
+    cls = resolve_type(f"test_msgs/msg/{name}")
+    msg = cls()
+    data = to_dict(msg)
+    for path, kind in byte_kinds(cls):
+        value = at(data, path)
+        raw = bytes(bytearray(ord(b) if isinstance(b, bytes) else b for b in at_msg(msg, path)))
+        if rosbridge_base64(kind):
+            assert value == base64.b64encode(raw).decode(), (path, kind, value)
+        else:
+            assert value == list(raw), (path, kind, value)
+    assert to_dict(cdr_round_trip(from_dict(cls, via_json(data)))) == data
+
+
+def at_msg(msg, path: str):
+    for key in path.split("."):
+        msg = getattr(msg, key)
+    return msg
+
+
+def test_the_byte_rule_covers_every_kind():
+    """The test messages hold all six kinds, so the parametrized test is not vacuous."""
+    kinds = {kind for name in TEST_MSGS for _, kind in byte_kinds(resolve_type(f"test_msgs/msg/{name}"))}
+    assert {"uint8[3]", "sequence<uint8>", "sequence<uint8, 3>", "octet[3]", "sequence<octet>",
+            "sequence<octet, 3>"} <= kinds
+    bounded = resolve_type("test_msgs/msg/BoundedSequences")
+    assert to_dict(bounded())["char_values_default"] == [0, 1, 127]
+    assert to_dict(bounded())["uint8_values_default"] == [0, 1, 255]
+    assert to_dict(resolve_type("test_msgs/msg/Arrays")())["char_values_default"] == "AAF/"
+    assert to_dict(resolve_type("test_msgs/msg/UnboundedSequences")())["byte_values_default"] == [0, 1, 255]
+
+
+def test_time_now_is_accepted_as_rosbridge_does():
+    """rosbridge reads the string "now" for a builtin_interfaces/Time as the clock now (not
+    for a Duration)."""
+    Builtins = resolve_type("test_msgs/msg/Builtins")
+    before = time.time()
+    msg = cdr_round_trip(from_dict(Builtins, {"time_value": "now", "duration_value": {"sec": 2}}))
+    assert before - 1 <= msg.time_value.sec + msg.time_value.nanosec / 1e9 <= time.time() + 1
+    assert msg.duration_value.sec == 2
+    header = from_dict(PoseArray, {"header": {"stamp": "now", "frame_id": "map"}}).header
+    assert header.frame_id == "map" and abs(header.stamp.sec - before) <= 2
+    assert from_dict(Builtins, {"time_value": "now"}, null_as_nan=False).time_value.sec > 0
+    with pytest.raises(MessageError, match="expected an object") as err:
+        from_dict(Builtins, {"duration_value": "now"})
+    assert err.value.field == "duration_value"
+    with pytest.raises(MessageError, match="expected an object"):
+        from_dict(Builtins, {"time_value": "later"})
+
+
+def test_a_null_from_a_sink_mapping_is_refused_wherever_it_is():
+    """null_as_nan=False (a sink mapping's output): no null becomes NaN or a default; the
+    error names the field. Fields left out keep their defaults."""
+    Odometry = resolve_type("nav_msgs/msg/Odometry")
+    UnboundedSequences = resolve_type("test_msgs/msg/UnboundedSequences")
+    cases = [
+        (Odometry, {"pose": {"pose": {"position": {"x": None}}}}, "pose.pose.position.x"),
+        (Odometry, {"pose": None}, "pose"),
+        (Odometry, {"header": {"frame_id": None}}, "header.frame_id"),
+        (NavSatFix, {"position_covariance": [0.0, None] + [0.0] * 7}, "position_covariance[1]"),
+        (NavSatFix, {"status": {"status": None}}, "status.status"),
+        (UnboundedSequences, {"int32_values": [1, None]}, "int32_values[1]"),
+        (UnboundedSequences, {"string_values": ["a", None]}, "string_values[1]"),
+        (UnboundedSequences, {"uint8_values": [1, None]}, "uint8_values[1]"),
+        (UnboundedSequences, {"bool_values": None}, "bool_values"),
+        (PoseArray, {"poses": [{}, None]}, "poses[1]"),
+    ]
+    for cls, data, field in cases:
+        with pytest.raises(NullValue) as err:
+            from_dict(cls, data, null_as_nan=False)
+        assert err.value.field == field, (data, err.value.field)
+        assert str(err.value).startswith(f"field {field}: null (the sink mapping gave no value")
+        assert null_path(data) == err.value.path  # what the pipeline refuses before the sink
+    assert null_path({"pose": {"pose": {"position": {"x": 1.5}}}, "poses": [{}, [1, "a"]]}) is None
+    odometry = cdr_round_trip(from_dict(Odometry, {"pose": {"pose": {"position": {"x": 1.5}}}}, null_as_nan=False))
+    assert (odometry.pose.pose.position.x, odometry.pose.pose.orientation.w, odometry.twist.twist.linear.x) == (1.5, 1.0, 0.0)
+    assert math.isnan(from_dict(NavSatFix, {"altitude": math.nan}, null_as_nan=False).altitude)  # nan() said so
+    assert math.isnan(from_dict(NavSatFix, {"altitude": None}).altitude)  # the canonical round trip
 
 
 def test_unknown_field_rejected_with_its_path():

@@ -1,4 +1,4 @@
-"""Protocol endpoints. Each protocol is one module exposing ``TRANSPORT``; imported lazily
+"""Protocol endpoints. Each protocol is one module or package exposing ``TRANSPORT``; imported lazily
 so that ``check`` of an AMQP-only directory does not need rclpy or pymavlink."""
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ _MODULES = {
     "amqp": "engine.endpoints.amqp",
     "ros2": "engine.endpoints.ros2",
     "mavlink": "engine.endpoints.mavlink",
+    "mqtt": "engine.endpoints.mqtt",
 }
 PROTOCOLS: tuple[str, ...] = tuple(_MODULES)
 

@@ -10,6 +10,10 @@ time (``await deliver(inbound)``). Either returns once the messages are *settled
 by the sink or dead-lettered. Which failures are retried and which are dead-lettered is
 decided by the engine (engine/delivery.py), never by a source or a sink: endpoints only
 raise :class:`EndpointError` (transient) or :class:`MessageRejected` (permanent) at the edge.
+A sink whose destination cannot take messages yet though its connection is up (a ROS 2 topic
+no subscriber has matched) says so with :attr:`Sink.ready`; the engine then holds the route's
+messages as it does while the connection is down: not sent, not acknowledged to the source,
+no delivery attempt spent, the reason (:meth:`Sink.not_ready_reason`) in the status.
 A message ``batch`` reports as not settled (or for which ``deliver`` raised) was not
 delivered - this happens only while the route stops, or when even the dead letters fail -
 and the source must let it be redelivered if it can (AMQP: nack with requeue); a source
@@ -177,6 +181,18 @@ class Sink(ABC):
     async def send(self, message: Outbound) -> None:
         """Return once the destination has accepted the message; raise EndpointError if not."""
 
+    @property
+    def ready(self) -> bool:
+        """False while the destination cannot take messages though the connection is up (a
+        ROS 2 topic without a matched subscriber): the engine waits, polling this every
+        ``HEALTH_POLL``, instead of sending and spending attempts. Asked before every batch,
+        so it must cost no more than a counter read."""
+        return True
+
+    def not_ready_reason(self) -> str | None:
+        """Why :attr:`ready` is False, for the status (None while ready)."""
+        return None
+
     async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
         """Deliver several messages; ``result[i]`` is None when ``messages[i]`` was accepted,
         else the error (EndpointError or MessageRejected). Sinks whose protocol can pipeline
@@ -321,13 +337,15 @@ class Transport(ABC):
     def sink_problems(self, options: Any, mapping: str | None) -> CheckResult:
         return ()
 
-    def sink_field_check(self, options: Any) -> Callable[[Any], None] | None:
+    def sink_field_check(self, options: Any, mapping: str | None = None) -> Callable[[Any], None] | None:
         """What a sink with these (typed, checked) options refuses in its sink mapping's output
         before anything is sent: a typed sink raises :class:`MessageRejected` naming a field set
         to null (a null, or a path the message lacks) instead of guessing a value for it. The
         pipeline runs it as the last step of its ``sink mapping`` stage, so the run and
         ``rabbitros-engine test`` report the same error, and the message never reaches the
-        throttle, the buffer or the sink. None (the default): the sink takes what it is given."""
+        throttle, the buffer or the sink (nor waits there for a reader). ``mapping``: the
+        route's sink mapping (None: the sink is given the canonical message). None (the
+        default): the sink takes what it is given."""
         return None
 
     def exclusive_resource(self, settings: Any) -> str | None:

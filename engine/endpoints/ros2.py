@@ -66,6 +66,7 @@ from engine.endpoints.base import (
 )
 from engine.mapping import template_problem
 from engine.options import option
+from engine.suggest import did_you_mean
 
 log = logging.getLogger("engine.ros2")
 
@@ -133,6 +134,19 @@ class Ros2EndpointOptions(EndpointOptions):
     qos: Ros2Qos = option(Ros2Qos())
 
 
+@dataclass(frozen=True, kw_only=True)
+class Ros2SinkOptions(Ros2EndpointOptions):
+    """A ROS 2 sink: a source's options, and whether it waits for a reader."""
+
+    require_subscriber: bool = option(
+        True, description="hold the route's messages (not sent, not acknowledged) until a subscriber has "
+                          "matched the topic; false publishes anyway, for topics nobody may listen to")
+    """True whatever the durability: a transient_local writer keeps only ``qos.depth`` messages,
+    in the engine's memory, for readers that ask for transient_local themselves, while the
+    source has already acknowledged them; holding until the first reader matches loses none
+    of them, and the writer's history still serves the readers that join later."""
+
+
 # ---------------------------------------------------------------- static checks
 
 def _rcl_reason(exc: Exception) -> str:
@@ -182,7 +196,7 @@ def _check_mapping_keys(node: Mapping[str, Any], cls: type, prefix: str) -> Iter
         key = pair.get("value")
         if key not in fields:
             yield (f"mapping key {prefix}{key!r} is not a field of {rosmsg.type_name(cls)} "
-                   f"(fields: {', '.join(fields)})")
+                   f"(fields: {', '.join(fields)}){did_you_mean(key, fields)}")
             continue
         value = (pair.get("children") or [{}])[0]
         nested = rosmsg.nested_type(cls, key)
@@ -210,7 +224,7 @@ class Ros2Transport(Transport):
     default_settings = {"node": "rabbitros_engine", "namespace": "", "domain_id": _env_domain_id()}
     connection_options = Ros2ConnectionOptions
     source_options = Ros2EndpointOptions
-    sink_options = Ros2EndpointOptions
+    sink_options = Ros2SinkOptions
 
     def connection_problems(self, options: Ros2ConnectionOptions) -> CheckResult:
         node, namespace, domain_id = options.node, options.namespace, options.domain_id
@@ -241,6 +255,22 @@ class Ros2Transport(Transport):
         if tree.get("type") == "multi_select_dict":
             for message in _check_mapping_keys(tree, cls, ""):
                 yield "mapping", message
+
+    def sink_field_check(self, options: Ros2SinkOptions, mapping: str | None = None) -> Callable[[Any], None] | None:
+        """A typed sink with a sink mapping refuses a null anywhere in the mapping's output (a
+        ``sink mapping`` error naming the field; see :func:`typed_message`), before the route
+        waits for a reader or throttles. A String sink carries JSON, where null is a value;
+        without a sink mapping a null float is NaN (the canonical form of a ROS NaN)."""
+        if mapping is None or rosmsg.type_name(rosmsg.resolve_type(options.type)) == STRING_TYPE:
+            return None
+        where = f"ros2 topic {options.topic!r}"
+
+        def refuse_nulls(fields: Any) -> None:
+            path = rosmsg.null_path(fields)
+            if path is not None:
+                raise MessageRejected(f"{where}: {rosmsg.NullValue(path)}", stage="sink mapping")
+
+        return refuse_nulls
 
     def connect(self, name: str, settings: Ros2ConnectionOptions | Mapping[str, Any]) -> Connection:
         return Ros2Connection(name, settings)
@@ -308,7 +338,7 @@ class Ros2Connection(Connection):
     def source(self, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> Source:
         return Ros2Source(self, route, options)
 
-    def sink(self, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> Sink:
+    def sink(self, route: str, options: Ros2SinkOptions | Mapping[str, Any]) -> Sink:
         sink = Ros2Sink(self, route, options)
         self._sinks.add(sink)
         return sink
@@ -621,21 +651,89 @@ def _unused_callback(msg: Any) -> None:
 # ---------------------------------------------------------------- sink
 
 class Ros2Sink(Sink):
-    def __init__(self, connection: Ros2Connection, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> None:
+    """Publishes each message on its topic (fixed, or rendered from the canonical message).
+
+    Readiness (``require_subscriber``, on by default). A DDS writer with no matched reader
+    drops what it publishes, reliable or not, and the source has acknowledged it by then:
+    an engine started on an AMQP queue of 10,000 messages for a topic lost all of them before
+    discovery matched the subscriber that was waiting. So a sink whose topic no subscriber
+    has matched is not :attr:`ready`, and the engine holds the route's messages as it does
+    for a connection that is down. Matching is read with ``get_subscription_count()`` (2.8 us
+    here), which the engine polls between batches (every 0.2 s while waiting): rclpy's
+    matched-event callbacks need an executor, which this endpoint does not run (see the
+    module), and a count read where it is needed cannot miss an event.
+
+    A fixed topic's publisher is created with the sink, so discovery is under way before the
+    first message. A templated topic's publisher exists only once a message names it: that
+    message is refused (a transient error, which the engine does not count as an attempt
+    because the sink then says it is not ready) and the sink is not ready until the topic has
+    a subscriber. A subscriber that goes away makes the sink not ready
+    again, at the next batch; DDS notices one that crashed only when its lease expires, and
+    what was published to it meanwhile is lost (for commands that must arrive, have the
+    robot answer on a topic of its own).
+    """
+
+    def __init__(self, connection: Ros2Connection, route: str, options: Ros2SinkOptions | Mapping[str, Any]) -> None:
         self._connection = connection
         self._template = _topic_of(options)
         self._where = f"route {route!r}, ros2 topic {self._template!r}"
         problems = [message for _, message in TRANSPORT.check_sink(options, None)]
         if problems:
             raise EndpointError(f"{self._where}: {'; '.join(problems)}")
-        options = typed(Ros2EndpointOptions, options, self._where)
+        options = typed(Ros2SinkOptions, options, self._where)
         self._cls = rosmsg.resolve_type(options.type)
         self._string = self._cls() if rosmsg.type_name(self._cls) == STRING_TYPE else None
         self._qos = _qos(options)
+        self._require_subscriber = options.require_subscriber
         self._publishers: dict[str, Any] = {}
+        self._unmatched: dict[str, Any] = {}
+        """Templated topics a message was refused for, until a subscriber matches them."""
+        self._was_ready = True
+        self._fixed: Any = None
         self._topic_for = _topic_template(self._template)
         if self._topic_for is None:
-            self._publisher(self._template)  # early, so discovery is under way before the first send
+            self._fixed = self._publisher(self._template)  # early, so discovery is under way before the first send
+
+    @property
+    def ready(self) -> bool:
+        if not self._require_subscriber:
+            return True
+        try:
+            if self._fixed is not None:
+                ready = self._fixed.get_subscription_count() > 0
+            else:
+                for topic, publisher in list(self._unmatched.items()):
+                    if publisher.get_subscription_count() > 0:
+                        del self._unmatched[topic]
+                ready = not self._unmatched
+        except Exception:  # the publisher is gone (the sink or the connection closed)
+            ready = False
+        if ready is not self._was_ready:
+            self._was_ready = ready
+            if ready:
+                log.info("%s: a subscriber matched; publishing", self._where)
+            else:
+                log.warning("%s: %s; holding the route's messages", self._where, self.not_ready_reason())
+        return ready
+
+    def not_ready_reason(self) -> str | None:
+        if not self._require_subscriber:
+            return None
+        waiting = [self._fixed] if self._fixed is not None else list(self._unmatched.values())
+        reasons = []
+        for publisher in waiting:
+            try:
+                if publisher.get_subscription_count() > 0:
+                    continue
+                topic = publisher.topic_name
+                seen = self._connection.node.count_subscribers(topic)
+            except Exception:
+                continue
+            reason = f"no subscriber has matched {topic}"
+            if seen:
+                reason += f" ({seen} on the topic did not match: incompatible QoS, or discovery under way)"
+            reasons.append(reason)
+        return "; ".join(reasons) + " (require_subscriber)" if reasons else None
 
     def _publisher(self, topic: str) -> Any:
         publisher = self._publishers.get(topic)
@@ -667,14 +765,17 @@ class Ros2Sink(Sink):
     def _publish(self, message: Outbound) -> None:
         topic = self._template if self._topic_for is None else self._topic_for(message.canonical, self._where)
         publisher = self._publisher(topic)
-        try:
-            if self._string is not None:
-                msg = self._string  # publish() serialises at once, so one instance is reused
+        if self._string is not None:
+            msg = self._string  # publish() serialises at once, so one instance is reused
+            try:
                 msg.data = _string_data(message)
-            else:
-                msg = rosmsg.from_dict(self._cls, message.fields)
-        except (rosmsg.MessageError, UnicodeDecodeError) as exc:
-            raise MessageRejected(f"{self._where}: {exc}") from exc
+            except UnicodeDecodeError as exc:
+                raise MessageRejected(f"{self._where}: {exc}") from exc
+        else:
+            msg = typed_message(self._cls, message, self._where)
+        if publisher is not self._fixed and self._require_subscriber and publisher.get_subscription_count() == 0:
+            self._unmatched[topic] = publisher
+            raise EndpointError(f"{self._where}: no subscriber has matched {topic} yet (require_subscriber)")
         try:
             publisher.publish(msg)
         except Exception as exc:
@@ -685,6 +786,23 @@ class Ros2Sink(Sink):
         for publisher in publishers:
             await self._connection.release_publisher(publisher)
         self._connection._sinks.discard(self)
+
+
+def typed_message(cls: type, message: Outbound, where: str) -> Any:
+    """The message of a typed sink, as the sink publishes it and ``rabbitros-engine test``
+    builds it. Fields the data does not name keep the message's defaults (a Header without a
+    stamp is stamped now). From a sink mapping a null is refused wherever it is (a
+    ``sink mapping`` error naming the field): JMESPath gives null for a path the message
+    lacks, and neither a default nor NaN may stand in for a value that was not found.
+    Without a sink mapping the canonical message is the data, and a null float is NaN (the
+    ROS -> JSON -> ROS round trip; see engine/endpoints/rosmsg.py)."""
+    mapped = message.fields is not message.canonical
+    try:
+        return rosmsg.from_dict(cls, message.fields, null_as_nan=not mapped)
+    except rosmsg.NullValue as exc:
+        raise MessageRejected(f"{where}: {exc}", stage="sink mapping") from exc
+    except rosmsg.MessageError as exc:
+        raise MessageRejected(f"{where}: {exc}") from exc
 
 
 def _string_data(message: Outbound) -> str:

@@ -5,12 +5,19 @@ Python packages, so a route can name any message without a build step. The rules
 rosbridge (see ``shared/research/ros_bridges.md`` section 3) so its clients interoperate:
 
 * nested messages are objects; ``builtin_interfaces/Time`` and ``Duration`` are
-  ``{"sec", "nanosec"}`` (``secs``/``nsecs`` are accepted on input);
-* byte arrays (``uint8[]``, ``char[]``, ``byte[]``, fixed or bounded) are base64 strings
-  on output; input takes base64 or a list of ints;
+  ``{"sec", "nanosec"}`` (``secs``/``nsecs`` are accepted on input), and a Time given as
+  the string ``"now"`` is the wall clock now (rosbridge's ``_to_time_inst``);
+* exactly what rosbridge's ``message_conversion.py`` base64-encodes is base64 on output:
+  ``uint8`` arrays (``uint8[N]``) and unbounded sequences (``uint8[]``), where a ``.msg``
+  ``char`` is a ``uint8`` too. A bounded ``uint8`` sequence (``uint8[<=N]``) is a list of
+  ints, and so is any ``byte`` (``octet``) array or sequence: rosbridge emits those element
+  by element (its ``_from_list_inst``), and a single ``byte`` as an int. Input takes base64
+  or a list of ints for all of them;
 * non-finite floats become ``null`` on output, scalars and arrays alike (rosbridge's arrays
   emit bare ``NaN``, which is not JSON). ``null`` reads back as NaN so that a message survives
-  a ROS -> JSON -> ROS round trip, which rosbridge rejects;
+  a ROS -> JSON -> ROS round trip, which rosbridge rejects; but not from a sink mapping
+  (``from_dict(..., null_as_nan=False)``): there a null is a value the mapping did not find,
+  and :class:`NullValue` refuses it wherever it is, rather than publish a NaN or a default;
 * input is strict: unknown fields and wrong value types raise :class:`MessageError` naming
   the field path (``poses[2].position.w``); missing fields keep their defaults; a
   ``std_msgs/Header`` whose stamp is absent or zero is stamped with the wall clock now.
@@ -37,7 +44,7 @@ from typing import Any, Callable
 import numpy
 from rosidl_parser import definition as idl
 
-__all__ = ["MessageError", "resolve_type", "type_name", "field_names", "nested_type", "to_dict", "from_dict"]
+__all__ = ["MessageError", "NullValue", "null_path", "resolve_type", "type_name", "field_names", "nested_type", "to_dict", "from_dict"]
 
 
 class MessageError(ValueError):
@@ -57,6 +64,15 @@ class MessageError(ValueError):
 
     def __str__(self) -> str:
         return f"field {self.field}: {self.reason}" if self.path else self.reason
+
+
+class NullValue(MessageError):
+    """A null where the message needs a value, from data that must not default it (a sink
+    mapping's output: JMESPath gives null for a path the message lacks)."""
+
+    def __init__(self, path: list[str | int] | None = None) -> None:
+        super().__init__("null (the sink mapping gave no value: JMESPath gives null for a path the message "
+                         "lacks); leave the field out to keep its default, or give nan() for a float meant as NaN", path)
 
 
 _TYPE_NAME = re.compile(r"^([a-z][a-z0-9_]*)/(?:msg/)?([A-Z][A-Za-z0-9]*)$")
@@ -97,12 +113,36 @@ def nested_type(cls: type, field: str) -> type | None:
     return None
 
 
+def null_path(data: Any) -> list[str | int] | None:
+    """Where the first null in ``data`` is (``["pose", "pose", "position", "x"]``, ``[]`` for
+    ``data`` itself), or None: what ``from_dict(..., null_as_nan=False)`` refuses, found
+    without building the message."""
+    if data is None:
+        return []
+    if isinstance(data, Mapping):
+        items: Any = data.items()
+    elif isinstance(data, (list, tuple)):
+        items = enumerate(data)
+    else:
+        return None
+    for key, value in items:
+        if value is None:
+            return [key]
+        if isinstance(value, (Mapping, list, tuple)):
+            inner = null_path(value)
+            if inner is not None:
+                return [key, *inner]
+    return None
+
+
 def to_dict(msg: Any) -> dict[str, Any]:
     return _to_dict_fn(type(msg))(msg)
 
 
-def from_dict(cls: type, data: Mapping[str, Any]) -> Any:
-    return _from_dict_fn(cls)(data)
+def from_dict(cls: type, data: Mapping[str, Any], null_as_nan: bool = True) -> Any:
+    """The message of ``data``. ``null_as_nan=False`` refuses every null (:class:`NullValue`),
+    for data a sink mapping made; otherwise a null float reads as NaN (see the module)."""
+    return _from_dict_fn(cls, not null_as_nan)(data)
 
 
 def _class_of(t: idl.NamespacedType) -> type:
@@ -133,6 +173,13 @@ _NAN = float("nan")
 
 def _is_bytes(t: idl.AbstractNestedType) -> bool:
     return isinstance(t.value_type, idl.BasicType) and t.value_type.typename in ("uint8", "octet")
+
+
+def _is_base64(t: idl.AbstractNestedType) -> bool:
+    """What rosbridge base64-encodes: ``uint8[N]`` and ``sequence<uint8>``, not a bounded
+    ``sequence<uint8, N>`` nor ``octet`` (its ``ros_binary_types`` after the bracket rewrite)."""
+    return (isinstance(t.value_type, idl.BasicType) and t.value_type.typename == "uint8"
+            and not isinstance(t, idl.BoundedSequence))
 
 
 # ---------------------------------------------------------------- message -> dict
@@ -176,7 +223,7 @@ def _out(t: Any) -> Callable[[Any], Any] | None:
     if isinstance(t, idl.NamespacedType):
         return _to_dict_fn(_class_of(t))
     if isinstance(t, idl.AbstractNestedType):
-        if _is_bytes(t):
+        if _is_base64(t):
             return _b64
         inner = t.value_type
         if isinstance(inner, idl.BasicType) and inner.typename in _TYPECODE:
@@ -212,12 +259,13 @@ def _now_stamp(stamp_cls: type) -> Any:
 
 
 @lru_cache(maxsize=None)
-def _from_dict_fn(cls: type) -> Callable[[Any], Any]:
+def _from_dict_fn(cls: type, strict: bool = False) -> Callable[[Any], Any]:
     """Build messages with ``__new__`` and fill every slot once: the generated ``__init__``
-    would first build default sub-messages that the input then replaces."""
+    would first build default sub-messages that the input then replaces. ``strict``: every
+    null is a :class:`NullValue`."""
     tname = type_name(cls)
     slots = _slots(cls)
-    fields = {name: (slot, _in(t)) for name, slot, t in slots}
+    fields = {name: (slot, _in(t, strict)) for name, slot, t in slots}
     prototype = cls()
     defaults = tuple((name, slot, _default_factory(t, getattr(prototype, slot))) for name, slot, t in slots)
     field_slots = {slot for _, slot, _ in slots}
@@ -226,9 +274,14 @@ def _from_dict_fn(cls: type) -> Callable[[Any], Any]:
     stamp_cls = nested_type(cls, "stamp") if tname == "std_msgs/msg/Header" else None
     n_fields = len(fields)
     new = cls.__new__
+    is_time = tname == "builtin_interfaces/msg/Time"
 
     def convert(data: Any) -> Any:
         if type(data) is not dict and not isinstance(data, Mapping):
+            if is_time and data == "now":
+                return _now_stamp(cls)
+            if strict and data is None:
+                raise NullValue()
             raise _mismatch(f"an object ({tname})", data)
         if aliases is not None and not aliases.keys().isdisjoint(data):
             data = {aliases.get(k, k): v for k, v in data.items()}
@@ -238,6 +291,8 @@ def _from_dict_fn(cls: type) -> Callable[[Any], Any]:
                 slot, conv = fields[key]
             except KeyError:
                 raise MessageError(f"unknown field of {tname}", [key]) from None
+            if strict and value is None:
+                raise NullValue([key])
             try:
                 setattr(msg, slot, conv(value))
             except MessageError as exc:
@@ -277,21 +332,21 @@ def _default_factory(t: Any, value: Any) -> Callable[[], Any]:
     return lambda: value
 
 
-def _in(t: Any) -> Callable[[Any], Any]:
+def _in(t: Any, strict: bool = False) -> Callable[[Any], Any]:
     """How one JSON value becomes what the message class stores for a field of type ``t``."""
     if isinstance(t, idl.BasicType):
-        return _basic_in(t.typename)
+        return _basic_in(t.typename, strict)
     if isinstance(t, idl.AbstractGenericString):
         limit = t.maximum_size if t.has_maximum_size() else None
         return _string_in(limit)
     if isinstance(t, idl.NamespacedType):
-        return _from_dict_fn(_class_of(t))
+        return _from_dict_fn(_class_of(t), strict)
     if isinstance(t, idl.AbstractNestedType):
-        return _nested_in(t)
+        return _nested_in(t, strict)
     raise MessageError(f"unsupported field type {t!r}")
 
 
-def _basic_in(typename: str) -> Callable[[Any], Any]:
+def _basic_in(typename: str, strict: bool = False) -> Callable[[Any], Any]:
     if typename == "boolean":
         def boolean(v: Any) -> bool:
             if type(v) is bool:
@@ -313,6 +368,8 @@ def _basic_in(typename: str) -> Callable[[Any], Any]:
                 except OverflowError:
                     raise MessageError(f"{v} is out of range for {typename}") from None
             if v is None:
+                if strict:
+                    raise NullValue()
                 return _NAN
             raise _mismatch(typename if typename != "float" else "float32", v)
         return real
@@ -358,14 +415,14 @@ def _check_length(t: idl.AbstractNestedType, n: int) -> None:
         raise MessageError(f"expected at most {t.maximum_size} items, got {n}")
 
 
-def _nested_in(t: idl.AbstractNestedType) -> Callable[[Any], Any]:
+def _nested_in(t: idl.AbstractNestedType, strict: bool = False) -> Callable[[Any], Any]:
     inner = t.value_type
     fixed = isinstance(t, idl.Array)
     if _is_bytes(t):
-        return _bytes_in(t, octets=inner.typename == "octet", fixed=fixed)
-    item = _in(inner)
+        return _bytes_in(t, octets=inner.typename == "octet", fixed=fixed, strict=strict)
+    item = _in(inner, strict)
     if isinstance(inner, idl.BasicType) and inner.typename in _TYPECODE:
-        return _numbers_in(t, inner.typename, item, fixed)
+        return _numbers_in(t, inner.typename, item, fixed, strict)
 
     def items(v: Any) -> list[Any]:
         if not isinstance(v, (list, tuple)):
@@ -373,6 +430,8 @@ def _nested_in(t: idl.AbstractNestedType) -> Callable[[Any], Any]:
         _check_length(t, len(v))
         out = []
         for i, x in enumerate(v):
+            if strict and x is None:
+                raise NullValue([i])
             try:
                 out.append(item(x))
             except MessageError as exc:
@@ -383,7 +442,7 @@ def _nested_in(t: idl.AbstractNestedType) -> Callable[[Any], Any]:
 
 
 def _numbers_in(t: idl.AbstractNestedType, typename: str, item: Callable[[Any], Any],
-                fixed: bool) -> Callable[[Any], Any]:
+                fixed: bool, strict: bool = False) -> Callable[[Any], Any]:
     code = _TYPECODE[typename]
     dtype = numpy.dtype(code)
     is_float = typename in _FLOATS
@@ -406,6 +465,8 @@ def _numbers_in(t: idl.AbstractNestedType, typename: str, item: Callable[[Any], 
         if values is None:
             converted = []
             for i, x in enumerate(v):
+                if strict and x is None:
+                    raise NullValue([i])
                 try:
                     converted.append(item(x))
                 except MessageError as exc:
@@ -416,8 +477,10 @@ def _numbers_in(t: idl.AbstractNestedType, typename: str, item: Callable[[Any], 
     return numbers
 
 
-def _bytes_in(t: idl.AbstractNestedType, octets: bool, fixed: bool) -> Callable[[Any], Any]:
+def _bytes_in(t: idl.AbstractNestedType, octets: bool, fixed: bool, strict: bool = False) -> Callable[[Any], Any]:
     def raw_bytes(v: Any) -> Any:
+        if strict and isinstance(v, (list, tuple)) and None in v:
+            raise NullValue([v.index(None)])
         if isinstance(v, str):
             try:
                 raw = base64.b64decode(v, validate=True)

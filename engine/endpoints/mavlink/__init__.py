@@ -88,7 +88,7 @@ class MavlinkTransport(Transport):
     def sink_problems(self, options: MavlinkSinkOptions, mapping: str | None) -> CheckResult:
         return sink_problems(options, mapping)
 
-    def sink_field_check(self, options: MavlinkSinkOptions) -> Callable[[Any], None] | None:
+    def sink_field_check(self, options: MavlinkSinkOptions, mapping: str | None = None) -> Callable[[Any], None] | None:
         return field_check(options)
 
     def exclusive_resource(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> str | None:

@@ -1,0 +1,182 @@
+"""A private mosquitto broker (Debian's ``mosquitto`` 2.0) for tests, demos and ``--local-broker``.
+
+Each broker gets its own configuration file, port, persistence directory and log in a
+directory of its own, so several run side by side and none touches the system's broker.
+It runs in its own process group (optionally under ``timeout -s KILL``, so a test that dies
+cannot leave it behind) and can be stopped and started again on the same port and data:
+a clean stop (SIGTERM) writes the persistence file, so persistent sessions, their
+subscriptions and the messages queued for them come back, as after a real broker restart.
+
+Started as root, mosquitto would switch to the ``mosquitto`` user, which cannot write the
+private directory; the configuration names the current user instead (ignored when not root).
+"""
+
+from __future__ import annotations
+
+import os
+import pwd
+import shutil
+import signal
+import socket
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+from typing import Iterable
+
+MOSQUITTO = "mosquitto"
+INSTALL_HINT = "mosquitto is not installed (apt-get install -y mosquitto), or set MOSQUITTO_BIN to its path"
+
+
+class MosquittoError(RuntimeError):
+    """The broker could not be started (not installed, a bad configuration, no port)."""
+
+
+def find_mosquitto() -> str:
+    configured = os.environ.get("MOSQUITTO_BIN")
+    if configured:
+        return configured
+    found = shutil.which(MOSQUITTO) or next(
+        (path for path in ("/usr/sbin/mosquitto", "/usr/local/sbin/mosquitto") if os.access(path, os.X_OK)), None)
+    if found is None:
+        raise MosquittoError(INSTALL_HINT)
+    return found
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+class LocalMosquitto:
+    """``with LocalMosquitto() as broker: broker.url``; stopped and its directory deleted on exit.
+
+    ``max_queued_messages`` bounds what mosquitto keeps per offline persistent session
+    (its own default, 1000, would drop messages published while an engine is down for a
+    few seconds at a high rate; 0 is unlimited). ``lifetime`` (seconds) kills the broker
+    from outside if its owner never stops it. ``extra`` are more configuration lines."""
+
+    def __init__(
+        self,
+        directory: Path | None = None,
+        port: int | None = None,
+        keep_dir: bool = False,
+        max_queued_messages: int = 0,
+        lifetime: float | None = None,
+        extra: Iterable[str] = (),
+    ) -> None:
+        self.keep_dir = keep_dir
+        self.directory = directory or Path(tempfile.mkdtemp(prefix="rabbitros-mosquitto-"))
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.port = port or free_port()
+        self.max_queued_messages = max_queued_messages
+        self.lifetime = lifetime
+        self.extra = tuple(extra)
+        self._process: subprocess.Popen[bytes] | None = None
+
+    @property
+    def url(self) -> str:
+        return f"mqtt://127.0.0.1:{self.port}"
+
+    @property
+    def config_file(self) -> Path:
+        return self.directory / "mosquitto.conf"
+
+    @property
+    def log_file(self) -> Path:
+        return self.directory / "mosquitto.log"
+
+    @property
+    def running(self) -> bool:
+        return self._process is not None and self._process.poll() is None
+
+    def configuration(self) -> str:
+        data = self.directory / "data"
+        data.mkdir(exist_ok=True)
+        lines = [
+            f"listener {self.port} 127.0.0.1",
+            "allow_anonymous true",
+            f"user {pwd.getpwuid(os.getuid()).pw_name}",
+            "persistence true",
+            f"persistence_location {data}/",
+            f"max_queued_messages {self.max_queued_messages}",
+            f"log_dest file {self.log_file}",
+            "log_type error",
+            "log_type warning",
+            "log_type notice",
+            "log_type information",
+            "connection_messages true",
+            *self.extra,
+        ]
+        return "\n".join(lines) + "\n"
+
+    def start(self, timeout: float = 20.0) -> str:
+        """Start the broker (again, after :meth:`halt` or :meth:`kill`: same port and data)."""
+        if self.running:
+            return self.url
+        self.config_file.write_text(self.configuration())
+        command = [find_mosquitto(), "-c", str(self.config_file)]
+        if self.lifetime is not None:
+            command = ["timeout", "-s", "KILL", str(int(self.lifetime)), *command]
+        with open(self.directory / "mosquitto.out", "ab") as out:
+            self._process = subprocess.Popen(
+                command, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
+                cwd=self.directory, start_new_session=True,
+            )
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self._process.poll() is not None:
+                raise MosquittoError(f"mosquitto exited with {self._process.returncode}: {self._tail()}")
+            try:
+                with socket.create_connection(("127.0.0.1", self.port), timeout=0.5):
+                    return self.url
+            except OSError:
+                time.sleep(0.05)
+        self.kill()
+        raise MosquittoError(f"mosquitto did not listen on {self.port} within {timeout:.0f}s: {self._tail()}")
+
+    def halt(self, timeout: float = 10.0) -> None:
+        """Stop cleanly (SIGTERM: mosquitto writes its persistence file), keeping the data."""
+        process, self._process = self._process, None
+        if process is None or process.poll() is not None:
+            return
+        try:
+            os.killpg(process.pid, signal.SIGTERM)
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+        except ProcessLookupError:
+            pass
+
+    def kill(self) -> None:
+        """SIGKILL: what was not saved yet is lost, as in a power cut."""
+        process, self._process = self._process, None
+        if process is not None and process.poll() is None:
+            try:
+                os.killpg(process.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            process.wait()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self.halt(timeout)
+        if not self.keep_dir:
+            shutil.rmtree(self.directory, ignore_errors=True)
+
+    def _tail(self) -> str:
+        lines: list[str] = []
+        for name in ("mosquitto.out", "mosquitto.log"):
+            try:
+                lines += (self.directory / name).read_text(errors="replace").splitlines()[-5:]
+            except OSError:
+                continue
+        return " | ".join(lines)
+
+    def __enter__(self) -> LocalMosquitto:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

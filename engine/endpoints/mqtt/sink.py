@@ -1,0 +1,55 @@
+"""MQTT sink: a batch published pipelined on the connection's session, each message delivered
+once the broker acknowledged it (PUBACK at QoS 1, PUBCOMP at QoS 2; at QoS 0, once written).
+
+The topic may interpolate canonical fields (``farm/{agent_id}/cmd``, rendered by
+topics.topic_renderer); a message whose fields cannot make a topic is refused for good
+(MessageRejected: dead-lettered), as is one the broker refuses by reason code (see errors.py).
+A message sent again after a lost connection may reach subscribers twice (at-least-once):
+QoS 2's exactly-once holds within one session, and each connection attempt is a new one.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+from engine.endpoints.base import MessageRejected, Outbound, Sink
+from engine.endpoints.mqtt.link import MqttLink
+from engine.endpoints.mqtt.options import MqttSinkOptions
+from engine.endpoints.mqtt.topics import topic_renderer
+from engine.schemas import SchemaError, canonical_bytes
+
+
+class MqttSink(Sink):
+    def __init__(self, connection: MqttLink, route: str, options: MqttSinkOptions) -> None:
+        self._connection = connection
+        self._where = f"route {route!r}: mqtt sink"
+        self._topic = topic_renderer(options.topic, self._where)
+        self._qos = options.qos
+        self._retain = options.retain
+
+    async def send(self, message: Outbound) -> None:
+        error = (await self.send_batch((message,)))[0]
+        if error is not None:
+            raise error
+
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        results: list[BaseException | None] = [None] * len(messages)
+        publishable: list[int] = []
+        batch: list[tuple[str, bytes]] = []
+        for index, message in enumerate(messages):
+            try:
+                topic = self._topic(message.canonical)
+                body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
+            except MessageRejected as exc:
+                results[index] = exc
+                continue
+            except SchemaError as exc:
+                results[index] = MessageRejected(f"{self._where}: {exc}")
+                continue
+            publishable.append(index)
+            batch.append((topic, body))
+        if batch:
+            outcomes = await self._connection.publish_batch(batch, self._qos, self._retain, self._where)
+            for index, outcome in zip(publishable, outcomes):
+                results[index] = outcome
+        return results
