@@ -5,7 +5,7 @@ problems, never a traceback or a hang.
 Inputs are a valid route file damaged by hypothesis (characters inserted, deleted or
 replaced anywhere) and valid files whose mapping, routing key, topic, ``format()`` template,
 ``${...}`` reference and option values are arbitrary text. Each input runs in-process with a
-per-input time limit (hypothesis' deadline). The counts print with ``-s``."""
+per-input time limit (HANG_S). The counts print with ``-s``."""
 
 from __future__ import annotations
 
@@ -41,6 +41,9 @@ TEMPLATE = """routes:
     sink: {{ros2: {{topic: {topic}, type: std_msgs/msg/String}}}}
 """
 PROBLEM = re.compile(r"^r\.yaml:\d+: \S")
+HANG_S = 10.0
+"""One file taking longer is a hang (a shared 2-core CI machine loads one in ~30 ms; hypothesis'
+own deadline, 2 s at first, failed on a loaded machine's first input)."""
 SCHEMAS = SchemaRegistry(REPO / "schemas")
 COUNTS = {"inputs": 0, "valid": 0, "invalid": 0, "slowest_s": 0.0}
 ALPHABET = st.sampled_from(list("{}[]()'\"`:@,.|&!?*$#-_ \n\tabxyz019") + ["__class__", "${", "${file:", "format(", "\\u0000", "\t- "])
@@ -62,6 +65,7 @@ def _load(tmp_path: Path, text: str) -> None:
             assert PROBLEM.match(str(problem).removeprefix(f"{directory}/")), (str(problem), text)
     finally:
         COUNTS["slowest_s"] = max(COUNTS["slowest_s"], time.monotonic() - began)
+    assert time.monotonic() - began < HANG_S, f"{time.monotonic() - began:.1f}s for one file: {text!r}"
 
 
 @st.composite
@@ -84,7 +88,7 @@ def _quoted(value: str) -> str:
     return '"' + value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") + '"'
 
 
-FUZZ = settings(max_examples=150, deadline=2000, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+FUZZ = settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 
 @FUZZ

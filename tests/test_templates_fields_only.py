@@ -60,6 +60,10 @@ def test_check_refuses_literal_templates_with_file_and_line(tmp_path: Path):
         "    source: {amqp: {queue: q3}}\n"
         "    schema: raw_json\n"
         "    sink: {ros2: {topic: \"/{agent.__class__}/x\", type: std_msgs/msg/String}}\n"
+        "  - name: mqtt\n"
+        "    source: {amqp: {queue: q4}}\n"
+        "    schema: raw_json\n"
+        "    sink: {mqtt: {topic: \"farm/{agent!r}/cmd\"}}\n"
     )
     with pytest.raises(RoutesInvalid) as invalid:
         load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
@@ -69,3 +73,4 @@ def test_check_refuses_literal_templates_with_file_and_line(tmp_path: Path):
     assert any(p.startswith("r.yaml:10: route 'key'") and "{ids[0]} is not a field path" in p for p in problems), problems
     assert any(p.startswith("r.yaml:14: route 'topic'") and "{agent.__class__} is not a field path" in p
                for p in problems), problems
+    assert any(p.startswith("r.yaml:18: route 'mqtt'") and "{agent!r} is not a field path" in p for p in problems), problems
