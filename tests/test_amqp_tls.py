@@ -20,7 +20,7 @@ import pytest
 
 from engine.local_broker import BrokerTls, LocalBroker
 from tests.engine_process import EngineProcess
-from tests.tls_helpers import Pki, make_pki
+from tests.tls_helpers import Pki, make_pki, renew_client
 
 CERT_USER = "guest"
 """The client certificate's common name: EXTERNAL logs in as the user of that name, and the
@@ -72,16 +72,20 @@ def test_right_ca_and_client_certificate_carry_messages(tls_broker: tuple[LocalB
     """Password login over TLS with a client certificate, and certificate login (EXTERNAL)."""
     broker, pki = tls_broker
     port = broker.tls_port
+    client_cert, client_key = tmp_path / "client.pem", tmp_path / "client.key"
+    client_cert.write_bytes(pki.client_cert.read_bytes())
+    client_key.write_bytes(pki.client_key.read_bytes())
     routes = tmp_path / "routes"
     routes.mkdir()
     (routes / "r.yaml").write_text(
         "connections:\n"
-        f"  secure: {{amqp: {{url: \"amqps://guest:guest@localhost:{port}/\", tls: {tls_block(pki.ca, pki.client_cert, pki.client_key)}}}}}\n"
+        f"  secure: {{amqp: {{url: \"amqps://guest:guest@localhost:{port}/\", tls: {tls_block(pki.ca, client_cert, client_key)}}}}}\n"
         # a user and password PLAIN would refuse: only the certificate (EXTERNAL) can log this one in
         f"  by_cert: {{amqp: {{url: \"amqps://nobody:wrong@localhost:{port}/\", auth: external, tls: {tls_block(pki.ca, pki.client_cert, pki.client_key)}}}}}\n"
         "dead_letters: {connection: secure}\n"
         "routes:\n" + route("pw", "secure") + route("cert", "by_cert"))
     engine = EngineProcess(routes, tmp_path / "status.json", {})
+    figures: dict[str, float] = {}
 
     async def scenario() -> dict[str, list[bytes]]:
         connection = await aio_pika.connect(broker.url)  # the test's own client: the node's plain port
@@ -102,15 +106,30 @@ def test_right_ca_and_client_certificate_carry_messages(tls_broker: tuple[LocalB
             deadline = time.monotonic() + 30
             while (not got["pw"] or not got["cert"]) and time.monotonic() < deadline:
                 await asyncio.sleep(0.05)
+
+            # the client certificate renewed in place: a reload reopens the connection with it
+            before = (engine.status() or {}).get("reloads", {}).get("succeeded", 0)
+            began = time.monotonic()
+            await asyncio.to_thread(renew_client, pki, client_cert, client_key, CERT_USER)
+            while (engine.status() or {}).get("reloads", {}).get("succeeded", 0) <= before and time.monotonic() < began + 30:
+                await asyncio.sleep(0.05)
+            figures["renewal_reload_s"] = time.monotonic() - began
+            await inbox.publish(aio_pika.Message(b'{"via": "renewed"}'), "pw")
+            while len(got["pw"]) < 2 and time.monotonic() < began + 30:
+                await asyncio.sleep(0.05)
             return got
         finally:
             await connection.close()
 
     began = time.monotonic()
     got, status = engine.run(scenario)
-    assert [json.loads(b) for b in got["pw"]] == [{"via": "pw"}] and [json.loads(b) for b in got["cert"]] == [{"via": "cert"}], (got, engine.log_file.read_text()[-3000:])
+    assert [json.loads(b) for b in got["pw"]] == [{"via": "pw"}, {"via": "renewed"}] and [json.loads(b) for b in got["cert"]] == [{"via": "cert"}], (got, engine.log_file.read_text()[-3000:])
     assert status["connections"]["secure"]["healthy"] and status["connections"]["by_cert"]["healthy"]
-    print(f"\nengine over TLS: started, 2 messages carried and stopped in {time.monotonic() - began:.1f}s")
+    assert status["reloads"]["succeeded"] >= 1, status["reloads"]
+    log = engine.log_file.read_text()
+    assert log.count("\"msg\": \"routes applied\"") >= 2, log[-2000:]  # the start, and the reload of the renewal
+    print(f"\nengine over TLS: started, 3 messages carried (one after a client certificate renewal, reloaded "
+          f"{figures['renewal_reload_s']:.1f}s after the write) and stopped in {time.monotonic() - began:.1f}s")
 
 
 def test_each_failed_check_is_named_and_a_renewed_ca_file_reconnects(tls_broker: tuple[LocalBroker, Pki], tmp_path: Path):

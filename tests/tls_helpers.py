@@ -51,3 +51,13 @@ def make_pki(directory: Path, server_names: tuple[str, ...] = ("localhost",), cl
     server = _signed(directory, "server", ca, f"subjectAltName={names}\nextendedKeyUsage=serverAuth\n", server_names[0])
     client = _signed(directory, "client", ca, "extendedKeyUsage=clientAuth\n", client_name)
     return Pki(ca[0], server[0], server[1], client[0], client[1], other[0])
+
+
+def renew_client(pki: Pki, cert: Path, key: Path, client_name: str) -> None:
+    """A new key and certificate for the same client from the same CA, written over ``cert``
+    and ``key`` in place (as certbot or cert-manager renew)."""
+    directory = cert.parent / "renewal"
+    directory.mkdir(exist_ok=True)
+    new_cert, new_key = _signed(directory, "client", (pki.ca, pki.ca.with_suffix(".key")), "extendedKeyUsage=clientAuth\n", client_name)
+    key.write_bytes(new_key.read_bytes())
+    cert.write_bytes(new_cert.read_bytes())
