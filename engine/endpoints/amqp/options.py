@@ -11,6 +11,7 @@ from typing import Any, Literal
 
 from engine.endpoints.base import EndpointOptions
 from engine.options import option
+from engine.tls import TlsOptions
 
 RECONNECT_INTERVAL = 1.0
 """Seconds between aio-pika's reconnection attempts after a lost connection (its default, 5 s,
@@ -19,22 +20,6 @@ is most of the time from a broker's restart to the first message delivered after
 
 ExchangeType = Literal["topic", "direct", "fanout", "headers"]
 QueueType = Literal["classic", "quorum"]
-
-
-@dataclass(frozen=True, kw_only=True)
-class AmqpTls:
-    """``connections.<name>.amqp.tls``: how an ``amqps://`` connection verifies the broker and
-    who it is (engine/endpoints/amqp/tls.py)."""
-
-    __schema_description__ = ("TLS of amqps:// URLs: the CA the broker's certificate must chain to, the client certificate; "
-                              "files read when the connection opens, a renewed one reopens it. A failed check is a connection "
-                              "error naming it, never plain TCP")
-
-    ca_file: str | None = option(None, description="CA certificates (PEM) the broker's certificate must chain to; default: the system's CAs")
-    cert_file: str | None = option(None, description="client certificate (PEM) presented to the broker (RabbitMQ ssl_options.verify = verify_peer)")
-    key_file: str | None = option(None, description="private key (PEM) of cert_file; default: cert_file holds it too")
-    server_hostname: str | None = option(None, description="name the broker's certificate must be valid for; default: the URL's host")
-    verify: bool = option(True, description="verify the broker's certificate and name; false only for a throwaway test broker")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -52,7 +37,7 @@ class AmqpConnectionOptions:
     urls: tuple[str, ...] | None = option(None, min_items=1, secret=True,
                                           description="the nodes of a RabbitMQ cluster: connect to one, fail over to the next on loss")
     queue_type: QueueType | None = option(None, description="type of the queues this connection's routes (and its dead letters) declare unless a source says otherwise")
-    tls: AmqpTls | None = option(None)
+    tls: TlsOptions | None = option(None)
     auth: Literal["plain", "external"] = option("plain", description="plain: the URL's user and password; external: the client "
                                                 "certificate is the identity (RabbitMQ's EXTERNAL mechanism, plugin rabbitmq_auth_mechanism_ssl; needs tls.cert_file)")
 

@@ -50,6 +50,7 @@ from engine.endpoints.base import (
 )
 import engine.endpoints.amqp.cluster as amqp_cluster
 import engine.endpoints.amqp.tls as amqp_tls
+from engine import tls as tls_common
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template, template_fields, template_problem
 from engine.options import given
@@ -122,7 +123,7 @@ class AmqpConnection(Connection):
             text = redact_urls(f"{type(error).__name__}: {error}")
             password = urlsplit(self.url).password
             text = text.replace(password, "***") if password else text
-            failure = amqp_tls.tls_failure(error, self._expected_host()) if self._tls is not None else None
+            failure = tls_common.tls_failure(error, self._expected_host()) if self._tls is not None else None
             self._last_error = f"TLS: {failure} ({text})" if failure else text
 
     def _expected_host(self) -> str | None:
@@ -147,7 +148,7 @@ class AmqpConnection(Connection):
         nodes = ", ".join(redact(url) for url in self.urls)
         if any(url.lower().startswith("amqps://") for url in self.urls):
             try:  # read now, at every open: a renewed certificate is in effect from the reopen on
-                self._tls = amqp_tls.tls_context(self.settings.tls)
+                self._tls = tls_common.tls_context(self.settings.tls)
             except ValueError as exc:
                 self._state, self._last_error = "down", f"TLS: {exc}"
                 raise EndpointError(f"amqp connection {self.name!r} ({nodes}): TLS: {exc}") from None
