@@ -123,3 +123,61 @@ def test_token_and_tls_on_the_wildcard_address(tmp_path: Path, amqp_url: str):
     assert "admin request refused" in log and '"reason": "wrong token"' in log
     assert TOKEN not in log and WRONG not in log
     print(f"\n/healthz over HTTPS (new TLS connection, handshake included): {figures['healthz_https_s'] * 1000:.1f} ms")
+
+
+def test_fuzzed_paths_and_headers_never_pass_without_the_token(tmp_path: Path, amqp_url: str):
+    """Hostile requests to an endpoint with a token: arbitrary paths (dot segments, encoded
+    slashes, NULs, long ones) and Authorization headers (other schemes, the token's prefix, the
+    token with junk, case changes): never a 200 without the exact token, never a 5xx, each
+    answered within 5 s; the engine survives them all."""
+    import http.client
+
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    token_file = tmp_path / "admin-token"
+    token_file.write_text(TOKEN)
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text(ROUTES)
+    port = free_port()
+    engine = EngineProcess(routes, tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url},
+                           "--admin", str(port), "--admin-token-file", str(token_file))
+    counts = {"requests": 0, "answered_200": 0, "server_errors": 0}
+    segments = st.sampled_from(["status", "metrics", "tap", "watched", "healthz", "..", ".", "%2e%2e", "%2F", "%00",
+                                "STATUS", "tap%2Fwatched", "x" * 300, "", "?a=b", "#f", ";x", "%ZZ", "\u00e9"])
+    auth = st.one_of(st.none(), st.sampled_from([
+        "Bearer", "Bearer ", f"bearer {TOKEN[:-1]}", f"Bearer {TOKEN}x", f"Basic {TOKEN}", f"Bearer  {TOKEN[:10]}",
+        "Bearer \u0000", f"Token {TOKEN}", "Bearer " + "a" * 5000]), st.text(max_size=40).map(lambda t: "Bearer " + t))
+
+    @settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+    @given(st.lists(segments, min_size=1, max_size=4), auth, st.sampled_from(["GET", "POST", "HEAD", "DELETE"]))
+    def attempt(parts: list[str], authorization: str | None, method: str) -> None:
+        path = "/" + "/".join(parts)
+        connection = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+        try:
+            headers = {} if authorization is None else {"Authorization": authorization}
+            try:
+                connection.request(method, path.encode("utf-8", "surrogateescape").decode("latin-1"), headers=headers)
+            except (ValueError, UnicodeError, http.client.InvalidURL):
+                return  # http.client refuses to send it: nothing reached the engine
+            response = connection.getresponse()
+            counts["requests"] += 1
+            counts["server_errors"] += response.status >= 500
+            counts["answered_200"] += response.status == 200
+            assert response.status < 500, (method, path, authorization, response.status)
+            if response.status == 200:
+                assert path.rstrip("/") in ("/healthz",) or path.startswith("/healthz"), (method, path, authorization)
+        finally:
+            connection.close()
+
+    try:
+        engine.wait_started()
+        attempt()
+        assert engine.process.poll() is None
+        assert request(port, "/status", TOKEN, None) == 200
+    finally:
+        engine.stop()
+    assert TOKEN not in engine.log_file.read_text()
+    print(f"\nadmin fuzz: {counts['requests']} requests, {counts['answered_200']} answered 200 (/healthz only), "
+          f"{counts['server_errors']} server errors")
