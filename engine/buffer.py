@@ -12,6 +12,15 @@ between attempts are the engine's one backoff (engine/backoff.py). A buffer outl
 reload that replaces its route's runner (:class:`Buffers`): the held messages move with the
 route.
 
+Freshness: a held message older than the route's ``max_age`` when its turn comes is not
+sent but expired (the runner decides, ``stale``); with ``latest_only`` a held message for
+which a newer one with the same key (the canonical field ``per``) is held too is not sent
+but conflated. Both settle the message (it leaves the buffer) and are counted by the route.
+Telemetry wants them: after an outage of minutes a position or a battery level from before
+it is worthless, and replaying every one floods the link for as long as the outage lasted
+(ros-foxglove-bridge#329). Events that must all arrive (detections, mission results,
+commands) want neither: leave ``max_age`` and ``latest_only`` unset on their routes.
+
 Bounded: at most ``max_messages`` are held; a full buffer makes ``hold`` wait (back-pressure
 to the source, whose own bounded queue then applies its overflow policy).
 
@@ -51,6 +60,7 @@ from engine.backoff import Backoff
 from engine.delivery import classify
 from engine.endpoints.base import EndpointError, Outbound
 from engine.options import option
+from engine.throttle import FIELD_PATH, slot_key
 
 log = logging.getLogger("engine.buffer")
 
@@ -75,6 +85,8 @@ class BufferSpec:
     max_messages: int = DEFAULT_MAX_MESSAGES
     spill_dir: Path | None = None
     fsync_interval: float = 1.0
+    latest_per: tuple[str, ...] | None = None
+    """``latest_only``: the canonical field whose values keep only their newest message (``()``: one for the route)."""
 
     @classmethod
     def parse(cls, value: BufferOptions | bool | None, source_protocol: str, base: Path) -> BufferSpec | None:
@@ -88,7 +100,19 @@ class BufferSpec:
             value.max_messages,
             (base / value.spill_dir).resolve() if value.spill_dir else None,
             float(value.fsync_interval),
+            None if value.latest_only is None else tuple(value.latest_only.per.split(".")) if value.latest_only.per else (),
         )
+
+
+@dataclass(frozen=True, kw_only=True)
+class LatestOnlyOptions:
+    """``buffer.latest_only``: after an outage, replay only the newest held message per key."""
+
+    __schema_description__ = ("after an outage only the newest held message per value of the canonical field 'per' is sent, "
+                              "the older ones are counted conflated: for telemetry, never for events that must all arrive")
+
+    per: str | None = option(None, pattern=FIELD_PATH,
+                             description="canonical field (a.b) whose values keep their newest message each; none: the route's newest")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -102,6 +126,7 @@ class BufferOptions:
                                description="held at most; when full, the source waits (and its overflow applies)")
     spill_dir: str | None = option(None, description="keep held messages on disk here (relative to the routes directory), replayed at start")
     fsync_interval: float = option(1.0, minimum=0, description="seconds between fsyncs of the spill files (each message is written before the source is acknowledged)")
+    latest_only: LatestOnlyOptions | None = option(None)
 
 
 @dataclass
@@ -117,6 +142,10 @@ class BufferStats:
     lost: int = 0
     """Held in memory only and still undelivered when the buffer was closed."""
     retries: int = 0
+    expired: int = 0
+    """Older than the route's ``max_age`` when their turn came: not sent."""
+    conflated: int = 0
+    """``latest_only``: a newer message with the same key was held too: not sent."""
 
 
 class HoldingBuffer:
@@ -134,6 +163,10 @@ class HoldingBuffer:
         ready: Callable[[], bool] = lambda: True,
         on_delivered: Callable[[list[Held]], None] = lambda held: None,
         on_rejected: Callable[[Outbound, BaseException, int], Awaitable[None]] | None = None,
+        latest_per: tuple[str, ...] | None = None,
+        stale: Callable[[Held], bool] = lambda held: False,
+        on_expired: Callable[[list[Held]], None] = lambda held: None,
+        on_conflated: Callable[[list[Held]], None] = lambda held: None,
     ) -> None:
         self.route = route
         self._send = send
@@ -145,6 +178,14 @@ class HoldingBuffer:
         hold the route up for ever); failures while the connection is down do not count."""
         self._on_delivered = on_delivered
         self._on_rejected = on_rejected
+        self._latest_per = latest_per
+        self._stale = stale
+        self._on_expired = on_expired
+        self._on_conflated = on_conflated
+        self._latest: dict[Any, int] = {}
+        """``latest_only``: key -> sequence number of the newest held message with that key."""
+        self._head_seq = 0
+        """Sequence number of the oldest held message (the next one held gets head + held)."""
         self.stats = BufferStats()
         self._store: _MemoryStore | _SpillStore = (
             _SpillStore(spill_dir / route, fsync_interval) if spill_dir is not None else _MemoryStore()
@@ -179,6 +220,9 @@ class HoldingBuffer:
         found, corrupt = self._store.load()
         self.stats.held = self.stats.replayed = found
         self.stats.corrupt += corrupt
+        if found and self._latest_per is not None:
+            for index, (message, _) in enumerate(self._store.peek(found)):
+                self._latest[slot_key(message.canonical, self._latest_per)] = self._head_seq + index
         if found:
             log.info("replaying spilled messages", extra={"route": self.route, "messages": found, "corrupt": corrupt})
         self._update_room()
@@ -191,6 +235,8 @@ class HoldingBuffer:
             self._room.clear()
             await self._room.wait()
         self._store.append((message, received_at_ns))
+        if self._latest_per is not None:
+            self._latest[slot_key(message.canonical, self._latest_per)] = self._head_seq + self.stats.held
         self.stats.held += 1
         self.stats.held_total += 1
         self._update_room()
@@ -249,18 +295,25 @@ class HoldingBuffer:
                 await self._pause(backoff.next())
 
     async def _send_batch(self, batch: list[Held]) -> BaseException | None:
-        """Send the oldest messages; settle the accepted and the rejected ones up to the first
-        that failed transiently, and return that failure (None when all were settled)."""
+        """Send the oldest messages; settle the accepted, the rejected, the expired and the
+        conflated ones up to the first that failed transiently, and return that failure (None
+        when all were settled)."""
         sent_ahead = self._sent_ahead
-        to_send = [message for i, (message, _) in enumerate(batch) if i not in sent_ahead]
+        skipped = {i: outcome for i, held in enumerate(batch) if i not in sent_ahead
+                   for outcome in (self._not_sent(i, held),) if outcome is not None}
+        to_send = [message for i, (message, _) in enumerate(batch) if i not in sent_ahead and i not in skipped]
         try:
-            outcomes = iter(await self._send(to_send))
+            outcomes = iter(await self._send(to_send) if to_send else [])
         except Exception as error:  # the sink's contract is to return errors; be safe anyway
             outcomes = iter([error] * len(to_send))
-        results = [None if i in sent_ahead else next(outcomes) for i in range(len(batch))]
-        settled, failure, delivered = 0, None, []
-        for held, result in zip(batch, results):
-            if result is None:
+        results = [None if i in sent_ahead or i in skipped else next(outcomes) for i in range(len(batch))]
+        settled, failure = 0, None
+        delivered: list[Held] = []
+        dropped: dict[str, list[Held]] = {"expired": [], "conflated": []}
+        for index, (held, result) in enumerate(zip(batch, results)):
+            if index in skipped:
+                dropped[skipped[index]].append(held)
+            elif result is None:
                 delivered.append(held)
             elif classify(result).permanent:
                 await self._reject(held[0], result, self._head_attempts + 1)
@@ -269,18 +322,38 @@ class HoldingBuffer:
                 break
             settled += 1
         if settled:
-            self._settled(settled, delivered)
+            self._settled(settled, delivered, dropped)
         # accepted behind the failed one: not sent again while they wait for it
-        self._sent_ahead = {i - settled for i in range(settled + 1, len(batch)) if results[i] is None}
+        self._sent_ahead = {i - settled for i in range(settled + 1, len(batch)) if results[i] is None and i not in skipped}
         return failure
 
-    def _settled(self, count: int, delivered: list[Held]) -> None:
-        self._store.pop(count)
+    def _not_sent(self, index: int, held: Held) -> str | None:
+        """Why the ``index``-th oldest held message is settled without being sent: "conflated"
+        (``latest_only``: a newer one with its key is held), "expired" (the route says it is
+        too old), or None: send it."""
+        if self._latest_per is not None and \
+                self._latest.get(slot_key(held[0].canonical, self._latest_per)) != self._head_seq + index:
+            return "conflated"
+        return "expired" if self._stale(held) else None
+
+    def _settled(self, count: int, delivered: list[Held], dropped: dict[str, list[Held]] | None = None) -> None:
+        self._pop(count)
         self.stats.held -= count
         self.stats.delivered += len(delivered)
         self._on_delivered(delivered)
+        if dropped:
+            self.stats.expired += len(dropped["expired"])
+            self.stats.conflated += len(dropped["conflated"])
+            if dropped["expired"]:
+                self._on_expired(dropped["expired"])
+            if dropped["conflated"]:
+                self._on_conflated(dropped["conflated"])
         self._update_room()
         self._head_attempts = 0
+
+    def _pop(self, count: int) -> None:
+        self._store.pop(count)
+        self._head_seq += count
 
     async def _gave_up_on_head(self, failure: BaseException) -> bool:
         """Count a transient failure against the oldest message while the sink looks able to
@@ -293,7 +366,7 @@ class HoldingBuffer:
             return False
         head = self._store.peek(1)[0][0]
         await self._reject(head, EndpointError(f"gave up after {self._head_attempts} attempts: {failure}"), self._head_attempts)
-        self._store.pop(1)
+        self._pop(1)
         self.stats.held -= 1
         self._sent_ahead = {i - 1 for i in self._sent_ahead if i > 0}
         self._update_room()
@@ -334,6 +407,12 @@ class BufferOwner(Protocol):
 
     async def held_rejected(self, message: Outbound, error: BaseException, attempts: int) -> None: ...
 
+    def held_stale(self, held: Held) -> bool: ...
+
+    def held_expired(self, held: list[Held]) -> None: ...
+
+    def held_conflated(self, held: list[Held]) -> None: ...
+
 
 class _Shared:
     __slots__ = ("buffer", "users", "owner")
@@ -372,6 +451,9 @@ class Buffers:
             fsync_interval=spec.fsync_interval, max_attempts=max_attempts,
             ready=lambda: shared.owner.sink_can_take(),
             on_delivered=lambda held: shared.owner.held_delivered(held), on_rejected=rejected,
+            latest_per=spec.latest_per, stale=lambda held: shared.owner.held_stale(held),
+            on_expired=lambda held: shared.owner.held_expired(held),
+            on_conflated=lambda held: shared.owner.held_conflated(held),
         )
         shared = _Shared(buffer, owner)
         return shared

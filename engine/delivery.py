@@ -52,6 +52,8 @@ class RouteDelivery:
     max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
     """The source connection's limit (messages larger are dead-lettered unparsed)."""
     sink_max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+    max_age_ns: int | None = None
+    """``max_age``: older messages are expired instead of sent (engine/runner.py decides)."""
 
     def __post_init__(self) -> None:
         assert self.overflow in OVERFLOW_POLICIES and self.max_attempts >= 1

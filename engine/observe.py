@@ -5,8 +5,9 @@ A route's :class:`RouteObserver` is the only place its message counts are kept: 
 ``/metrics`` and the taps all read these fields, so they cannot disagree. The route counts
 a message ``received`` once, when its source hands it over, and then exactly one of
 ``delivered`` (the sink took it, at once, after a throttle slot opened or from the buffer),
-``dead_lettered`` (per stage), ``conflated`` (a newer one replaced it under ``throttle``),
-unless it is still in flight (parked, held in the buffer, being retried). Beside those:
+``dead_lettered`` (per stage), ``conflated`` (a newer one replaced it under ``throttle``, or
+in the buffer under ``latest_only``), ``expired`` (older than the route's ``max_age`` when it
+would have been sent: never delivered), unless it is still in flight (parked, held in the buffer, being retried). Beside those:
 ``retries`` (a message tried again after a transient sink failure: the tap's and
 Prometheus' ``redelivered`` outcome), ``sink_errors`` (transient sink failures, including
 the last one before a message is dead-lettered), ``dropped`` (by a source: overflow, or
@@ -35,11 +36,11 @@ import orjson
 
 from engine.endpoints.base import Inbound, Outbound
 
-RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, DROPPED = (
-    "received", "delivered", "dead_lettered", "redelivered", "conflated", "dropped")
-OUTCOMES = (RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, DROPPED)
+RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED = (
+    "received", "delivered", "dead_lettered", "redelivered", "conflated", "expired", "dropped")
+OUTCOMES = (RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED)
 """The ``outcome`` label of ``rabbitros_messages_total`` and the keys of the status' ``messages``."""
-COUNTERS = ("received", "delivered", "failed", "conflated", "retries", "sink_errors", "dropped",
+COUNTERS = ("received", "delivered", "failed", "conflated", "expired", "retries", "sink_errors", "dropped",
             "standby_skipped", "dead_letter_errors")
 """The integer counters, as the status and the log's ``route counters`` line name them."""
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
@@ -77,6 +78,7 @@ class RouteObserver:
         self.received = 0
         self.delivered = 0
         self.conflated = 0
+        self.expired = 0
         self.retries = 0
         self.sink_errors = 0
         self.dropped = 0
@@ -126,10 +128,16 @@ class RouteObserver:
         if self.taps:
             self._tap(inbound, outbound, REDELIVERED, error)
 
-    def conflate(self, inbound: Inbound, outbound: Outbound) -> None:
+    def conflate(self, inbound: Inbound | None, outbound: Outbound) -> None:
         self.conflated += 1
         if self.taps:
             self._tap(inbound, outbound, CONFLATED, None)
+
+    def expire(self, inbound: Inbound | None, outbound: Outbound) -> None:
+        """``outbound`` was older than the route's ``max_age`` when it would have been sent."""
+        self.expired += 1
+        if self.taps:
+            self._tap(inbound, outbound, EXPIRED, None)
 
     def dead_letter(self, inbound: Inbound | None, outbound: Outbound | None, stage: str, error: str) -> None:
         self.dead_lettered[stage] = self.dead_lettered.get(stage, 0) + 1
@@ -150,6 +158,8 @@ class RouteObserver:
             self.retrying(inbound, outbound, error)
         elif outcome == CONFLATED and outbound is not None:
             self.conflate(inbound, outbound)
+        elif outcome == EXPIRED and outbound is not None:
+            self.expire(inbound, outbound)
         elif outcome == DEAD_LETTERED:
             self.dead_letter(inbound, outbound, getattr(error, "stage", "sink"), getattr(error, "detail", str(error)))
         else:
@@ -191,7 +201,8 @@ class RouteObserver:
     def outcomes(self) -> dict[str, int]:
         """The counters by outcome (``rabbitros_messages_total``, the status' ``messages``)."""
         return {RECEIVED: self.received, DELIVERED: self.delivered, DEAD_LETTERED: self.failed,
-                REDELIVERED: self.retries, CONFLATED: self.conflated, DROPPED: self.dropped}
+                REDELIVERED: self.retries, CONFLATED: self.conflated, EXPIRED: self.expired,
+                DROPPED: self.dropped}
 
     def snapshot(self) -> dict[str, Any]:
         """What ``/status`` shows beside the counters."""

@@ -102,7 +102,7 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
     table = Table(expand=False, header_style="bold")
     for column, justify in (("route", "left"), ("state", "left"), ("recv/s", "right"), ("sent/s", "right"),
                             ("received", "right"), ("delivered", "right"), ("dead", "right"),
-                            ("redelivered", "right"), ("conflated", "right"), ("dropped", "right"),
+                            ("redelivered", "right"), ("conflated", "right"), ("expired", "right"), ("dropped", "right"),
                             ("last error", "left")):
         table.add_column(column, justify=justify, no_wrap=True, overflow="ellipsis",
                          max_width=width if column == "last error" else None)
@@ -121,7 +121,7 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
                _rate(route.get("received_per_s")), _rate(route.get("delivered_per_s")),
                _count(messages.get("received")), _count(messages.get("delivered")),
                _count(messages.get("dead_lettered")), _count(messages.get("redelivered")),
-               _count(messages.get("conflated")), _count(route.get("dropped")), Text(error, "red")]
+               _count(messages.get("conflated")), _count(messages.get("expired")), _count(route.get("dropped")), Text(error, "red")]
         if last_canonical:
             last = route.get("last_canonical")
             row.append("" if last is None else json.dumps(last, separators=(",", ":"), default=str))

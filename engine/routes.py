@@ -89,6 +89,12 @@ class RouteOptions:
     schema: str | None = option(None, description="required: the canonical schema the mapping's result must satisfy, NAME (newest "
                                                   "version) or NAME.vN (pinned), from schemas/; raw_json passes any object")
     throttle: ThrottleOptions | None = option(None)
+    priority: Literal["high", "normal", "low"] = option(
+        "normal", description="on a link several routes share (a MAVLink radio), the order of what is sent next: high before "
+                              "normal before low, tunnel routes included; commands and missions always go first")
+    max_age: float | None = option(None, exclusive_minimum=0, description=(
+        "seconds from reception after which a message is worthless (telemetry): one older when it would be sent (from "
+        "the buffer after an outage, a throttle slot, a retry) is dropped and counted expired; absent: every message arrives"))
     sink: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
     ordered: bool = option(False, description="AMQP source: single active consumer, so one engine instance at a time carries the route, in order")
     instances: tuple[str, ...] | None = option(None, min_items=1,
@@ -488,6 +494,8 @@ def _compile_routes(
                 continue
             if placement.ordered and source.protocol == "amqp":
                 source = EndpointSpec(source.protocol, source.connection, evolve(source.options, ordered=True))
+            if route.priority != "normal":  # the sink orders its link's writes by it (engine/endpoints/base.py)
+                sink = EndpointSpec(sink.protocol, sink.connection, evolve(sink.options, priority=route.priority))
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
             schema = schemas.get(schema_name)
             fingerprint = hashlib.sha256(
@@ -503,6 +511,7 @@ def _compile_routes(
                 overflow=route.overflow,
                 max_message_bytes=connections[source.connection].max_message_bytes,
                 sink_max_message_bytes=connections[sink.connection].max_message_bytes,
+                max_age_ns=None if route.max_age is None else int(route.max_age * 1e9),
             )
             buffer = BufferSpec.parse(route.buffer, source.protocol, _base_dir(document.file))
             if buffer is not None and buffer.spill_dir is not None and buffer.spill_dir.exists() and not buffer.spill_dir.is_dir():
@@ -565,6 +574,9 @@ def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink
     reads: list[tuple[Path_, str, str]] = []
     if route.throttle is not None and route.throttle.per:
         reads.append((where + ("throttle", "per"), "throttle per", route.throttle.per))
+    latest_only = route.buffer.latest_only if route.buffer else None
+    if latest_only is not None and latest_only.per:
+        reads.append((where + ("buffer", "latest_only", "per"), "buffer latest_only per", latest_only.per))
     if sink is not None:
         transport = endpoints.transport(sink.protocol)
         reads.extend((where + ("sink", sink.protocol, key), f"sink {key}", field_path)

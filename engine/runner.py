@@ -12,7 +12,10 @@ in order, and is settled for its source once it leaves them:
    the converted message to step 4, or a newer one conflates it;
 4. **sent**: while the sink cannot take messages the route waits (or, with a buffer, holds
    them: engine/buffer.py); transient failures are retried with the engine's backoff up to
-   ``max_attempts`` (engine/delivery.py decides what is transient), then dead-lettered;
+   ``max_attempts`` (engine/delivery.py decides what is transient), then dead-lettered. A
+   message older than the route's ``max_age`` when it would be sent (at once, from a throttle
+   slot, on a retry, from the buffer) is expired instead: :meth:`RouteRunner.too_old` is the
+   one place that decides it;
 5. **dead-lettered** together at the end of the batch (engine/dead_letters.py).
 
 A batch is settled as a whole: one pipelined ``send_batch``, the failures retried together,
@@ -245,6 +248,9 @@ class RouteRunner:
                 if buffer is not None:  # kept: spilled, or delivered by the runner replacing this one
                     await self._hold(pending, settled)
                 return  # the route is stopping: what is left stays unsettled
+            pending = self._fresh(pending, settled)
+            if not pending:
+                return
             results = await pipeline.sink.send_batch([message.outbound for message in pending])  # type: ignore[misc]
             pending = self._sent(pending, results, settled, dead, waiting=not self.sink_can_take(pipeline))
             if pending and buffer is not None:  # transient: the buffer retries them, the source moves on
@@ -254,6 +260,26 @@ class RouteRunner:
                 self._report_retry(pending[0].failure, len(pending))  # type: ignore[arg-type]
                 if not await self.pause(retry_delay(min(message.attempts for message in pending))):
                     return
+
+    def too_old(self, age_ns: int) -> bool:
+        """The one decision of freshness: a message received ``age_ns`` ago is not sent any
+        more but expired (``max_age``; telemetry is worthless once stale, events have none)."""
+        max_age_ns = self.spec.delivery.max_age_ns
+        return max_age_ns is not None and age_ns > max_age_ns
+
+    def _fresh(self, pending: list[_Message], settled: list[bool]) -> list[_Message]:
+        """``pending`` without the messages too old to send, which are settled as expired."""
+        if self.spec.delivery.max_age_ns is None:
+            return pending
+        now_ns = time.monotonic_ns()
+        fresh = []
+        for message in pending:
+            if self.too_old(now_ns - message.inbound.received_ns):
+                settled[message.index] = True
+                self.observer.expire(message.inbound, message.outbound)  # type: ignore[arg-type]
+            else:
+                fresh.append(message)
+        return fresh
 
     def _sent(self, pending: list[_Message], results: list[BaseException | None], settled: list[bool],
               dead: list[_Message], waiting: bool = False) -> list[_Message]:
@@ -327,6 +353,18 @@ class RouteRunner:
         now_ns = time.time_ns()
         for outbound, received_at_ns in held:
             self.observer.accepted(None, outbound, None if received_at_ns is None else now_ns - received_at_ns)
+
+    def held_stale(self, held: Held) -> bool:
+        received_at_ns = held[1]
+        return received_at_ns is not None and self.too_old(time.time_ns() - received_at_ns)
+
+    def held_expired(self, held: list[Held]) -> None:
+        for outbound, _ in held:
+            self.observer.expire(None, outbound)
+
+    def held_conflated(self, held: list[Held]) -> None:
+        for outbound, _ in held:
+            self.observer.conflate(None, outbound)
 
     async def held_rejected(self, message: Outbound, error: BaseException, attempts: int) -> None:
         """A held message the sink rejected, or kept failing while it could take messages."""

@@ -27,6 +27,10 @@ T = TypeVar("T")
 T_contra = TypeVar("T_contra", contravariant=True)
 
 
+FIELD_PATH = r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$"
+"""A canonical field named as ``a.b`` (``throttle.per``, ``buffer.latest_only.per``)."""
+
+
 @dataclass(frozen=True, kw_only=True)
 class ThrottleOptions:
     """A route's ``throttle:`` (see the module docstring)."""
@@ -35,8 +39,19 @@ class ThrottleOptions:
                               "between slots only the latest is kept (conflation)")
 
     max_rate: float = option(exclusive_minimum=0, description="messages per second per slot")
-    per: str | None = option(None, pattern=r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$",
+    per: str | None = option(None, pattern=FIELD_PATH,
                              description="canonical field (a.b) whose values get a slot each; none: one slot for the route")
+
+
+def slot_key(canonical: Any, per: tuple[str, ...] | None) -> Any:
+    """The value of the canonical field ``per`` that groups messages (a throttle's slot, the
+    buffer's ``latest_only`` key); None for every message without ``per``."""
+    if per is None:
+        return None
+    value = canonical
+    for part in per:
+        value = value.get(part) if isinstance(value, dict) else None
+    return value if isinstance(value, (str, int, float, bool)) or value is None else repr(value)
 
 
 class ThrottleStage(Protocol[T_contra]):
@@ -74,12 +89,7 @@ class Throttle(Generic[T]):
         return 1.0 / self.max_rate
 
     def key(self, canonical: Any) -> Any:
-        if self.per is None:
-            return None
-        value = canonical
-        for part in self.per:
-            value = value.get(part) if isinstance(value, dict) else None
-        return value if isinstance(value, (str, int, float, bool)) or value is None else repr(value)
+        return slot_key(canonical, self.per)
 
     def admit(self, item: T, canonical: Any, stage: ThrottleStage[T]) -> bool:
         """True: send ``item`` now. False: parked, handed to ``stage.released`` when its slot

@@ -122,9 +122,12 @@ def test_metrics_count_known_traffic(admin: Admin):
     schema_invalid = [json.dumps({"agent": "uav1", "detections": [{"lat": 1, "lon": 2, "confidence": 7}]}).encode()] * 3
     asyncio.run(_publish(admin.url, "counted.x", valid + not_json + schema_invalid))
     route = 'route="counted"'
-    wait_until(lambda: metrics(admin.port).get(f'rabbitros_messages_total{{outcome="received",{route}}}') == 25,
-               30, "25 messages received")
+    # received is counted when the route takes a batch, its outcome once settled: wait for the outcomes
+    settled = ("delivered", "dead_lettered")
+    wait_until(lambda: sum(metrics(admin.port).get(f'rabbitros_messages_total{{outcome="{outcome}",{route}}}', 0)
+                           for outcome in settled) == 25, 30, "25 messages settled")
     sample = metrics(admin.port)
+    assert sample[f'rabbitros_messages_total{{outcome="received",{route}}}'] == 25
     assert sample[f'rabbitros_messages_total{{outcome="delivered",{route}}}'] == 20
     assert sample[f'rabbitros_messages_total{{outcome="dead_lettered",{route}}}'] == 5
     assert sample[f'rabbitros_messages_total{{outcome="redelivered",{route}}}'] == 0

@@ -251,3 +251,31 @@ routes:
     with pytest.raises(RoutesInvalid) as invalid:
         load_routes(tmp_path, registry, env={})
     assert any("a.yaml:3" in str(p) and "is not a directory" in str(p) for p in invalid.value.problems)
+
+
+def test_latest_only_and_stale_messages_leave_the_buffer_unsent_and_counted() -> None:
+    """Held while down: 12 messages over 3 agents; seq 1 is stale. Back up: only the newest
+    per agent is sent; the older ones are conflated, the stale one expired (reported once each,
+whether or not the sink was up when their turn came: neither needs the sink)."""
+    async def scenario() -> None:
+        sink = SwitchableSink()
+        expired: list[int] = []
+        conflated: list[int] = []
+        buffer = HoldingBuffer("r", sink.send_batch, latest_per=("agent_id",),
+                               stale=lambda held: held[0].canonical["seq"] == 10,
+                               on_expired=lambda held: expired.extend(m.canonical["seq"] for m, _ in held),
+                               on_conflated=lambda held: conflated.extend(m.canonical["seq"] for m, _ in held))
+        buffer.start()
+        for index in range(12):
+            outbound = message(index)
+            outbound.canonical["agent_id"] = f"uav{index % 3}"
+            await buffer.hold(outbound)
+        await wait_until(lambda: buffer.stats.retries > 0)  # tried while down: the newest wait
+        sink.up = True
+        await wait_until(lambda: not buffer.holding)
+        assert sink.received == [9, 11]
+        assert expired == [10] and sorted(conflated) == list(range(9))
+        assert (buffer.stats.delivered, buffer.stats.expired, buffer.stats.conflated) == (2, 1, 9)
+        await buffer.close()
+
+    asyncio.run(scenario())

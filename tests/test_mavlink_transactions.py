@@ -426,8 +426,8 @@ def test_mission_items_mapping_legacy_requests_and_bad_input() -> None:
     """Explicit items (names or numbers) give full control; a vehicle asking with the legacy
     MISSION_REQUEST gets MISSION_ITEM_INT; items the protocol cannot carry are rejected."""
     mapping = compile_mapping(
-        "{items: [{command: 'MAV_CMD_NAV_TAKEOFF', z: `10`}, "
-        "{command: 'MAV_CMD_NAV_WAYPOINT', x: deg_to_deg_e7(lat), y: deg_to_deg_e7(lon), z: `10`, param2: `0.5`}, "
+        "{items: [{command: 'MAV_CMD_NAV_TAKEOFF', frame: 'MAV_FRAME_GLOBAL_RELATIVE_ALT_INT', z: `10`}, "
+        "{command: 'MAV_CMD_NAV_WAYPOINT', frame: `6`, x: deg_to_deg_e7(lat), y: deg_to_deg_e7(lon), z: `10`, param2: `0.5`}, "
         "{command: 'MAV_CMD_DO_SET_SERVO', frame: 'MAV_FRAME_MISSION', param1: `9`, param2: `1900`}, "
         "{command: `20`, frame: `2`, autocontinue: `0`}]}")
     assert mapping is not None
@@ -441,12 +441,13 @@ def test_mission_items_mapping_legacy_requests_and_bad_input() -> None:
             assert (sim.autopilot.mission[1]["x"], sim.autopilot.mission[1]["param2"]) == (-225000000, 0.5)
             assert sim.autopilot.mission[2]["param2"] == 1900.0
             for fields, error in (({"items": [{"command": 16, "lat": 1}]}, "unknown field(s) lat"),
-                                  ({"items": [{"command": "MAV_CMD_FLY_TO_THE_MOON"}]}, "not a MAV_CMD name"),
-                                  ({"items": [{"command": 16, "x": 2**40}]}, "outside int32_t"),
+                                  ({"items": [{"command": 16, "x": 1, "z": 10}]}, "items[0]: no frame"),
+                                  ({"items": [{"command": "MAV_CMD_FLY_TO_THE_MOON", "frame": 6}]}, "not a MAV_CMD name"),
+                                  ({"items": [{"command": 16, "frame": 6, "x": 2**40}]}, "outside int32_t"),
                                   ({"agent_id": "uav1", "waypoints": [{"lat": 1.0, "lon": 2.0}]},
                                    "'waypoints[0]' gives no altitude: set one of 'alt_msl'"),
                                   ({"agent_id": "uav1", "waypoints": []}, "no waypoints"),
-                                  ({"items": [{"command": 16, "x": 1}, {"command": 16, "param4": None}]},
+                                  ({"items": [{"command": 16, "frame": 6, "x": 1}, {"command": 16, "frame": 6, "param4": None}]},
                                    "field 'items[1].param4' is null"),
                                   ({"items": [{"command": 16, "lon": 1}]}, "unknown field(s) lon (fields"),
                                   ({"items": [{"command": 16, "parma1": 1}]}, "parma1; did you mean 'param1'?"),
@@ -525,7 +526,9 @@ def test_sink_options_are_checked_before_connecting() -> None:
     assert list(check({"mission": "upload", "message": "COMMAND_LONG"}, None)) == \
         [("message", "'message' is not used by a mission sink: it applies to message sources and sinks (not json_tunnel)")]
     assert list(check({"mission": "upload", "retries": -1}, None)) == [("retries", "retries must be an integer >= 0")]
-    assert list(check({"mission": "upload"}, "{waypoints: waypoints}")) != []
+    assert list(check({"mission": "upload"}, "{waypoints: waypoints}")) == []  # a canonical mission's shape
+    assert "did you mean 'waypoints'" in str(list(check({"mission": "upload"}, "{wayponts: waypoints}")))
+    assert "not both" in str(list(check({"mission": "upload"}, "{items: a, waypoints: b}")))
     assert list(check({"message": "HEARTBEAT", "acknowledged": True}, None)) == \
         [("acknowledged", "acknowledged applies to COMMAND_LONG and COMMAND_INT sinks")]
     assert list(check({"message": "COMMAND_LONG", "timeout": 1}, None)) == \

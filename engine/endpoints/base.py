@@ -266,6 +266,10 @@ class EndpointOptions:
 
     connection: str | None = option(None, description="name of a connection from any file of the directory; default: the only "
                                                        "connection of the protocol, else the protocol's default connection")
+    priority: str = option("normal", internal=True)
+    """The route's ``priority`` (high, normal, low), handed to its sink by the route loader: a
+    sink whose connection carries several routes over one slow link orders its writes by it
+    (MAVLink); the others ignore it."""
 
 
 O = TypeVar("O")

@@ -6,8 +6,9 @@ driven by asyncio, not by pymavlink's blocking ``mavutil``: a reader hands chunk
 writes every frame. Packing at write time keeps sequence numbers and signing timestamps in
 wire order, which a receiver requires. The writer paces to the link rate (a SiK radio's
 serial buffer is a few hundred bytes to 2 KB and overflows silently), sends control frames
-before bulk tunnel fragments, and slows bulk traffic when the radio's RADIO_STATUS reports a
-filling buffer.
+(commands, missions, acknowledgements) first and the routes' frames by their ``priority``
+(high, normal, low; engine/endpoints/mavlink/port.py), and slows bulk traffic when the radio's
+RADIO_STATUS reports a filling buffer.
 
 Signing (MAVLink 2): outgoing frames are signed by pymavlink; incoming signatures are
 verified here rather than by pymavlink because pymavlink records a stream's timestamp before

@@ -106,15 +106,22 @@ def sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tupl
     return problems
 
 
+_MISSION_MAPPING_KEYS = ("items", "waypoints")
+"""What a mission sink reads of its mapping's output: explicit MISSION_ITEM_INT items, or waypoints."""
+
+
 def _mission_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tuple[str | None, str]]:
     problems: list[tuple[str | None, str]] = list(_unused(options, _MISSION_OPTIONS, "mission sink"))
     if options.mission != "upload":
         problems.append(("mission", "mission must be 'upload'"))
     problems += TransactionOptions.parse(options)[1]
-    for key, _ in _mapping_pairs(mapping):
-        if key != "items":
-            problems.append((None, f"a mission sink mapping produces {{items: [...]}} (or a canonical mission); "
-                                   f"{key!r} is not used{did_you_mean(key, ['items'])}"))
+    keys = [key for key, _ in _mapping_pairs(mapping)]
+    for key in keys:
+        if key not in _MISSION_MAPPING_KEYS:
+            problems.append((None, f"a mission sink mapping produces {{items: [...]}} or a canonical mission's "
+                                   f"{{waypoints: [...]}}; {key!r} is not used{did_you_mean(key, _MISSION_MAPPING_KEYS)}"))
+    if set(_MISSION_MAPPING_KEYS) <= set(keys):
+        problems.append((None, "a mission sink mapping produces items or waypoints, not both (items would win)"))
     return problems
 
 

@@ -120,16 +120,18 @@ class MavlinkConnection(Connection):
         options = sink_options(route, options)
         if options.json_tunnel:
             target = (options.target_system or 0, options.target_component or 0)
-            return TunnelSink(self.hub, payload_type=options.payload_type, target=target)
+            return TunnelSink(self.hub, payload_type=options.payload_type, target=target, priority=options.priority)
         return sink_for(self, route, options)
 
     # writing
 
-    def enqueue(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False) -> asyncio.Future[float]:
-        return self.port.enqueue(msg, bulk=bulk)
+    def enqueue(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
+                priority: str | None = None) -> asyncio.Future[float]:
+        return self.port.enqueue(msg, bulk=bulk, priority=priority)
 
-    async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False) -> float:
-        return await self.port.enqueue(msg, bulk=bulk)
+    async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
+                           priority: str | None = None) -> float:
+        return await self.port.enqueue(msg, bulk=bulk, priority=priority)
 
     def post(self, msg: mavlink2.MAVLink_message) -> None:
         self.port.post(msg)

@@ -34,8 +34,10 @@ class SharedLink(Protocol):
 
     def unlisten(self, msg_id: int | None, listener: Listener) -> None: ...
 
-    async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False) -> float:
-        """Return once the paced writer wrote ``msg`` (the loop time it was written)."""
+    async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
+                           priority: str | None = None) -> float:
+        """Return once the paced writer wrote ``msg`` (the loop time it was written);
+        ``priority`` None (commands, missions) goes before every route's ``priority``."""
 
     def post(self, msg: mavlink2.MAVLink_message) -> None:
         """Queue a frame nobody waits for (a failure is only counted)."""

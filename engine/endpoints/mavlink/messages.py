@@ -144,12 +144,14 @@ class MessageSource(Source):
 class MessageSink(Sink):
     """Encodes ``Outbound.fields`` as one message; accepted once written to the link."""
 
-    def __init__(self, connection: SharedLink, encode: Encoder) -> None:
+    def __init__(self, connection: SharedLink, encode: Encoder, priority: str = "normal") -> None:
         self.connection = connection
         self.encode = encode
+        self.priority = priority
+        """The route's ``priority``: the link's writer sends by it (engine/endpoints/mavlink/port.py)."""
 
     async def send(self, message: Outbound) -> None:
-        await self.connection.send_message(self.encode(message.fields))
+        await self.connection.send_message(self.encode(message.fields), priority=self.priority)
 
 
 def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) -> Sink:
@@ -158,7 +160,7 @@ def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) ->
         return MissionUploadSink(connection, TransactionOptions.parse(options)[0])
     if options.acknowledged:
         return AcknowledgedCommandSink(connection, message_encoder(options), TransactionOptions.parse(options)[0])
-    return MessageSink(connection, message_encoder(options))
+    return MessageSink(connection, message_encoder(options), options.priority)
 
 
 def message_encoder(options: MavlinkSinkOptions) -> Encoder:

@@ -10,7 +10,8 @@ rounded, z = its one altitude in metres in the frame that says what it is measur
 with neither altitude, or both, is refused naming it: the same number is 20 m above the field or
 372 m below it at a field 392 m above sea level, so the reference is never guessed. A
 ``sink.mapping`` producing ``{items: [{command, frame, x, y, z, param1..param4, autocontinue}]}``
-gives full control (command and frame by name or number). ``home_placeholder: true`` puts
+gives full control (command and frame by name or number, both required: a frame is never
+guessed either). ``home_placeholder: true`` puts
 ArduPilot's seq-0 home item first.
 
 Protocol (devguide ``services/mission.md``): MISSION_COUNT; every MISSION_REQUEST_INT or legacy
@@ -93,7 +94,11 @@ def explicit_items(raw: Any) -> list[dict[str, Any]]:
             raise MessageRejected(f"{where}: unknown field(s) {named} (fields: {', '.join(sorted(_ITEM_KEYS))})")
         if "command" not in item:
             raise MessageRejected(f"{where}: no command")
-        fields = {"frame": mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, "autocontinue": 1, **item}
+        if "frame" not in item:  # x, y, z mean nothing without it: metres above home or above sea level?
+            raise MessageRejected(f"{where}: no frame: name it (MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: z above home, "
+                                  f"MAV_FRAME_GLOBAL_INT: above mean sea level, MAV_FRAME_MISSION: no position); "
+                                  f"a frame is never guessed")
+        fields = {"autocontinue": 1, **item}
         try:
             fields["command"] = enum_or_number(fields["command"], "MAV_CMD", f"{where}.command")
             fields["frame"] = enum_or_number(fields["frame"], "MAV_FRAME", f"{where}.frame")

@@ -502,9 +502,10 @@ class TunnelLink(Protocol):
     stats: dict[str, int]
 
     def send_tunnel(self, payload_type: int, target: tuple[int, int], payload: bytes, *,
-                    bulk: bool) -> asyncio.Future[float]:
+                    bulk: bool, priority: str | None = None) -> asyncio.Future[float]:
         """Queue a TUNNEL frame; the future gives the loop time it was written (cancelling it
-        before then takes the frame off the queue)."""
+        before then takes the frame off the queue). ``priority``: the route's, for the writer's
+        order (None: before every route's frames, as acknowledgements are)."""
         ...
 
 
@@ -770,10 +771,13 @@ class TunnelSink(Sink):
     """Sends ``Outbound.body`` whole; returns once the receiver acknowledged delivery."""
 
     def __init__(self, hub: TunnelHub, *, payload_type: int = DEFAULT_PAYLOAD_TYPE,
-                 target: tuple[int, int] = (0, 0)) -> None:
+                 target: tuple[int, int] = (0, 0), priority: str = "normal") -> None:
         self.hub = hub
         self.payload_type = payload_type
         self.target = target
+        self.priority = priority
+        """The route's ``priority``: the link's writer sends a ``high`` sink's fragments before
+        the ``normal`` and ``low`` ones already queued (engine/endpoints/mavlink/port.py)."""
         self._window = asyncio.Semaphore(hub.settings.window)
         hub.add_sender(payload_type)
 
@@ -881,7 +885,8 @@ class TunnelSink(Sink):
                     if index == transfer.probe:
                         transfer.probe = None
                     queued.append((index, asyncio.ensure_future(self.hub.link.send_tunnel(
-                        self.payload_type, self.target, transfer.frames[index], bulk=True))))
+                        self.payload_type, self.target, transfer.frames[index], bulk=True,
+                        priority=self.priority))))
                 try:
                     for index, written in queued:
                         transfer.on_sent(index, await written)
