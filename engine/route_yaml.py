@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping
 
 import jsonschema
@@ -31,7 +32,11 @@ from engine.redaction import MASK, Secret, has_url_password, is_secret_name, red
 from engine.suggest import did_you_mean
 
 Path_ = tuple[str | int, ...]
-_ENV_REFERENCE = re.compile(r"\$\$|\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
+_ENV_REFERENCE = re.compile(r"\$\$|\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}|\$\{file:([^}]+)\}")
+
+
+class SecretFileError(Exception):
+    """A ``${file:...}`` secret that cannot be read; the message names the file, never content."""
 
 
 @dataclass(frozen=True, order=True)
@@ -163,6 +168,9 @@ class _Reader:
             self.problems.append(Problem(self.file, node.start_mark.line + 1,
                                          f"environment variable {name} is not set (use ${{{name}:-default}} for a default)"))
             return value
+        except SecretFileError as exc:
+            self.problems.append(Problem(self.file, node.start_mark.line + 1, str(exc)))
+            return Secret(value, MASK)
         if masked != substituted or has_url_password(substituted):
             return Secret(substituted, redact_urls(masked) if MASK in masked or has_url_password(masked) else MASK)
         if substituted != value:
@@ -257,6 +265,18 @@ def substitute_env(text: str, env: Mapping[str, str]) -> str:
     return _substitute_masked(text, env)[0]
 
 
+def read_secret_file(path: str) -> str:
+    """The content of a ``${file:/run/credentials/amqp-password}`` secret (a systemd
+    credential, a Docker or Kubernetes secret), one trailing newline stripped, as ``echo`` and
+    most editors leave one. Always a secret: shown as ``***`` wherever it is printed."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else "not UTF-8 text"
+        raise SecretFileError(f"secret file {path}: cannot read it ({reason})") from None
+    return text[:-2] if text.endswith("\r\n") else text.removesuffix("\n")
+
+
 def _substitute_masked(text: str, env: Mapping[str, str]) -> tuple[str, str]:
     """The substituted text, and the same with every secret-named variable's value as ``***``
     (see engine/redaction.py for the rule)."""
@@ -264,6 +284,8 @@ def _substitute_masked(text: str, env: Mapping[str, str]) -> tuple[str, str]:
     def value(match: re.Match[str]) -> str:
         if match.group(0) == "$$":
             return "$"
+        if match.group(3):
+            return read_secret_file(match.group(3))
         name, default = match.group(1), match.group(2)
         if name in env:
             return env[name]
@@ -273,7 +295,8 @@ def _substitute_masked(text: str, env: Mapping[str, str]) -> tuple[str, str]:
 
     def masked(match: re.Match[str]) -> str:
         found = value(match)
-        return MASK if match.group(1) and is_secret_name(match.group(1)) and found else found
+        secret = match.group(3) or (match.group(1) and is_secret_name(match.group(1)))
+        return MASK if secret and found else found
 
     return _ENV_REFERENCE.sub(value, text), _ENV_REFERENCE.sub(masked, text)
 

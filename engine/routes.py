@@ -27,7 +27,7 @@ from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, Rou
 from engine.endpoints.base import EndpointError, Transport
 from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hint, undeclared_keys, undeclared_path
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
-from engine.mapping import MappingError, compile_mapping, known_functions, meta_names, unknown_functions
+from engine.mapping import MappingError, compile_mapping, known_functions, literal_format_problems, meta_names, unknown_functions
 from engine.options import OptionError, describe, evolve, fields_of, given, option, parse
 from engine.local_broker import LOCAL_BROKER_ENV
 from engine.redaction import Secret, json_default, revealed
@@ -843,6 +843,7 @@ def _mapping_problems(expression: str | None) -> Iterator[str]:
         return
     for function in unknown_functions(expression):
         yield f"unknown function {function}() in {expression!r}{did_you_mean(function, known_functions())}"
+    yield from literal_format_problems(expression)
 
 
 def _endpoint(

@@ -30,6 +30,15 @@ def _tunnel_default(name: str, unit: str = "") -> str:
 
 
 @dataclass(frozen=True, kw_only=True)
+class MavlinkAcceptedKey:
+    __schema_description__ = ("a previous key, still accepted on incoming frames until a deadline, during a fleet-wide "
+                              "key rotation; outgoing frames always use key_file/key_env")
+
+    key_file: str = option(description="file holding the old key (32 bytes, or 64 hex digits)")
+    until: str = option(description="ISO 8601 time with a zone (2026-12-01T00:00:00Z): frames signed with this key are refused from then on")
+
+
+@dataclass(frozen=True, kw_only=True)
 class MavlinkSigning:
     __schema_description__ = ("MAVLink 2 signing with a 32-byte key: what we send is signed; unsigned, forged and "
                               "replayed frames are dropped and counted (status: link rejections); without signing, nothing is signed or checked")
@@ -42,6 +51,8 @@ class MavlinkSigning:
                                                           "reuses one (its directory must exist); without it, the clock alone")
     allow_unsigned: tuple[str, ...] = option(("RADIO_STATUS",),
                                              description="message names accepted unsigned (a SiK radio's RADIO_STATUS is never signed)")
+    accept: tuple[MavlinkAcceptedKey, ...] = option((), description="old keys accepted on incoming frames until their deadline "
+                                                    "(a key rotation: vehicles switch one by one)")
 
 
 @dataclass(frozen=True, kw_only=True)
