@@ -12,17 +12,29 @@ Served by aiohttp on the engine's own event loop:
 * ``GET /tap/{route}``: JSON lines, one per message through the route, from now on.
 
 A bare port binds 127.0.0.1: the admin endpoint exposes message contents (taps), so it is
-reachable from elsewhere only when an address is given on purpose.
+reachable from elsewhere only when an address is given on purpose, and then only with an
+identity (:class:`AdminAccess`): on any address outside 127.0.0.0/8 and ::1 the engine
+refuses to start without ``--admin-token-file``, and every path but ``/healthz`` asks for
+``Authorization: Bearer <token>``, compared in constant time (``hmac.compare_digest``). A
+failed attempt is counted (``rabbitros_admin_auth_failures_total``) and logged with the
+peer's address and the path, never the token. ``--admin-tls-cert/--admin-tls-key`` serve
+HTTPS. ``/healthz`` stays open: a load balancer's or systemd's probe carries no token, and it
+shows only connection names and their state (no message content, no URL, no counter).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import hmac
+import ipaddress
 import json
 import logging
+import ssl
 import time
-from typing import TYPE_CHECKING, Any, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Awaitable, Callable, Iterator
 
 from aiohttp import web
 from prometheus_client import CollectorRegistry, generate_latest
@@ -45,6 +57,69 @@ def parse_address(text: str) -> tuple[str, int]:
     if not port.isdigit() or not 0 <= int(port) <= 65535 or (sep and not host):
         raise ValueError(f"admin address {text!r} is not [HOST:]PORT")
     return host, int(port)
+
+
+class AdminConfigError(ValueError):
+    """The admin options cannot serve safely (no token off loopback, unreadable files)."""
+
+
+OPEN_PATHS = frozenset({"/healthz"})
+"""Paths served without a token (see the module docstring for why /healthz is one)."""
+
+
+def is_loopback(host: str) -> bool:
+    """127.0.0.0/8, ::1 and ``localhost``: addresses no packet from another machine reaches.
+    Anything else, the wildcard 0.0.0.0/:: and host names included, is reachable."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True)
+class AdminAccess:
+    """Who may read the admin endpoint and how: the bearer token (None: anyone who can
+    reach a loopback address) and the TLS context (None: plain HTTP)."""
+
+    token: bytes | None = None
+    tls: ssl.SSLContext | None = None
+
+    @property
+    def scheme(self) -> str:
+        return "https" if self.tls is not None else "http"
+
+
+def read_token(path: Path) -> bytes:
+    """A token file's content, one trailing newline stripped; an empty one is refused."""
+    from engine.route_yaml import SecretFileError, read_secret_file
+
+    try:
+        token = read_secret_file(str(path))
+    except SecretFileError as exc:
+        raise AdminConfigError(f"--admin-token-file: {exc}") from None
+    if not token.strip():
+        raise AdminConfigError(f"--admin-token-file: {path} is empty")
+    return token.encode()
+
+
+def admin_access(host: str, token_file: Path | None, tls_cert: Path | None, tls_key: Path | None) -> AdminAccess:
+    """The access rules for ``--admin host:port``; AdminConfigError when it would be open to
+    the network or its files cannot be read."""
+    if token_file is None and not is_loopback(host):
+        raise AdminConfigError(f"--admin {host}: an address other than loopback (127.0.0.1, ::1) serves taps and "
+                               "status to the network; give --admin-token-file FILE (and --admin-tls-cert/--admin-tls-key)")
+    if (tls_cert is None) != (tls_key is None):
+        raise AdminConfigError("--admin-tls-cert and --admin-tls-key go together")
+    tls = None
+    if tls_cert is not None and tls_key is not None:
+        tls = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+        try:
+            tls.load_cert_chain(str(tls_cert), str(tls_key))
+        except (OSError, ssl.SSLError) as exc:
+            raise AdminConfigError(f"--admin-tls-cert {tls_cert} / --admin-tls-key {tls_key}: {getattr(exc, 'strerror', None) or exc}") from None
+    return AdminAccess(read_token(token_file) if token_file is not None else None, tls)
 
 
 def connection_health(engine: Engine) -> dict[str, dict[str, Any]]:
@@ -72,6 +147,7 @@ class EngineCollector:
 
     def __init__(self, engine: Engine) -> None:
         self.engine = engine
+        self.auth_failures = 0
 
     def collect(self) -> Iterator[Metric]:
         engine = self.engine
@@ -94,6 +170,9 @@ class EngineCollector:
             latency.add_metric([name], buckets, observer.latency_ns_total / 1e9)
             dropped.add_metric([name], observer.tap_dropped + sum(t.dropped for t in observer.taps))
         yield from (messages, dead, latency, dropped, sink_errors)
+        failures = CounterMetricFamily("rabbitros_admin_auth_failures", "Admin requests refused for a missing or wrong token")
+        failures.add_metric([], self.auth_failures)
+        yield failures
         reloads = CounterMetricFamily("rabbitros_reloads", "Configuration reloads", labels=["result"])
         reloads.add_metric(["succeeded"], engine.reloads.succeeded)
         reloads.add_metric(["rejected"], engine.reloads.rejected)
@@ -105,13 +184,18 @@ class EngineCollector:
         yield up
 
 
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+
 class AdminServer:
-    def __init__(self, engine: Engine, host: str, port: int) -> None:
+    def __init__(self, engine: Engine, host: str, port: int, access: AdminAccess | None = None) -> None:
         self.engine = engine
         self.host, self.port = host, port
+        self.access = access or AdminAccess()
         self.registry = CollectorRegistry(auto_describe=False)
-        self.registry.register(EngineCollector(engine))  # type: ignore[arg-type]
-        app = web.Application()
+        self.collector = EngineCollector(engine)
+        self.registry.register(self.collector)  # type: ignore[arg-type]
+        app = web.Application(middlewares=[self._authenticate] if self.access.token is not None else [])
         app.router.add_get("/metrics", self.metrics)
         app.router.add_get("/healthz", self.healthz)
         app.router.add_get("/status", self.status)
@@ -122,13 +206,30 @@ class AdminServer:
 
     async def start(self) -> None:
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port, reuse_address=True)
+        site = web.TCPSite(self._runner, self.host, self.port, reuse_address=True, ssl_context=self.access.tls)
         await site.start()
         sockets = getattr(site._server, "sockets", None) or []  # the bound port when 0 was asked
         if sockets:
             self.port = sockets[0].getsockname()[1]
         self._sampler = asyncio.create_task(self._sample(), name="admin-rates")
-        log.info("admin endpoint listening", extra={"url": f"http://{self.host}:{self.port}/"})
+        log.info("admin endpoint listening", extra={"url": f"{self.access.scheme}://{self.host}:{self.port}/",
+                                                    "token": self.access.token is not None})
+
+    @web.middleware
+    async def _authenticate(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        """Every path but /healthz (unknown ones too, so no route name leaks) needs the bearer token."""
+        if request.path in OPEN_PATHS:
+            return await handler(request)
+        scheme, _, given = request.headers.get("Authorization", "").partition(" ")
+        assert self.access.token is not None
+        # surrogateescape: aiohttp keeps a header's undecodable bytes as surrogates (a 500 before, found by the fuzz test)
+        if scheme.lower() == "bearer" and hmac.compare_digest(given.strip().encode("utf-8", "surrogateescape"), self.access.token):
+            return await handler(request)
+        self.collector.auth_failures += 1
+        log.warning("admin request refused", extra={"peer": request.remote, "path": request.path[:200],
+                                                    "reason": "wrong token" if given else "no bearer token"})
+        return web.json_response({"error": "a bearer token is required (Authorization: Bearer <token>)"}, status=401,
+                                 headers={"WWW-Authenticate": 'Bearer realm="rabbitros"'})
 
     async def stop(self) -> None:
         for task in list(self._taps):  # a tap streams until its client leaves: end it

@@ -14,9 +14,9 @@ from pathlib import Path
 from typing import Sequence
 
 from engine import __version__, endpoints
-from engine.admin import AdminServer, parse_address, status_document
+from engine.admin import AdminAccess, AdminConfigError, AdminServer, admin_access, parse_address, status_document
 from engine.redaction import redact_urls
-from engine.opsview import print_status, print_tap
+from engine.opsview import AdminClient, print_status, print_tap
 from engine.endpoints.base import EndpointError
 from engine.local_broker import LOCAL_BROKER_ENV, BrokerError, PrivateBroker, private_brokers, stand_in_for_check
 from engine.logs import setup_logging
@@ -83,6 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--status-file", type=Path, metavar="FILE", help="keep the live status (generation, config hash, counters) in this JSON file")
     run.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT",
                      help="serve /metrics, /healthz, /status and /tap/ROUTE over HTTP (a bare port binds 127.0.0.1); off by default")
+    run.add_argument("--admin-token-file", type=Path, metavar="FILE",
+                     help="a bearer token every admin path but /healthz asks for; required when --admin is not a loopback address")
+    run.add_argument("--admin-tls-cert", type=Path, metavar="FILE", help="serve the admin endpoint over HTTPS with this certificate (PEM)")
+    run.add_argument("--admin-tls-key", type=Path, metavar="FILE", help="the private key of --admin-tls-cert (PEM)")
     run.add_argument("--instance", metavar="NAME", help="this engine's name among instances sharing the routes (routes' instances:); default the host name")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
     run.add_argument("--stats-interval", type=float, default=10.0, metavar="SECONDS",
@@ -109,13 +113,29 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", help="the engine's --admin address")
     where.add_argument("--status-file", type=Path, help="the engine's --status-file (printed as JSON)")
     status.add_argument("--json", action="store_true", help="print the raw status document")
+    _client_access_options(status)
 
     tap = commands.add_parser("tap", help="print, as JSON lines, every message through a route of a running engine; "
                               "stderr says 'listening' once it is attached, exit 1 when the engine goes away")
     tap.add_argument("route")
     tap.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", required=True, help="the engine's --admin address")
     tap.add_argument("--count", type=int, default=0, help="stop after this many messages (default: until interrupted)")
+    _client_access_options(tap)
     return parser
+
+
+def _client_access_options(sub: argparse.ArgumentParser) -> None:
+    sub.add_argument("--admin-token-file", type=Path, metavar="FILE", help="the engine's --admin-token-file (sent as a bearer token)")
+    sub.add_argument("--admin-ca-file", type=Path, metavar="FILE",
+                     help="speak HTTPS to the admin endpoint and verify its certificate with this CA (PEM)")
+
+
+def _client(args: argparse.Namespace) -> AdminClient | int:
+    try:
+        return AdminClient.from_files(args.admin, args.admin_token_file, args.admin_ca_file)
+    except AdminConfigError as exc:
+        print(exc, file=sys.stderr)
+        return 2
 
 
 def _admin_address(text: str) -> tuple[str, int]:
@@ -138,7 +158,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_route_tests(args.routes, args.schemas or default_schemas(args.routes))
     if args.command == "status":
         if args.admin:
-            return print_status(args.admin, args.json)
+            client = _client(args)
+            return client if isinstance(client, int) else print_status(args.admin, args.json, client)
         try:
             print(args.status_file.read_text(), end="")
         except OSError as exc:
@@ -146,7 +167,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 1
         return 0
     if args.command == "tap":
-        return print_tap(args.admin, args.route, args.count)
+        client = _client(args)
+        return client if isinstance(client, int) else print_tap(args.admin, args.route, args.count, client)
     listener = setup_logging(args.log_level, args.log_format)
     try:
         return run_loop(run(args))
@@ -191,6 +213,13 @@ def run_route_tests(routes: Path, schemas_dir: Path) -> int:
 
 async def run(args: argparse.Namespace) -> int:
     started: list[PrivateBroker] = []
+    access = None
+    if args.admin:
+        try:
+            access = admin_access(args.admin[0], args.admin_token_file, args.admin_tls_cert, args.admin_tls_key)
+        except AdminConfigError as exc:
+            log.error("admin endpoint refused", extra={"error": str(exc)})
+            return 2
     if args.cluster < 1 or (args.cluster > 1 and not args.local_broker):
         log.error("--cluster N needs --local-broker and N >= 1")
         return 2
@@ -210,7 +239,7 @@ async def run(args: argparse.Namespace) -> int:
             log.info("local broker started", extra={"urls": [redact_urls(u) for u in urls], "nodes": nodes})
             if args.broker_url_file:
                 _write_atomically(args.broker_url_file, "\n".join(urls) + "\n")
-        return await serve(args)
+        return await serve(args, access)
     finally:
         for broker in reversed(started):
             await asyncio.to_thread(broker.stop)
@@ -231,10 +260,10 @@ def _protocols_used(args: argparse.Namespace) -> set[str] | None:
     return {connection.protocol for connection in config.connections.values()}
 
 
-async def serve(args: argparse.Namespace) -> int:
+async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> int:
     engine = Engine(args.routes, args.schemas or default_schemas(args.routes), require_connections=args.require_connections,
                     instance=args.instance)
-    admin = AdminServer(engine, *args.admin) if args.admin else None
+    admin = AdminServer(engine, *args.admin, access) if args.admin else None
     if admin is not None:
         try:
             await admin.start()

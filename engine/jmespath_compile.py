@@ -24,17 +24,26 @@ from jmespath.visitor import Options, TreeInterpreter, _equals, _is_actual_numbe
 from jmespath.visitor import _Expression as _InterpretedExpression
 
 Compiled = Callable[[Any], Any]
+Override = Callable[[dict[str, Any]], Compiled]
+"""Compiles one ``function_expression`` node itself (a function that needs more than its
+arguments, such as ``meta(name)``, which reads the message's source metadata)."""
 
 
 class Unsupported(Exception):
     """A node this compiler does not know; the caller falls back to the interpreter."""
 
 
-def compile_parsed(parsed: ParsedResult, options: Options | None = None) -> Compiled:
-    """A callable equal to ``lambda data: parsed.search(data, options=options)``."""
+def compile_parsed(parsed: ParsedResult, options: Options | None = None,
+                   overrides: dict[str, Override] | None = None) -> Compiled:
+    """A callable equal to ``lambda data: parsed.search(data, options=options)``.
+
+    ``overrides`` compile calls of the functions they name (by name) instead of the function
+    table; an expression using one never falls back to the interpreter (it raises Unsupported)."""
     try:
-        return _Compiler(options or Options()).node(parsed.parsed)
+        return _Compiler(options or Options(), overrides).node(parsed.parsed)
     except Unsupported:
+        if overrides:
+            raise
         return lambda data: parsed.search(data, options=options)
 
 
@@ -83,8 +92,9 @@ class _Expression(_InterpretedExpression):
 
 
 class _Compiler:
-    def __init__(self, options: Options) -> None:
+    def __init__(self, options: Options, overrides: dict[str, Override] | None = None) -> None:
         self.options = options
+        self.overrides = overrides or {}
         self.functions = options.custom_functions if options.custom_functions is not None else jmespath_functions.Functions()
         self.dict_cls = options.dict_cls if options.dict_cls is not None else dict
 
@@ -341,6 +351,8 @@ class _Compiler:
 
     def _function_expression(self, node: dict[str, Any]) -> Compiled:
         name = node["value"]
+        if name in self.overrides:
+            return self.overrides[name](node)
         arguments = tuple(self.node(child) for child in node["children"])
         table = self.functions
         spec = table.FUNCTION_TABLE.get(name)

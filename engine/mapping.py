@@ -13,7 +13,8 @@ import re
 import time
 import uuid
 from functools import lru_cache
-from typing import Any, Callable
+from types import MappingProxyType
+from typing import Any, Callable, Mapping
 
 import jmespath
 from jmespath import exceptions as jmespath_errors
@@ -22,7 +23,12 @@ from jmespath import functions
 from engine import frames
 from engine.jmespath_compile import compile_parsed
 
-Mapper = Callable[[Any], Any]
+Mapper = Callable[..., Any]
+"""``mapper(data)``, or ``mapper(data, meta)`` where ``meta`` is this message's source metadata
+(:attr:`engine.endpoints.base.Inbound.meta`), which ``meta(name)`` reads."""
+
+META_FUNCTION = "meta"
+_NO_META: Mapping[str, Any] = MappingProxyType({})
 
 
 class MappingError(ValueError):
@@ -109,12 +115,21 @@ class FieldFunctions(functions.Functions):
     def _func_uuid(self) -> str:
         return uuid.uuid4().hex
 
+    @functions.signature({"types": ["string"]})
+    def _func_meta(self, name: str) -> Any:
+        """Declared so the function is known; a mapping calling it is compiled with its own
+        ``meta`` (:func:`compile_mapping`), which reads the message's metadata."""
+        raise MappingError("meta() is evaluated only by a compiled mapping")
+
     @functions.signature({"types": ["string"]}, {"types": ["object"]})
     def _func_format(self, template: str, values: dict[str, Any]) -> str:
+        """Fields only (see :func:`parse_template`): never ``str.format``, whose
+        ``{agent.__class__.__mro__}`` reads Python attributes when a template comes from a
+        message. Parsed templates are cached, so a literal template is parsed once."""
         try:
-            return template.format_map(values)
-        except (KeyError, IndexError, ValueError) as exc:
-            raise MappingError(f"format: {exc!s} in {template!r}") from None
+            return _compiled_template(template)(values)
+        except TemplateError as exc:
+            raise MappingError(f"format: {exc}") from None
 
     # Unit and frame conversions (MAVLink integers <-> SI, NED <-> ENU), see engine.frames.
     @functions.signature({"types": ["number"]})
@@ -216,17 +231,8 @@ def _all_options() -> jmespath.Options:
 
 
 def _called(parsed: Any) -> set[str]:
-    names: set[str] = set()
-
-    def walk(node: Any) -> None:
-        if isinstance(node, dict):
-            if node.get("type") == "function_expression":
-                names.add(node["value"])
-            for child in node.get("children", ()):
-                walk(child)
-
-    walk(parsed)
-    return names
+    """The names of the functions an expression calls."""
+    return {node["value"] for node in _calls(parsed)}
 
 
 def _options_for(parsed: Any) -> jmespath.Options:
@@ -236,18 +242,56 @@ def _options_for(parsed: Any) -> jmespath.Options:
     return _all_options() if _called(parsed) & protocol_functions else _OPTIONS
 
 
-def compile_mapping(expression: str | None) -> Mapper | None:
+def compile_mapping(expression: str | None, variables: Mapping[str, Any] | None = None) -> Mapper | None:
     """Compile a JMESPath expression (to closures, see :mod:`engine.jmespath_compile`);
-    ``None`` (identity) stays ``None`` so callers can forward original bytes untouched."""
+    ``None`` (identity) stays ``None`` so callers can forward original bytes untouched.
+
+    ``meta(name)`` gives the message's source metadata: the mapper is called as
+    ``mapper(data, meta)`` with the source's own dict for the message (never copied). The
+    call is compiled to a closure reading one slot of this mapper, which ``apply`` points at
+    the message's dict before evaluating (one attribute store per message, and none for a
+    mapping that does not call ``meta``). A name in ``variables`` (the route's template
+    variables, fixed at load) is folded into a constant. Mappings run on the event loop, one
+    message at a time, so the slot is never shared by two evaluations in flight."""
     if expression is None:
         return None
     try:
         parsed = jmespath.compile(expression)
     except jmespath_errors.JMESPathError as exc:
         raise MappingError(_one_line(exc)) from None
-    evaluate = compile_parsed(parsed, _options_for(parsed.parsed))
+    options = _options_for(parsed.parsed)
+    if not _calls(parsed.parsed, META_FUNCTION):
+        evaluate = compile_parsed(parsed, options)
 
-    def apply(data: Any) -> Any:
+        def apply(data: Any, meta: Mapping[str, Any] = _NO_META) -> Any:
+            try:
+                return evaluate(data)
+            except jmespath_errors.JMESPathError as exc:
+                raise MappingError(_one_line(exc)) from None
+            except (TypeError, ValueError, ArithmeticError) as exc:
+                raise MappingError(str(exc)) from None
+
+        return apply
+    slot = _MetaSlot()
+    constants = dict(variables or {})
+
+    def compile_meta(node: dict[str, Any]) -> Callable[[Any], Any]:
+        name = meta_name(node)
+        if name is None:
+            raise MappingError("meta() takes one name in quotes, as meta('routing_key')")
+        if name in constants:
+            constant = constants[name]
+            return lambda value: constant
+
+        def meta(value: Any) -> Any:
+            return slot.meta.get(name)
+
+        return meta
+
+    evaluate = compile_parsed(parsed, options, {META_FUNCTION: compile_meta})
+
+    def apply_with_meta(data: Any, meta: Mapping[str, Any] = _NO_META) -> Any:
+        slot.meta = meta
         try:
             return evaluate(data)
         except jmespath_errors.JMESPathError as exc:
@@ -255,7 +299,50 @@ def compile_mapping(expression: str | None) -> Mapper | None:
         except (TypeError, ValueError, ArithmeticError) as exc:
             raise MappingError(str(exc)) from None
 
-    return apply
+    return apply_with_meta
+
+
+class _MetaSlot:
+    """Where a compiled ``meta(name)`` finds the metadata of the message being mapped."""
+
+    __slots__ = ("meta",)
+
+    def __init__(self) -> None:
+        self.meta: Mapping[str, Any] = _NO_META
+
+
+def meta_name(node: dict[str, Any]) -> str | None:
+    """The name a ``meta(...)`` call node asks for, or None when it is not one literal string."""
+    children = node.get("children", ())
+    if len(children) == 1 and children[0].get("type") == "literal" and isinstance(children[0].get("value"), str):
+        return children[0]["value"]
+    return None
+
+
+def meta_names(expression: str | None) -> list[str | None]:
+    """The names ``expression`` passes to ``meta()``, in order (None for a call that does not
+    give one literal name); [] for an expression that does not compile."""
+    if not expression:
+        return []
+    try:
+        tree = jmespath.compile(expression).parsed
+    except jmespath_errors.JMESPathError:
+        return []
+    return [meta_name(node) for node in _calls(tree, META_FUNCTION)]
+
+
+def _calls(node: Any, function: str | None = None) -> list[dict[str, Any]]:
+    """The function-call nodes of a parsed expression (of ``function`` only, if given)."""
+    found: list[dict[str, Any]] = []
+    stack = [node]
+    while stack:
+        current = stack.pop()
+        if not isinstance(current, dict):
+            continue
+        if current.get("type") == "function_expression" and function in (None, current.get("value")):
+            found.append(current)
+        stack.extend(reversed(current.get("children", ())))
+    return found
 
 
 def known_functions() -> list[str]:
@@ -286,38 +373,145 @@ def top_level_keys(expression: str | None) -> list[str] | None:
     return [child["value"] for child in node["children"]]
 
 
-_PLACEHOLDER = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*)\}")
+class TemplateError(MappingError):
+    """A template that is not literal text and ``{field.path}`` placeholders."""
+
+
+_FIELD_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+# Python's format-spec mini-language without nested fields: [[fill]align][sign][z][#][0][width][,_][.precision][type]
+_FORMAT_SPEC = re.compile(r"(?:[^{}]?[<>=^])?[-+ ]?z?#?0?\d*[,_]?(?:\.\d+)?[bcdeEfFgGnosxX%]?\Z")
+Template = tuple[list[str], list[tuple[tuple[str, ...], str]]]
+
+
+def parse_template(template: str) -> Template:
+    """Split ``canonical.weeds.{agent_id}`` into literals and ``(field path, format spec)``.
+
+    The whole grammar, shared by ``format()``, AMQP routing keys and ROS 2 topics: literal
+    text, ``{{``/``}}`` for a brace, and ``{name}`` or ``{name.name...}`` naming a field
+    path into the canonical message, optionally ``{name:spec}`` with a plain format spec
+    (``{lat:.6f}``, ``{n:04d}``) applied only to numbers and strings. A field name is an
+    identifier that is not a ``__dunder__``; indexing, conversions (``!r``), nested fields
+    and attribute access do not exist, so a template taken from a message can only read
+    that message's fields.
+    """
+    literals: list[str] = []
+    fields: list[tuple[tuple[str, ...], str]] = []
+    text: list[str] = []
+    index, length = 0, len(template)
+    while index < length:
+        char = template[index]
+        if char in "{}" and template[index + 1:index + 2] == char:
+            text.append(char)
+            index += 2
+        elif char == "}":
+            raise TemplateError(f"template {template!r}: single '}}' at {index} (write '}}}}' for a brace)")
+        elif char == "{":
+            close = template.find("}", index)
+            if close < 0:
+                raise TemplateError(f"template {template!r}: '{{' at {index} is never closed")
+            fields.append(_placeholder(template, template[index + 1:close]))
+            literals.append("".join(text))
+            text = []
+            index = close + 1
+        else:
+            text.append(char)
+            index += 1
+    literals.append("".join(text))
+    return literals, fields
+
+
+def _placeholder(template: str, body: str) -> tuple[tuple[str, ...], str]:
+    name, _, spec = body.partition(":")
+    path = tuple(name.split("."))
+    for part in path:
+        if not _FIELD_NAME.match(part) or (part.startswith("__") and part.endswith("__")):
+            raise TemplateError(f"template {template!r}: {{{body}}} is not a field path "
+                                "(names and dots only: {agent_id}, {pose.frame})")
+    if "{" in body or not _FORMAT_SPEC.match(spec):
+        raise TemplateError(f"template {template!r}: {{{body}}}: {spec!r} is not a plain format spec")
+    return path, spec
+
+
+def template_problem(template: str) -> str | None:
+    """Why ``template`` is refused, for ``check``; None when it is fine."""
+    try:
+        parse_template(template)
+    except TemplateError as exc:
+        return str(exc)
+    return None
 
 
 def compile_template(template: str) -> Callable[[Any], str]:
     """Compile ``canonical.weeds.{agent_id}`` into a function of the canonical message.
 
-    Templates without placeholders return the constant string, so the common case costs
-    nothing per message.
+    Raises :class:`TemplateError` for anything :func:`parse_template` refuses. Templates
+    without placeholders return the constant string, so the common case costs nothing per
+    message.
     """
-    pieces = _PLACEHOLDER.split(template)
-    if len(pieces) == 1:
-        return lambda _data: template
-    literals = pieces[0::2]
-    paths = [tuple(path.split(".")) for path in pieces[1::2]]
+    literals, fields = parse_template(template)
+    if not fields:
+        constant = literals[0]
+        return lambda _data: constant
 
     def render(data: Any) -> str:
         out = [literals[0]]
-        for path, literal in zip(paths, literals[1:]):
+        for (path, spec), literal in zip(fields, literals[1:]):
             value = data
             for key in path:
                 if not isinstance(value, dict) or key not in value:
                     raise MappingError(f"template {template!r}: field {'.'.join(path)!r} is missing")
                 value = value[key]
-            out.append(str(value))
+            out.append(_render_value(template, value, spec))
             out.append(literal)
         return "".join(out)
 
     return render
 
 
+def _render_value(template: str, value: Any, spec: str) -> str:
+    if not spec:
+        return str(value)
+    if type(value) not in (int, float, str):
+        raise MappingError(f"template {template!r}: format spec {spec!r} applies to numbers and strings, not {value!r}")
+    try:
+        return format(value, spec)
+    except ValueError as exc:
+        raise MappingError(f"template {template!r}: {exc}") from None
+
+
+@lru_cache(maxsize=512)
+def _compiled_template(template: str) -> Callable[[Any], str]:
+    return compile_template(template)
+
+
 def template_fields(template: str) -> list[str]:
-    return _PLACEHOLDER.findall(template)
+    """Dotted field paths a template reads; [] for a template :func:`parse_template` refuses
+    (``check`` reports that separately)."""
+    try:
+        return [".".join(path) for path, _spec in parse_template(template)[1]]
+    except TemplateError:
+        return []
+
+
+def literal_format_problems(expression: str) -> list[str]:
+    """Problems of the literal templates given to ``format()`` in ``expression``, so a bad
+    one fails ``check`` rather than the first message."""
+    problems: list[str] = []
+
+    def walk(node: Any) -> None:
+        if isinstance(node, dict):
+            children = node.get("children", ())
+            if node.get("type") == "function_expression" and node.get("value") == "format" and children:
+                first = children[0]
+                if isinstance(first, dict) and first.get("type") == "literal" and isinstance(first.get("value"), str):
+                    problem = template_problem(first["value"])
+                    if problem:
+                        problems.append(f"format(): {problem}")
+            for child in children:
+                walk(child)
+
+    walk(jmespath.compile(expression).parsed)
+    return problems
 
 
 def _one_line(exc: Exception) -> str:

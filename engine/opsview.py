@@ -10,10 +10,13 @@ from __future__ import annotations
 
 import http.client
 import json
+import ssl
 import sys
 import time
 import urllib.error
 import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from rich.console import Console, Group
@@ -21,13 +24,42 @@ from rich.table import Table
 from rich.text import Text
 
 
-def admin_url(address: tuple[str, int], path: str) -> str:
+@dataclass(frozen=True)
+class AdminClient:
+    """How a command reaches an admin endpoint: the bearer token it sends (``status``/``tap
+    --admin-token-file``) and, for HTTPS, the context verifying the engine's certificate
+    against ``--admin-ca-file``."""
+
+    token: str | None = None
+    tls: ssl.SSLContext | None = None
+
+    @classmethod
+    def from_files(cls, address: tuple[str, int], token_file: Path | None, ca_file: Path | None) -> AdminClient:
+        from engine.admin import AdminConfigError, read_token
+
+        tls = None
+        if ca_file is not None:
+            try:
+                tls = ssl.create_default_context(cafile=str(ca_file))
+            except (OSError, ssl.SSLError) as exc:
+                raise AdminConfigError(f"--admin-ca-file {ca_file}: {getattr(exc, 'strerror', None) or exc}") from None
+        return cls(read_token(token_file).decode() if token_file is not None else None, tls)
+
+    def open(self, address: tuple[str, int], path: str, timeout: float | None) -> Any:
+        request = urllib.request.Request(admin_url(address, path, self))
+        if self.token is not None:
+            request.add_header("Authorization", f"Bearer {self.token}")
+        return urllib.request.urlopen(request, timeout=timeout, context=self.tls)
+
+
+def admin_url(address: tuple[str, int], path: str, client: AdminClient | None = None) -> str:
     host, port = address
-    return f"http://{f'[{host}]' if ':' in host else host}:{port}{path}"
+    scheme = "https" if client is not None and client.tls is not None else "http"
+    return f"{scheme}://{f'[{host}]' if ':' in host else host}:{port}{path}"
 
 
-def fetch_status(address: tuple[str, int], timeout: float = 5.0) -> dict[str, Any]:
-    with urllib.request.urlopen(admin_url(address, "/status"), timeout=timeout) as response:
+def fetch_status(address: tuple[str, int], timeout: float = 5.0, client: AdminClient | None = None) -> dict[str, Any]:
+    with (client or AdminClient()).open(address, "/status", timeout) as response:
         return json.loads(response.read())
 
 
@@ -111,11 +143,14 @@ def _rejected_reload(status: dict[str, Any]) -> list[Text]:
     return lines
 
 
-def print_status(address: tuple[str, int], raw: bool) -> int:
+def print_status(address: tuple[str, int], raw: bool, client: AdminClient | None = None) -> int:
     try:
-        status = fetch_status(address)
+        status = fetch_status(address, client=client)
+    except urllib.error.HTTPError as exc:
+        print(f"{admin_url(address, '/status', client)}: {exc.code} {exc.reason}{_token_hint(exc.code, client)}", file=sys.stderr)
+        return 1
     except (OSError, urllib.error.URLError, ValueError) as exc:
-        print(f"{admin_url(address, '/status')}: {getattr(exc, 'reason', exc)}", file=sys.stderr)
+        print(f"{admin_url(address, '/status', client)}: {getattr(exc, 'reason', exc)}", file=sys.stderr)
         return 1
     if raw:
         print(json.dumps(status, indent=2))
@@ -125,17 +160,24 @@ def print_status(address: tuple[str, int], raw: bool) -> int:
     return 0
 
 
-def print_tap(address: tuple[str, int], route: str, count: int) -> int:
+def _token_hint(code: int, client: AdminClient | None) -> str:
+    if code != 401:
+        return ""
+    return " (the engine asks for a token: --admin-token-file)" if client is None or client.token is None else " (wrong token)"
+
+
+def print_tap(address: tuple[str, int], route: str, count: int, client: AdminClient | None = None) -> int:
     """Print the tap's JSON lines (stdout) as they come; ``count`` > 0 stops after that many.
 
     Once the engine has attached the tap (it does so before answering), a line on stderr says
     so: a script can wait for ``listening`` and then publish, without losing the first
     messages. The stream ends only when the engine stops (or its admin endpoint does), so an
     end before ``count`` lines, or a connection lost, is an error (exit 1) that says so."""
-    url = admin_url(address, f"/tap/{urllib.request.quote(route, safe='')}")
+    path = f"/tap/{urllib.request.quote(route, safe='')}"
+    url = admin_url(address, path, client)
     seen = 0
     try:
-        with urllib.request.urlopen(url, timeout=None) as response:
+        with (client or AdminClient()).open(address, path, None) as response:
             print(f"tap {route}: listening on {url}" + (f" for {count} messages" if count else " (Ctrl-C stops)"),
                   file=sys.stderr, flush=True)
             for line in response:
@@ -150,7 +192,7 @@ def print_tap(address: tuple[str, int], route: str, count: int) -> int:
             detail = json.loads(detail)["error"]
         except (ValueError, KeyError, TypeError):
             pass
-        print(f"{url}: {exc.code}: {detail}", file=sys.stderr)
+        print(f"{url}: {exc.code}: {detail}{_token_hint(exc.code, client)}", file=sys.stderr)
         return 1
     except urllib.error.URLError as exc:
         print(f"tap {route}: cannot reach the engine's admin endpoint at {url}: {exc.reason} "

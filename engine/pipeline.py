@@ -59,8 +59,8 @@ class Pipeline:
             spec=spec,
             schema=schema,
             sink=sink,
-            mapper=compile_mapping(spec.mapping),
-            sink_mapper=compile_mapping(spec.sink_mapping),
+            mapper=compile_mapping(spec.mapping, spec.variables),
+            sink_mapper=compile_mapping(spec.sink_mapping, spec.variables),
             sink_check=transport(spec.sink.protocol).sink_field_check(spec.sink.options, spec.sink_mapping),
             throttle=Throttle.from_options(spec.throttle),
             reply_shape=ReplyShape(spec.reply, reply_schema),
@@ -81,7 +81,7 @@ class Pipeline:
             data = inbound.fields
         if self.mapper is not None:
             try:
-                data = self.mapper(data)
+                data = self.mapper(data, inbound.meta)
             except MappingError as exc:
                 raise ConversionError("mapping", str(exc)) from None
             except Exception as exc:
@@ -99,7 +99,7 @@ class Pipeline:
         if self.sink_mapper is not None or self.sink_check is not None:
             try:
                 if self.sink_mapper is not None:
-                    fields = self.sink_mapper(data)
+                    fields = self.sink_mapper(data, inbound.meta)
                 if self.sink_check is not None:
                     self.sink_check(fields)
             except (MappingError, MessageRejected) as exc:

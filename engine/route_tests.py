@@ -29,7 +29,7 @@ from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbo
 from engine.pipeline import ConversionError, Pipeline
 from engine.replies import ReplyFailed
 from engine.route_yaml import Problem, parse_document
-from engine.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes
+from engine.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes, source_meta_names
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
 
@@ -54,6 +54,8 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
                     "route": {"type": "string"},
                     "input": {"description": "the source message: a JSON document, or the field dict of a typed source"},
                     "input_raw": {"type": "string", "description": "the source bytes as they are (not JSON-encoded)"},
+                    "meta": {"type": "object", "description": "the source's metadata of the message, read by meta(name) "
+                                                              "(routing_key, topic, system_id...)"},
                     "expect": {"description": "the canonical message"},
                     "ignore": {"type": "array", "items": {"type": "string"}, "description": "keys (a.b) left out"},
                     "expect_sink": {"description": "the sink mapping's output"},
@@ -137,9 +139,24 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
                                                         "expect_error) go together"))
             if config is not None and route not in config.routes:
                 problems.append(document.problem(where + ("route",), f"unknown route {route!r}{did_you_mean(route, config.routes)}"))
+            elif config is not None:
+                problems.extend(document.problem(where + ("meta", key), message)
+                                for key, message in _meta_key_problems(config.routes[route], body.get("meta") or {}))
             if len(problems) == before:
                 cases.append(Case(str(path), line, route, body.get("name", ""), body))
     return cases, problems
+
+
+def _meta_key_problems(spec: RouteSpec, meta: Mapping[str, Any]) -> Iterator[tuple[str, str]]:
+    """A case's ``meta`` keys the route's source never gives, or that the route fixes itself
+    (its template variables)."""
+    given_by_source = source_meta_names(spec.source, {})
+    for key in meta:
+        if key in spec.variables:
+            yield key, f"meta {key!r} is a template variable of route {spec.name!r} ({spec.variables[key]!r}): the route sets it, a test cannot"
+        elif key not in given_by_source:
+            hint = did_you_mean(key, given_by_source) or f" (it gives {', '.join(given_by_source) or 'none'})"
+            yield key, f"meta {key!r}: the {spec.source.protocol} source of route {spec.name!r} gives no {key!r}{hint}"
 
 
 def load_checked(routes: Path, schemas: SchemaRegistry) -> tuple[RoutesConfig | None, list[Case], list[Problem], list[Problem]]:
@@ -212,14 +229,15 @@ def source_message(spec: RouteSpec, body: Mapping[str, Any]) -> Inbound:
     """The message as the route's source would hand it over: bytes for byte sources, and for
     typed sources the field dict after a round trip through the real type (so defaults fill
     in and a field the type lacks is an ``input`` error, as on the wire)."""
+    meta = {"test": True, **(body.get("meta") or {})}
     if "input_raw" in body:
-        return Inbound(body=body["input_raw"].encode("utf-8"), meta={"test": True})
+        return Inbound(body=body["input_raw"].encode("utf-8"), meta=meta)
     value = body["input"]
     typed = _typed_source(spec)
     if typed is None:
-        return Inbound(body=json.dumps(value, ensure_ascii=False).encode("utf-8"), meta={"test": True})
+        return Inbound(body=json.dumps(value, ensure_ascii=False).encode("utf-8"), meta=meta)
     try:
-        return Inbound(fields=typed(value), meta={"test": True})
+        return Inbound(fields=typed(value), meta=meta)
     except (EndpointError, ValueError, TypeError) as exc:
         raise ConversionError("input", f"not a valid source message: {exc}") from None
 

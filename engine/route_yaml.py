@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from typing import Any, Iterator, Mapping
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
 
 import jsonschema
 import yaml
@@ -31,7 +32,11 @@ from engine.redaction import MASK, Secret, has_url_password, is_secret_name, red
 from engine.suggest import did_you_mean
 
 Path_ = tuple[str | int, ...]
-_ENV_REFERENCE = re.compile(r"\$\$|\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
+_ENV_REFERENCE = re.compile(r"\$\$|\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}|\$\{file:([^}]+)\}")
+
+
+class SecretFileError(Exception):
+    """A ``${file:...}`` secret that cannot be read; the message names the file, never content."""
 
 
 @dataclass(frozen=True, order=True)
@@ -51,6 +56,9 @@ class Document:
     lines: dict[Path_, int]
     schema_paths: frozenset[Path_] = field(default=frozenset())
     """Key paths the file's schema rejected (each already reported as a problem)."""
+    expansions: dict[int, Any] = field(default_factory=dict)
+    """What the ``expand`` step of :func:`parse_document` made, by item (route templates:
+    engine/templates.py's ``Expansion`` of each expanded route, by its index)."""
 
     def line(self, path: Path_) -> int:
         while path not in self.lines and path:
@@ -74,9 +82,11 @@ marks, parsed several times faster (1,000 routes: check 0.85 s -> 0.27 s here)."
 def parse_document(
     file: str, text: str, env: Mapping[str, str], problems: list[Problem],
     validator: jsonschema.protocols.Validator, keep_invalid: bool = False,
+    expand: Callable[[Any, dict[Path_, int], dict[Path_, str], list[Problem]], dict[int, Any]] | None = None,
 ) -> Document | None:
     """``text`` as a :class:`Document`, its problems appended to ``problems``; None when it is
-    not YAML, or when the schema rejects it and ``keep_invalid`` is false."""
+    not YAML, or when the schema rejects it and ``keep_invalid`` is false. ``expand`` rewrites
+    the data as read, before it is validated (route templates), moving key lines with it."""
     loader = _Loader(text)
     try:
         root = loader.get_single_node()
@@ -99,10 +109,11 @@ def parse_document(
         problems.append(Problem(file, _recursive_alias_line(text), "invalid YAML: an alias inside its own anchor (recursive alias), or nesting too deep"))
         return None
     data = data if data is not None else {}
+    expansions = expand(data, reader.lines, reader.substituted, problems) if expand is not None else {}
     errors = list(validator.iter_errors(shown(data)))
     if errors and _fit_substitutions(data, reader.substituted, validator, errors):
         errors = list(validator.iter_errors(shown(data)))
-    document = Document(file, data, reader.lines)
+    document = Document(file, data, reader.lines, expansions=expansions)
     rejected = [found for error in errors for found in _schema_problems(error)]
     problems.extend(document.problem(path, message) for path, message in rejected)
     if not rejected:
@@ -157,6 +168,9 @@ class _Reader:
             self.problems.append(Problem(self.file, node.start_mark.line + 1,
                                          f"environment variable {name} is not set (use ${{{name}:-default}} for a default)"))
             return value
+        except SecretFileError as exc:
+            self.problems.append(Problem(self.file, node.start_mark.line + 1, str(exc)))
+            return Secret(value, MASK)
         if masked != substituted or has_url_password(substituted):
             return Secret(substituted, redact_urls(masked) if MASK in masked or has_url_password(masked) else MASK)
         if substituted != value:
@@ -251,6 +265,18 @@ def substitute_env(text: str, env: Mapping[str, str]) -> str:
     return _substitute_masked(text, env)[0]
 
 
+def read_secret_file(path: str) -> str:
+    """The content of a ``${file:/run/credentials/amqp-password}`` secret (a systemd
+    credential, a Docker or Kubernetes secret), one trailing newline stripped, as ``echo`` and
+    most editors leave one. Always a secret: shown as ``***`` wherever it is printed."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else "not UTF-8 text"
+        raise SecretFileError(f"secret file {path}: cannot read it ({reason})") from None
+    return text[:-2] if text.endswith("\r\n") else text.removesuffix("\n")
+
+
 def _substitute_masked(text: str, env: Mapping[str, str]) -> tuple[str, str]:
     """The substituted text, and the same with every secret-named variable's value as ``***``
     (see engine/redaction.py for the rule)."""
@@ -258,6 +284,8 @@ def _substitute_masked(text: str, env: Mapping[str, str]) -> tuple[str, str]:
     def value(match: re.Match[str]) -> str:
         if match.group(0) == "$$":
             return "$"
+        if match.group(3):
+            return read_secret_file(match.group(3))
         name, default = match.group(1), match.group(2)
         if name in env:
             return env[name]
@@ -267,7 +295,8 @@ def _substitute_masked(text: str, env: Mapping[str, str]) -> tuple[str, str]:
 
     def masked(match: re.Match[str]) -> str:
         found = value(match)
-        return MASK if match.group(1) and is_secret_name(match.group(1)) and found else found
+        secret = match.group(3) or (match.group(1) and is_secret_name(match.group(1)))
+        return MASK if secret and found else found
 
     return _ENV_REFERENCE.sub(value, text), _ENV_REFERENCE.sub(masked, text)
 

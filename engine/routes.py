@@ -9,6 +9,7 @@ as ``file:line: message``, so ``check`` and a reload report the same errors the 
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -26,7 +27,7 @@ from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, Rou
 from engine.endpoints.base import EndpointError, Transport
 from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hint, undeclared_keys, undeclared_path
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
-from engine.mapping import MappingError, compile_mapping, known_functions, unknown_functions
+from engine.mapping import MappingError, compile_mapping, known_functions, literal_format_problems, meta_names, unknown_functions
 from engine.options import OptionError, describe, evolve, fields_of, given, option, parse
 from engine.local_broker import LOCAL_BROKER_ENV
 from engine.redaction import Secret, json_default, revealed
@@ -34,6 +35,7 @@ from engine.route_yaml import Document, Path_, Problem, parse_document
 from engine.schemas import SchemaRegistry
 from engine.replies import ReplyOptions
 from engine.suggest import did_you_mean
+from engine.templates import Expansion, expand_routes, is_items_text
 from engine.throttle import ThrottleOptions
 
 ROUTE_FILE_SCHEMA: dict[str, Any] = json.loads(
@@ -74,7 +76,11 @@ class RouteOptions:
     options the protocol's transport declares (``Transport.source_options``/``sink_options``)."""
 
     name: str = option(pattern=NAME_PATTERN, description="unique across the directory; names the route in logs, metrics, "
-                                                         "dead-letter headers and /tap/NAME")
+                                                         "dead-letter headers and /tap/NAME; with for_each, {var} in it takes each item's value")
+    for_each: tuple[dict[str, Any], ...] | str | None = option(
+        None, description="a route template: one route per item (an object of variables), listed here or in a YAML file of "
+                          "such a list beside the route file (watched); {var} in the name and in any string value takes the "
+                          "item's value, and mappings read it with meta('var')")
     description: str | None = option(None, description="free text")
     max_attempts: int = option(DEFAULT_MAX_ATTEMPTS, minimum=1,
                                description="deliveries tried on transient sink failures (across redeliveries) before dead-lettering")
@@ -163,6 +169,9 @@ class RouteSpec:
     """Which engine instances carry the route (scale-out); the default: every instance."""
     reply: ReplyOptions | None = None
     """How the sink's answers to a request are shaped (``reply:``; engine/replies.py)."""
+    variables: Mapping[str, Any] = field(default_factory=dict, compare=False)
+    """The route's template variables (its ``for_each`` item; the fingerprint covers them):
+    ``meta(name)`` gives them as constants folded into the compiled mapping."""
 
 
 @dataclass(frozen=True)
@@ -197,11 +206,19 @@ class RoutesConfig:
     """Accepted but probably not what was meant (two routes consuming one AMQP queue)."""
     dead_letters: DeadLetterSpec = DeadLetterSpec()
     """The engine's one dead-letter destination (``dead_letters:``, resolved)."""
+    data_files: frozenset[Path] = frozenset()
+    """``for_each`` files the routes were expanded from (absolute paths): an edit is a change."""
 
     @property
     def key_files(self) -> frozenset[Path]:
         """Every key file a connection reads: a new key written there is a configuration change."""
         return frozenset(path for connection in self.connections.values() for path in connection.key_files)
+
+    @property
+    def watched_files(self) -> frozenset[Path]:
+        """Files outside the route files whose edits are configuration changes: key files and
+        ``for_each`` files."""
+        return self.key_files | self.data_files
 
 
 def route_files(directory: Path) -> list[Path]:
@@ -235,6 +252,8 @@ def load_routes(
     digest = hashlib.sha256()
     if not directory.exists():
         raise RoutesInvalid([Problem(str(directory), 0, "routes directory does not exist")])
+    texts: list[tuple[Path, str]] = []
+    item_files = ItemFiles(env, problems)
     for path in route_files(directory):
         try:
             text = path.read_text(encoding="utf-8")
@@ -242,7 +261,13 @@ def load_routes(
             problems.append(Problem(str(path), 0, f"cannot read: {exc}"))
             continue
         digest.update(path.name.encode() + b"\0" + text.encode() + b"\0")
-        document = parse_document(str(path), text, env, problems, _ROUTE_FILE_VALIDATOR, keep_invalid=True)
+        if is_items_text(text):
+            item_files.texts[path.resolve()] = text  # a for_each file, read where a route names it
+        else:
+            texts.append((path, text))
+    for path, text in texts:
+        expand = functools.partial(expand_routes, str(path), read_items=item_files.reader(path))
+        document = parse_document(str(path), text, env, problems, _ROUTE_FILE_VALIDATOR, keep_invalid=True, expand=expand)
         if document is not None:
             documents.append(document)
     for schema_path, message in schemas.problems:
@@ -253,11 +278,61 @@ def load_routes(
     dead_letters = _compile_dead_letters(documents, connections, problems)
     warnings.extend(_competing_consumers(routes))
     warnings.extend(_private_broker_warnings(connections, env))
+    warnings.extend(item_files.unused())
     if problems:
         raise RoutesInvalid(sorted(set(problems)), sorted(set(warnings)))
-    digest.update(json.dumps(sorted((n, r.fingerprint) for n, r in routes.items())).encode())  # schemas, key files
+    digest.update(json.dumps(sorted((n, r.fingerprint) for n, r in routes.items())).encode())  # schemas, key files, items
     return RoutesConfig(directory, connections, routes, digest.hexdigest()[:12],
-                        warnings=tuple(sorted(set(warnings))), dead_letters=dead_letters)
+                        warnings=tuple(sorted(set(warnings))), dead_letters=dead_letters,
+                        data_files=frozenset(item_files.read))
+
+
+_ITEMS_VALIDATOR = jsonschema.Draft202012Validator({"type": "array", "items": {"type": "object"}})
+
+
+class ItemFiles:
+    """``for_each`` files as the loader reads them: each once per load, with ``${VAR}`` and
+    line numbers, relative to the route file naming it; those in the routes directory come
+    from the texts already read (they are not route files)."""
+
+    def __init__(self, env: Mapping[str, str], problems: list[Problem]) -> None:
+        self.env = env
+        self.problems = problems
+        self.texts: dict[Path, str] = {}
+        """List-topped files of the routes directory, by absolute path."""
+        self.read: dict[Path, list[Any] | None] = {}
+
+    def reader(self, route_file: Path) -> Callable[[str, Path_], tuple[list[Any] | None, str | None]]:
+        def read(name: str, where: Path_) -> tuple[list[Any] | None, str | None]:
+            path = (route_file.parent / name).resolve()
+            if path not in self.read:
+                self.read[path] = self._load(path)
+            items = self.read[path]
+            if items is None:
+                return None, f"route template: for_each file {name!r} ({path}) is not a readable YAML list of objects (see its own problems)"
+            return items, None
+
+        return read
+
+    def _load(self, path: Path) -> list[Any] | None:
+        text = self.texts.get(path)
+        if text is None:
+            try:
+                text = path.read_text(encoding="utf-8")
+            except (OSError, UnicodeDecodeError) as exc:
+                self.problems.append(Problem(str(path), 0, f"cannot read for_each file: {exc}"))
+                return None
+        if not is_items_text(text) and not any(line.strip() and not line.lstrip().startswith("#") for line in text.splitlines()):
+            return []  # every item deleted (comments may stay): no routes from the template
+        before = len(self.problems)
+        document = parse_document(str(path), text, self.env, self.problems, _ITEMS_VALIDATOR)
+        if document is None or len(self.problems) > before:
+            return None
+        return document.data if isinstance(document.data, list) else None
+
+    def unused(self) -> list[Problem]:
+        return [Problem(str(path), 1, "a YAML list, so not a route file; no route names it in for_each (left out)")
+                for path in sorted(self.texts) if path not in self.read]
 
 
 def _compile_connections(
@@ -461,6 +536,8 @@ def _compile_routes(
     warnings: list[Problem],
 ) -> dict[str, RouteSpec]:
     routes: dict[str, RouteSpec] = {}
+    defined: dict[str, tuple[str, int]] = {}
+    """Where each route name was first defined, whether or not that route compiled."""
     for document in documents:
         for index, body in _items(document, "routes", list):
             where: Path_ = ("routes", index)
@@ -470,13 +547,20 @@ def _compile_routes(
             if route is None:
                 continue
             name = route.name
-            if name in routes:
-                first = routes[name]
-                problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first.file}:{first.line}{_together(document, first.file)}"))
+            expansion: Expansion | None = document.expansions.get(index)
+            variables = dict(expansion.variables) if expansion is not None else {}
+            if name in defined:
+                first_file, first_line = defined[name]
+                template = " (a for_each route's name must hold a variable that differs by item)" if expansion is not None else ""
+                problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first_file}:{first_line}{_together(document, first_file)}{template}"))
+            defined.setdefault(name, (document.file, document.line(where)))
             source, source_complete = _endpoint(document, where + ("source",), name, route.source, connections, problems)
             sink, sink_complete = _endpoint(document, where + ("sink",), name, route.sink, connections, problems)
             mapping, schema_name, sink_mapping = route.mapping, route.schema, route.sink.get("mapping")
-            _route_checks(document, where, route, source, sink, (source_complete, sink_complete), schemas, problems, warnings)
+            _route_checks(document, where, route, source, sink, (source_complete, sink_complete), schemas, problems, warnings,
+                          variables)
+            if expansion is not None:
+                warnings.extend(_shadowing_warnings(document, where, route, expansion, schemas))
             if not (complete and source_complete and sink_complete):
                 continue
             placement = _placement(document, where, route, source, sink, connections, problems) if source and sink else None
@@ -492,7 +576,7 @@ def _compile_routes(
                 json.dumps(
                     [body, {k: (v.fingerprint, v.max_message_bytes) if v else None for k, v in used.items()},
                      schema.digest if schema else None,
-                     _reply_schema_digest(route, schemas)],
+                     _reply_schema_digest(route, schemas)] + ([variables] if variables else []),
                     sort_keys=True,
                     default=json_default,
                 ).encode()
@@ -511,7 +595,7 @@ def _compile_routes(
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
                 document.file, document.line(where), throttle=route.throttle, delivery=delivery, buffer=buffer,
-                placement=placement, reply=route.reply,
+                placement=placement, reply=route.reply, variables=variables,
             )
     return routes
 
@@ -534,6 +618,7 @@ def _route_checks(
     schemas: SchemaRegistry,
     problems: list[Problem],
     warnings: list[Problem],
+    variables: Mapping[str, Any] = {},
 ) -> None:
     """What can be known of a route before anything flows: its mappings compile and call
     known functions, its schema exists, its endpoints accept their options, a typed source
@@ -559,6 +644,46 @@ def _route_checks(
     if source:  # fields a typed source does not have
         for message in mapping_field_problems(source.protocol, source.options, mapping):
             problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
+        for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
+            for message in _meta_problems(source, expression, variables):
+                problems.append(document.problem(key_path, f"route {name!r}: {message}"))
+
+
+def source_meta_names(source: EndpointSpec, variables: Mapping[str, Any]) -> tuple[str, ...]:
+    """What ``meta(name)`` can read on a route with this source: what its protocol's source
+    gives each message (``Transport.meta_names``), then the route's template variables."""
+    try:
+        names = endpoints.transport(source.protocol).meta_names(source.options)
+    except EndpointError:
+        names = ()
+    return tuple(dict.fromkeys((*names, *variables)))
+
+
+def _meta_problems(source: EndpointSpec, expression: str | None, variables: Mapping[str, Any]) -> Iterator[str]:
+    """``meta(name)`` calls naming what the source never gives (the mapping would read null)."""
+    known = source_meta_names(source, variables)
+    for wanted in dict.fromkeys(n for n in meta_names(expression) if n is not None):
+        if wanted not in known:
+            hint = did_you_mean(wanted, known) or f" (it gives {', '.join(known)})" if known else " (it gives none)"
+            yield f"meta({wanted!r}): the {source.protocol} source gives no {wanted!r}{hint}"
+
+
+def _shadowing_warnings(document: Document, where: Path_, route: RouteOptions, expansion: Expansion,
+                        schemas: SchemaRegistry) -> Iterator[Problem]:
+    """A ``{var}`` the template filled in at load where the route's canonical message has a
+    field of the same name: the variable wins (the field is never read there), so say so."""
+    declared = schemas.declared(route.schema) if route.schema else None
+    if declared is None or declared.open:
+        return
+    for path, names in expansion.placeholders.items():
+        if path[:1] not in (("sink",), ("throttle",)):
+            continue
+        for variable in names:
+            if variable in declared.keys:
+                yield document.problem(where + path, (
+                    f"route {route.name!r}: {{{variable}}} in {'.'.join(map(str, path))} is the for_each variable "
+                    f"({expansion.variables[variable]!r}), not the canonical field {variable!r} of {route.schema}: the variable wins "
+                    f"(rename the variable to read the field at send time)"))
 
 
 def _reply_checks(document: Document, where: Path_, route: RouteOptions, source: EndpointSpec | None,
@@ -757,6 +882,7 @@ def _mapping_problems(expression: str | None) -> Iterator[str]:
         return
     for function in unknown_functions(expression):
         yield f"unknown function {function}() in {expression!r}{did_you_mean(function, known_functions())}"
+    yield from literal_format_problems(expression)
 
 
 def _endpoint(

@@ -129,8 +129,9 @@ class Engine:
         await self.connections.wait_open(connections)
 
     def key_files(self) -> frozenset[Path]:
-        """The key files the running configuration's connections read (to watch for new keys)."""
-        return self.config.key_files if self.config is not None else frozenset()
+        """The files outside the route files the running configuration reads (connections' key
+        files, for_each files): watched, as an edit of one is a configuration change."""
+        return self.config.watched_files if self.config is not None else frozenset()
 
     def open_connections(self) -> list[tuple[str, Connection]]:
         """``(protocol, connection)`` of every connection the engine holds (open or being retried)."""

@@ -4,6 +4,8 @@ connections whose class keeps dead letters / holds leases."""
 
 from __future__ import annotations
 
+import pytest
+
 from pathlib import Path
 
 from engine.buffer import BufferSpec
@@ -62,3 +64,25 @@ def test_local_broker_warns_about_an_mqtt_connection_naming_its_own_broker(tmp_p
     warnings = [str(w) for w in load_routes(tmp_path, SchemaRegistry(REPO / "schemas"), env={LOCAL_BROKER_ENV: ""}).warnings]
     assert len(warnings) == 1 and "r.yaml:2: connection 'own' names its own broker (mqtt://10.0.0.5:1883)" in warnings[0], warnings
     assert load_routes(tmp_path, SchemaRegistry(REPO / "schemas"), env={}).warnings == ()
+
+
+def test_mavlink_failures_map_through_its_one_table() -> None:
+    """The OS's failures on a link are transient, pymavlink's encoding failures permanent; a real
+    serial device that is not there is a transient error naming it, in the OS's words."""
+    import asyncio
+    import errno
+    import struct
+
+    from engine.endpoints.base import EndpointError, MessageRejected
+    from engine.endpoints.mavlink.errors import edge_error
+    from engine.endpoints.mavlink.links import SerialLink
+    from engine.endpoints.mavlink.settings import parse_address
+
+    lost = edge_error("write to /dev/ttyUSB0 failed", OSError(errno.EIO, "Input/output error"))
+    assert type(lost) is EndpointError and str(lost) == "write to /dev/ttyUSB0 failed: Input/output error"
+    assert type(edge_error("COMMAND_LONG: cannot encode", struct.error("ushort format requires 0 <= number <= 65535"))) \
+        is MessageRejected
+    link = SerialLink(parse_address("/dev/rabbitros-no-such-radio", 57600), lambda data, peer: None, {})
+    with pytest.raises(EndpointError, match="cannot open /dev/rabbitros-no-such-radio: No such file or directory") as raised:
+        asyncio.run(link.open())
+    assert not isinstance(raised.value, MessageRejected)

@@ -280,7 +280,7 @@ def test_source_delivers_fields_and_filters_by_system() -> None:
                 "time_boot_ms": 123456, "lat": 473977418, "lon": 85455440, "alt": 488123,
                 "relative_alt": 12345, "vx": -153, "vy": 250, "vz": 31, "hdg": 9000,
             }
-            assert item.meta == {"message": "GLOBAL_POSITION_INT", "system_id": 1, "component_id": 1, "signed": False}
+            assert item.meta == {"message": "GLOBAL_POSITION_INT", "system_id": 1, "component_id": 1, "connection": "gcs", "signed": False}
             assert [i.meta["message"] for i in everything.items] == ["GLOBAL_POSITION_INT", "GLOBAL_POSITION_INT", "HEARTBEAT"]
             assert conn.stats["frames_accepted"] == 3 and conn.stats["bad_crc"] == 0
             corrupt = bytearray(gpi(vehicle1))

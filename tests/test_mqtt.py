@@ -316,6 +316,7 @@ routes:
   - name: fix-in
     source:
       mqtt: {{topic: "farm/+/fix"}}
+    mapping: "{{agent_id: meta('topic'), lat: lat, lon: lon, alt_msl: alt_msl}}"
     schema: position
     sink:
       ros2: {{topic: /{tag}/fix, type: sensor_msgs/msg/NavSatFix}}
@@ -324,8 +325,9 @@ routes:
 
 
 def test_mqtt_to_ros2_with_wildcards(tmp_path: Path, mosquitto: LocalMosquitto) -> None:
-    """farm/+/fix from two agents reaches the ROS 2 topic as NavSatFix; farm/uav1/other and
-    farm/uav1/fix/raw do not match the filter and never arrive."""
+    """farm/+/fix from two agents reaches the ROS 2 topic as NavSatFix, each with the topic it
+    came from (meta('topic'), not the body's agent_id); farm/uav1/other and farm/uav1/fix/raw
+    do not match the filter and never arrive."""
     tag = "m" + uuid.uuid4().hex[:8]
     routes = routes_dir(tmp_path, MQTT_TO_ROS.format(domain=DOMAIN, tag=tag, mqtt=mosquitto.url))
     peer = Peer()
@@ -342,7 +344,7 @@ def test_mqtt_to_ros2_with_wildcards(tmp_path: Path, mosquitto: LocalMosquitto) 
             await publish(mosquitto, [
                 ("farm/uav1/other", {**position, "agent_id": "uav1"}),
                 ("farm/uav1/fix/raw", {**position, "agent_id": "uav1"}),
-                *((f"farm/uav{seq % 2 + 1}/fix", {**position, "agent_id": f"uav{seq % 2 + 1}", "alt_msl": float(seq)})
+                *((f"farm/uav{seq % 2 + 1}/fix", {**position, "agent_id": "not-the-topic", "alt_msl": float(seq)})
                   for seq in range(10)),
             ])
             await wait_for(lambda: len(received) >= 10, 30, "10 NavSatFix")
@@ -355,7 +357,7 @@ def test_mqtt_to_ros2_with_wildcards(tmp_path: Path, mosquitto: LocalMosquitto) 
     finally:
         peer.close()
     assert len(received) == 10
-    assert Counter(m.header.frame_id for m in received) == {"uav1": 5, "uav2": 5}
+    assert Counter(m.header.frame_id for m in received) == {"farm/uav1/fix": 5, "farm/uav2/fix": 5}
     assert sorted(m.altitude for m in received) == [float(seq) for seq in range(10)]
 
 

@@ -28,7 +28,7 @@ import yaml
 
 from engine.endpoints.mavlink.dialect import mavlink2
 from engine.endpoints.mqtt.broker import LocalMosquitto
-from engine.endpoints.rosmsg import resolve_type
+from engine.endpoints.ros2.rosmsg import resolve_type
 from engine.runtime import Engine
 from engine.schemas import SchemaRegistry
 from engine.watch import watch_routes

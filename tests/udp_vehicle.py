@@ -3,6 +3,7 @@ the udpin handover and key-file tests and the handover benchmark."""
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import threading
 import time
@@ -105,3 +106,57 @@ class CommandVehicle(threading.Thread):
                         ack = mav.command_ack_encode(msg.command, mavlink2.MAV_RESULT_ACCEPTED, 0, 0,
                                                      msg.get_srcSystem(), msg.get_srcComponent())
                         self.sock.sendto(ack.pack(mav), peer)
+
+
+class FleetVehicle(threading.Thread):
+    """One of several vehicles sharing a link: system ``system_id`` (component 1) sends HEARTBEAT
+    and GLOBAL_POSITION_INT (``time_boot_ms`` = sequence) at ``rate`` Hz from its own UDP socket
+    to the engine's ``udpin`` port, records the COMMAND_LONGs addressed to it and acknowledges
+    each (MAV_RESULT_ACCEPTED), and counts those addressed to another system (which a vehicle
+    ignores, as MAVLink routing says). Parsed with pymavlink alone."""
+
+    def __init__(self, system_id: int, port: int, rate: float = 20.0) -> None:
+        super().__init__(daemon=True)
+        self.system_id, self.engine, self.rate = system_id, ("127.0.0.1", port), rate
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.01)
+        self.sent = 0
+        self.commands: list[mavlink2.MAVLink_command_long_message] = []
+        self.foreign = 0
+        self.lock = threading.Lock()
+        self.stop = threading.Event()
+
+    def received(self) -> list[mavlink2.MAVLink_command_long_message]:
+        with self.lock:
+            return list(self.commands)
+
+    def run(self) -> None:
+        mav = mavlink2.MAVLink(None, srcSystem=self.system_id, srcComponent=1)
+        started = time.monotonic()
+        with self.sock:
+            while not self.stop.is_set():
+                if time.monotonic() >= started + self.sent / self.rate:
+                    heartbeat = mav.heartbeat_encode(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC,
+                                                     0, 0, mavlink2.MAV_STATE_STANDBY)
+                    position = mav.global_position_int_encode(self.sent, -220000000 - self.system_id, -479000000,
+                                                              10000, 5000, 0, 0, 0, 0)
+                    for frame in (heartbeat, position):
+                        with contextlib.suppress(OSError):
+                            self.sock.sendto(frame.pack(mav), self.engine)
+                    self.sent += 1
+                try:
+                    data, peer = self.sock.recvfrom(65535)
+                except (TimeoutError, OSError):
+                    continue
+                for msg in mav.parse_buffer(data) or ():
+                    if msg.get_type() != "COMMAND_LONG":
+                        continue
+                    if msg.target_system != self.system_id:
+                        self.foreign += 1
+                        continue
+                    with self.lock:
+                        self.commands.append(msg)
+                    ack = mav.command_ack_encode(msg.command, mavlink2.MAV_RESULT_ACCEPTED, 0, 0,
+                                                 msg.get_srcSystem(), msg.get_srcComponent())
+                    self.sock.sendto(ack.pack(mav), peer)

@@ -396,9 +396,14 @@ class Transport(ABC):
     options_beside: ClassVar[bool] = False
     """True when the protocol key holds only the shorthand and the other connection options
     sit beside it (``mavlink: udpin:...`` with ``baud:`` and ``signing:`` next to it)."""
+    source_meta: ClassVar[tuple[str, ...]] = ()
+    """The names of the metadata this protocol's source gives each message (``Inbound.meta``),
+    which a mapping reads with ``meta(name)``: ``check`` refuses any other name (the route's
+    template variables aside), and a route test gives them as ``meta: {name: value}``."""
     replies: ClassVar[bool] = False
     """True when this protocol's sources can answer a request's sender (:meth:`Source.reply`):
     only then may a route with such a source have ``reply:`` (the loader checks)."""
+
     def source_answers(self, options: Any) -> bool:
         """Whether a source with these (typed) options can answer its sender (``reply:`` is
         allowed): by default, whether the protocol's sources can (:attr:`replies`)."""
@@ -407,6 +412,11 @@ class Transport(ABC):
     accepts_secrets: ClassVar[bool] = False
     """True when the connection settings may hold engine.redaction.Secret values, which the
     endpoint reveals only where it connects; otherwise the loader hands it plain values."""
+
+    def meta_names(self, options: Any) -> tuple[str, ...]:
+        """What ``meta(name)`` can read from a source with these (typed) options; by default
+        :attr:`source_meta`, for a protocol whose sources differ by kind to narrow or extend."""
+        return self.source_meta
 
     def check_connection(self, settings: Any) -> CheckResult:
         """Static checks of a connection's options: those the parse finds (a mapping is parsed

@@ -23,6 +23,7 @@ import tempfile
 import threading
 import time
 import uuid
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 from urllib.parse import urlsplit
@@ -84,8 +85,40 @@ def _free_port(preferred: int | None = None) -> int:
         return int(sock.getsockname()[1])
 
 
+@dataclass(frozen=True)
+class BrokerTls:
+    """A TLS listener for the private node (tests and demos of ``amqps://``): the node's
+    certificate and key, the CA its clients' certificates must chain to, whether it asks
+    for (``verify_peer``) and insists on (``fail_if_no_peer_cert``) a client certificate,
+    and whether a client certificate may log in by itself (EXTERNAL, the common name as
+    the user name, plugin rabbitmq_auth_mechanism_ssl)."""
+
+    ca_file: Path
+    cert_file: Path
+    key_file: Path
+    verify_peer: bool = True
+    fail_if_no_peer_cert: bool = True
+    external_auth: bool = False
+
+    def config(self, port: int) -> str:
+        """The node's rabbitmq.conf (new-style sysctl format) for this listener."""
+        lines = [
+            f"listeners.ssl.1 = 127.0.0.1:{port}",
+            f"ssl_options.cacertfile = {self.ca_file}",
+            f"ssl_options.certfile = {self.cert_file}",
+            f"ssl_options.keyfile = {self.key_file}",
+            f"ssl_options.verify = {'verify_peer' if self.verify_peer else 'verify_none'}",
+            f"ssl_options.fail_if_no_peer_cert = {'true' if self.fail_if_no_peer_cert else 'false'}",
+        ]
+        if self.external_auth:
+            lines += ["auth_mechanisms.1 = PLAIN", "auth_mechanisms.2 = AMQPLAIN", "auth_mechanisms.3 = EXTERNAL",
+                      "ssl_cert_login_from = common_name"]
+        return "\n".join(lines) + "\n"
+
+
 class LocalBroker:
-    """``with LocalBroker() as broker: broker.url``; stopped and deleted on exit."""
+    """``with LocalBroker() as broker: broker.url``; stopped and deleted on exit.
+    ``LocalBroker(tls=BrokerTls(...))`` adds a TLS listener: ``broker.tls_url``."""
 
     def __init__(
         self,
@@ -93,7 +126,10 @@ class LocalBroker:
         directory: Path | None = None,
         node: str | None = None,
         cookie: str | None = None,
+        tls: BrokerTls | None = None,
     ) -> None:
+        self.tls = tls
+        self.tls_port = _free_port() if tls is not None else None
         self.keep_dir = keep_dir
         self.directory = directory or Path(tempfile.mkdtemp(prefix="rabbitros-broker-"))
         self.directory.mkdir(parents=True, exist_ok=True)
@@ -108,12 +144,22 @@ class LocalBroker:
         return f"amqp://guest:guest@127.0.0.1:{self.port}/"
 
     @property
+    def tls_url(self) -> str:
+        """The TLS listener's URL, by name (``localhost``, as a certificate names a host)."""
+        if self.tls_port is None:
+            raise BrokerError("this node has no TLS listener (LocalBroker(tls=BrokerTls(...)))")
+        return f"amqps://guest:guest@localhost:{self.tls_port}/"
+
+    @property
     def log_file(self) -> Path:
         return self.directory / "server.out"
 
     def environment(self) -> dict[str, str]:
         home = self.directory
-        (home / "enabled_plugins").write_text("[].\n")
+        external = self.tls is not None and self.tls.external_auth
+        (home / "enabled_plugins").write_text("[rabbitmq_auth_mechanism_ssl].\n" if external else "[].\n")
+        if self.tls is not None and self.tls_port is not None:
+            (home / "rabbitmq.conf").write_text(self.tls.config(self.tls_port))
         if self.cookie is not None:
             _write_cookie(home / ".erlang.cookie", self.cookie)
         return {
@@ -154,8 +200,11 @@ class LocalBroker:
             if self._process.poll() is not None:
                 raise BrokerError(f"rabbitmq-server exited with {self._process.returncode}: {self._tail()}")
             try:
-                with socket.create_connection(("127.0.0.1", self.port), timeout=0.5):
-                    return self.url
+                for port in (self.port, self.tls_port):
+                    if port is not None:
+                        with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                            pass
+                return self.url
             except OSError:
                 time.sleep(0.25)
         self.stop()

@@ -11,6 +11,7 @@ from typing import Any, Literal
 
 from engine.endpoints.base import EndpointOptions
 from engine.options import option
+from engine.tls import TlsOptions
 
 RECONNECT_INTERVAL = 1.0
 """Seconds between aio-pika's reconnection attempts after a lost connection (its default, 5 s,
@@ -36,6 +37,9 @@ class AmqpConnectionOptions:
     urls: tuple[str, ...] | None = option(None, min_items=1, secret=True,
                                           description="the nodes of a RabbitMQ cluster: connect to one, fail over to the next on loss")
     queue_type: QueueType | None = option(None, description="type of the queues this connection's routes (and its dead letters) declare unless a source says otherwise")
+    tls: TlsOptions | None = option(None)
+    auth: Literal["plain", "external"] = option("plain", description="plain: the URL's user and password; external: the client "
+                                                "certificate is the identity (RabbitMQ's EXTERNAL mechanism, plugin rabbitmq_auth_mechanism_ssl; needs tls.cert_file)")
 
 
 @dataclass(frozen=True, kw_only=True)

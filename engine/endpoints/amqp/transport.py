@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import ssl
 import time
 from typing import Any, Callable, Iterable, Mapping, Sequence
 from urllib.parse import urlsplit
@@ -29,6 +30,7 @@ import aio_pika.abc
 import aiormq.abc
 import aiormq.exceptions
 from aiormq import spec
+from yarl import URL
 
 from engine.endpoints.base import (
     CheckResult,
@@ -43,12 +45,15 @@ from engine.endpoints.base import (
     Source,
     Transport,
     typed,
+    typed_or_problem,
 )
 import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.endpoints.amqp.calls import AmqpCaller
+import engine.endpoints.amqp.tls as amqp_tls
+from engine import tls as tls_common
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
-from engine.mapping import MappingError, compile_template, template_fields
+from engine.mapping import MappingError, compile_template, template_fields, template_problem
 from engine.options import evolve, given
 from engine.endpoints.amqp.broker import URL_ENV, URLS_ENV, elsewhere
 from engine.redaction import Secret, has_url_password, redact_urls, reveal
@@ -87,6 +92,7 @@ class AmqpConnection(Connection):
         self._declare_lock = asyncio.Lock()
         self._state = "connecting"
         self._last_error: str | None = None
+        self._tls: ssl.SSLContext | None = None
 
     @property
     def url(self) -> str:
@@ -118,7 +124,19 @@ class AmqpConnection(Connection):
         if error is not None:
             text = redact_urls(f"{type(error).__name__}: {error}")
             password = urlsplit(self.url).password
-            self._last_error = text.replace(password, "***") if password else text
+            text = text.replace(password, "***") if password else text
+            failure = tls_common.tls_failure(error, self._expected_host()) if self._tls is not None else None
+            self._last_error = f"TLS: {failure} ({text})" if failure else text
+
+    def _expected_host(self) -> str | None:
+        tls = self.settings.tls
+        return (tls.server_hostname if tls is not None else None) or urlsplit(self.url).hostname
+
+    def _connect_urls(self) -> list[str]:
+        """The URLs as aiormq reads them: ``auth=external`` in the query for certificate login."""
+        if self.settings.auth != "external":
+            return self.urls
+        return [str(URL(url).update_query(auth="external")) for url in self.urls]
 
     def _on_close(self, _connection: Any, error: BaseException | None = None) -> None:
         if self._state == "up":
@@ -129,9 +147,17 @@ class AmqpConnection(Connection):
         self._state = "up"
 
     async def open(self) -> None:
+        nodes = ", ".join(redact(url) for url in self.urls)
+        if any(url.lower().startswith("amqps://") for url in self.urls):
+            try:  # read now, at every open: a renewed certificate is in effect from the reopen on
+                self._tls = tls_common.tls_context(self.settings.tls)
+            except ValueError as exc:
+                self._state, self._last_error = "down", f"TLS: {exc}"
+                raise EndpointError(f"amqp connection {self.name!r} ({nodes}): TLS: {exc}") from None
         try:
             self._connection = await amqp_cluster.connect_failover(
-                self.urls,
+                self._connect_urls(),
+                ssl_context=self._tls,
                 client_properties={"connection_name": f"rabbitros-engine/{self.name}"},
                 heartbeat=self.settings.heartbeat,
                 reconnect_interval=self.settings.reconnect_interval,
@@ -147,7 +173,6 @@ class AmqpConnection(Connection):
             if self._connection is not None:
                 await self.close()
             self._state = "down"
-            nodes = ", ".join(redact(url) for url in self.urls)
             raise EndpointError(f"amqp connection {self.name!r} ({nodes}): {self._last_error}") from exc
         self._state = "up"
 
@@ -407,6 +432,8 @@ def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
             "routing_key": message.routing_key,
             "exchange": message.exchange,
             "message_id": properties.message_id,
+            "correlation_id": properties.correlation_id,
+            "reply_to": properties.reply_to,
             "headers": properties.headers,
             "content_type": properties.content_type,
             "redelivered": message.redelivered,
@@ -546,9 +573,19 @@ class AmqpTransport(Transport):
     source_options = AmqpSourceOptions
     sink_options = AmqpSinkOptions
     connection_shorthand = "url"
+    source_meta = ("routing_key", "exchange", "headers", "correlation_id", "reply_to", "message_id")
 
     def connection_problems(self, options: AmqpConnectionOptions) -> CheckResult:
-        yield from amqp_cluster.check_urls(options, redact)
+        problems = list(amqp_cluster.check_urls(options, redact))
+        yield from problems
+        if not problems:
+            yield from amqp_tls.tls_problems(options, amqp_cluster.connection_urls(options))
+
+    def key_files(self, settings: AmqpConnectionOptions | Mapping[str, Any]) -> Iterable[str]:
+        """The TLS files: a renewed certificate or CA changes the connection's fingerprint,
+        and the reload the watcher starts reopens the connection with it."""
+        options, _ = typed_or_problem(AmqpConnectionOptions, settings)
+        return amqp_tls.key_files(options) if options is not None else []
 
     def source_problems(self, options: AmqpSourceOptions, mapping: str | None) -> CheckResult:
         written = given(options)
@@ -564,6 +601,9 @@ class AmqpTransport(Transport):
         written = given(options)
         if "exchange" not in written and "routing_key" not in written:
             yield None, "an amqp sink needs an exchange and/or a routing_key"
+        problem = template_problem(options.routing_key)
+        if problem:
+            yield "routing_key", problem
         for key in ("exchange_type", "durable"):
             if key in written and not options.exchange:
                 yield key, f"{key} is not used: the default exchange is never declared (name an exchange)"

@@ -65,7 +65,7 @@ from engine.endpoints.base import CheckResult, FieldProblem, Outbound, Transport
 from engine.endpoints.mavlink.checks import sink_problems, source_problems
 from engine.endpoints.mavlink.codec import ADDED_FIELDS, MESSAGES, build_message, field_specs, message_fields, mavlink2, received_nan
 from engine.endpoints.mavlink.connection import MavlinkConnection
-from engine.endpoints.mavlink.messages import dry_run, field_check
+from engine.endpoints.mavlink.messages import dry_run, field_check, target_fields, targeted_fields
 from engine.endpoints.mavlink import settings as _settings
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
@@ -88,6 +88,11 @@ class MavlinkTransport(Transport):
     sink_options = MavlinkSinkOptions
     connection_shorthand = "url"
     options_beside = True
+    source_meta = ("system_id", "component_id", "message", "connection")
+
+    def meta_names(self, options: MavlinkSourceOptions) -> tuple[str, ...]:
+        """A JSON tunnel's messages carry their sender, not the connection's name."""
+        return ("system_id", "component_id", "message") if options.json_tunnel else self.source_meta
 
     def connection_problems(self, options: MavlinkConnectionOptions) -> CheckResult:
         return settings_problems(options)[1]
@@ -103,9 +108,10 @@ class MavlinkTransport(Transport):
 
     def sink_dry_run(self, route: str, options: MavlinkSinkOptions) -> Callable[[Outbound], str | None]:
         build = dry_run(options)
+        fields_of = targeted_fields(options) or (lambda outbound: outbound.fields)
 
         def built(outbound: Outbound) -> str | None:
-            build(outbound.fields)
+            build(fields_of(outbound))
             return None
 
         return built
@@ -136,6 +142,9 @@ class MavlinkTransport(Transport):
 
     def suggest(self, key: str, value: str) -> str | None:
         return closest(value, message_names()) if key == "message" else None
+
+    def canonical_fields(self, options: MavlinkSinkOptions) -> Iterable[tuple[str, str]]:
+        return target_fields(options)
 
     def exclusive_resource(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> str | None:
         options, _ = typed_or_problem(MavlinkConnectionOptions, settings)

@@ -22,7 +22,7 @@ import asyncio
 from collections.abc import Callable
 from typing import Any
 
-from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
+from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Reply, Sink
 from engine.endpoints.mavlink.codec import mavlink2
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name
@@ -37,10 +37,13 @@ Encoder = Callable[[Any], mavlink2.MAVLink_message]
 class AcknowledgedCommandSink(Sink):
     """One command per message, retried until the target acknowledges it."""
 
-    def __init__(self, connection: SharedLink, encode: Encoder, options: TransactionOptions) -> None:
+    def __init__(self, connection: SharedLink, encode: Encoder, options: TransactionOptions,
+                 fields: Callable[[Outbound], Any] | None = None) -> None:
         self.connection = connection
         self.encode = encode
         self.options = options
+        self.fields = fields
+        """The message's fields with its ``{field}`` targets filled in (messages.targeted_fields)."""
 
     def _build(self, fields: Any, confirmation: int) -> mavlink2.MAVLink_message:
         msg = self.encode(fields)
@@ -49,22 +52,22 @@ class AcknowledgedCommandSink(Sink):
         return msg
 
     async def send(self, message: Outbound) -> None:
-        msg = self._build(message.fields, 0)
+        fields = message.fields if self.fields is None else self.fields(message)
+        msg = self._build(fields, 0)
         target = (msg.target_system, msg.target_component)
         connection, options = self.connection, self.options
         loop = asyncio.get_running_loop()
         async with connection.transaction_lock(("command", target, msg.command)):
             await connection.wait_for_vehicle(*target, loop.time() + options.vehicle_timeout)
             async with Conversation(connection, target, _ACK) as answers:
-                await self._exchange(answers, message, msg)
+                await self._exchange(answers, fields, message.reply, msg)
 
-    async def _exchange(self, answers: Conversation, message: Outbound, msg: mavlink2.MAVLink_message) -> None:
+    async def _exchange(self, answers: Conversation, fields: Any, reply: Reply | None, msg: mavlink2.MAVLink_message) -> None:
         connection, options = self.connection, self.options
         stats = connection.stats
         loop = asyncio.get_running_loop()
         timeout = options.answer_timeout(connection)
         name = enum_name("MAV_CMD", msg.command)
-        fields, reply = message.fields, message.reply
         where = f"vehicle {msg.target_system}/{msg.target_component}"
         await connection.send_message(msg)
         sent, deadline = 0, loop.time() + timeout

@@ -2,7 +2,8 @@
 (``tcp`` client, ``tcpin`` server), all driven by asyncio.
 
 A link hands every received chunk to ``on_bytes(data, peer)`` and writes whole frames with
-``transmit``; it translates OS errors into :class:`EndpointError` and reconnects on its own
+``transmit``; it translates OS errors into :class:`EndpointError` (through errors.py, the
+package's one table) and reconnects on its own
 (a serial device that disappears is reopened, a TCP client reconnects, both waiting with the
 engine's one backoff, :mod:`engine.backoff`). Used by the engine's connections and by the
 simulated vehicle alike.
@@ -22,6 +23,7 @@ from typing import Any
 
 from engine.backoff import Backoff
 from engine.endpoints.base import EndpointError
+from engine.endpoints.mavlink.errors import edge_error, mapped
 from engine.endpoints.mavlink.settings import Address
 
 PEER_TTL = 30.0
@@ -47,7 +49,9 @@ OnBytes = Callable[[bytes, Hashable], None]
 
 
 class Link:
-    """A byte pipe: received chunks go to ``on_bytes(data, peer)``; ``transmit`` writes a frame."""
+    """A byte pipe: received chunks go to ``on_bytes(data, peer)``; ``transmit`` writes a frame
+    (to ``peer`` alone where the link can tell peers apart and has heard it lately: a ``udpin``
+    link shared by several vehicles; everywhere else to every peer)."""
 
     def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> None:
         self.address = address
@@ -66,7 +70,7 @@ class Link:
         """Whether a frame written now has somewhere to go."""
         return not self.closed
 
-    async def transmit(self, data: bytes) -> None:
+    async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         raise NotImplementedError
 
     async def close(self) -> None:
@@ -98,10 +102,8 @@ class SerialLink(Link):
     _reopen: asyncio.Task[None] | None = None
 
     async def open(self) -> None:
-        try:
+        with mapped(f"cannot open {self.address.device}"):
             self._open()
-        except OSError as exc:
-            raise EndpointError(f"cannot open {self.address.device}: {exc.strerror}") from None
 
     @property
     def ready(self) -> bool:
@@ -154,7 +156,7 @@ class SerialLink(Link):
         finally:
             self._reopen = None
 
-    async def transmit(self, data: bytes) -> None:
+    async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         view = memoryview(data)
         while view:
             fd = self._fd
@@ -166,7 +168,7 @@ class SerialLink(Link):
                 await self._writable(fd)
             except OSError as exc:
                 self._lost()
-                raise EndpointError(f"write to {self.address.device} failed: {exc.strerror}") from None
+                raise edge_error(f"write to {self.address.device} failed", exc) from None
 
     async def _writable(self, fd: int) -> None:
         loop = asyncio.get_running_loop()
@@ -232,7 +234,7 @@ class UdpLink(Link):
             else:
                 transport, protocol = await loop.create_datagram_endpoint(lambda: _Datagrams(self), remote_addr=where)
         except OSError as exc:
-            raise EndpointError(f"cannot open {self.address.kind}:{where[0]}:{where[1]}: {exc.strerror}") from None
+            raise edge_error(f"cannot open {self.address.kind}:{where[0]}:{where[1]}", exc) from None
         with contextlib.suppress(OSError, AttributeError):
             transport.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
         self._transport = transport
@@ -254,13 +256,16 @@ class UdpLink(Link):
                 self.peers.popitem(last=False)
         self.on_bytes(data, addr)
 
-    async def transmit(self, data: bytes) -> None:
+    async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         if self._transport is None or self._transport.is_closing():
             raise EndpointError("udp link is closed")
         if self.address.kind == "udpout":
             self._transport.sendto(data)
             return
         now = time.monotonic()
+        if peer is not None and now - self.peers.get(peer, -PEER_TTL) < PEER_TTL:
+            self._transport.sendto(data, peer)  # a targeted message: only where its vehicle was heard
+            return
         peers = [addr for addr, seen in self.peers.items() if now - seen < PEER_TTL]
         if not peers:
             raise EndpointError(f"udpin:{self.address.host}:{self.address.port} has not heard from any peer yet")
@@ -297,7 +302,7 @@ class TcpLink(Link):
                 reader, writer = await asyncio.open_connection(host, port)
                 self._spawn(self._client(reader, writer))
         except OSError as exc:
-            raise EndpointError(f"cannot open {self.address.kind}:{host}:{port}: {exc.strerror or exc}") from None
+            raise edge_error(f"cannot open {self.address.kind}:{host}:{port}", exc) from None
 
     @property
     def ready(self) -> bool:
@@ -337,7 +342,7 @@ class TcpLink(Link):
             self.writers.pop(peer, None)
             writer.close()
 
-    async def transmit(self, data: bytes) -> None:
+    async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         if not self.writers:
             raise EndpointError(f"{self.address.kind}:{self.address.host}:{self.address.port} has no connected peer")
         for writer in list(self.writers.values()):

@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from engine.endpoints.base import Deliver, Inbound, Inbox, Outbound, Sink, Source
+from engine.endpoints.base import Deliver, Inbound, Inbox, MessageRejected, Outbound, Sink, Source
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, message_fields, mavlink2, refuse_nulls
 from engine.endpoints.mavlink.command import AcknowledgedCommandSink, Encoder
 from engine.endpoints.mavlink.contract import SharedLink
@@ -104,6 +104,7 @@ class MessageSource(Source):
         buf = msg.get_msgbuf()
         meta = {
             "message": msg.get_type(), "system_id": header.srcSystem, "component_id": header.srcComponent,
+            "connection": self.connection.name,
             "signed": bool(buf[0] == mavlink2.PROTOCOL_MARKER_V2 and buf[2] & mavlink2.MAVLINK_IFLAG_SIGNED),
         }
         fields = message_fields(msg)
@@ -144,14 +145,20 @@ class MessageSource(Source):
 class MessageSink(Sink):
     """Encodes ``Outbound.fields`` as one message; accepted once written to the link."""
 
-    def __init__(self, connection: SharedLink, encode: Encoder, priority: str = "normal") -> None:
+    def __init__(self, connection: SharedLink, encode: Encoder, priority: str = "normal",
+                 fields: Callable[[Outbound], Any] | None = None) -> None:
         self.connection = connection
         self.encode = encode
         self.priority = priority
         """The route's ``priority``: the link's writer sends by it (engine/endpoints/mavlink/port.py)."""
+        self.fields = fields or _sink_fields
 
     async def send(self, message: Outbound) -> None:
-        await self.connection.send_message(self.encode(message.fields), priority=self.priority)
+        await self.connection.send_message(self.encode(self.fields(message)), priority=self.priority)
+
+
+def _sink_fields(message: Outbound) -> Any:
+    return message.fields
 
 
 def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) -> Sink:
@@ -159,8 +166,44 @@ def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) ->
     if options.mission is not None:
         return MissionUploadSink(connection, TransactionOptions.parse(options)[0])
     if options.acknowledged:
-        return AcknowledgedCommandSink(connection, message_encoder(options), TransactionOptions.parse(options)[0])
-    return MessageSink(connection, message_encoder(options), options.priority)
+        return AcknowledgedCommandSink(connection, message_encoder(options), TransactionOptions.parse(options)[0],
+                                       fields=targeted_fields(options))
+    return MessageSink(connection, message_encoder(options), options.priority, targeted_fields(options))
+
+
+def target_fields(options: MavlinkSinkOptions) -> list[tuple[str, str]]:
+    """``(target key, canonical field path)`` of each target a sink reads from the message
+    (``target_system: "{vehicle}"``)."""
+    return [(key, value[1:-1]) for key in ("target_system", "target_component")
+            if isinstance(value := getattr(options, key), str)]
+
+
+def targeted_fields(options: MavlinkSinkOptions) -> Callable[[Outbound], Any] | None:
+    """How a message or command sink with ``{field}`` targets gets its message's fields: the
+    sink mapping's output with each target the mapping leaves out read from the canonical
+    message (the one vehicle the message names); a missing field, or a value that is no system
+    or component id (an integer 0-255), is refused (MessageRejected, stage ``sink``). None:
+    no target is read from the message (nothing to do per message)."""
+    targets = [(key, tuple(path.split("."))) for key, path in target_fields(options)]
+    if not targets:
+        return None
+
+    def fields(message: Outbound) -> Any:
+        out = dict(message.fields)
+        for key, path in targets:
+            if key in out:
+                continue  # the sink mapping names the target itself
+            value = message.canonical
+            for step in path:
+                if not isinstance(value, dict) or step not in value:
+                    raise MessageRejected(f"{key}: the canonical message has no field {'.'.join(path)!r}")
+                value = value[step]
+            if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 255:
+                raise MessageRejected(f"{key}: field {'.'.join(path)!r} is {value!r}, not a MAVLink id (an integer 0-255)")
+            out[key] = value
+        return out
+
+    return fields
 
 
 def message_encoder(options: MavlinkSinkOptions) -> Encoder:
@@ -176,8 +219,9 @@ def message_encoder(options: MavlinkSinkOptions) -> Encoder:
 
 
 def message_defaults(options: MavlinkSinkOptions) -> dict[str, int]:
-    """The target fields a message sink fills in when the mapping does not."""
-    return {key: getattr(options, key) for key in ("target_system", "target_component") if getattr(options, key) is not None}
+    """The target fields a message sink fills in when the mapping does not (a ``{field}``
+    target is read from each message: :func:`targeted_fields`)."""
+    return {key: value for key in ("target_system", "target_component") if isinstance(value := getattr(options, key), int)}
 
 
 def field_check(options: MavlinkSinkOptions) -> Callable[[Any], None] | None:

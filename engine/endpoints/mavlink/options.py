@@ -15,6 +15,8 @@ from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelSettings
 from engine.options import option
 
 _BYTE = {"minimum": 0, "maximum": 255}
+TARGET_FIELD = r"^\{[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*\}$"
+"""A sink target read from the canonical message: ``"{vehicle}"``, ``"{target.system}"``."""
 _SERIAL = TunnelSettings.from_settings(None, serial=True)
 _NETWORK = TunnelSettings.from_settings(None, serial=False)
 
@@ -25,6 +27,15 @@ def _tunnel_default(name: str, unit: str = "") -> str:
     if serial == network:
         return f"default {serial}{unit}"
     return f"default {serial}{unit} on serial links, {network}{unit} on networks"
+
+
+@dataclass(frozen=True, kw_only=True)
+class MavlinkAcceptedKey:
+    __schema_description__ = ("a previous key, still accepted on incoming frames until a deadline, during a fleet-wide "
+                              "key rotation; outgoing frames always use key_file/key_env")
+
+    key_file: str = option(description="file holding the old key (32 bytes, or 64 hex digits)")
+    until: str = option(description="ISO 8601 time with a zone (2026-12-01T00:00:00Z): frames signed with this key are refused from then on")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -40,6 +51,8 @@ class MavlinkSigning:
                                                           "reuses one (its directory must exist); without it, the clock alone")
     allow_unsigned: tuple[str, ...] = option(("RADIO_STATUS",),
                                              description="message names accepted unsigned (a SiK radio's RADIO_STATUS is never signed)")
+    accept: tuple[MavlinkAcceptedKey, ...] = option((), description="old keys accepted on incoming frames until their deadline "
+                                                    "(a key rotation: vehicles switch one by one)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -96,11 +109,14 @@ class MavlinkSourceOptions(EndpointOptions):
                                                   "acknowledged: at-least-once over a lossy radio)")
     system_id: int | None = option(None, **_BYTE, description="sources only: accept only messages from this system id")
     component_id: int | None = option(None, **_BYTE, description="sources only: accept only messages from this component id")
-    target_system: int | None = option(None, **_BYTE, description="sinks only: the receiver's system id (the message's target_system "
-                                                                   "when the mapping sets none; 1 for acknowledged commands and missions; "
-                                                                   "0, everyone, for a tunnel)")
-    target_component: int | None = option(None, **_BYTE, description="sinks only: the receiver's component id (as target_system; "
-                                                                      "1 for acknowledged commands and missions)")
+    target_system: int | str | None = option(None, **_BYTE, pattern=TARGET_FIELD,
+                                             description="sinks only: the receiver's system id (the message's target_system "
+                                                         "when the mapping sets none; 1 for acknowledged commands and missions; "
+                                                         "0, everyone, for a tunnel); \"{field}\": a message or command sink "
+                                                         "takes it from that canonical field of each message")
+    target_component: int | str | None = option(None, **_BYTE, pattern=TARGET_FIELD,
+                                                description="sinks only: the receiver's component id (as target_system; "
+                                                            "1 for acknowledged commands and missions)")
     payload_type: int = option(DEFAULT_PAYLOAD_TYPE, minimum=32768, maximum=65535,
                                description="json_tunnel: TUNNEL payload type of the channel (default 0xA900), so several tunnels can share a link")
 

@@ -31,7 +31,8 @@ import contextlib
 from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable
 
-from engine.endpoints.base import EndpointError, MessageRejected
+from engine.endpoints.base import EndpointError
+from engine.endpoints.mavlink.errors import edge_error
 from engine.endpoints.mavlink.codec import RADIO_STATUS, mavlink2
 from engine.endpoints.mavlink.links import Link, make_link
 from engine.endpoints.mavlink.settings import LinkConfig
@@ -75,6 +76,10 @@ class MavlinkPort:
         self._link: Link | None = None
         self._parsers: OrderedDict[Hashable, mavlink2.MAVLink] = OrderedDict()
         self._last_seq: dict[tuple[int, int], int] = {}
+        self._heard_at: dict[int, Hashable] = {}
+        """System id -> the peer its last accepted frame came from (a udpin link with several
+        vehicles writes a message targeted at one of them to that peer only)."""
+        self._peer: Hashable | None = None
         self._control: deque[_Queued] = deque()
         self._lanes: list[tuple[deque[_Queued], bool]] = [(self._control, False)]
         """In the order the writer serves them: (queue, paced as bulk)."""
@@ -196,10 +201,11 @@ class MavlinkPort:
             except Exception as exc:  # pymavlink struct errors: this message can never be sent
                 self.stats["send_errors"] += 1
                 if not future.done():
-                    future.set_exception(MessageRejected(f"{msg.get_type()}: cannot encode: {exc}"))
+                    future.set_exception(edge_error(f"{msg.get_type()}: cannot encode", exc))
                 continue
+            target = getattr(msg, "target_system", 0)
             try:
-                await self._link.transmit(data)
+                await self._link.transmit(data, self._heard_at.get(target) if target else None)
             except EndpointError as exc:
                 self.stats["send_errors"] += 1
                 if not future.done():
@@ -243,6 +249,7 @@ class MavlinkPort:
             self.stats["bad_data"] += 1
             self._parsers.pop(peer, None)
             return
+        self._peer = peer
         for msg in messages:
             self._on_frame(msg)
 
@@ -265,6 +272,7 @@ class MavlinkPort:
             return
         self.stats["frames_accepted"] += 1
         header = msg.get_header()
+        self._heard_at[header.srcSystem] = self._peer
         stream = (header.srcSystem, header.srcComponent)
         last = self._last_seq.get(stream)
         if last is not None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import os
 import termios
+from datetime import datetime
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -82,9 +83,10 @@ def key_files(settings: MavlinkConnectionOptions) -> list[str]:
     """The signing key file the connection reads when it opens (a reload reopens the
     connection when its contents change)."""
     signing = settings.signing
-    if signing is not None and signing.key_file is not None:
-        return [str(Path(signing.key_file).expanduser())]
-    return []
+    if signing is None:
+        return []
+    names = [signing.key_file] if signing.key_file is not None else []
+    return [str(Path(name).expanduser()) for name in [*names, *(old.key_file for old in signing.accept)]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,6 +95,8 @@ class SigningConfig:
     link_id: int = 0
     timestamp_file: Path | None = None
     allow_unsigned: frozenset[int] = frozenset({RADIO_STATUS})
+    accepted: tuple[tuple[bytes, float], ...] = field(default=(), repr=False)
+    """Old keys still accepted on incoming frames, each with its deadline (Unix time)."""
 
 
 def load_signing(raw: MavlinkSigning) -> SigningConfig:
@@ -116,7 +120,28 @@ def load_signing(raw: MavlinkSigning) -> SigningConfig:
         raise ValueError(f"signing.timestamp_file: directory {str(stamp_path.parent)!r} does not exist")
     if any(name not in MESSAGES for name in raw.allow_unsigned):
         raise ValueError("signing.allow_unsigned must be a list of MAVLink message names")
-    return SigningConfig(key, raw.link_id, stamp_path, frozenset(MESSAGES[name].id for name in raw.allow_unsigned))
+    accepted = tuple((_read_key_file(old.key_file), _deadline(old.until)) for old in raw.accept)
+    return SigningConfig(key, raw.link_id, stamp_path, frozenset(MESSAGES[name].id for name in raw.allow_unsigned), accepted)
+
+
+def _read_key_file(name: str) -> bytes:
+    path = Path(name).expanduser()
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ValueError(f"signing key missing: cannot read key_file {str(path)!r} ({exc.strerror})") from None
+    return _decode_key(data, f"key_file {str(path)!r}")
+
+
+def _deadline(text: str) -> float:
+    """``until`` as Unix time; a time without a zone is refused (a fleet spans time zones)."""
+    try:
+        moment = datetime.fromisoformat(text.replace("Z", "+00:00") if text.endswith("Z") else text)
+    except ValueError:
+        raise ValueError(f"signing.accept until {text!r} is not an ISO 8601 time (2026-12-01T00:00:00Z)") from None
+    if moment.tzinfo is None:
+        raise ValueError(f"signing.accept until {text!r} has no time zone (add Z for UTC)")
+    return moment.timestamp()
 
 
 def _decode_key(data: bytes, where: str) -> bytes:

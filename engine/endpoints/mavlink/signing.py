@@ -71,8 +71,10 @@ class SigningClock:
 class SignatureCheck:
     """Verifies incoming frames; returns the stats key of the rejection, or None to accept."""
 
-    def __init__(self, config: SigningConfig, local_timestamp: Callable[[], int]) -> None:
+    def __init__(self, config: SigningConfig, local_timestamp: Callable[[], int],
+                 clock: Callable[[], float] = time.time) -> None:
         self.config = config
+        self.clock = clock
         self.local_timestamp = local_timestamp
         self.streams: dict[tuple[int, int, int], int] = {}
         self.newest = 0
@@ -83,7 +85,8 @@ class SignatureCheck:
             return None if msg_id in self.config.allow_unsigned else "unsigned_rejected"
         link_id = buf[-13]
         stamp = int.from_bytes(buf[-12:-6], "little")
-        if hashlib.sha256(self.config.key + bytes(buf[:-6])).digest()[:6] != bytes(buf[-6:]):
+        signed = bytes(buf[:-6])
+        if hashlib.sha256(self.config.key + signed).digest()[:6] != bytes(buf[-6:]) and not self._old_key_signed(signed, bytes(buf[-6:])):
             return "bad_signature"
         stream = (link_id, buf[5], buf[6])
         last = self.streams.get(stream)
@@ -94,4 +97,11 @@ class SignatureCheck:
         self.streams[stream] = stamp
         self.newest = max(self.newest, stamp)
         return None
+
+    def _old_key_signed(self, signed: bytes, signature: bytes) -> bool:
+        """A key rotation: a frame signed with an old key is accepted until that key's deadline
+        (wall clock; the frame's own timestamp is the sender's to choose)."""
+        now = self.clock()
+        return any(now < until and hashlib.sha256(key + signed).digest()[:6] == signature
+                   for key, until in self.config.accepted)
 

@@ -54,6 +54,8 @@ class TransactionOptions:
                                ("target_system", int, 1), ("target_component", int, 0)):
             if key in written:
                 value = getattr(options, key)
+                if isinstance(value, str):
+                    continue  # "{field}": read from each message (messages.targeted_fields)
                 if value < low:
                     problems.append((key, f"{key} must be {'an integer' if kind is int else 'a number'} >= {low}"))
                 else:

@@ -54,6 +54,7 @@ from engine.endpoints.mqtt.errors import describe, edge_error, from_code, mapped
 from engine.endpoints.mqtt.options import DEFAULT_URL, MqttConnectionOptions
 from engine.endpoints.mqtt.topics import subscription_id
 from engine.redaction import MASK, redact_urls, reveal
+from engine.tls import LastTlsError, tls_context, tls_failure
 
 log = logging.getLogger("engine.mqtt")
 
@@ -159,6 +160,8 @@ class MqttLink(Connection):
         except ValueError as exc:
             raise EndpointError(f"mqtt connection {name!r}: {exc}") from None
         self.where = f"mqtt connection {name!r} ({self._broker.shown()})"
+        self._client_log = logging.getLogger(f"engine.mqtt.client.{name}")
+        self._tls_log = LastTlsError.on(self._client_log)
         self.v5 = self.settings.protocol == 5
         self.persistent = self.settings.client_id is not None
         self.max_batch = max(1, self.settings.receive_maximum // 2)
@@ -193,7 +196,12 @@ class MqttLink(Connection):
     def _failed(self, error: BaseException) -> None:
         text = describe(error)
         password = self._broker.password
-        self._last_error = text.replace(password, MASK) if password else text
+        text = text.replace(password, MASK) if password else text
+        tls = self.settings.tls
+        failure = None
+        if self._broker.tls:
+            failure = tls_failure(error, (tls.server_hostname if tls else None) or self._broker.host, self._tls_log.text)
+        self._last_error = f"TLS: {failure} ({text})" if failure else text
 
     # -- connecting and staying connected
 
@@ -211,6 +219,15 @@ class MqttLink(Connection):
             raise
         self._keeper = asyncio.create_task(self._keep(), name=f"mqtt-keep:{self.name}")
 
+    def _tls_context(self) -> ssl.SSLContext:
+        """Read the TLS files now, at every connection: a renewed certificate is in effect from
+        the reopen on. A file that cannot be read is transient (it may be being renewed)."""
+        self._tls_log.text = ""  # what paho logs about this attempt only
+        try:
+            return tls_context(self.settings.tls)
+        except ValueError as exc:
+            raise EndpointError(f"{self.where}: TLS: {exc}") from None
+
     def _client(self) -> aiomqtt.Client:
         settings, endpoint = self.settings, self._broker
         arguments: dict[str, Any] = {}
@@ -227,9 +244,9 @@ class MqttLink(Connection):
             protocol=aiomqtt.ProtocolVersion.V5 if self.v5 else aiomqtt.ProtocolVersion.V311,
             keepalive=settings.keepalive,
             username=endpoint.username, password=endpoint.password,
-            tls_context=ssl.create_default_context() if endpoint.tls else None,
+            tls_context=self._tls_context() if endpoint.tls else None,
             timeout=CONNECT_TIMEOUT,
-            logger=logging.getLogger("engine.mqtt.client"),
+            logger=self._client_log,
             **arguments,
         )
 

@@ -11,6 +11,7 @@ from typing import Literal
 
 from engine.endpoints.base import EndpointOptions
 from engine.options import option
+from engine.tls import TlsOptions
 
 ProtocolVersion = Literal[5, "3.1.1"]
 DEFAULT_URL = "mqtt://localhost:1883"
@@ -23,7 +24,7 @@ class MqttConnectionOptions:
     __schema_description__ = ("one MQTT client and session (aiomqtt on paho-mqtt 2, reconnects by itself); "
                               "a client_id makes the session persistent")
 
-    url: str | None = option(None, secret=True, description="mqtt://host:1883 or mqtts://host:8883 (TLS, the system's CAs); "
+    url: str | None = option(None, secret=True, description="mqtt://host:1883 or mqtts://host:8883 (TLS: the system's CAs, or tls); "
                              "user:password@ allowed; default mqtt://localhost:1883")
     client_id: str | None = option(None, description="names a persistent session (clean start off): subscriptions and messages "
                                    "published while the engine is away are kept for session_expiry seconds; one engine per client_id")
@@ -35,6 +36,7 @@ class MqttConnectionOptions:
     protocol: ProtocolVersion = option(5, description="MQTT version: 5 or '3.1.1'")
     receive_maximum: int = option(256, minimum=1, maximum=65535, description="QoS 1 messages the broker may send before the engine "
                                   "acknowledges any (MQTT 5; with 3.1.1 the broker's own limit, mosquitto's max_inflight_messages)")
+    tls: TlsOptions | None = option(None)
 
 
 @dataclass(frozen=True, kw_only=True)

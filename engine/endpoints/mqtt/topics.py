@@ -16,7 +16,7 @@ from typing import Any, Callable, Iterator
 from aiomqtt import Topic, Wildcard
 
 from engine.endpoints.base import MessageRejected
-from engine.mapping import MappingError, compile_template, template_fields
+from engine.mapping import MappingError, compile_template, template_fields, template_problem
 
 SHARED_PREFIX = "$share"
 MAX_SUBSCRIPTION_ID = 268_435_455
@@ -62,7 +62,10 @@ def matcher(filter_: str) -> Callable[[str], bool]:
 def template_problems(template: str) -> Iterator[str]:
     """Why a sink's topic template can never give a topic one may publish on."""
     literal = "".join(part for part in _literals(template))
-    if not template:
+    refused = template_problem(template)  # fields only: engine/mapping.py parse_template
+    if refused:
+        yield f"topic {refused}"
+    elif not template:
         yield "topic is empty"
     elif "+" in literal or "#" in literal:
         yield f"topic {template!r}: a message is published on one topic, never on a filter (+ and # are for sources)"

@@ -6,7 +6,8 @@ from __future__ import annotations
 from typing import Any, Callable, Iterable, Mapping
 from urllib.parse import urlsplit
 
-from engine.endpoints.base import CheckResult, Connection, Outbound, Transport
+from engine import tls as tls_common
+from engine.endpoints.base import CheckResult, Connection, Outbound, Transport, typed_or_problem
 from engine.endpoints.mqtt.connection import MqttConnection
 from engine.endpoints.mqtt.link import Endpoint
 from engine.endpoints.mqtt.options import MqttConnectionOptions, MqttSinkOptions, MqttSourceOptions
@@ -29,6 +30,7 @@ class MqttTransport(Transport):
     source_options = MqttSourceOptions
     sink_options = MqttSinkOptions
     connection_shorthand = "url"
+    source_meta = ("topic", "qos", "retain")
 
     def connection_problems(self, options: MqttConnectionOptions) -> CheckResult:
         written = given(options)
@@ -37,6 +39,10 @@ class MqttTransport(Transport):
         except ValueError as exc:
             yield "url", str(exc)
             return
+        if options.tls is not None and not endpoint.tls:
+            yield "tls", "tls applies to mqtts:// URLs; this one is mqtt:// (plain TCP), which would never use it"
+        for problem in tls_common.file_problems(options.tls):
+            yield "tls", problem
         if options.client_id == "":
             yield "client_id", "client_id is empty (leave it out for a clean session)"
         if "session_expiry" in written and options.client_id is None:
@@ -79,6 +85,11 @@ class MqttTransport(Transport):
 
     def canonical_fields(self, options: MqttSinkOptions) -> Iterable[tuple[str, str]]:
         return [("topic", name) for name in template_fields(options.topic)]
+
+    def key_files(self, settings: Any) -> Iterable[str]:
+        """The TLS files: a renewed certificate reopens the connection (engine/tls.py)."""
+        options, _ = typed_or_problem(MqttConnectionOptions, settings)
+        return tls_common.key_files(options.tls) if options is not None else []
 
     def exclusive_resource(self, settings: MqttConnectionOptions) -> str | None:
         """A client_id names one session on one broker: two connections holding it would take

@@ -65,6 +65,7 @@ from engine.endpoints.base import (
     CheckResult, Connection, FieldProblem, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
     Source, Transport, typed,
 )
+from engine.mapping import template_problem
 from engine.options import given, option
 from engine.suggest import did_you_mean
 
@@ -89,7 +90,6 @@ _RELIABILITY = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": Reliabili
 _DURABILITY = {"volatile": DurabilityPolicy.VOLATILE, "transient_local": DurabilityPolicy.TRANSIENT_LOCAL}
 _PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
 _RCL_SUBSTITUTIONS = frozenset({"node", "ns", "namespace"})
-_FIELD_PATH = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 
 
 def _env_domain_id() -> int:
@@ -172,10 +172,10 @@ def _check_topic(topic: Any, allow_template: bool) -> Iterator[str]:
     if names and not allow_template:
         yield f"topic {topic!r}: placeholders like {{{names[0]}}} are only allowed in sink topics"
         return
-    for name in names:
-        if not _FIELD_PATH.match(name):
-            yield f"topic {topic!r}: placeholder {{{name}}} is not a field path"
-            return
+    problem = template_problem(topic)
+    if problem:
+        yield f"topic {problem}"
+        return
     sample = _PLACEHOLDER.sub(lambda m: m.group(0) if m.group(1) in _RCL_SUBSTITUTIONS else "x", topic)
     try:
         validate_full_topic_name(expand_topic_name(sample, "node", "/"))
@@ -259,6 +259,7 @@ class Ros2Transport(Transport):
     """A source that offers a service answers its callers (engine.endpoints.ros2.calls.py)."""
     source_options = Ros2EndpointOptions
     sink_options = Ros2SinkOptions
+    source_meta = ("topic",)
 
     def connection_problems(self, options: Ros2ConnectionOptions) -> CheckResult:
         node, namespace, domain_id = options.node, options.namespace, options.domain_id

@@ -1,0 +1,135 @@
+"""Many vehicles on one link (issue 20): three pymavlink vehicles (systems 1-3) share one UDP
+link. One source without ``system_id`` carries every vehicle's telemetry with
+``meta('system_id')`` to a routing key per vehicle; one acknowledged command sink with
+``target_system: "{vehicle}"`` sends each command to the vehicle its message names, which
+acknowledges it; the link writes it only to the UDP peer that vehicle was heard from."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import uuid
+from collections import Counter
+from pathlib import Path
+
+import aio_pika
+import pytest
+
+from engine.routes import RoutesInvalid, load_routes
+from engine.runtime import Engine
+from engine.schemas import SchemaRegistry
+from tests.amqp_helpers import Collector, started_with_client
+from tests.udp_vehicle import FleetVehicle, free_udp_port
+
+ROUTES = """
+connections:
+  gcs: {{amqp: "{url}"}}
+  radio: {{mavlink: "udpin:127.0.0.1:{port}", heartbeat: 1}}
+routes:
+  - name: fleet-position
+    source: {{mavlink: {{connection: radio, message: GLOBAL_POSITION_INT}}}}
+    mapping: "{{vehicle: meta('system_id'), link: meta('connection'), seq: time_boot_ms, lat: lat}}"
+    schema: raw_json
+    sink: {{amqp: {{connection: gcs, exchange: {outbox}, routing_key: "uav.{{vehicle}}.position"}}}}
+  - name: fleet-commands
+    source: {{amqp: {{connection: gcs, exchange: {commands}, binding_key: "#", queue: {queue}}}}}
+    schema: raw_json
+    sink:
+      mavlink: {{connection: radio, message: COMMAND_LONG, acknowledged: true, target_system: "{{vehicle}}", target_component: 1,
+                timeout: 0.3}}
+      mapping: "{{command: `400`, param1: `1`, param2: param}}"
+"""
+
+
+def test_three_vehicles_on_one_udp_link(tmp_path: Path, schemas_dir: Path, amqp_url: str) -> None:
+    tag = uuid.uuid4().hex[:8]
+    names = {"outbox": f"out-{tag}", "commands": f"cmd-{tag}", "queue": f"q-{tag}"}
+    port = free_udp_port()
+    directory = tmp_path / "routes"
+    directory.mkdir()
+    (directory / "fleet.yaml").write_text(ROUTES.format(url=amqp_url, port=port, **names))
+    vehicles = {system_id: FleetVehicle(system_id, port) for system_id in (1, 2, 3)}
+    wanted = [1, 2, 3, 2, 3, 3, 9]  # 9: a message that names no vehicle (dead-lettered)
+
+    async def scenario() -> tuple[list[dict], list[aio_pika.abc.AbstractIncomingMessage]]:
+        engine = Engine(directory, schemas_dir)
+        async with started_with_client(engine, amqp_url) as connection:
+            channel = await connection.channel()
+            positions = await Collector.bind(channel, names["outbox"], "uav.#")
+            dead = await Collector.bind(channel, "rabbitros.dead-letter", "fleet-commands")
+            for vehicle in vehicles.values():
+                vehicle.start()
+            await positions.wait_for(30)
+            exchange = await channel.declare_exchange(names["commands"], aio_pika.ExchangeType.TOPIC, durable=True)
+            for number, system_id in enumerate(wanted):
+                body = {"param": number} if system_id == 9 else {"param": number, "vehicle": system_id}
+                await exchange.publish(aio_pika.Message(json.dumps(body).encode()), "cmd")
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + 20
+            while loop.time() < deadline and sum(len(v.received()) for v in vehicles.values()) < 6:
+                await asyncio.sleep(0.05)
+            letters = await dead.wait_for(1)
+            got = [json.loads(m.body) | {"key": m.routing_key} for m in positions.messages]
+        for vehicle in vehicles.values():
+            vehicle.stop.set()
+        return got, letters
+
+    try:
+        positions, letters = asyncio.run(scenario())
+    finally:
+        for vehicle in vehicles.values():
+            vehicle.stop.set()
+            vehicle.join(5)
+    by_vehicle = Counter(p["vehicle"] for p in positions)
+    assert set(by_vehicle) == {1, 2, 3}, by_vehicle
+    for position in positions:
+        assert position["key"] == f"uav.{position['vehicle']}.position"
+        assert position["link"] == "radio"
+        assert position["lat"] == -220000000 - position["vehicle"]  # each vehicle's own stream
+    for system_id, vehicle in vehicles.items():
+        params = sorted(int(msg.param2) for msg in vehicle.received())
+        assert params == [n for n, s in enumerate(wanted) if s == system_id], (system_id, params)
+        assert all(msg.target_system == system_id and msg.target_component == 1 for msg in vehicle.received())
+    # each command went only to the peer its vehicle was heard from
+    assert [vehicle.foreign for vehicle in vehicles.values()] == [0, 0, 0]
+    assert [m.headers["x-rabbitros-stage"] for m in letters] == ["sink"]
+    assert "the canonical message has no field 'vehicle'" in letters[0].headers["x-rabbitros-error"]
+
+
+def test_check_knows_where_a_field_target_applies(tmp_path: Path, schemas_dir: Path) -> None:
+    routes = ROUTES.format(url="amqp://localhost:1/", port=14998, outbox="o", commands="c", queue="q")
+    mission = routes.replace("message: COMMAND_LONG, acknowledged: true,", "mission: upload,").replace(
+        "      mapping: \"{command: `400`, param1: `1`, param2: param}\"\n", "")
+    directory = tmp_path / "r"
+    directory.mkdir()
+    (directory / "fleet.yaml").write_text(mission)
+    with pytest.raises(RoutesInvalid) as caught:
+        load_routes(directory, SchemaRegistry(schemas_dir))
+    assert any('target_system: a "{field}" target is read per message by message and command sinks; a mission upload'
+               in p.message for p in caught.value.problems), caught.value.problems
+
+
+def test_route_tests_read_the_target_from_the_message(tmp_path: Path, schemas_dir: Path) -> None:
+    directory = tmp_path / "r"
+    directory.mkdir()
+    (directory / "fleet.yaml").write_text(ROUTES.format(url="amqp://localhost:1/", port=14997, outbox="o", commands="c", queue="q"))
+    (directory / "fleet.test.yaml").write_text("""
+tests:
+  - route: fleet-commands
+    input: {vehicle: 2, param: 5}
+    expect_sink: {command: 400, param1: 1, param2: 5}
+  - route: fleet-commands
+    input: {vehicle: 300, param: 5}
+    expect_error: sink
+  - route: fleet-position
+    input: {time_boot_ms: 7, lat: 1}
+    meta: {system_id: 3}
+    expect: {vehicle: 3, link: null, seq: 7, lat: 1}
+    expect_routing_key: uav.3.position
+""")
+    from engine.route_tests import load_checked, run_tests
+
+    schemas = SchemaRegistry(schemas_dir)
+    config, cases, problems, _ = load_checked(directory, schemas)
+    assert config is not None and not problems, problems
+    assert [r.reason for r in run_tests(cases, config, schemas)] == ["", "", ""]
