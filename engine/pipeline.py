@@ -22,6 +22,7 @@ from engine.delivery import ConversionError
 from engine.endpoints import transport
 from engine.endpoints.base import Inbound, MessageRejected, Outbound, Sink
 from engine.mapping import MappingError, Mapper, compile_mapping
+from engine.replies import ReplyShape
 from engine.schemas import CanonicalSchema, SchemaError, canonical_bytes, parse_json
 from engine.throttle import Throttle
 
@@ -44,11 +45,14 @@ class Pipeline:
     """What the sink refuses in the sink mapping's output (MessageRejected), or None."""
     throttle: Throttle[Any] | None = None
     """The route's throttle stage (engine/throttle.py): one per generation, closed when it retires."""
+    reply_shape: ReplyShape = field(default_factory=lambda: ReplyShape(None, None))
+    """The route's ``reply:`` mapping and schema (engine/replies.py), compiled with the rest."""
     in_flight: int = 0
     _drained: asyncio.Event = field(default_factory=asyncio.Event)
 
     @classmethod
-    def compile(cls, spec: RouteSpec, generation: int, schema: CanonicalSchema, sink: Sink) -> Pipeline:
+    def compile(cls, spec: RouteSpec, generation: int, schema: CanonicalSchema, sink: Sink,
+                reply_schema: CanonicalSchema | None = None) -> Pipeline:
         return cls(
             route=spec.name,
             generation=generation,
@@ -59,6 +63,7 @@ class Pipeline:
             sink_mapper=compile_mapping(spec.sink_mapping, spec.variables),
             sink_check=transport(spec.sink.protocol).sink_field_check(spec.sink.options, spec.sink_mapping),
             throttle=Throttle.from_options(spec.throttle),
+            reply_shape=ReplyShape(spec.reply, reply_schema),
         )
 
     def convert(self, inbound: Inbound) -> Outbound:
@@ -111,6 +116,15 @@ class Pipeline:
             message_id=meta.get("message_id") or os.urandom(16).hex(),
             meta=meta,
         )
+
+    def cancel_request(self, inbound: Inbound) -> Outbound:
+        """A cancel for a sink that understands it (``Sink.cancels``): not converted, as its
+        body is not a request (engine/endpoints/base.py)."""
+        meta = inbound.meta
+        meta["route"] = self.route
+        meta["generation"] = self.generation
+        return Outbound(body=b"", canonical=None, fields=None,
+                        message_id=meta.get("message_id") or os.urandom(16).hex(), meta=meta)
 
     def enter(self) -> None:
         self.in_flight += 1

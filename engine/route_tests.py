@@ -27,12 +27,13 @@ import jsonschema
 from engine import endpoints
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound, Sink
 from engine.pipeline import ConversionError, Pipeline
+from engine.replies import ReplyFailed
 from engine.route_yaml import Problem, parse_document
 from engine.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes, source_meta_names
 from engine.schemas import SchemaRegistry
 from engine.suggest import did_you_mean
 
-STAGES = ("input", "decode", "mapping", "schema", "sink mapping", "sink")
+STAGES = ("input", "decode", "mapping", "schema", "sink mapping", "sink", "reply mapping", "reply schema")
 """Where a message can be rejected, in pipeline order; ``expect_error`` names one."""
 
 TEST_FILE_SCHEMA: dict[str, Any] = {
@@ -60,13 +61,16 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
                     "expect_sink": {"description": "the sink mapping's output"},
                     "expect_routing_key": {"type": "string", "description": "the rendered routing key or topic"},
                     "expect_error": {"enum": list(STAGES)},
+                    "response": {"description": "the sink's answer to the request, which the route's reply: mapping reads "
+                                                "(what each sink answers: route-language.md, Calls)"},
+                    "expect_reply": {"description": "the reply body the route makes of response"},
                 },
             },
         }
     },
 }
 _VALIDATOR = jsonschema.Draft202012Validator(TEST_FILE_SCHEMA)
-_EXPECTATIONS = ("expect", "expect_sink", "expect_routing_key")
+_EXPECTATIONS = ("expect", "expect_sink", "expect_routing_key", "expect_reply")
 
 
 def test_files(routes: Path) -> list[Path]:
@@ -130,6 +134,9 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
                 problems.append(document.problem(where + (expectations[0],), f"{expectations[0]!r} and 'expect_error' exclude each other"))
             elif "expect_error" not in body and not expectations:
                 problems.append(document.problem(where, f"test of route {route!r} expects nothing (expect, expect_sink, expect_routing_key or expect_error)"))
+            if ("response" in body) != ("expect_reply" in body or body.get("expect_error", "").startswith("reply")):
+                problems.append(document.problem(where, f"test of route {route!r}: 'response' and 'expect_reply' (or a reply "
+                                                        "expect_error) go together"))
             if config is not None and route not in config.routes:
                 problems.append(document.problem(where + ("route",), f"unknown route {route!r}{did_you_mean(route, config.routes)}"))
             elif config is not None:
@@ -175,13 +182,20 @@ class DrySink(Sink):
 def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry) -> Result:
     schema = schemas.get(spec.schema)
     assert schema is not None  # the route compiled
-    pipeline = Pipeline.compile(spec, 0, schema, DrySink())
+    reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
+    pipeline = Pipeline.compile(spec, 0, schema, DrySink(), reply_schema)
     body = case.body
     expected_error = body.get("expect_error")
+    reply: Any = None
     try:
         inbound = source_message(spec, body)
         outbound = pipeline.convert(inbound)
         destination = dry_run_sink(spec)(outbound)
+        if "response" in body:
+            try:
+                reply = json.loads(pipeline.reply_shape.body(body["response"]))
+            except ReplyFailed as failed:
+                raise ConversionError(failed.stage, failed.error) from None
     except ConversionError as error:
         if expected_error == error.stage:
             return Result(case, True)
@@ -200,6 +214,10 @@ def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry) -> Result:
         want, got = _without(body["expect_sink"], ignore), _without(_plain(outbound.fields), ignore)
         if not same(want, got):
             failures.append(("sink mapping output differs", _diff(want, got)))
+    if "expect_reply" in body:
+        want, got = _without(body["expect_reply"], ignore), _without(reply, ignore)
+        if not same(want, got):
+            failures.append(("reply differs", _diff(want, got)))
     if "expect_routing_key" in body and body["expect_routing_key"] != destination:
         failures.append((f"routing key/topic is {destination!r}, expected {body['expect_routing_key']!r}", []))
     if failures:

@@ -33,6 +33,7 @@ from engine.local_broker import LOCAL_BROKER_ENV
 from engine.redaction import Secret, json_default, revealed
 from engine.route_yaml import Document, Path_, Problem, parse_document
 from engine.schemas import SchemaRegistry
+from engine.replies import ReplyOptions
 from engine.suggest import did_you_mean
 from engine.templates import Expansion, expand_routes, is_items_text
 from engine.throttle import ThrottleOptions
@@ -101,6 +102,7 @@ class RouteOptions:
         "seconds from reception after which a message is worthless (telemetry): one older when it would be sent (from "
         "the buffer after an outage, a throttle slot, a retry) is dropped and counted expired; absent: every message arrives"))
     sink: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
+    reply: ReplyOptions | None = option(None)
     ordered: bool = option(False, description="one engine instance at a time carries the route, in order (sources whose broker offers it: a single active consumer)")
     instances: tuple[str, ...] | None = option(None, min_items=1,
                                                description="run the route only on these engine instances (--instance NAME, default the host name)")
@@ -165,6 +167,8 @@ class RouteSpec:
     """Where messages wait while the sink is down (``buffer:``); the fingerprint covers it."""
     placement: Placement = field(default_factory=lambda: Placement())
     """Which engine instances carry the route (scale-out); the default: every instance."""
+    reply: ReplyOptions | None = None
+    """How the sink's answers to a request are shaped (``reply:``; engine/replies.py)."""
     variables: Mapping[str, Any] = field(default_factory=dict, compare=False)
     """The route's template variables (its ``for_each`` item; the fingerprint covers them):
     ``meta(name)`` gives them as constants folded into the compiled mapping."""
@@ -571,7 +575,8 @@ def _compile_routes(
             fingerprint = hashlib.sha256(
                 json.dumps(
                     [body, {k: (v.fingerprint, v.max_message_bytes) if v else None for k, v in used.items()},
-                     schema.digest if schema else None] + ([variables] if variables else []),
+                     schema.digest if schema else None,
+                     _reply_schema_digest(route, schemas)] + ([variables] if variables else []),
                     sort_keys=True,
                     default=json_default,
                 ).encode()
@@ -590,9 +595,17 @@ def _compile_routes(
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
                 document.file, document.line(where), throttle=route.throttle, delivery=delivery, buffer=buffer,
-                placement=placement, variables=variables,
+                placement=placement, reply=route.reply, variables=variables,
             )
     return routes
+
+
+def _reply_schema_digest(route: RouteOptions, schemas: SchemaRegistry) -> str | None:
+    """A new version of the reply schema is a change of the route (as for its own schema)."""
+    if route.reply is None or not route.reply.schema:
+        return None
+    schema = schemas.get(route.reply.schema)
+    return schema.digest if schema is not None else None
 
 
 def _route_checks(
@@ -627,6 +640,7 @@ def _route_checks(
         warnings.extend(_schema_warnings(document, where, route, sink, schemas))
     _endpoint_checks(document, where, name, source if complete[0] else None, sink if complete[1] else None,
                      mapping, sink_mapping, problems)
+    _reply_checks(document, where, route, source, schemas, problems)
     if source:  # fields a typed source does not have
         for message in mapping_field_problems(source.protocol, source.options, mapping):
             problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
@@ -670,6 +684,31 @@ def _shadowing_warnings(document: Document, where: Path_, route: RouteOptions, e
                     f"route {route.name!r}: {{{variable}}} in {'.'.join(map(str, path))} is the for_each variable "
                     f"({expansion.variables[variable]!r}), not the canonical field {variable!r} of {route.schema}: the variable wins "
                     f"(rename the variable to read the field at send time)"))
+
+
+def _reply_checks(document: Document, where: Path_, route: RouteOptions, source: EndpointSpec | None,
+                  schemas: SchemaRegistry, problems: list[Problem]) -> None:
+    """``reply:`` needs a source that can answer its sender; its mapping compiles, its schema exists."""
+    reply, name = route.reply, route.name
+    if reply is None:
+        return
+    if source is not None and not endpoints.transport(source.protocol).source_answers(source.options):
+        able = [p for p in endpoints.PROTOCOLS if _replies(p)]
+        problems.append(document.problem(where + ("reply",), f"route {name!r}: reply: this {source.protocol} source cannot "
+                                                             f"answer its sender (protocols whose sources can: {', '.join(able)}; "
+                                                             "see Calls in route-language.md)"))
+    for message in _mapping_problems(reply.mapping):
+        problems.append(document.problem(where + ("reply", "mapping"), f"route {name!r}: reply: {message}"))
+    if reply.schema is not None and schemas.get(reply.schema) is None:
+        problems.append(document.problem(where + ("reply", "schema"), f"route {name!r}: reply: unknown schema {reply.schema!r}"
+                                                                      f"{did_you_mean(reply.schema, schemas.names())}"))
+
+
+def _replies(protocol: str) -> bool:
+    try:
+        return endpoints.transport(protocol).replies
+    except EndpointError:
+        return False
 
 
 def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None,

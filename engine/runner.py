@@ -42,6 +42,7 @@ from engine.endpoints.base import Connection, EndpointError, Inbound, MessageRej
 from engine.logs import ReportLimiter
 from engine.observe import Observers
 from engine.pipeline import Pipeline
+from engine.replies import Replies
 
 if TYPE_CHECKING:
     from engine.routes import RouteSpec
@@ -107,6 +108,8 @@ class RouteRunner:
         self.buffer: HoldingBuffer | None = None if spec.buffer is None else host.buffers.acquire(
             spec.name, spec.buffer, spec.delivery.max_attempts, self)
         """Holds the route's messages while its sink is down (``buffer:``; engine/buffer.py)."""
+        self.replies = Replies(spec.name, source)
+        """The route's replies to requests (engine/replies.py), through this runner's source."""
         self.state = "created"
         """created, waiting (for a connection that is not open yet), running, stopped."""
         self._starter: asyncio.Task[None] | None = None
@@ -114,6 +117,8 @@ class RouteRunner:
         self._report = ReportLimiter()
         self._retry_report = ReportLimiter()
         self._released: set[asyncio.Task[None]] = set()
+        self._replying: set[asyncio.Task[None]] = set()
+        """Error replies to expired calls, on their way."""
         """Messages the throttle released from their slot, on their way to the sink."""
 
     # -- the Deliver contract a source sees
@@ -182,13 +187,17 @@ class RouteRunner:
             failure = Failure("size", f"{len(body)} bytes exceed max_message_bytes {delivery.max_message_bytes}", True)
             return _Message(index, inbound, None, prior + 1, pipeline, failure)
         try:
-            outbound = pipeline.convert(inbound)
+            if pipeline.sink.cancels and inbound.meta.get("cancel") is not None:
+                outbound = pipeline.cancel_request(inbound)
+            else:
+                outbound = pipeline.convert(inbound)
         except Exception as error:  # ConversionError, or anything the pipeline did not foresee
             return _Message(index, inbound, None, prior + 1, pipeline, classify(error, "convert"))
         if len(outbound.body) > delivery.sink_max_message_bytes:
             failure = Failure("size", f"canonical message of {len(outbound.body)} bytes exceeds the sink "
                               f"connection's max_message_bytes {delivery.sink_max_message_bytes}", True)
             return _Message(index, inbound, outbound, prior + 1, pipeline, failure)
+        outbound.reply = self.replies.bind(pipeline.reply_shape, inbound.meta)
         if prior >= delivery.max_attempts:
             failure = Failure("sink", f"already attempted {prior} times (max_attempts {delivery.max_attempts})", False)
             return _Message(index, inbound, outbound, prior, pipeline, failure)
@@ -277,6 +286,7 @@ class RouteRunner:
             if self.too_old(now_ns - message.inbound.received_ns):
                 settled[message.index] = True
                 self.observer.expire(message.inbound, message.outbound)  # type: ignore[arg-type]
+                self._expired_call(message.outbound)  # type: ignore[arg-type]
             else:
                 fresh.append(message)
         return fresh
@@ -361,6 +371,17 @@ class RouteRunner:
     def held_expired(self, held: list[Held]) -> None:
         for outbound, _ in held:
             self.observer.expire(None, outbound)
+            self._expired_call(outbound)
+
+    def _expired_call(self, outbound: Outbound) -> None:
+        """An expired request is settled without a dead letter; its caller still hears the end:
+        one ``error`` reply (stage ``max_age``), sent beside the route's work."""
+        if not outbound.meta.get("reply_to"):
+            return
+        age = f"older than the route's max_age ({self.spec.delivery.max_age_ns / 1e9:g} s) before it could be sent"  # type: ignore[operator]
+        task = asyncio.create_task(self.replies.failed(outbound.reply, outbound.meta, "max_age", age))
+        self._replying.add(task)
+        task.add_done_callback(self._replying.discard)
 
     def held_conflated(self, held: list[Held]) -> None:
         for outbound, _ in held:
@@ -392,6 +413,11 @@ class RouteRunner:
             failure = message.failure
             self.observer.dead_letter(message.inbound, message.outbound, failure.stage, failure.error)  # type: ignore[union-attr]
         self._report_failure(dead[-1].failure, len(dead))  # type: ignore[arg-type]
+        calls = [m for m in dead if m.inbound.meta.get("reply_to")]
+        if calls:  # each request that failed for good: its caller gets one error reply, published together
+            await asyncio.gather(*(self.replies.failed(m.outbound.reply if m.outbound is not None else None,
+                                                       m.inbound.meta, m.failure.stage, m.failure.error)  # type: ignore[union-attr]
+                                   for m in calls))
 
     def _report_retry(self, failure: Failure, count: int) -> None:
         if self._retry_report.ready():
@@ -508,6 +534,7 @@ class RouteRunner:
             "waiting_for": self.missing_connections() if self.state == "waiting" else [],
             "sink_not_ready": self.pipeline.sink.not_ready_reason(),
             "buffer": stats_dict(self.buffer) if self.buffer is not None else None,
+            "replies": self.replies.counters(),
         }
 
 

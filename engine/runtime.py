@@ -240,7 +240,8 @@ class Engine:
         connection = await self.connections.get(config.connections[spec.sink.connection])
         schema = schemas.get(spec.schema)
         assert schema is not None
-        return Pipeline.compile(spec, generation, schema, connection.sink(spec.name, spec.sink.options)), connection
+        reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
+        return Pipeline.compile(spec, generation, schema, connection.sink(spec.name, spec.sink.options), reply_schema), connection
 
     async def _runner(self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int) -> RouteRunner:
         """A route's pipeline and source, not started yet."""

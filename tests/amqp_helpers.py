@@ -64,3 +64,53 @@ async def started_with_client(engine: Any, amqp_url: str) -> AsyncIterator[aio_p
             await connection.close()
     finally:
         await engine.stop()
+
+
+DIRECT_REPLY_TO = "amq.rabbitmq.reply-to"
+
+
+class Caller:
+    """An AMQP RPC client on RabbitMQ's direct reply-to: consumes ``amq.rabbitmq.reply-to``
+    (no_ack, on the channel it publishes from) and files every reply by its correlation id."""
+
+    def __init__(self, channel: Any) -> None:
+        self.channel = channel
+        self.replies: dict[str, list[aio_pika.abc.AbstractIncomingMessage]] = {}
+        self._arrived = asyncio.Event()
+
+    @classmethod
+    async def open(cls, channel: Any) -> "Caller":
+        caller = cls(channel)
+        queue = await channel.get_queue(DIRECT_REPLY_TO, ensure=False)
+        await queue.consume(caller._on_reply, no_ack=True)
+        return caller
+
+    async def _on_reply(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        self.replies.setdefault(message.correlation_id or "", []).append(message)
+        self._arrived.set()
+
+    async def call(self, exchange: str, routing_key: str, body: bytes, correlation_id: str | None = None,
+                   reply_to: str | None = DIRECT_REPLY_TO, headers: dict[str, Any] | None = None) -> str:
+        """Publish a request; returns its correlation id."""
+        correlation_id = correlation_id or uuid.uuid4().hex
+        target = self.channel.default_exchange if exchange == "" else await self.channel.get_exchange(exchange, ensure=False)
+        await target.publish(aio_pika.Message(body, content_type="application/json", correlation_id=correlation_id,
+                                              reply_to=reply_to, headers=headers or {}), routing_key)
+        return correlation_id
+
+    async def wait(self, condition: Any, timeout: float, what: str) -> None:
+        """Until ``condition(self.replies)`` holds; fails naming ``what`` after ``timeout`` s."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while not condition(self.replies):
+            remaining = deadline - loop.time()
+            assert remaining > 0, f"timed out waiting for {what}; replies: {self.summary()}"
+            self._arrived.clear()
+            try:
+                await asyncio.wait_for(self._arrived.wait(), remaining)
+            except asyncio.TimeoutError:
+                pass
+
+    def summary(self) -> dict[str, list[tuple[Any, bytes]]]:
+        return {key: [(m.headers.get("x-rabbitros-reply"), m.body[:200]) for m in messages]
+                for key, messages in list(self.replies.items())[:5]}

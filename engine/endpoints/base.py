@@ -22,6 +22,19 @@ A message ``batch`` reports as not settled (or for which ``deliver`` raised) was
 delivered - this happens only while the route stops, or when even the dead letters fail -
 and the source must let it be redelivered if it can (AMQP: nack with requeue); a source
 that cannot (ROS 2, MAVLink) counts it as dropped.
+
+Reply contract (request/reply, issue 19): a source whose protocol can answer its sender (AMQP:
+``reply_to`` and ``correlation_id``) puts a non-empty ``reply_to`` in ``Inbound.meta`` and
+implements :meth:`Source.reply`; its transport says so (``Transport.replies``). The runner
+gives each converted message an ``Outbound.reply`` (:data:`Reply`); a sink whose destination
+answers (a ROS 2 service response, an action's feedback and result, a MAVLink COMMAND_ACK)
+calls it with a kind of :data:`REPLY_KINDS` and the answer as plain JSON data. The runner
+shapes it by the route's ``reply:`` mapping and schema and hands it to the source that received
+the request; a request that fails for good (dead-lettered) gets one ``error`` reply from the
+runner, so a caller never waits forever. Sinks never know who asked, or over what protocol.
+The meta keys of a call: ``reply_to`` (where replies go: only the source reads it),
+``correlation_id`` (the caller's name for the request) and ``cancel`` (this message cancels
+the request with that correlation id; see :attr:`Sink.cancels`).
 """
 
 from __future__ import annotations
@@ -31,7 +44,7 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
+from typing import Any, Awaitable, Callable, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
 
 from engine.options import OptionError, describe, dotted, option, parse
 from engine.suggest import closest
@@ -59,6 +72,20 @@ OVERFLOW_POLICIES = ("block", "drop_oldest", "drop_newest")
 """What a source does when its bounded queue towards the pipeline is full: stop taking from
 its protocol until there is room (``block``: the protocol's own flow control or history
 holds the rest), or drop the oldest / the newest message and count it."""
+
+
+REPLY_KINDS = ("accepted", "feedback", "result", "rejected", "error")
+"""What a reply says (the AMQP header ``x-rabbitros-reply``): a goal ``accepted`` (then each
+``feedback``) or ``rejected``; the ``result`` that ends a call; an ``error`` that ends it too
+(timeout, nobody serving it, a request that failed conversion). ``result``, ``rejected`` and
+``error`` are final: nothing more is sent for that request (a later reply is dropped, counted)."""
+FINAL_REPLIES = frozenset(("result", "rejected", "error"))
+
+Reply = Callable[[str, Any], Awaitable[None]]
+"""``await outbound.reply(kind, data)``: one reply to the request ``outbound`` carries. ``data``
+is plain JSON data (the reply mapping's input); for ``error`` it is ``{stage, error}``. It never
+raises: a reply that cannot be delivered is counted by the route. For a message that asked for
+no reply it only counts the reply (fire-and-forget)."""
 
 
 @dataclass(slots=True)
@@ -93,6 +120,9 @@ class Outbound:
     fields: Any
     message_id: str
     meta: Mapping[str, Any]
+    reply: Reply | None = None
+    """Set by the runner (see the reply contract in the module docstring); None outside a
+    route (a test building an Outbound), where a sink's replies go nowhere."""
 
 
 class Deliver(Protocol):
@@ -180,8 +210,20 @@ class Source(ABC):
         """What the source wants operators to see in the status (counters, problems)."""
         return {}
 
+    async def reply(self, meta: Mapping[str, Any], kind: str, body: bytes) -> None:
+        """Deliver one reply (kind of :data:`REPLY_KINDS`, JSON ``body``) to the sender of the
+        request whose ``Inbound.meta`` was ``meta`` (it holds ``reply_to``); raise
+        :class:`EndpointError` if it could not be handed over. Only sources of a transport with
+        ``replies`` set are asked."""
+        raise EndpointError("this source cannot reply")
+
 
 class Sink(ABC):
+    cancels: ClassVar[bool] = False
+    """True when the sink understands a cancel: a message whose source marked it
+    ``meta["cancel"] = <correlation id of an earlier request>`` reaches the sink unconverted
+    (its body is not the request's: ``Outbound.canonical`` and ``fields`` are None) and stops
+    that request (a ROS 2 action goal). Other sinks get such a message converted as any other."""
     @abstractmethod
     async def send(self, message: Outbound) -> None:
         """Return once the destination has accepted the message; raise EndpointError if not."""
@@ -358,6 +400,15 @@ class Transport(ABC):
     """The names of the metadata this protocol's source gives each message (``Inbound.meta``),
     which a mapping reads with ``meta(name)``: ``check`` refuses any other name (the route's
     template variables aside), and a route test gives them as ``meta: {name: value}``."""
+    replies: ClassVar[bool] = False
+    """True when this protocol's sources can answer a request's sender (:meth:`Source.reply`):
+    only then may a route with such a source have ``reply:`` (the loader checks)."""
+
+    def source_answers(self, options: Any) -> bool:
+        """Whether a source with these (typed) options can answer its sender (``reply:`` is
+        allowed): by default, whether the protocol's sources can (:attr:`replies`)."""
+        return self.replies
+
     accepts_secrets: ClassVar[bool] = False
     """True when the connection settings may hold engine.redaction.Secret values, which the
     endpoint reveals only where it connects; otherwise the loader hands it plain values."""

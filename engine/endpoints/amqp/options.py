@@ -68,3 +68,7 @@ class AmqpSinkOptions(EndpointOptions):
     routing_key: str = option("", description="may interpolate canonical fields: canonical.weeds.{agent_id}; a message lacking one is dead-lettered")
     content_type: str = option("application/json", description="content_type property of every message")
     persistent: bool = option(True, description="delivery mode 2: the broker writes the message to disk in durable queues")
+    timeout: float | None = option(None, exclusive_minimum=0,
+                                   description="for a message that asks for a reply (a call to a ROS 2 service the engine offers): "
+                                               "publish it as a request (direct reply-to) and wait this many seconds for the "
+                                               "worker's answer; none: the call fails, and no response is sent")

@@ -48,6 +48,7 @@ from engine.endpoints.base import (
     typed_or_problem,
 )
 import engine.endpoints.amqp.cluster as amqp_cluster
+from engine.endpoints.amqp.calls import AmqpCaller
 import engine.endpoints.amqp.tls as amqp_tls
 from engine import tls as tls_common
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
@@ -212,7 +213,7 @@ class AmqpConnection(Connection):
             await self.exchange(exchange_name, kind, durable)
             assert self._publish_channel is not None
             channel = await self._publish_channel.get_underlay_channel()
-        except LIBRARYLIBRARY_ERRORS as exc:
+        except LIBRARY_ERRORS as exc:
             error = edge_error(exc, f"amqp publish to {exchange_name!r} on {self.name!r}")
             return [error] * len(messages)
         confirms = self._publish_channel.publisher_confirms
@@ -261,7 +262,7 @@ class AmqpConnection(Connection):
                 await queue.bind(DEAD_LETTER_EXCHANGE, "#")
             finally:
                 await channel.close()
-        except LIBRARYLIBRARY_ERRORS as exc:
+        except LIBRARY_ERRORS as exc:
             raise edge_error(exc, f"amqp connection {self.name!r}: cannot declare the dead-letter queue") from exc
 
     async def dead_letter(self, route: str, messages: Sequence[tuple[bytes, Mapping[str, Any]]]) -> None:
@@ -390,6 +391,19 @@ class AmqpSource(Source):
             else:
                 await _settle_frame(message.channel.basic_nack, message.delivery_tag, requeue=True)
 
+    async def reply(self, meta: Mapping[str, Any], kind: str, body: bytes) -> None:
+        """The AMQP request/reply convention: to the default exchange, routing key = the
+        request's ``reply_to``, with its ``correlation_id``; headers ``x-rabbitros-reply`` (the
+        kind) and ``x-rabbitros-route``. Transient and not mandatory: a caller that is gone
+        (RabbitMQ's direct reply-to ``amq.rabbitmq.reply-to.*`` when its channel closed) is not
+        waited for. Published on the connection's confirm channel; accepted once confirmed."""
+        properties = spec.Basic.Properties(
+            content_type="application/json", correlation_id=meta.get("correlation_id"),
+            headers={"x-rabbitros-reply": kind, "x-rabbitros-route": self._route}, delivery_mode=1)
+        error = (await self._connection.publish_batch("", [(str(meta["reply_to"]), body, properties)], "direct"))[0]
+        if error is not None:
+            raise error
+
     async def stop(self) -> None:
         """Cancel the consumer, settle what was received, then close the channel so anything
         the broker sent but we did not take is requeued."""
@@ -423,6 +437,9 @@ def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
             "headers": properties.headers,
             "content_type": properties.content_type,
             "redelivered": message.redelivered,
+            "reply_to": properties.reply_to,
+            "correlation_id": properties.correlation_id,
+            "cancel": (properties.headers or {}).get("x-rabbitros-cancel"),
         },
         received_ns=received_ns,
     )
@@ -478,6 +495,9 @@ class AmqpSink(Sink):
         self._content_type = options.content_type
         self._delivery_mode = 2 if options.persistent else 1
         self._properties: dict[tuple[str, int], tuple[spec.Basic.Properties, bytes, bytes]] = {}
+        self._caller = None if options.timeout is None else AmqpCaller(
+            connection, f"route {route!r}: amqp sink", options.timeout)
+        """Calls: messages that ask for a reply are requests (engine/endpoints/amqp/calls.py)."""
 
     async def send(self, message: Outbound) -> None:
         error = (await self.send_batch((message,)))[0]
@@ -485,6 +505,35 @@ class AmqpSink(Sink):
             raise error
 
     async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        if self._caller is not None and any(message.meta.get("reply_to") for message in messages):
+            return list(await asyncio.gather(*(self._call(message) if message.meta.get("reply_to")
+                                               else self._publish_one(message) for message in messages)))
+        return await self._publish(messages)
+
+    async def _publish_one(self, message: Outbound) -> BaseException | None:
+        return (await self._publish((message,)))[0]
+
+    async def _call(self, message: Outbound) -> BaseException | None:
+        """A request and its answer, the call's reply."""
+        assert self._caller is not None
+        try:
+            routing_key = self._routing_key(message.canonical)
+            body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)
+            answer = await self._caller.call(self._exchange, self._kind, self._durable, routing_key, body,
+                                             self._content_type, message.message_id)
+        except (MappingError, SchemaError) as exc:
+            return MessageRejected(str(exc))
+        except EndpointError as exc:
+            return exc
+        if message.reply is not None:
+            await message.reply("result", answer)
+        return None
+
+    async def close(self) -> None:
+        if self._caller is not None:
+            await self._caller.close()
+
+    async def _publish(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
         results: list[BaseException | None] = [None] * len(messages)
         publishable: list[int] = []
         batch: list[tuple[str, bytes, spec.Basic.Properties]] = []
@@ -518,6 +567,7 @@ class AmqpTransport(Transport):
     name = "amqp"
     connection_type = AmqpConnection
     default_settings = {"url": "amqp://guest:guest@localhost:5672/"}
+    replies = True
     accepts_secrets = True
     connection_options = AmqpConnectionOptions
     source_options = AmqpSourceOptions

@@ -9,6 +9,11 @@ times, then fail transiently (:class:`EndpointError`). MAV_RESULT_ACCEPTED compl
 IN_PROGRESS extends the wait to ``in_progress_timeout`` for the final ACK;
 TEMPORARILY_REJECTED sends again after ``retry_delay`` (counted as a retry); any other result
 (DENIED, FAILED, UNSUPPORTED, ...) is permanent: :class:`MessageRejected` naming it.
+
+As a call (the request asked for replies, engine/replies.py): ACCEPTED replies
+``{kind: "result", result: "MAV_RESULT_ACCEPTED", command: 400}``, each IN_PROGRESS a
+``feedback`` with the ACK's ``progress``; a refusal or the silence ends in the runner's
+``error`` reply (the silence only once the route's delivery attempts are spent).
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ import asyncio
 from collections.abc import Callable
 from typing import Any
 
-from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
+from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Reply, Sink
 from engine.endpoints.mavlink.codec import mavlink2
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name
@@ -55,9 +60,9 @@ class AcknowledgedCommandSink(Sink):
         async with connection.transaction_lock(("command", target, msg.command)):
             await connection.wait_for_vehicle(*target, loop.time() + options.vehicle_timeout)
             async with Conversation(connection, target, _ACK) as answers:
-                await self._exchange(answers, fields, msg)
+                await self._exchange(answers, fields, message.reply, msg)
 
-    async def _exchange(self, answers: Conversation, fields: Any, msg: mavlink2.MAVLink_message) -> None:
+    async def _exchange(self, answers: Conversation, fields: Any, reply: Reply | None, msg: mavlink2.MAVLink_message) -> None:
         connection, options = self.connection, self.options
         stats = connection.stats
         loop = asyncio.get_running_loop()
@@ -72,9 +77,14 @@ class AcknowledgedCommandSink(Sink):
                 continue
             if ack is not None and ack.result == mavlink2.MAV_RESULT_ACCEPTED:
                 stats["commands_acknowledged"] = stats.get("commands_acknowledged", 0) + 1
+                if reply is not None:
+                    await reply("result", {"kind": "result", "result": "MAV_RESULT_ACCEPTED", "command": msg.command})
                 return
             if ack is not None and ack.result == mavlink2.MAV_RESULT_IN_PROGRESS:
                 deadline = loop.time() + options.in_progress_timeout
+                if reply is not None:
+                    await reply("feedback", {"kind": "feedback", "result": "MAV_RESULT_IN_PROGRESS",
+                                             "command": msg.command, "progress": ack.progress})
                 continue
             if ack is not None and ack.result != mavlink2.MAV_RESULT_TEMPORARILY_REJECTED:
                 stats["commands_rejected"] = stats.get("commands_rejected", 0) + 1

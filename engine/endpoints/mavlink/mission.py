@@ -204,6 +204,8 @@ class MissionUploadSink(Sink):
             connection.mission_refs[options.target] = str(canonical.get("id") or message.message_id)
             async with Conversation(connection, options.target, _ANSWERS) as answers:
                 await self._upload(answers, items)
+        if message.reply is not None:  # a call: the vehicle's MISSION_ACK is the answer
+            await message.reply("result", {"kind": "result", "result": "MAV_MISSION_ACCEPTED", "items": len(items)})
 
     async def _upload(self, answers: Conversation, items: list[mavlink2.MAVLink_message]) -> None:
         connection, options = self.connection, self.options

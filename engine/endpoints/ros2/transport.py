@@ -59,14 +59,14 @@ from rclpy.validate_full_topic_name import validate_full_topic_name
 from rclpy.validate_namespace import validate_namespace
 from rclpy.validate_node_name import validate_node_name
 
-from engine.endpoints.ros2 import contract as ros2_contract, rosmsg
+from engine.endpoints.ros2 import calls as ros2_calls, contract as ros2_contract, rosmsg
 from engine.endpoints.ros2.errors import mapped, rcl_reason, setup_error
 from engine.endpoints.base import (
     CheckResult, Connection, FieldProblem, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
     Source, Transport, typed,
 )
 from engine.mapping import template_problem
-from engine.options import option
+from engine.options import given, option
 from engine.suggest import did_you_mean
 
 log = logging.getLogger("engine.ros2")
@@ -130,9 +130,14 @@ class Ros2EndpointOptions(EndpointOptions):
 
     __schema_description__ = "a ROS 2 topic of one message type"
 
-    topic: str = option(description="topic name; a sink's may interpolate canonical fields (/{agent_id}/weeds); {node} and {ns} are left to rcl")
-    type: str = option(STRING_TYPE, description="any installed message type, pkg/msg/Type or pkg/Type; std_msgs/msg/String carries the canonical JSON in data, byte for byte")
+    topic: str | None = option(None, description="topic name (required, except for a sink that names a service); a sink's may "
+                                                 "interpolate canonical fields (/{agent_id}/weeds); {node} and {ns} are left to rcl")
+    type: str = option(STRING_TYPE, description="any installed message type, pkg/msg/Type or pkg/Type; std_msgs/msg/String carries the "
+                                                "canonical JSON in data, byte for byte; with service: the service type, pkg/srv/Type")
     qos: Ros2Qos = option(Ros2Qos())
+    service: str | None = option(None, description="instead of a topic (type: pkg/srv/Type): a source offers this service, each call "
+                                                   "answered by the route's reply; a sink calls it, the response is the call's reply "
+                                                   "(route-language.md, Calls)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -146,6 +151,15 @@ class Ros2SinkOptions(Ros2EndpointOptions):
     in the engine's memory, for readers that ask for transient_local themselves, while the
     source has already acknowledged them; holding until the first reader matches loses none
     of them, and the writer's history still serves the readers that join later."""
+    action: str | None = option(None, description="send each message as a goal of this action (type: pkg/action/Type): accepted, "
+                                                  "feedback and result are the call's replies (route-language.md, Calls)")
+    timeout: float = option(ros2_calls.DEFAULT_CALL_TIMEOUT, exclusive_minimum=0,
+                            description="service: seconds from sending a request to its response; action: from sending the goal to "
+                                        "its result (then the goal is canceled); waiting for a server included; then the caller "
+                                        "gets an error reply")
+    max_in_flight: int = option(ros2_calls.DEFAULT_MAX_IN_FLIGHT, minimum=1,
+                                description="service: calls in flight at once (the default matches ROS 2's default service "
+                                            "queue depth, 10; raise it with the servers' depth)")
 
 
 # ---------------------------------------------------------------- static checks
@@ -180,6 +194,30 @@ def _check_endpoint(options: Ros2EndpointOptions, sink: bool) -> Iterator[tuple[
     for message in _check_topic(options.topic, allow_template=sink):
         yield "topic", message
     yield from _check_type(options.type)
+
+
+def _check_service(options: Ros2SinkOptions) -> Iterator[tuple[str | None, str]]:
+    """A service or action sink: one valid name, an installed pkg/srv/Type or pkg/action/Type."""
+    key = "service" if options.service is not None else "action"
+    if sum(value is not None for value in (options.topic, options.service, options.action)) > 1:
+        yield key, "a ros2 sink names one of topic, service or action"
+    if key == "action" and "max_in_flight" in given(options):
+        yield "max_in_flight", "max_in_flight applies to a sink that calls a service (goals are bounded by the server)"
+    for message in _check_topic(getattr(options, key), allow_template=False):
+        yield key, message.replace("topic", key)
+    try:
+        (ros2_calls.resolve_service if key == "service" else ros2_calls.resolve_action)(options.type)
+    except rosmsg.MessageError as exc:
+        yield "type", str(exc)
+
+
+def _sink_class(options: Ros2SinkOptions) -> type:
+    """What a sink's mapping builds: the message of its topic, its service's request, its action's goal."""
+    if options.service is not None:
+        return ros2_calls.resolve_service(options.type).Request
+    if options.action is not None:
+        return ros2_calls.resolve_action(options.type).Goal
+    return rosmsg.resolve_type(options.type)
 
 
 def _check_mapping_keys(node: Mapping[str, Any], cls: type, prefix: str) -> Iterator[str]:
@@ -217,6 +255,8 @@ class Ros2Transport(Transport):
     name = "ros2"
     default_settings = {"node": "rabbitros_engine", "namespace": "", "domain_id": _env_domain_id()}
     connection_options = Ros2ConnectionOptions
+    replies = True
+    """A source that offers a service answers its callers (engine.endpoints.ros2.calls.py)."""
     source_options = Ros2EndpointOptions
     sink_options = Ros2SinkOptions
     source_meta = ("topic",)
@@ -235,15 +275,34 @@ class Ros2Transport(Transport):
         if domain_id is not None and not 0 <= domain_id <= 232:
             yield "domain_id", f"domain_id must be an integer in 0..232, not {domain_id!r}"
 
-    def source_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
-        yield from _check_endpoint(options, sink=False)
+    def source_answers(self, options: Ros2EndpointOptions) -> bool:
+        return options.service is not None  # a topic's publishers await no answer
 
-    def sink_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
-        yield from _check_endpoint(options, sink=True)
+    def source_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
+        if options.service is None:
+            yield from _check_endpoint(options, sink=False)
+            return
+        if options.topic is not None:
+            yield "service", "a ros2 source names a topic or a service, not both"
+        for message in _check_topic(options.service, allow_template=False):
+            yield "service", message.replace("topic", "service")
+        try:
+            ros2_calls.resolve_service(options.type)
+        except rosmsg.MessageError as exc:
+            yield "type", str(exc)
+
+    def sink_problems(self, options: Ros2SinkOptions, mapping: str | None) -> CheckResult:
+        if options.service is not None or options.action is not None:
+            yield from _check_service(options)
+        else:
+            yield from _check_endpoint(options, sink=True)
+            for key in ("timeout", "max_in_flight"):
+                if key in given(options):
+                    yield key, f"{key} applies to a sink that calls a service"
         if not mapping or options.type == STRING_TYPE:
             return
         try:
-            cls = rosmsg.resolve_type(options.type)
+            cls = _sink_class(options)
             tree = jmespath.compile(mapping).parsed
         except (rosmsg.MessageError, jmespath.exceptions.JMESPathError):
             return  # reported by the type check and by the route loader
@@ -256,9 +315,11 @@ class Ros2Transport(Transport):
         ``sink mapping`` error naming the field; see :func:`typed_message`), before the route
         waits for a reader or throttles. A String sink carries JSON, where null is a value;
         without a sink mapping a null float is NaN (the canonical form of a ROS NaN)."""
-        if mapping is None or rosmsg.type_name(rosmsg.resolve_type(options.type)) == STRING_TYPE:
+        calls = options.service is not None or options.action is not None
+        if mapping is None or not calls and rosmsg.type_name(rosmsg.resolve_type(options.type)) == STRING_TYPE:
             return None
-        where = f"ros2 topic {options.topic!r}"
+        where = (f"ros2 service {options.service!r}" if options.service is not None else
+                 f"ros2 action {options.action!r}" if options.action is not None else f"ros2 topic {options.topic!r}")
 
         def refuse_nulls(fields: Any) -> None:
             path = rosmsg.null_path(fields)
@@ -275,13 +336,26 @@ class Ros2Transport(Transport):
 
     # What the core's checks and dry runs ask (contract.py).
 
-    def sink_dry_run(self, route: str, options: Ros2EndpointOptions) -> Callable[[Outbound], str | None]:
+    def sink_dry_run(self, route: str, options: Ros2SinkOptions) -> Callable[[Outbound], str | None]:
+        name = options.service or options.action
+        if name is not None:  # a call: the request or goal built as the sink builds it
+            cls, kind = _sink_class(options), "service" if options.service else "action"
+            where = f"route {route!r}, ros2 {kind} {name!r}"
+            return lambda outbound: (typed_message(cls, outbound, where), name)[1]
         return ros2_contract.sink_dry_run(route, options.topic, options.type, _topic_template(options.topic), typed_message)
 
     def test_input(self, options: Ros2EndpointOptions) -> Callable[[Any], dict[str, Any]] | None:
+        if options.service is not None:
+            return None  # an offered service's request as JSON: the case's input is its field dict
         return ros2_contract.test_input(options.type)
 
     def field_problem(self, options: Ros2EndpointOptions) -> FieldProblem | None:
+        if options.service is not None:  # an offered service: the mapping reads its request
+            try:
+                cls = ros2_calls.resolve_service(options.type).Request
+            except rosmsg.MessageError:
+                return None
+            return lambda path: ros2_contract._resolve(cls, path)
         return ros2_contract.field_problem(options.type)
 
     def suggest(self, key: str, value: str) -> str | None:
@@ -313,6 +387,7 @@ class Ros2Connection(Connection):
         self._sources: set[Ros2Source] = set()
         self._sinks: set[Ros2Sink] = set()
         self._publishers: dict[tuple[str, str, tuple[Any, ...]], tuple[Any, int]] = {}
+        self._calls: ros2_calls.CallNode | None = None
 
     @property
     def node(self) -> Node:
@@ -344,12 +419,28 @@ class Ros2Connection(Connection):
         self._context, self._node, self._guard = context, node, guard
 
     def source(self, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> Source:
+        typed_options = typed(Ros2EndpointOptions, options, f"route {route!r}: ros2 source")
+        if typed_options.service is not None:
+            return ros2_calls.ServiceSource(self.calls(), route, typed_options.service, typed_options.type)
         return Ros2Source(self, route, options)
 
     def sink(self, route: str, options: Ros2SinkOptions | Mapping[str, Any]) -> Sink:
+        typed_options = typed(Ros2SinkOptions, options, f"route {route!r}: ros2 sink")
+        if typed_options.service is not None:
+            return ros2_calls.ServiceSink(self.calls(), route, typed_options.service, typed_options.type,
+                                          typed_options.timeout, typed_options.max_in_flight)
+        if typed_options.action is not None:
+            return ros2_calls.ActionSink(self.calls(), route, typed_options.action, typed_options.type, typed_options.timeout)
         sink = Ros2Sink(self, route, options)
         self._sinks.add(sink)
         return sink
+
+    def calls(self) -> ros2_calls.CallNode:
+        """The node of this connection's service calls, made on first use (engine.endpoints.ros2.calls.py)."""
+        if self._calls is None:
+            self.node  # raises EndpointError when not open
+            self._calls = ros2_calls.CallNode(self._context, self.settings.node, self.settings.namespace)
+        return self._calls
 
     def acquire_publisher(self, cls: type, topic: str, qos: QoSProfile) -> Any:
         """Publishers are shared by every sink of the connection with the same topic, type and
@@ -384,6 +475,9 @@ class Ros2Connection(Connection):
             await source.stop()
         for sink in list(self._sinks):
             await sink.close()
+        if self._calls is not None:
+            calls, self._calls = self._calls, None
+            await asyncio.to_thread(calls.close)
         self._closing = True
         self._guard.trigger()
         self._taken.set()

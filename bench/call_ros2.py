@@ -1,0 +1,161 @@
+"""Round trip of a ROS 2 service call through the engine (AMQP -> ROS 2 -> AMQP), next to a plain
+rclpy client calling the same server in the same run (issue 19).
+
+One ``test_msgs/srv/BasicTypes`` server (its own rclpy context and executor thread); the engine
+in this process with one route calling it; an AMQP caller on RabbitMQ's direct reply-to sending
+one call at a time (each waits for its reply), then an rclpy client in a third context sending
+one at a time (``call_async``, its own executor thread). p50/p99 in milliseconds.
+
+    python -m bench.call_ros2                  # 500 calls each, a private broker
+    python -m bench.call_ros2 --calls 2000
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import statistics
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import aio_pika
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+from test_msgs.srv import BasicTypes
+
+REPO = Path(__file__).resolve().parent.parent
+SERVICE = "/bench/basic"
+
+
+class Spun:
+    """A node in its own context, spun by a SingleThreadedExecutor in a thread."""
+
+    def __init__(self, name: str, domain_id: int) -> None:
+        self.context = Context()
+        rclpy.init(args=[], context=self.context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = Node(name, context=self.context, start_parameter_services=False)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except ExternalShutdownException:
+            pass
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2)
+        self.thread.join(5)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+def _answer(request: Any, response: Any) -> Any:
+    response.int64_value = request.int64_value * 2
+    return response
+
+
+def percentiles(samples: list[float]) -> dict[str, float]:
+    ordered = sorted(samples)
+    return {"p50_ms": round(statistics.median(ordered) * 1e3, 3),
+            "p99_ms": round(ordered[min(len(ordered) - 1, int(len(ordered) * 0.99))] * 1e3, 3),
+            "calls": len(ordered)}
+
+
+async def through_engine(url: str, domain_id: int, calls: int) -> list[float]:
+    from engine.runtime import Engine
+
+    with tempfile.TemporaryDirectory() as directory:
+        (Path(directory) / "calls.yaml").write_text(f"""\
+connections:
+  bus: {{amqp: "{url}"}}
+  ros: {{ros2: {{domain_id: {domain_id}, node: bench_engine}}}}
+routes:
+  - name: bench-call
+    source: {{amqp: {{connection: bus, queue: bench-call, durable: false}}}}
+    schema: raw_json
+    sink: {{ros2: {{connection: ros, service: {SERVICE}, type: test_msgs/srv/BasicTypes, timeout: 5}}}}
+""")
+        engine = Engine(Path(directory), REPO / "schemas")
+        await engine.start()
+        connection = await aio_pika.connect(url)
+        try:
+            channel = await connection.channel()
+            queue = await channel.get_queue("amq.rabbitmq.reply-to", ensure=False)
+            answered: asyncio.Queue[Any] = asyncio.Queue()
+            await queue.consume(answered.put, no_ack=True)
+            samples = []
+            for n in range(calls + 20):  # the first 20 warm up discovery and the paths
+                started = time.perf_counter()
+                await channel.default_exchange.publish(aio_pika.Message(
+                    json.dumps({"int64_value": n}).encode(), correlation_id=str(n), reply_to="amq.rabbitmq.reply-to"),
+                    "bench-call")
+                reply = await asyncio.wait_for(answered.get(), 10)
+                assert reply.correlation_id == str(n) and json.loads(reply.body)["int64_value"] == 2 * n, reply.body
+                if n >= 20:
+                    samples.append(time.perf_counter() - started)
+            await channel.queue_delete("bench-call")
+        finally:
+            await connection.close()
+            await engine.stop()
+    return samples
+
+
+def plain_rclpy(domain_id: int, calls: int) -> list[float]:
+    client_node = Spun("bench_client", domain_id)
+    client = client_node.node.create_client(BasicTypes, SERVICE)
+    client_node.start()
+    try:
+        assert client.wait_for_service(timeout_sec=10), "the server is not there"
+        samples = []
+        for n in range(calls + 20):
+            done = threading.Event()
+            started = time.perf_counter()
+            future = client.call_async(BasicTypes.Request(int64_value=n))
+            future.add_done_callback(lambda _: done.set())
+            assert done.wait(10), "no response"
+            assert future.result().int64_value == 2 * n
+            if n >= 20:
+                samples.append(time.perf_counter() - started)
+        return samples
+    finally:
+        client_node.close()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--calls", type=int, default=500)
+    args = parser.parse_args()
+    from engine.local_broker import LocalBroker
+
+    domain_id = 150 + os.getpid() % 80
+    server = Spun("bench_server", domain_id)
+    server.node.create_service(BasicTypes, SERVICE, _answer)
+    server.start()
+    try:
+        url = os.environ.get("RABBITROS_AMQP_URL")
+        if url:
+            engine_samples = asyncio.run(through_engine(url, domain_id, args.calls))
+        else:
+            with LocalBroker() as broker:
+                engine_samples = asyncio.run(through_engine(broker.url, domain_id, args.calls))
+        rclpy_samples = plain_rclpy(domain_id, args.calls)
+    finally:
+        server.close()
+    print(json.dumps({"through_engine": percentiles(engine_samples), "plain_rclpy": percentiles(rclpy_samples)}))
+
+
+if __name__ == "__main__":
+    main()

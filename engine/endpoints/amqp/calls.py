@@ -1,0 +1,101 @@
+"""The AMQP sink as a caller: a message that asks for a reply (a call to a ROS 2 service the
+engine offers, engine.endpoints.ros2.calls.py) is published as an AMQP request and its worker's
+answer is the call's reply.
+
+The request carries ``reply_to: amq.rabbitmq.reply-to`` (RabbitMQ's direct reply-to: no reply
+queue, and the reply must be consumed on the channel that published the request, so the sink
+has a channel of its own for calls) and a fresh ``correlation_id``; the first reply with that
+id, as JSON, is the answer. None within the sink's ``timeout``: the call fails for good
+(:class:`MessageRejected`: the caller has given up), and a later reply is dropped and counted
+(``late``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import uuid
+from typing import Any, Protocol
+
+import aio_pika
+import aio_pika.abc
+import orjson
+
+from engine.endpoints.base import EndpointError, MessageRejected
+
+
+class Channels(Protocol):
+    """What the caller needs of its connection (engine/endpoints/amqp/transport.py's AmqpConnection)."""
+
+    def channel_factory(self) -> aio_pika.abc.AbstractRobustConnection: ...
+
+DIRECT_REPLY_TO = "amq.rabbitmq.reply-to"
+
+
+class AmqpCaller:
+    def __init__(self, connection: Channels, where: str, timeout: float) -> None:
+        self._connection = connection
+        self._where = where
+        self._timeout = timeout
+        self._channel: aio_pika.abc.AbstractChannel | None = None
+        self._exchanges: dict[str, aio_pika.abc.AbstractExchange] = {}
+        self._pending: dict[str, asyncio.Future[bytes]] = {}
+        self._opening = asyncio.Lock()
+        self.late = 0
+
+    async def _ready(self) -> aio_pika.abc.AbstractChannel:
+        async with self._opening:
+            if self._channel is None or self._channel.is_closed:
+                channel = await self._connection.channel_factory().channel(publisher_confirms=False)
+                queue = await channel.get_queue(DIRECT_REPLY_TO, ensure=False)
+                await queue.consume(self._on_reply, no_ack=True)
+                self._channel, self._exchanges = channel, {}
+            return self._channel
+
+    async def _exchange(self, channel: aio_pika.abc.AbstractChannel, name: str, kind: str,
+                        durable: bool) -> aio_pika.abc.AbstractExchange:
+        exchange = self._exchanges.get(name)
+        if exchange is None:
+            exchange = channel.default_exchange if name == "" else await channel.declare_exchange(
+                name, aio_pika.ExchangeType(kind), durable=durable)
+            self._exchanges[name] = exchange
+        return exchange
+
+    async def _on_reply(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        answered = self._pending.get(message.correlation_id or "")
+        if answered is None or answered.done():
+            self.late += 1
+            return
+        answered.set_result(message.body)
+
+    async def call(self, exchange: str, kind: str, durable: bool, routing_key: str, body: bytes,
+                   content_type: str, message_id: str | None) -> Any:
+        """Publish the request; the answer as JSON data."""
+        try:
+            channel = await self._ready()
+            target = await self._exchange(channel, exchange, kind, durable)
+        except Exception as exc:
+            raise EndpointError(f"{self._where}: cannot open the calls channel: {exc}") from exc
+        correlation_id = uuid.uuid4().hex
+        answered: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+        self._pending[correlation_id] = answered
+        try:
+            await target.publish(aio_pika.Message(body, content_type=content_type, correlation_id=correlation_id,
+                                                  reply_to=DIRECT_REPLY_TO, message_id=message_id), routing_key)
+            try:
+                answer = await asyncio.wait_for(answered, self._timeout)
+            except asyncio.TimeoutError:
+                raise MessageRejected(f"{self._where}: no answer within {self._timeout:g} s") from None
+        finally:
+            del self._pending[correlation_id]
+        try:
+            return orjson.loads(answer)
+        except orjson.JSONDecodeError as exc:
+            raise MessageRejected(f"{self._where}: the answer is not JSON: {exc}") from None
+
+    async def close(self) -> None:
+        if self._channel is not None:
+            try:
+                await self._channel.close()
+            except Exception:
+                pass
+            self._channel = None

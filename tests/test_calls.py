@@ -1,0 +1,247 @@
+"""Request/reply over RabbitMQ (issue 19): a request with ``reply_to`` gets the sink's answer back.
+
+Against the real broker (direct reply-to, ``amq.rabbitmq.reply-to``, consumed no_ack by a plain
+aio-pika client) and real vehicles: MAVSDK's ActionServer acknowledges an arm COMMAND_LONG, the
+simulated vehicle denies one and accepts a mission. Every reply carries the request's
+correlation id and says its kind in ``x-rabbitros-reply``; a request that fails (conversion, a
+refusal) gets exactly one ``error`` reply; a request without ``reply_to`` gets none.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import uuid
+from pathlib import Path
+from typing import Any
+
+import aio_pika
+
+from engine.runtime import Engine
+from rabbitros_sim.vehicle import SimVehicle
+from tests.amqp_helpers import Caller
+from tests.mavsdk_vehicle import MavsdkAutopilot
+from tests.test_mavlink_transactions import WEEDS, canonical_mission, canonical_stamp, free_udp_port, run, until
+
+
+def _routes(directory: Path, amqp_url: str, link: str, tag: str, extra: str = "") -> Path:
+    directory.mkdir(exist_ok=True)
+    (directory / "routes.yaml").write_text(f"""\
+connections:
+  bus: {{amqp: "{amqp_url}"}}
+  uav: {{mavlink: "{link}"}}
+routes:
+  - name: arm-{tag}
+    source: {{amqp: {{connection: bus, queue: arm-{tag}}}}}
+    schema: command
+    sink:
+      mavlink: {{connection: uav, message: COMMAND_LONG, target_system: 1, target_component: 1, acknowledged: true, retries: 2}}
+      mapping: "{{command: mav_enum_value('MAV_CMD_COMPONENT_ARM_DISARM', 'MAV_CMD'), param1: `1`}}"
+{extra}""")
+    return directory
+
+
+def _command(**extra: Any) -> bytes:
+    return json.dumps({"type": "command", "agent_id": "uav1", "id": uuid.uuid4().hex, "stamp": canonical_stamp(),
+                       "command": "arm", **extra}).encode()
+
+
+def _reply(message: aio_pika.abc.AbstractIncomingMessage) -> tuple[str, Any]:
+    return message.headers["x-rabbitros-reply"], json.loads(message.body)
+
+
+def test_arm_command_as_a_call_gets_mav_result_accepted_from_mavsdk(tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """An arm COMMAND_LONG published with direct reply-to is answered by MAVSDK's ActionServer:
+    one ``result`` reply ``{kind, result: MAV_RESULT_ACCEPTED, command: 400}`` with the
+    request's correlation id and route header. A request that fails the schema gets one
+    ``error`` reply naming the stage and the route; one without ``reply_to`` is only counted."""
+    port = free_udp_port()
+    tag = uuid.uuid4().hex[:8]
+    routes = _routes(tmp_path / "routes", amqp_url, f"udpout:127.0.0.1:{port}", tag)
+    autopilot = MavsdkAutopilot(port)
+
+    async def scenario() -> tuple[Caller, dict[str, Any], list[str]]:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            caller = await Caller.open(channel)
+            arm = await caller.call("", f"arm-{tag}", _command())
+            bad = await caller.call("", f"arm-{tag}", b'{"type": "command"}')
+            await caller.wait(lambda r: arm in r and bad in r, 30, "the arm and the bad request's replies")
+            await caller.call("", f"arm-{tag}", _command(), reply_to=None)
+            route = f"arm-{tag}"
+            await until(lambda: engine.status()["routes"][route]["replies"]["unrequested"] == 1, 20, "the fire-and-forget arm")
+            status = engine.status()["routes"][route]
+            await channel.queue_delete(route)
+        finally:
+            await engine.stop()
+            await connection.close()
+        return caller, status, [arm, bad]
+
+    try:
+        caller, status, (arm, bad) = run(scenario(), 60)
+    finally:
+        autopilot.close()
+    assert [_reply(m) for m in caller.replies[arm]] == [
+        ("result", {"kind": "result", "result": "MAV_RESULT_ACCEPTED", "command": 400})]
+    assert caller.replies[arm][0].headers["x-rabbitros-route"] == f"arm-{tag}"
+    assert caller.replies[arm][0].correlation_id == arm
+    [(kind, error)] = [_reply(m) for m in caller.replies[bad]]
+    assert kind == "error" and error["kind"] == "error" and error["stage"] == "schema" and error["route"] == f"arm-{tag}", error
+    assert [arm.arm for arm in autopilot.arm_requests] == [True, True]
+    assert status["replies"] == {"sent": 2, "errors": 1, "unrequested": 1, "late": 0, "undelivered": 0}, status
+    assert (status["delivered"], status["failed"]) == (2, 1), status
+
+
+def test_denied_command_is_one_error_reply_and_a_mission_call_is_answered_through_the_reply_mapping(
+        tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """The simulated vehicle answers MAV_RESULT_DENIED: the caller gets one ``error`` reply naming
+    the result (the request is dead-lettered as before); the mission upload's answer goes through
+    the route's ``reply: {mapping}`` (a reply mapping failure would be an error reply too)."""
+    port = free_udp_port()
+    tag = uuid.uuid4().hex[:8]
+    routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag, f"""\
+  - name: mission-{tag}
+    source: {{amqp: {{connection: bus, queue: mission-{tag}}}}}
+    schema: mission
+    sink: {{mavlink: {{connection: uav, mission: upload}}}}
+    reply: {{mapping: "{{accepted: result == 'MAV_MISSION_ACCEPTED', waypoints: items}}"}}
+""")
+
+    async def scenario() -> tuple[Caller, str, str]:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        sim = SimVehicle(f"udpout:127.0.0.1:{port}", command_results=["MAV_RESULT_DENIED"])
+        stop = asyncio.Event()
+        running = asyncio.create_task(sim.run(stop))
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            caller = await Caller.open(channel)
+            arm = await caller.call("", f"arm-{tag}", _command())
+            mission = await caller.call("", f"mission-{tag}", json.dumps(canonical_mission(WEEDS)).encode())
+            await caller.wait(lambda r: arm in r and mission in r, 30, "the denied arm's and the mission's replies")
+            for queue in (f"arm-{tag}", f"mission-{tag}"):
+                await channel.queue_delete(queue)
+        finally:
+            await engine.stop()
+            stop.set()
+            await running
+            await connection.close()
+        return caller, arm, mission
+
+    caller, arm, mission = run(scenario(), 60)
+    [(kind, error)] = [_reply(m) for m in caller.replies[arm]]
+    assert kind == "error" and error["stage"] == "sink" and "MAV_RESULT_DENIED" in error["error"], error
+    assert [_reply(m) for m in caller.replies[mission]] == [("result", {"accepted": True, "waypoints": len(WEEDS)})]
+
+
+def test_reply_is_checked_at_load(tmp_path: Path, schemas_dir: Path) -> None:
+    """``reply:`` needs a source that can answer; its mapping compiles and its schema exists."""
+    from engine.routes import RoutesInvalid, load_routes
+    from engine.schemas import SchemaRegistry
+    import pytest
+
+    (tmp_path / "a.yaml").write_text("""\
+routes:
+  - name: from-ros
+    source: {ros2: {topic: /cmd, type: std_msgs/msg/String}}
+    schema: raw_json
+    sink: {amqp: {routing_key: out}}
+    reply: {mapping: "ok"}
+  - name: from-amqp
+    source: {amqp: {queue: calls}}
+    schema: raw_json
+    sink: {mavlink: {message: COMMAND_LONG, acknowledged: true}}
+    reply: {mapping: "{ok: ", schema: comand}
+""")
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(schemas_dir), env={})
+    problems = [str(p).removeprefix(f"{tmp_path}/") for p in invalid.value.problems]
+    assert ("a.yaml:6: route 'from-ros': reply: this ros2 source cannot answer its sender (protocols whose sources can: "
+            "amqp, ros2; see Calls in route-language.md)") in problems
+    assert any(p.startswith("a.yaml:11: route 'from-amqp': reply: bad JMESPath '{ok: '") for p in problems), problems
+    assert "a.yaml:11: route 'from-amqp': reply: unknown schema 'comand'; did you mean 'command'?" in problems, problems
+
+
+def test_route_test_cases_give_a_response_and_expect_the_reply(tmp_path: Path, schemas_dir: Path) -> None:
+    """``rabbitros-engine test``: a case's ``response`` (the service's answer) goes through the
+    route's ``reply:`` and is compared with ``expect_reply``; a reply the mapping refuses is an
+    ``expect_error: reply mapping``; the request is built as the service's Request (a key the
+    type lacks is a ``sink`` error)."""
+    from engine.route_tests import format_result, load_checked, run_tests
+    from engine.schemas import SchemaRegistry
+
+    (tmp_path / "calls.yaml").write_text("""\
+routes:
+  - name: spray
+    source: {amqp: {queue: spray}}
+    schema: raw_json
+    sink:
+      ros2: {service: /robot1/set_spray, type: test_msgs/srv/BasicTypes, timeout: 5}
+      mapping: "{bool_value: spray}"
+    reply: {mapping: "{ok: bool_value, why: string_value, size: length(string_value)}"}
+""")
+    (tmp_path / "calls.test.yaml").write_text("""\
+tests:
+  - route: spray
+    input: {spray: true}
+    expect_sink: {bool_value: true}
+    response: {bool_value: true, string_value: spraying}
+    expect_reply: {ok: true, why: spraying, size: 8}
+  - route: spray
+    name: a reply the mapping cannot shape
+    input: {spray: true}
+    response: {bool_value: true, string_value: 3}
+    expect_error: reply mapping
+  - route: spray
+    name: wrong reply
+    input: {spray: false}
+    response: {bool_value: false, string_value: ""}
+    expect_reply: {ok: true}
+""")
+    schemas = SchemaRegistry(schemas_dir)
+    config, cases, problems, _ = load_checked(tmp_path, schemas)
+    assert config is not None and problems == [], problems
+    results = list(run_tests(cases, config, schemas))
+    assert [r.passed for r in results] == [True, True, False], [format_result(r) for r in results]
+    assert results[2].reason == "reply differs", results[2].reason
+
+
+def test_a_call_that_expires_under_max_age_gets_an_error_reply(tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """A command to a vehicle that never answers is retried (transient) until it is older than
+    the route's ``max_age``: it expires (no dead letter), and its caller gets one ``error`` reply
+    with stage ``max_age`` instead of waiting forever."""
+    port = free_udp_port()
+    tag = uuid.uuid4().hex[:8]
+    routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag)
+    text = (routes / "routes.yaml").read_text().replace(
+        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3}").replace(
+        f"  - name: arm-{tag}\n", f"  - name: arm-{tag}\n    max_age: 1\n    max_attempts: 50\n")
+    (routes / "routes.yaml").write_text(text)
+
+    async def scenario() -> tuple[Caller, str, dict[str, Any], float]:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            caller = await Caller.open(channel)
+            started = asyncio.get_running_loop().time()
+            arm = await caller.call("", f"arm-{tag}", _command())
+            await caller.wait(lambda r: arm in r, 20, "the expired call's error reply")
+            elapsed = asyncio.get_running_loop().time() - started
+            status = engine.status()["routes"][f"arm-{tag}"]
+            await channel.queue_delete(f"arm-{tag}")
+        finally:
+            await engine.stop()
+            await connection.close()
+        return caller, arm, status, elapsed
+
+    caller, arm, status, elapsed = run(scenario(), 60)
+    [(kind, error)] = [_reply(m) for m in caller.replies[arm]]
+    assert kind == "error" and error["stage"] == "max_age" and error["route"] == f"arm-{tag}", error
+    assert 1.0 <= elapsed < 5.0, elapsed
+    assert status["failed"] == 0 and status["replies"]["errors"] == 1, status
