@@ -10,7 +10,6 @@ wildcard serves too."""
 from __future__ import annotations
 
 import json
-import os
 import socket
 import ssl
 import subprocess

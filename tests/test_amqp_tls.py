@@ -10,7 +10,6 @@ import socket
 import time
 import urllib.error
 import urllib.request
-import uuid
 from pathlib import Path
 from typing import Any, Callable, Iterator
 

@@ -23,6 +23,7 @@ from engine.runtime import Engine  # noqa: E402
 from tests.amqp_helpers import Collector, publish  # noqa: E402
 from tests.test_cli import cli  # noqa: E402
 from tests.conftest import REPO  # noqa: E402
+from tests.engine_process import EngineProcess  # noqa: E402
 
 TYPED = """
 connections:
@@ -221,7 +222,6 @@ def test_a_prefilled_queue_reaches_a_subscriber_that_starts_before_or_after_the_
     from rich.console import Console
 
     from engine.opsview import status_table
-    from tests.engine_process import EngineProcess
     from tests.test_ros2_endpoint import DOMAIN, Peer, String
 
     tag = "b" + uuid.uuid4().hex[:8]

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from engine.redaction import Secret, reveal
 from engine.route_yaml import substitute_env
-from engine.routes import RoutesInvalid, load_routes
+from engine.routes import load_routes
 from engine.schemas import SchemaRegistry
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess

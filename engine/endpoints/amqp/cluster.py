@@ -22,7 +22,6 @@ import aio_pika.abc
 from aio_pika.robust_connection import RobustConnection
 from yarl import URL
 
-from engine.endpoints.base import EndpointError
 from engine.redaction import reveal
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSourceOptions
