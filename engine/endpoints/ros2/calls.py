@@ -65,17 +65,24 @@ _AVAILABLE_FIRST, _AVAILABLE_MAX = 0.01, 0.25
 
 def resolve_service(name: Any) -> type:
     """The service class of ``pkg/srv/Type``; MessageError if it is not installed."""
-    match = _SERVICE_TYPE.match(name.strip()) if isinstance(name, str) else None
+    return _resolve_interface(name, "srv", "Request")
+
+
+def _resolve_interface(name: Any, kind: str, part: str) -> type:
+    """The ``pkg/<kind>/Type`` interface class (it has ``part``: Request, Goal); MessageError
+    naming it when the name is malformed or the package is not installed."""
+    pattern = _SERVICE_TYPE if kind == "srv" else _ACTION_TYPE
+    match = pattern.match(name.strip()) if isinstance(name, str) else None
     if match is None:
-        raise rosmsg.MessageError(f"service type {name!r} is not of the form pkg/srv/Type")
+        raise rosmsg.MessageError(f"{'service' if kind == 'srv' else 'action'} type {name!r} is not of the form pkg/{kind}/Type")
     pkg, cls_name = match.groups()
     try:
-        module = importlib.import_module(f"{pkg}.srv")
+        module = importlib.import_module(f"{pkg}.{kind}")
     except ImportError:
-        raise rosmsg.MessageError(f"service type '{pkg}/srv/{cls_name}' is not installed") from None
+        module = None
     cls = getattr(module, cls_name, None)
-    if not isinstance(cls, type) or not hasattr(cls, "Request"):
-        raise rosmsg.MessageError(f"service type '{pkg}/srv/{cls_name}' is not installed")
+    if not isinstance(cls, type) or not hasattr(cls, part):
+        raise rosmsg.MessageError(f"{'service' if kind == 'srv' else 'action'} type '{pkg}/{kind}/{cls_name}' is not installed")
     return cls
 
 
@@ -87,18 +94,7 @@ def service_qos(max_in_flight: int) -> QoSProfile:
 
 def resolve_action(name: Any) -> type:
     """The action class of ``pkg/action/Type``; MessageError if it is not installed."""
-    match = _ACTION_TYPE.match(name.strip()) if isinstance(name, str) else None
-    if match is None:
-        raise rosmsg.MessageError(f"action type {name!r} is not of the form pkg/action/Type")
-    pkg, cls_name = match.groups()
-    try:
-        module = importlib.import_module(f"{pkg}.action")
-    except ImportError:
-        raise rosmsg.MessageError(f"action type '{pkg}/action/{cls_name}' is not installed") from None
-    cls = getattr(module, cls_name, None)
-    if not isinstance(cls, type) or not hasattr(cls, "Goal"):
-        raise rosmsg.MessageError(f"action type '{pkg}/action/{cls_name}' is not installed")
-    return cls
+    return _resolve_interface(name, "action", "Goal")
 
 
 class CallNode:
