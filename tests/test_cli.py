@@ -265,7 +265,7 @@ def test_run_with_local_broker_tls_carries_a_message_over_amqps(tmp_path: Path):
         async def roundtrip() -> list[bytes]:
             try:  # the node resets the connection: an AMQP header is no TLS ClientHello
                 await asyncio.wait_for(aio_pika.connect(plain), 15)
-            except (aio_pika.exceptions.AMQPConnectionError, ConnectionError, asyncio.TimeoutError):
+            except (aio_pika.exceptions.AMQPConnectionError, ConnectionError, TimeoutError):
                 pass
             else:
                 raise AssertionError("a plain AMQP client talked to the TLS port")
@@ -287,3 +287,12 @@ def test_run_with_local_broker_tls_carries_a_message_over_amqps(tmp_path: Path):
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
     assert not ca_file.exists(), "the throwaway CA outlived the private node"
+
+
+def test_local_broker_tls_refused_without_local_broker_or_with_a_cluster(tmp_path: Path):
+    """Exit 2 and a line saying why, before any node starts."""
+    (tmp_path / "tls.yaml").write_text(TLS_ROUTE)
+    alone = cli("--routes", str(tmp_path), "--schemas", "schemas", "--local-broker-tls")
+    assert alone.returncode == 2 and "--local-broker-tls needs --local-broker" in alone.stderr, alone.stderr
+    cluster = cli("--routes", str(tmp_path), "--schemas", "schemas", "--local-broker", "--local-broker-tls", "--cluster", "2")
+    assert cluster.returncode == 2 and "leave out --cluster" in cluster.stderr, cluster.stderr
