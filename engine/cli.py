@@ -80,6 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--broker-url-file", type=Path, metavar="FILE", help="with --local-broker: write the brokers' URLs to this file, one a line")
     run.add_argument("--cluster", type=int, default=1, metavar="N",
                      help="with --local-broker: start N nodes of each broker joined in one cluster (default 1); the default connection lists them all")
+    run.add_argument("--local-broker-tls", action="store_true",
+                     help="with --local-broker: the private broker listens with TLS, its certificate from a CA made for the run; the default connection verifies against it")
     run.add_argument("--status-file", type=Path, metavar="FILE", help="keep the live status (generation, config hash, counters) in this JSON file")
     run.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT",
                      help="serve /metrics, /healthz, /status and /tap/ROUTE over HTTP (a bare port binds 127.0.0.1); off by default")
@@ -223,9 +225,17 @@ async def run(args: argparse.Namespace) -> int:
     if args.cluster < 1 or (args.cluster > 1 and not args.local_broker):
         log.error("--cluster N needs --local-broker and N >= 1")
         return 2
+    if args.local_broker_tls and not args.local_broker:
+        log.error("--local-broker-tls needs --local-broker")
+        return 2
     try:
         if args.local_broker:
-            for broker in private_brokers(args.cluster, _protocols_used(args)):
+            try:
+                brokers = private_brokers(args.cluster, _protocols_used(args), tls=args.local_broker_tls)
+            except BrokerError as exc:
+                log.error("local broker refused", extra={"error": str(exc)})
+                return 2
+            for broker in brokers:
                 try:
                     await asyncio.to_thread(broker.start)
                 except BrokerError as exc:
@@ -236,7 +246,8 @@ async def run(args: argparse.Namespace) -> int:
             urls = [url for broker in started for url in broker.urls]
             nodes = [node for broker in started for node in broker.nodes]
             os.environ[LOCAL_BROKER_ENV] = ", ".join(nodes)  # the loader warns about connections that go elsewhere
-            log.info("local broker started", extra={"urls": [redact_urls(u) for u in urls], "nodes": nodes})
+            environment = {key: redact_urls(value) for broker in started for key, value in broker.environment.items()}
+            log.info("local broker started", extra={"urls": [redact_urls(u) for u in urls], "nodes": nodes, "environment": environment})
             if args.broker_url_file:
                 _write_atomically(args.broker_url_file, "\n".join(urls) + "\n")
         return await serve(args, access)

@@ -186,11 +186,20 @@ def undeclared_path(path: str, declared: Any, label: str) -> str | None:
 
 
 def mapping_field_problems(protocol: str, options: Any, mapping: str | None) -> Iterator[str]:
-    """``mapping reads 'x', which T does not have; did you mean 'y'?`` for a typed source."""
-    if not mapping:
-        return
-    resolve = _resolver(protocol, options)
-    if resolve is None:
+    """``mapping reads 'x', which T does not have; did you mean 'y'?`` for a typed source
+    (``options``: its typed options, engine/options.py; its transport knows its fields)."""
+    yield from _read_problems(_resolver(protocol, "field_problem", options), mapping)
+
+
+def reply_field_problems(protocol: str, sink_options: Any, mapping: str | None) -> Iterator[str]:
+    """The same for a route's ``reply.mapping``, whose input is the sink's answer: the sink's
+    transport knows what a typed answer has (a service's response, an action's feedback and
+    result: ``Transport.reply_field_problem``)."""
+    yield from _read_problems(_resolver(protocol, "reply_field_problem", sink_options), mapping)
+
+
+def _read_problems(resolve: FieldProblem | None, mapping: str | None) -> Iterator[str]:
+    if resolve is None or not mapping:
         return
     for path in mapping_reads(mapping):
         problem = resolve(path)
@@ -198,10 +207,10 @@ def mapping_field_problems(protocol: str, options: Any, mapping: str | None) -> 
             yield problem
 
 
-def _resolver(protocol: str, options: Any) -> FieldProblem | None:
-    """``options``: the source's typed options (engine/options.py); its transport knows its fields."""
+def _resolver(protocol: str, hook: str, options: Any) -> FieldProblem | None:
+    """The transport's ``hook`` (``field_problem``, ``reply_field_problem``) for these options."""
     try:
-        return endpoints.transport(protocol).field_problem(options)
+        return getattr(endpoints.transport(protocol), hook)(options)
     except EndpointError:  # not installed: reported where the route's endpoints are checked
         return None
 

@@ -1,7 +1,7 @@
 """``--local-broker``: private brokers for demos and tests, on a machine with none set up.
 
 The protocols that need a broker of their own say how to start one (the registry in
-engine/endpoints/__init__.py names each one's module; its ``private_broker(cluster)`` gives a
+engine/endpoints/__init__.py names each one's module; its ``private_broker(cluster, tls)`` gives a
 :class:`PrivateBroker`, its ``CHECK_ENV`` what ``check --local-broker`` stands in for it).
 Started, each private broker sets the environment its transport's default connection reads
 (``Transport.default_connection_settings``), so the routes that name no connection use it,
@@ -52,12 +52,14 @@ def _modules(protocols: Iterable[str] | None = None) -> list[Any]:
     return [importlib.import_module(name) for name in wanted.values()]
 
 
-def private_brokers(cluster: int = 1, used: Iterable[str] | None = None) -> list[PrivateBroker]:
+def private_brokers(cluster: int = 1, used: Iterable[str] | None = None, tls: bool = False) -> list[PrivateBroker]:
     """A private broker for each protocol that has one and is ``used`` by the routes (None:
     unknown, every one) or starts always (its module's ``ALWAYS``: the default connection of
-    routes that name none); ``cluster`` nodes where the broker can cluster."""
+    routes that name none); ``cluster`` nodes where the broker can cluster; ``tls``
+    (``--local-broker-tls``): listening with TLS, a throwaway CA in its directory (BrokerError
+    from a broker that cannot)."""
     used = None if used is None else set(used)
-    return [module.private_broker(cluster) for module in _modules()
+    return [module.private_broker(cluster, tls=tls) for module in _modules()
             if used is None or module.ALWAYS or module in _modules(used)]
 
 

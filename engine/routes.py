@@ -25,7 +25,7 @@ from engine.buffer import BufferOptions, BufferSpec
 from engine.dead_letters import DeadLetterSpec, DeadLettersOptions
 from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, RouteDelivery
 from engine.endpoints.base import EndpointError, Transport
-from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hint, undeclared_keys, undeclared_path
+from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hint, reply_field_problems, undeclared_keys, undeclared_path
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
 from engine.mapping import MappingError, compile_mapping, known_functions, literal_format_problems, meta_names, unknown_functions
 from engine.options import OptionError, describe, evolve, fields_of, given, option, parse
@@ -640,7 +640,7 @@ def _route_checks(
         warnings.extend(_schema_warnings(document, where, route, sink, schemas))
     _endpoint_checks(document, where, name, source if complete[0] else None, sink if complete[1] else None,
                      mapping, sink_mapping, problems)
-    _reply_checks(document, where, route, source, schemas, problems)
+    _reply_checks(document, where, route, source, sink, schemas, problems)
     if source:  # fields a typed source does not have
         for message in mapping_field_problems(source.protocol, source.options, mapping):
             problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
@@ -687,8 +687,9 @@ def _shadowing_warnings(document: Document, where: Path_, route: RouteOptions, e
 
 
 def _reply_checks(document: Document, where: Path_, route: RouteOptions, source: EndpointSpec | None,
-                  schemas: SchemaRegistry, problems: list[Problem]) -> None:
-    """``reply:`` needs a source that can answer its sender; its mapping compiles, its schema exists."""
+                  sink: EndpointSpec | None, schemas: SchemaRegistry, problems: list[Problem]) -> None:
+    """``reply:`` needs a source that can answer its sender; its mapping compiles and reads only
+    fields the sink's answer has (when the sink's transport knows them); its schema exists."""
     reply, name = route.reply, route.name
     if reply is None:
         return
@@ -699,6 +700,9 @@ def _reply_checks(document: Document, where: Path_, route: RouteOptions, source:
                                                              "see Calls in route-language.md)"))
     for message in _mapping_problems(reply.mapping):
         problems.append(document.problem(where + ("reply", "mapping"), f"route {name!r}: reply: {message}"))
+    if sink is not None:
+        for message in reply_field_problems(sink.protocol, sink.options, reply.mapping):
+            problems.append(document.problem(where + ("reply", "mapping"), f"route {name!r}: reply: {message}"))
     if reply.schema is not None and schemas.get(reply.schema) is None:
         problems.append(document.problem(where + ("reply", "schema"), f"route {name!r}: reply: unknown schema {reply.schema!r}"
                                                                       f"{did_you_mean(reply.schema, schemas.names())}"))

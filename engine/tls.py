@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import ssl
+import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
@@ -52,6 +53,47 @@ _ERROR_MEANINGS = (
     (("wrong version number", "record layer failure", "packet length too long"),
      "not a TLS port: the broker answered without TLS (use the port of its TLS listener)"),
 )
+
+
+@dataclass(frozen=True)
+class ThrowawayCertificates:
+    """A CA made for one run and a server certificate it signed (``--local-broker-tls``)."""
+
+    ca_file: Path
+    cert_file: Path
+    key_file: Path
+
+
+def throwaway_certificates(directory: Path, host: str = "localhost") -> ThrowawayCertificates:
+    """A new CA (its key beside it) and a certificate for ``host`` and 127.0.0.1 signed by it,
+    in ``directory``, valid two days: a private broker's TLS listener for tests and demos,
+    which its clients verify against the CA. Made with the ``openssl`` command (the
+    ``cryptography`` package is not among the dependencies); P-256 keys, ~0.1 s in all.
+    RuntimeError naming the step if openssl is missing or fails."""
+    directory.mkdir(parents=True, exist_ok=True)
+    ca, ca_key = directory / "ca.pem", directory / "ca.key"
+    cert, key, request = directory / "server.pem", directory / "server.key", directory / "server.csr"
+    extensions = directory / "server.ext"
+    extensions.write_text(f"subjectAltName=DNS:{host},IP:127.0.0.1\nextendedKeyUsage=serverAuth\n")
+    ec_key = ("-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes")
+    _openssl("req", "-x509", *ec_key, "-days", "2", "-subj", "/CN=rabbitros throwaway CA", "-keyout", str(ca_key),
+             "-out", str(ca), "-addext", "basicConstraints=critical,CA:TRUE",
+             "-addext", "keyUsage=critical,keyCertSign,cRLSign")
+    _openssl("req", *ec_key, "-subj", f"/CN={host}", "-keyout", str(key), "-out", str(request))
+    _openssl("x509", "-req", "-in", str(request), "-CA", str(ca), "-CAkey", str(ca_key), "-CAcreateserial",
+             "-days", "2", "-extfile", str(extensions), "-out", str(cert))
+    return ThrowawayCertificates(ca, cert, key)
+
+
+def _openssl(*args: str) -> None:
+    try:
+        subprocess.run(["openssl", *args], check=True, capture_output=True, text=True, timeout=30)
+    except FileNotFoundError:
+        raise RuntimeError("openssl is not installed (apt-get install -y openssl): it makes the throwaway certificates") from None
+    except subprocess.CalledProcessError as exc:
+        raise RuntimeError(f"openssl {args[0]} failed: {exc.stderr.strip()[-300:]}") from None
+    except subprocess.TimeoutExpired:
+        raise RuntimeError(f"openssl {args[0]} did not finish within 30 s") from None
 
 
 class _ServerNameContext(ssl.SSLContext):

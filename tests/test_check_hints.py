@@ -263,3 +263,54 @@ def test_check_prints_problems_and_warnings_together(tmp_path: Path):
     lines = [line.removeprefix(f"{tmp_path}/") for line in result.stderr.splitlines()]
     assert len(lines) == 10 and lines[6].startswith("r.yaml:19: route 'other': mapping reads") \
         and lines[7].startswith("r.yaml:19: warning: route 'other': mapping sets 'heding'"), lines
+
+
+CALL_REPLIES = """connections:
+  ros: {ros2: {domain_id: 3}}
+  gcs: {amqp: "amqp://localhost/"}
+routes:
+  - name: spray
+    source: {amqp: {queue: calls.spray, connection: gcs}}
+    schema: raw_json
+    sink:
+      ros2: {connection: ros, service: /robot1/set_spray, type: std_srvs/srv/SetBool, timeout: 5}
+      mapping: "{data: spray}"
+    reply: {mapping: "{ok: sucess, why: message}"}
+  - name: fib
+    source: {amqp: {queue: calls.fib, connection: gcs}}
+    schema: raw_json
+    sink:
+      ros2: {connection: ros, action: /fib, type: test_msgs/action/Fibonacci}
+      mapping: "{order: n}"
+    reply:
+      mapping: "{k: kind, s: status, f: feedback.sequense, r: result.sequence[-1], x: feedbak}"
+  - name: right
+    source: {amqp: {queue: calls.right, connection: gcs}}
+    schema: raw_json
+    sink:
+      ros2: {connection: ros, service: /robot1/set_spray, type: std_srvs/srv/SetBool}
+    reply: {mapping: "{ok: success, why: message}"}
+  - name: right-goal
+    source: {amqp: {queue: calls.right-goal, connection: gcs}}
+    schema: raw_json
+    sink:
+      ros2: {connection: ros, action: /fib, type: test_msgs/action/Fibonacci}
+    reply: {mapping: "{k: kind, s: status, f: feedback.sequence[-1], r: result.sequence}"}
+"""
+
+
+def test_a_reply_mapping_reads_only_what_the_service_or_action_answers(tmp_path: Path):
+    """A call's ``reply.mapping`` reads the service's Response, or an action's ``{kind, status,
+    feedback, result}`` with the Feedback and Result below: a field they lack is an error at
+    the route's ``reply`` with a did-you-mean; the right fields pass."""
+    (tmp_path / "r.yaml").write_text(CALL_REPLIES)
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
+    problems = [str(p).removeprefix(f"{tmp_path}/") for p in invalid.value.problems]
+    assert problems == [
+        ("r.yaml:11: route 'spray': reply: mapping reads 'sucess', which std_srvs/srv/SetBool_Response does not have; "
+         "did you mean 'success'?"),
+        ("r.yaml:19: route 'fib': reply: mapping reads 'feedback.sequense', which test_msgs/action/Fibonacci_Feedback "
+         "does not have; did you mean 'feedback.sequence'?"),
+        "r.yaml:19: route 'fib': reply: mapping reads 'feedbak', which an action's answer does not have; did you mean 'feedback'?",
+    ]

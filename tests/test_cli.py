@@ -9,6 +9,7 @@ import os
 import re
 import signal
 import socket
+import ssl
 import subprocess
 import sys
 import time
@@ -222,3 +223,76 @@ def test_run_with_local_broker_routes_and_stops_cleanly(tmp_path: Path):
     port = int(url.rsplit(":", 1)[1].strip("/"))
     with socket.socket() as probe:
         assert probe.connect_ex(("127.0.0.1", port)) != 0, "the private broker outlived the engine"
+
+
+TLS_ROUTE = """# endpoints that name no connection: the default one, the private node over amqps://
+routes:
+  - name: over-tls
+    source: {amqp: {exchange: farm, binding_key: "plain.#", queue: tls-in}}
+    schema: raw_json
+    sink: {amqp: {exchange: farm, routing_key: carried.one}}
+"""
+
+
+def test_run_with_local_broker_tls_carries_a_message_over_amqps(tmp_path: Path):
+    """``--local-broker --local-broker-tls``: the URL file names an amqps:// URL, a plain
+    AMQP client cannot talk to that port, and a client verifying the run's throwaway CA
+    publishes a message that a route carries back (the engine verified the same CA)."""
+    url_file, status_file, routes = tmp_path / "broker-url", tmp_path / "status.json", tmp_path / "routes"
+    routes.mkdir()
+    (routes / "tls.yaml").write_text(TLS_ROUTE)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "engine", "--routes", str(routes), "--schemas", "schemas", "--local-broker",
+         "--local-broker-tls", "--broker-url-file", str(url_file), "--status-file", str(status_file), "--log-format", "json"],
+        cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 90
+        while not status_file.exists() and time.monotonic() < deadline and process.poll() is None:
+            time.sleep(0.2)
+        assert status_file.exists(), "engine did not start"
+        url = url_file.read_text().strip()
+        assert url.startswith("amqps://guest:guest@localhost:"), url
+        started = None
+        while started is None and process.poll() is None:
+            line = process.stderr.readline()  # type: ignore[union-attr]
+            if line.startswith("{") and json.loads(line)["msg"] == "local broker started":
+                started = json.loads(line)
+        assert started is not None, "no 'local broker started' line"
+        ca_file = Path(started["environment"]["RABBITROS_AMQP_CA_FILE"])
+        plain = url.replace("amqps://", "amqp://", 1)
+
+        async def roundtrip() -> list[bytes]:
+            try:  # the node resets the connection: an AMQP header is no TLS ClientHello
+                await asyncio.wait_for(aio_pika.connect(plain), 15)
+            except (aio_pika.exceptions.AMQPConnectionError, ConnectionError, TimeoutError):
+                pass
+            else:
+                raise AssertionError("a plain AMQP client talked to the TLS port")
+            context = ssl.create_default_context(cafile=str(ca_file))
+            connection = await aio_pika.connect(url, ssl_context=context)
+            channel = await connection.channel()
+            output = await Collector.bind(channel, "farm", "carried.#")
+            await publish(channel, "farm", "plain.one", [b'{"n": 1}'])
+            received = await output.wait_for(1)
+            await connection.close()
+            return [m.body for m in received]
+
+        assert asyncio.run(roundtrip()) == [b'{"n": 1}']
+        process.send_signal(signal.SIGTERM)
+        _, stderr = process.communicate(timeout=60)
+        assert process.returncode == 0, stderr
+        assert "guest:guest" not in stderr, "a password reached the log"
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert not ca_file.exists(), "the throwaway CA outlived the private node"
+
+
+def test_local_broker_tls_refused_without_local_broker_or_with_a_cluster(tmp_path: Path):
+    """Exit 2 and a line saying why, before any node starts."""
+    (tmp_path / "tls.yaml").write_text(TLS_ROUTE)
+    alone = cli("--routes", str(tmp_path), "--schemas", "schemas", "--local-broker-tls")
+    assert alone.returncode == 2 and "--local-broker-tls needs --local-broker" in alone.stderr, alone.stderr
+    cluster = cli("--routes", str(tmp_path), "--schemas", "schemas", "--local-broker", "--local-broker-tls", "--cluster", "2")
+    assert cluster.returncode == 2 and "leave out --cluster" in cluster.stderr, cluster.stderr

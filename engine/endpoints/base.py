@@ -539,6 +539,13 @@ class Transport(ABC):
         default): the source gives bytes or JSON, whose fields nothing declares."""
         return None
 
+    def reply_field_problem(self, options: Any) -> FieldProblem | None:
+        """For ``check``: what a sink (these options) says about each path the route's
+        ``reply.mapping`` reads from its answer (a field a typed answer, such as a service's
+        response, lacks, with a did-you-mean). None (the default): the sink answers nothing,
+        or nothing whose fields it declares."""
+        return None
+
     def suggest(self, key: str, value: str) -> str | None:
         """For ``check``: the known name closest to a misspelt ``value`` of option ``key`` (a
         ROS 2 type, a MAVLink message), or None."""

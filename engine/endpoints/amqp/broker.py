@@ -29,6 +29,7 @@ from typing import Iterable
 from urllib.parse import urlsplit
 
 from engine.local_broker import BrokerError
+from engine.tls import throwaway_certificates
 
 SERVER_GLOB = "/usr/lib/rabbitmq/lib/rabbitmq_server-*/sbin/rabbitmq-server"
 QUIET_SCHEDULERS = "+sbwt none +sbwtdcpu none +sbwtdio none"
@@ -40,9 +41,12 @@ URL_ENV = "RABBITROS_AMQP_URL"
 """The default connection's URL; ``run --local-broker`` sets it to the private node's."""
 URLS_ENV = "RABBITROS_AMQP_URLS"
 """Every node's URL of ``run --local-broker --cluster N`` (space-separated)."""
+CA_ENV = "RABBITROS_AMQP_CA_FILE"
+"""The CA the default connection verifies the broker against; ``run --local-broker
+--local-broker-tls`` sets it to the private node's throwaway CA."""
 ALWAYS = True
 """Started by every ``--local-broker`` (the default connection, and the dead letters' broker)."""
-CHECK_ENV: dict[str, str | None] = {URL_ENV: "amqp://guest:guest@local-broker.invalid/", URLS_ENV: None}
+CHECK_ENV: dict[str, str | None] = {URL_ENV: "amqp://guest:guest@local-broker.invalid/", URLS_ENV: None, CA_ENV: None}
 """``check --local-broker``'s stand-in for the private node's URL (``.invalid`` is never a host)."""
 _LOOPBACK = frozenset({"localhost", "127.0.0.1", "::1", "ip6-localhost"})
 
@@ -385,10 +389,24 @@ def _atoms(erlang_term: str) -> list[str]:
 
 
 class PrivateRabbitMQ:
-    """``--local-broker``'s RabbitMQ: one node, or ``cluster`` nodes joined (quorum queues)."""
+    """``--local-broker``'s RabbitMQ: one node, or ``cluster`` nodes joined (quorum queues);
+    with ``tls`` (``--local-broker-tls``, one node) the node also listens with TLS, with a
+    certificate for ``localhost`` from a CA made at start in its directory, and the default
+    connection is that listener's ``amqps://`` URL, verified against the CA."""
 
-    def __init__(self, cluster: int = 1) -> None:
-        self.broker = LocalCluster(cluster) if cluster > 1 else LocalBroker()
+    def __init__(self, cluster: int = 1, tls: bool = False) -> None:
+        if tls and cluster > 1:
+            raise BrokerError("--local-broker-tls starts one node: leave out --cluster")
+        self.tls_directory: Path | None = None
+        if tls:
+            directory = Path(tempfile.mkdtemp(prefix="rabbitros-broker-"))
+            self.tls_directory = directory / "tls"
+            files = [self.tls_directory / name for name in ("ca.pem", "server.pem", "server.key")]
+            # the client needs no certificate: the throwaway CA signs only the node's
+            node_tls = BrokerTls(*files, verify_peer=False, fail_if_no_peer_cert=False)
+            self.broker: LocalBroker | LocalCluster = LocalBroker(directory=directory, tls=node_tls)
+        else:
+            self.broker = LocalCluster(cluster) if cluster > 1 else LocalBroker()
 
     @property
     def nodes(self) -> list[str]:
@@ -396,19 +414,30 @@ class PrivateRabbitMQ:
 
     @property
     def urls(self) -> list[str]:
-        return self.broker.urls if isinstance(self.broker, LocalCluster) else [self.broker.url]
+        if isinstance(self.broker, LocalCluster):
+            return self.broker.urls
+        return [self.broker.tls_url if self.broker.tls is not None else self.broker.url]
 
     @property
     def environment(self) -> dict[str, str]:
         urls = self.urls
-        return {URL_ENV: urls[0], **({URLS_ENV: " ".join(urls)} if len(urls) > 1 else {})}
+        environment = {URL_ENV: urls[0], **({URLS_ENV: " ".join(urls)} if len(urls) > 1 else {})}
+        if isinstance(self.broker, LocalBroker) and self.broker.tls is not None:
+            environment[CA_ENV] = str(self.broker.tls.ca_file)
+        return environment
 
     def start(self) -> object:
+        if self.tls_directory is not None:
+            try:
+                throwaway_certificates(self.tls_directory, "localhost")
+            except RuntimeError as exc:
+                self.broker.stop()
+                raise BrokerError(f"--local-broker-tls: {exc}") from None
         return self.broker.start()
 
     def stop(self) -> None:
         self.broker.stop()
 
 
-def private_broker(cluster: int = 1) -> PrivateRabbitMQ:
-    return PrivateRabbitMQ(cluster)
+def private_broker(cluster: int = 1, tls: bool = False) -> PrivateRabbitMQ:
+    return PrivateRabbitMQ(cluster, tls)

@@ -55,7 +55,7 @@ from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
 from engine.mapping import MappingError, compile_template, template_fields, template_problem
 from engine.options import evolve, given
-from engine.endpoints.amqp.broker import URL_ENV, URLS_ENV, elsewhere
+from engine.endpoints.amqp.broker import CA_ENV, URL_ENV, URLS_ENV, elsewhere
 from engine.redaction import Secret, has_url_password, redact_urls, reveal
 from engine.schemas import SchemaError, canonical_bytes
 
@@ -621,11 +621,14 @@ class AmqpTransport(Transport):
 
     def default_connection_settings(self, env: Mapping[str, str]) -> Mapping[str, Any]:
         """``RABBITROS_AMQP_URL`` (``--local-broker`` sets it), else localhost; a local cluster
-        (``--local-broker --cluster N`` sets ``RABBITROS_AMQP_URLS``): every node, replicated queues."""
+        (``--local-broker --cluster N`` sets ``RABBITROS_AMQP_URLS``): every node, replicated queues;
+        ``RABBITROS_AMQP_CA_FILE`` (``--local-broker-tls`` sets it): the CA the node's TLS
+        certificate is verified against."""
         cluster = env.get(URLS_ENV, "").split()
         if cluster:
             return {"urls": [_secret(url) for url in cluster], "queue_type": "quorum"}
-        return {"url": _secret(env.get(URL_ENV, self.default_settings["url"]))}
+        ca_file = env.get(CA_ENV)
+        return {"url": _secret(env.get(URL_ENV, self.default_settings["url"])), **({"tls": {"ca_file": ca_file}} if ca_file else {})}
 
     def private_broker_warning(self, settings: AmqpConnectionOptions, env: Mapping[str, str]) -> str | None:
         private = env.get(URLS_ENV, "").split() or [env.get(URL_ENV, "")]

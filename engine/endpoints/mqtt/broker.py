@@ -221,5 +221,9 @@ class PrivateMosquitto:
         self.broker.stop()
 
 
-def private_broker(cluster: int = 1) -> PrivateMosquitto:
+def private_broker(cluster: int = 1, tls: bool = False) -> PrivateMosquitto:
+    """``tls`` (``--local-broker-tls``): refused, the private mosquitto has no TLS listener yet."""
+    if tls:
+        raise BrokerError("--local-broker-tls: the private mosquitto has no TLS listener (only RabbitMQ's node has); "
+                          "leave out --local-broker-tls for routes with an MQTT connection")
     return PrivateMosquitto(cluster)

@@ -55,17 +55,47 @@ def field_problem(type_name: str) -> FieldProblem | None:
         return None
     if rosmsg.type_name(cls) == STRING_TYPE:
         return None  # a byte source: the mapping reads the JSON inside
+    return message_field_problem(cls)
+
+
+def message_field_problem(cls: type) -> FieldProblem:
+    """The paths a mapping may read from a message of ``cls`` (a topic's message, a service's
+    request or response)."""
     return lambda path: _resolve(cls, path)
+
+
+ACTION_ANSWER = ("kind", "status", "feedback", "result")
+"""The keys of an action sink's answers (engine/endpoints/ros2/calls.py): ``{kind, status?,
+feedback?, result?}``; ``feedback`` and ``result`` hold the action's Feedback and Result."""
+
+
+def action_answer_problem(action: type) -> FieldProblem:
+    """The paths a reply mapping may read from an action sink's answers: the keys of
+    :data:`ACTION_ANSWER`, and below ``feedback.``/``result.`` the action's Feedback/Result."""
+    parts = {"feedback": action.Feedback, "result": action.Result}
+
+    def problem(path: FieldPath) -> str | None:
+        head = path[0]
+        if head in parts:
+            return _resolve(parts[head], path, start=1)
+        if head not in ACTION_ANSWER:
+            guess = closest(head, ACTION_ANSWER)
+            hint = f"; did you mean {guess!r}?" if guess else f" (it has: {', '.join(ACTION_ANSWER)})"
+            return f"mapping reads {head!r}, which an action's answer does not have{hint}"
+        return None  # kind, status: strings
+
+    return problem
 
 
 def _dotted(path: FieldPath) -> str:
     return ".".join(path).replace(f".{ELEMENT}", ELEMENT)
 
 
-def _resolve(cls: type, path: FieldPath) -> str | None:
+def _resolve(cls: type, path: FieldPath, start: int = 0) -> str | None:
+    """What is wrong with ``path[start:]`` read from a ``cls`` (messages name the whole ``path``)."""
     current: type | None = cls
     in_list = False
-    for depth, step in enumerate(path):
+    for depth, step in enumerate(path[start:], start):
         if current is None:
             return None  # a primitive or an array of them: nothing more to check
         if step == ELEMENT:

@@ -97,8 +97,10 @@ def resolve_type(name: str) -> type:
 
 
 def type_name(cls: type) -> str:
-    """``pkg/msg/Type`` of a message class (the form ROS tools print)."""
-    return f"{cls.__module__.split('.', 1)[0]}/msg/{cls.__name__}"
+    """``pkg/msg/Type`` of a message class (the form ROS tools print); a service's or an
+    action's parts are ``pkg/srv/Type_Response``, ``pkg/action/Type_Feedback``."""
+    package, kind = (cls.__module__.split(".") + ["msg"])[:2]
+    return f"{package}/{kind}/{cls.__name__}"
 
 
 def field_names(cls: type) -> tuple[str, ...]:

@@ -355,8 +355,18 @@ class Ros2Transport(Transport):
                 cls = ros2_calls.resolve_service(options.type).Request
             except rosmsg.MessageError:
                 return None
-            return lambda path: ros2_contract._resolve(cls, path)
+            return ros2_contract.message_field_problem(cls)
         return ros2_contract.field_problem(options.type)
+
+    def reply_field_problem(self, options: Ros2SinkOptions) -> FieldProblem | None:
+        try:
+            if options.service is not None:  # the reply mapping reads the response
+                return ros2_contract.message_field_problem(ros2_calls.resolve_service(options.type).Response)
+            if options.action is not None:  # {kind, status, feedback, result}
+                return ros2_contract.action_answer_problem(ros2_calls.resolve_action(options.type))
+        except rosmsg.MessageError:  # not installed or misspelt: reported by the type check
+            return None
+        return None
 
     def suggest(self, key: str, value: str) -> str | None:
         return ros2_contract.suggest_type(value) if key == "type" else None
