@@ -12,6 +12,7 @@ import json
 import os
 import signal
 import socket
+import time
 import uuid
 from collections import Counter
 from pathlib import Path
@@ -620,3 +621,93 @@ tests:
 """)
     result = cli("test", "--routes", str(tmp_path), "--schemas", str(REPO / "schemas"))
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+# ------------------------------------------------------------ last will and on_stop (VDA 5050 connection)
+
+PRESENCE = """
+connections:
+  link:
+    mqtt:
+      url: "{mqtt}"
+      will:
+        topic: {topic}
+        payload: {{headerId: "{{now_ms}}", timestamp: "{{now}}", version: 2.0.0, manufacturer: rabbitros,
+                   serialNumber: robot1, connectionState: CONNECTIONBROKEN}}
+      on_stop:
+        topic: {topic}
+        payload: {{headerId: "{{now_ms}}", timestamp: "{{now}}", version: 2.0.0, manufacturer: rabbitros,
+                   serialNumber: robot1, connectionState: OFFLINE}}
+routes:
+  - name: robot1-connection
+    source:
+      mqtt: {{topic: presence/robot1}}
+    schema: raw_json
+    mapping: >-
+      {{headerId: to_int(mul(now(), `1000`)), timestamp: iso8601(stamp()), version: '2.0.0',
+      manufacturer: 'rabbitros', serialNumber: 'robot1', connectionState: 'ONLINE'}}
+    sink:
+      mqtt: {{topic: {topic}, qos: 1, retain: true}}
+"""
+
+
+async def retained_state(broker: LocalMosquitto, topic: str, state: str, timeout: float = 15.0) -> dict[str, Any]:
+    """The retained message on ``topic`` once its connectionState is ``state`` (a new
+    subscription each look: only then does the broker send what it retained)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    last: dict[str, Any] | None = None
+    while loop.time() < deadline:
+        async with mqtt_client(broker) as client:
+            await client.subscribe(topic, qos=1)
+            try:
+                async with asyncio.timeout(1.0):
+                    async for message in client.messages:
+                        if message.retain:
+                            last = json.loads(bytes(message.payload))  # type: ignore[arg-type]
+                            break
+            except TimeoutError:
+                pass
+        if last is not None and last.get("connectionState") == state:
+            return last
+        await asyncio.sleep(0.2)
+    raise AssertionError(f"retained {topic} is not {state} within {timeout} s: {last}")
+
+
+@pytest.mark.parametrize("stop", ["kill -9", "clean"])
+def test_connection_topic_is_online_then_connectionbroken_or_offline(tmp_path: Path, mosquitto: LocalMosquitto,
+                                                                     schemas_dir: Path, stop: str) -> None:
+    """VDA 5050's connection topic from one MQTT connection: ONLINE (a route, retained) while
+    the engine runs; CONNECTIONBROKEN (the will, published by the broker) once the engine is
+    killed -9; OFFLINE (on_stop, before the clean disconnection that drops the will) once it
+    is stopped. Each is a valid VDA 5050 2.0 connection message, timestamps included."""
+    from engine.schemas import SchemaRegistry
+
+    topic = f"uagv/v2/rabbitros/robot1-{uuid.uuid4().hex[:6]}/connection"
+    routes = routes_dir(tmp_path, PRESENCE.format(mqtt=mosquitto.url, topic=topic))
+    connection_schema = SchemaRegistry(schemas_dir).get("vda5050/connection")
+    assert connection_schema is not None
+    engine = EngineProcess(routes, tmp_path / "status.json", {})
+
+    async def scenario() -> list[dict[str, Any]]:
+        seen = []
+        await asyncio.to_thread(engine.wait_started)
+        await publish(mosquitto, [("presence/robot1", {"battery": 0.9})])
+        seen.append(await retained_state(mosquitto, topic, "ONLINE"))
+        if stop == "kill -9":
+            kill(engine)
+            seen.append(await retained_state(mosquitto, topic, "CONNECTIONBROKEN"))
+        else:
+            assert await asyncio.to_thread(engine.stop) == 0, engine.log()
+            seen.append(await retained_state(mosquitto, topic, "OFFLINE"))
+        return seen
+
+    try:
+        seen = asyncio.run(asyncio.wait_for(scenario(), 40))
+    finally:
+        engine.stop()
+    for body in seen:
+        connection_schema.validate(body)
+    last = seen[-1]
+    assert isinstance(last["headerId"], int) and last["timestamp"].endswith("Z"), last
+    assert abs(last["headerId"] / 1000 - time.time()) < 60, last

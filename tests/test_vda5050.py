@@ -35,7 +35,7 @@ from engine.watch import watch_routes
 from tests.conftest import REPO
 from tests.faults_harness import wait_for
 from tests.test_cli import cli
-from tests.test_mqtt import Subscriber, publish
+from tests.test_mqtt import Subscriber, publish, retained_state
 from tests.test_ros2_endpoint import DOMAIN, Peer, String
 
 EXAMPLE = REPO / "examples" / "vda5050"
@@ -105,7 +105,7 @@ def test_the_example_checks_clean_and_every_route_has_passing_route_tests() -> N
     found as schemas/ of the working directory); every route has at least one case."""
     checked = cli("check", "--routes", "examples/vda5050", timeout=120)
     assert checked.returncode == 0 and checked.stderr == "", checked.stderr
-    assert checked.stdout.endswith(": ok\n") and "10 routes, 3 connections" in checked.stdout, checked.stdout
+    assert checked.stdout.endswith(": ok\n") and "10 routes, 5 connections" in checked.stdout, checked.stdout
     tested = cli("test", "--routes", "examples/vda5050", timeout=120)
     assert tested.returncode == 0, tested.stdout[-3000:] + tested.stderr
     cases = yaml.safe_load((EXAMPLE / "vda5050.test.yaml").read_text())["tests"]
@@ -238,12 +238,15 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
                     by_topic.setdefault(str(m.topic), []).append(json.loads(m.payload))
                 status = engine.status()["routes"]
                 assert all(route["failed"] == 0 for route in status.values()), status
-                return by_topic
         finally:
             await engine.stop()
+        for agent in ("uav1", "robot1"):  # on_stop, before the clean disconnection that drops the will
+            topic = f"uagv/v2/rabbitros/{agent}/connection"
+            by_topic[topic].append(await retained_state(mosquitto, topic, "OFFLINE"))
+        return by_topic
 
     try:
-        by_topic = asyncio.run(asyncio.wait_for(scenario(), 50))
+        by_topic = asyncio.run(asyncio.wait_for(scenario(), 60))
     finally:
         peer.close()
         stopped = stop_vehicle(vehicle) if vehicle.poll() is None else {}
@@ -281,4 +284,5 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
     robot_position = by_topic["uagv/v2/rabbitros/robot1/visualization"][-1]["agvPosition"]
     assert robot_position == {"x": 3.5, "y": -1.25, "theta": pytest.approx(math.pi / 2), "mapId": "map", "positionInitialized": True}
     for agent in ("uav1", "robot1"):
-        assert by_topic[f"uagv/v2/rabbitros/{agent}/connection"][-1]["connectionState"] == "ONLINE"
+        states = [body["connectionState"] for body in by_topic[f"uagv/v2/rabbitros/{agent}/connection"]]
+        assert states[-2:] == ["ONLINE", "OFFLINE"], states

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import os
 import ssl
@@ -51,7 +52,7 @@ from engine.backoff import Backoff
 from engine.endpoints.base import Connection, EndpointError, typed
 from engine.endpoints.mqtt.broker import URL_ENV
 from engine.endpoints.mqtt.errors import describe, edge_error, from_code, mapped
-from engine.endpoints.mqtt.options import DEFAULT_URL, MqttConnectionOptions
+from engine.endpoints.mqtt.options import DEFAULT_URL, MqttConnectionOptions, MqttMessageOptions
 from engine.endpoints.mqtt.topics import subscription_id
 from engine.redaction import MASK, redact_urls, reveal
 from engine.tls import LastTlsError, tls_context, tls_failure
@@ -141,6 +142,31 @@ class Subscriber(Protocol):
     def claims(self, received: Received) -> bool: ...
 
     def offer(self, received: Received) -> None: ...
+
+
+def rendered(message: MqttMessageOptions, now_ns: int | None = None) -> bytes:
+    """``message``'s payload with ``{now}`` and ``{now_ms}`` filled with the time now (see
+    MqttMessageOptions): a will is fixed when the client connects, so its timestamp and a
+    headerId taken from the clock can only be the time of connecting; a mapping is sent as
+    JSON, where a string that is exactly ``{now_ms}`` becomes a number (VDA 5050's headerId
+    is an integer)."""
+    now_ns = time.time_ns() if now_ns is None else now_ns
+    millis = now_ns // 1_000_000
+    iso = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(millis // 1000)) + f".{millis % 1000:03d}Z"
+
+    def fill(value: Any) -> Any:
+        if isinstance(value, str):
+            return millis if value == "{now_ms}" else value.replace("{now_ms}", str(millis)).replace("{now}", iso)
+        if isinstance(value, Mapping):
+            return {key: fill(item) for key, item in value.items()}
+        if isinstance(value, list | tuple):
+            return [fill(item) for item in value]
+        return value
+
+    payload = message.payload
+    if isinstance(payload, str):
+        return payload.replace("{now_ms}", str(millis)).replace("{now}", iso).encode()
+    return json.dumps(fill(payload), separators=(",", ":")).encode()
 
 
 def _paho(client: aiomqtt.Client) -> paho_mqtt.Client:
@@ -238,6 +264,9 @@ class MqttLink(Connection):
             arguments.update(clean_start=not self.persistent, properties=properties)
         else:
             arguments.update(clean_session=not self.persistent)
+        will = settings.will
+        if will is not None:  # filled now: the broker keeps the will as it was at CONNECT
+            arguments["will"] = aiomqtt.Will(will.topic, rendered(will), will.qos, will.retain)
         return aiomqtt.Client(
             endpoint.host, endpoint.port,
             identifier=settings.client_id,
@@ -338,6 +367,8 @@ class MqttLink(Connection):
                 break
 
     async def close(self) -> None:
+        """Disconnect cleanly (the broker then drops the will), after publishing ``on_stop``."""
+        await self._say_goodbye()
         self._closing = True
         self._state = "down"
         if self._keeper is not None:
@@ -348,6 +379,21 @@ class MqttLink(Connection):
         if session is not None and not session.lost.is_set():
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(session.client.__aexit__(None, None, None), REQUEST_TIMEOUT)
+
+    async def _say_goodbye(self) -> None:
+        """Publish ``on_stop`` and wait for its acknowledgement (at most REQUEST_TIMEOUT): a
+        connection that is down says nothing (its will was published, or will be)."""
+        message = self.settings.on_stop
+        if message is None or self._state != "up":
+            return
+        where = f"{self.where}: on_stop"
+        try:
+            [error] = await asyncio.wait_for(
+                self.publish_batch([(message.topic, rendered(message))], message.qos, message.retain, where), REQUEST_TIMEOUT)
+        except TimeoutError:
+            error = EndpointError(f"{where}: no acknowledgement within {REQUEST_TIMEOUT:.0f} s")
+        if error is not None:
+            log.warning("on_stop message not published", extra={"connection": self.name, "error": str(error)})
 
     # -- receiving
 

@@ -7,7 +7,7 @@ says what the option does to the session or the messages, not only its type.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 from engine.endpoints.base import EndpointOptions
 from engine.options import option
@@ -15,6 +15,20 @@ from engine.tls import TlsOptions
 
 ProtocolVersion = Literal[5, "3.1.1"]
 DEFAULT_URL = "mqtt://localhost:1883"
+
+
+@dataclass(frozen=True, kw_only=True)
+class MqttMessageOptions:
+    """One message the connection itself publishes: its last will, or what it says on a clean stop."""
+
+    __schema_description__ = ("a message the connection publishes by itself; in payload, the strings {now} (ISO 8601 UTC, ms) "
+                              "and {now_ms} (ms since 1970, a number when it is the whole value) are filled when it is set: "
+                              "a will at each connection (the time of connecting), on_stop at the stop")
+
+    topic: str = option(pattern=r"^[^+#]+$", description="topic to publish on (no wildcards)")
+    payload: str | dict[str, Any] = option(description="the message: a string, or a mapping sent as JSON")
+    qos: Literal[0, 1, 2] = option(1, description="QoS of the message")
+    retain: bool = option(True, description="the broker keeps it for later subscribers (a presence topic wants that)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -37,6 +51,10 @@ class MqttConnectionOptions:
     receive_maximum: int = option(256, minimum=1, maximum=65535, description="QoS 1 messages the broker may send before the engine "
                                   "acknowledges any (MQTT 5; with 3.1.1 the broker's own limit, mosquitto's max_inflight_messages)")
     tls: TlsOptions | None = option(None)
+    will: MqttMessageOptions | None = option(None, description="last will: the broker publishes it when the engine's "
+                                            "connection ends without a clean disconnection (the engine died, the network broke)")
+    on_stop: MqttMessageOptions | None = option(None, description="published (and acknowledged, within 10 s) before a clean "
+                                               "disconnection: an engine stop, or a reload that removes the connection")
 
 
 @dataclass(frozen=True, kw_only=True)
