@@ -152,7 +152,23 @@ class CallNode:
         self.node.destroy_node()
 
 
-class ServiceSink(Sink):
+class _CallSink(Sink):
+    """A sink whose messages are calls: a batch's calls run together (each bounded by its own
+    timeout), and each settles on its own, as an error or None (``_settled``)."""
+
+    async def send(self, message: Outbound) -> None:
+        error = (await self.send_batch((message,)))[0]
+        if error is not None:
+            raise error
+
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        return list(await asyncio.gather(*(self._settled(message) for message in messages)))
+
+    async def _settled(self, message: Outbound) -> BaseException | None:
+        raise NotImplementedError
+
+
+class ServiceSink(_CallSink):
     """Calls one service per message; replies with the response (see the module docstring)."""
 
     def __init__(self, calls: CallNode, route: str, service: str, type_name: str, timeout: float,
@@ -170,15 +186,6 @@ class ServiceSink(Sink):
             self._client = calls.node.create_client(self._cls, service, qos_profile=service_qos(max_in_flight))
         except Exception as exc:
             raise EndpointError(f"{self._where}: cannot create the client: {exc}") from exc
-
-    async def send(self, message: Outbound) -> None:
-        error = (await self.send_batch((message,)))[0]
-        if error is not None:
-            raise error
-
-    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
-        """The batch's calls together, ``max_in_flight`` at a time."""
-        return list(await asyncio.gather(*(self._settled(message) for message in messages)))
 
     async def _settled(self, message: Outbound) -> BaseException | None:
         try:
@@ -249,7 +256,7 @@ def _fail(future: asyncio.Future[Any], error: BaseException) -> None:
         future.set_exception(EndpointError(str(error)))
 
 
-class ActionSink(Sink):
+class ActionSink(_CallSink):
     """Sends one goal per message (see the module docstring of the reply kinds).
 
     A message is accepted once the server accepted or rejected its goal (replies ``accepted``
@@ -281,14 +288,6 @@ class ActionSink(Sink):
             self._client = ActionClient(calls.node, self._cls, action)
         except Exception as exc:
             raise EndpointError(f"{self._where}: cannot create the client: {exc}") from exc
-
-    async def send(self, message: Outbound) -> None:
-        error = (await self.send_batch((message,)))[0]
-        if error is not None:
-            raise error
-
-    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
-        return list(await asyncio.gather(*(self._settled(message) for message in messages)))
 
     async def _settled(self, message: Outbound) -> BaseException | None:
         try:

@@ -430,17 +430,22 @@ def _nested_in(t: idl.AbstractNestedType, strict: bool = False) -> Callable[[Any
         if not isinstance(v, (list, tuple)):
             raise _mismatch("an array", v)
         _check_length(t, len(v))
-        out = []
-        for i, x in enumerate(v):
-            if strict and x is None:
-                raise NullValue([i])
-            try:
-                out.append(item(x))
-            except MessageError as exc:
-                exc.path.insert(0, i)
-                raise
-        return out
+        return _each(v, item, strict)
     return items
+
+
+def _each(values: Any, item: Callable[[Any], Any], strict: bool) -> list[Any]:
+    """``item`` of every element; a failure names the element's index in its path."""
+    out = []
+    for i, x in enumerate(values):
+        if strict and x is None:
+            raise NullValue([i])
+        try:
+            out.append(item(x))
+        except MessageError as exc:
+            exc.path.insert(0, i)
+            raise
+    return out
 
 
 def _numbers_in(t: idl.AbstractNestedType, typename: str, item: Callable[[Any], Any],
@@ -465,16 +470,7 @@ def _numbers_in(t: idl.AbstractNestedType, typename: str, item: Callable[[Any], 
                 if code == "f" and not all(map(_isfinite, values)):
                     values = None  # array("f") turns an out-of-range float into inf silently
         if values is None:
-            converted = []
-            for i, x in enumerate(v):
-                if strict and x is None:
-                    raise NullValue([i])
-                try:
-                    converted.append(item(x))
-                except MessageError as exc:
-                    exc.path.insert(0, i)
-                    raise
-            values = array.array(code, converted)
+            values = array.array(code, _each(v, item, strict))
         return numpy.frombuffer(values, dtype=dtype).copy() if fixed else values
     return numbers
 
