@@ -146,7 +146,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"load average before {_load(before)}, after {_load(after)} (the machine is shared: absolute figures "
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
     for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
-                        ("routes", routes_table), ("sik", sik_table)):
+                        ("routes", routes_table), ("sik", sik_table), ("fleet", fleet_table)):
         value = results.get(key)
         if value is None:
             continue
@@ -159,6 +159,13 @@ def write_report(results: dict[str, Any], out: Path) -> None:
             lines += [f"## {key}: cannot render ({type(exc).__name__}: {exc})", ""]
     lines += ["Plots: " + ", ".join(f"`{p}`" for p in plots(results, out)), ""]
     (out / "report.md").write_text("\n".join(lines))
+
+
+def fleet_table(fleet: dict[str, Any]) -> list[str]:
+    from bench.fleet import fleet_report
+
+    return ["## 6. A fleet: 100 agents through templated routes, against one hand-written route per agent", "",
+            *fleet_report(fleet), ""]
 
 
 def _load(machine: dict[str, Any]) -> str:
