@@ -20,6 +20,7 @@ import aio_pika
 import pytest
 
 import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from engine.endpoints.base import Outbound
 from engine.endpoints.ros2.discovery import compile_pattern
@@ -35,6 +36,7 @@ ROBOTS = 20
 MESSAGES = 10
 """Per robot, after its topic is followed."""
 FORGET_AFTER = 1.0
+BEST_EFFORT = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 FLEET = """
 connections:
@@ -56,7 +58,8 @@ def _fix(robot: int, seq: int) -> Any:
 
 def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_message_with_its_agent(
         tmp_path: Path, amqp_url: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The engine starts first; then 20 robots' topics appear (and one of another type). Every
+    """The engine starts first; then 20 robots' topics appear (and one of another type, and one
+    whose QoS the route's reader cannot match). Every
     robot's topic is followed, every message reaches RabbitMQ under its robot's routing key with
     its agent, in order; a robot that leaves is let go after forget_after (not before), and
     followed again when it comes back. The topics carry the test's tag (``/robot3/fix_<tag>``)
@@ -81,6 +84,7 @@ def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_messa
             output = await Collector.bind(channel, outbox, "farm.#")
             assert source()["following"] == {}
             stranger = robots.node.create_publisher(String, topic.format("rover"), 10)
+            shy = robots.node.create_publisher(NavSatFix, topic.format("shy"), BEST_EFFORT)  # the route's reader is reliable
             publishers = {f"robot{i}": robots.publisher(NavSatFix, topic.format(f"robot{i}")) for i in range(ROBOTS)}
             await wait_until(lambda: all(p.get_subscription_count() > 0 for p in publishers.values()), 15,
                              "the engine's subscription on every robot's topic")
@@ -91,7 +95,7 @@ def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_messa
             await wait_until(lambda: topic.format("rover") in source()["mismatched_topics"], 5, "the other type reported")
             results: dict[str, Any] = {
                 "messages": [(m.routing_key, json.loads(m.body)) for m in received],
-                "following": source()["following"],
+                "following": {t: v for t, v in source()["following"].items() if t != topic.format("shy")},
                 "mismatched": source()["mismatched_topics"],
                 "rover_subscribers": robots.node.count_subscribers(topic.format("rover")),
             }
@@ -103,6 +107,8 @@ def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_messa
             results["let_go_after"] = time.monotonic() - left
             await wait_until(lambda: robots.node.count_subscribers(gone) == 0, 5, "the engine's subscription on robot0 gone")
             results["after_leaving"] = dict(source())
+            await wait_until(lambda: topic.format("shy") in source()["unmatched_topics"], 5, "the unmatched QoS reported")
+            results["shy_subscribers"] = robots.node.count_subscribers(topic.format("shy"))
             # and comes back: followed again
             back = robots.publisher(NavSatFix, gone)
             await wait_until(lambda: back.get_subscription_count() > 0, 10, "robot0's topic followed again")
@@ -111,6 +117,7 @@ def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_messa
             results["returned"] = [(m.routing_key, json.loads(m.body)) for m in output.messages[ROBOTS * MESSAGES:]]
             results["final"] = source()
             robots.node.destroy_publisher(stranger)
+            robots.node.destroy_publisher(shy)
             return results
         finally:
             await connection.close()
@@ -131,10 +138,11 @@ def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_messa
     assert results["rover_subscribers"] == 0  # reported, never subscribed
     assert FORGET_AFTER <= results["let_go_after"] < FORGET_AFTER + 8
     leaving = results["after_leaving"]
-    assert (leaving["forgotten"], leaving["discovered"], len(leaving["following"])) == (1, ROBOTS, ROBOTS - 1)
+    assert (leaving["forgotten"], leaving["discovered"], len(leaving["following"])) == (1, ROBOTS + 1, ROBOTS)
+    assert results["shy_subscribers"] == 1  # published yet never matched (QoS): reported, kept, not let go
     assert results["returned"] == [("farm.robot0.fix", {"agent_id": "robot0", "lat": 0.0, "lon": MESSAGES / 100,
                                                           "alt_msl": float(MESSAGES)})]
-    assert results["final"]["discovered"] == ROBOTS + 1
+    assert results["final"]["discovered"] == ROBOTS + 2
     assert results["final"]["received"] == ROBOTS * MESSAGES + 1
 
 

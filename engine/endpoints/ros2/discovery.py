@@ -16,10 +16,13 @@ How the graph is read. rclpy (Jazzy) exposes no graph event to Python (rcl's gra
 condition is not bound), so the connection polls ``Node.get_topic_names_and_types()`` every
 :data:`DISCOVERY_INTERVAL`, once for all its discovering sources. Measured on the 2-core
 development machine: 40 us per call with 20 topics in the graph, 170 us with 100, 820 us with
-300 (0.02 %, 0.07 % and 0.3 % of a core at 4 scans/s); ``count_publishers`` 14-30 us. The
-publishers of a matching topic are read with ``get_publishers_info_by_topic`` only where the
-topic's types include the route's (a topic that has only subscribers is not followed: nothing
-would ever arrive), and those of followed topics every :data:`LIVENESS_INTERVAL`.
+300 (0.02 %, 0.07 % and 0.3 % of a core at 4 scans/s). The publishers of a matching topic are read
+with ``get_publishers_info_by_topic`` only where the topic's types include the route's (a topic
+that has only subscribers is not followed: nothing would ever arrive). A followed topic's
+publishers are its subscription's matched publishers (``get_publisher_count()``, a counter rcl
+keeps: no graph query), read at every scan, so a topic is let go between ``forget_after`` and
+``forget_after`` + one scan after DDS has said its last publisher left (at once for one that
+closed; at its liveliness lease's end for one that crashed), never sooner.
 
 Latency from a publisher's creation to its first message at the sink is DDS discovery of the
 publisher, up to one scan interval, then DDS matching of the new subscription (the publisher's
@@ -42,11 +45,6 @@ log = logging.getLogger("engine.ros2")
 
 DISCOVERY_INTERVAL = 0.25
 """Seconds between two reads of the graph (see the module for what one costs)."""
-LIVENESS_INTERVAL = 1.0
-"""Seconds between two checks that a followed topic still has a publisher. A topic found
-without one is checked at every scan from then on, and let go once it has had none for
-``forget_after``: between ``forget_after`` and ``forget_after`` + this + one scan after its
-last publisher left (never sooner)."""
 DEFAULT_FORGET_AFTER = 30.0
 """Seconds a followed topic may go without a publisher before it is let go: a robot that
 restarts (tens of seconds) keeps its subscription, one that left the farm does not hold it."""
@@ -138,6 +136,8 @@ def compile_pattern(topic: str, node: str, namespace: str) -> TopicPattern:
 
 PublisherTypes = Callable[[str], Sequence[str]]
 """The message types of a topic's publishers (``get_publishers_info_by_topic``)."""
+Matched = Callable[[str], int]
+"""How many publishers a followed topic's subscription has matched."""
 
 
 @dataclass(eq=False)
@@ -145,7 +145,8 @@ class Discovery:
     """Which topics one source follows, decided from each read of the graph.
 
     ``follow(topic, captured)`` subscribes (False if it could not: tried again at the next
-    scan, reported once); ``let_go(topic)`` unsubscribes. Runs on the engine's loop.
+    scan, reported once); ``matched(topic)`` counts a followed topic's matched publishers;
+    ``let_go(topic)`` unsubscribes. Runs on the engine's loop.
     """
 
     pattern: TopicPattern
@@ -153,15 +154,18 @@ class Discovery:
     forget_after: float
     where: str
     follow: Callable[[str, Mapping[str, str]], bool]
+    matched: Matched
     let_go: Callable[[str], None]
     followed: dict[str, float | None] = field(default_factory=dict)
-    """Followed topic -> since when it has had no publisher of the route's type (monotonic), or
+    """Followed topic -> since when its subscription has matched no publisher (monotonic), or
     None while it has one."""
     mismatched: dict[str, tuple[str, ...]] = field(default_factory=dict)
     """Matching topics of another type -> their types (reported once, never subscribed)."""
+    unmatched: set[str] = field(default_factory=set)
+    """Followed topics whose publishers of the route's type the subscription has not matched
+    for ``forget_after`` (an incompatible QoS): kept, reported once."""
     discovered: int = 0
     forgotten: int = 0
-    _checked: float = 0.0
     _failed: set[str] = field(default_factory=set)
 
     def scan(self, topics: Iterable[tuple[str, Sequence[str]]], publisher_types: PublisherTypes, now: float) -> None:
@@ -176,13 +180,10 @@ class Discovery:
             if self.type_name not in types:
                 self._mismatch(topic, tuple(sorted(types)))
             elif self.type_name in publisher_types(topic):
-                self._follow(topic, captured, now)
+                self._follow(topic, captured)
         for topic in set(self.mismatched) - present - set(self.followed):
             del self.mismatched[topic]  # gone from the graph: reported again if it comes back
-        every = now - self._checked >= LIVENESS_INTERVAL
-        if every:
-            self._checked = now
-        self._check_liveness(publisher_types, now, every)
+        self._check_liveness(publisher_types, now)
 
     def _mismatch(self, topic: str, types: tuple[str, ...]) -> None:
         if self.mismatched.get(topic) != types:
@@ -190,7 +191,7 @@ class Discovery:
             log.error("%s: topic %s matches but has type %s, not %s; not subscribed",
                       self.where, topic, ", ".join(types), self.type_name)
 
-    def _follow(self, topic: str, captured: Mapping[str, str], now: float) -> None:
+    def _follow(self, topic: str, captured: Mapping[str, str]) -> None:
         if not self.follow(topic, captured):
             if topic not in self._failed:
                 self._failed.add(topic)
@@ -203,21 +204,29 @@ class Discovery:
         log.info("%s: following %s (%s)", self.where, topic,
                  ", ".join(f"{name}={value}" for name, value in captured.items()))
 
-    def _check_liveness(self, publisher_types: PublisherTypes, now: float, every: bool) -> None:
-        """Every followed topic when ``every``, else those already found without a publisher."""
+    def _check_liveness(self, publisher_types: PublisherTypes, now: float) -> None:
         for topic, absent_since in list(self.followed.items()):
-            if absent_since is None and not every:
-                continue
-            if self.type_name in publisher_types(topic):
+            if self.matched(topic) > 0:
                 self.followed[topic] = None
+                self.unmatched.discard(topic)
             elif absent_since is None:
                 self.followed[topic] = now
-            elif now - absent_since >= self.forget_after:
+            elif now - absent_since < self.forget_after:
+                continue
+            elif self.type_name in publisher_types(topic):  # published, yet never matched: QoS
+                self.followed[topic] = now  # kept (a publisher with a compatible QoS may come), said once
+                if topic not in self.unmatched:
+                    self.unmatched.add(topic)
+                    log.warning("%s: %s has a publisher of %s that the subscription does not match (incompatible QoS?); "
+                                "kept", self.where, topic, self.type_name)
+            else:
                 del self.followed[topic]
+                self.unmatched.discard(topic)
                 self.let_go(topic)
                 self.forgotten += 1
                 log.info("%s: let go of %s (no publisher for %.1f s)", self.where, topic, now - absent_since)
 
     def status(self) -> dict[str, Any]:
         return {"discovered": self.discovered, "forgotten": self.forgotten,
-                "mismatched_topics": {topic: list(types) for topic, types in sorted(self.mismatched.items())}}
+                "mismatched_topics": {topic: list(types) for topic, types in sorted(self.mismatched.items())},
+                "unmatched_topics": sorted(self.unmatched)}

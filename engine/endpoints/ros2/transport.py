@@ -21,6 +21,9 @@ Measured on the 2-core development machine (bench/bench_ros2_executor.py): 10,00
 received without loss (String and NavSatFix), 0.1 % CPU while idle, p50 latency under 1 ms.
 Not serviced: QoS event handlers (e.g. rclpy's incompatible-QoS warning).
 
+A source topic with ``{var}`` segments subscribes to every matching topic as it appears in the
+graph (engine/endpoints/ros2/discovery.py): one source, many subscriptions, one queue.
+
 Each source has a bounded queue and one task that hands it to the route in batches; a
 full queue follows the route's ``overflow`` (block: stop taking; or drop and count), and
 DDS history (``qos.depth``) is what buffers while the loop itself is busy.
@@ -182,7 +185,7 @@ def _check_topic(topic: Any, placeholders: Literal["none", "fields", "variables"
         return
     names = [n for n in _PLACEHOLDER.findall(topic) if n not in _RCL_SUBSTITUTIONS]
     if names and placeholders == "none":
-        yield f"topic {topic!r} is one name: placeholders like {{{names[0]}}} are for topics"
+        yield f"topic {topic!r}: placeholders ({{{names[0]}}}) are not allowed here"
         return
     problem = template_problem(topic) if placeholders == "fields" else discovery.pattern_problem(topic)
     if problem:
@@ -679,7 +682,7 @@ class Ros2Source(Source):
             settings = connection.settings
             pattern = discovery.compile_pattern(self._topic, settings.node, settings.namespace)
             self._discovery = discovery.Discovery(pattern, self._type_name, options.forget_after, self._where,
-                                                  self._follow, self._let_go)
+                                                  self._follow, self._matched, self._let_go)
         self._pump: asyncio.Task[None] | None = None
         self._watch: asyncio.Task[None] | None = None
         self._stopping = False
@@ -724,6 +727,12 @@ class Ros2Source(Source):
             log.debug("%s", exc)
             return False
         return True
+
+    def _matched(self, topic: str) -> int:
+        try:
+            return self._readers[topic].subscription.get_publisher_count()
+        except Exception:  # destroyed meanwhile: nothing matched
+            return 0
 
     def _let_go(self, topic: str) -> None:
         reader = self._readers.pop(topic, None)
