@@ -250,3 +250,14 @@ def test_a_sink_template_reads_the_captured_value_before_a_canonical_field() -> 
     captured = Outbound(b"{}", canonical, canonical, "id", {}, captured={"agent": "robot3"})
     assert captured.template_data == {"agent": "robot3", "lat": 1}
     assert canonical == {"agent": "from-body", "lat": 1}  # the message itself is untouched
+
+
+def test_a_held_message_keeps_its_captured_values_on_disk() -> None:
+    """A route's buffer spills held messages to disk: the captured values go with them, so the
+    routing key rendered when the sink is back is the robot's."""
+    from engine.buffer import decode, encode
+
+    canonical = {"agent_id": "robot3", "lat": 1}
+    held = decode(encode(Outbound(b'{"lat":1}', canonical, canonical, "id", {"topic": "/robot3/fix"}, captured={"agent": "robot3"})))
+    assert held.captured == {"agent": "robot3"} and held.template_data["agent"] == "robot3"
+    assert decode(encode(Outbound(b"{}", {}, {}, "id", {}))).captured is None
