@@ -139,6 +139,23 @@ def sik_table(sik: dict[str, Any]) -> list[str]:
     return lines
 
 
+def discovery_table(discovery: dict[str, Any]) -> list[str]:
+    lines = ["## 6. ROS 2 topic discovery: a robot's topic appears -> its first message at RabbitMQ", "",
+             f"Each robot publishes at {discovery['rate_hz']:.0f} Hz from its publisher's creation; the engine reads the "
+             f"graph every {discovery['scan_interval_s']} s (bench/bench_discovery.py).", "",
+             "| Robots | delivered | appear -> delivered p50 / max (ms) | appear -> matched p50 / max (ms) | "
+             "matched -> delivered p50 / max (ms) |", "|---|---|---|---|---|"]
+    for name in ("staggered", "burst"):
+        row = discovery[name]
+        cells = [f"{_f(row[key].get('p50'), 0)} / {_f(row[key].get('max'), 0)}"
+                 for key in ("appear_to_delivered_ms", "appear_to_matched_ms", "matched_to_delivered_ms")]
+        how = f"one every {row['stagger_s']} s" if row["stagger_s"] else "all at once"
+        lines.append(f"| {row['robots']}, {how} | {row['delivered']}/{row['robots']} | " + " | ".join(cells) + " |")
+    none, idle = discovery.get("idle_following_none", {}), discovery.get("idle_following", {})
+    return lines + ["", f"Engine CPU with nothing published: {_f(none.get('engine_cpu_percent'), 2)} % following no topic, "
+                    f"{_f(idle.get('engine_cpu_percent'), 2)} % following {idle.get('topics')}.", ""]
+
+
 def write_report(results: dict[str, Any], out: Path) -> None:
     before, after = results.get("machine_before", {}), results.get("machine_after", {})
     lines = ["# RabbitROS engine benchmark", "",
@@ -146,7 +163,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"load average before {_load(before)}, after {_load(after)} (the machine is shared: absolute figures "
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
     for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
-                        ("routes", routes_table), ("sik", sik_table)):
+                        ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table)):
         value = results.get(key)
         if value is None:
             continue

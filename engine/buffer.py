@@ -491,6 +491,8 @@ def encode(message: Outbound, received_at_ns: int | None = None) -> bytes:
     record = {**body, "id": message.message_id, "c": message.canonical, "m": dict(message.meta)}
     if message.fields is not message.canonical:
         record["f"] = message.fields
+    if message.captured:
+        record["v"] = message.captured
     if received_at_ns is not None:
         record["t"] = received_at_ns
     return orjson.dumps(record, default=str, option=orjson.OPT_APPEND_NEWLINE)
@@ -504,7 +506,7 @@ def decode_held(line: bytes) -> Held:
     record = orjson.loads(line)
     body = record["b"].encode() if "b" in record else base64.b64decode(record["b64"])
     canonical = record["c"]
-    return Outbound(body, canonical, record.get("f", canonical), record["id"], record["m"]), record.get("t")
+    return Outbound(body, canonical, record.get("f", canonical), record["id"], record["m"], captured=record.get("v")), record.get("t")
 
 
 class _MemoryStore:

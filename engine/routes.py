@@ -561,6 +561,7 @@ def _compile_routes(
                           variables)
             if expansion is not None:
                 warnings.extend(_shadowing_warnings(document, where, route, expansion, schemas))
+                warnings.extend(_captured_warnings(document, where, route, source, expansion))
             if not (complete and source_complete and sink_complete):
                 continue
             placement = _placement(document, where, route, source, sink, connections, problems) if source and sink else None
@@ -637,7 +638,7 @@ def _route_checks(
     elif schemas.get(schema_name) is None:
         problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"))
     else:
-        warnings.extend(_schema_warnings(document, where, route, sink, schemas))
+        warnings.extend(_schema_warnings(document, where, route, sink, schemas, source_variables(source)))
     _endpoint_checks(document, where, name, source if complete[0] else None, sink if complete[1] else None,
                      mapping, sink_mapping, problems)
     _reply_checks(document, where, route, source, sink, schemas, problems)
@@ -647,6 +648,28 @@ def _route_checks(
         for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
             for message in _meta_problems(source, expression, variables):
                 problems.append(document.problem(key_path, f"route {name!r}: {message}"))
+
+
+def source_variables(source: EndpointSpec | None) -> tuple[str, ...]:
+    """The names a route's source captures from where each message came (``Transport.source_variables``)."""
+    if source is None:
+        return ()
+    try:
+        return endpoints.transport(source.protocol).source_variables(source.options)
+    except EndpointError:
+        return ()
+
+
+def _captured_warnings(document: Document, where: Path_, route: RouteOptions, source: EndpointSpec | None,
+                       expansion: Expansion) -> Iterator[Problem]:
+    """In a ``for_each`` route, a source's ``{name}`` that no item fills is captured from each
+    message's origin instead (a ROS 2 topic pattern): say so, as a misspelt variable would
+    silently become one."""
+    variables = list(expansion.variables)
+    for captured in source_variables(source):
+        yield document.problem(where + ("source",), (
+            f"route {route.name!r}: {{{captured}}} in the source is no for_each variable (variables: {', '.join(variables)}): "
+            f"it is captured from each message (every matching topic, meta({captured!r})){did_you_mean(captured, variables)}"))
 
 
 def source_meta_names(source: EndpointSpec, variables: Mapping[str, Any]) -> tuple[str, ...]:
@@ -716,9 +739,11 @@ def _replies(protocol: str) -> bool:
 
 
 def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None,
-                     schemas: SchemaRegistry) -> Iterator[Problem]:
+                     schemas: SchemaRegistry, captured: tuple[str, ...] = ()) -> Iterator[Problem]:
     """Canonical field names the schema does not declare: keys the mapping sets, and fields the
-    throttle and the sink's templates read (their messages would be dead-lettered)."""
+    throttle and the sink's templates read (their messages would be dead-lettered). A sink
+    template's ``{name}`` that the source captures (``captured``) is no field; where the schema
+    declares a field of that name too, the captured value wins, which is said."""
     name, schema_name = route.name, route.schema
     declared = schemas.declared(schema_name) if schema_name else None
     if declared is None:
@@ -733,8 +758,15 @@ def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink
         reads.append((where + ("buffer", "latest_only", "per"), "buffer latest_only per", latest_only.per))
     if sink is not None:
         transport = endpoints.transport(sink.protocol)
-        reads.extend((where + ("sink", sink.protocol, key), f"sink {key}", field_path)
-                     for key, field_path in transport.canonical_fields(sink.options))
+        for key, field_path in transport.canonical_fields(sink.options):
+            key_path = where + ("sink", sink.protocol, key)
+            if field_path not in captured:
+                reads.append((key_path, f"sink {key}", field_path))
+            elif undeclared_path(field_path, declared, schema_name) is None and not declared.open:
+                yield document.problem(key_path, (
+                    f"route {name!r}: {{{field_path}}} in sink {key} is the value the source captures from each topic, not the "
+                    f"canonical field {field_path!r} of {schema_name}: the captured value wins (rename the topic's variable "
+                    "to read the field at send time)"))
     for key_path, what, field_path in reads:
         problem = undeclared_path(field_path, declared, schema_name)
         if problem is not None:

@@ -123,6 +123,18 @@ class Outbound:
     reply: Reply | None = None
     """Set by the runner (see the reply contract in the module docstring); None outside a
     route (a test building an Outbound), where a sink's replies go nowhere."""
+    captured: Mapping[str, Any] | None = None
+    """The values the source captured from where the message came (a ROS 2 source topic's
+    ``{var}`` segments, :meth:`Transport.source_variables`), by name; None when there are none."""
+
+    @property
+    def template_data(self) -> Any:
+        """What a sink's ``{name}`` templates (routing keys, topics) read: the canonical
+        message, with the captured values over it (a captured variable wins over a canonical
+        field of the same name, as a ``for_each`` variable does; ``check`` warns)."""
+        if not self.captured:
+            return self.canonical
+        return {**self.canonical, **self.captured} if isinstance(self.canonical, dict) else dict(self.captured)
 
 
 class Deliver(Protocol):
@@ -412,6 +424,13 @@ class Transport(ABC):
     accepts_secrets: ClassVar[bool] = False
     """True when the connection settings may hold engine.redaction.Secret values, which the
     endpoint reveals only where it connects; otherwise the loader hands it plain values."""
+
+    def source_variables(self, options: Any) -> tuple[str, ...]:
+        """The names a source with these (typed) options captures from where each message came
+        (a ROS 2 topic pattern ``/{agent}/fix``: the segment each topic has there), also in
+        :meth:`meta_names`. The pipeline hands their values to the sink (``Outbound.captured``),
+        whose templates read them before canonical fields. By default none."""
+        return ()
 
     def meta_names(self, options: Any) -> tuple[str, ...]:
         """What ``meta(name)`` can read from a source with these (typed) options; by default
