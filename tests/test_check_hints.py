@@ -314,3 +314,53 @@ def test_a_reply_mapping_reads_only_what_the_service_or_action_answers(tmp_path:
          "does not have; did you mean 'feedback.sequence'?"),
         "r.yaml:19: route 'fib': reply: mapping reads 'feedbak', which an action's answer does not have; did you mean 'feedback'?",
     ]
+
+
+MAVLINK_CALL_REPLIES = """connections:
+  uav: {mavlink: "udpin:127.0.0.1:14999"}
+  gcs: {amqp: "amqp://localhost/"}
+routes:
+  - name: arm
+    source: {amqp: {queue: calls.arm, connection: gcs}}
+    schema: command
+    sink:
+      mavlink: {connection: uav, message: COMMAND_LONG, acknowledged: true}
+      mapping: "{command: `400`, param1: `1`}"
+    reply: {mapping: "{k: kind, r: reslt, c: command, p: progres}"}
+  - name: upload
+    source: {amqp: {queue: calls.upload, connection: gcs}}
+    schema: mission
+    sink:
+      mavlink: {connection: uav, mission: upload}
+    reply: {mapping: "{k: kind, r: result, n: item}"}
+  - name: right
+    source: {amqp: {queue: calls.right, connection: gcs}}
+    schema: command
+    sink:
+      mavlink: {connection: uav, message: COMMAND_LONG, acknowledged: true}
+      mapping: "{command: `400`, param1: `1`}"
+    reply: {mapping: "{k: kind, r: result, c: command, p: progress}"}
+  - name: right-upload
+    source: {amqp: {queue: calls.right-upload, connection: gcs}}
+    schema: mission
+    sink:
+      mavlink: {connection: uav, mission: upload}
+    reply: {mapping: "{k: kind, r: result, n: items}"}
+"""
+
+
+def test_a_reply_mapping_reads_only_what_a_mavlink_command_or_mission_answers(tmp_path: Path):
+    """An acknowledged command answers ``{kind, result, command, progress}``, a mission upload
+    ``{kind, result, items}``: a reply mapping reading another key is an error with a did-you-mean."""
+    (tmp_path / "r.yaml").write_text(MAVLINK_CALL_REPLIES)
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
+    problems = [str(p).removeprefix(f"{tmp_path}/") for p in invalid.value.problems]
+    assert problems == [
+        "r.yaml:11: route 'arm': reply: mapping reads 'progres', which an acknowledged command's answer does not have; "
+        "did you mean 'progress'?",
+        "r.yaml:11: route 'arm': reply: mapping reads 'reslt', which an acknowledged command's answer does not have; "
+        "did you mean 'result'?",
+        "r.yaml:17: route 'upload': reply: mapping reads 'item', which a mission upload's answer does not have; "
+        "did you mean 'items'?",
+    ]

@@ -44,7 +44,7 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Awaitable, Callable, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
+from typing import Any, Callable, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
 
 from engine.options import OptionError, describe, dotted, option, parse
 from engine.suggest import closest
@@ -81,11 +81,25 @@ REPLY_KINDS = ("accepted", "feedback", "result", "rejected", "error")
 ``error`` are final: nothing more is sent for that request (a later reply is dropped, counted)."""
 FINAL_REPLIES = frozenset(("result", "rejected", "error"))
 
-Reply = Callable[[str, Any], Awaitable[None]]
-"""``await outbound.reply(kind, data)``: one reply to the request ``outbound`` carries. ``data``
-is plain JSON data (the reply mapping's input); for ``error`` it is ``{stage, error}``. It never
-raises: a reply that cannot be delivered is counted by the route. For a message that asked for
-no reply it only counts the reply (fire-and-forget)."""
+class Reply(Protocol):
+    """``await outbound.reply(kind, data)``: one reply to the request ``outbound`` carries. ``data``
+    is plain JSON data (the reply mapping's input); for ``error`` it is ``{stage, error}``. It never
+    raises: a reply that cannot be delivered is counted by the route. For a message that asked for
+    no reply it only counts the reply (fire-and-forget). ``outbound.reply.late()``: the sink's
+    destination answered after the sink gave up on the call (its timeout): the answer is dropped
+    and counted (``replies.late``), whether the request asked for replies or not."""
+
+    async def __call__(self, kind: str, data: Any) -> None: ...
+
+    def late(self) -> None: ...
+
+
+def late_window(timeout: float) -> float:
+    """How long after a call's timeout a sink still recognises its answer, to count it
+    ``late``: one more ``timeout``, at least 5 s (a loaded machine answers a little late, and
+    one more second of a few bytes per call is nothing); then the answer is forgotten. Bounded:
+    calls time out at most as fast as they are sent, so at most that many seconds' worth wait."""
+    return max(timeout, 5.0)
 
 
 @dataclass(slots=True)

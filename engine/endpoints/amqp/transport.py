@@ -520,7 +520,8 @@ class AmqpSink(Sink):
             routing_key = self._routing_key(message.template_data)
             body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)
             answer = await self._caller.call(self._exchange, self._kind, self._durable, routing_key, body,
-                                             self._content_type, message.message_id)
+                                             self._content_type, message.message_id,
+                                             message.reply.late if message.reply is not None else None)
         except (MappingError, SchemaError) as exc:
             return MessageRejected(str(exc))
         except EndpointError as exc:

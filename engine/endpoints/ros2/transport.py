@@ -142,6 +142,11 @@ class Ros2EndpointOptions(EndpointOptions):
     service: str | None = option(None, description="instead of a topic (type: pkg/srv/Type): a source offers this service, each call "
                                                    "answered by the route's reply; a sink calls it, the response is the call's reply "
                                                    "(route-language.md, Calls)")
+    max_in_flight: int = option(ros2_calls.DEFAULT_MAX_IN_FLIGHT, minimum=1,
+                                description="service: calls in flight at once. A source offering it takes that many at once, "
+                                            "and its request queue keeps that many, so a burst of calls up to it loses none; a "
+                                            "sink calls at most that many at once (the default matches ROS 2's default service "
+                                            "queue depth, 10: raise it with the servers' depth)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -170,9 +175,6 @@ class Ros2SinkOptions(Ros2EndpointOptions):
                             description="service: seconds from sending a request to its response; action: from sending the goal to "
                                         "its result (then the goal is canceled); waiting for a server included; then the caller "
                                         "gets an error reply")
-    max_in_flight: int = option(ros2_calls.DEFAULT_MAX_IN_FLIGHT, minimum=1,
-                                description="service: calls in flight at once (the default matches ROS 2's default service "
-                                            "queue depth, 10; raise it with the servers' depth)")
 
 
 # ---------------------------------------------------------------- static checks
@@ -305,6 +307,8 @@ class Ros2Transport(Transport):
             yield "forget_after", "forget_after applies to a topic with {var} segments (discovered topics, as /{agent}/fix)"
         if options.service is None:
             yield from _check_endpoint(options, sink=False)
+            if "max_in_flight" in given(options):
+                yield "max_in_flight", "max_in_flight applies to a source that offers a service"
             return
         if options.topic is not None:
             yield "service", "a ros2 source names a topic or a service, not both"
@@ -458,7 +462,8 @@ class Ros2Connection(Connection):
     def source(self, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> Source:
         typed_options = typed(Ros2SourceOptions, options, f"route {route!r}: ros2 source")
         if typed_options.service is not None:
-            return ros2_calls.ServiceSource(self.calls(), route, typed_options.service, typed_options.type)
+            return ros2_calls.ServiceSource(self.calls(), route, typed_options.service, typed_options.type,
+                                            typed_options.max_in_flight)
         return Ros2Source(self, route, options)
 
     def sink(self, route: str, options: Ros2SinkOptions | Mapping[str, Any]) -> Sink:
