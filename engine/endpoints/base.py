@@ -426,6 +426,9 @@ class Transport(ABC):
     """The names of the metadata this protocol's source gives each message (``Inbound.meta``),
     which a mapping reads with ``meta(name)``: ``check`` refuses any other name (the route's
     template variables aside), and a route test gives them as ``meta: {name: value}``."""
+    delivers: ClassVar[bool] = True
+    """False for a sink that sends nothing anywhere (memory): its route exists only for what it
+    remembers, so the loader requires ``remember:`` on it."""
     replies: ClassVar[bool] = False
     """True when this protocol's sources can answer a request's sender (:meth:`Source.reply`):
     only then may a route with such a source have ``reply:`` (the loader checks)."""
