@@ -30,7 +30,7 @@ from bench import throughput as tp
 from bench.report import write_report
 
 REPO = Path(__file__).resolve().parent.parent
-SECTIONS = ("latency", "throughput", "sizes", "routes", "sik")
+SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "sik5")
 KINDS = {
     "amqp-amqp": ("ref-amqp-amqp", None),
     "amqp-ros2": ("ref-amqp-ros2", "paper-amqp-ros2"),
@@ -97,6 +97,7 @@ async def run(args: argparse.Namespace) -> Path:
         ("sizes", lambda: sections.throughput_by_size(broker, [50, 250, 1000, 4000], args.count)),
         ("routes", lambda: sections.many_routes(broker, [1, 100, 1000], args.count)),
         ("sik", lambda: sections.sik_goodput(url, args.sik_count, 250)),
+        ("sik5", lambda: sections.sik_goodput(url, args.sik_count, 250, loss=0.05)),
     ]
     try:
         for name, step in steps:
