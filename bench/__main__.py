@@ -30,7 +30,7 @@ from bench import throughput as tp
 from bench.report import write_report
 
 REPO = Path(__file__).resolve().parent.parent
-SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "discovery")
+SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "discovery", "sik5")
 KINDS = {
     "amqp-amqp": ("ref-amqp-amqp", None),
     "amqp-ros2": ("ref-amqp-ros2", "paper-amqp-ros2"),
@@ -98,6 +98,7 @@ async def run(args: argparse.Namespace) -> Path:
         ("routes", lambda: sections.many_routes(broker, [1, 100, 1000], args.count)),
         ("sik", lambda: sections.sik_goodput(url, args.sik_count, 250)),
         ("discovery", lambda: bench_discovery.measure(url, tp.domain_id())),
+        ("sik5", lambda: sections.sik_goodput(url, args.sik_count, 250, loss=0.05)),
     ]
     try:
         for name, step in steps:

@@ -120,7 +120,7 @@ def routes_table(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def sik_table(sik: dict[str, Any]) -> list[str]:
-    lines = ["## 5. JSON over the emulated SiK radio (0 % loss)", "",
+    lines = [f"## 5. JSON over the emulated SiK radio ({sik.get('loss', 0.0):.0%} loss)", "",
              "| Message | Messages back identical | Goodput each way (B/s) | Link payload capacity (B/s) | Fraction |",
              "|---|---|---|---|---|",
              f"| {sik['size']} B | {sik['identical']}/{sik['sent']} | {sik['goodput_bytes_per_s']:.0f} | "
@@ -129,13 +129,13 @@ def sik_table(sik: dict[str, Any]) -> list[str]:
              f"({sik['frames_per_packet']} frame(s) of {sik['tunnel_payload']} B payload per air packet).", ""]
     if "flood_payload_bytes_per_s" in sik:
         lines += ["| Reference, measured in this run | TUNNEL payload (B/s) | Goodput as a fraction |", "|---|---|---|",
-                  f"| the radio flooded with {sik['tunnel_payload']} B payloads | {sik['flood_payload_bytes_per_s']:.0f} | "
+                  f"| the radio flooded with {sik['tunnel_payload']} B payloads at the same loss | {sik['flood_payload_bytes_per_s']:.0f} | "
                   f"{sik['fraction_of_flood']:.2f} |",
                   f"| the same, with the vehicle's telemetry on the link (the way back) | "
                   f"{sik['flood_with_telemetry_bytes_per_s']:.0f} | {sik['fraction_of_flood_with_telemetry']:.2f} |", "",
                   "The flood keeps the radio's buffer backlogged without overflowing it; it shows what the emulator "
                   "carries (each air packet starts at its next 4 ms tick, not the instant the window opens). "
-                  "Goodput counts JSON bytes, the capacities TUNNEL payload (the tunnel's 7-byte header included).", ""]
+                  "Goodput counts JSON bytes, the capacities TUNNEL payload (the tunnel's header included).", ""]
     return lines
 
 
@@ -163,7 +163,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"load average before {_load(before)}, after {_load(after)} (the machine is shared: absolute figures "
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
     for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
-                        ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table)):
+                        ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table)):
         value = results.get(key)
         if value is None:
             continue

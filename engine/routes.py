@@ -584,8 +584,7 @@ def _compile_routes(
                 continue
             if placement.ordered:
                 source = EndpointSpec(source.protocol, source.connection, endpoints.transport(source.protocol).ordered_source(source.options))
-            if route.priority != "normal":  # the sink orders its link's writes by it (engine/endpoints/base.py)
-                sink = EndpointSpec(sink.protocol, sink.connection, evolve(sink.options, priority=route.priority))
+            sink = EndpointSpec(sink.protocol, sink.connection, _route_to_sink(sink.options, route))
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
             schema = schemas.get(schema_name)
             fingerprint = hashlib.sha256(
@@ -1053,3 +1052,19 @@ def _endpoint_checks(
         for key, message in results:
             message += "" if "did you mean" in message else option_hint(spec.protocol, key, spec.options)
             problems.append(document.problem(base + ((key,) if key else ()), f"route {route!r}: {side}: {message}"))
+
+
+def _route_to_sink(options: Any, route: RouteOptions) -> Any:
+    """The sink's options with what the route says that a sink on a slow shared link uses
+    (engine/endpoints/base.py ``EndpointOptions``): its ``priority``, whether it is telemetry
+    (``buffer.latest_only``: a waiting message may be replaced by a newer one with its key)
+    and its ``max_age``. Unchanged when the route says none of it."""
+    changes: dict[str, Any] = {}
+    if route.priority != "normal":
+        changes["priority"] = route.priority
+    latest = route.buffer.latest_only if route.buffer else None
+    if latest is not None:
+        changes["latest_per"] = tuple(latest.per.split(".")) if latest.per else ()
+    if route.max_age is not None:
+        changes["max_age"] = route.max_age
+    return evolve(options, **changes) if changes else options

@@ -12,7 +12,7 @@ import asyncio
 import functools
 import logging
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Hashable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.base import Deliver, Inbound, Inbox, MessageRejected, Outbound, Sink, Source
@@ -21,6 +21,7 @@ from engine.endpoints.mavlink.command import AcknowledgedCommandSink, Encoder
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.mission import MissionUploadSink, Targets, mission_items, mission_target, refuse_unguessed
 from engine.endpoints.mavlink.transaction import TransactionOptions
+from engine.throttle import slot_key
 
 if TYPE_CHECKING:
     from engine.endpoints.mavlink.options import MavlinkSinkOptions
@@ -143,18 +144,48 @@ class MessageSource(Source):
 
 
 class MessageSink(Sink):
-    """Encodes ``Outbound.fields`` as one message; accepted once written to the link."""
+    """Encodes ``Outbound.fields`` as one message; accepted once written to the link.
+
+    A batch is queued at once, so the link's writer holds what does not fit the radio's
+    budget (engine/endpoints/mavlink/budget.py); for a telemetry route (``latest_per``: its
+    ``buffer.latest_only`` key) a waiting message is replaced by a newer one with the same key
+    and reported :class:`~engine.endpoints.base.Conflated`."""
 
     def __init__(self, connection: SharedLink, encode: Encoder, priority: str = "normal",
-                 fields: Callable[[Outbound], Any] | None = None) -> None:
+                 fields: Callable[[Outbound], Any] | None = None, latest_per: tuple[str, ...] | None = None) -> None:
         self.connection = connection
         self.encode = encode
         self.priority = priority
         """The route's ``priority``: the link's writer sends by it (engine/endpoints/mavlink/port.py)."""
         self.fields = fields or _sink_fields
+        self.latest_per = latest_per
+
+    def _key(self, message: Outbound) -> Hashable | None:
+        return None if self.latest_per is None else (id(self), slot_key(message.canonical, self.latest_per))
 
     async def send(self, message: Outbound) -> None:
-        await self.connection.send_message(self.encode(self.fields(message)), priority=self.priority)
+        await self.connection.enqueue(self.encode(self.fields(message)), priority=self.priority, key=self._key(message))
+
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        queued: list[asyncio.Future[float] | BaseException] = []
+        for message in messages:
+            try:
+                queued.append(self.connection.enqueue(self.encode(self.fields(message)), priority=self.priority,
+                                                      key=self._key(message)))
+            except Exception as error:  # refused before anything was queued: MessageRejected
+                queued.append(error)
+        results: list[BaseException | None] = []
+        for item in queued:
+            if isinstance(item, BaseException):
+                results.append(item)
+                continue
+            try:
+                await item
+            except Exception as error:  # Conflated, or the link's EndpointError
+                results.append(error)
+            else:
+                results.append(None)
+        return results
 
 
 def _sink_fields(message: Outbound) -> Any:
@@ -168,7 +199,8 @@ def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) ->
     if options.acknowledged:
         return AcknowledgedCommandSink(connection, message_encoder(options), TransactionOptions.parse(options)[0],
                                        fields=targeted_fields(options))
-    return MessageSink(connection, message_encoder(options), options.priority, targeted_fields(options))
+    return MessageSink(connection, message_encoder(options), options.priority, targeted_fields(options),
+                       options.latest_per)
 
 
 def target_fields(options: MavlinkSinkOptions) -> list[tuple[str, str]]:
