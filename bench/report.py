@@ -182,7 +182,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
 def fleet_table(fleet: dict[str, Any]) -> list[str]:
     from bench.fleet import fleet_report
 
-    return ["## 6. A fleet: 100 agents through templated routes, against one hand-written route per agent", "",
+    return ["## 7. A fleet: 100 agents through templated routes, against one hand-written route per agent", "",
             *fleet_report(fleet), ""]
 
 
