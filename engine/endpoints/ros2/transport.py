@@ -831,7 +831,8 @@ class Ros2Source(Source):
             if lost:
                 self.dropped += lost
                 deliver.dropped(lost)
-            await asyncio.sleep(0)  # a backlog must not hold the loop from other routes
+            if len(queue):  # a backlog must not hold the loop from other routes; an empty inbox waits in take()
+                await asyncio.sleep(0)  # (at a robot's pace a yield per message is a loop round trip for nothing)
 
     async def _watch_types(self) -> None:
         """Publishers of another type on our topic never match: say so (log and status)."""
