@@ -65,7 +65,7 @@ def test_typed_sources_and_misspelt_names(tmp_path: Path):
         "r.yaml:16: route 'poses': mapping reads 'poses[].positon', which geometry_msgs/msg/Pose does not have; did you mean 'poses[].position'?",
         "r.yaml:20: route 'typos': source: type 'sensor_msgs/msg/NavSatFx' is not installed; did you mean 'sensor_msgs/msg/NavSatFix'?",
         "r.yaml:21: route 'typos': unknown schema 'positon' (known: ack, attitude, battery, command, envelope, mission, "
-        "position, raw_json, status, vda5050/connection, vda5050/instant_actions, vda5050/order, vda5050/state, "
+        "position, raw_json, status, vda5050/connection, vda5050/factsheet, vda5050/instant_actions, vda5050/order, vda5050/state, "
         "vda5050/visualization, weed_detection); did you mean 'position'?",
         "r.yaml:25: route 'mav': source: unknown MAVLink message 'GLOBAL_POSITON_INT' (dialect: common); did you mean 'GLOBAL_POSITION_INT'?",
         "r.yaml:32: route 'mav2': mapping reads 'lonn', which MAVLink GLOBAL_POSITION_INT does not have; did you mean 'lon'?",
@@ -190,7 +190,7 @@ def test_check_reports_every_problem_of_a_file_in_one_run(tmp_path: Path):
         "r.yaml:18: route 'other': connection 'radio' is mavlink, not amqp (amqp connections: gcs)",
         "r.yaml:19: route 'other': mapping reads 'longitud', which sensor_msgs/msg/NavSatFix does not have; did you mean 'longitude'?",
         "r.yaml:23: route 'leased': unknown schema 'postion' (known: ack, attitude, battery, command, envelope, mission, "
-        "position, raw_json, status, vda5050/connection, vda5050/instant_actions, vda5050/order, vda5050/state, "
+        "position, raw_json, status, vda5050/connection, vda5050/factsheet, vda5050/instant_actions, vda5050/order, vda5050/state, "
         "vda5050/visualization, weed_detection); did you mean 'position'?",
         "r.yaml:25: route 'leased': lease: connection 'ros' (ros2) is not one that holds leases (connections that do: gcs)",
     ]

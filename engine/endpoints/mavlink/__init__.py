@@ -67,7 +67,7 @@ from engine.endpoints.mavlink.command import COMMAND_ANSWER
 from engine.endpoints.mavlink.codec import ADDED_FIELDS, MESSAGES, build_message, field_specs, message_fields, mavlink2, received_nan
 from engine.endpoints.mavlink.connection import MavlinkConnection
 from engine.endpoints.mavlink.mission import MISSION_ANSWER
-from engine.endpoints.mavlink.messages import dry_run, field_check, target_fields, targeted_fields
+from engine.endpoints.mavlink.messages import dry_run, field_check, target_fields
 from engine.endpoints.mavlink import settings as _settings
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
@@ -110,10 +110,9 @@ class MavlinkTransport(Transport):
 
     def sink_dry_run(self, route: str, options: MavlinkSinkOptions) -> Callable[[Outbound], str | None]:
         build = dry_run(options)
-        fields_of = targeted_fields(options) or (lambda outbound: outbound.fields)
 
         def built(outbound: Outbound) -> str | None:
-            build(fields_of(outbound))
+            build(outbound)
             return None
 
         return built
