@@ -134,27 +134,35 @@ def plain_rclpy(domain_id: int, calls: int) -> list[float]:
         client_node.close()
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--calls", type=int, default=500)
-    args = parser.parse_args()
-    from engine.local_broker import LocalBroker
-
-    domain_id = 150 + os.getpid() % 80
+async def measure(url: str, domain_id: int, calls: int = 500) -> dict[str, Any]:
+    """Both round trips against one server, in this run: p50/p99 each and the engine's over rclpy's."""
     server = Spun("bench_server", domain_id)
     server.node.create_service(BasicTypes, SERVICE, _answer)
     server.start()
     try:
-        url = os.environ.get("RABBITROS_AMQP_URL")
-        if url:
-            engine_samples = asyncio.run(through_engine(url, domain_id, args.calls))
-        else:
-            with LocalBroker() as broker:
-                engine_samples = asyncio.run(through_engine(broker.url, domain_id, args.calls))
-        rclpy_samples = plain_rclpy(domain_id, args.calls)
+        engine_samples = await through_engine(url, domain_id, calls)
+        rclpy_samples = await asyncio.to_thread(plain_rclpy, domain_id, calls)
     finally:
         server.close()
-    print(json.dumps({"through_engine": percentiles(engine_samples), "plain_rclpy": percentiles(rclpy_samples)}))
+    engine, plain = percentiles(engine_samples), percentiles(rclpy_samples)
+    return {"through_engine": engine, "plain_rclpy": plain,
+            "p50_ratio": engine["p50_ms"] / plain["p50_ms"], "p99_ratio": engine["p99_ms"] / plain["p99_ms"]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--calls", type=int, default=500)
+    args = parser.parse_args()
+    from engine.endpoints.amqp.broker import LocalBroker
+
+    domain_id = 150 + os.getpid() % 80
+    url = os.environ.get("RABBITROS_AMQP_URL")
+    if url:
+        result = asyncio.run(measure(url, domain_id, args.calls))
+    else:
+        with LocalBroker() as broker:
+            result = asyncio.run(measure(broker.url, domain_id, args.calls))
+    print(json.dumps(result))
 
 
 if __name__ == "__main__":
