@@ -4,7 +4,8 @@ rclpy client calling the same server in the same run (issue 19).
 One ``test_msgs/srv/BasicTypes`` server (its own rclpy context and executor thread); the engine
 in this process with one route calling it; an AMQP caller on RabbitMQ's direct reply-to sending
 one call at a time (each waits for its reply), then an rclpy client in a third context sending
-one at a time (``call_async``, its own executor thread). p50/p99 in milliseconds.
+one at a time (``call_async``, its own executor thread), then the AMQP legs alone (the same
+caller and an aio-pika worker answering at once). p50/p99 in milliseconds.
 
     python -m bench.call_ros2                  # 500 calls each, a private broker
     python -m bench.call_ros2 --calls 2000
@@ -113,6 +114,39 @@ routes:
     return samples
 
 
+async def plain_amqp_rpc(url: str, calls: int) -> list[float]:
+    """The AMQP legs alone: the same caller (direct reply-to, one call at a time) and a worker
+    in this process answering each request at once, as the engine's reply does. The engine's
+    round trip is at least this plus the ROS 2 call; what is left is the engine's own."""
+    connection = await aio_pika.connect(url)
+    try:
+        channel = await connection.channel()
+        work = await channel.declare_queue("bench-rpc", durable=False, exclusive=True)
+
+        async def worker(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+            request = json.loads(message.body)
+            await channel.default_exchange.publish(aio_pika.Message(
+                json.dumps({"int64_value": request["int64_value"] * 2}).encode(), correlation_id=message.correlation_id),
+                message.reply_to or "")
+
+        await work.consume(worker, no_ack=True)
+        queue = await channel.get_queue("amq.rabbitmq.reply-to", ensure=False)
+        answered: asyncio.Queue[Any] = asyncio.Queue()
+        await queue.consume(answered.put, no_ack=True)
+        samples = []
+        for n in range(calls + 20):
+            started = time.perf_counter()
+            await channel.default_exchange.publish(aio_pika.Message(
+                json.dumps({"int64_value": n}).encode(), correlation_id=str(n), reply_to="amq.rabbitmq.reply-to"), "bench-rpc")
+            reply = await asyncio.wait_for(answered.get(), 10)
+            assert reply.correlation_id == str(n), reply.correlation_id
+            if n >= 20:
+                samples.append(time.perf_counter() - started)
+        return samples
+    finally:
+        await connection.close()
+
+
 def plain_rclpy(domain_id: int, calls: int) -> list[float]:
     client_node = Spun("bench_client", domain_id)
     client = client_node.node.create_client(BasicTypes, SERVICE)
@@ -142,11 +176,13 @@ async def measure(url: str, domain_id: int, calls: int = 500) -> dict[str, Any]:
     try:
         engine_samples = await through_engine(url, domain_id, calls)
         rclpy_samples = await asyncio.to_thread(plain_rclpy, domain_id, calls)
+        amqp_samples = await plain_amqp_rpc(url, calls)
     finally:
         server.close()
-    engine, plain = percentiles(engine_samples), percentiles(rclpy_samples)
-    return {"through_engine": engine, "plain_rclpy": plain,
-            "p50_ratio": engine["p50_ms"] / plain["p50_ms"], "p99_ratio": engine["p99_ms"] / plain["p99_ms"]}
+    engine, plain, amqp = percentiles(engine_samples), percentiles(rclpy_samples), percentiles(amqp_samples)
+    return {"through_engine": engine, "plain_rclpy": plain, "plain_amqp_rpc": amqp,
+            "p50_ratio": engine["p50_ms"] / plain["p50_ms"], "p99_ratio": engine["p99_ms"] / plain["p99_ms"],
+            "engine_own_p50_ms": engine["p50_ms"] - plain["p50_ms"] - amqp["p50_ms"]}
 
 
 def main() -> None:
