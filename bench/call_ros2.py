@@ -115,9 +115,10 @@ routes:
 
 
 async def plain_amqp_rpc(url: str, calls: int) -> list[float]:
-    """The AMQP legs alone: the same caller (direct reply-to, one call at a time) and a worker
-    in this process answering each request at once, as the engine's reply does. The engine's
-    round trip is at least this plus the ROS 2 call; what is left is the engine's own."""
+    """The AMQP legs alone: the same caller (direct reply-to, one call at a time) and an
+    aio-pika worker in this process answering each request at once. Context for the engine's
+    figure, not a floor to subtract: aio-pika's worker costs more per message than the engine's
+    aiormq path (measured: 4.0 ms p50 against the engine's 2.4 ms whole round trip)."""
     connection = await aio_pika.connect(url)
     try:
         channel = await connection.channel()
@@ -181,8 +182,7 @@ async def measure(url: str, domain_id: int, calls: int = 500) -> dict[str, Any]:
         server.close()
     engine, plain, amqp = percentiles(engine_samples), percentiles(rclpy_samples), percentiles(amqp_samples)
     return {"through_engine": engine, "plain_rclpy": plain, "plain_amqp_rpc": amqp,
-            "p50_ratio": engine["p50_ms"] / plain["p50_ms"], "p99_ratio": engine["p99_ms"] / plain["p99_ms"],
-            "engine_own_p50_ms": engine["p50_ms"] - plain["p50_ms"] - amqp["p50_ms"]}
+            "p50_ratio": engine["p50_ms"] / plain["p50_ms"], "p99_ratio": engine["p99_ms"] / plain["p99_ms"]}
 
 
 def main() -> None:
