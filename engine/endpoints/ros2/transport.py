@@ -65,6 +65,7 @@ from engine.endpoints.base import (
     CheckResult, Connection, FieldProblem, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
     Source, Transport, typed,
 )
+from engine.fairness import route_inbox
 from engine.mapping import template_problem
 from engine.options import given, option
 from engine.suggest import did_you_mean
@@ -277,6 +278,9 @@ class Ros2Transport(Transport):
 
     def source_answers(self, options: Ros2EndpointOptions) -> bool:
         return options.service is not None  # a topic's publishers await no answer
+
+    def queues_per_agent(self, options: Ros2EndpointOptions) -> bool:
+        return options.service is None  # a topic's messages wait in the route's inbox
 
     def source_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
         if options.service is None:
@@ -608,7 +612,7 @@ class Ros2Source(Source):
     async def start(self, deliver: Deliver) -> None:
         node = self._connection.node
         self._deliver = deliver
-        self._queue = Inbox(deliver.queue_limit, deliver.overflow)
+        self._queue = route_inbox(deliver, deliver.overflow)
         try:
             self.subscription = node.create_subscription(self._cls, self._topic, _unused_callback, self._qos)
         except Exception as exc:
