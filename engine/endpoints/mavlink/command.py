@@ -29,6 +29,9 @@ from engine.endpoints.mavlink.enums import enum_name
 from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions, per_target
 
 _ACK = (mavlink2.MAVLINK_MSG_ID_COMMAND_ACK,)
+COMMAND_ANSWER = ("kind", "result", "command", "progress")
+"""The keys of what an acknowledged command answers a call (its reply mapping's input):
+``result`` and ``feedback`` replies (``progress`` only in a ``feedback``); ``check`` knows them."""
 Encoder = Callable[[Any], mavlink2.MAVLink_message]
 """The sink mapping's fields -> the message to send (engine/endpoints/mavlink/messages.py
 ``message_encoder``); raises MessageRejected for what the message cannot carry."""

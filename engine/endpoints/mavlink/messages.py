@@ -12,7 +12,7 @@ import asyncio
 import functools
 import logging
 import time
-from collections.abc import Callable, Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Hashable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.base import Deliver, Inbound, Inbox, MessageRejected, Outbound, Sink, Source
@@ -23,6 +23,7 @@ from engine.endpoints.mavlink.mission import MissionUploadSink, Targets, mission
 from engine.endpoints.mavlink.transaction import TransactionOptions
 from engine.fairness import route_inbox
 from engine.suggest import did_you_mean
+from engine.throttle import slot_key
 
 if TYPE_CHECKING:
     from engine.endpoints.mavlink.options import MavlinkSinkOptions
@@ -149,35 +150,47 @@ class MessageSource(Source):
 
 
 class MessageSink(Sink):
-    """Encodes ``Outbound.fields`` as one message; accepted once written to the link."""
+    """Encodes ``Outbound.fields`` as one message; accepted once written to the link.
+
+    A batch is queued at once, so the link's writer holds what does not fit the radio's
+    budget (engine/endpoints/mavlink/budget.py); for a telemetry route (``latest_per``: its
+    ``buffer.latest_only`` key) a waiting message is replaced by a newer one with the same key
+    and reported :class:`~engine.endpoints.base.Conflated`."""
 
     def __init__(self, connection: SharedLink, encode: Encoder, priority: str = "normal",
-                 fields: Callable[[Outbound], Any] | None = None) -> None:
+                 fields: Callable[[Outbound], Any] | None = None, latest_per: tuple[str, ...] | None = None) -> None:
         self.connection = connection
         self.encode = encode
         self.priority = priority
         """The route's ``priority``: the link's writer sends by it (engine/endpoints/mavlink/port.py)."""
         self.fields = fields or _sink_fields
+        self.latest_per = latest_per
+
+    def _key(self, message: Outbound) -> Hashable | None:
+        return None if self.latest_per is None else (id(self), slot_key(message.canonical, self.latest_per))
 
     async def send(self, message: Outbound) -> None:
-        await self.connection.send_message(self.encode(self.fields(message)), priority=self.priority)
+        await self.connection.enqueue(self.encode(self.fields(message)), priority=self.priority, key=self._key(message))
 
     async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
-        """The whole batch queued for the link's writer at once, in order, then awaited: the
-        writer paces it, and no message waits for the one before it to be acknowledged by a
-        turn of the event loop (on a loaded machine those turns, not the link, set the pace)."""
-        results: list[BaseException | None] = [None] * len(messages)
-        written: list[tuple[int, asyncio.Future[float]]] = []
-        for index, message in enumerate(messages):
+        queued: list[asyncio.Future[float] | BaseException] = []
+        for message in messages:
             try:
-                written.append((index, self.connection.enqueue(self.encode(self.fields(message)), priority=self.priority)))
-            except Exception as error:  # classified by the engine's delivery policy
-                results[index] = error
-        for (index, _), outcome in zip(written, await asyncio.gather(*(future for _, future in written), return_exceptions=True)):
-            if isinstance(outcome, BaseException):
-                if not isinstance(outcome, Exception):
-                    raise outcome
-                results[index] = outcome
+                queued.append(self.connection.enqueue(self.encode(self.fields(message)), priority=self.priority,
+                                                      key=self._key(message)))
+            except Exception as error:  # refused before anything was queued: MessageRejected
+                queued.append(error)
+        results: list[BaseException | None] = []
+        for item in queued:
+            if isinstance(item, BaseException):
+                results.append(item)
+                continue
+            try:
+                await item
+            except Exception as error:  # Conflated, or the link's EndpointError
+                results.append(error)
+            else:
+                results.append(None)
         return results
 
 
@@ -192,7 +205,8 @@ def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) ->
     if options.acknowledged:
         return AcknowledgedCommandSink(connection, message_encoder(options), TransactionOptions.parse(options)[0],
                                        fields=targeted_fields(options))
-    return MessageSink(connection, message_encoder(options), options.priority, targeted_fields(options))
+    return MessageSink(connection, message_encoder(options), options.priority, targeted_fields(options),
+                       options.latest_per)
 
 
 def target_fields(options: MavlinkSinkOptions) -> list[tuple[str, str]]:

@@ -44,6 +44,8 @@ _ANSWERS = (mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_INT, mavlink2.MAVLINK_MSG_ID
             mavlink2.MAVLINK_MSG_ID_MISSION_ACK)
 _ITEM_KEYS = {"command", "frame", "x", "y", "z", "param1", "param2", "param3", "param4", "autocontinue", "current"}
 _MAX_ITEMS = 65535
+MISSION_ANSWER = ("kind", "result", "items")
+"""The keys of what a mission upload answers a call (its reply mapping's input); ``check`` knows them."""
 ALTITUDE_FRAMES = {"alt_msl": mavlink2.MAV_FRAME_GLOBAL_INT, "alt_rel": mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT}
 """The altitudes a canonical waypoint may carry (exactly one), with the frame that says their
 reference: the names of the canonical position's altitudes."""
