@@ -2,6 +2,8 @@
 mission sink's per-target transactions at once against the same batch one after the other (the
 sink's former behaviour, ``Sink.send_batch``), in the same run. Three simulated vehicles
 (rabbitros_sim, systems 1-3) on one ``udpin`` link, in one event loop with the engine's sink.
+Then the same with vehicle 1 silent (timeout 1 s, 3 retries): how long vehicles 2 and 3 wait
+for theirs.
 
     .venv/bin/python -m bench.bench_fleet_missions [--vehicles 3] [--waypoints 50] [--repeat 3]
 """
@@ -51,6 +53,36 @@ async def _run(vehicles: int, waypoints: int, repeat: int) -> dict[str, list[flo
         stop.set()
         await asyncio.gather(*running)
         await gcs.close()
+    times.update(await _silent_first(waypoints))
+    return times
+
+
+async def _silent_first(waypoints: int) -> dict[str, list[float]]:
+    """Seconds until vehicles 2 and 3 accepted theirs while vehicle 1 never answers."""
+    times: dict[str, list[float]] = {}
+    for kind in ("silent vehicle 1, concurrent", "silent vehicle 1, one after the other"):
+        port = free_udp_port()
+        gcs = mavlink.TRANSPORT.connect("gcs", {"url": f"udpin:127.0.0.1:{port}"})
+        await gcs.open()
+        sims = [SimVehicle(f"udpout:127.0.0.1:{port}", system_id=s, mission_result="silent" if s == 1 else "MAV_MISSION_ACCEPTED")
+                for s in (1, 2, 3)]
+        stop = asyncio.Event()
+        running = [asyncio.create_task(sim.run(stop)) for sim in sims]
+        try:
+            sink = gcs.sink("missions", {"mission": "upload", "target_system": "{vehicle}", "timeout": 1.0, "retries": 3})
+            while not all(gcs.has_heard(s) for s in (1, 2, 3)):  # type: ignore[attr-defined]
+                await asyncio.sleep(0.05)
+            batch = [_outbound(s, waypoints) for s in (1, 2, 3)]
+            started = time.perf_counter()
+            task = asyncio.ensure_future(Sink.send_batch(sink, batch) if "after" in kind else sink.send_batch(batch))
+            while not all(sim.autopilot.stats["missions_accepted"] for sim in sims[1:]):
+                await asyncio.sleep(0.01)
+            times[kind] = [time.perf_counter() - started]
+            await task
+        finally:
+            stop.set()
+            await asyncio.gather(*running)
+            await gcs.close()
     return times
 
 

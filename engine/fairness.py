@@ -12,8 +12,10 @@ queued): a batch holds at most ``batch`` messages of each agent, so an agent bel
 of the sink waits at most for the batch being sent and its place in the next one, about
 ``2 * batch * K / rate`` s in the worst case, and in practice ``2 * (batch + K) / rate`` (the
 quiet agents have one or two messages queued, the flooder ``batch``): with the defaults, 10
-agents at 10 msg/s and one at 1,000 msg/s through a 500 msg/s sink, the others' p99 was well
-under the 500 ms acceptance bound (tests/test_fairness.py, figures in docs/route-language.md).
+agents at 10 msg/s and one at 1,000 msg/s through a ~500 msg/s sink, the others' p99 was 408 ms
+with none lost, 12.7 s without (bench/bench_fairness.py; all figures in docs/route-language.md).
+A small ``batch`` keeps a slow sink's batches short; a sink that confirms per batch (AMQP)
+pays a round trip per ``batch x K`` messages.
 An agent's queue holds at most ``queue`` messages; beyond it that agent's oldest is dropped
 (its newest with ``overflow: drop_newest``), counted in the route's ``dropped`` and per agent in
 ``dropped_by_agent`` (engine/observe.py), never another agent's. ``block`` cannot hold one
