@@ -160,3 +160,27 @@ def test_an_edited_agent_changes_only_the_routes_that_use_it(tmp_path: Path, sch
     # uav1's own route, and the two that look any agent on the radio up (meta('agent'), "{vehicle}")
     assert changed == ["fleet-commands", "fleet-position", "uav1-position"], changed
     assert after["uav1-position"].source.options.system_id == 4
+
+
+def test_route_tests_resolve_agent_names(tmp_path: Path, schemas_dir: Path) -> None:
+    directory = _directory(tmp_path, url="amqp://localhost:1/", port=14993, outbox="o", commands="c", queue="q")
+    (directory / "fleet.test.yaml").write_text("""
+tests:
+  - route: fleet-commands
+    input: {vehicle: uav2, param: 5}
+    expect_sink: {command: 400, param1: 1, param2: 5}
+  - route: fleet-commands
+    input: {vehicle: uav9, param: 5}
+    expect_error: sink
+  - route: fleet-position
+    input: {lat: 1}
+    meta: {agent: uav3, system_id: 3}
+    expect: {vehicle: uav3, system: 3, lat: 1}
+    expect_routing_key: fleet.uav3
+""")
+    from engine.route_tests import load_checked, run_tests
+
+    schemas = SchemaRegistry(schemas_dir)
+    config, cases, problems, _ = load_checked(directory, schemas)
+    assert config is not None and not problems, problems
+    assert [r.reason for r in run_tests(cases, config, schemas)] == ["", "", ""]
