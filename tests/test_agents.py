@@ -184,3 +184,18 @@ tests:
     config, cases, problems, _ = load_checked(directory, schemas)
     assert config is not None and not problems, problems
     assert [r.reason for r in run_tests(cases, config, schemas)] == ["", "", ""]
+
+
+def test_a_new_agent_adds_its_routes_and_leaves_the_others_running(tmp_path: Path, schemas_dir: Path) -> None:
+    from engine.plan import plan_reload
+
+    directory = _directory(tmp_path, url="amqp://localhost:1/", port=14992, outbox="o", commands="c", queue="q")
+    schemas = SchemaRegistry(schemas_dir)
+    before = load_routes(directory, schemas)
+    (directory / "agents.yaml").write_text(AGENTS + "  uav4: {connection: radio, system_id: 4}\n  robot2: {namespace: /r2}\n")
+    plan = plan_reload(before, load_routes(directory, schemas))
+    assert plan.add == ("uav4-position",) and plan.remove == ()
+    assert set(plan.keep) == {"arm-uav3", "uav1-position", "uav2-position", "uav3-position"}, plan
+    # the two routes that look any agent on the radio up take the new table: the source that names
+    # the agent heard is replaced, the sink that resolves names gets a new pipeline
+    assert (plan.replace_source, plan.swap_pipeline) == (("fleet-position",), ("fleet-commands",)), plan
