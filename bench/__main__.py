@@ -3,7 +3,7 @@
 Starts a private RabbitMQ node, runs each section (the paper's latency method, zero-loss
 throughput of each route kind against its reference pass-through and the paper's design,
 latency at half that rate, throughput against message size, 1/100/1,000 routes, JSON over
-the emulated SiK radio) and writes ``results.json``, ``report.md`` (the paper's table format
+the emulated SiK radio, ROS 2 topic discovery latency for 20 robots) and writes ``results.json``, ``report.md`` (the paper's table format
 plus p50/p99) and PNG plots. Throughput is reported as ratios measured in the same run: the
 machine is shared, absolute numbers move with its load (recorded in the report).
 
@@ -25,12 +25,12 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from bench import sections
+from bench import bench_discovery, sections
 from bench import throughput as tp
 from bench.report import write_report
 
 REPO = Path(__file__).resolve().parent.parent
-SECTIONS = ("latency", "throughput", "sizes", "routes", "sik")
+SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "discovery", "sik5")
 KINDS = {
     "amqp-amqp": ("ref-amqp-amqp", None),
     "amqp-ros2": ("ref-amqp-ros2", "paper-amqp-ros2"),
@@ -97,6 +97,8 @@ async def run(args: argparse.Namespace) -> Path:
         ("sizes", lambda: sections.throughput_by_size(broker, [50, 250, 1000, 4000], args.count)),
         ("routes", lambda: sections.many_routes(broker, [1, 100, 1000], args.count)),
         ("sik", lambda: sections.sik_goodput(url, args.sik_count, 250)),
+        ("discovery", lambda: bench_discovery.measure(url, tp.domain_id())),
+        ("sik5", lambda: sections.sik_goodput(url, args.sik_count, 250, loss=0.05)),
     ]
     try:
         for name, step in steps:

@@ -120,7 +120,7 @@ def routes_table(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def sik_table(sik: dict[str, Any]) -> list[str]:
-    lines = ["## 5. JSON over the emulated SiK radio (0 % loss)", "",
+    lines = [f"## 5. JSON over the emulated SiK radio ({sik.get('loss', 0.0):.0%} loss)", "",
              "| Message | Messages back identical | Goodput each way (B/s) | Link payload capacity (B/s) | Fraction |",
              "|---|---|---|---|---|",
              f"| {sik['size']} B | {sik['identical']}/{sik['sent']} | {sik['goodput_bytes_per_s']:.0f} | "
@@ -129,14 +129,31 @@ def sik_table(sik: dict[str, Any]) -> list[str]:
              f"({sik['frames_per_packet']} frame(s) of {sik['tunnel_payload']} B payload per air packet).", ""]
     if "flood_payload_bytes_per_s" in sik:
         lines += ["| Reference, measured in this run | TUNNEL payload (B/s) | Goodput as a fraction |", "|---|---|---|",
-                  f"| the radio flooded with {sik['tunnel_payload']} B payloads | {sik['flood_payload_bytes_per_s']:.0f} | "
+                  f"| the radio flooded with {sik['tunnel_payload']} B payloads at the same loss | {sik['flood_payload_bytes_per_s']:.0f} | "
                   f"{sik['fraction_of_flood']:.2f} |",
                   f"| the same, with the vehicle's telemetry on the link (the way back) | "
                   f"{sik['flood_with_telemetry_bytes_per_s']:.0f} | {sik['fraction_of_flood_with_telemetry']:.2f} |", "",
                   "The flood keeps the radio's buffer backlogged without overflowing it; it shows what the emulator "
                   "carries (each air packet starts at its next 4 ms tick, not the instant the window opens). "
-                  "Goodput counts JSON bytes, the capacities TUNNEL payload (the tunnel's 7-byte header included).", ""]
+                  "Goodput counts JSON bytes, the capacities TUNNEL payload (the tunnel's header included).", ""]
     return lines
+
+
+def discovery_table(discovery: dict[str, Any]) -> list[str]:
+    lines = ["## 6. ROS 2 topic discovery: a robot's topic appears -> its first message at RabbitMQ", "",
+             f"Each robot publishes at {discovery['rate_hz']:.0f} Hz from its publisher's creation; the engine reads the "
+             f"graph every {discovery['scan_interval_s']} s (bench/bench_discovery.py).", "",
+             "| Robots | delivered | appear -> delivered p50 / max (ms) | appear -> matched p50 / max (ms) | "
+             "matched -> delivered p50 / max (ms) |", "|---|---|---|---|---|"]
+    for name in ("staggered", "burst"):
+        row = discovery[name]
+        cells = [f"{_f(row[key].get('p50'), 0)} / {_f(row[key].get('max'), 0)}"
+                 for key in ("appear_to_delivered_ms", "appear_to_matched_ms", "matched_to_delivered_ms")]
+        how = f"one every {row['stagger_s']} s" if row["stagger_s"] else "all at once"
+        lines.append(f"| {row['robots']}, {how} | {row['delivered']}/{row['robots']} | " + " | ".join(cells) + " |")
+    none, idle = discovery.get("idle_following_none", {}), discovery.get("idle_following", {})
+    return lines + ["", f"Engine CPU with nothing published: {_f(none.get('engine_cpu_percent'), 2)} % following no topic, "
+                    f"{_f(idle.get('engine_cpu_percent'), 2)} % following {idle.get('topics')}.", ""]
 
 
 def write_report(results: dict[str, Any], out: Path) -> None:
@@ -146,7 +163,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"load average before {_load(before)}, after {_load(after)} (the machine is shared: absolute figures "
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
     for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
-                        ("routes", routes_table), ("sik", sik_table)):
+                        ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table)):
         value = results.get(key)
         if value is None:
             continue

@@ -159,7 +159,7 @@ def link_payload_capacity() -> dict[str, float]:
 
 
 def flood_capacity(payload: int, seconds: float = 10.0, warmup: float = 1.0, *,
-                   telemetry: bool = False) -> float:
+                   telemetry: bool = False, loss: float = 0.0) -> float:
     """The reference: TUNNEL payload bytes/s one direction of the emulated radio carried in this
     run when flooded with frames of ``payload`` bytes, its buffer kept backlogged (so every air
     packet is as full as the frames allow) but never overflowing. With ``telemetry``, the
@@ -187,7 +187,7 @@ def flood_capacity(payload: int, seconds: float = 10.0, warmup: float = 1.0, *,
         mav.seq = (mav.seq + 1) % 256
         return data
 
-    with SikRadioPair(radio_status_interval=None) as pair:
+    with SikRadioPair(radio_status_interval=None, loss=loss, seed=1) as pair:
         tx, rx = open_serial(pair.link_a), open_serial(pair.link_b)
         try:
             written, carried, start, ticks = 0, 0, time.monotonic(), 0
@@ -208,24 +208,24 @@ def flood_capacity(payload: int, seconds: float = 10.0, warmup: float = 1.0, *,
     return carried / seconds
 
 
-async def sik_goodput(url: str, count: int, size: int) -> dict[str, Any]:
+async def sik_goodput(url: str, count: int, size: int, loss: float = 0.0) -> dict[str, Any]:
     """The paper's MAVLink round trip (engine -> JSON tunnel -> radio -> vehicle and back) driven
     faster than the radio carries; goodput = JSON bytes per second each way, from the first
-    publish to the last message back, at 0 % loss; against the constants' capacity and the
-    flood reference measured in the same run (:func:`flood_capacity`)."""
+    publish to the last message back, at ``loss``; against the constants' capacity and the
+    flood reference measured in the same run at the same loss (:func:`flood_capacity`)."""
     from bench.roundtrip_mavlink import Settings, run_experiment
 
     capacity = link_payload_capacity()
     payload = int(capacity["tunnel_payload"])
-    flood = {"flood_payload_bytes_per_s": await asyncio.to_thread(flood_capacity, payload),
-             "flood_with_telemetry_bytes_per_s": await asyncio.to_thread(flood_capacity, payload, telemetry=True)}
+    flood = {"flood_payload_bytes_per_s": await asyncio.to_thread(flood_capacity, payload, loss=loss),
+             "flood_with_telemetry_bytes_per_s": await asyncio.to_thread(flood_capacity, payload, telemetry=True, loss=loss)}
     with tempfile.TemporaryDirectory() as work:
-        settings = Settings(runs=1, count=count, rate=40.0, sizes=(size,), loss=0.0, out=Path(work),
+        settings = Settings(runs=1, count=count, rate=40.0, sizes=(size,), loss=loss, out=Path(work),
                             exchange=f"goodput-{uuid.uuid4().hex[:6]}")
         summary = await run_experiment(settings, amqp_url=url)
     batch = summary["batches"][0]
     goodput = batch["identical"] * size / batch["seconds"]
-    return {"size": size, "sent": batch["sent"], "identical": batch["identical"], "seconds": batch["seconds"],
+    return {"size": size, "loss": loss, "sent": batch["sent"], "identical": batch["identical"], "seconds": batch["seconds"],
             "goodput_bytes_per_s": goodput, **capacity, **flood,
             "fraction_of_capacity": goodput / capacity["payload_bytes_per_s"],
             "fraction_of_flood": goodput / flood["flood_payload_bytes_per_s"],

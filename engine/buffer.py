@@ -58,7 +58,7 @@ import orjson
 
 from engine.backoff import Backoff
 from engine.delivery import classify
-from engine.endpoints.base import EndpointError, Outbound
+from engine.endpoints.base import EndpointError, Expired, NotSent, Outbound
 from engine.options import option
 from engine.throttle import FIELD_PATH, slot_key
 
@@ -315,6 +315,8 @@ class HoldingBuffer:
                 dropped[skipped[index]].append(held)
             elif result is None:
                 delivered.append(held)
+            elif isinstance(result, NotSent):  # settled by the sink unsent; the route counts it
+                dropped["expired" if isinstance(result, Expired) else "conflated"].append(held)
             elif classify(result).permanent:
                 await self._reject(held[0], result, self._head_attempts + 1)
             else:
@@ -491,6 +493,8 @@ def encode(message: Outbound, received_at_ns: int | None = None) -> bytes:
     record = {**body, "id": message.message_id, "c": message.canonical, "m": dict(message.meta)}
     if message.fields is not message.canonical:
         record["f"] = message.fields
+    if message.captured:
+        record["v"] = message.captured
     if received_at_ns is not None:
         record["t"] = received_at_ns
     return orjson.dumps(record, default=str, option=orjson.OPT_APPEND_NEWLINE)
@@ -504,7 +508,10 @@ def decode_held(line: bytes) -> Held:
     record = orjson.loads(line)
     body = record["b"].encode() if "b" in record else base64.b64decode(record["b64"])
     canonical = record["c"]
-    return Outbound(body, canonical, record.get("f", canonical), record["id"], record["m"]), record.get("t")
+    received_at = record.get("t")  # wall clock ns (it outlives the process); the sink's clock is monotonic
+    received_ns = None if received_at is None else time.monotonic_ns() - (time.time_ns() - received_at)
+    return Outbound(body, canonical, record.get("f", canonical), record["id"], record["m"],
+                    received_ns=received_ns, captured=record.get("v")), received_at
 
 
 class _MemoryStore:

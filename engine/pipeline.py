@@ -48,6 +48,8 @@ class Pipeline:
     """The route's throttle stage (engine/throttle.py): one per generation, closed when it retires."""
     reply_shape: ReplyShape = field(default_factory=lambda: ReplyShape(None, None))
     """The route's ``reply:`` mapping and schema (engine/replies.py), compiled with the rest."""
+    captured: tuple[str, ...] = ()
+    """The names the source captures (``Transport.source_variables``), handed to the sink's templates."""
     remember: Remember | None = None
     """Where the route keeps its accepted canonical messages (``remember:``, engine/stores.py)."""
     in_flight: int = 0
@@ -70,6 +72,7 @@ class Pipeline:
             sink_check=transport(spec.sink.protocol).sink_field_check(spec.sink.options, spec.sink_mapping),
             throttle=Throttle.from_options(spec.throttle),
             reply_shape=ReplyShape(spec.reply, reply_schema),
+            captured=transport(spec.source.protocol).source_variables(spec.source.options),
             remember=Remember.compile(spec.remember, stores),
         )
 
@@ -122,6 +125,7 @@ class Pipeline:
             fields=fields,
             message_id=meta.get("message_id") or os.urandom(16).hex(),
             meta=meta,
+            captured={name: meta[name] for name in self.captured if name in meta} if self.captured else None,
         )
 
     def cancel_request(self, inbound: Inbound) -> Outbound:

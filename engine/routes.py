@@ -576,6 +576,7 @@ def _compile_routes(
                           variables)
             if expansion is not None:
                 warnings.extend(_shadowing_warnings(document, where, route, expansion, schemas))
+                warnings.extend(_captured_warnings(document, where, route, source, expansion))
             if not (complete and source_complete and sink_complete):
                 continue
             placement = _placement(document, where, route, source, sink, connections, problems) if source and sink else None
@@ -583,8 +584,7 @@ def _compile_routes(
                 continue
             if placement.ordered:
                 source = EndpointSpec(source.protocol, source.connection, endpoints.transport(source.protocol).ordered_source(source.options))
-            if route.priority != "normal":  # the sink orders its link's writes by it (engine/endpoints/base.py)
-                sink = EndpointSpec(sink.protocol, sink.connection, evolve(sink.options, priority=route.priority))
+            sink = EndpointSpec(sink.protocol, sink.connection, _route_to_sink(sink.options, route))
             used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
             schema = schemas.get(schema_name)
             fingerprint = hashlib.sha256(
@@ -675,7 +675,7 @@ def _route_checks(
     elif schemas.get(schema_name) is None:
         problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"))
     else:
-        warnings.extend(_schema_warnings(document, where, route, sink, schemas))
+        warnings.extend(_schema_warnings(document, where, route, sink, schemas, source_variables(source)))
     _endpoint_checks(document, where, name, source if complete[0] else None, sink if complete[1] else None,
                      mapping, sink_mapping, problems)
     _reply_checks(document, where, route, source, sink, schemas, problems)
@@ -685,6 +685,28 @@ def _route_checks(
         for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
             for message in _meta_problems(source, expression, variables):
                 problems.append(document.problem(key_path, f"route {name!r}: {message}"))
+
+
+def source_variables(source: EndpointSpec | None) -> tuple[str, ...]:
+    """The names a route's source captures from where each message came (``Transport.source_variables``)."""
+    if source is None:
+        return ()
+    try:
+        return endpoints.transport(source.protocol).source_variables(source.options)
+    except EndpointError:
+        return ()
+
+
+def _captured_warnings(document: Document, where: Path_, route: RouteOptions, source: EndpointSpec | None,
+                       expansion: Expansion) -> Iterator[Problem]:
+    """In a ``for_each`` route, a source's ``{name}`` that no item fills is captured from each
+    message's origin instead (a ROS 2 topic pattern): say so, as a misspelt variable would
+    silently become one."""
+    variables = list(expansion.variables)
+    for captured in source_variables(source):
+        yield document.problem(where + ("source",), (
+            f"route {route.name!r}: {{{captured}}} in the source is no for_each variable (variables: {', '.join(variables)}): "
+            f"it is captured from each message (every matching topic, meta({captured!r})){did_you_mean(captured, variables)}"))
 
 
 def source_meta_names(source: EndpointSpec, variables: Mapping[str, Any]) -> tuple[str, ...]:
@@ -754,9 +776,11 @@ def _replies(protocol: str) -> bool:
 
 
 def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None,
-                     schemas: SchemaRegistry) -> Iterator[Problem]:
+                     schemas: SchemaRegistry, captured: tuple[str, ...] = ()) -> Iterator[Problem]:
     """Canonical field names the schema does not declare: keys the mapping sets, and fields the
-    throttle and the sink's templates read (their messages would be dead-lettered)."""
+    throttle and the sink's templates read (their messages would be dead-lettered). A sink
+    template's ``{name}`` that the source captures (``captured``) is no field; where the schema
+    declares a field of that name too, the captured value wins, which is said."""
     name, schema_name = route.name, route.schema
     declared = schemas.declared(schema_name) if schema_name else None
     if declared is None:
@@ -773,8 +797,15 @@ def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink
         reads.append((where + ("buffer", "latest_only", "per"), "buffer latest_only per", latest_only.per))
     if sink is not None:
         transport = endpoints.transport(sink.protocol)
-        reads.extend((where + ("sink", sink.protocol, key), f"sink {key}", field_path)
-                     for key, field_path in transport.canonical_fields(sink.options))
+        for key, field_path in transport.canonical_fields(sink.options):
+            key_path = where + ("sink", sink.protocol, key)
+            if field_path not in captured:
+                reads.append((key_path, f"sink {key}", field_path))
+            elif undeclared_path(field_path, declared, schema_name) is None and not declared.open:
+                yield document.problem(key_path, (
+                    f"route {name!r}: {{{field_path}}} in sink {key} is the value the source captures from each topic, not the "
+                    f"canonical field {field_path!r} of {schema_name}: the captured value wins (rename the topic's variable "
+                    "to read the field at send time)"))
     for key_path, what, field_path in reads:
         problem = undeclared_path(field_path, declared, schema_name)
         if problem is not None:
@@ -1021,3 +1052,19 @@ def _endpoint_checks(
         for key, message in results:
             message += "" if "did you mean" in message else option_hint(spec.protocol, key, spec.options)
             problems.append(document.problem(base + ((key,) if key else ()), f"route {route!r}: {side}: {message}"))
+
+
+def _route_to_sink(options: Any, route: RouteOptions) -> Any:
+    """The sink's options with what the route says that a sink on a slow shared link uses
+    (engine/endpoints/base.py ``EndpointOptions``): its ``priority``, whether it is telemetry
+    (``buffer.latest_only``: a waiting message may be replaced by a newer one with its key)
+    and its ``max_age``. Unchanged when the route says none of it."""
+    changes: dict[str, Any] = {}
+    if route.priority != "normal":
+        changes["priority"] = route.priority
+    latest = route.buffer.latest_only if route.buffer else None
+    if latest is not None:
+        changes["latest_per"] = tuple(latest.per.split(".")) if latest.per else ()
+    if route.max_age is not None:
+        changes["max_age"] = route.max_age
+    return evolve(options, **changes) if changes else options

@@ -38,7 +38,7 @@ from engine.backoff import Backoff
 from engine.buffer import Buffers, Held, HoldingBuffer, stats_dict
 from engine.dead_letters import DeadLetters, dead_letter_message
 from engine.delivery import HEALTH_POLL, Failure, classify, given_up, prior_attempts, retry_delay
-from engine.endpoints.base import Connection, EndpointError, Inbound, MessageRejected, Outbound, Source
+from engine.endpoints.base import Connection, Conflated, EndpointError, Inbound, MessageRejected, NotSent, Outbound, Source
 from engine.logs import ReportLimiter
 from engine.observe import Observers
 from engine.pipeline import Pipeline
@@ -198,6 +198,7 @@ class RouteRunner:
                               f"connection's max_message_bytes {delivery.sink_max_message_bytes}", True)
             return _Message(index, inbound, outbound, prior + 1, pipeline, failure)
         outbound.reply = self.replies.bind(pipeline.reply_shape, inbound.meta)
+        outbound.received_ns = inbound.received_ns
         if prior >= delivery.max_attempts:
             failure = Failure("sink", f"already attempted {prior} times (max_attempts {delivery.max_attempts})", False)
             return _Message(index, inbound, outbound, prior, pipeline, failure)
@@ -308,6 +309,10 @@ class RouteRunner:
                 if message.pipeline.remember is not None:
                     message.pipeline.remember(message.outbound.canonical)  # type: ignore[union-attr]
                 continue
+            if isinstance(error, NotSent):  # the sink settled it unsent: conflated, or expired while it tried
+                settled[message.index] = True
+                self._not_sent(error, message.inbound, message.outbound)  # type: ignore[arg-type]
+                continue
             failure = classify(error, "sink")
             if not failure.permanent:
                 self.observer.sink_errors += 1
@@ -319,6 +324,14 @@ class RouteRunner:
                 retry.append(message)
                 self.observer.retrying(message.inbound, message.outbound, error)  # type: ignore[arg-type]
         return retry
+
+    def _not_sent(self, outcome: NotSent, inbound: Inbound | None, outbound: Outbound) -> None:
+        """Count a message its sink settled without sending it (engine/endpoints/base.py)."""
+        if isinstance(outcome, Conflated):
+            self.observer.conflate(inbound, outbound)
+        else:
+            self.observer.expire(inbound, outbound)
+            self._expired_call(outbound)
 
     def _accepted(self, inbound: Inbound, outbound: Outbound) -> None:
         latency = time.monotonic_ns() - inbound.received_ns

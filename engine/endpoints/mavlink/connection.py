@@ -92,6 +92,7 @@ class MavlinkConnection(Connection):
             "state": "up" if self.port.ready else "waiting for a peer",
             "rejected": {key: self.stats[key] for key in REJECTION_STATS},
             "counters": dict(self.stats),
+            "budget": self.port.budget.status(self.port.clock()),
             "vehicles": [{"system_id": seen.system_id, "component_id": seen.component_id, "type": seen.type,
                           "heard_s_ago": round(time.monotonic() - seen.last_heard, 1)} for seen in self.seen.values()],
         }
@@ -120,14 +121,15 @@ class MavlinkConnection(Connection):
         options = sink_options(route, options)
         if options.json_tunnel:
             target = (options.target_system or 0, options.target_component or 0)
-            return TunnelSink(self.hub, payload_type=options.payload_type, target=target, priority=options.priority)
+            return TunnelSink(self.hub, payload_type=options.payload_type, target=target, priority=options.priority,
+                              max_age=options.max_age)
         return sink_for(self, route, options)
 
     # writing
 
-    def enqueue(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
-                priority: str | None = None) -> asyncio.Future[float]:
-        return self.port.enqueue(msg, bulk=bulk, priority=priority)
+    def enqueue(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False, priority: str | None = None,
+                key: Hashable | None = None) -> asyncio.Future[float]:
+        return self.port.enqueue(msg, bulk=bulk, priority=priority, key=key)
 
     async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
                            priority: str | None = None) -> float:

@@ -39,6 +39,12 @@ class SharedLink(Protocol):
         """Return once the paced writer wrote ``msg`` (the loop time it was written);
         ``priority`` None (commands, missions) goes before every route's ``priority``."""
 
+    def enqueue(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False, priority: str | None = None,
+                key: Hashable | None = None) -> asyncio.Future[float]:
+        """Queue ``msg`` for the writer; the future gives the loop time it was written. A route
+        frame with a ``key`` replaces a waiting one with that key (whose future fails with
+        Conflated): the link's budget (engine/endpoints/mavlink/budget.py)."""
+
     def post(self, msg: mavlink2.MAVLink_message) -> None:
         """Queue a frame nobody waits for (a failure is only counted)."""
 

@@ -68,7 +68,7 @@ class MavlinkTunnel:
     retries: float | None = option(None, minimum=0, description=f"timeouts without progress before a send fails (its source then redelivers the message); {_tunnel_default('retries')}")
     sack_delay: float | None = option(None, minimum=0, description=f"seconds of silence after which a receiver missing fragments reports its gaps; {_tunnel_default('sack_delay')}")
     window: float | None = option(None, minimum=0, description=f"transfers (messages or bundles) in flight per sink; {_tunnel_default('window')}")
-    rate: float | None = option(None, minimum=0, description="bytes/s for DATA frames; default 0: half the serial rate on serial links, unpaced on networks")
+    rate: float | None = option(None, minimum=0, description="bytes/s for DATA frames; default 0: the link's budget (half the serial rate on serial links, unpaced on networks)")
     reassembly_timeout: float | None = option(None, minimum=0, description=f"seconds a partly received message is kept; {_tunnel_default('reassembly_timeout')}")
     memory: float | None = option(None, minimum=0, description=f"ids of delivered messages remembered, so a repeat is not delivered twice; {_tunnel_default('memory')}")
     memory_ttl: float | None = option(None, minimum=0, description=f"seconds a delivered id is remembered; {_tunnel_default('memory_ttl')}")
@@ -87,6 +87,12 @@ class MavlinkConnectionOptions:
     source_component: int = option(190, **_BYTE, description="our MAVLink component id (190: MAV_COMP_ID_MISSIONPLANNER)")
     signing: MavlinkSigning | None = option(None)
     rate: float | None = option(None, exclusive_minimum=0, description="bytes/s cap on everything written; default baud/10 on serial links, unpaced on networks")
+    budget: float | None = option(None, exclusive_minimum=0,
+                                  description="bytes/s the routes' frames (message sinks and tunnel fragments) may take at most; "
+                                              "the radio's RADIO_STATUS (buffer filling, fading signal) lowers it from there. "
+                                              "Default tunnel.rate if set, else half the serial rate on serial links "
+                                              "(2,880 B/s at 57,600 baud, about what a SiK radio carries one way); networks "
+                                              "are not paced. Commands, missions, acknowledgements and heartbeats are outside it")
     heartbeat: float = option(1.0, minimum=0,
                               description="Hz of our HEARTBEAT, 0 = none (a SiK radio injects RADIO_STATUS only after one)")
     mav_type: int = option(mavlink2.MAV_TYPE_GCS, **_BYTE,
@@ -112,8 +118,8 @@ class MavlinkSourceOptions(EndpointOptions):
     target_system: int | str | None = option(None, **_BYTE, pattern=TARGET_FIELD,
                                              description="sinks only: the receiver's system id (the message's target_system "
                                                          "when the mapping sets none; 1 for acknowledged commands and missions; "
-                                                         "0, everyone, for a tunnel); \"{field}\": a message or command sink "
-                                                         "takes it from that canonical field of each message")
+                                                         "0, everyone, for a tunnel); \"{field}\": a message, command or "
+                                                         "mission sink takes it from that canonical field of each message")
     target_component: int | str | None = option(None, **_BYTE, pattern=TARGET_FIELD,
                                                 description="sinks only: the receiver's component id (as target_system; "
                                                             "1 for acknowledged commands and missions)")

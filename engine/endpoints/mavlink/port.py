@@ -4,15 +4,22 @@ A :class:`MavlinkPort` owns a link (see :mod:`.links`), packs frames at write ti
 numbers and signing timestamps go out in wire order, which a receiver requires), paces them to
 the link rate (a SiK radio's serial buffer is a few hundred bytes to 2 KB and overflows
 silently), sends control frames before the routes' frames and those by the routes' priority,
-and slows bulk traffic while the radio's RADIO_STATUS reports a filling buffer.
+and keeps the routes' frames within the radio's budget (:mod:`.budget`: it follows the
+RADIO_STATUS the radio injects).
 
 What the writer sends next (one frame at a time, so a frame waits at most for the one being
 written, never for a queue of lower ones):
 
-1. control: commands, mission items, tunnel acknowledgements, heartbeats (``priority`` None);
+1. control: commands, mission items, tunnel acknowledgements, heartbeats (``priority`` None),
+   paced only to the link rate;
 2. then by the route's ``priority`` (``high``, ``normal``, ``low``): at each level a message
-   sink's frames, then its tunnel fragments (bulk: paced to ``bulk_rate``); fragments of a
-   level not due yet under the pacing let unpaced frames of lower levels through.
+   sink's frames, then its tunnel fragments, all within the budget (a frame not due yet
+   under it waits; on networks there is no budget).
+
+A frame queued with a ``key`` (a telemetry route's message: its sink, its ``latest_only``
+value) that is still waiting when a newer frame with the same key comes is replaced by it in
+its place in the queue; the older one's future fails with :class:`Conflated`, and its route
+counts it ``conflated``. Frames without a key wait their turn.
 
 Measured on the emulated SiK radio (57,600 baud; tests/test_link_priority.py): a 200-byte
 ``high`` tunnel message under a saturating ``low`` tunnel load of 2 KB bundles took 4.1 s
@@ -28,31 +35,46 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable
 
-from engine.endpoints.base import EndpointError
+from engine.endpoints.base import Conflated, EndpointError
 from engine.endpoints.mavlink.errors import edge_error
 from engine.endpoints.mavlink.codec import RADIO_STATUS, mavlink2
+from engine.endpoints.mavlink.budget import RadioBudget
 from engine.endpoints.mavlink.links import Link, make_link
 from engine.endpoints.mavlink.settings import LinkConfig
 from engine.endpoints.mavlink.signing import SignatureCheck, SigningClock
-from engine.endpoints.mavlink.tunnel import TUNNEL_PAYLOAD, ignore_result, radio_pacing_factor
+from engine.endpoints.mavlink.tunnel import TUNNEL_PAYLOAD, ignore_result
 
 MAX_PARSERS = 32
 
 PORT_STATS = (
     "bytes_received", "frames_received", "frames_accepted", "frames_lost", "bad_crc", "bad_data",
     "unknown_message", "unsigned_rejected", "unsigned_accepted", "bad_signature", "replayed",
-    "frames_sent", "bytes_sent", "send_errors",
+    "frames_sent", "bytes_sent", "send_errors", "budget_queued", "budget_conflated",
 )
 """``frames_received`` counts frames with a good CRC, ``frames_accepted`` those that also passed
 signing; ``frames_lost`` sums sequence gaps per sender; rejections: ``unsigned_rejected``,
 ``bad_signature`` (wrong key or altered), ``replayed`` (timestamp not newer than the stream's
-last, or a new stream over 60 s old)."""
+last, or a new stream over 60 s old); ``budget_queued``: route frames that had to wait for the
+radio's budget, ``budget_conflated``: those of them a newer one with the same key replaced."""
 
 OnMessage = Callable[[mavlink2.MAVLink_message], None]
-_Queued = tuple[mavlink2.MAVLink_message, "asyncio.Future[float]"]
+
+
+class _Queued:
+    """A frame waiting for the writer: the message, who waits for it, its conflation key."""
+
+    __slots__ = ("msg", "future", "key")
+
+    def __init__(self, msg: mavlink2.MAVLink_message, future: asyncio.Future[float], key: Hashable | None) -> None:
+        self.msg = msg
+        self.future = future
+        self.key = key
+
+
 PRIORITIES = ("high", "normal", "low")
 """A route's ``priority`` (engine/routes.py declares it); control frames go before all."""
 
@@ -68,8 +90,8 @@ class MavlinkPort:
         for key in PORT_STATS:
             stats.setdefault(key, 0)
         self.mav = mavlink2.MAVLink(None, config.source_system, config.source_component)
-        self.radio_txbuf: tuple[float, int] | None = None
-        """(loop time, % free) of the last RADIO_STATUS: bulk traffic slows while it is low."""
+        self.budget = RadioBudget(config.bulk_rate)
+        """Bytes/s the routes' frames may take, following the radio's RADIO_STATUS."""
         self.on_lost: Callable[[], None] | None = None
         self._clock: SigningClock | None = None
         self._check: SignatureCheck | None = None
@@ -82,16 +104,18 @@ class MavlinkPort:
         self._peer: Hashable | None = None
         self._control: deque[_Queued] = deque()
         self._lanes: list[tuple[deque[_Queued], bool]] = [(self._control, False)]
-        """In the order the writer serves them: (queue, paced as bulk)."""
+        """In the order the writer serves them: (queue, within the budget)."""
         self._by_priority: dict[tuple[str, bool], deque[_Queued]] = {}
         for priority in PRIORITIES:
             for bulk in (False, True):
                 queue: deque[_Queued] = deque()
                 self._by_priority[(priority, bulk)] = queue
-                self._lanes.append((queue, bulk))
+                self._lanes.append((queue, True))
+        self._waiting: dict[Hashable, _Queued] = {}
+        """Queued frames with a conflation key, by key."""
         self._wake = asyncio.Event()
         self._tx_ready = 0.0
-        self._bulk_ready = 0.0
+        self._budget_ready = 0.0
         self._task: asyncio.Task[None] | None = None
         self._closed = False
 
@@ -99,6 +123,13 @@ class MavlinkPort:
     def address(self) -> tuple[str, int] | None:
         """Bound (host, port) of ``udpin``/``tcpin`` links; useful with port 0."""
         return self._link.local_address if self._link else None
+
+    def clock(self) -> float:
+        """The loop time the budget's reports are stamped with (the loop's own clock)."""
+        try:
+            return asyncio.get_running_loop().time()
+        except RuntimeError:
+            return time.monotonic()
 
     @property
     def ready(self) -> bool:
@@ -124,9 +155,10 @@ class MavlinkPort:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)
             self._task = None
+        self._waiting.clear()
         for queue, _ in self._lanes:
             while queue:
-                _, future = queue.popleft()
+                future = queue.popleft().future
                 if not future.done():
                     future.set_exception(EndpointError(f"mavlink connection {self.name!r} closed"))
         if self._link is not None:
@@ -139,16 +171,33 @@ class MavlinkPort:
     # writing
 
     def enqueue(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
-                priority: str | None = None) -> asyncio.Future[float]:
+                priority: str | None = None, key: Hashable | None = None) -> asyncio.Future[float]:
         """Queue a frame for the writer; the future gives the loop time it was written.
-        ``priority`` None is control (before every route's frames); ``bulk`` frames are paced."""
+        ``priority`` None is control (before every route's frames, outside the budget);
+        ``bulk`` frames (tunnel fragments) go after the message frames of their priority.
+        A frame with a ``key`` replaces a waiting one with the same key (whose future fails
+        with :class:`Conflated`), in its place."""
         future: asyncio.Future[float] = asyncio.get_running_loop().create_future()
         if self._closed or self._link is None:
             future.set_exception(EndpointError(f"mavlink connection {self.name!r} is not open"))
+            return future
+        if priority is None and not bulk:
+            self._control.append(_Queued(msg, future, None))
         else:
-            queue = self._control if priority is None and not bulk else self._by_priority[(priority or "normal", bulk)]
-            queue.append((msg, future))
-            self._wake.set()
+            if self.budget.ceiling:
+                self.stats["budget_queued"] += asyncio.get_running_loop().time() < self._budget_ready
+            waiting = self._waiting.get(key) if key is not None else None
+            if waiting is not None:
+                self.stats["budget_conflated"] += 1
+                if not waiting.future.done():
+                    waiting.future.set_exception(Conflated("a newer message with the same key took its place"))
+                waiting.msg, waiting.future = msg, future
+                return future
+            queued = _Queued(msg, future, key)
+            self._by_priority[(priority or "normal", bulk)].append(queued)
+            if key is not None:
+                self._waiting[key] = queued
+        self._wake.set()
         return future
 
     def post(self, msg: mavlink2.MAVLink_message) -> None:
@@ -156,8 +205,8 @@ class MavlinkPort:
         self.enqueue(msg).add_done_callback(ignore_result)
 
     async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
-                           priority: str | None = None) -> float:
-        return await self.enqueue(msg, bulk=bulk, priority=priority)
+                           priority: str | None = None, key: Hashable | None = None) -> float:
+        return await self.enqueue(msg, bulk=bulk, priority=priority, key=key)
 
     def send_tunnel(self, payload_type: int, target: tuple[int, int], payload: bytes, *,
                     bulk: bool, priority: str | None = None) -> asyncio.Future[float]:
@@ -166,31 +215,34 @@ class MavlinkPort:
         return self.enqueue(msg, bulk=bulk, priority=priority)
 
     def _next(self, now: float) -> tuple[_Queued, bool] | None:
-        """The frame to write now (see the module docstring), and whether it is bulk."""
-        bulk_due = now >= self._bulk_ready
-        for queue, bulk in self._lanes:
-            if queue and (bulk_due or not bulk):
-                return queue.popleft(), bulk
+        """The frame to write now (see the module docstring), and whether it is paced."""
+        budget_due = now >= self._budget_ready
+        for queue, paced in self._lanes:
+            if queue and (budget_due or not paced):
+                queued = queue.popleft()
+                if queued.key is not None and self._waiting.get(queued.key) is queued:
+                    del self._waiting[queued.key]
+                return queued, paced
         return None
 
-    def _bulk_waiting(self) -> bool:
-        return any(queue for queue, bulk in self._lanes if bulk)
+    def _paced_waiting(self) -> bool:
+        return any(queue for queue, paced in self._lanes if paced)
 
     async def _writer(self) -> None:
         loop = asyncio.get_running_loop()
-        rate, bulk_rate = self.config.rate, self.config.bulk_rate
+        rate = self.config.rate
         assert self._link is not None
         while True:
             now = loop.time()
             picked = self._next(now)
-            if picked is not None:
-                (msg, future), bulk = picked
-            else:
+            if picked is None:
                 self._wake.clear()
-                timeout = max(0.0, self._bulk_ready - now) if self._bulk_waiting() else None
+                timeout = max(0.0, self._budget_ready - now) if self._paced_waiting() else None
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._wake.wait(), timeout)
                 continue
+            queued, paced = picked
+            msg, future = queued.msg, queued.future
             if future.done():
                 continue
             if self._tx_ready > now:
@@ -215,9 +267,9 @@ class MavlinkPort:
             self.stats["bytes_sent"] += len(data)
             if rate:
                 self._tx_ready = max(self._tx_ready, start) + len(data) / rate
-            if bulk and bulk_rate:
-                factor = radio_pacing_factor(self.radio_txbuf, start)
-                self._bulk_ready = max(self._bulk_ready, start) + len(data) / (bulk_rate * factor)
+            if paced and (budget := self.budget.rate(start)):
+                self._budget_ready = max(self._budget_ready, start) + len(data) / budget
+                self.budget.sent(len(data))
             if not future.done():
                 future.set_result(loop.time())
 
@@ -279,6 +331,6 @@ class MavlinkPort:
             self.stats["frames_lost"] += (header.seq - last - 1) % 256
         self._last_seq[stream] = header.seq
         if msg_id == RADIO_STATUS:
-            self.radio_txbuf = (asyncio.get_running_loop().time(), msg.txbuf)
+            self.budget.report(msg, asyncio.get_running_loop().time())
         self.on_message(msg)
 

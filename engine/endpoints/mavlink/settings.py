@@ -166,9 +166,13 @@ class LinkConfig:
     heartbeat: float = 1.0
     mav_type: int = mavlink2.MAV_TYPE_GCS
     tunnel: TunnelSettings = field(default_factory=TunnelSettings)
+    budget: float | None = None
 
     @property
     def bulk_rate(self) -> float:
+        """The ceiling of the routes' budget (engine/endpoints/mavlink/budget.py), bytes/s; 0: unpaced."""
+        if self.budget:
+            return self.budget
         if self.tunnel.rate:
             return self.tunnel.rate
         return self.rate / 2 if self.address.kind == "serial" else 0.0
@@ -203,4 +207,4 @@ def settings_problems(
         return None, problems
     rate = options.rate if options.rate is not None else (address.baud / 10 if address.kind == "serial" else 0.0)
     return LinkConfig(address, options.source_system, options.source_component, signing, float(rate),
-                      float(options.heartbeat), options.mav_type, tunnel), problems
+                      float(options.heartbeat), options.mav_type, tunnel, options.budget), problems

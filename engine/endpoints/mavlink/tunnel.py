@@ -34,7 +34,11 @@ SACK at once when the last fragment arrives with gaps, and after ``sack_delay`` 
 while incomplete (backing off). The sender retransmits a fragment when a fragment sent after
 it is acknowledged (the link keeps order, so it was lost) or when its retransmission timer
 (SRTT + 4 RTTVAR, at least ``rto_min``, doubling per unanswered timeout) expires; after
-``retries`` timeouts without progress it gives up.
+``retries`` timeouts without progress it gives up. A route with ``max_age`` (telemetry) ends a
+transfer sooner: once its newest message is older than that, it is not sent (again); each of
+its messages is reported :class:`~engine.endpoints.base.Expired` and counted ``expired`` by its
+route (``tunnel_expired`` on the link), instead of being retransmitted for as long as an
+outage lasts.
 
 :class:`Transfer` and :class:`Reassembler` are pure state machines driven by frames and a
 clock; :class:`TunnelSink`, :class:`TunnelSource` and :class:`TunnelHub` drive them on asyncio.
@@ -47,6 +51,7 @@ import contextlib
 import logging
 import random
 import struct
+import time
 import zlib
 from collections import OrderedDict
 from collections.abc import Callable, Hashable, Sequence
@@ -56,6 +61,7 @@ from typing import Any, Protocol, cast
 from engine.endpoints.base import (
     Deliver,
     EndpointError,
+    Expired,
     Inbound,
     Inbox,
     MessageRejected,
@@ -509,18 +515,6 @@ class TunnelLink(Protocol):
         ...
 
 
-def radio_pacing_factor(txbuf: tuple[float, int] | None, now: float) -> float:
-    """How much of the bulk rate to use, from the radio's last RADIO_STATUS ``(time, txbuf %)``.
-
-    A SiK radio silently drops serial input that overflows its 2 KB buffer, so both ends of a
-    tunnel slow down while it reports less than half of it free; a report older than 3 s no
-    longer counts."""
-    if txbuf is None or now - txbuf[0] > 3.0:
-        return 1.0
-    free = txbuf[1]
-    return 1.0 if free >= 50 else 0.5 if free >= 25 else 0.2
-
-
 @dataclass(frozen=True, slots=True)
 class TunnelSettings:
     """Per-connection tuning; defaults depend on the link (a SiK radio needs patience)."""
@@ -540,7 +534,8 @@ class TunnelSettings:
     memory: int = 1024
     memory_ttl: float = 300.0
     rate: float = 0.0
-    """Bytes/s for DATA frames; 0 = half the serial rate on serial links, unpaced on networks."""
+    """Bytes/s ceiling of the link's budget when the connection sets no ``budget`` (every route's frames
+    share it: engine/endpoints/mavlink/budget.py); 0 = half the serial rate on serial links, unpaced on networks."""
 
     @classmethod
     def from_settings(cls, raw: Any, *, serial: bool) -> TunnelSettings:
@@ -771,10 +766,13 @@ class TunnelSink(Sink):
     """Sends ``Outbound.body`` whole; returns once the receiver acknowledged delivery."""
 
     def __init__(self, hub: TunnelHub, *, payload_type: int = DEFAULT_PAYLOAD_TYPE,
-                 target: tuple[int, int] = (0, 0), priority: str = "normal") -> None:
+                 target: tuple[int, int] = (0, 0), priority: str = "normal", max_age: float | None = None) -> None:
         self.hub = hub
         self.payload_type = payload_type
         self.target = target
+        self.max_age_ns = None if max_age is None else int(max_age * 1e9)
+        """The route's ``max_age``: a transfer still unacknowledged when its newest message is
+        older than that is given up, each of its messages :class:`Expired` (never sent again)."""
         self.priority = priority
         """The route's ``priority``: the link's writer sends a ``high`` sink's fragments before
         the ``normal`` and ``low`` ones already queued (engine/endpoints/mavlink/port.py)."""
@@ -782,7 +780,13 @@ class TunnelSink(Sink):
         hub.add_sender(payload_type)
 
     async def send(self, message: Outbound) -> None:
-        await self.send_bytes(self._body(message))
+        await self.send_bytes(self._body(message), expires_ns=self._expiry(message.received_ns))
+
+    def _expiry(self, received_ns: int | None) -> int | None:
+        """``time.monotonic_ns()`` after which a message received at ``received_ns`` expired."""
+        if self.max_age_ns is None or received_ns is None:
+            return None
+        return received_ns + self.max_age_ns
 
     @staticmethod
     def _body(message: Outbound) -> bytes:
@@ -802,16 +806,21 @@ class TunnelSink(Sink):
                 bodies.append((index, self._body(message)))
             except MessageRejected as exc:
                 results[index] = exc
-        for (index, _), result in zip(bodies, await self.send_many([body for _, body in bodies])):
+        expiries = [self._expiry(messages[index].received_ns) for index, _ in bodies]
+        for (index, _), result in zip(bodies, await self.send_many([body for _, body in bodies], expiries)):
             results[index] = result
         return results
 
-    async def send_many(self, bodies: Sequence[bytes]) -> list[BaseException | None]:
+    async def send_many(self, bodies: Sequence[bytes],
+                        expiries: Sequence[int | None] | None = None) -> list[BaseException | None]:
         """Send ``bodies`` in bundles (see the module's docstring), up to ``window`` of them
         in flight at once: a radio's round trip is a TDM round or more, so one transfer after
-        another would leave it idle. ``result[i]`` is None once ``bodies[i]`` was delivered."""
+        another would leave it idle. ``result[i]`` is None once ``bodies[i]`` was delivered.
+        ``expiries[i]``: ``time.monotonic_ns()`` after which ``bodies[i]`` is worthless (a
+        bundle is given up once its newest message is)."""
         groups = self._bundles(bodies)
-        outcomes = await asyncio.gather(*(self._send_group([bodies[i] for i in group]) for group in groups),
+        outcomes = await asyncio.gather(*(self._send_group([bodies[i] for i in group],
+                                                           _newest(expiries, group)) for group in groups),
                                         return_exceptions=True)
         results: list[BaseException | None] = [None] * len(bodies)
         for group, outcome in zip(groups, outcomes):
@@ -838,17 +847,23 @@ class TunnelSink(Sink):
                 size = cost
         return groups
 
-    async def _send_group(self, bodies: list[bytes]) -> None:
+    async def _send_group(self, bodies: list[bytes], expires_ns: int | None) -> None:
         if len(bodies) == 1:
-            await self.send_bytes(bodies[0])
+            await self.send_bytes(bodies[0], expires_ns=expires_ns)
         else:
-            await self.send_bytes(bundle(bodies), bundled=True, messages=len(bodies))
+            await self.send_bytes(bundle(bodies), bundled=True, messages=len(bodies), expires_ns=expires_ns)
 
-    async def send_bytes(self, body: bytes, *, bundled: bool = False, messages: int = 1) -> None:
+    async def send_bytes(self, body: bytes, *, bundled: bool = False, messages: int = 1,
+                         expires_ns: int | None = None) -> None:
         """Send one transfer (one message, or a bundle of ``messages``); returns once the
-        receiver acknowledged it DELIVERED."""
+        receiver acknowledged it DELIVERED. Raises :class:`Expired` once ``expires_ns``
+        (``time.monotonic_ns()``) passed before that: before it was first sent (it waited
+        for the window), or while its fragments were being sent again."""
         hub, settings = self.hub, self.hub.settings
         async with self._window:
+            if expires_ns is not None and time.monotonic_ns() >= expires_ns:
+                hub.count("tunnel_expired", messages)
+                raise Expired("tunnel: older than the route's max_age before it could be sent")
             msg_id = hub.new_id(self.payload_type)
             try:
                 transfer = Transfer(msg_id, body, fragment_size=settings.fragment_size,
@@ -858,20 +873,29 @@ class TunnelSink(Sink):
             acks: asyncio.Queue[Ack] = asyncio.Queue()
             hub.watch(self.payload_type, msg_id, acks.put_nowait)
             try:
-                await self._run(transfer, acks)
+                await self._run(transfer, acks, expires_ns)
+            except Expired:
+                hub.count("tunnel_expired", messages)
+                raise
             finally:
                 hub.unwatch(self.payload_type, msg_id)
                 hub.count("tunnel_retransmissions", transfer.retransmissions)
         hub.count("tunnel_sent", messages)
 
-    async def _run(self, transfer: Transfer, acks: asyncio.Queue[Ack]) -> None:
+    async def _run(self, transfer: Transfer, acks: asyncio.Queue[Ack], expires_ns: int | None = None) -> None:
         loop = asyncio.get_running_loop()
         pending: list[int] = list(range(transfer.count))
 
         def plan(indexes: list[int]) -> None:
             pending.extend(i for i in indexes if i not in pending)
 
+        def expired() -> bool:
+            return expires_ns is not None and time.monotonic_ns() >= expires_ns
+
         while True:
+            if pending and not transfer.delivered and expired() and any(transfer.tx_count):
+                raise Expired(f"tunnel message {transfer.msg_id}: older than the route's max_age while "
+                              "being sent again; not sent any more")
             while pending and not transfer.delivered:
                 # Every pending fragment is queued at once, so the writer sends a transfer's
                 # fragments back to back: transfers in flight complete one after another (the
@@ -901,9 +925,15 @@ class TunnelSink(Sink):
                 return
             deadline = transfer.deadline()
             assert deadline is not None
+            wait = deadline - loop.time()
+            if expires_ns is not None:  # wake when it expires: a DELIVERED may still come until then
+                wait = min(wait, (expires_ns - time.monotonic_ns()) / 1e9)
             try:
-                ack = await asyncio.wait_for(acks.get(), max(0.0, deadline - loop.time()))
+                ack = await asyncio.wait_for(acks.get(), max(0.0, wait))
             except TimeoutError:
+                if expired():
+                    raise Expired(f"tunnel message {transfer.msg_id}: older than the route's max_age before "
+                                  "it was acknowledged; not sent again") from None
                 plan(transfer.on_timeout(loop.time()))
                 if transfer.failed:
                     raise EndpointError(
@@ -958,6 +988,15 @@ class TunnelSource(Source):
             self._busy -= 1
             if not self._busy:
                 self._idle.set()
+
+
+def _newest(expiries: Sequence[int | None] | None, group: list[int]) -> int | None:
+    """When a transfer of the messages ``group`` is worthless: once its newest message is
+    (None: one of them never expires)."""
+    if expiries is None:
+        return None
+    values = [expiries[i] for i in group]
+    return None if any(value is None for value in values) else max(values)  # type: ignore[type-var]
 
 
 def ignore_result(future: asyncio.Future[Any]) -> None:

@@ -1,0 +1,206 @@
+"""The radio's budget (issue 22): the link's rate follows RADIO_STATUS, and what does not fit is
+conflated (telemetry) or queued (events), counted either way.
+
+Real parts: the engine in this process with an AMQP source (the session's private RabbitMQ
+node) and a MAVLink sink on the emulated SiK radio (rabbitros_sim/sik_radio.py: 57,600 baud,
+TDM, a 2 KB radio buffer that drops what overflows it), a MAVLink peer on the far radio.
+
+Two routes share the link: ``positions`` (telemetry: ``buffer: {latest_only: {per: agent}}``)
+sends VISION_POSITION_ESTIMATE (an external position estimate, 129-byte frames) for 12 agents at
+3.9 kB/s, more than the air carries (~2.7 kB/s of such frames) but less than the budget's
+ceiling (5,000 B/s, the connection's ``budget``);
+``events`` sends STATUSTEXT twice a second, each of which must arrive.
+
+* With the radio reporting (RADIO_STATUS every 0.5 s), its buffer fills, txbuf falls below
+  50 % free, the budget comes down below the offered load, and positions are conflated:
+  counted ``conflated`` by the route (engine/observe.py); no byte is lost in the radio; every
+  event arrives, none conflated.
+* The control: the same load with a radio that sends no RADIO_STATUS. The budget stays at its
+  ceiling, nothing is conflated, and the radio silently drops what overflows its buffer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import uuid
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import aio_pika
+
+os.environ.setdefault("MAVLINK20", "1")
+
+from engine.endpoints import mavlink  # noqa: E402
+from engine.runtime import Engine  # noqa: E402
+from rabbitros_sim import sik_radio  # noqa: E402
+from tests.amqp_helpers import started_with_client  # noqa: E402
+
+ROUTES = """
+connections:
+  gcs: {{amqp: "{url}"}}
+  radio: {{mavlink: "{link}", baud: 57600, budget: {budget}}}
+routes:
+  - name: positions
+    source: {{amqp: {{connection: gcs, exchange: {exchange}, binding_key: pos, queue: {exchange}-pos}}}}
+    schema: raw_json
+    buffer: {{latest_only: {{per: agent}}}}
+    sink:
+      mavlink: {{connection: radio, message: VISION_POSITION_ESTIMATE}}
+      mapping: "{{usec: seq, x: agent, y: `2.5`, z: `-10.0`, roll: `0.1`, pitch: `0.2`, yaw: `0.3`, covariance: covariance, reset_counter: `1`}}"
+  - name: events
+    source: {{amqp: {{connection: gcs, exchange: {exchange}, binding_key: event, queue: {exchange}-event}}}}
+    schema: raw_json
+    sink:
+      mavlink: {{connection: radio, message: STATUSTEXT}}
+      mapping: "{{severity: `6`, text: text}}"
+"""
+BUDGET = 5000
+POSITION_RATE = 30.0
+"""VISION_POSITION_ESTIMATE frames (with their covariance) are 129 bytes: 3,870 B/s, above
+what the air carries of them (one per air packet, ~2.7 kB/s), below the ceiling."""
+AGENTS = 12
+"""Each agent's position comes every 0.4 s: one waits for a newer one with its key only once
+the budget holds the queue back (not for the AMQP source's bursts)."""
+SECONDS = 6.0
+EVENT_EVERY = 0.5
+
+
+def run(tmp_path: Path, schemas_dir: Path, amqp_url: str, radio_status: float | None) -> dict[str, Any]:
+    """Offer the load for SECONDS; the routes' counters, what arrived, and the radio's."""
+    tag = uuid.uuid4().hex[:8]
+    exchange = f"budget-{tag}"
+    directory = tmp_path / f"routes-{tag}"
+    directory.mkdir()
+
+    async def scenario() -> dict[str, Any]:
+        async with sik_radio.SikRadioPair(seed=5, radio_status_interval=radio_status) as pair:
+            (directory / "radio.yaml").write_text(ROUTES.format(url=amqp_url, link=pair.link_a, budget=BUDGET,
+                                                                exchange=exchange))
+            uav = mavlink.TRANSPORT.connect("uav", {"url": pair.link_b, "baud": 57600, "source_system": 1,
+                                                    "source_component": 1, "mav_type": 2})
+            arrived: Counter[str] = Counter()
+            uav.listen(None, lambda msg: arrived.update([msg.get_type()]))
+            await uav.open()
+            engine = Engine(directory, schemas_dir)
+            try:
+                async with started_with_client(engine, amqp_url) as connection:
+                    channel = await connection.channel()
+                    target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
+                    await offer(target)
+                    loop = asyncio.get_running_loop()
+                    deadline = loop.time() + 10
+                    while loop.time() < deadline:  # the queued frames drain; every event arrives
+                        routes = engine.status()["routes"]
+                        lost = pair.stats()["a"].serial_rx_dropped  # without reports: some events never arrive
+                        if (lost or arrived["STATUSTEXT"] >= events_sent()) and all(
+                                settled(routes[name]) for name in ("positions", "events")):
+                            break
+                        await asyncio.sleep(0.1)
+                    link = next(c for c in engine.connections if c.name == "radio")
+                    return {"routes": engine.status()["routes"], "arrived": dict(arrived),
+                            "link": dict(link.stats), "decreases": link.port.budget.decreases,
+                            "budget": link.health()["budget"],
+                            "radio": pair.stats()["a"]}
+            finally:
+                await uav.close()
+
+    return asyncio.run(asyncio.wait_for(scenario(), 60))
+
+
+def events_sent() -> int:
+    return int(SECONDS / EVENT_EVERY)
+
+
+def settled(route: dict[str, Any]) -> bool:
+    return route["received"] > 0 and route["received"] == route["delivered"] + route["conflated"] + route["failed"]
+
+
+async def offer(target: Any) -> None:
+    """Positions at POSITION_RATE (round-robin over the agents) and an event every EVENT_EVERY."""
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    sent = events = 0
+    while (now := loop.time()) < start + SECONDS:
+        while sent < (now - start) * POSITION_RATE:
+            body = {"agent": sent % AGENTS, "seq": sent, "covariance": [0.5] * 21}
+            await target.publish(aio_pika.Message(json.dumps(body).encode()), "pos")
+            sent += 1
+        while events < min(events_sent(), (now - start) / EVENT_EVERY):
+            await target.publish(aio_pika.Message(json.dumps({"text": f"event {events}"}).encode()), "event")
+            events += 1
+        await asyncio.sleep(0.01)
+    while events < events_sent():
+        await target.publish(aio_pika.Message(json.dumps({"text": f"event {events}"}).encode()), "event")
+        events += 1
+
+
+def test_the_budget_conflates_telemetry_when_radio_status_reports_a_filling_buffer(
+        tmp_path: Path, schemas_dir: Path, amqp_url: str) -> None:
+    got = run(tmp_path, schemas_dir, amqp_url, radio_status=0.5)
+    positions, events = got["routes"]["positions"], got["routes"]["events"]
+    print(f"\nwith RADIO_STATUS: positions {positions['received']} received, {positions['delivered']} sent, "
+          f"{positions['conflated']} conflated; events {events['delivered']}/{events['received']}; "
+          f"budget decreases {got['decreases']}; link {got['link']['budget_queued']} queued, "
+          f"{got['link']['budget_conflated']} conflated; radio dropped {got['radio'].serial_rx_dropped} B; "
+          f"budget at the end {got['budget']}")
+    assert got["decreases"] > 0, "the radio never reported a filling buffer: the load did not exceed the air"
+    assert positions["conflated"] > 0, positions
+    assert positions["conflated"] == got["link"]["budget_conflated"], (positions, got["link"])
+    assert positions["delivered"] + positions["conflated"] == positions["received"], positions
+    assert got["radio"].serial_rx_dropped == 0, "the radio's buffer overflowed: the budget did not follow it"
+    assert events["received"] == events["delivered"] == events_sent() and events["conflated"] == 0, events
+    assert got["arrived"].get("STATUSTEXT", 0) >= events_sent(), got["arrived"]
+    assert got["link"]["budget_queued"] > 0, got["link"]
+
+
+def test_without_radio_status_the_budget_stays_at_its_ceiling_and_the_radio_drops(
+        tmp_path: Path, schemas_dir: Path, amqp_url: str) -> None:
+    """The control: the conflation above is the reports' doing, and without them the radio
+    loses bytes (what the budget exists to prevent)."""
+    got = run(tmp_path, schemas_dir, amqp_url, radio_status=None)
+    positions = got["routes"]["positions"]
+    print(f"\nwithout RADIO_STATUS: positions {positions['received']} received, {positions['conflated']} conflated; "
+          f"radio dropped {got['radio'].serial_rx_dropped} B")
+    assert got["decreases"] == 0
+    assert positions["conflated"] <= positions["received"] // 20, positions
+    assert got["radio"].serial_rx_dropped > 0, "the load never overflowed the radio: the first test proves nothing"
+
+
+def radio_status(txbuf: int, rssi: int = 190, noise: int = 40, remrssi: int = 188, remnoise: int = 41) -> Any:
+    from engine.endpoints.mavlink.codec import mavlink2
+
+    return mavlink2.MAVLink_radio_status_message(rssi, remrssi, txbuf, noise, remnoise, 0, 0)
+
+
+def test_the_budget_follows_txbuf_and_the_fade_margin() -> None:
+    """The rules of engine/endpoints/mavlink/budget.py on RADIO_STATUS messages: a filling
+    buffer brings the budget down to what the air carried less the excess, a waiting radio
+    lets it climb back, a fading link (either end's rssi within 10 dB, 20 units, of its noise)
+    caps it at half, within 5 dB at a quarter; a report older than 3 s no longer counts."""
+    from engine.endpoints.mavlink.budget import RadioBudget
+
+    budget = RadioBudget(2880.0)
+    assert budget.rate(0.0) == 2880.0, "no report: the ceiling"
+    budget.report(radio_status(100), 0.0)
+    budget.sent(2880)
+    budget.report(radio_status(40), 1.0)  # 1,229 B waiting, 1,229 gained: the air carried 1,651 B/s
+    assert 1651 - (1229 - 512) - 2 <= budget.rate(1.0) <= 1651 - (1229 - 512) + 2, budget.rate(1.0)
+    low = budget.rate(1.0)
+    budget.report(radio_status(70), 2.0)
+    assert budget.rate(2.0) == low, "between half and idle: hold"
+    budget.report(radio_status(95), 3.0)
+    assert budget.rate(3.0) == low + 288, "idle radio: a tenth of the ceiling back"
+    for t in range(4, 30):
+        budget.report(radio_status(100), float(t))
+    assert budget.rate(29.0) == 2880.0, "never above the ceiling"
+    budget.report(radio_status(100, remrssi=70, remnoise=45), 30.0)  # the far end hears us 12.5 dB over noise
+    assert budget.rate(30.0) == 2880.0
+    budget.report(radio_status(100, rssi=55, noise=40), 31.0)  # 7.5 dB: fading
+    assert budget.rate(31.0) == 1440.0
+    budget.report(radio_status(100, rssi=45, noise=42), 32.0)  # 1.5 dB: the link is about to drop
+    assert budget.rate(32.0) == 720.0
+    assert budget.rate(35.5) == 2880.0, "a report older than 3 s no longer counts"
+    assert RadioBudget(0.0).rate(1.0) == 0.0, "a network link is not paced"
