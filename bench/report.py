@@ -156,6 +156,22 @@ def discovery_table(discovery: dict[str, Any]) -> list[str]:
                     f"{_f(idle.get('engine_cpu_percent'), 2)} % following {idle.get('topics')}.", ""]
 
 
+def calls_table(calls: dict[str, Any]) -> list[str]:
+    engine, plain = calls["through_engine"], calls["plain_rclpy"]
+    rpc = calls.get("plain_amqp_rpc")
+    amqp = [f"| AMQP legs alone (an aio-pika RPC worker) | {rpc['calls']} | {_f(rpc['p50_ms'])} | {_f(rpc['p99_ms'])} |"] if rpc else []
+    return ["## 7. A ROS 2 service call's round trip, one call at a time (bench/call_ros2.py)", "",
+            "The same test_msgs/srv/BasicTypes server: called from AMQP through the engine (direct reply-to, "
+            "AMQP -> ROS 2 -> AMQP) and by a plain rclpy client, in the same run.", "",
+            "| Caller | calls | p50 (ms) | p99 (ms) |", "|---|---|---|---|",
+            f"| through the engine | {engine['calls']} | {_f(engine['p50_ms'])} | {_f(engine['p99_ms'])} |",
+            f"| plain rclpy client | {plain['calls']} | {_f(plain['p50_ms'])} | {_f(plain['p99_ms'])} |",
+            f"| engine / rclpy | | {_f(calls['p50_ratio'], 1)} x | {_f(calls['p99_ratio'], 1)} x |", *amqp, "",
+            "The engine's round trip holds two AMQP legs (each a broker hop) and one ROS 2 call; the AMQP legs alone "
+            "are an aio-pika worker answering the same caller at once (aio-pika costs more per message than the "
+            "engine's aiormq path: context, not a floor).", ""]
+
+
 def write_report(results: dict[str, Any], out: Path) -> None:
     before, after = results.get("machine_before", {}), results.get("machine_after", {})
     lines = ["# RabbitROS engine benchmark", "",
@@ -163,7 +179,8 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"load average before {_load(before)}, after {_load(after)} (the machine is shared: absolute figures "
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
     for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
-                        ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table)):
+                        ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table),
+                        ("calls", calls_table)):
         value = results.get(key)
         if value is None:
             continue

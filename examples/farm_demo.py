@@ -2,10 +2,13 @@
 
 - a UAV (the simulated vehicle) speaks MAVLink 2 through an emulated SiK radio pair: telemetry
   at realistic rates and, every few seconds, weed detections as JSON over the radio;
-- a ground robot is a plain ROS 2 node: GNSS fix, missions in, acknowledgements out;
+- a ground robot is a plain ROS 2 node: GNSS fix, missions in, acknowledgements out, a sprayer
+  service and a row action;
 - the engine runs ``examples/farm_uav_gcs.yaml`` against a private RabbitMQ node;
-- the supervisory software speaks only AMQP: it prints the canonical messages and turns weed
-  detections into spraying missions for the ground robot.
+- the supervisory software speaks only AMQP: it prints the canonical messages, turns weed
+  detections into spraying missions for the ground robot, and calls the robot (AMQP
+  request/reply): sprayer on through its service, along a row with an action goal (accepted,
+  feedback per stop, result), sprayer off.
 
 On a terminal the demo shows, in place, each route's rates and counts and its last canonical
 message (from the engine's admin endpoint); otherwise (or with ``--plain``) it prints plain lines.

@@ -45,12 +45,12 @@ def test_every_schema_is_documented():
 
 def test_the_tutorial_route_and_its_test_are_the_files_it_shows():
     tutorial = (DOCS / "tutorial.md").read_text()
-    for name in ("tractor.yaml", "tractor.test.yaml"):
+    for name in ("tractor.yaml", "tractor.test.yaml", "sprayer.yaml", "sprayer.test.yaml"):
         assert (DOCS / "tutorial" / "routes" / name).read_text() in tutorial, name
     result = subprocess.run([sys.executable, "-m", "engine", "test", "--routes", "docs/tutorial/routes", "--schemas", "schemas"],
                             capture_output=True, text=True, cwd=REPO, timeout=60)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert result.stdout.splitlines()[-1] == "2 passed, 0 failed"
+    assert result.stdout.splitlines()[-1] == "3 passed, 0 failed"
     assert "[docs/](docs/README.md)" in (REPO / "README.md").read_text()
 
 
