@@ -180,7 +180,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
     for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
                         ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table),
-                        ("calls", calls_table)):
+                        ("calls", calls_table), ("fleet", fleet_table)):
         value = results.get(key)
         if value is None:
             continue
@@ -193,6 +193,13 @@ def write_report(results: dict[str, Any], out: Path) -> None:
             lines += [f"## {key}: cannot render ({type(exc).__name__}: {exc})", ""]
     lines += ["Plots: " + ", ".join(f"`{p}`" for p in plots(results, out)), ""]
     (out / "report.md").write_text("\n".join(lines))
+
+
+def fleet_table(fleet: dict[str, Any]) -> list[str]:
+    from bench.fleet import fleet_report
+
+    return ["## 7. A fleet: 100 agents through templated routes, against one hand-written route per agent", "",
+            *fleet_report(fleet), ""]
 
 
 def _load(machine: dict[str, Any]) -> str:
