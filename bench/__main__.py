@@ -3,8 +3,9 @@
 Starts a private RabbitMQ node, runs each section (the paper's latency method, zero-loss
 throughput of each route kind against its reference pass-through and the paper's design,
 latency at half that rate, throughput against message size, 1/100/1,000 routes, JSON over
-the emulated SiK radio at 0 and 5 % loss, MAVLink latency over that radio, a 20-waypoint
-mission uploaded by the engine, pymavlink and MAVSDK) and writes ``results.json``, ``report.md`` (the paper's table format
+the emulated SiK radio at 0 and 5 % loss, ROS 2 topic discovery latency for 20 robots, MAVLink latency
+over that radio, a 20-waypoint mission uploaded by the engine, pymavlink and MAVSDK) and writes
+``results.json``, ``report.md`` (the paper's table format
 plus p50/p99) and PNG plots. Throughput is reported as ratios measured in the same run: the
 machine is shared, absolute numbers move with its load (recorded in the report).
 
@@ -26,12 +27,12 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from bench import mission_upload, radio_latency, sections
+from bench import bench_discovery, mission_upload, radio_latency, sections
 from bench import throughput as tp
 from bench.report import write_report
 
 REPO = Path(__file__).resolve().parent.parent
-SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "sik5", "radio_latency", "mission")
+SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "radio_latency", "mission")
 KINDS = {
     "amqp-amqp": ("ref-amqp-amqp", None),
     "amqp-ros2": ("ref-amqp-ros2", "paper-amqp-ros2"),
@@ -98,6 +99,7 @@ async def run(args: argparse.Namespace) -> Path:
         ("sizes", lambda: sections.throughput_by_size(broker, [50, 250, 1000, 4000], args.count)),
         ("routes", lambda: sections.many_routes(broker, [1, 100, 1000], args.count)),
         ("sik", lambda: sections.sik_goodput(url, args.sik_count, 250)),
+        ("discovery", lambda: bench_discovery.measure(url, tp.domain_id())),
         ("sik5", lambda: sections.sik_goodput(url, args.sik_count, 250, loss=0.05)),
         ("radio_latency", lambda: radio_latency.run(url, 12.0)),
         ("mission", lambda: asyncio.to_thread(mission_upload.run, [20], [0.0, 0.05])),

@@ -139,10 +139,27 @@ def sik_table(sik: dict[str, Any]) -> list[str]:
     return lines
 
 
+def discovery_table(discovery: dict[str, Any]) -> list[str]:
+    lines = ["## 6. ROS 2 topic discovery: a robot's topic appears -> its first message at RabbitMQ", "",
+             f"Each robot publishes at {discovery['rate_hz']:.0f} Hz from its publisher's creation; the engine reads the "
+             f"graph every {discovery['scan_interval_s']} s (bench/bench_discovery.py).", "",
+             "| Robots | delivered | appear -> delivered p50 / max (ms) | appear -> matched p50 / max (ms) | "
+             "matched -> delivered p50 / max (ms) |", "|---|---|---|---|---|"]
+    for name in ("staggered", "burst"):
+        row = discovery[name]
+        cells = [f"{_f(row[key].get('p50'), 0)} / {_f(row[key].get('max'), 0)}"
+                 for key in ("appear_to_delivered_ms", "appear_to_matched_ms", "matched_to_delivered_ms")]
+        how = f"one every {row['stagger_s']} s" if row["stagger_s"] else "all at once"
+        lines.append(f"| {row['robots']}, {how} | {row['delivered']}/{row['robots']} | " + " | ".join(cells) + " |")
+    none, idle = discovery.get("idle_following_none", {}), discovery.get("idle_following", {})
+    return lines + ["", f"Engine CPU with nothing published: {_f(none.get('engine_cpu_percent'), 2)} % following no topic, "
+                    f"{_f(idle.get('engine_cpu_percent'), 2)} % following {idle.get('topics')}.", ""]
+
+
 def radio_latency_table(rows: list[dict[str, Any]]) -> list[str]:
     from bench.radio_latency import HEADER, format_row
 
-    return ["## 6. MAVLink latency over the emulated SiK radio", "",
+    return ["## 7. MAVLink latency over the emulated SiK radio", "",
             "Telemetry: the vehicle's GLOBAL_POSITION_INT from its send to an AMQP consumer; command: an AMQP call "
             "to COMMAND_LONG over the radio and the vehicle's COMMAND_ACK back as the call's reply (bench/radio_latency.py).",
             "", HEADER, *(format_row(row) for row in rows), ""]
@@ -152,7 +169,7 @@ def mission_table(rows: list[dict[str, Any]]) -> list[str]:
     def cell(value: Any) -> str:
         return f"{value:.2f}" if isinstance(value, float) else f"failed: {value}"
 
-    lines = ["## 7. Mission upload over the emulated SiK radio", "",
+    lines = ["## 8. Mission upload over the emulated SiK radio", "",
              "The engine's mission sink, a plain pymavlink loop and MAVSDK's MissionRaw client (the mavsdk wheel as the "
              "ground station), one after the other, to the simulated vehicle behind the same radio (bench/mission_upload.py).",
              "", "| Items | Loss | Engine (s) | pymavlink (s) | MAVSDK (s) |", "|---|---|---|---|---|"]
@@ -168,7 +185,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"load average before {_load(before)}, after {_load(after)} (the machine is shared: absolute figures "
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
     for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
-                        ("routes", routes_table), ("sik", sik_table), ("sik5", sik_table),
+                        ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table),
                         ("radio_latency", radio_latency_table), ("mission", mission_table)):
         value = results.get(key)
         if value is None:

@@ -477,6 +477,11 @@ def main() -> None:
     from engine.loop import run
 
     system, args = sys.argv[1], json.loads(sys.argv[2])
+    if system.startswith("fleet-"):  # bench/fleet.py's load generators: plain threads, no loop
+        from bench import fleet
+
+        getattr(fleet, system.removeprefix("fleet-"))(args)
+        return
     if system.startswith("paper-") or system in ("ros-publisher", "mavlink-sender"):
         asyncio.run(SYSTEMS[system](args))  # the paper ran on asyncio's own loop
     else:

@@ -493,6 +493,8 @@ def encode(message: Outbound, received_at_ns: int | None = None) -> bytes:
     record = {**body, "id": message.message_id, "c": message.canonical, "m": dict(message.meta)}
     if message.fields is not message.canonical:
         record["f"] = message.fields
+    if message.captured:
+        record["v"] = message.captured
     if received_at_ns is not None:
         record["t"] = received_at_ns
     return orjson.dumps(record, default=str, option=orjson.OPT_APPEND_NEWLINE)
@@ -509,7 +511,7 @@ def decode_held(line: bytes) -> Held:
     received_at = record.get("t")  # wall clock ns (it outlives the process); the sink's clock is monotonic
     received_ns = None if received_at is None else time.monotonic_ns() - (time.time_ns() - received_at)
     return Outbound(body, canonical, record.get("f", canonical), record["id"], record["m"],
-                    received_ns=received_ns), received_at
+                    received_ns=received_ns, captured=record.get("v")), received_at
 
 
 class _MemoryStore:

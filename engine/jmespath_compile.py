@@ -24,9 +24,10 @@ from jmespath.visitor import Options, TreeInterpreter, _equals, _is_actual_numbe
 from jmespath.visitor import _Expression as _InterpretedExpression
 
 Compiled = Callable[[Any], Any]
-Override = Callable[[dict[str, Any]], Compiled]
+Override = Callable[[dict[str, Any], Callable[[Any], Compiled]], Compiled]
 """Compiles one ``function_expression`` node itself (a function that needs more than its
-arguments, such as ``meta(name)``, which reads the message's source metadata)."""
+arguments, such as ``meta(name)``, which reads the message's source metadata, or ``recall``,
+which reads a store); it is given the node and the compiler of its argument nodes."""
 
 
 class Unsupported(Exception):
@@ -352,7 +353,7 @@ class _Compiler:
     def _function_expression(self, node: dict[str, Any]) -> Compiled:
         name = node["value"]
         if name in self.overrides:
-            return self.overrides[name](node)
+            return self.overrides[name](node, self.node)
         arguments = tuple(self.node(child) for child in node["children"])
         table = self.functions
         spec = table.FUNCTION_TABLE.get(name)

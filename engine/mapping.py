@@ -13,6 +13,7 @@ import re
 import time
 import uuid
 from functools import lru_cache
+from functools import partial as functools_partial
 from types import MappingProxyType
 from typing import Any, Callable, Mapping
 
@@ -21,7 +22,8 @@ from jmespath import exceptions as jmespath_errors
 from jmespath import functions
 
 from engine import frames
-from engine.jmespath_compile import compile_parsed
+from engine.jmespath_compile import Compiled, compile_parsed
+from engine.stores import RECALL_FUNCTION, SEQUENCE_FUNCTION, Stores
 
 Mapper = Callable[..., Any]
 """``mapper(data)``, or ``mapper(data, meta)`` where ``meta`` is this message's source metadata
@@ -120,6 +122,25 @@ class FieldFunctions(functions.Functions):
         """Declared so the function is known; a mapping calling it is compiled with its own
         ``meta`` (:func:`compile_mapping`), which reads the message's metadata."""
         raise MappingError("meta() is evaluated only by a compiled mapping")
+
+    @functions.signature({"types": ["string"]}, {"types": [], "optional": True})
+    def _func_recall(self, store: str, key: Any = None) -> Any:
+        """Declared so the function is known; a mapping calling it is compiled with the engine's
+        stores (:func:`compile_mapping`, engine/stores.py)."""
+        raise MappingError("recall() is evaluated only by a compiled mapping")
+
+    @functions.signature()
+    def _func_sequence(self) -> int:
+        """Declared so the function is known; a mapping calling it is compiled with its route's
+        counter (:func:`compile_mapping`, engine/stores.py)."""
+        raise MappingError("sequence() is evaluated only by a compiled mapping")
+
+    @functions.signature({"types": ["array"]}, {"types": ["number"]})
+    def _func_skip(self, items: list[Any], count: float) -> list[Any]:
+        """The elements after the first ``count`` (``items[count:]`` with a computed count,
+        which JMESPath's own slices cannot take): the nodes of an order a vehicle has not
+        reached yet, ``skip(nodes, reached)``."""
+        return items[max(0, int(count)):]
 
     @functions.signature({"types": ["string"]}, {"types": ["object"]})
     def _func_format(self, template: str, values: dict[str, Any]) -> str:
@@ -242,7 +263,8 @@ def _options_for(parsed: Any) -> jmespath.Options:
     return _all_options() if _called(parsed) & protocol_functions else _OPTIONS
 
 
-def compile_mapping(expression: str | None, variables: Mapping[str, Any] | None = None) -> Mapper | None:
+def compile_mapping(expression: str | None, variables: Mapping[str, Any] | None = None,
+                    stores: Stores | None = None, route: str = "") -> Mapper | None:
     """Compile a JMESPath expression (to closures, see :mod:`engine.jmespath_compile`);
     ``None`` (identity) stays ``None`` so callers can forward original bytes untouched.
 
@@ -252,7 +274,11 @@ def compile_mapping(expression: str | None, variables: Mapping[str, Any] | None 
     the message's dict before evaluating (one attribute store per message, and none for a
     mapping that does not call ``meta``). A name in ``variables`` (the route's template
     variables, fixed at load) is folded into a constant. Mappings run on the event loop, one
-    message at a time, so the slot is never shared by two evaluations in flight."""
+    message at a time, so the slot is never shared by two evaluations in flight.
+
+    ``recall('NAME', key)`` reads store NAME of ``stores`` (the engine's; a fresh, empty set
+    when None) and ``sequence()`` counts with the counter of ``route`` there: both resolved
+    here, once (engine/stores.py)."""
     if expression is None:
         return None
     try:
@@ -260,8 +286,32 @@ def compile_mapping(expression: str | None, variables: Mapping[str, Any] | None 
     except jmespath_errors.JMESPathError as exc:
         raise MappingError(_one_line(exc)) from None
     options = _options_for(parsed.parsed)
-    if not _calls(parsed.parsed, META_FUNCTION):
-        evaluate = compile_parsed(parsed, options)
+    called = _called(parsed.parsed)
+    overrides: dict[str, Callable[..., Compiled]] = {}
+    if RECALL_FUNCTION in called or SEQUENCE_FUNCTION in called:
+        stores = stores if stores is not None else Stores()
+        overrides[RECALL_FUNCTION] = functools_partial(_compile_recall, stores)
+        overrides[SEQUENCE_FUNCTION] = functools_partial(_compile_sequence, stores, route)
+    slot = _MetaSlot()
+    if META_FUNCTION in called:
+        constants = dict(variables or {})
+
+        def compile_meta(node: dict[str, Any], compile_node: Callable[[Any], Compiled]) -> Compiled:
+            name = meta_name(node)
+            if name is None:
+                raise MappingError("meta() takes one name in quotes, as meta('routing_key')")
+            if name in constants:
+                constant = constants[name]
+                return lambda value: constant
+
+            def meta(value: Any) -> Any:
+                return slot.meta.get(name)
+
+            return meta
+
+        overrides[META_FUNCTION] = compile_meta
+    evaluate = compile_parsed(parsed, options, overrides or None)
+    if META_FUNCTION not in called:
 
         def apply(data: Any, meta: Mapping[str, Any] = _NO_META) -> Any:
             try:
@@ -272,23 +322,6 @@ def compile_mapping(expression: str | None, variables: Mapping[str, Any] | None 
                 raise MappingError(str(exc)) from None
 
         return apply
-    slot = _MetaSlot()
-    constants = dict(variables or {})
-
-    def compile_meta(node: dict[str, Any]) -> Callable[[Any], Any]:
-        name = meta_name(node)
-        if name is None:
-            raise MappingError("meta() takes one name in quotes, as meta('routing_key')")
-        if name in constants:
-            constant = constants[name]
-            return lambda value: constant
-
-        def meta(value: Any) -> Any:
-            return slot.meta.get(name)
-
-        return meta
-
-    evaluate = compile_parsed(parsed, options, {META_FUNCTION: compile_meta})
 
     def apply_with_meta(data: Any, meta: Mapping[str, Any] = _NO_META) -> Any:
         slot.meta = meta
@@ -300,6 +333,27 @@ def compile_mapping(expression: str | None, variables: Mapping[str, Any] | None 
             raise MappingError(str(exc)) from None
 
     return apply_with_meta
+
+
+def _compile_recall(stores: Stores, node: dict[str, Any], compile_node: Callable[[Any], Compiled]) -> Compiled:
+    """``recall('NAME')`` or ``recall('NAME', key)``: the store is looked up now, the key
+    expression compiled as any other; per message one or two dict lookups."""
+    children = node.get("children", ())
+    name = literal_name(node)
+    if name is None or len(children) > 2:
+        raise MappingError("recall() takes a store name in quotes and a key, as recall('position', serialNumber)")
+    store = stores.store(name)
+    if len(children) == 1:
+        return lambda value: store.get(None)
+    key = compile_node(children[1])
+    return lambda value: store.get(key(value))
+
+
+def _compile_sequence(stores: Stores, route: str, node: dict[str, Any], compile_node: Callable[[Any], Compiled]) -> Compiled:
+    if node.get("children"):
+        raise MappingError("sequence() takes no argument")
+    counter = stores.sequence(route) if route else Stores().sequence("")
+    return lambda value: next(counter)
 
 
 class _MetaSlot:
@@ -314,9 +368,27 @@ class _MetaSlot:
 def meta_name(node: dict[str, Any]) -> str | None:
     """The name a ``meta(...)`` call node asks for, or None when it is not one literal string."""
     children = node.get("children", ())
-    if len(children) == 1 and children[0].get("type") == "literal" and isinstance(children[0].get("value"), str):
+    return literal_name(node) if len(children) == 1 else None
+
+
+def literal_name(node: dict[str, Any]) -> str | None:
+    """The literal string a call node (``meta``, ``recall``) gives first, or None."""
+    children = node.get("children", ())
+    if children and children[0].get("type") == "literal" and isinstance(children[0].get("value"), str):
         return children[0]["value"]
     return None
+
+
+def recall_names(expression: str | None) -> list[str | None]:
+    """The store names ``expression`` passes to ``recall()``, in order (None for a call that
+    does not give one literal name); [] for an expression that does not compile."""
+    if not expression:
+        return []
+    try:
+        tree = jmespath.compile(expression).parsed
+    except jmespath_errors.JMESPathError:
+        return []
+    return [literal_name(node) for node in _calls(tree, RECALL_FUNCTION)]
 
 
 def meta_names(expression: str | None) -> list[str | None]:

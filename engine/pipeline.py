@@ -24,6 +24,7 @@ from engine.endpoints.base import Inbound, MessageRejected, Outbound, Sink
 from engine.mapping import MappingError, Mapper, compile_mapping
 from engine.replies import ReplyShape
 from engine.schemas import CanonicalSchema, SchemaError, canonical_bytes, parse_json
+from engine.stores import Remember, Stores
 from engine.throttle import Throttle
 
 if TYPE_CHECKING:
@@ -47,23 +48,32 @@ class Pipeline:
     """The route's throttle stage (engine/throttle.py): one per generation, closed when it retires."""
     reply_shape: ReplyShape = field(default_factory=lambda: ReplyShape(None, None))
     """The route's ``reply:`` mapping and schema (engine/replies.py), compiled with the rest."""
+    captured: tuple[str, ...] = ()
+    """The names the source captures (``Transport.source_variables``), handed to the sink's templates."""
+    remember: Remember | None = None
+    """Where the route keeps its accepted canonical messages (``remember:``, engine/stores.py)."""
     in_flight: int = 0
     _drained: asyncio.Event = field(default_factory=asyncio.Event)
 
     @classmethod
     def compile(cls, spec: RouteSpec, generation: int, schema: CanonicalSchema, sink: Sink,
-                reply_schema: CanonicalSchema | None = None) -> Pipeline:
+                reply_schema: CanonicalSchema | None = None, stores: Stores | None = None) -> Pipeline:
+        """``stores``: the engine's (engine/stores.py), which ``recall()``, ``sequence()`` and
+        ``remember:`` use; a fresh, empty set when None (a route test gives its own)."""
+        stores = stores if stores is not None else Stores()
         return cls(
             route=spec.name,
             generation=generation,
             spec=spec,
             schema=schema,
             sink=sink,
-            mapper=compile_mapping(spec.mapping, spec.variables),
-            sink_mapper=compile_mapping(spec.sink_mapping, spec.variables),
+            mapper=compile_mapping(spec.mapping, spec.variables, stores, spec.name),
+            sink_mapper=compile_mapping(spec.sink_mapping, spec.variables, stores, spec.name),
             sink_check=transport(spec.sink.protocol).sink_field_check(spec.sink.options, spec.sink_mapping),
             throttle=Throttle.from_options(spec.throttle),
             reply_shape=ReplyShape(spec.reply, reply_schema),
+            captured=transport(spec.source.protocol).source_variables(spec.source.options),
+            remember=Remember.compile(spec.remember, stores),
         )
 
     def convert(self, inbound: Inbound) -> Outbound:
@@ -115,6 +125,7 @@ class Pipeline:
             fields=fields,
             message_id=meta.get("message_id") or os.urandom(16).hex(),
             meta=meta,
+            captured={name: meta[name] for name in self.captured if name in meta} if self.captured else None,
         )
 
     def cancel_request(self, inbound: Inbound) -> Outbound:

@@ -21,7 +21,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from engine.endpoints.base import FINAL_REPLIES, REPLY_KINDS, EndpointError, Source
+from engine.endpoints.base import FINAL_REPLIES, REPLY_KINDS, EndpointError, Reply, Source
 from engine.logs import ReportLimiter
 from engine.mapping import Mapper, MappingError, compile_mapping
 from engine.options import option
@@ -88,16 +88,14 @@ class Replies:
         self.undelivered = 0
         """Replies the source could not hand over (its connection down): dropped."""
         self._report = ReportLimiter()
+        self._unrequested = Unrequested(self)
 
-    def bind(self, shape: ReplyShape, meta: Mapping[str, Any]) -> Any:
+    def bind(self, shape: ReplyShape, meta: Mapping[str, Any]) -> Reply:
         """``Outbound.reply`` for a message with this meta: a :class:`ReplyTo` when it asks for
-        replies, else the one counting method (no object per message)."""
+        replies, else the route's one :class:`Unrequested` (no object per message)."""
         if meta.get("reply_to"):
             return ReplyTo(self, shape, meta)
-        return self.count_unrequested
-
-    async def count_unrequested(self, kind: str, data: Any) -> None:
-        self.unrequested += 1
+        return self._unrequested
 
     async def failed(self, reply: Any, meta: Mapping[str, Any], stage: str, error: str) -> None:
         """The request ended in a dead letter: its one ``error`` reply (unless a final reply
@@ -128,6 +126,21 @@ class Replies:
                 "late": self.late, "undelivered": self.undelivered}
 
 
+class Unrequested:
+    """The ``Outbound.reply`` of every request of a route that asked for no reply: counts."""
+
+    __slots__ = ("replies",)
+
+    def __init__(self, replies: Replies) -> None:
+        self.replies = replies
+
+    async def __call__(self, kind: str, data: Any) -> None:
+        self.replies.unrequested += 1
+
+    def late(self) -> None:
+        self.replies.late += 1
+
+
 class ReplyTo:
     """The replies of one request (its ``Outbound.reply``): shaped, then delivered in order
     by the caller's awaiting; none after the final one."""
@@ -139,6 +152,9 @@ class ReplyTo:
         self.shape = shape
         self.meta = meta
         self.finished = False
+
+    def late(self) -> None:
+        self.replies.late += 1
 
     async def __call__(self, kind: str, data: Any) -> None:
         replies = self.replies

@@ -31,6 +31,7 @@ from engine.replies import ReplyFailed
 from engine.route_yaml import Problem, parse_document
 from engine.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes, source_meta_names
 from engine.schemas import SchemaRegistry
+from engine.stores import Stores
 from engine.suggest import did_you_mean
 
 STAGES = ("input", "decode", "mapping", "schema", "sink mapping", "sink", "reply mapping", "reply schema")
@@ -56,6 +57,8 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
                     "input_raw": {"type": "string", "description": "the source bytes as they are (not JSON-encoded)"},
                     "meta": {"type": "object", "description": "the source's metadata of the message, read by meta(name) "
                                                               "(routing_key, topic, system_id...)"},
+                    "remembered": {"type": "object", "description": "what the stores hold for this case, read by recall(): "
+                                                                    "{STORE: {KEY: value}}, or {STORE: value} for a store without per"},
                     "expect": {"description": "the canonical message"},
                     "ignore": {"type": "array", "items": {"type": "string"}, "description": "keys (a.b) left out"},
                     "expect_sink": {"description": "the sink mapping's output"},
@@ -142,6 +145,10 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
             elif config is not None:
                 problems.extend(document.problem(where + ("meta", key), message)
                                 for key, message in _meta_key_problems(config.routes[route], body.get("meta") or {}))
+                known = store_keys(config)
+                problems.extend(document.problem(where + ("remembered", name), f"remembered: no route remembers into store "
+                                                 f"{name!r}{did_you_mean(name, known) or ' (stores: ' + (', '.join(known) or 'none') + ')'}")
+                                for name in body.get("remembered") or {} if name not in known)
             if len(problems) == before:
                 cases.append(Case(str(path), line, route, body.get("name", ""), body))
     return cases, problems
@@ -179,11 +186,20 @@ class DrySink(Sink):
         raise EndpointError("a route test does not deliver")
 
 
-def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry) -> Result:
+def store_keys(config: RoutesConfig) -> dict[str, bool]:
+    """Each store some route remembers into, and whether it is keyed (``per``)."""
+    return {route.remember.store: route.remember.per is not None
+            for route in config.routes.values() if route.remember is not None}
+
+
+def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mapping[str, bool] | None = None) -> Result:
+    """``keyed``: each store's ``per`` given or not (:func:`store_keys`), to read the case's
+    ``remembered``; every case starts with stores holding only that, and ``sequence()`` at 1."""
     schema = schemas.get(spec.schema)
     assert schema is not None  # the route compiled
     reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
-    pipeline = Pipeline.compile(spec, 0, schema, DrySink(), reply_schema)
+    stores = Stores.given(case.body.get("remembered") or {}, keyed or {})
+    pipeline = Pipeline.compile(spec, 0, schema, DrySink(), reply_schema, stores)
     body = case.body
     expected_error = body.get("expect_error")
     reply: Any = None
@@ -262,8 +278,9 @@ def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
 
 
 def run_tests(cases: list[Case], config: RoutesConfig, schemas: SchemaRegistry) -> Iterator[Result]:
+    keyed = store_keys(config)
     for case in cases:
-        yield run_case(case, config.routes[case.route], schemas)
+        yield run_case(case, config.routes[case.route], schemas, keyed)
 
 
 def format_result(result: Result, base: Path | None = None) -> list[str]:

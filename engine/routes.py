@@ -27,7 +27,8 @@ from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, Rou
 from engine.endpoints.base import EndpointError, Transport
 from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hint, reply_field_problems, undeclared_keys, undeclared_path
 from engine.identity import connection_fingerprint, connection_key_files, exclusive_resource
-from engine.mapping import MappingError, compile_mapping, known_functions, literal_format_problems, meta_names, unknown_functions
+from engine.mapping import (MappingError, compile_mapping, known_functions, literal_format_problems, meta_names, recall_names,
+                            unknown_functions)
 from engine.options import OptionError, describe, evolve, fields_of, given, option, parse
 from engine.local_broker import LOCAL_BROKER_ENV
 from engine.redaction import Secret, json_default, revealed
@@ -36,6 +37,7 @@ from engine.schemas import SchemaRegistry
 from engine.replies import ReplyOptions
 from engine.suggest import did_you_mean
 from engine.templates import Expansion, expand_routes, is_items_text
+from engine.stores import RememberOptions
 from engine.throttle import ThrottleOptions
 
 ROUTE_FILE_SCHEMA: dict[str, Any] = json.loads(
@@ -95,6 +97,7 @@ class RouteOptions:
     schema: str | None = option(None, description="required: the canonical schema the mapping's result must satisfy, NAME (newest "
                                                   "version) or NAME.vN (pinned), from schemas/; raw_json passes any object")
     throttle: ThrottleOptions | None = option(None)
+    remember: RememberOptions | None = option(None)
     priority: Literal["high", "normal", "low"] = option(
         "normal", description="on a link several routes share (a telemetry radio), the order of what is sent next: high before "
                               "normal before low, tunnel routes included; commands and missions always go first")
@@ -172,6 +175,8 @@ class RouteSpec:
     variables: Mapping[str, Any] = field(default_factory=dict, compare=False)
     """The route's template variables (its ``for_each`` item; the fingerprint covers them):
     ``meta(name)`` gives them as constants folded into the compiled mapping."""
+    remember: RememberOptions | None = None
+    """The store its accepted canonical messages are kept in (engine/stores.py)."""
 
 
 @dataclass(frozen=True)
@@ -538,6 +543,8 @@ def _compile_routes(
     routes: dict[str, RouteSpec] = {}
     defined: dict[str, tuple[str, int]] = {}
     """Where each route name was first defined, whether or not that route compiled."""
+    recalls: list[tuple[Document, Path_, str, str | None]] = []
+    remembers: list[tuple[Document, Path_, RememberOptions]] = []
     for document in documents:
         for index, body in _items(document, "routes", list):
             where: Path_ = ("routes", index)
@@ -554,13 +561,22 @@ def _compile_routes(
                 template = " (a for_each route's name must hold a variable that differs by item)" if expansion is not None else ""
                 problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first_file}:{first_line}{_together(document, first_file)}{template}"))
             defined.setdefault(name, (document.file, document.line(where)))
+            if route.remember is not None:
+                remembers.append((document, where, route.remember))
+            for key_path, expression in ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping"))):
+                recalls.extend((document, key_path, name, store) for store in dict.fromkeys(recall_names(expression)))
             source, source_complete = _endpoint(document, where + ("source",), name, route.source, connections, problems)
             sink, sink_complete = _endpoint(document, where + ("sink",), name, route.sink, connections, problems)
+            if route.remember is None and sink is not None and not endpoints.transport(sink.protocol).delivers:
+                problems.append(document.problem(where + ("sink",), (
+                    f"route {name!r}: a {sink.protocol} sink delivers nowhere: the route needs remember: {{store: NAME}} "
+                    "(what it remembers is all it does)")))
             mapping, schema_name, sink_mapping = route.mapping, route.schema, route.sink.get("mapping")
             _route_checks(document, where, route, source, sink, (source_complete, sink_complete), schemas, problems, warnings,
                           variables)
             if expansion is not None:
                 warnings.extend(_shadowing_warnings(document, where, route, expansion, schemas))
+                warnings.extend(_captured_warnings(document, where, route, source, expansion))
             if not (complete and source_complete and sink_complete):
                 continue
             placement = _placement(document, where, route, source, sink, connections, problems) if source and sink else None
@@ -594,9 +610,32 @@ def _compile_routes(
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
                 document.file, document.line(where), throttle=route.throttle, delivery=delivery, buffer=buffer,
-                placement=placement, reply=route.reply, variables=variables,
+                placement=placement, reply=route.reply, variables=variables, remember=route.remember,
             )
+    problems.extend(_store_problems(recalls, remembers))
     return routes
+
+
+def _store_problems(recalls: list[tuple[Document, Path_, str, str | None]],
+                    remembers: list[tuple[Document, Path_, RememberOptions]]) -> Iterator[Problem]:
+    """``recall('NAME')`` of a store no route remembers into could only ever read null: an
+    error, with the names there are; two routes giving one store different ``max_age`` or
+    ``per`` would make a value's meaning depend on the route that wrote it last."""
+    stores: dict[str, tuple[Document, Path_, RememberOptions]] = {}
+    for document, where, remember in remembers:
+        first = stores.setdefault(remember.store, (document, where, remember))
+        for key in ("max_age", "per"):
+            if getattr(first[2], key) != getattr(remember, key):
+                yield document.problem(where + ("remember", key), (
+                    f"store {remember.store!r}: {key} {getattr(remember, key)!r} differs from {getattr(first[2], key)!r} "
+                    f"given at {first[0].file}:{first[0].line(first[1] + ('remember',))} (one store, one meaning)"))
+    for document, where, route, name in recalls:
+        if name is None:
+            yield document.problem(where, f"route {route!r}: recall() takes a store name in quotes, as recall('position', serialNumber)")
+        elif name not in stores:
+            hint = did_you_mean(name, stores) or (f" (stores: {', '.join(sorted(stores))})" if stores else
+                                                  " (no route remembers anything: give one remember: {store: NAME})")
+            yield document.problem(where, f"route {route!r}: recall({name!r}): no route remembers into store {name!r}{hint}")
 
 
 def _reply_schema_digest(route: RouteOptions, schemas: SchemaRegistry) -> str | None:
@@ -636,7 +675,7 @@ def _route_checks(
     elif schemas.get(schema_name) is None:
         problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"))
     else:
-        warnings.extend(_schema_warnings(document, where, route, sink, schemas))
+        warnings.extend(_schema_warnings(document, where, route, sink, schemas, source_variables(source)))
     _endpoint_checks(document, where, name, source if complete[0] else None, sink if complete[1] else None,
                      mapping, sink_mapping, problems)
     _reply_checks(document, where, route, source, sink, schemas, problems)
@@ -646,6 +685,28 @@ def _route_checks(
         for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
             for message in _meta_problems(source, expression, variables):
                 problems.append(document.problem(key_path, f"route {name!r}: {message}"))
+
+
+def source_variables(source: EndpointSpec | None) -> tuple[str, ...]:
+    """The names a route's source captures from where each message came (``Transport.source_variables``)."""
+    if source is None:
+        return ()
+    try:
+        return endpoints.transport(source.protocol).source_variables(source.options)
+    except EndpointError:
+        return ()
+
+
+def _captured_warnings(document: Document, where: Path_, route: RouteOptions, source: EndpointSpec | None,
+                       expansion: Expansion) -> Iterator[Problem]:
+    """In a ``for_each`` route, a source's ``{name}`` that no item fills is captured from each
+    message's origin instead (a ROS 2 topic pattern): say so, as a misspelt variable would
+    silently become one."""
+    variables = list(expansion.variables)
+    for captured in source_variables(source):
+        yield document.problem(where + ("source",), (
+            f"route {route.name!r}: {{{captured}}} in the source is no for_each variable (variables: {', '.join(variables)}): "
+            f"it is captured from each message (every matching topic, meta({captured!r})){did_you_mean(captured, variables)}"))
 
 
 def source_meta_names(source: EndpointSpec, variables: Mapping[str, Any]) -> tuple[str, ...]:
@@ -715,9 +776,11 @@ def _replies(protocol: str) -> bool:
 
 
 def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None,
-                     schemas: SchemaRegistry) -> Iterator[Problem]:
+                     schemas: SchemaRegistry, captured: tuple[str, ...] = ()) -> Iterator[Problem]:
     """Canonical field names the schema does not declare: keys the mapping sets, and fields the
-    throttle and the sink's templates read (their messages would be dead-lettered)."""
+    throttle and the sink's templates read (their messages would be dead-lettered). A sink
+    template's ``{name}`` that the source captures (``captured``) is no field; where the schema
+    declares a field of that name too, the captured value wins, which is said."""
     name, schema_name = route.name, route.schema
     declared = schemas.declared(schema_name) if schema_name else None
     if declared is None:
@@ -727,13 +790,22 @@ def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink
     reads: list[tuple[Path_, str, str]] = []
     if route.throttle is not None and route.throttle.per:
         reads.append((where + ("throttle", "per"), "throttle per", route.throttle.per))
+    if route.remember is not None and route.remember.per:
+        reads.append((where + ("remember", "per"), "remember per", route.remember.per))
     latest_only = route.buffer.latest_only if route.buffer else None
     if latest_only is not None and latest_only.per:
         reads.append((where + ("buffer", "latest_only", "per"), "buffer latest_only per", latest_only.per))
     if sink is not None:
         transport = endpoints.transport(sink.protocol)
-        reads.extend((where + ("sink", sink.protocol, key), f"sink {key}", field_path)
-                     for key, field_path in transport.canonical_fields(sink.options))
+        for key, field_path in transport.canonical_fields(sink.options):
+            key_path = where + ("sink", sink.protocol, key)
+            if field_path not in captured:
+                reads.append((key_path, f"sink {key}", field_path))
+            elif undeclared_path(field_path, declared, schema_name) is None and not declared.open:
+                yield document.problem(key_path, (
+                    f"route {name!r}: {{{field_path}}} in sink {key} is the value the source captures from each topic, not the "
+                    f"canonical field {field_path!r} of {schema_name}: the captured value wins (rename the topic's variable "
+                    "to read the field at send time)"))
     for key_path, what, field_path in reads:
         problem = undeclared_path(field_path, declared, schema_name)
         if problem is not None:

@@ -306,6 +306,8 @@ class RouteRunner:
             if error is None:
                 settled[message.index] = True
                 self._accepted(message.inbound, message.outbound)  # type: ignore[arg-type]
+                if message.pipeline.remember is not None:
+                    message.pipeline.remember(message.outbound.canonical)  # type: ignore[union-attr]
                 continue
             if isinstance(error, NotSent):  # the sink settled it unsent: conflated, or expired while it tried
                 settled[message.index] = True
@@ -374,8 +376,11 @@ class RouteRunner:
 
     def held_delivered(self, held: list[Held]) -> None:
         now_ns = time.time_ns()
+        remember = self.pipeline.remember
         for outbound, received_at_ns in held:
             self.observer.accepted(None, outbound, None if received_at_ns is None else now_ns - received_at_ns)
+            if remember is not None:
+                remember(outbound.canonical)
 
     def held_stale(self, held: Held) -> bool:
         received_at_ns = held[1]

@@ -40,6 +40,7 @@ from engine.endpoints.base import Connection, EndpointError
 from engine.leases import Leases
 from engine.observe import Observers
 from engine.pipeline import Pipeline
+from engine.stores import Stores
 from engine.plan import ReloadPlan, plan_reload
 from engine.routes import RoutesConfig, RouteSpec, RoutesInvalid, load_routes
 from engine.runner import RouteRunner
@@ -112,6 +113,8 @@ class Engine:
         self.leases = Leases(self.instance)
         self.observers = Observers()
         """Per-route counters for the log, status, metrics and taps, kept across reloads."""
+        self.stores = Stores()
+        """The latest-value stores and sequences mappings read (engine/stores.py), kept across reloads."""
         self.dead_letters: DeadLetters | None = None
         self.retire_after_s = RETIRE_AFTER_S
         self._schemas: SchemaRegistry | None = None
@@ -241,7 +244,8 @@ class Engine:
         schema = schemas.get(spec.schema)
         assert schema is not None
         reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
-        return Pipeline.compile(spec, generation, schema, connection.sink(spec.name, spec.sink.options), reply_schema), connection
+        sink = connection.sink(spec.name, spec.sink.options)
+        return Pipeline.compile(spec, generation, schema, sink, reply_schema, self.stores), connection
 
     async def _runner(self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int) -> RouteRunner:
         """A route's pipeline and source, not started yet."""
@@ -539,6 +543,7 @@ class Engine:
                 if getattr(connection, "endpoint", None)
             },
             "elsewhere": self.elsewhere,
+            "stores": self.stores.status(),
             "routes": {name: runner.status() for name, runner in sorted(self.runners.items())},
             "connections": self._connections_status(),
         }

@@ -10,6 +10,12 @@ the upload with that result at its start; ``silent`` never answers.
 Commands (``services/command.md``): every COMMAND_LONG/COMMAND_INT for this system is answered
 with the next of ``command_results`` (the last repeats); MAV_RESULT_IN_PROGRESS is followed by
 the next result after ``progress_delay`` (it takes its place in the list); ``silent`` never answers.
+
+Flying (with ``item_seconds``): an accepted mission starts at once (AUTO) and each item is
+reached ``item_seconds`` after the previous one (MISSION_ITEM_REACHED), PX4's numbering (the
+first uploaded item is seq 0); an accepted MAV_CMD_DO_PAUSE_CONTINUE 0 holds (the time spent on
+the item is kept), 1 continues. :meth:`mission_current` is the MISSION_CURRENT the vehicle
+streams (seq, total, mission_state). The position streams do not follow the mission.
 """
 
 from __future__ import annotations
@@ -49,7 +55,7 @@ class Autopilot:
     def __init__(self, port: MavlinkPort, system_id: int, component_id: int, *,
                  mission_result: str = "MAV_MISSION_ACCEPTED", command_results: Sequence[str] = ("MAV_RESULT_ACCEPTED",),
                  legacy_requests: bool = False, request_timeout: float = 1.5, retries: int = 5,
-                 progress_delay: float = 0.5) -> None:
+                 progress_delay: float = 0.5, item_seconds: float | None = None) -> None:
         self.port = port
         self.system_id, self.component_id = system_id, component_id
         self.mission_result = None if mission_result == SILENT else _enum_value("MAV_MISSION_RESULT", mission_result)
@@ -70,6 +76,13 @@ class Autopilot:
         """(peer, count, result, mission_type) of the last upload answered, to repeat its ACK."""
         self._wake = asyncio.Event()
         self._result_index = 0
+        self.item_seconds = item_seconds
+        self.current = 0
+        """The mission item being flown to (MISSION_CURRENT.seq)."""
+        self.mission_state = mavlink2.MISSION_STATE_NO_MISSION
+        self._on_item = 0.0
+        """Seconds spent flying to ``current`` (kept while paused)."""
+        self._last_advance: float | None = None
 
     def _for_us(self, msg: Any) -> bool:
         return msg.target_system in (0, self.system_id) and msg.target_component in (0, self.component_id)
@@ -115,6 +128,8 @@ class Autopilot:
             self._upload = None
             self.mission = upload.items
             self.stats["missions_accepted"] += 1
+            self.current, self._on_item = 0, 0.0
+            self.mission_state = mavlink2.MISSION_STATE_ACTIVE
             self._ack(peer, mavlink2.MAV_MISSION_ACCEPTED, upload.mission_type, upload.count)
         else:
             self._request(upload)
@@ -160,8 +175,33 @@ class Autopilot:
     def _command_ack(self, peer: tuple[int, int], msg: Any, result: int) -> None:
         if result == mavlink2.MAV_RESULT_ACCEPTED and msg.command == mavlink2.MAV_CMD_COMPONENT_ARM_DISARM:
             self.armed = msg.param1 == 1
+        if result == mavlink2.MAV_RESULT_ACCEPTED and msg.command == mavlink2.MAV_CMD_DO_PAUSE_CONTINUE:
+            if msg.param1 == 0 and self.mission_state == mavlink2.MISSION_STATE_ACTIVE:
+                self.mission_state = mavlink2.MISSION_STATE_PAUSED
+            elif msg.param1 == 1 and self.mission_state == mavlink2.MISSION_STATE_PAUSED:
+                self.mission_state = mavlink2.MISSION_STATE_ACTIVE
         progress = 50 if result == mavlink2.MAV_RESULT_IN_PROGRESS else 0
         self.port.post(mavlink2.MAVLink_command_ack_message(msg.command, result, progress, 0, peer[0], peer[1]))
+
+    # flying
+
+    def advance(self, now: float) -> None:
+        """Fly the mission up to ``now`` (loop seconds): MISSION_ITEM_REACHED for each item reached."""
+        last, self._last_advance = self._last_advance, now
+        if self.item_seconds is None or last is None or self.mission_state != mavlink2.MISSION_STATE_ACTIVE:
+            return
+        self._on_item += now - last
+        if self._on_item < self.item_seconds:
+            return
+        self.port.post(mavlink2.MAVLink_mission_item_reached_message(self.current))
+        self._on_item = 0.0
+        if self.current + 1 < len(self.mission):
+            self.current += 1
+        else:
+            self.mission_state = mavlink2.MISSION_STATE_COMPLETE
+
+    def mission_current(self) -> Any:
+        return mavlink2.MAVLink_mission_current_message(self.current, len(self.mission), self.mission_state, 0)
 
     async def run(self) -> None:
         """Re-request the expected item of an upload that went quiet; give up after ``retries``."""

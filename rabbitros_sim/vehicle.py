@@ -227,7 +227,8 @@ class SimVehicle:
                  payload_type: int = DEFAULT_PAYLOAD_TYPE, tunnel_rate: float | None = None,
                  tunnel_settings: TunnelSettings | None = None, weeds_every: float | None = None,
                  mission_result: str = "MAV_MISSION_ACCEPTED", command_results: Sequence[str] = ("MAV_RESULT_ACCEPTED",),
-                 legacy_requests: bool = False, weeds_on_command: bool = False) -> None:
+                 legacy_requests: bool = False, weeds_on_command: bool = False,
+                 mission_item_seconds: float | None = None) -> None:
         address = parse_address(device, baud if not device.partition(":")[1] else None)
         serial = address.kind == "serial"
         settings = tunnel_settings or TunnelSettings.from_settings(None, serial=serial)
@@ -253,7 +254,8 @@ class SimVehicle:
         self.weeds_on_command = weeds_on_command
         self._detector: asyncio.Task[None] | None = None
         self.autopilot = Autopilot(self.port, system_id, component_id, mission_result=mission_result,
-                                   command_results=command_results, legacy_requests=legacy_requests)
+                                   command_results=command_results, legacy_requests=legacy_requests,
+                                   item_seconds=mission_item_seconds)
         self._boot = 0.0
         self._opened = False
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -278,9 +280,13 @@ class SimVehicle:
         return round((now - self._boot) * 1000)
 
     def send_telemetry(self, now: float, with_slow: bool) -> None:
-        """Send the 4 Hz pair, plus HEARTBEAT and SYS_STATUS when ``with_slow``."""
+        """Send the 4 Hz pair, plus HEARTBEAT and SYS_STATUS when ``with_slow`` (and MISSION_CURRENT
+        when the vehicle flies its missions: ``mission_item_seconds``)."""
         for msg in telemetry(self.time_boot_ms(now), with_slow):
             self.port.post(msg)
+        self.autopilot.advance(now)
+        if with_slow and self.autopilot.item_seconds is not None:
+            self.port.post(self.autopilot.mission_current())
 
     def _on_message(self, msg: Any) -> None:
         """Every accepted frame: TUNNEL to the echo or the tunnel protocol, the rest to the autopilot."""
@@ -468,6 +474,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="COMMAND_ACK results, comma-separated, one per command received (the last repeats), "
                              "or 'silent'")
     parser.add_argument("--legacy-requests", action="store_true", help="request items with MISSION_REQUEST")
+    parser.add_argument("--mission-item-seconds", type=float, default=None,
+                        help="fly an accepted mission: reach one item every this many seconds (MISSION_ITEM_REACHED), "
+                             "and stream MISSION_CURRENT at 1 Hz")
     parser.add_argument("--duration", type=float, default=None, help="exit after this many seconds")
     return parser
 
@@ -482,7 +491,8 @@ async def _amain(args: argparse.Namespace) -> SimVehicle:
                          echo_frames=args.echo_frames, payload_type=args.payload_type, tunnel_rate=args.tunnel_rate,
                          tunnel_settings=settings, weeds_every=args.weeds_every,
                          mission_result=args.mission_result, command_results=args.command_result.split(","),
-                         legacy_requests=args.legacy_requests, weeds_on_command=args.weeds_on_command)
+                         legacy_requests=args.legacy_requests, weeds_on_command=args.weeds_on_command,
+                         mission_item_seconds=args.mission_item_seconds)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):

@@ -65,7 +65,7 @@ def test_typed_sources_and_misspelt_names(tmp_path: Path):
         "r.yaml:16: route 'poses': mapping reads 'poses[].positon', which geometry_msgs/msg/Pose does not have; did you mean 'poses[].position'?",
         "r.yaml:20: route 'typos': source: type 'sensor_msgs/msg/NavSatFx' is not installed; did you mean 'sensor_msgs/msg/NavSatFix'?",
         "r.yaml:21: route 'typos': unknown schema 'positon' (known: ack, attitude, battery, command, envelope, mission, "
-        "position, raw_json, status, vda5050/connection, vda5050/instant_actions, vda5050/order, vda5050/state, "
+        "position, raw_json, status, vda5050/connection, vda5050/factsheet, vda5050/instant_actions, vda5050/order, vda5050/state, "
         "vda5050/visualization, weed_detection); did you mean 'position'?",
         "r.yaml:25: route 'mav': source: unknown MAVLink message 'GLOBAL_POSITON_INT' (dialect: common); did you mean 'GLOBAL_POSITION_INT'?",
         "r.yaml:32: route 'mav2': mapping reads 'lonn', which MAVLink GLOBAL_POSITION_INT does not have; did you mean 'lon'?",
@@ -190,7 +190,7 @@ def test_check_reports_every_problem_of_a_file_in_one_run(tmp_path: Path):
         "r.yaml:18: route 'other': connection 'radio' is mavlink, not amqp (amqp connections: gcs)",
         "r.yaml:19: route 'other': mapping reads 'longitud', which sensor_msgs/msg/NavSatFix does not have; did you mean 'longitude'?",
         "r.yaml:23: route 'leased': unknown schema 'postion' (known: ack, attitude, battery, command, envelope, mission, "
-        "position, raw_json, status, vda5050/connection, vda5050/instant_actions, vda5050/order, vda5050/state, "
+        "position, raw_json, status, vda5050/connection, vda5050/factsheet, vda5050/instant_actions, vda5050/order, vda5050/state, "
         "vda5050/visualization, weed_detection); did you mean 'position'?",
         "r.yaml:25: route 'leased': lease: connection 'ros' (ros2) is not one that holds leases (connections that do: gcs)",
     ]
@@ -313,4 +313,54 @@ def test_a_reply_mapping_reads_only_what_the_service_or_action_answers(tmp_path:
         ("r.yaml:19: route 'fib': reply: mapping reads 'feedback.sequense', which test_msgs/action/Fibonacci_Feedback "
          "does not have; did you mean 'feedback.sequence'?"),
         "r.yaml:19: route 'fib': reply: mapping reads 'feedbak', which an action's answer does not have; did you mean 'feedback'?",
+    ]
+
+
+MAVLINK_CALL_REPLIES = """connections:
+  uav: {mavlink: "udpin:127.0.0.1:14999"}
+  gcs: {amqp: "amqp://localhost/"}
+routes:
+  - name: arm
+    source: {amqp: {queue: calls.arm, connection: gcs}}
+    schema: command
+    sink:
+      mavlink: {connection: uav, message: COMMAND_LONG, acknowledged: true}
+      mapping: "{command: `400`, param1: `1`}"
+    reply: {mapping: "{k: kind, r: reslt, c: command, p: progres}"}
+  - name: upload
+    source: {amqp: {queue: calls.upload, connection: gcs}}
+    schema: mission
+    sink:
+      mavlink: {connection: uav, mission: upload}
+    reply: {mapping: "{k: kind, r: result, n: item}"}
+  - name: right
+    source: {amqp: {queue: calls.right, connection: gcs}}
+    schema: command
+    sink:
+      mavlink: {connection: uav, message: COMMAND_LONG, acknowledged: true}
+      mapping: "{command: `400`, param1: `1`}"
+    reply: {mapping: "{k: kind, r: result, c: command, p: progress}"}
+  - name: right-upload
+    source: {amqp: {queue: calls.right-upload, connection: gcs}}
+    schema: mission
+    sink:
+      mavlink: {connection: uav, mission: upload}
+    reply: {mapping: "{k: kind, r: result, n: items}"}
+"""
+
+
+def test_a_reply_mapping_reads_only_what_a_mavlink_command_or_mission_answers(tmp_path: Path):
+    """An acknowledged command answers ``{kind, result, command, progress}``, a mission upload
+    ``{kind, result, items}``: a reply mapping reading another key is an error with a did-you-mean."""
+    (tmp_path / "r.yaml").write_text(MAVLINK_CALL_REPLIES)
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
+    problems = [str(p).removeprefix(f"{tmp_path}/") for p in invalid.value.problems]
+    assert problems == [
+        "r.yaml:11: route 'arm': reply: mapping reads 'progres', which an acknowledged command's answer does not have; "
+        "did you mean 'progress'?",
+        "r.yaml:11: route 'arm': reply: mapping reads 'reslt', which an acknowledged command's answer does not have; "
+        "did you mean 'result'?",
+        "r.yaml:17: route 'upload': reply: mapping reads 'item', which a mission upload's answer does not have; "
+        "did you mean 'items'?",
     ]

@@ -97,16 +97,24 @@ def test_three_vehicles_on_one_udp_link(tmp_path: Path, schemas_dir: Path, amqp_
 
 
 def test_check_knows_where_a_field_target_applies(tmp_path: Path, schemas_dir: Path) -> None:
+    """Message, command and mission sinks read a ``{field}`` target per message; a JSON tunnel
+    names its receiver with a number."""
     routes = ROUTES.format(url="amqp://localhost:1/", port=14998, outbox="o", commands="c", queue="q")
-    mission = routes.replace("message: COMMAND_LONG, acknowledged: true,", "mission: upload,").replace(
-        "      mapping: \"{command: `400`, param1: `1`, param2: param}\"\n", "")
-    directory = tmp_path / "r"
-    directory.mkdir()
-    (directory / "fleet.yaml").write_text(mission)
-    with pytest.raises(RoutesInvalid) as caught:
-        load_routes(directory, SchemaRegistry(schemas_dir))
-    assert any('target_system: a "{field}" target is read per message by message and command sinks; a mission upload'
-               in p.message for p in caught.value.problems), caught.value.problems
+    no_mapping = routes.replace("      mapping: \"{command: `400`, param1: `1`, param2: param}\"\n", "")
+    mission = no_mapping.replace("message: COMMAND_LONG, acknowledged: true,", "mission: upload,")
+    tunnel = no_mapping.replace("message: COMMAND_LONG, acknowledged: true,", "json_tunnel: true,").replace(
+        "                timeout: 0.3", "")
+    for name, text in (("mission", mission), ("tunnel", tunnel)):
+        directory = tmp_path / name
+        directory.mkdir()
+        (directory / "fleet.yaml").write_text(text)
+        if name == "mission":
+            load_routes(directory, SchemaRegistry(schemas_dir))
+            continue
+        with pytest.raises(RoutesInvalid) as caught:
+            load_routes(directory, SchemaRegistry(schemas_dir))
+        assert any('target_system: a "{field}" target is read per message by message, command and mission sinks; a '
+                   'json_tunnel sink' in p.message for p in caught.value.problems), caught.value.problems
 
 
 def test_route_tests_read_the_target_from_the_message(tmp_path: Path, schemas_dir: Path) -> None:

@@ -456,7 +456,13 @@ def test_check_uninstalled_type_and_bad_options():
     assert [k for k, _ in TRANSPORT.check_source({}, None)] == ["topic"]
     bad_topic = list(TRANSPORT.check_source({"topic": "/uav-1/x"}, None))
     assert bad_topic and bad_topic[0][0] == "topic" and "uav-1" in bad_topic[0][1]
-    assert list(TRANSPORT.check_source({"topic": "/{agent_id}/x"}, None))[0][0] == "topic"
+    assert list(TRANSPORT.check_source({"topic": "/{agent_id}/x"}, None)) == []  # a pattern: discovery
+    partial = list(TRANSPORT.check_source({"topic": "/robot{n}/x"}, None))
+    assert partial and partial[0][0] == "topic" and "whole name segment" in partial[0][1]
+    assert "meta('topic')" in list(TRANSPORT.check_source({"topic": "/{topic}/x"}, None))[0][1]
+    assert [k for k, _ in TRANSPORT.check_source({"topic": "/a/x", "forget_after": 5}, None)] == ["forget_after"]
+    assert [k for k, _ in TRANSPORT.check_source({"topic": "/{a}/x", "forget_after": 0}, None)] == ["forget_after"]
+    assert [k for k, _ in TRANSPORT.check_source({"service": "/{a}/s", "type": "std_srvs/srv/Trigger"}, None)] == ["service"]
     qos = dict(TRANSPORT.check_sink({"topic": "/a", "qos": {"reliability": "sometimes", "depth": 0,
                                                               "durability": "forever", "histroy": 1}}, None))
     assert set(qos) == {"qos.reliability", "qos.depth", "qos.durability", "qos.histroy"}

@@ -44,7 +44,7 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Awaitable, Callable, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
+from typing import Any, Callable, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
 
 from engine.options import OptionError, describe, dotted, option, parse
 from engine.suggest import closest
@@ -96,11 +96,25 @@ REPLY_KINDS = ("accepted", "feedback", "result", "rejected", "error")
 ``error`` are final: nothing more is sent for that request (a later reply is dropped, counted)."""
 FINAL_REPLIES = frozenset(("result", "rejected", "error"))
 
-Reply = Callable[[str, Any], Awaitable[None]]
-"""``await outbound.reply(kind, data)``: one reply to the request ``outbound`` carries. ``data``
-is plain JSON data (the reply mapping's input); for ``error`` it is ``{stage, error}``. It never
-raises: a reply that cannot be delivered is counted by the route. For a message that asked for
-no reply it only counts the reply (fire-and-forget)."""
+class Reply(Protocol):
+    """``await outbound.reply(kind, data)``: one reply to the request ``outbound`` carries. ``data``
+    is plain JSON data (the reply mapping's input); for ``error`` it is ``{stage, error}``. It never
+    raises: a reply that cannot be delivered is counted by the route. For a message that asked for
+    no reply it only counts the reply (fire-and-forget). ``outbound.reply.late()``: the sink's
+    destination answered after the sink gave up on the call (its timeout): the answer is dropped
+    and counted (``replies.late``), whether the request asked for replies or not."""
+
+    async def __call__(self, kind: str, data: Any) -> None: ...
+
+    def late(self) -> None: ...
+
+
+def late_window(timeout: float) -> float:
+    """How long after a call's timeout a sink still recognises its answer, to count it
+    ``late``: one more ``timeout``, at least 5 s (a loaded machine answers a little late, and
+    one more second of a few bytes per call is nothing); then the answer is forgotten. Bounded:
+    calls time out at most as fast as they are sent, so at most that many seconds' worth wait."""
+    return max(timeout, 5.0)
 
 
 @dataclass(slots=True)
@@ -142,6 +156,19 @@ class Outbound:
     """``time.monotonic_ns()`` when the route received the message, set by the runner: a sink
     that keeps trying to deliver it (a tunnel's retransmissions) gives it up as
     :class:`Expired` once it is older than the route's ``max_age`` (its options' ``max_age``)."""
+
+    captured: Mapping[str, Any] | None = None
+    """The values the source captured from where the message came (a ROS 2 source topic's
+    ``{var}`` segments, :meth:`Transport.source_variables`), by name; None when there are none."""
+
+    @property
+    def template_data(self) -> Any:
+        """What a sink's ``{name}`` templates (routing keys, topics) read: the canonical
+        message, with the captured values over it (a captured variable wins over a canonical
+        field of the same name, as a ``for_each`` variable does; ``check`` warns)."""
+        if not self.captured:
+            return self.canonical
+        return {**self.canonical, **self.captured} if isinstance(self.canonical, dict) else dict(self.captured)
 
 
 class Deliver(Protocol):
@@ -428,6 +455,9 @@ class Transport(ABC):
     """The names of the metadata this protocol's source gives each message (``Inbound.meta``),
     which a mapping reads with ``meta(name)``: ``check`` refuses any other name (the route's
     template variables aside), and a route test gives them as ``meta: {name: value}``."""
+    delivers: ClassVar[bool] = True
+    """False for a sink that sends nothing anywhere (memory): its route exists only for what it
+    remembers, so the loader requires ``remember:`` on it."""
     replies: ClassVar[bool] = False
     """True when this protocol's sources can answer a request's sender (:meth:`Source.reply`):
     only then may a route with such a source have ``reply:`` (the loader checks)."""
@@ -440,6 +470,13 @@ class Transport(ABC):
     accepts_secrets: ClassVar[bool] = False
     """True when the connection settings may hold engine.redaction.Secret values, which the
     endpoint reveals only where it connects; otherwise the loader hands it plain values."""
+
+    def source_variables(self, options: Any) -> tuple[str, ...]:
+        """The names a source with these (typed) options captures from where each message came
+        (a ROS 2 topic pattern ``/{agent}/fix``: the segment each topic has there), also in
+        :meth:`meta_names`. The pipeline hands their values to the sink (``Outbound.captured``),
+        whose templates read them before canonical fields. By default none."""
+        return ()
 
     def meta_names(self, options: Any) -> tuple[str, ...]:
         """What ``meta(name)`` can read from a source with these (typed) options; by default

@@ -6,21 +6,22 @@ The request carries ``reply_to: amq.rabbitmq.reply-to`` (RabbitMQ's direct reply
 queue, and the reply must be consumed on the channel that published the request, so the sink
 has a channel of its own for calls) and a fresh ``correlation_id``; the first reply with that
 id, as JSON, is the answer. None within the sink's ``timeout``: the call fails for good
-(:class:`MessageRejected`: the caller has given up), and a later reply is dropped and counted
-(``late``).
+(:class:`MessageRejected`: the caller has given up), and a reply up to ``late_window`` later
+(engine/endpoints/base.py) is dropped and counted (the route's ``replies.late``); after that it is only counted here
+(``stray``), like a reply naming no call of this sink.
 """
 
 from __future__ import annotations
 
 import asyncio
 import uuid
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import aio_pika
 import aio_pika.abc
 import orjson
 
-from engine.endpoints.base import EndpointError, MessageRejected
+from engine.endpoints.base import EndpointError, MessageRejected, late_window
 
 
 class Channels(Protocol):
@@ -40,7 +41,9 @@ class AmqpCaller:
         self._exchanges: dict[str, aio_pika.abc.AbstractExchange] = {}
         self._pending: dict[str, asyncio.Future[bytes]] = {}
         self._opening = asyncio.Lock()
-        self.late = 0
+        self._timed_out: dict[str, Callable[[], None]] = {}
+        """Correlation ids of calls that timed out, for one more ``timeout``: their late reply's counter."""
+        self.stray = 0
 
     async def _ready(self) -> aio_pika.abc.AbstractChannel:
         async with self._opening:
@@ -61,15 +64,21 @@ class AmqpCaller:
         return exchange
 
     async def _on_reply(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
-        answered = self._pending.get(message.correlation_id or "")
+        correlation_id = message.correlation_id or ""
+        answered = self._pending.get(correlation_id)
         if answered is None or answered.done():
-            self.late += 1
+            late = self._timed_out.pop(correlation_id, None)
+            if late is not None:
+                late()
+            else:
+                self.stray += 1
             return
         answered.set_result(message.body)
 
     async def call(self, exchange: str, kind: str, durable: bool, routing_key: str, body: bytes,
-                   content_type: str, message_id: str | None) -> Any:
-        """Publish the request; the answer as JSON data."""
+                   content_type: str, message_id: str | None, late: Callable[[], None] | None = None) -> Any:
+        """Publish the request; the answer as JSON data. ``late`` counts an answer that comes
+        after the timeout."""
         try:
             channel = await self._ready()
             target = await self._exchange(channel, exchange, kind, durable)
@@ -84,6 +93,9 @@ class AmqpCaller:
             try:
                 answer = await asyncio.wait_for(answered, self._timeout)
             except asyncio.TimeoutError:
+                if late is not None:
+                    self._timed_out[correlation_id] = late
+                    asyncio.get_running_loop().call_later(late_window(self._timeout), self._timed_out.pop, correlation_id, None)
                 raise MessageRejected(f"{self._where}: no answer within {self._timeout:g} s") from None
         finally:
             del self._pending[correlation_id]

@@ -517,10 +517,11 @@ class AmqpSink(Sink):
         """A request and its answer, the call's reply."""
         assert self._caller is not None
         try:
-            routing_key = self._routing_key(message.canonical)
+            routing_key = self._routing_key(message.template_data)
             body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)
             answer = await self._caller.call(self._exchange, self._kind, self._durable, routing_key, body,
-                                             self._content_type, message.message_id)
+                                             self._content_type, message.message_id,
+                                             message.reply.late if message.reply is not None else None)
         except (MappingError, SchemaError) as exc:
             return MessageRejected(str(exc))
         except EndpointError as exc:
@@ -539,7 +540,7 @@ class AmqpSink(Sink):
         batch: list[tuple[str, bytes, spec.Basic.Properties]] = []
         for index, message in enumerate(messages):
             try:
-                routing_key = self._routing_key(message.canonical)
+                routing_key = self._routing_key(message.template_data)
                 body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
             except (MappingError, SchemaError) as exc:  # a field the key needs is missing: no retry can help
                 results[index] = MessageRejected(str(exc))
@@ -656,7 +657,7 @@ class AmqpTransport(Transport):
 
         def routing_key(outbound: Outbound) -> str | None:
             try:
-                return render(outbound.canonical)
+                return render(outbound.template_data)
             except MappingError as exc:
                 raise MessageRejected(str(exc)) from None
 

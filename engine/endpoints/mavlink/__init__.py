@@ -63,9 +63,11 @@ from typing import Any, ClassVar
 
 from engine.endpoints.base import CheckResult, FieldProblem, Outbound, Transport, flat_field_problem, typed_or_problem
 from engine.endpoints.mavlink.checks import sink_problems, source_problems
+from engine.endpoints.mavlink.command import COMMAND_ANSWER
 from engine.endpoints.mavlink.codec import ADDED_FIELDS, MESSAGES, build_message, field_specs, message_fields, mavlink2, received_nan
 from engine.endpoints.mavlink.connection import MavlinkConnection
-from engine.endpoints.mavlink.messages import dry_run, field_check, target_fields, targeted_fields
+from engine.endpoints.mavlink.mission import MISSION_ANSWER
+from engine.endpoints.mavlink.messages import dry_run, field_check, target_fields
 from engine.endpoints.mavlink import settings as _settings
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
@@ -108,10 +110,9 @@ class MavlinkTransport(Transport):
 
     def sink_dry_run(self, route: str, options: MavlinkSinkOptions) -> Callable[[Outbound], str | None]:
         build = dry_run(options)
-        fields_of = targeted_fields(options) or (lambda outbound: outbound.fields)
 
         def built(outbound: Outbound) -> str | None:
-            build(fields_of(outbound))
+            build(outbound)
             return None
 
         return built
@@ -139,6 +140,15 @@ class MavlinkTransport(Transport):
         if fields is None:
             return None
         return lambda path: flat_field_problem(f"MAVLink {options.message}", fields, path)
+
+    def reply_field_problem(self, options: MavlinkSinkOptions) -> FieldProblem | None:
+        """A call's answer has fixed keys: an acknowledged command's (command.COMMAND_ANSWER),
+        a mission upload's (mission.MISSION_ANSWER); other sinks answer nothing."""
+        if options.mission is not None:
+            return lambda path: flat_field_problem("a mission upload's answer", MISSION_ANSWER, path)
+        if options.acknowledged:
+            return lambda path: flat_field_problem("an acknowledged command's answer", COMMAND_ANSWER, path)
+        return None
 
     def suggest(self, key: str, value: str) -> str | None:
         return closest(value, message_names()) if key == "message" else None

@@ -73,10 +73,9 @@ def source_problems(options: MavlinkSourceOptions) -> list[tuple[str | None, str
 
 def sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tuple[str | None, str]]:
     templated = [key for key in ("target_system", "target_component") if isinstance(getattr(options, key), str)]
-    if templated and ("mission" in given(options) or options.json_tunnel):
-        kind = "a mission upload" if "mission" in given(options) else "a json_tunnel sink"
-        return [(key, f"{key}: a \"{{field}}\" target is read per message by message and command sinks; {kind} names its "
-                      "receiver with a number (a route per vehicle: for_each)") for key in templated]
+    if templated and options.json_tunnel:
+        return [(key, f"{key}: a \"{{field}}\" target is read per message by message, command and mission sinks; a "
+                      "json_tunnel sink names its receiver with a number (a route per vehicle: for_each)") for key in templated]
     if "mission" in given(options):
         return _mission_problems(options, mapping)
     if options.json_tunnel:

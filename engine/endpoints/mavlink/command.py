@@ -19,16 +19,19 @@ As a call (the request asked for replies, engine/replies.py): ACCEPTED replies
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Reply, Sink
 from engine.endpoints.mavlink.codec import mavlink2
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name
-from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions
+from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions, per_target
 
 _ACK = (mavlink2.MAVLINK_MSG_ID_COMMAND_ACK,)
+COMMAND_ANSWER = ("kind", "result", "command", "progress")
+"""The keys of what an acknowledged command answers a call (its reply mapping's input):
+``result`` and ``feedback`` replies (``progress`` only in a ``feedback``); ``check`` knows them."""
 Encoder = Callable[[Any], mavlink2.MAVLink_message]
 """The sink mapping's fields -> the message to send (engine/endpoints/mavlink/messages.py
 ``message_encoder``); raises MessageRejected for what the message cannot carry."""
@@ -50,6 +53,15 @@ class AcknowledgedCommandSink(Sink):
         if isinstance(msg, mavlink2.MAVLink_command_long_message):
             msg.confirmation = min(255, msg.confirmation + confirmation)
         return msg
+
+    def target(self, message: Outbound) -> tuple[int, int]:
+        """The (system, component) the message's command goes to."""
+        msg = self.encode(message.fields if self.fields is None else self.fields(message))
+        return msg.target_system, msg.target_component
+
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        """Commands to several vehicles at once, each vehicle's in order."""
+        return await per_target(messages, self.target, self.send)
 
     async def send(self, message: Outbound) -> None:
         fields = message.fields if self.fields is None else self.fields(message)

@@ -12,14 +12,14 @@ import asyncio
 import functools
 import logging
 import time
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Collection, Hashable, Sequence
 from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.base import Deliver, Inbound, Inbox, MessageRejected, Outbound, Sink, Source
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, message_fields, mavlink2, refuse_nulls
 from engine.endpoints.mavlink.command import AcknowledgedCommandSink, Encoder
 from engine.endpoints.mavlink.contract import SharedLink
-from engine.endpoints.mavlink.mission import MissionUploadSink, mission_items, refuse_unguessed
+from engine.endpoints.mavlink.mission import MissionUploadSink, Targets, mission_items, mission_target, refuse_unguessed
 from engine.endpoints.mavlink.transaction import TransactionOptions
 from engine.throttle import slot_key
 
@@ -195,7 +195,7 @@ def _sink_fields(message: Outbound) -> Any:
 def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) -> Sink:
     """The sink the (already checked) options describe."""
     if options.mission is not None:
-        return MissionUploadSink(connection, TransactionOptions.parse(options)[0])
+        return MissionUploadSink(connection, TransactionOptions.parse(options)[0], message_targets(options))
     if options.acknowledged:
         return AcknowledgedCommandSink(connection, message_encoder(options), TransactionOptions.parse(options)[0],
                                        fields=targeted_fields(options))
@@ -207,24 +207,24 @@ def target_fields(options: MavlinkSinkOptions) -> list[tuple[str, str]]:
     """``(target key, canonical field path)`` of each target a sink reads from the message
     (``target_system: "{vehicle}"``)."""
     return [(key, value[1:-1]) for key in ("target_system", "target_component")
-            if isinstance(value := getattr(options, key), str)]
+            if isinstance(value := getattr(options, key), str) and value.startswith("{")]
 
 
-def targeted_fields(options: MavlinkSinkOptions) -> Callable[[Outbound], Any] | None:
-    """How a message or command sink with ``{field}`` targets gets its message's fields: the
-    sink mapping's output with each target the mapping leaves out read from the canonical
-    message (the one vehicle the message names); a missing field, or a value that is no system
-    or component id (an integer 0-255), is refused (MessageRejected, stage ``sink``). None:
-    no target is read from the message (nothing to do per message)."""
+def message_targets(options: MavlinkSinkOptions) -> Targets | None:
+    """How a sink with ``{field}`` targets reads each message's receiver from its canonical
+    message (the one vehicle the message names): a missing field, or a value that is no system
+    or component id (an integer 0-255), is refused (MessageRejected, stage ``sink``), never
+    guessed. Keys in ``skip`` are not read (the sink mapping names them itself). None: no
+    target is read from the message (nothing to do per message)."""
     targets = [(key, tuple(path.split("."))) for key, path in target_fields(options)]
     if not targets:
         return None
 
-    def fields(message: Outbound) -> Any:
-        out = dict(message.fields)
+    def read(message: Outbound, skip: Collection[str] = ()) -> dict[str, int]:
+        out: dict[str, int] = {}
         for key, path in targets:
-            if key in out:
-                continue  # the sink mapping names the target itself
+            if key in skip:
+                continue
             value = message.canonical
             for step in path:
                 if not isinstance(value, dict) or step not in value:
@@ -233,6 +233,22 @@ def targeted_fields(options: MavlinkSinkOptions) -> Callable[[Outbound], Any] | 
             if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 255:
                 raise MessageRejected(f"{key}: field {'.'.join(path)!r} is {value!r}, not a MAVLink id (an integer 0-255)")
             out[key] = value
+        return out
+
+    return read
+
+
+def targeted_fields(options: MavlinkSinkOptions) -> Callable[[Outbound], Any] | None:
+    """How a message or command sink with ``{field}`` targets gets its message's fields: the
+    sink mapping's output with each target the mapping leaves out read from the canonical
+    message (:func:`message_targets`). None: no target is read from the message."""
+    targets = message_targets(options)
+    if targets is None:
+        return None
+
+    def fields(message: Outbound) -> Any:
+        out = dict(message.fields)
+        out.update(targets(message, skip=out))
         return out
 
     return fields
@@ -268,11 +284,16 @@ def field_check(options: MavlinkSinkOptions) -> Callable[[Any], None] | None:
     return functools.partial(refuse_nulls, options.message)
 
 
-def dry_run(options: MavlinkSinkOptions) -> Callable[[Any], object]:
-    """What the sink would send, built and thrown away (``rabbitros-engine test``): raises
-    MessageRejected where the sink would. A JSON tunnel sends the canonical JSON as it is."""
+def dry_run(options: MavlinkSinkOptions) -> Callable[[Outbound], object]:
+    """What the sink would send for a message, built and thrown away (``rabbitros-engine
+    test``): raises MessageRejected where the sink would. A JSON tunnel sends the canonical JSON
+    as it is."""
     if options.json_tunnel:
-        return lambda fields: None
+        return lambda outbound: None
     if options.mission is not None:
-        return functools.partial(mission_items, options=TransactionOptions.parse(options)[0])
-    return message_encoder(options)
+        transaction = TransactionOptions.parse(options)[0]
+        targets = message_targets(options)
+        return lambda outbound: mission_items(outbound.fields, transaction, mission_target(transaction, targets, outbound))
+    encode = message_encoder(options)
+    fields_of = targeted_fields(options) or _sink_fields
+    return lambda outbound: encode(fields_of(outbound))

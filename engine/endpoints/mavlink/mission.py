@@ -27,21 +27,25 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
 from engine.endpoints.mavlink.codec import build_message, mavlink2, null_fields, null_problem
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name, enum_or_number
-from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions
+from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions, per_target
 from engine.suggest import did_you_mean
 
 ITEM = mavlink2.MAVLink_mission_item_int_message
+Targets = Callable[..., dict[str, int]]
+"""``targets(outbound)``: the ``{field}`` targets of one message (messages.message_targets)."""
 _ANSWERS = (mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_INT, mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST,
             mavlink2.MAVLINK_MSG_ID_MISSION_ACK)
 _ITEM_KEYS = {"command", "frame", "x", "y", "z", "param1", "param2", "param3", "param4", "autocontinue", "current"}
 _MAX_ITEMS = 65535
+MISSION_ANSWER = ("kind", "result", "items")
+"""The keys of what a mission upload answers a call (its reply mapping's input); ``check`` knows them."""
 ALTITUDE_FRAMES = {"alt_msl": mavlink2.MAV_FRAME_GLOBAL_INT, "alt_rel": mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT}
 """The altitudes a canonical waypoint may carry (exactly one), with the frame that says their
 reference: the names of the canonical position's altitudes."""
@@ -163,9 +167,11 @@ def refuse_unguessed(fields: Any) -> None:
         raise MessageRejected(f"mission: {'; '.join(problems)}: {_ALTITUDE_CHOICE}", stage="sink mapping")
 
 
-def mission_items(fields: Any, options: TransactionOptions) -> list[mavlink2.MAVLink_message]:
-    """The MISSION_ITEM_INT messages of one upload, in order; MessageRejected when the fields
-    cannot make a mission (also what ``rabbitros-engine test`` runs as the sink's dry run)."""
+def mission_items(fields: Any, options: TransactionOptions,
+                  target: tuple[int, int] | None = None) -> list[mavlink2.MAVLink_message]:
+    """The MISSION_ITEM_INT messages of one upload to ``target`` (default: the options'), in
+    order; MessageRejected when the fields cannot make a mission (also what ``rabbitros-engine
+    test`` runs as the sink's dry run)."""
     if not isinstance(fields, Mapping):
         raise MessageRejected(f"a mission sink needs an object, got {type(fields).__name__}")
     refuse_unguessed(fields)
@@ -179,38 +185,55 @@ def mission_items(fields: Any, options: TransactionOptions) -> list[mavlink2.MAV
                          "x": first.get("x", 0), "y": first.get("y", 0), "z": 0.0, "autocontinue": 1})
     if len(items) > _MAX_ITEMS:
         raise MessageRejected(f"{len(items)} items exceed the mission protocol's {_MAX_ITEMS}")
-    target = {"target_system": options.target_system, "target_component": options.target_component,
-              "mission_type": options.mission_type}
-    return [build_message(ITEM, {**item, **target, "seq": seq}) for seq, item in enumerate(items)]
+    target_system, target_component = target or options.target
+    target_fields = {"target_system": target_system, "target_component": target_component, "mission_type": options.mission_type}
+    return [build_message(ITEM, {**item, **target_fields, "seq": seq}) for seq, item in enumerate(items)]
+
+
+def mission_target(options: TransactionOptions, targets: Targets | None, message: Outbound) -> tuple[int, int]:
+    """The (system, component) one message's mission goes to: each ``{field}`` target read from
+    its canonical message (MessageRejected if it names none), the options' numbers otherwise."""
+    if targets is None:
+        return options.target
+    read = targets(message)
+    return read.get("target_system", options.target_system), read.get("target_component", options.target_component)
 
 
 class MissionUploadSink(Sink):
-    """Uploads each message's mission to one target; returns once the vehicle accepted it."""
+    """Uploads each message's mission to its target; returns once the vehicle accepted it.
+    A batch uploads to several targets at once, one upload at a time per target."""
 
-    def __init__(self, connection: SharedLink, options: TransactionOptions) -> None:
+    def __init__(self, connection: SharedLink, options: TransactionOptions, targets: Targets | None = None) -> None:
         self.connection = connection
         self.options = options
+        self.targets = targets
+        """Reads ``{field}`` targets from each message (messages.message_targets), or None."""
 
-    def items(self, fields: Any) -> list[mavlink2.MAVLink_message]:
-        return mission_items(fields, self.options)
+    def target(self, message: Outbound) -> tuple[int, int]:
+        return mission_target(self.options, self.targets, message)
+
+    async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
+        return await per_target(messages, self.target, self.send)
 
     async def send(self, message: Outbound) -> None:
-        items = self.items(message.fields)
+        target = self.target(message)
+        items = mission_items(message.fields, self.options, target)
         connection, options = self.connection, self.options
         loop = asyncio.get_running_loop()
         canonical = message.canonical if isinstance(message.canonical, Mapping) else {}
-        async with connection.transaction_lock(("mission", options.target)):
-            await connection.wait_for_vehicle(*options.target, loop.time() + options.vehicle_timeout)
-            connection.mission_refs[options.target] = str(canonical.get("id") or message.message_id)
-            async with Conversation(connection, options.target, _ANSWERS) as answers:
-                await self._upload(answers, items)
+        async with connection.transaction_lock(("mission", target)):
+            await connection.wait_for_vehicle(*target, loop.time() + options.vehicle_timeout)
+            connection.mission_refs[target] = str(canonical.get("id") or message.message_id)
+            async with Conversation(connection, target, _ANSWERS) as answers:
+                await self._upload(answers, items, target)
         if message.reply is not None:  # a call: the vehicle's MISSION_ACK is the answer
             await message.reply("result", {"kind": "result", "result": "MAV_MISSION_ACCEPTED", "items": len(items)})
 
-    async def _upload(self, answers: Conversation, items: list[mavlink2.MAVLink_message]) -> None:
+    async def _upload(self, answers: Conversation, items: list[mavlink2.MAVLink_message],
+                      target: tuple[int, int]) -> None:
         connection, options = self.connection, self.options
         stats = connection.stats
-        target_system, target_component = options.target
+        target_system, target_component = target
         timeout = options.answer_timeout(connection)
         last: mavlink2.MAVLink_message = mavlink2.MAVLink_mission_count_message(
             target_system, target_component, len(items), options.mission_type)

@@ -118,8 +118,8 @@ class MavlinkSourceOptions(EndpointOptions):
     target_system: int | str | None = option(None, **_BYTE, pattern=TARGET_FIELD,
                                              description="sinks only: the receiver's system id (the message's target_system "
                                                          "when the mapping sets none; 1 for acknowledged commands and missions; "
-                                                         "0, everyone, for a tunnel); \"{field}\": a message or command sink "
-                                                         "takes it from that canonical field of each message")
+                                                         "0, everyone, for a tunnel); \"{field}\": a message, command or "
+                                                         "mission sink takes it from that canonical field of each message")
     target_component: int | str | None = option(None, **_BYTE, pattern=TARGET_FIELD,
                                                 description="sinks only: the receiver's component id (as target_system; "
                                                             "1 for acknowledged commands and missions)")

@@ -9,9 +9,9 @@ item timeout would fire on every item; serial links wait 1.5 s per answer (MAVRO
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterable
+from collections.abc import Awaitable, Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from engine.endpoints.mavlink.codec import mavlink2
 from engine.endpoints.mavlink.contract import SharedLink
@@ -80,6 +80,35 @@ class TransactionOptions:
     @property
     def target(self) -> tuple[int, int]:
         return self.target_system, self.target_component
+
+
+M = TypeVar("M")
+
+
+async def per_target(messages: Sequence[M], target_of: Callable[[M], Hashable],
+                     send: Callable[[M], Awaitable[None]]) -> list[BaseException | None]:
+    """``send`` each message, the messages of one target in order and the targets at once: a
+    batch of missions (or commands) for three vehicles on one link takes about as long as the
+    slowest vehicle's, not the sum (one transaction per target, as the protocols require).
+    ``result[i]`` is None once ``messages[i]`` was accepted, else its error; a message whose
+    target cannot be read (``target_of`` raised) fails alone."""
+    results: list[BaseException | None] = [None] * len(messages)
+    groups: dict[Hashable, list[int]] = {}
+    for index, message in enumerate(messages):
+        try:
+            groups.setdefault(target_of(message), []).append(index)
+        except Exception as error:  # classified by the engine's delivery policy
+            results[index] = error
+
+    async def in_order(indexes: list[int]) -> None:
+        for index in indexes:
+            try:
+                await send(messages[index])
+            except Exception as error:
+                results[index] = error
+
+    await asyncio.gather(*(in_order(indexes) for indexes in groups.values()))
+    return results
 
 
 class Conversation:

@@ -38,7 +38,7 @@ class MqttSink(Sink):
         batch: list[tuple[str, bytes]] = []
         for index, message in enumerate(messages):
             try:
-                topic = self._topic(message.canonical)
+                topic = self._topic(message.template_data)
                 body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
             except MessageRejected as exc:
                 results[index] = exc

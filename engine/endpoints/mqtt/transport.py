@@ -81,7 +81,7 @@ class MqttTransport(Transport):
 
     def sink_dry_run(self, route: str, options: MqttSinkOptions) -> Callable[[Outbound], str | None]:
         render = topic_renderer(options.topic, f"route {route!r}: mqtt sink")
-        return lambda outbound: render(outbound.canonical)
+        return lambda outbound: render(outbound.template_data)
 
     def canonical_fields(self, options: MqttSinkOptions) -> Iterable[tuple[str, str]]:
         return [("topic", name) for name in template_fields(options.topic)]

@@ -9,7 +9,8 @@ response arrived, so the route's source acknowledges a call only once it was ans
 
 Failures are permanent (:class:`MessageRejected`, so the caller's ``error`` reply comes within
 ``timeout`` and the request is dead-lettered): no server within ``timeout`` ("not available"),
-no response within ``timeout`` (a late response is dropped: rclpy forgets the request), a
+no response within ``timeout`` (a response up to ``late_window`` later is dropped and counted
+``late``; after that rclpy has forgotten the request), a
 request the type cannot carry. Retrying would answer a caller who has given up, and a service
 call is not known to be idempotent.
 
@@ -35,7 +36,7 @@ import json
 import logging
 import re
 import threading
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from rclpy.action import ActionClient
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -48,7 +49,7 @@ from rclpy.task import Future as RclpyFuture
 
 from engine.backoff import Backoff
 from engine.endpoints.ros2 import rosmsg
-from engine.endpoints.base import Deliver, EndpointError, Inbound, Inbox, MessageRejected, Outbound, Sink, Source
+from engine.endpoints.base import Deliver, EndpointError, Inbound, Inbox, MessageRejected, Outbound, Sink, Source, late_window
 
 log = logging.getLogger("engine.ros2")
 
@@ -182,6 +183,8 @@ class ServiceSink(_CallSink):
         self._service = service
         self._timeout = timeout
         self._slots = asyncio.Semaphore(max_in_flight)
+        self._forgetting: dict[Any, asyncio.TimerHandle] = {}
+        """Timed-out calls still pending in rclpy, and when they are forgotten (``_forget_later``)."""
         try:
             self._client = calls.node.create_client(self._cls, service, qos_profile=service_qos(max_in_flight))
         except Exception as exc:
@@ -211,15 +214,28 @@ class ServiceSink(_CallSink):
         async with self._slots:
             await self._available(deadline)
             answered: asyncio.Future[Any] = loop.create_future()
+            late = message.reply.late if message.reply is not None else None
             future = self._client.call_async(request)
-            future.add_done_callback(lambda done: loop.call_soon_threadsafe(_settle, answered, done))
+            future.add_done_callback(lambda done: loop.call_soon_threadsafe(_settle, answered, done, late))
             try:
                 response = await asyncio.wait_for(answered, max(0.0, deadline - loop.time()))
             except asyncio.TimeoutError:
-                self._client.remove_pending_request(future)
+                self._forget_later(future)
                 raise MessageRejected(f"{self._where}: no response within {self._timeout:g} s") from None
         if message.reply is not None:
             await message.reply("result", rosmsg.to_dict(response))
+
+    def _forget_later(self, future: Any) -> None:
+        """A call that timed out stays pending in rclpy for :func:`late_window`, so a response
+        in that window is counted ``late`` (rclpy drops one for a forgotten request without a
+        trace); then it is forgotten. Bounded: a call holds its slot for ``timeout`` before it
+        times out, so at most ``max_in_flight`` x (window / timeout + 1) calls wait to be forgotten."""
+        handle = asyncio.get_running_loop().call_later(late_window(self._timeout), self._forget, future)
+        self._forgetting[future] = handle
+
+    def _forget(self, future: Any) -> None:
+        self._forgetting.pop(future, None)
+        self._client.remove_pending_request(future)
 
     async def _available(self, deadline: float) -> None:
         """Return once a server is matched; MessageRejected at ``deadline``."""
@@ -232,6 +248,9 @@ class ServiceSink(_CallSink):
             await asyncio.sleep(min(remaining, backoff.next()))
 
     async def close(self) -> None:
+        for handle in self._forgetting.values():
+            handle.cancel()
+        self._forgetting.clear()
         try:
             self._calls.node.destroy_client(self._client)
         except Exception:  # the node is gone with its connection
@@ -398,9 +417,11 @@ class ActionSink(_CallSink):
             pass
 
 
-def _settle(answered: asyncio.Future[Any], done: Any) -> None:
-    if answered.done():
-        return  # timed out meanwhile: the late response is dropped
+def _settle(answered: asyncio.Future[Any], done: Any, late: Callable[[], None] | None = None) -> None:
+    if answered.done():  # timed out meanwhile: the late response is dropped, and counted
+        if late is not None and done.exception() is None:
+            late()
+        return
     error = done.exception()
     if error is not None:
         answered.set_exception(EndpointError(str(error)))
@@ -425,10 +446,17 @@ class ServiceSource(Source):
 
     rclpy sends whatever a service callback returns; the only way to send nothing is for the
     callback to fail, which the executor re-raises from ``spin``: the calls thread catches
-    exactly :class:`NoResponse` and spins on (:meth:`CallNode._spin`)."""
+    exactly :class:`NoResponse` and spins on (:meth:`CallNode._spin`).
 
-    def __init__(self, calls: CallNode, route: str, service: str, type_name: str) -> None:
+    Bound: ``max_in_flight`` calls go to the sink at once, and the service's request queue (its
+    QoS depth, keep-last) keeps that many: the executor takes one request per turn of its wait
+    set, so a burst from many clients at once waits in that queue, and with ROS 2's default 10
+    a burst of more than 10 calls lost some (tests/test_ros2_calls_bounds.py)."""
+
+    def __init__(self, calls: CallNode, route: str, service: str, type_name: str,
+                 max_in_flight: int = DEFAULT_MAX_IN_FLIGHT) -> None:
         self._where = f"route {route!r}, ros2 service {service!r}"
+        self._max_in_flight = max_in_flight
         try:
             self._cls = resolve_service(type_name)
         except rosmsg.MessageError as exc:
@@ -456,7 +484,7 @@ class ServiceSource(Source):
 
         try:
             self._service = self._calls.node.create_service(  # reentrant: many calls wait for their answers at once
-                self._cls, self._service_name, serve, qos_profile=service_qos(DEFAULT_MAX_IN_FLIGHT),
+                self._cls, self._service_name, serve, qos_profile=service_qos(self._max_in_flight),
                 callback_group=ReentrantCallbackGroup())
         except Exception as exc:
             raise EndpointError(f"{self._where}: cannot offer the service: {exc}") from exc
@@ -471,7 +499,7 @@ class ServiceSource(Source):
         self._inbox.wake()
 
     async def _run(self, deliver: Deliver) -> None:
-        while batch := await self._inbox.take(256):
+        while batch := await self._inbox.take(self._max_in_flight):
             try:
                 settled = await deliver.batch(batch)
             except Exception as exc:  # a bug in the engine must not leave callers hanging forever

@@ -40,7 +40,7 @@ def sink_dry_run(route: str, topic: str, type_name: str, resolve: Callable[[Any,
     where = f"route {route!r}, ros2 topic {topic!r}"  # as the sink names it
 
     def built(outbound: Outbound) -> str | None:
-        rendered = topic if resolve is None else resolve(outbound.canonical, where)
+        rendered = topic if resolve is None else resolve(outbound.template_data, where)
         if typed:
             build(cls, outbound, where)
         return rendered

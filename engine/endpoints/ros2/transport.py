@@ -21,6 +21,9 @@ Measured on the 2-core development machine (bench/bench_ros2_executor.py): 10,00
 received without loss (String and NavSatFix), 0.1 % CPU while idle, p50 latency under 1 ms.
 Not serviced: QoS event handlers (e.g. rclpy's incompatible-QoS warning).
 
+A source topic with ``{var}`` segments subscribes to every matching topic as it appears in the
+graph (engine/endpoints/ros2/discovery.py): one source, many subscriptions, one queue.
+
 Each source has a bounded queue and one task that hands it to the route in batches; a
 full queue follows the route's ``overflow`` (block: stop taking; or drop and count), and
 DDS history (``qos.depth``) is what buffers while the loop itself is busy.
@@ -59,7 +62,7 @@ from rclpy.validate_full_topic_name import validate_full_topic_name
 from rclpy.validate_namespace import validate_namespace
 from rclpy.validate_node_name import validate_node_name
 
-from engine.endpoints.ros2 import calls as ros2_calls, contract as ros2_contract, rosmsg
+from engine.endpoints.ros2 import calls as ros2_calls, contract as ros2_contract, discovery, rosmsg
 from engine.endpoints.ros2.errors import mapped, rcl_reason, setup_error
 from engine.endpoints.base import (
     CheckResult, Connection, FieldProblem, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
@@ -131,13 +134,28 @@ class Ros2EndpointOptions(EndpointOptions):
     __schema_description__ = "a ROS 2 topic of one message type"
 
     topic: str | None = option(None, description="topic name (required, except for a sink that names a service); a sink's may "
-                                                 "interpolate canonical fields (/{agent_id}/weeds); {node} and {ns} are left to rcl")
+                                                 "interpolate canonical fields (/{agent_id}/weeds); a source's {var} segments discover "
+                                                 "every matching topic (/{agent}/fix, meta('agent')); {node} and {ns} are left to rcl")
     type: str = option(STRING_TYPE, description="any installed message type, pkg/msg/Type or pkg/Type; std_msgs/msg/String carries the "
                                                 "canonical JSON in data, byte for byte; with service: the service type, pkg/srv/Type")
     qos: Ros2Qos = option(Ros2Qos())
     service: str | None = option(None, description="instead of a topic (type: pkg/srv/Type): a source offers this service, each call "
                                                    "answered by the route's reply; a sink calls it, the response is the call's reply "
                                                    "(route-language.md, Calls)")
+    max_in_flight: int = option(ros2_calls.DEFAULT_MAX_IN_FLIGHT, minimum=1,
+                                description="service: calls in flight at once. A source offering it takes that many at once, "
+                                            "and its request queue keeps that many, so a burst of calls up to it loses none; a "
+                                            "sink calls at most that many at once (the default matches ROS 2's default service "
+                                            "queue depth, 10: raise it with the servers' depth)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Ros2SourceOptions(Ros2EndpointOptions):
+    """A ROS 2 source: a topic (or a pattern of topics, discovered) or a service it offers."""
+
+    forget_after: float = option(discovery.DEFAULT_FORGET_AFTER, exclusive_minimum=0,
+                                 description="a topic with {var} segments: seconds a discovered topic may go without a publisher "
+                                             "of the type before its subscription is let go (followed again when one comes back)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -157,24 +175,23 @@ class Ros2SinkOptions(Ros2EndpointOptions):
                             description="service: seconds from sending a request to its response; action: from sending the goal to "
                                         "its result (then the goal is canceled); waiting for a server included; then the caller "
                                         "gets an error reply")
-    max_in_flight: int = option(ros2_calls.DEFAULT_MAX_IN_FLIGHT, minimum=1,
-                                description="service: calls in flight at once (the default matches ROS 2's default service "
-                                            "queue depth, 10; raise it with the servers' depth)")
 
 
 # ---------------------------------------------------------------- static checks
 
-def _check_topic(topic: Any, allow_template: bool) -> Iterator[str]:
+def _check_topic(topic: Any, placeholders: Literal["none", "fields", "variables"]) -> Iterator[str]:
+    """A topic name valid by rcl's rules; ``placeholders``: what a ``{name}`` in it may be (a
+    sink's canonical fields, a source's discovery variables, or nothing: a service's name)."""
     if not isinstance(topic, str) or not topic:
         yield "topic is required (a ROS topic name such as /uav1/weeds)"
         return
     names = [n for n in _PLACEHOLDER.findall(topic) if n not in _RCL_SUBSTITUTIONS]
-    if names and not allow_template:
-        yield f"topic {topic!r}: placeholders like {{{names[0]}}} are only allowed in sink topics"
+    if names and placeholders == "none":
+        yield f"topic {topic!r}: placeholders ({{{names[0]}}}) are not allowed here"
         return
-    problem = template_problem(topic)
+    problem = template_problem(topic) if placeholders == "fields" else discovery.pattern_problem(topic)
     if problem:
-        yield f"topic {problem}"
+        yield problem if placeholders == "variables" else f"topic {problem}"
         return
     sample = _PLACEHOLDER.sub(lambda m: m.group(0) if m.group(1) in _RCL_SUBSTITUTIONS else "x", topic)
     try:
@@ -191,7 +208,7 @@ def _check_type(name: Any) -> Iterator[tuple[str, str]]:
 
 
 def _check_endpoint(options: Ros2EndpointOptions, sink: bool) -> Iterator[tuple[str | None, str]]:
-    for message in _check_topic(options.topic, allow_template=sink):
+    for message in _check_topic(options.topic, "fields" if sink else "variables"):
         yield "topic", message
     yield from _check_type(options.type)
 
@@ -203,7 +220,7 @@ def _check_service(options: Ros2SinkOptions) -> Iterator[tuple[str | None, str]]
         yield key, "a ros2 sink names one of topic, service or action"
     if key == "action" and "max_in_flight" in given(options):
         yield "max_in_flight", "max_in_flight applies to a sink that calls a service (goals are bounded by the server)"
-    for message in _check_topic(getattr(options, key), allow_template=False):
+    for message in _check_topic(getattr(options, key), "none"):
         yield key, message.replace("topic", key)
     try:
         (ros2_calls.resolve_service if key == "service" else ros2_calls.resolve_action)(options.type)
@@ -257,9 +274,16 @@ class Ros2Transport(Transport):
     connection_options = Ros2ConnectionOptions
     replies = True
     """A source that offers a service answers its callers (engine.endpoints.ros2.calls.py)."""
-    source_options = Ros2EndpointOptions
+    source_options = Ros2SourceOptions
     sink_options = Ros2SinkOptions
     source_meta = ("topic",)
+
+    def source_variables(self, options: Ros2SourceOptions) -> tuple[str, ...]:
+        """A topic's ``{var}`` segments (engine/endpoints/ros2/discovery.py)."""
+        return () if options.service is not None else discovery.topic_variables(options.topic)
+
+    def meta_names(self, options: Ros2SourceOptions) -> tuple[str, ...]:
+        return (*self.source_meta, *self.source_variables(options))
 
     def connection_problems(self, options: Ros2ConnectionOptions) -> CheckResult:
         node, namespace, domain_id = options.node, options.namespace, options.domain_id
@@ -278,13 +302,17 @@ class Ros2Transport(Transport):
     def source_answers(self, options: Ros2EndpointOptions) -> bool:
         return options.service is not None  # a topic's publishers await no answer
 
-    def source_problems(self, options: Ros2EndpointOptions, mapping: str | None) -> CheckResult:
+    def source_problems(self, options: Ros2SourceOptions, mapping: str | None) -> CheckResult:
+        if "forget_after" in given(options) and not self.source_variables(options):
+            yield "forget_after", "forget_after applies to a topic with {var} segments (discovered topics, as /{agent}/fix)"
         if options.service is None:
             yield from _check_endpoint(options, sink=False)
+            if "max_in_flight" in given(options):
+                yield "max_in_flight", "max_in_flight applies to a source that offers a service"
             return
         if options.topic is not None:
             yield "service", "a ros2 source names a topic or a service, not both"
-        for message in _check_topic(options.service, allow_template=False):
+        for message in _check_topic(options.service, "none"):
             yield "service", message.replace("topic", "service")
         try:
             ros2_calls.resolve_service(options.type)
@@ -392,9 +420,12 @@ class Ros2Connection(Connection):
         self._waiter: threading.Thread | None = None
         self._taken = threading.Event()
         self._closing = False
-        self._readers: dict[int, Ros2Source] = {}
+        self._readers: dict[int, _Reader] = {}
+        """Subscription handle pointer -> its reader (what the waiter reports ready)."""
         self._waited: tuple[Any, ...] = ()
         self._sources: set[Ros2Source] = set()
+        self._discovering: set[Ros2Source] = set()
+        self._discovery: asyncio.Task[None] | None = None
         self._sinks: set[Ros2Sink] = set()
         self._publishers: dict[tuple[str, str, tuple[Any, ...]], tuple[Any, int]] = {}
         self._calls: ros2_calls.CallNode | None = None
@@ -429,9 +460,10 @@ class Ros2Connection(Connection):
         self._context, self._node, self._guard = context, node, guard
 
     def source(self, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> Source:
-        typed_options = typed(Ros2EndpointOptions, options, f"route {route!r}: ros2 source")
+        typed_options = typed(Ros2SourceOptions, options, f"route {route!r}: ros2 source")
         if typed_options.service is not None:
-            return ros2_calls.ServiceSource(self.calls(), route, typed_options.service, typed_options.type)
+            return ros2_calls.ServiceSource(self.calls(), route, typed_options.service, typed_options.type,
+                                            typed_options.max_in_flight)
         return Ros2Source(self, route, options)
 
     def sink(self, route: str, options: Ros2SinkOptions | Mapping[str, Any]) -> Sink:
@@ -483,6 +515,9 @@ class Ros2Connection(Connection):
             return
         for source in list(self._sources):
             await source.stop()
+        if self._discovery is not None:
+            self._discovery.cancel()
+            await asyncio.gather(self._discovery, return_exceptions=True)
         for sink in list(self._sinks):
             await sink.close()
         if self._calls is not None:
@@ -505,11 +540,45 @@ class Ros2Connection(Connection):
             self._context.try_shutdown()
             self._node = None
 
+    # -- discovery: one read of the graph per interval for every discovering source
+
+    def discover(self, source: Ros2Source) -> None:
+        """Scan the graph for ``source`` now, then at every interval until :meth:`forget`."""
+        self._discovering.add(source)
+        source._scan(self.node.get_topic_names_and_types(), time.monotonic())
+        if self._discovery is None or self._discovery.done():
+            self._discovery = asyncio.create_task(self._discover(), name=f"ros2-discovery-{self.name}")
+
+    def forget(self, source: Ros2Source) -> None:
+        self._discovering.discard(source)
+
+    async def _discover(self) -> None:
+        while self._discovering and not self._closing:
+            await asyncio.sleep(discovery.DISCOVERY_INTERVAL)
+            try:
+                topics = self.node.get_topic_names_and_types()
+            except Exception as exc:  # the node is closing, or rcl failed: the next scan tries again
+                log.warning("ros2 connection %r: cannot read the graph: %s", self.name, exc)
+                continue
+            now = time.monotonic()
+            for source in list(self._discovering):
+                try:
+                    source._scan(topics, now)
+                except Exception:  # a bug: the other sources keep discovering
+                    log.exception("%s: discovery failed", source._where)
+
+    def publisher_types(self, topic: str) -> list[str]:
+        """The message types of ``topic``'s publishers (none when the graph cannot be read)."""
+        try:
+            return [info.topic_type for info in self.node.get_publishers_info_by_topic(topic)]
+        except Exception:
+            return []
+
     # -- the waiter thread and its hand-over to the loop
 
     def _readers_changed(self) -> None:
         """Give the waiter a fresh tuple of subscriptions and make it rebuild its wait set."""
-        self._waited = tuple(source.subscription for source in self._readers.values() if not source.paused)
+        self._waited = tuple(reader.subscription for reader in self._readers.values() if not reader.source.paused)
         self._guard.trigger()
 
     def _wait_loop(self) -> None:
@@ -553,24 +622,40 @@ class Ros2Connection(Connection):
     def _take_ready(self, ready: list[int]) -> None:
         try:
             for pointer in ready:
-                source = self._readers.get(pointer)
-                if source is None:
+                reader = self._readers.get(pointer)
+                if reader is None:
                     continue
                 try:
-                    source._take()
+                    reader.source._take(reader)
                 except Exception as exc:
-                    log.error("%s: take failed: %s", source._where, exc)
+                    log.error("%s: take failed: %s", reader.source._where, exc)
         finally:
             self._taken.set()
 
 
 # ---------------------------------------------------------------- source
 
+class _Reader:
+    """One subscription of a source, and the metadata each of its messages carries."""
+
+    __slots__ = ("source", "subscription", "meta", "received")
+
+    def __init__(self, source: Ros2Source, subscription: Any, meta: dict[str, Any]) -> None:
+        self.source = source
+        self.subscription = subscription
+        self.meta = meta
+        self.received = 0
+
+
 class Ros2Source(Source):
-    """Takes everything its subscription has ready in one pass into a bounded queue, and
+    """Takes everything its subscriptions have ready in one pass into a bounded queue, and
     hands the queue to the route in batches. A full queue follows the route's ``overflow``:
-    ``block`` stops taking (the subscription leaves the wait set, so DDS history and reliable
+    ``block`` stops taking (the subscriptions leave the wait set, so DDS history and reliable
     flow control hold the rest), ``drop_oldest`` / ``drop_newest`` drop and count.
+
+    A topic with ``{var}`` segments is a pattern: the source subscribes to each matching topic
+    as it appears in the graph, one queue for all of them (so each topic's order is kept),
+    each message with the topic's captured values in its metadata (engine/endpoints/ros2/discovery.py).
 
     ``std_msgs/String`` is taken serialized and its CDR string read directly, so its bytes
     reach the pipeline untouched (invalid UTF-8 is then the decoder's to dead-letter, where
@@ -579,7 +664,7 @@ class Ros2Source(Source):
     the source reports them (log and status).
     """
 
-    def __init__(self, connection: Ros2Connection, route: str, options: Ros2EndpointOptions | Mapping[str, Any]) -> None:
+    def __init__(self, connection: Ros2Connection, route: str, options: Ros2SourceOptions | Mapping[str, Any]) -> None:
         self._connection = connection
         self._route = route
         self._topic = _topic_of(options)
@@ -587,7 +672,7 @@ class Ros2Source(Source):
         problems = [message for _, message in TRANSPORT.check_source(options, None)]
         if problems:
             raise EndpointError(f"{self._where}: {'; '.join(problems)}")
-        options = typed(Ros2EndpointOptions, options, self._where)
+        options = typed(Ros2SourceOptions, options, self._where)
         self._cls = rosmsg.resolve_type(options.type)
         self._type_name = rosmsg.type_name(self._cls)
         self._is_string = self._type_name == STRING_TYPE
@@ -595,8 +680,14 @@ class Ros2Source(Source):
         self._queue: Inbox[Inbound] = Inbox(SOURCE_QUEUE)
         self._deliver: Deliver | None = None
         self.paused = False
-        self.subscription: Any = None
-        self._meta: dict[str, str] = {}
+        self._readers: dict[str, _Reader] = {}
+        """Topic -> its reader: the one topic, or each discovered topic being followed."""
+        self._discovery: discovery.Discovery | None = None
+        if discovery.topic_variables(self._topic):
+            settings = connection.settings
+            pattern = discovery.compile_pattern(self._topic, settings.node, settings.namespace)
+            self._discovery = discovery.Discovery(pattern, self._type_name, options.forget_after, self._where,
+                                                  self._follow, self._matched, self._let_go)
         self._pump: asyncio.Task[None] | None = None
         self._watch: asyncio.Task[None] | None = None
         self._stopping = False
@@ -606,25 +697,63 @@ class Ros2Source(Source):
         self._drop_logged = 0.0
 
     async def start(self, deliver: Deliver) -> None:
-        node = self._connection.node
+        self._connection.node  # raises EndpointError when not open
         self._deliver = deliver
         self._queue = Inbox(deliver.queue_limit, deliver.overflow)
-        try:
-            self.subscription = node.create_subscription(self._cls, self._topic, _unused_callback, self._qos)
-        except Exception as exc:
-            raise setup_error(exc, f"{self._where}: cannot subscribe") from exc
-        self._meta = {"topic": self.subscription.topic_name, "type": self._type_name}
+        if self._discovery is None:
+            self._subscribe(self._topic, {})
         self._pump = asyncio.create_task(self._run(deliver), name=f"ros2-source-{self._route}")
-        self._watch = asyncio.create_task(self._watch_types(), name=f"ros2-types-{self._route}")
         self._connection._sources.add(self)
-        self._connection._readers[self.subscription.handle.pointer] = self
-        self._connection._readers_changed()
+        if self._discovery is None:
+            self._watch = asyncio.create_task(self._watch_types(), name=f"ros2-types-{self._route}")
+        else:
+            self._connection.discover(self)
 
-    def _take(self) -> None:
+    def _subscribe(self, topic: str, captured: Mapping[str, str]) -> _Reader:
+        try:
+            subscription = self._connection.node.create_subscription(self._cls, topic, _unused_callback, self._qos)
+        except Exception as exc:
+            raise setup_error(exc, f"{self._where}: cannot subscribe to {topic!r}") from exc
+        reader = _Reader(self, subscription, {"topic": subscription.topic_name, "type": self._type_name, **captured})
+        self._readers[subscription.topic_name] = reader
+        self._connection._readers[subscription.handle.pointer] = reader
+        self._connection._readers_changed()
+        return reader
+
+    def _scan(self, topics: Any, now: float) -> None:
+        """One read of the graph (called by the connection): follow and let go (discovery only)."""
+        if self._discovery is not None and not self._stopping:
+            self._discovery.scan(topics, self._connection.publisher_types, now)
+
+    def _follow(self, topic: str, captured: Mapping[str, str]) -> bool:
+        try:
+            self._subscribe(topic, captured)
+        except EndpointError as exc:
+            log.debug("%s", exc)
+            return False
+        return True
+
+    def _matched(self, topic: str) -> int:
+        try:
+            return self._readers[topic].subscription.get_publisher_count()
+        except Exception:  # destroyed meanwhile: nothing matched
+            return 0
+
+    def _let_go(self, topic: str) -> None:
+        reader = self._readers.pop(topic, None)
+        if reader is None:
+            return
+        connection = self._connection
+        connection._readers.pop(reader.subscription.handle.pointer, None)
+        connection._readers_changed()
+        if connection._node is not None:
+            connection._node.destroy_subscription(reader.subscription)  # freed once the waiter lets go of it
+
+    def _take(self, reader: _Reader) -> None:
         """Runs on the loop: take what is ready (bounded by the queue), never waits."""
-        sub, cls, queue = self.subscription, self._cls, self._queue
+        sub, cls, queue, meta = reader.subscription, self._cls, self._queue, reader.meta
         block = queue.overflow == "block"
-        taken_any = False
+        taken = 0
         try:
             with sub.handle:
                 for _ in range(_TAKE_BUDGET):
@@ -632,39 +761,39 @@ class Ros2Source(Source):
                         self._pause()
                         break
                     try:
-                        taken = sub.handle.take_message(cls, self._is_string)
+                        message = sub.handle.take_message(cls, self._is_string)
                     except InvalidHandle:
                         raise
                     except Exception as exc:  # rclpy could not convert what it took
-                        self.received += 1
-                        self._put(Inbound(meta=dict(self._meta), undecodable=f"cannot take a {self._type_name}: {exc}"))
-                        taken_any = True
+                        taken += 1
+                        self._put(Inbound(meta=dict(meta), undecodable=f"cannot take a {self._type_name}: {exc}"))
                         continue
-                    if taken is None:
+                    if message is None:
                         break
-                    self.received += 1
-                    taken_any = True
-                    self._put(self._inbound(taken[0]))
+                    taken += 1
+                    self._put(self._inbound(message[0], meta))
         except InvalidHandle:
             return
         finally:
-            if taken_any:
+            if taken:
+                self.received += taken
+                reader.received += taken
                 queue.wake()
 
     def _put(self, inbound: Inbound) -> None:
         if self._queue.offer(inbound):
             self._drop()
 
-    def _inbound(self, msg: Any) -> Inbound:
+    def _inbound(self, msg: Any, meta: dict[str, Any]) -> Inbound:
         if self._is_string:
             try:
-                return Inbound(body=_cdr_string(msg), meta=dict(self._meta))
+                return Inbound(body=_cdr_string(msg), meta=dict(meta))
             except ValueError as exc:
-                return Inbound(body=bytes(msg), meta=dict(self._meta), undecodable=str(exc))
+                return Inbound(body=bytes(msg), meta=dict(meta), undecodable=str(exc))
         try:
-            return Inbound(fields=rosmsg.to_dict(msg), meta=dict(self._meta))
+            return Inbound(fields=rosmsg.to_dict(msg), meta=dict(meta))
         except Exception as exc:
-            return Inbound(meta=dict(self._meta), undecodable=f"cannot convert a {self._type_name}: {exc}")
+            return Inbound(meta=dict(meta), undecodable=f"cannot convert a {self._type_name}: {exc}")
 
     def _drop(self) -> None:
         self.dropped += 1
@@ -707,9 +836,10 @@ class Ros2Source(Source):
     async def _watch_types(self) -> None:
         """Publishers of another type on our topic never match: say so (log and status)."""
         reported: set[str] = set()
+        topic = next(iter(self._readers))
         while not self._stopping:
             try:
-                infos = self._connection.node.get_publishers_info_by_topic(self.subscription.topic_name)
+                infos = self._connection.node.get_publishers_info_by_topic(topic)
             except Exception:
                 infos = []
             wrong = sorted({f"{info.node_namespace.rstrip('/')}/{info.node_name} ({info.topic_type})"
@@ -722,8 +852,15 @@ class Ros2Source(Source):
             await asyncio.sleep(_TYPE_CHECK_INTERVAL)
 
     def status(self) -> dict[str, Any]:
-        return {"received": self.received, "dropped": self.dropped, "queued": len(self._queue),
-                "mismatched_publishers": self.mismatched_publishers}
+        status: dict[str, Any] = {"received": self.received, "dropped": self.dropped, "queued": len(self._queue)}
+        if self._discovery is None:
+            status["mismatched_publishers"] = self.mismatched_publishers
+            return status
+        variables = self._discovery.pattern.variables
+        status["following"] = {topic: {**{name: reader.meta[name] for name in variables}, "received": reader.received}
+                               for topic, reader in sorted(self._readers.items())}
+        status.update(self._discovery.status())
+        return status
 
     async def stop(self) -> None:
         if self._pump is None:
@@ -731,18 +868,20 @@ class Ros2Source(Source):
         connection = self._connection
         if not self._stopping:
             self._stopping = True
-            connection._readers.pop(self.subscription.handle.pointer, None)
+            connection.forget(self)
+            for reader in self._readers.values():
+                connection._readers.pop(reader.subscription.handle.pointer, None)
             connection._readers_changed()
             self._queue.close()
         await self._pump
         if self._watch is not None:
             self._watch.cancel()
             await asyncio.gather(self._watch, return_exceptions=True)
-        if self.subscription is not None:
-            connection._sources.discard(self)
-            if connection._node is not None:
-                connection._node.destroy_subscription(self.subscription)
-            self.subscription = None
+        connection._sources.discard(self)
+        readers, self._readers = list(self._readers.values()), {}
+        if connection._node is not None:
+            for reader in readers:
+                connection._node.destroy_subscription(reader.subscription)
 
 
 def _cdr_string(raw: bytes) -> bytes:
@@ -871,7 +1010,7 @@ class Ros2Sink(Sink):
         return results
 
     def _publish(self, message: Outbound) -> None:
-        topic = self._template if self._topic_for is None else self._topic_for(message.canonical, self._where)
+        topic = self._template if self._topic_for is None else self._topic_for(message.template_data, self._where)
         publisher = self._publisher(topic)
         if self._string is not None:
             msg = self._string  # publish() serialises at once, so one instance is reused
