@@ -22,6 +22,7 @@ import aio_pika
 
 from engine.endpoints.amqp.broker import LocalCluster
 from tests.engine_process import EngineProcess
+from tests.workers import ros_domain
 
 CLIENT_NODE = 2
 """Index of the node the test's own clients use; only node 0 is ever killed."""
@@ -287,7 +288,7 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
 
     cluster: LocalCluster = amqp_cluster
     tag = "t" + uuid.uuid4().hex[:8]
-    domain = 1 + (os.getpid() + 37) % 100
+    domain = ros_domain(2)
     rate = 200.0
     directory = routes_file(tmp_path / "routes", cluster, STANDBY_ROUTE, tag=tag, domain=str(domain),
                             heartbeat=str(STANDBY_HEARTBEAT))

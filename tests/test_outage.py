@@ -22,6 +22,7 @@ from engine.endpoints.amqp.broker import LocalBroker
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, RosPeer, Tally, publish_reliably, robust, wait_for
+from tests.workers import ros_domain
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
@@ -32,7 +33,7 @@ N_SPILL = 5_000
 
 def _names() -> dict[str, str]:
     tag = "o" + uuid.uuid4().hex[:8]
-    return {"tag": tag, "inbox": f"in-{tag}", "outbox": f"out-{tag}", "domain": str(20 + os.getpid() % 80)}
+    return {"tag": tag, "inbox": f"in-{tag}", "outbox": f"out-{tag}", "domain": str(ros_domain(8))}
 
 
 ROUTES = """

@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 from typing import Iterable
 
-from engine.local_broker import BrokerError
+from engine.local_broker import BrokerError, bounded, lifetime_from_environment
 
 MOSQUITTO = "mosquitto"
 INSTALL_HINT = "mosquitto is not installed (apt-get install -y mosquitto), or set MOSQUITTO_BIN to its path"
@@ -56,8 +56,9 @@ class LocalMosquitto:
 
     ``max_queued_messages`` bounds what mosquitto keeps per offline persistent session
     (its own default, 1000, would drop messages published while an engine is down for a
-    few seconds at a high rate; 0 is unlimited). ``lifetime`` (seconds) kills the broker
-    from outside if its owner never stops it. ``extra`` are more configuration lines."""
+    few seconds at a high rate; 0 is unlimited). ``lifetime`` (seconds; default
+    $RABBITROS_PRIVATE_BROKER_LIFETIME, else none) kills the broker from outside if its owner
+    never stops it. ``extra`` are more configuration lines."""
 
     def __init__(
         self,
@@ -73,7 +74,7 @@ class LocalMosquitto:
         self.directory.mkdir(parents=True, exist_ok=True)
         self.port = port or free_port()
         self.max_queued_messages = max_queued_messages
-        self.lifetime = lifetime
+        self.lifetime = lifetime if lifetime is not None else lifetime_from_environment()
         self.extra = tuple(extra)
         self._process: subprocess.Popen[bytes] | None = None
 
@@ -118,9 +119,7 @@ class LocalMosquitto:
         if self.running:
             return self.url
         self.config_file.write_text(self.configuration())
-        command = [find_mosquitto(), "-c", str(self.config_file)]
-        if self.lifetime is not None:
-            command = ["timeout", "-s", "KILL", str(int(self.lifetime)), *command]
+        command = bounded([find_mosquitto(), "-c", str(self.config_file)], self.lifetime)
         with open(self.directory / "mosquitto.out", "ab") as out:
             self._process = subprocess.Popen(
                 command, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
