@@ -4,6 +4,7 @@ tests/workers.py), a private mosquitto per MQTT test (never a mock)."""
 from __future__ import annotations
 
 import os
+from collections import Counter
 from pathlib import Path
 from typing import Iterator
 
@@ -95,7 +96,7 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """``--alone``; then the modules with ``soak`` tests first, so that ./scripts/test.sh's workers
+    """``--alone``; then the modules with the most ``soak`` tests first, so that ./scripts/test.sh's workers
     (``--dist loadfile``: a module's tests share one worker, as its module-scoped fixtures and the
     cluster tests' three nodes are started once) begin with the longest modules and end together."""
     wanted = config.getoption("alone")
@@ -106,5 +107,5 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         if dropped:
             config.hook.pytest_deselected(items=dropped)
             items[:] = keep
-    long_modules = {item.path for item in items if item.get_closest_marker("soak") is not None}
-    items.sort(key=lambda item: item.path not in long_modules)  # stable: the order within a module stays
+    soak = Counter(item.path for item in items if item.get_closest_marker("soak") is not None)
+    items.sort(key=lambda item: -soak[item.path])  # stable: the order within a module stays

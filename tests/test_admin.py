@@ -353,6 +353,7 @@ def test_tap_command_fails_clearly_when_the_engine_goes_away(amqp_url: str, tmp_
     assert re.search(r"^tap tapped: (the engine went away|lost the engine at \S+) after 0 messages", err, re.M), err
 
 
+@pytest.mark.soak
 def test_healthz_follows_the_broker(tmp_path: Path):
     broker = LocalBroker(keep_dir=True)
     broker.start()

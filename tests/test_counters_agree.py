@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import aio_pika
+import pytest
 
 from engine.endpoints.amqp.broker import LocalBroker
 from tests.engine_process import EngineProcess
@@ -152,6 +153,7 @@ def agreed(views: dict[str, Callable[[], dict[str, Any]]], timeout: float = 30.0
         time.sleep(0.3)
 
 
+@pytest.mark.soak
 def test_log_status_metrics_and_tap_count_the_same_known_traffic(tmp_path: Path, amqp_url: str) -> None:
     tag = "c" + uuid.uuid4().hex[:8]
     domain = ros_domain(6)

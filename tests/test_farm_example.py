@@ -14,6 +14,8 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+import pytest
+
 from engine.endpoints.mavlink.dialect import mavlink2
 from engine.schemas import SchemaRegistry
 from tests.conftest import REPO
@@ -22,6 +24,7 @@ from tests.workers import ros_domain
 DURATION = 30
 
 
+@pytest.mark.soak
 def test_farm_example_end_to_end(tmp_path: Path):
     work = tmp_path / "farm"
     result = subprocess.run(
