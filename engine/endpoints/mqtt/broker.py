@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 from typing import Iterable
 
-from engine.local_broker import BrokerError
+from engine.local_broker import BrokerError, bounded, lifetime_from_environment
 from engine.tls import ThrowawayCertificates, throwaway_certificates
 
 MOSQUITTO = "mosquitto"
@@ -62,8 +62,9 @@ class LocalMosquitto:
 
     ``max_queued_messages`` bounds what mosquitto keeps per offline persistent session
     (its own default, 1000, would drop messages published while an engine is down for a
-    few seconds at a high rate; 0 is unlimited). ``lifetime`` (seconds) kills the broker
-    from outside if its owner never stops it. ``extra`` are more configuration lines."""
+    few seconds at a high rate; 0 is unlimited). ``lifetime`` (seconds; default
+    $RABBITROS_PRIVATE_BROKER_LIFETIME, else none) kills the broker from outside if its owner
+    never stops it. ``extra`` are more configuration lines."""
 
     def __init__(
         self,
@@ -80,7 +81,7 @@ class LocalMosquitto:
         self.directory.mkdir(parents=True, exist_ok=True)
         self.port = port or free_port()
         self.max_queued_messages = max_queued_messages
-        self.lifetime = lifetime
+        self.lifetime = lifetime if lifetime is not None else lifetime_from_environment()
         self.extra = tuple(extra)
         self.tls = tls
         self.certificates: ThrowawayCertificates | None = None
@@ -142,9 +143,7 @@ class LocalMosquitto:
         except RuntimeError as exc:  # openssl missing or failing: the throwaway certificates
             raise MosquittoError(f"TLS listener: {exc}") from None
         self.config_file.write_text(configuration)
-        command = [find_mosquitto(), "-c", str(self.config_file)]
-        if self.lifetime is not None:
-            command = ["timeout", "-s", "KILL", str(int(self.lifetime)), *command]
+        command = bounded([find_mosquitto(), "-c", str(self.config_file)], self.lifetime)
         with open(self.directory / "mosquitto.out", "ab") as out:
             self._process = subprocess.Popen(
                 command, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
