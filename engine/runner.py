@@ -118,9 +118,9 @@ class RouteRunner:
         self._report = ReportLimiter()
         self._retry_report = ReportLimiter()
         self._released: set[asyncio.Task[None]] = set()
-        self._replying: set[asyncio.Task[None]] = set()
-        """Error replies to expired calls, on their way."""
         """Messages the throttle released from their slot, on their way to the sink."""
+        self._replying: set[asyncio.Task[None]] = set()
+        """Error replies to calls settled without being sent (expired, conflated), on their way."""
 
     # -- the Deliver contract a source sees
 
@@ -224,6 +224,7 @@ class RouteRunner:
 
     def conflated(self, message: _Message) -> None:
         self.observer.conflate(message.inbound, message.outbound)  # type: ignore[arg-type]
+        self._ended_call(message.outbound, "throttle", "conflated: a newer message took its throttle slot before it was sent")  # type: ignore[arg-type]
 
     async def _send_released(self, pipeline: Pipeline, message: _Message) -> None:
         try:
@@ -375,6 +376,8 @@ class RouteRunner:
             settled[message.index] = True
 
     async def send_held(self, messages: list[Outbound]) -> list[BaseException | None]:
+        for message in messages:
+            self._reply_of(message)
         pipeline = self.pipeline
         pipeline.enter()
         try:
@@ -400,21 +403,36 @@ class RouteRunner:
             self._expired_call(outbound)
 
     def _expired_call(self, outbound: Outbound) -> None:
-        """An expired request is settled without a dead letter; its caller still hears the end:
-        one ``error`` reply (stage ``max_age``), sent beside the route's work."""
+        age = f"older than the route's max_age ({self.spec.delivery.max_age_ns / 1e9:g} s) before it could be sent"  # type: ignore[operator]
+        self._ended_call(outbound, "max_age", age)
+
+    def _ended_call(self, outbound: Outbound, stage: str, error: str) -> None:
+        """A request settled without being sent and without a dead letter (expired under
+        ``max_age``, conflated by the throttle or ``latest_only``): its caller still hears the
+        end, one ``error`` reply naming the stage, sent beside the route's work."""
         if not outbound.meta.get("reply_to"):
             return
-        age = f"older than the route's max_age ({self.spec.delivery.max_age_ns / 1e9:g} s) before it could be sent"  # type: ignore[operator]
-        task = asyncio.create_task(self.replies.failed(outbound.reply, outbound.meta, "max_age", age))
+        task = asyncio.create_task(self.replies.failed(self._reply_of(outbound), outbound.meta, stage, error))
         self._replying.add(task)
         task.add_done_callback(self._replying.discard)
+
+    def _reply_of(self, outbound: Outbound) -> Any:
+        """The reply of a held message: a message read back from the buffer's spill files lost
+        its ``Outbound.reply`` (an object, not JSON) but not its meta, so a call is bound again,
+        through this runner's source (a reload's new runner included)."""
+        if outbound.reply is None:
+            outbound.reply = self.replies.bind(self.pipeline.reply_shape, outbound.meta)
+        return outbound.reply
 
     def held_conflated(self, held: list[Held]) -> None:
         for outbound, _ in held:
             self.observer.conflate(None, outbound)
+            self._ended_call(outbound, "latest_only", "conflated: a newer message with the same key was held while the "
+                                                      "sink was down (buffer.latest_only)")
 
     async def held_rejected(self, message: Outbound, error: BaseException, attempts: int) -> None:
         """A held message the sink rejected, or kept failing while it could take messages."""
+        self._reply_of(message)
         inbound = Inbound(body=message.body, meta=dict(message.meta))
         await self._dead_letter([_Message(0, inbound, message, attempts, self.pipeline, classify(error, "sink"))], [False])
 
