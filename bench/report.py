@@ -172,6 +172,28 @@ def calls_table(calls: dict[str, Any]) -> list[str]:
             "engine's aiormq path: context, not a floor).", ""]
 
 
+def radio_latency_table(rows: list[dict[str, Any]]) -> list[str]:
+    from bench.radio_latency import HEADER, format_row
+
+    return ["## 9. MAVLink latency over the emulated SiK radio", "",
+            "Telemetry: the vehicle's GLOBAL_POSITION_INT from its send to an AMQP consumer; command: an AMQP call "
+            "to COMMAND_LONG over the radio and the vehicle's COMMAND_ACK back as the call's reply (bench/radio_latency.py).",
+            "", HEADER, *(format_row(row) for row in rows), ""]
+
+
+def mission_table(rows: list[dict[str, Any]]) -> list[str]:
+    def cell(value: Any) -> str:
+        return f"{value:.2f}" if isinstance(value, float) else f"failed: {value}"
+
+    lines = ["## 10. Mission upload over the emulated SiK radio", "",
+             "The engine's mission sink, a plain pymavlink loop and MAVSDK's MissionRaw client (the mavsdk wheel as the "
+             "ground station), one after the other, to the simulated vehicle behind the same radio (bench/mission_upload.py).",
+             "", "| Items | Loss | Engine (s) | pymavlink (s) | MAVSDK (s) |", "|---|---|---|---|---|"]
+    lines += [f"| {r['items']} | {r['loss']:.0%} | {cell(r['engine_s'])} | {cell(r['pymavlink_s'])} | {cell(r['mavsdk_s'])} |"
+              for r in rows]
+    return lines + [""]
+
+
 def write_report(results: dict[str, Any], out: Path) -> None:
     before, after = results.get("machine_before", {}), results.get("machine_after", {})
     lines = ["# RabbitROS engine benchmark", "",
@@ -180,7 +202,8 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
     for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
                         ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table),
-                        ("calls", calls_table)):
+                        ("calls", calls_table), ("fleet", fleet_table),
+                        ("radio_latency", radio_latency_table), ("mission", mission_table)):
         value = results.get(key)
         if value is None:
             continue
@@ -193,6 +216,13 @@ def write_report(results: dict[str, Any], out: Path) -> None:
             lines += [f"## {key}: cannot render ({type(exc).__name__}: {exc})", ""]
     lines += ["Plots: " + ", ".join(f"`{p}`" for p in plots(results, out)), ""]
     (out / "report.md").write_text("\n".join(lines))
+
+
+def fleet_table(fleet: dict[str, Any]) -> list[str]:
+    from bench.fleet import fleet_report
+
+    return ["## 8. A fleet: 100 agents through templated routes, against one hand-written route per agent", "",
+            *fleet_report(fleet), ""]
 
 
 def _load(machine: dict[str, Any]) -> str:

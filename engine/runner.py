@@ -39,6 +39,7 @@ from engine.buffer import Buffers, Held, HoldingBuffer, stats_dict
 from engine.dead_letters import DeadLetters, dead_letter_message
 from engine.delivery import HEALTH_POLL, Failure, classify, given_up, prior_attempts, retry_delay
 from engine.endpoints.base import Connection, Conflated, EndpointError, Inbound, MessageRejected, NotSent, Outbound, Source
+from engine.fairness import FairOptions
 from engine.logs import ReportLimiter
 from engine.observe import Observers
 from engine.pipeline import Pipeline
@@ -137,8 +138,15 @@ class RouteRunner:
 
     deliver = __call__
 
+    @property
+    def fair(self) -> FairOptions | None:
+        return self.spec.fair
+
     def dropped(self, count: int = 1) -> None:
         self.observer.dropped += count
+
+    def agent_dropped(self, agent: Any, count: int = 1) -> None:
+        self.observer.agent_dropped(agent, count)
 
     async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
         """Take a batch through the stages; ``result[i]`` is True once ``inbounds[i]`` was
@@ -597,8 +605,15 @@ class StandbyGate:
     def queue_limit(self) -> int:
         return self.runner.queue_limit
 
+    @property
+    def fair(self) -> FairOptions | None:
+        return self.runner.fair
+
     def dropped(self, count: int = 1) -> None:
         self.runner.dropped(count)
+
+    def agent_dropped(self, agent: Any, count: int = 1) -> None:
+        self.runner.agent_dropped(agent, count)
 
     async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
         if not self.runner.lease.active:

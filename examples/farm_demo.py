@@ -117,11 +117,14 @@ def main() -> int:
     parser.add_argument("--work", type=Path, help="directory for logs, the status file and the supervisor's record "
                         "of every canonical message (default: a new temporary directory)")
     parser.add_argument("--plain", action="store_true", help="plain lines even on a terminal")
+    parser.add_argument("--ros-domain", type=int, default=random.randint(1, 100),
+                        help="ROS 2 domain of the engine and the robot (default: a random one, 1..100, so the "
+                        "demo does not meet other ROS 2 programs on the machine)")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="rabbitros-farm-"))
     work.mkdir(parents=True, exist_ok=True)
     live = sys.stdout.isatty() and not args.plain
-    env = {**os.environ, "ROS_DOMAIN_ID": str(random.randint(1, 100)), "PYTHONPATH": str(REPO)}
+    env = {**os.environ, "ROS_DOMAIN_ID": str(args.ros_domain), "PYTHONPATH": str(REPO)}
     processes: list[subprocess.Popen[bytes]] = []
     lines: deque[str] = deque(maxlen=12)
     admin = ("127.0.0.1", free_port())

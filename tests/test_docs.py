@@ -130,6 +130,7 @@ def stop_group(pgid: int, timeout: float = 60) -> None:
         time.sleep(0.2)
 
 
+@pytest.mark.soak
 def test_the_tutorial_steps_work_as_written(tmp_path: Path):
     """Steps 2 to 4 run exactly as the tutorial shows them, in order (step 1 is scripts/setup.sh,
     which this machine has run): check and test print what the tutorial says, the engine runs

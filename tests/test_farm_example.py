@@ -14,18 +14,22 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+import pytest
+
 from engine.endpoints.mavlink.dialect import mavlink2
 from engine.schemas import SchemaRegistry
 from tests.conftest import REPO
+from tests.workers import ros_domain
 
 DURATION = 30
 
 
+@pytest.mark.soak
 def test_farm_example_end_to_end(tmp_path: Path):
     work = tmp_path / "farm"
     result = subprocess.run(
         ["timeout", "-s", "KILL", "300", sys.executable, "examples/farm_demo.py", "--duration", str(DURATION),
-         "--work", str(work), "--plain"],
+         "--work", str(work), "--plain", "--ros-domain", str(ros_domain(11))],
         cwd=REPO, capture_output=True, text=True, timeout=320,
     )
     out = result.stdout
