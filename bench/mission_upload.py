@@ -1,11 +1,16 @@
 """Mission upload time over the emulated SiK radio (57,600 baud, 64 kbps air, ~237 ms TDM).
 
-For 5, 50 and 200 waypoints, at 0 % and 5 % air-packet loss: the engine's mission sink
-(``mission: upload``) against the simulated vehicle in its own process, and, as the reference
-on the same radio in the same run, a plain pymavlink upload loop (one thread, blocking reads,
-the same 1.5 s answer timeout). Prints seconds, items/s and the engine/reference ratio.
+For 5, 20, 50 and 200 waypoints, at 0 % and 5 % air-packet loss: the engine's mission sink
+(``mission: upload``) against the simulated vehicle in its own process, and, as references on
+the same radio in the same run: a plain pymavlink upload loop (one thread, blocking reads, the
+same 1.5 s answer timeout) and MAVSDK's own mission client (the ``mavsdk`` wheel's C++ core as
+the ground station, ``MissionRaw.upload_mission`` over the radio's serial port, with MAVSDK's
+default timeouts). The vehicle is the simulated one (rabbitros_sim/vehicle.py) for all three:
+MAVSDK's vehicle side (tests/mavsdk_vehicle.py) listens on UDP, and the radio emulator is a
+serial device, so one vehicle behind the radio serves every client alike. Prints seconds,
+items/s and the ratios; ``--json`` writes them.
 
-    .venv/bin/python -m bench.mission_upload [--sizes 5 50 200] [--loss 0 0.05] [--repeat 1]
+    .venv/bin/python -m bench.mission_upload [--sizes 5 20 50 200] [--loss 0 0.05] [--repeat 1] [--json out.json]
 """
 
 from __future__ import annotations
@@ -109,31 +114,83 @@ def reference_upload(link: str, count: int) -> float:
         os.close(fd)
 
 
-async def measure(count: int, loss: float, seed: int, work: Path) -> tuple[float, float, dict[str, Any], dict[str, Any]]:
+def mavsdk_upload(link: str, count: int) -> float:
+    """MAVSDK's MissionRaw client as the ground station: seconds of ``upload_mission`` (the
+    vehicle's MAV_MISSION_ACCEPTED), after MAVSDK found the vehicle."""
+    from mavsdk import ComponentType, Configuration, Mavsdk
+    from mavsdk.plugins.mission_raw.mission_raw import MissionItem, MissionRaw
+
+    sdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
+    try:
+        result = sdk.add_any_connection(f"serial://{link}:57600")
+        system = sdk.first_autopilot(20.0)
+        if system is None:
+            raise RuntimeError(f"MAVSDK did not find the vehicle behind the radio ({result})")
+        points = waypoints(count)["waypoints"]
+        items = [MissionItem(seq, mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mavlink2.MAV_CMD_NAV_WAYPOINT,
+                             int(seq == 0), 1,  # MAVSDK wants exactly one current item
+                             p["hold_s"], 0.0, 0.0, 0.0, round(p["lat"] * 1e7), round(p["lon"] * 1e7), p["alt_rel"], 0)
+                 for seq, p in enumerate(points)]
+        mission = MissionRaw(system)
+        started = time.perf_counter()
+        mission.upload_mission(items)
+        return time.perf_counter() - started
+    finally:
+        sdk.destroy()
+
+
+async def measure(count: int, loss: float, seed: int, work: Path) -> dict[str, Any]:
+    """One upload by each client, one after the other, through the same radio and vehicle."""
     async with SikRadioPair(loss=loss, seed=seed) as pair, vehicle_process(pair.link_b, work / "store", 600) as vehicle:
         engine_s, stats = await engine_upload(pair.link_a, count)
         reference_s = await asyncio.to_thread(reference_upload, pair.link_a, count)
-    return engine_s, reference_s, stats, vehicle
+        try:
+            mavsdk_s: float | str = await asyncio.to_thread(mavsdk_upload, pair.link_a, count)
+        except Exception as exc:  # reported in the table, not fatal to the others' figures
+            mavsdk_s = f"{type(exc).__name__}: {str(exc).split(';')[0]}"
+    return {"engine_s": engine_s, "pymavlink_s": reference_s, "mavsdk_s": mavsdk_s, "stats": stats, "vehicle": vehicle}
+
+
+def run(sizes: list[int], losses: list[float], repeat: int = 1) -> list[dict[str, Any]]:
+    """Every size at every loss; the median of ``repeat`` runs of each client."""
+    work = Path(tempfile.mkdtemp(prefix="rabbitros-mission-bench-"))
+    rows = []
+    for loss in losses:
+        for count in sizes:
+            runs = [asyncio.run(measure(count, loss, 100 + r, work)) for r in range(repeat)]
+            row: dict[str, Any] = {"items": count, "loss": loss}
+            for client in ("engine_s", "pymavlink_s", "mavsdk_s"):
+                values = [r[client] for r in runs if isinstance(r[client], float)]
+                row[client] = statistics.median(values) if values else next(r[client] for r in runs)
+            row["mission_resends"] = runs[-1]["stats"].get("mission_resends", 0)
+            row["vehicle_missions"] = runs[-1]["vehicle"].get("missions_accepted")
+            rows.append(row)
+            print(format_row(row), flush=True)
+    return rows
+
+
+def format_row(row: dict[str, Any]) -> str:
+    def cell(value: Any) -> str:
+        return f"{value:.2f}" if isinstance(value, float) else str(value)[:40]
+
+    ratio = (f"{row['engine_s'] / row['mavsdk_s']:.2f}" if isinstance(row["mavsdk_s"], float) else "-")
+    return (f"{row['items']:5} {row['loss']:5.0%} {cell(row['engine_s']):>9} {cell(row['pymavlink_s']):>12} "
+            f"{cell(row['mavsdk_s']):>9} {row['engine_s'] / row['pymavlink_s']:8.2f} {ratio:>8}")
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=int, nargs="+", default=[5, 50, 200])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[5, 20, 50, 200])
     parser.add_argument("--loss", type=float, nargs="+", default=[0.0, 0.05])
     parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--json", type=Path, help="write the rows here")
     args = parser.parse_args()
-    work = Path(tempfile.mkdtemp(prefix="rabbitros-mission-bench-"))
-    print(f"{'items':>5} {'loss':>5} {'engine s':>9} {'items/s':>8} {'reference s':>12} {'ratio':>6} "
-          f"{'resends':>8} {'items sent':>10} {'vehicle missions':>16}")
-    for loss in args.loss:
-        for count in args.sizes:
-            runs = [asyncio.run(measure(count, loss, 100 + r, work)) for r in range(args.repeat)]
-            engine_s = statistics.median(r[0] for r in runs)
-            reference_s = statistics.median(r[1] for r in runs)
-            stats, vehicle = runs[-1][2], runs[-1][3]
-            print(f"{count:5} {loss:5.0%} {engine_s:9.2f} {count / engine_s:8.1f} {reference_s:12.2f} "
-                  f"{engine_s / reference_s:6.2f} {stats.get('mission_resends', 0):8} "
-                  f"{stats.get('mission_items_sent', 0):10} {vehicle.get('missions_accepted', '?'):>16}", flush=True)
+    print(f"{'items':>5} {'loss':>5} {'engine s':>9} {'pymavlink s':>12} {'mavsdk s':>9} {'e/pymav':>8} {'e/mavsdk':>8}")
+    rows = run(args.sizes, args.loss, args.repeat)
+    if args.json:
+        import json
+
+        args.json.write_text(json.dumps(rows, indent=1))
     return 0
 
 

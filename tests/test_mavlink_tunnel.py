@@ -49,19 +49,21 @@ def body_of(size: int, seed: int = 0) -> bytes:
 def test_wire_format_is_as_documented() -> None:
     frames = tunnel.fragment(0x1234, b"hello", 121)
     crc = zlib.crc32(b"hello").to_bytes(4, "little")
-    assert frames == [bytes([0x10, 0x34, 0x12, 0, 1, 9, 0]) + b"hello" + crc]
+    assert frames == [bytes([0x20, 0x34, 0x12, 0, 1]) + b"hello" + crc]
     frames = tunnel.fragment(7, bytes(300), 100)
-    assert [len(f) for f in frames] == [107, 107, 107, 11]
+    assert [len(f) for f in frames] == [105, 105, 105, 9]
     assert [tunnel.decode(f).index for f in frames] == [0, 1, 2, 3]
-    assert {tunnel.decode(f).total for f in frames} == {304}
+    assert {tunnel.decode(f).count for f in frames} == {4}
+    assert sum(len(tunnel.decode(f).chunk) for f in frames) == 304  # the length is what the fragments carry
     ack = tunnel.encode_ack(tunnel.Ack(7, 10, 0, 0b1000000101))
-    assert ack == bytes([0x11, 7, 0, 0, 10, 0b00000101, 0b10])
+    assert ack == bytes([0x21, 7, 0, 0, 10, 0b00000101, 0b10])
     assert tunnel.decode(ack) == tunnel.Ack(7, 10, 0, 0b1000000101)
     done = tunnel.encode_ack(tunnel.Ack(7, 10, tunnel.FLAG_DELIVERED | tunnel.FLAG_COMPLETE, 0))
     assert len(done) == 5 and tunnel.decode(done).held == 0b1111111111
     with pytest.raises(ValueError):
         tunnel.fragment(1, bytes(255 * 121), 121)
-    for bad in (b"", b"\x20\x00", bytes([0x10, 0, 0, 3, 2, 9, 0])):
+    for bad in (b"", b"\x20\x00", bytes([0x20, 0, 0, 3, 2, 9]), bytes([0x20, 0, 0, 0, 1]),
+                bytes([0x10, 0, 0, 0, 1, 9, 0]) + b"v1"):  # index past count, no data, version 1
         with pytest.raises(ValueError):
             tunnel.decode(bad)
 
@@ -211,7 +213,7 @@ def test_reassembler_rejects_bad_crc_and_bounds_its_memory() -> None:
     reasm = tunnel.Reassembler(memory=4)
     frames = [tunnel.decode(f) for f in tunnel.fragment(9, b"x" * 200, 100)]
     bad = frames[1]
-    frames[1] = tunnel.Data(bad.msg_id, bad.index, bad.count, bad.total, b"y" + bad.chunk[1:])
+    frames[1] = tunnel.Data(bad.msg_id, bad.index, bad.count, b"y" + bad.chunk[1:])
     results = [reasm.on_data("p", f, 0.0) for f in frames]
     assert all(done is None for _, done in results)
     assert reasm.stats.crc_errors == 1

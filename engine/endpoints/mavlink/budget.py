@@ -10,13 +10,15 @@ fragments alike; commands, mission items, acknowledgements and heartbeats go unp
 :meth:`RadioBudget.rate`, which follows those reports:
 
 * **txbuf** (percent of the radio's buffer *free*; SiK's semantics, ``shared/research``
-  MAVLink notes section 5): the buffer fills when we write faster than the air carries, so
-  the budget is additive-increase / multiplicative-decrease on it, like ArduPilot's stream
-  slow-down on the same field. Below 25 % free (1.5 KB waiting: at the budget's ceiling the
-  rest fills in well under a report interval) the rate halves; below 50 % it drops by a
-  fifth; at 90 % or more free (the radio is waiting for us) it climbs back by a tenth of the
-  ceiling per report, so from half it is back at the ceiling in five seconds; in between it
-  holds. Never below a tenth of the ceiling.
+  MAVLink notes section 5): the buffer fills when we write faster than the air carries. Each
+  report gives what the air carried since the previous one (what we wrote less what the
+  buffer gained; a measure of the air's rate when the buffer stayed backlogged, averaged over
+  reports), and the budget is that rate plus what brings the buffer to 40 % in use within two
+  seconds (a proportional controller: above the target it drains, below it fills). A radio at
+  90 % free or more is waiting for us: the budget climbs by a tenth of the ceiling per report
+  (and to what was carried, if more), as it does before the air's rate is known. Never below
+  a tenth of the ceiling. ArduPilot slows its streams on the same field (down fast, up slowly);
+  here the target keeps a backlog so that every transmit window leaves full.
 * **rssi/noise, remrssi/remnoise** (both ends' signal and noise, in SiK units of about
   0.5 dB; the fade margin is ``(rssi - noise) / 2`` dB, the smaller of the two ends): a link
   designed for reliability keeps 10-20 dB of fade margin. Below 10 dB air packets start to be
@@ -46,15 +48,23 @@ from typing import Any
 STALE_S = 3.0
 """Seconds after which a RADIO_STATUS no longer describes the radio (SiK sends one a second)."""
 TXBUF_HALF, TXBUF_IDLE = 50, 90
-"""Percent free of the radio's buffer: below HALF the budget comes down to drain it, at IDLE
-or above it climbs back (see the module docstring)."""
+"""Percent free of the radio's buffer: a first report below HALF measures the air by what it
+carried even though the buffer was not backlogged before; at IDLE or above the radio waits
+for us and the budget climbs (see the module docstring)."""
 RADIO_BUFFER = 2048
 """Bytes of a SiK radio's serial buffer (the ArduPilot wiki's figure; Si1000 boards have
 1,850 for input): what txbuf is a percentage of."""
-TARGET_USED, DRAIN_S = 0.25, 1.0
-"""Where a decrease aims: a quarter of the buffer in use within a second, enough backlog to
-fill every transmit window, room for a second of the air's rate above it."""
+TARGET_USED, DRAIN_S = 0.4, 2.0
+"""Where a decrease aims: 40 % of the buffer in use (820 B), within two seconds. Enough
+backlog that every transmit window leaves full (a window carries about 750 B; the flood
+reference keeps 1,800 B waiting), little enough that a ``high`` frame waits at most ~0.3 s
+for what the radio holds. Aiming at a quarter within one second cut the round trip's
+goodput to 0.67 of the flood (the budget kept falling below the air's rate and climbed back
+slowly); with this, see bench/results."""
 INCREASE = 0.1
+BACKLOG = 0.1
+"""A buffer at least this full at two reports in a row was never empty between them: what
+left it is what the air carried."""
 FLOOR = 0.1
 """The budget never falls below this fraction of its ceiling: telemetry keeps trickling and
 the next report (which needs the radio's buffer to drain) can raise it again."""
@@ -95,36 +105,36 @@ class RadioBudget:
         self._rate = ceiling
         self._sent = 0
         """Bytes of route frames written since the last report."""
+        self._air: float | None = None
+        """What the air carries, bytes/s, measured while the radio's buffer stayed backlogged."""
         self.decreases = 0
+        """Reports that brought the budget down (the status and the tests read it)."""
 
     def sent(self, size: int) -> None:
         """A route frame of ``size`` bytes was written (the writer's hot path: one addition)."""
         self._sent += size
 
     def report(self, msg: Any, now: float) -> None:
-        """A RADIO_STATUS from our radio: move the rate by its ``txbuf`` (module docstring)."""
+        """A RADIO_STATUS from our radio: steer the rate by its ``txbuf`` (module docstring)."""
         report = RadioReport.from_message(msg, now)
         previous, self.last = self.last, report
         sent, self._sent = self._sent, 0
-        if previous is None or now - previous.at > STALE_S:
+        if previous is None or now - previous.at > STALE_S or not self.ceiling:
             self._rate = self.ceiling  # a fresh start: the previous reports say nothing now
             return
-        if not self.ceiling:
-            return
-        if report.txbuf < TXBUF_HALF:
-            self.decreases += 1
-            self._rate = max(FLOOR * self.ceiling, min(self._rate, self._drain_rate(previous, report, sent)))
-        elif report.txbuf >= TXBUF_IDLE:
-            self._rate = min(self.ceiling, self._rate + INCREASE * self.ceiling)
-
-    @staticmethod
-    def _drain_rate(previous: RadioReport, report: RadioReport, sent: int) -> float:
-        """The rate that brings the radio's buffer back to TARGET_USED within DRAIN_S: what the
-        air carried since the previous report (what we wrote less what the buffer gained; the
-        buffer was backlogged, so that is the air's rate) less the excess over DRAIN_S."""
         used, used_before = ((100 - r.txbuf) * RADIO_BUFFER / 100 for r in (report, previous))
-        carried = max(0.0, sent - (used - used_before)) / max(report.at - previous.at, 0.1)
-        return carried - (used - TARGET_USED * RADIO_BUFFER) / DRAIN_S
+        carried = max(0.0, sent - (used - used_before)) / max(now - previous.at, 0.1)
+        if min(used, used_before) >= BACKLOG * RADIO_BUFFER:  # backlogged throughout: the air's own rate
+            self._air = carried if self._air is None else 0.5 * (self._air + carried)
+        elif self._air is None and report.txbuf < TXBUF_HALF:  # filled at once: at most what was carried
+            self._air = carried
+        if self._air is None or report.txbuf >= TXBUF_IDLE:  # the radio waits for us: climb
+            rate = max(self._rate, carried) + INCREASE * self.ceiling
+        else:
+            rate = self._air + (TARGET_USED * RADIO_BUFFER - used) / DRAIN_S
+        rate = min(self.ceiling, max(FLOOR * self.ceiling, rate))
+        self.decreases += rate < self._rate
+        self._rate = rate
 
     def rate(self, now: float) -> float:
         """The budget now, bytes/s (0: unpaced)."""
@@ -142,7 +152,8 @@ class RadioBudget:
         last = self.last
         fresh = last is not None and now - last.at <= STALE_S
         return {
-            "bytes_per_s": round(self.rate(now)), "ceiling": round(self.ceiling),
+            "bytes_per_s": round(self.rate(now)), "ceiling": round(self.ceiling), "decreases": self.decreases,
+            "air_bytes_per_s": None if self._air is None else round(self._air),
             "radio": None if last is None else {
                 "txbuf_free_percent": last.txbuf, "fade_margin_db": last.fade_margin_db,
                 "age_s": round(now - last.at, 1), "counts": fresh},

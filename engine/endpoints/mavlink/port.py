@@ -171,8 +171,9 @@ class MavlinkPort:
     # writing
 
     def enqueue(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
-                priority: str | None = None, key: Hashable | None = None) -> asyncio.Future[float]:
+                priority: str | None = None, key: Hashable | None = None, first: bool = False) -> asyncio.Future[float]:
         """Queue a frame for the writer; the future gives the loop time it was written.
+        ``first``: at the front of its lane (a tunnel fragment sent again).
         ``priority`` None is control (before every route's frames, outside the budget);
         ``bulk`` frames (tunnel fragments) go after the message frames of their priority.
         A frame with a ``key`` replaces a waiting one with the same key (whose future fails
@@ -194,7 +195,11 @@ class MavlinkPort:
                 waiting.msg, waiting.future = msg, future
                 return future
             queued = _Queued(msg, future, key)
-            self._by_priority[(priority or "normal", bulk)].append(queued)
+            lane = self._by_priority[(priority or "normal", bulk)]
+            if first:
+                lane.appendleft(queued)
+            else:
+                lane.append(queued)
             if key is not None:
                 self._waiting[key] = queued
         self._wake.set()
@@ -209,10 +214,10 @@ class MavlinkPort:
         return await self.enqueue(msg, bulk=bulk, priority=priority, key=key)
 
     def send_tunnel(self, payload_type: int, target: tuple[int, int], payload: bytes, *,
-                    bulk: bool, priority: str | None = None) -> asyncio.Future[float]:
+                    bulk: bool, priority: str | None = None, first: bool = False) -> asyncio.Future[float]:
         msg = mavlink2.MAVLink_tunnel_message(target[0], target[1], payload_type, len(payload),
                                               payload.ljust(TUNNEL_PAYLOAD, b"\0"))
-        return self.enqueue(msg, bulk=bulk, priority=priority)
+        return self.enqueue(msg, bulk=bulk, priority=priority, first=first)
 
     def _next(self, now: float) -> tuple[_Queued, bool] | None:
         """The frame to write now (see the module docstring), and whether it is paced."""

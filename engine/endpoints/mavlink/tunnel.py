@@ -7,14 +7,15 @@ CRC-32 and acknowledged selectively; lost fragments, not whole messages, are sen
 Wire format, inside ``TUNNEL.payload`` (little endian), ``payload_type`` private (>= 32768,
 default 0xA900) and used as the channel, so several tunnel routes can share a link::
 
-    DATA    u8 ver<<4 | 0   u16 msg_id   u8 index   u8 count   u16 total   data[...]
+    DATA    u8 ver<<4 | 0   u16 msg_id   u8 index   u8 count   data[...]
     ACK     u8 ver<<4 | 1   u16 msg_id   u8 flags   u8 count   bitmap[ceil(count/8)]
     BUNDLE  u8 ver<<4 | 2   as DATA; the body is several messages, each u16 length + bytes
 
-``total`` is ``len(body) + 4``: the body is followed by ``crc32(body)`` before cutting (for a
-BUNDLE, the CRC-32 starts from ``BUNDLE_CRC_START``), so a fragment mixed in from another
-message (id wrap-around, sender restart) is caught. Every
-fragment but the last carries the same number of bytes. ACK ``flags``: 1 = the receiver
+The body is followed by ``crc32(body)`` before cutting (for a BUNDLE, the CRC-32 starts from
+``BUNDLE_CRC_START``), so a fragment mixed in from another message (id wrap-around, sender
+restart) is caught. Every fragment but the last carries the same number of bytes, so the
+length needs no field of its own: version 1 sent it (``u16 total``) in every fragment, two
+bytes of 107 (1.9 % of the goodput) that said what the fragments and the CRC already say. ACK ``flags``: 1 = the receiver
 holds every fragment (the bitmap is then omitted), 2 = delivered; bit ``i`` of the bitmap
 (byte ``i // 8``, bit ``i % 8``) says fragment ``i`` is held.
 
@@ -73,20 +74,20 @@ from engine.schemas import SchemaError, canonical_bytes
 
 DEFAULT_PAYLOAD_TYPE = 0xA900
 TUNNEL_PAYLOAD = 128
-VERSION = 1
+VERSION = 2
 KIND_DATA = 0
 KIND_ACK = 1
 KIND_BUNDLE = 2
 FLAG_COMPLETE = 1
 FLAG_DELIVERED = 2
-_DATA = struct.Struct("<BHBBH")
+_DATA = struct.Struct("<BHBB")
 _ACK = struct.Struct("<BHBB")
 MAX_FRAGMENT = TUNNEL_PAYLOAD - _DATA.size
 MAX_FRAGMENTS = 255
-SIK_FRAGMENT = 100
+SIK_FRAGMENT = 102
 """Fragment size on serial links: a TUNNEL frame of 124 bytes (12 of MAVLink 2 framing, 5 of
-TUNNEL fields, the 7-byte header, 100 of data), so two share a 252-byte SiK air packet; a
-121-byte fragment makes 145-byte frames that travel one per packet. On the emulator flooded
+TUNNEL fields, the 5-byte header, 102 of data), so two share a 252-byte SiK air packet; a
+123-byte fragment makes 145-byte frames that travel one per packet. On the emulator flooded
 with frames of one size (bench/sections.py), TUNNEL payloads of 107 bytes carried 2,260 B/s and
 of 121 bytes 2,027 B/s; 94-byte ones (three pairs fit a TDM window with room to spare) carried
 2,366 B/s alone but did no better in the round trip, where telemetry shares the packets."""
@@ -103,7 +104,6 @@ class Data:
     msg_id: int
     index: int
     count: int
-    total: int
     chunk: bytes
     bundle: bool = False
     """The reassembled body is a bundle of messages (see :func:`bundle`)."""
@@ -120,7 +120,7 @@ class Ack:
 
 def encode_data(d: Data) -> bytes:
     kind = KIND_BUNDLE if d.bundle else KIND_DATA
-    return _DATA.pack(VERSION << 4 | kind, d.msg_id, d.index, d.count, d.total) + d.chunk
+    return _DATA.pack(VERSION << 4 | kind, d.msg_id, d.index, d.count) + d.chunk
 
 
 def encode_ack(a: Ack) -> bytes:
@@ -136,10 +136,10 @@ def decode(payload: bytes) -> Data | Ack:
         raise ValueError("not a tunnel frame of this version")
     kind = payload[0] & 0x0F
     if kind in (KIND_DATA, KIND_BUNDLE) and len(payload) >= _DATA.size:
-        _, msg_id, index, count, total = _DATA.unpack_from(payload)
-        if count == 0 or index >= count or total < CRC_SIZE:
+        _, msg_id, index, count = _DATA.unpack_from(payload)
+        if count == 0 or index >= count or len(payload) == _DATA.size:
             raise ValueError("bad DATA header")
-        return Data(msg_id, index, count, total, bytes(payload[_DATA.size:]), kind == KIND_BUNDLE)
+        return Data(msg_id, index, count, bytes(payload[_DATA.size:]), kind == KIND_BUNDLE)
     if kind == KIND_ACK and len(payload) >= _ACK.size:
         _, msg_id, flags, count = _ACK.unpack_from(payload)
         if count == 0:
@@ -162,7 +162,7 @@ def fragment(msg_id: int, body: bytes, fragment_size: int = MAX_FRAGMENT, *, bun
     if count > MAX_FRAGMENTS or len(whole) > 0xFFFF:
         raise ValueError(f"message of {len(body)} bytes exceeds {MAX_FRAGMENTS} fragments of {fragment_size} bytes")
     return [
-        encode_data(Data(msg_id, i, count, len(whole), whole[i * fragment_size:(i + 1) * fragment_size], bundled))
+        encode_data(Data(msg_id, i, count, whole[i * fragment_size:(i + 1) * fragment_size], bundled))
         for i in range(count)
     ]
 
@@ -323,7 +323,6 @@ class Transfer:
 @dataclass(slots=True)
 class _Partial:
     count: int
-    total: int
     bundle: bool
     chunks: dict[int, bytes]
     last_seen: float
@@ -334,7 +333,6 @@ class _Partial:
 @dataclass(slots=True)
 class _Known:
     count: int
-    total: int
     bundle: bool = False
     until: float = 0.0
     last_ack: float = float("-inf")
@@ -380,20 +378,20 @@ class Reassembler:
     def on_data(self, peer: Hashable, data: Data, now: float) -> tuple[list[bytes], tuple[Key, bytes] | None]:
         self.stats.fragments += 1
         key = (peer, data.msg_id)
-        shape = (data.count, data.total, data.bundle)
+        shape = (data.count, data.bundle)
         known = self._done.get(key)
-        if known is not None and (known.count, known.total, known.bundle) == shape and now < known.until:
+        if known is not None and (known.count, known.bundle) == shape and now < known.until:
             self.stats.duplicate_fragments += 1
             return self._repeat_ack(known, data, FLAG_DELIVERED | FLAG_COMPLETE, now), None
         if known is not None:
             del self._done[key]
         known = self._delivering.get(key)
-        if known is not None and (known.count, known.total, known.bundle) == shape:
+        if known is not None and (known.count, known.bundle) == shape:
             self.stats.duplicate_fragments += 1
             return self._repeat_ack(known, data, FLAG_COMPLETE, now), None
 
         partial = self._partial.get(key)
-        if partial is not None and (partial.count, partial.total, partial.bundle) != shape:
+        if partial is not None and (partial.count, partial.bundle) != shape:
             del self._partial[key]
             partial = None
         if partial is None:
@@ -401,7 +399,7 @@ class Reassembler:
                 oldest = min(self._partial, key=lambda k: self._partial[k].last_seen)
                 del self._partial[oldest]
                 self.stats.evicted += 1
-            partial = self._partial[key] = _Partial(data.count, data.total, data.bundle, {}, now)
+            partial = self._partial[key] = _Partial(data.count, data.bundle, {}, now)
         if data.index in partial.chunks:
             self.stats.duplicate_fragments += 1
         partial.chunks[data.index] = data.chunk
@@ -411,11 +409,11 @@ class Reassembler:
             del self._partial[key]
             whole = b"".join(partial.chunks[i] for i in range(partial.count))
             body, crc = whole[:-CRC_SIZE], whole[-CRC_SIZE:]
-            if len(whole) != partial.total or _crc(body, partial.bundle) != crc \
+            if not _evenly_cut(partial) or len(whole) <= CRC_SIZE or _crc(body, partial.bundle) != crc \
                     or partial.bundle and not _is_bundle(body):
                 self.stats.crc_errors += 1
                 return [self._ack(Ack(data.msg_id, data.count, 0, 0))], None
-            self._delivering[key] = _Known(partial.count, partial.total, partial.bundle, last_ack=now)
+            self._delivering[key] = _Known(partial.count, partial.bundle, last_ack=now)
             self.stats.completed += 1
             return [], (key, body)
 
@@ -491,6 +489,12 @@ class Reassembler:
         return encode_ack(ack)
 
 
+def _evenly_cut(partial: _Partial) -> bool:
+    """Every fragment but the last carries the same number of bytes, the last no more."""
+    sizes = [len(partial.chunks[i]) for i in range(partial.count)]
+    return all(size == sizes[0] for size in sizes[:-1]) and sizes[-1] <= sizes[0]
+
+
 def _is_bundle(body: bytes) -> bool:
     try:
         unbundle(body)
@@ -508,10 +512,11 @@ class TunnelLink(Protocol):
     stats: dict[str, int]
 
     def send_tunnel(self, payload_type: int, target: tuple[int, int], payload: bytes, *,
-                    bulk: bool, priority: str | None = None) -> asyncio.Future[float]:
+                    bulk: bool, priority: str | None = None, first: bool = False) -> asyncio.Future[float]:
         """Queue a TUNNEL frame; the future gives the loop time it was written (cancelling it
         before then takes the frame off the queue). ``priority``: the route's, for the writer's
-        order (None: before every route's frames, as acknowledgements are)."""
+        order (None: before every route's frames, as acknowledgements are); ``first``: at the
+        front of its lane (a fragment sent again)."""
         ...
 
 
@@ -882,6 +887,10 @@ class TunnelSink(Sink):
                 hub.count("tunnel_retransmissions", transfer.retransmissions)
         hub.count("tunnel_sent", messages)
 
+    def _send_fragment(self, transfer: Transfer, index: int, *, first: bool = False) -> asyncio.Future[float]:
+        return asyncio.ensure_future(self.hub.link.send_tunnel(self.payload_type, self.target, transfer.frames[index],
+                                                               bulk=True, priority=self.priority, first=first))
+
     async def _run(self, transfer: Transfer, acks: asyncio.Queue[Ack], expires_ns: int | None = None) -> None:
         loop = asyncio.get_running_loop()
         pending: list[int] = list(range(transfer.count))
@@ -901,16 +910,21 @@ class TunnelSink(Sink):
                 # fragments back to back: transfers in flight complete one after another (the
                 # receiver can settle and answer the first while the next is on the air)
                 # rather than all together at the end.
-                queued: list[tuple[int, asyncio.Future[float]]] = []
+                # Fragments sent again go before every first transmission of their priority
+                # (in order, at the front of the writer's lane): a loss is repaired in the time
+                # of its fragments, not after the window of transfers queued behind it.
+                wanted: list[int] = []
                 while pending:
                     index = pending.pop(0)
                     if transfer.is_held(index) and index != transfer.probe:
                         continue
                     if index == transfer.probe:
                         transfer.probe = None
-                    queued.append((index, asyncio.ensure_future(self.hub.link.send_tunnel(
-                        self.payload_type, self.target, transfer.frames[index], bulk=True,
-                        priority=self.priority))))
+                    wanted.append(index)
+                again = [i for i in wanted if transfer.tx_count[i]]
+                queued: list[tuple[int, asyncio.Future[float]]] = [
+                    (index, self._send_fragment(transfer, index, first=True)) for index in reversed(again)][::-1]
+                queued += [(index, self._send_fragment(transfer, index)) for index in wanted if not transfer.tx_count[index]]
                 try:
                     for index, written in queued:
                         transfer.on_sent(index, await written)
