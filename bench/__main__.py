@@ -3,8 +3,9 @@
 Starts a private RabbitMQ node, runs each section (the paper's latency method, zero-loss
 throughput of each route kind against its reference pass-through and the paper's design,
 latency at half that rate, throughput against message size, 1/100/1,000 routes, JSON over
-the emulated SiK radio at 0 and 5 % loss, ROS 2 topic discovery latency for 20 robots, MAVLink latency
-over that radio, a 20-waypoint mission uploaded by the engine, pymavlink and MAVSDK) and writes
+the emulated SiK radio at 0 and 5 % loss, ROS 2 topic discovery latency for 20 robots, the round trip of a ROS 2
+service call from AMQP next to a plain rclpy client, a fleet of 100 agents (bench/fleet.py), MAVLink latency over
+the radio, a 20-waypoint mission uploaded by the engine, pymavlink and MAVSDK) and writes
 ``results.json``, ``report.md`` (the paper's table format
 plus p50/p99) and PNG plots. Throughput is reported as ratios measured in the same run: the
 machine is shared, absolute numbers move with its load (recorded in the report).
@@ -27,12 +28,12 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from bench import bench_discovery, mission_upload, radio_latency, sections
+from bench import bench_discovery, call_ros2, fleet, mission_upload, radio_latency, sections
 from bench import throughput as tp
 from bench.report import write_report
 
 REPO = Path(__file__).resolve().parent.parent
-SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "radio_latency", "mission")
+SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "calls", "fleet", "radio_latency", "mission")
 KINDS = {
     "amqp-amqp": ("ref-amqp-amqp", None),
     "amqp-ros2": ("ref-amqp-ros2", "paper-amqp-ros2"),
@@ -101,6 +102,8 @@ async def run(args: argparse.Namespace) -> Path:
         ("sik", lambda: sections.sik_goodput(url, args.sik_count, 250)),
         ("discovery", lambda: bench_discovery.measure(url, tp.domain_id())),
         ("sik5", lambda: sections.sik_goodput(url, args.sik_count, 250, loss=0.05)),
+        ("calls", lambda: call_ros2.measure(url, tp.domain_id(), args.calls)),
+        ("fleet", lambda: fleet.fleet(url, ["templated", "hand_written"], duration=args.fleet_seconds)),
         ("radio_latency", lambda: radio_latency.run(url, 12.0)),
         ("mission", lambda: asyncio.to_thread(mission_upload.run, [20], [0.0, 0.05])),
     ]
@@ -140,6 +143,10 @@ def main() -> None:
     parser.add_argument("--sik-count", type=int, default=400,
                         help="250-byte messages through the emulated SiK radio (the link's fill and drain, a few "
                              "seconds, weigh less the more there are)")
+    parser.add_argument("--calls", type=int, default=500,
+                        help="ROS 2 service calls, one at a time, through the engine and by a plain rclpy client")
+    parser.add_argument("--fleet-seconds", type=float, default=60.0,
+                        help="seconds of the fleet's load (bench/fleet.py), each way of writing its routes")
     parser.add_argument("--only", help=f"comma-separated sections of {', '.join(SECTIONS)}")
     parser.add_argument("--out", help="output directory (default bench/results/<date>)")
     parser.add_argument("--report-only", help="rewrite report.md and plots from this results.json")

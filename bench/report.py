@@ -156,10 +156,26 @@ def discovery_table(discovery: dict[str, Any]) -> list[str]:
                     f"{_f(idle.get('engine_cpu_percent'), 2)} % following {idle.get('topics')}.", ""]
 
 
+def calls_table(calls: dict[str, Any]) -> list[str]:
+    engine, plain = calls["through_engine"], calls["plain_rclpy"]
+    rpc = calls.get("plain_amqp_rpc")
+    amqp = [f"| AMQP legs alone (an aio-pika RPC worker) | {rpc['calls']} | {_f(rpc['p50_ms'])} | {_f(rpc['p99_ms'])} |"] if rpc else []
+    return ["## 7. A ROS 2 service call's round trip, one call at a time (bench/call_ros2.py)", "",
+            "The same test_msgs/srv/BasicTypes server: called from AMQP through the engine (direct reply-to, "
+            "AMQP -> ROS 2 -> AMQP) and by a plain rclpy client, in the same run.", "",
+            "| Caller | calls | p50 (ms) | p99 (ms) |", "|---|---|---|---|",
+            f"| through the engine | {engine['calls']} | {_f(engine['p50_ms'])} | {_f(engine['p99_ms'])} |",
+            f"| plain rclpy client | {plain['calls']} | {_f(plain['p50_ms'])} | {_f(plain['p99_ms'])} |",
+            f"| engine / rclpy | | {_f(calls['p50_ratio'], 1)} x | {_f(calls['p99_ratio'], 1)} x |", *amqp, "",
+            "The engine's round trip holds two AMQP legs (each a broker hop) and one ROS 2 call; the AMQP legs alone "
+            "are an aio-pika worker answering the same caller at once (aio-pika costs more per message than the "
+            "engine's aiormq path: context, not a floor).", ""]
+
+
 def radio_latency_table(rows: list[dict[str, Any]]) -> list[str]:
     from bench.radio_latency import HEADER, format_row
 
-    return ["## 7. MAVLink latency over the emulated SiK radio", "",
+    return ["## 9. MAVLink latency over the emulated SiK radio", "",
             "Telemetry: the vehicle's GLOBAL_POSITION_INT from its send to an AMQP consumer; command: an AMQP call "
             "to COMMAND_LONG over the radio and the vehicle's COMMAND_ACK back as the call's reply (bench/radio_latency.py).",
             "", HEADER, *(format_row(row) for row in rows), ""]
@@ -169,7 +185,7 @@ def mission_table(rows: list[dict[str, Any]]) -> list[str]:
     def cell(value: Any) -> str:
         return f"{value:.2f}" if isinstance(value, float) else f"failed: {value}"
 
-    lines = ["## 8. Mission upload over the emulated SiK radio", "",
+    lines = ["## 10. Mission upload over the emulated SiK radio", "",
              "The engine's mission sink, a plain pymavlink loop and MAVSDK's MissionRaw client (the mavsdk wheel as the "
              "ground station), one after the other, to the simulated vehicle behind the same radio (bench/mission_upload.py).",
              "", "| Items | Loss | Engine (s) | pymavlink (s) | MAVSDK (s) |", "|---|---|---|---|---|"]
@@ -186,6 +202,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
     for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
                         ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table),
+                        ("calls", calls_table), ("fleet", fleet_table),
                         ("radio_latency", radio_latency_table), ("mission", mission_table)):
         value = results.get(key)
         if value is None:
@@ -199,6 +216,13 @@ def write_report(results: dict[str, Any], out: Path) -> None:
             lines += [f"## {key}: cannot render ({type(exc).__name__}: {exc})", ""]
     lines += ["Plots: " + ", ".join(f"`{p}`" for p in plots(results, out)), ""]
     (out / "report.md").write_text("\n".join(lines))
+
+
+def fleet_table(fleet: dict[str, Any]) -> list[str]:
+    from bench.fleet import fleet_report
+
+    return ["## 8. A fleet: 100 agents through templated routes, against one hand-written route per agent", "",
+            *fleet_report(fleet), ""]
 
 
 def _load(machine: dict[str, Any]) -> str:

@@ -20,8 +20,37 @@ LOCAL_BROKER_ENV = "RABBITROS_LOCAL_BROKER"
 empty, as none is started), beside the variables each broker sets for its transport."""
 
 
+LIFETIME_ENV = "RABBITROS_PRIVATE_BROKER_LIFETIME"
+"""Seconds after which every private broker started in this environment is killed from outside
+(``timeout -s KILL``), whoever started it: the tests set it, so a broker started by a test or by
+an engine the test ran cannot outlive a killed run by more than that. Unset: no bound."""
+
+
 class BrokerError(RuntimeError):
     pass
+
+
+def lifetime_from_environment() -> float | None:
+    """:data:`LIFETIME_ENV` in seconds, or None (unset or empty: private brokers live until stopped)."""
+    value = os.environ.get(LIFETIME_ENV, "").strip()
+    if not value:
+        return None
+    try:
+        seconds = float(value)
+    except ValueError:
+        raise BrokerError(f"{LIFETIME_ENV}={value!r} is not a number of seconds") from None
+    if seconds <= 0:
+        raise BrokerError(f"{LIFETIME_ENV}={value!r} must be more than 0 seconds")
+    return seconds
+
+
+def bounded(command: list[str], lifetime: float | None) -> list[str]:
+    """``command`` under ``timeout -s KILL lifetime`` (none: as it is). ``timeout`` runs it in its
+    own process group and kills the whole group when the time is up, helpers included; a SIGTERM
+    to ``timeout`` reaches the command, and ``timeout`` waits for it, so a clean stop stays clean."""
+    if lifetime is None:
+        return command
+    return ["timeout", "-s", "KILL", str(max(1, int(lifetime))), *command]
 
 
 class PrivateBroker(Protocol):

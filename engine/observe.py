@@ -11,7 +11,9 @@ would have been sent: never delivered), unless it is still in flight (parked, he
 ``retries`` (a message tried again after a transient sink failure: the tap's and
 Prometheus' ``redelivered`` outcome), ``sink_errors`` (transient sink failures, including
 the last one before a message is dead-lettered), ``dropped`` (by a source: overflow, or
-unsettled at stop), ``standby_skipped`` and ``dead_letter_errors``.
+unsettled at stop), ``dropped_by_agent`` (the part of ``dropped`` a ``fair:`` route's
+per-agent queues dropped, by agent: engine/fairness.py), ``standby_skipped`` and
+``dead_letter_errors``.
 
 The calls are the whole cost on the hot path: a few integer increments and, for delivered
 messages, a bisect into the latency buckets. Nothing is formatted or logged per message;
@@ -84,6 +86,8 @@ class RouteObserver:
         self.dropped = 0
         self.standby_skipped = 0
         self.dead_letter_errors = 0
+        self.dropped_by_agent: dict[str, int] = {}
+        """Of ``dropped``: what a ``fair:`` route dropped from each agent's queue, by agent."""
         self.dead_lettered: dict[str, int] = {}
         """Dead-lettered messages by stage (decode, size, mapping, schema, sink mapping, sink)."""
         self.latency_buckets = [0] * (len(LATENCY_BUCKETS) + 1)
@@ -108,6 +112,11 @@ class RouteObserver:
 
     def took(self, count: int) -> None:
         self.received += count
+
+    def agent_dropped(self, agent: Any, count: int = 1) -> None:
+        """A fair route dropped ``count`` of ``agent``'s messages (counted in ``dropped`` too)."""
+        key = str(agent)
+        self.dropped_by_agent[key] = self.dropped_by_agent.get(key, 0) + count
 
     def accepted(self, inbound: Inbound | None, outbound: Outbound, latency_ns: int | None) -> None:
         """The sink took ``outbound``; ``latency_ns`` from its reception (None: unknown)."""
@@ -196,6 +205,7 @@ class RouteObserver:
     def counters(self) -> dict[str, Any]:
         """The counters by the names the status and the log line use."""
         return {**{name: getattr(self, name) for name in COUNTERS}, "dead_lettered": dict(self.dead_lettered),
+                "dropped_by_agent": dict(self.dropped_by_agent),
                 "latency_ns_total": self.latency_ns_total, "latency_ns_max": self.latency_ns_max}
 
     def outcomes(self) -> dict[str, int]:

@@ -110,6 +110,21 @@ def route_file_schema() -> dict[str, Any]:
                 "propertyNames": {"type": "string", "pattern": NAME_PATTERN},
                 "additionalProperties": _connection_entry(transports),
             },
+            "agents": {
+                "type": "object",
+                "description": "the fleet's members by name (engine/agents.py), names unique across the directory: "
+                               "for_each: agents expands a route per agent, options that take an agent (system_id, "
+                               "target_system) take its name, and meta('agent') names the agent heard",
+                "propertyNames": {"type": "string", "pattern": NAME_PATTERN},
+                "additionalProperties": {
+                    "type": "object",
+                    "description": "the agent's values, each a template variable of for_each: agents; connection: the "
+                                   "connection it is reached over (the others mean what each protocol says: system_id)",
+                    "propertyNames": {"type": "string", "pattern": "^[A-Za-z_][A-Za-z0-9_]*$"},
+                    "additionalProperties": {"type": ["string", "number", "boolean"],
+                                             "description": "one value (a text, a number or a boolean)"},
+                },
+            },
             "dead_letters": schema(DeadLettersOptions),
             "routes": {"type": "array", "items": route, "description": "the routes of this file; names unique across the directory"},
         },

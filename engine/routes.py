@@ -13,6 +13,7 @@ import functools
 import hashlib
 import json
 import os
+import re
 from dataclasses import MISSING, dataclass, field, replace
 from importlib import resources
 from pathlib import Path
@@ -20,9 +21,11 @@ from typing import Any, Callable, Iterator, Literal, Mapping
 
 import jsonschema
 
+from engine import agents as agents_table
 from engine import endpoints
 from engine.buffer import BufferOptions, BufferSpec
 from engine.dead_letters import DeadLetterSpec, DeadLettersOptions
+from engine.fairness import FairOptions
 from engine.delivery import DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, RouteDelivery
 from engine.endpoints.base import EndpointError, Transport
 from engine.fieldcheck import mapping_field_problems, mapping_writes, option_hint, reply_field_problems, undeclared_keys, undeclared_path
@@ -81,8 +84,9 @@ class RouteOptions:
                                                          "dead-letter headers and /tap/NAME; with for_each, {var} in it takes each item's value")
     for_each: tuple[dict[str, Any], ...] | str | None = option(
         None, description="a route template: one route per item (an object of variables), listed here or in a YAML file of "
-                          "such a list beside the route file (watched); {var} in the name and in any string value takes the "
-                          "item's value, and mappings read it with meta('var')")
+                          "such a list beside the route file (watched), or agents: one route per agent of the agents table that has "
+                          "every variable the route uses ({agent} its name); {var} in the name and in any string value "
+                          "takes the item's value, and mappings read it with meta('var')")
     description: str | None = option(None, description="free text")
     max_attempts: int = option(DEFAULT_MAX_ATTEMPTS, minimum=1,
                                description="deliveries tried on transient sink failures (across redeliveries) before dead-lettering")
@@ -97,6 +101,7 @@ class RouteOptions:
     schema: str | None = option(None, description="required: the canonical schema the mapping's result must satisfy, NAME (newest "
                                                   "version) or NAME.vN (pinned), from schemas/; raw_json passes any object")
     throttle: ThrottleOptions | None = option(None)
+    fair: FairOptions | None = option(None)
     remember: RememberOptions | None = option(None)
     priority: Literal["high", "normal", "low"] = option(
         "normal", description="on a link several routes share (a telemetry radio), the order of what is sent next: high before "
@@ -172,6 +177,8 @@ class RouteSpec:
     """Which engine instances carry the route (scale-out); the default: every instance."""
     reply: ReplyOptions | None = None
     """How the sink's answers to a request are shaped (``reply:``; engine/replies.py)."""
+    fair: FairOptions | None = None
+    """One queue per agent in the source's inbox, taken round-robin (``fair:``; engine/fairness.py)."""
     variables: Mapping[str, Any] = field(default_factory=dict, compare=False)
     """The route's template variables (its ``for_each`` item; the fingerprint covers them):
     ``meta(name)`` gives them as constants folded into the compiled mapping."""
@@ -270,6 +277,8 @@ def load_routes(
             item_files.texts[path.resolve()] = text  # a for_each file, read where a route names it
         else:
             texts.append((path, text))
+    table = _agents_table(texts, env, problems)
+    item_files.agents = table
     for path, text in texts:
         expand = functools.partial(expand_routes, str(path), read_items=item_files.reader(path))
         document = parse_document(str(path), text, env, problems, _ROUTE_FILE_VALIDATOR, keep_invalid=True, expand=expand)
@@ -279,7 +288,7 @@ def load_routes(
         problems.append(Problem(str(schema_path), 0, message))
     connections = _compile_connections(documents, problems)
     warnings: list[Problem] = []
-    routes = _compile_routes(documents, connections, schemas, problems, warnings)
+    routes = _compile_routes(documents, connections, schemas, problems, warnings, table)
     dead_letters = _compile_dead_letters(documents, connections, problems)
     warnings.extend(_competing_consumers(routes))
     warnings.extend(_private_broker_warnings(connections, env))
@@ -306,9 +315,15 @@ class ItemFiles:
         self.texts: dict[Path, str] = {}
         """List-topped files of the routes directory, by absolute path."""
         self.read: dict[Path, list[Any] | None] = {}
+        self.agents: agents_table.Table = {}
+        """The directory's agents table: ``for_each: agents`` expands over it."""
 
     def reader(self, route_file: Path) -> Callable[[str, Path_], tuple[list[Any] | None, str | None]]:
         def read(name: str, where: Path_) -> tuple[list[Any] | None, str | None]:
+            if name == agents_table.AGENTS:
+                if not self.agents:
+                    return None, "for_each: agents expands over the agents table, and no file has a top-level agents: mapping"
+                return agents_table.items(self.agents), None
             path = (route_file.parent / name).resolve()
             if path not in self.read:
                 self.read[path] = self._load(path)
@@ -338,6 +353,41 @@ class ItemFiles:
     def unused(self) -> list[Problem]:
         return [Problem(str(path), 1, "a YAML list, so not a route file; no route names it in for_each (left out)")
                 for path in sorted(self.texts) if path not in self.read]
+
+
+_AGENTS_KEY = re.compile(r"^agents\s*:", re.MULTILINE)
+_VARIABLE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def _agents_table(texts: list[tuple[Path, str]], env: Mapping[str, str], problems: list[Problem]) -> dict[str, dict[str, Any]]:
+    """The directory's agents table (engine/agents.py): every file's top-level ``agents:``,
+    read before the routes are expanded (``for_each: agents`` needs it); names unique across
+    the directory. The schema's problems are reported where the file itself is read."""
+    table: dict[str, dict[str, Any]] = {}
+    where_defined: dict[str, tuple[str, int]] = {}
+    for path, text in texts:
+        if not _AGENTS_KEY.search(text):
+            continue
+        document = parse_document(str(path), text, env, [], _ROUTE_FILE_VALIDATOR, keep_invalid=True)
+        body = document.data.get(agents_table.AGENTS) if document is not None else None
+        if not isinstance(body, dict):
+            continue
+        for name, entry in body.items():
+            line = document.line((agents_table.AGENTS, name))  # type: ignore[union-attr]
+            if name in where_defined:
+                first_file, first_line = where_defined[name]
+                problems.append(Problem(str(path), line, f"agent {name!r} is already defined at {first_file}:{first_line}"
+                                                         f"{_together(document, first_file)}"))  # type: ignore[arg-type]
+                continue
+            where_defined[name] = (str(path), line)
+            if not isinstance(entry, dict) or any(not isinstance(key, str) or not _VARIABLE.match(key) for key in entry):
+                continue  # the schema says what it should be
+            if agents_table.AGENT in entry:
+                problems.append(Problem(str(path), line, f"agent {name!r}: {agents_table.AGENT!r} is the agent's name "
+                                                         f"(for_each: agents gives it as {{agent}}); use another key"))
+                continue
+            table[name] = revealed(entry)
+    return table
 
 
 def _compile_connections(
@@ -539,6 +589,7 @@ def _compile_routes(
     schemas: SchemaRegistry,
     problems: list[Problem],
     warnings: list[Problem],
+    table: agents_table.Table = {},
 ) -> dict[str, RouteSpec]:
     routes: dict[str, RouteSpec] = {}
     defined: dict[str, tuple[str, int]] = {}
@@ -565,15 +616,19 @@ def _compile_routes(
                 remembers.append((document, where, route.remember))
             for key_path, expression in ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping"))):
                 recalls.extend((document, key_path, name, store) for store in dict.fromkeys(recall_names(expression)))
-            source, source_complete = _endpoint(document, where + ("source",), name, route.source, connections, problems)
-            sink, sink_complete = _endpoint(document, where + ("sink",), name, route.sink, connections, problems)
+            agents_used: dict[str, Any] = {}
+            """The agents table's entries the route uses (by name; ``@connection`` its connection's table)."""
+            source, source_complete = _endpoint(document, where + ("source",), name, route.source, connections, problems,
+                                                table, agents_used)
+            sink, sink_complete = _endpoint(document, where + ("sink",), name, route.sink, connections, problems, table, agents_used)
+            source, sink = _hand_agents(source, sink, route, variables, table, agents_used)
             if route.remember is None and sink is not None and not endpoints.transport(sink.protocol).delivers:
                 problems.append(document.problem(where + ("sink",), (
                     f"route {name!r}: a {sink.protocol} sink delivers nowhere: the route needs remember: {{store: NAME}} "
                     "(what it remembers is all it does)")))
             mapping, schema_name, sink_mapping = route.mapping, route.schema, route.sink.get("mapping")
             _route_checks(document, where, route, source, sink, (source_complete, sink_complete), schemas, problems, warnings,
-                          variables)
+                          variables, bool(table))
             if expansion is not None:
                 warnings.extend(_shadowing_warnings(document, where, route, expansion, schemas))
                 warnings.extend(_captured_warnings(document, where, route, source, expansion))
@@ -591,7 +646,8 @@ def _compile_routes(
                 json.dumps(
                     [body, {k: (v.fingerprint, v.max_message_bytes) if v else None for k, v in used.items()},
                      schema.digest if schema else None,
-                     _reply_schema_digest(route, schemas)] + ([variables] if variables else []),
+                     _reply_schema_digest(route, schemas)] + ([variables] if variables else [])
+                    + ([agents_used] if agents_used else []),
                     sort_keys=True,
                     default=json_default,
                 ).encode()
@@ -610,7 +666,7 @@ def _compile_routes(
             routes[name] = RouteSpec(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
                 document.file, document.line(where), throttle=route.throttle, delivery=delivery, buffer=buffer,
-                placement=placement, reply=route.reply, variables=variables, remember=route.remember,
+                placement=placement, reply=route.reply, variables=variables, fair=route.fair, remember=route.remember,
             )
     problems.extend(_store_problems(recalls, remembers))
     return routes
@@ -657,6 +713,7 @@ def _route_checks(
     problems: list[Problem],
     warnings: list[Problem],
     variables: Mapping[str, Any] = {},
+    has_agents: bool = False,
 ) -> None:
     """What can be known of a route before anything flows: its mappings compile and call
     known functions, its schema exists, its endpoints accept their options, a typed source
@@ -683,8 +740,10 @@ def _route_checks(
         for message in mapping_field_problems(source.protocol, source.options, mapping):
             problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
         for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
-            for message in _meta_problems(source, expression, variables):
+            for message in _meta_problems(source, expression, variables, has_agents):
                 problems.append(document.problem(key_path, f"route {name!r}: {message}"))
+        problems.extend(document.problem(where + ("fair",) + key, f"route {name!r}: fair: {message}")
+                        for key, message in _fair_problems(source, route.fair, variables))
 
 
 def source_variables(source: EndpointSpec | None) -> tuple[str, ...]:
@@ -719,10 +778,45 @@ def source_meta_names(source: EndpointSpec, variables: Mapping[str, Any]) -> tup
     return tuple(dict.fromkeys((*names, *variables)))
 
 
-def _meta_problems(source: EndpointSpec, expression: str | None, variables: Mapping[str, Any]) -> Iterator[str]:
+def _fair_problems(source: EndpointSpec, fair: FairOptions | None,
+                   variables: Mapping[str, Any]) -> Iterator[tuple[Path_, str]]:
+    """``fair`` needs a source that queues its messages in the engine, and ``per`` naming
+    metadata that source gives each message (a template variable is one value: no agents)."""
+    if fair is None:
+        return
+    try:
+        queues = endpoints.transport(source.protocol).queues_per_agent(source.options)
+    except EndpointError:
+        return
+    if not queues:
+        yield (), (f"this {source.protocol} source does not queue its messages in the engine (its broker or "
+                   "sender holds the backlog), so there are no per-agent queues to share out")
+        return
+    given_meta = [name for name in source_meta_names(source, {}) if name not in variables]
+    if fair.per not in given_meta:
+        hint = did_you_mean(fair.per, given_meta) or f" (it gives {', '.join(given_meta)})"
+        yield ("per",), f"per: the {source.protocol} source gives no {fair.per!r} for each message{hint}"
+
+
+def _interprets_agents(source: EndpointSpec) -> bool:
+    """Whether the source's ``meta('agent')`` comes from the agents table (MAVLink's ids), not
+    from the message itself (a ROS 2 topic's ``{agent}`` segment)."""
+    try:
+        return bool(endpoints.transport(source.protocol).agent_options)
+    except EndpointError:
+        return False
+
+
+def _meta_problems(source: EndpointSpec, expression: str | None, variables: Mapping[str, Any],
+                   has_agents: bool = False) -> Iterator[str]:
     """``meta(name)`` calls naming what the source never gives (the mapping would read null)."""
     known = source_meta_names(source, variables)
     for wanted in dict.fromkeys(n for n in meta_names(expression) if n is not None):
+        if wanted == agents_table.AGENT and wanted in known and wanted not in variables and not has_agents \
+                and _interprets_agents(source):
+            yield (f"meta({wanted!r}): the name of the agent heard needs the agents table (a top-level agents: mapping "
+                   f"naming each agent's ids), and there is none")
+            continue
         if wanted not in known:
             hint = did_you_mean(wanted, known) or f" (it gives {', '.join(known)})" if known else " (it gives none)"
             yield f"meta({wanted!r}): the {source.protocol} source gives no {wanted!r}{hint}"
@@ -967,6 +1061,8 @@ def _endpoint(
     body: Mapping[str, Any],
     connections: dict[str, ConnectionSpec],
     problems: list[Problem],
+    table: agents_table.Table = {},
+    used: dict[str, Any] | None = None,
 ) -> tuple[EndpointSpec | None, bool]:
     """``(spec, complete)`` of a route's source or sink; an incomplete spec (an option at
     fault left out) serves only to check the rest of the route."""
@@ -982,8 +1078,11 @@ def _endpoint(
     except EndpointError as exc:
         problems.append(document.problem(where + (protocol,), f"route {route!r}: {side}: {exc}"))
         return None, False
+    named = _agent_names(document, where + (protocol,), route, transport, body[protocol], table, problems, used)
+    if named is None:
+        return None, False
     options, complete = _parse_leniently(
-        document, transport.source_options if side == "source" else transport.sink_options, body[protocol],
+        document, transport.source_options if side == "source" else transport.sink_options, named,
         where + (protocol,), problems,
         lambda path, message: message if message.startswith("unknown key") else f"route {route!r}: {describe(path, message)}")
     if options is None:
@@ -1009,6 +1108,61 @@ def _endpoint(
         problems.append(document.problem(where + (protocol, "connection"), f"route {route!r}: {_wrong_connection(wanted, protocol, connections)}"))
         return None, False
     return EndpointSpec(protocol, wanted, options), complete
+
+
+def _agent_names(document: Document, where: Path_, route: str, transport: Transport, body: Any,
+                 table: agents_table.Table, problems: list[Problem], used: dict[str, Any] | None) -> Any:
+    """The endpoint's options with each agent's name (``target_system: uav2``) replaced by the
+    entry's value the transport reads for that option (``Transport.agent_options``), and its
+    connection the agent's when it names none; None after a problem (an unknown agent, with a
+    did-you-mean; an agent on another connection than the endpoint's)."""
+    if not isinstance(body, Mapping) or not transport.agent_options:
+        return body
+    out = dict(body)
+    side = where[-2]
+    for key, entry_key in transport.agent_options.items():
+        name = body.get(key)
+        if not agents_table.is_name(name):
+            continue
+        value, connection, problem = agents_table.resolve(table, name, entry_key)
+        if problem is None and connection is not None and out.get("connection", connection) != connection:
+            problem = f"agent {name!r} is reached over connection {connection!r}, not {out['connection']!r}"
+        if problem is not None:
+            problems.append(document.problem(where + (key,), f"route {route!r}: {side}: {key}: {problem}"))
+            return None
+        out[key] = value
+        if connection is not None:
+            out["connection"] = connection
+        if used is not None:
+            used[name] = table[name]
+    return out
+
+
+def _hand_agents(source: EndpointSpec | None, sink: EndpointSpec | None, route: RouteOptions,
+                 variables: Mapping[str, Any], table: agents_table.Table,
+                 used: dict[str, Any]) -> tuple[EndpointSpec | None, EndpointSpec | None]:
+    """Give the agents on its connection to an endpoint that looks them up per message: a sink
+    whose transport says so (a ``{field}`` target that may hold a name), a source whose route
+    reads ``meta('agent')`` (not a template variable). Each table handed is one the route uses."""
+    if not table:
+        return source, sink
+    reads_agent = agents_table.AGENT not in variables and any(
+        agents_table.AGENT in meta_names(expression) for expression in (route.mapping, route.sink.get("mapping")))
+    handed = []
+    for spec, wanted in ((source, reads_agent), (sink, True)):
+        if spec is None or not wanted:
+            handed.append(spec)
+            continue
+        transport = endpoints.transport(spec.protocol)
+        if not transport.agent_options or (spec is sink and not transport.looks_up_agents(spec.options)) or \
+                (spec is source and agents_table.AGENT not in transport.meta_names(spec.options)):
+            handed.append(spec)
+            continue
+        keys = set(transport.agent_options.values())  # only the agents this protocol can address (UAVs, not robots)
+        on_link = {name: entry for name, entry in agents_table.on_connection(table, spec.connection).items() if keys & set(entry)}
+        used[f"@{spec.connection}"] = on_link
+        handed.append(EndpointSpec(spec.protocol, spec.connection, evolve(spec.options, agents=on_link)))
+    return handed[0], handed[1]
 
 
 def _wrong_connection(wanted: str, protocol: str, connections: Mapping[str, ConnectionSpec]) -> str:

@@ -39,6 +39,7 @@ from engine.buffer import Buffers, Held, HoldingBuffer, stats_dict
 from engine.dead_letters import DeadLetters, dead_letter_message
 from engine.delivery import HEALTH_POLL, Failure, classify, given_up, prior_attempts, retry_delay
 from engine.endpoints.base import Connection, Conflated, EndpointError, Inbound, MessageRejected, NotSent, Outbound, Source
+from engine.fairness import FairOptions
 from engine.logs import ReportLimiter
 from engine.observe import Observers
 from engine.pipeline import Pipeline
@@ -117,9 +118,9 @@ class RouteRunner:
         self._report = ReportLimiter()
         self._retry_report = ReportLimiter()
         self._released: set[asyncio.Task[None]] = set()
-        self._replying: set[asyncio.Task[None]] = set()
-        """Error replies to expired calls, on their way."""
         """Messages the throttle released from their slot, on their way to the sink."""
+        self._replying: set[asyncio.Task[None]] = set()
+        """Error replies to calls settled without being sent (expired, conflated), on their way."""
 
     # -- the Deliver contract a source sees
 
@@ -137,8 +138,15 @@ class RouteRunner:
 
     deliver = __call__
 
+    @property
+    def fair(self) -> FairOptions | None:
+        return self.spec.fair
+
     def dropped(self, count: int = 1) -> None:
         self.observer.dropped += count
+
+    def agent_dropped(self, agent: Any, count: int = 1) -> None:
+        self.observer.agent_dropped(agent, count)
 
     async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
         """Take a batch through the stages; ``result[i]`` is True once ``inbounds[i]`` was
@@ -216,6 +224,7 @@ class RouteRunner:
 
     def conflated(self, message: _Message) -> None:
         self.observer.conflate(message.inbound, message.outbound)  # type: ignore[arg-type]
+        self._ended_call(message.outbound, "throttle", "conflated: a newer message took its throttle slot before it was sent")  # type: ignore[arg-type]
 
     async def _send_released(self, pipeline: Pipeline, message: _Message) -> None:
         try:
@@ -367,6 +376,8 @@ class RouteRunner:
             settled[message.index] = True
 
     async def send_held(self, messages: list[Outbound]) -> list[BaseException | None]:
+        for message in messages:
+            self._reply_of(message)
         pipeline = self.pipeline
         pipeline.enter()
         try:
@@ -392,21 +403,43 @@ class RouteRunner:
             self._expired_call(outbound)
 
     def _expired_call(self, outbound: Outbound) -> None:
-        """An expired request is settled without a dead letter; its caller still hears the end:
-        one ``error`` reply (stage ``max_age``), sent beside the route's work."""
+        age = f"older than the route's max_age ({self.spec.delivery.max_age_ns / 1e9:g} s) before it could be sent"  # type: ignore[operator]
+        self._ended_call(outbound, "max_age", age)
+
+    def _ended_call(self, outbound: Outbound, stage: str, error: str) -> None:
+        """A request settled without being sent and without a dead letter (expired under
+        ``max_age``, conflated by the throttle or ``latest_only``): its caller still hears the
+        end, one ``error`` reply naming the stage, sent beside the route's work."""
         if not outbound.meta.get("reply_to"):
             return
-        age = f"older than the route's max_age ({self.spec.delivery.max_age_ns / 1e9:g} s) before it could be sent"  # type: ignore[operator]
-        task = asyncio.create_task(self.replies.failed(outbound.reply, outbound.meta, "max_age", age))
+        task = asyncio.create_task(self.replies.failed(self._reply_of(outbound), outbound.meta, stage, error))
         self._replying.add(task)
         task.add_done_callback(self._replying.discard)
+
+    def _reply_of(self, outbound: Outbound) -> Any:
+        """The reply of a held message: a message read back from the buffer's spill files lost
+        its ``Outbound.reply`` (an object, not JSON) but not its meta, so a call is bound again,
+        through this runner's source (a reload's new runner included)."""
+        if outbound.reply is None:
+            outbound.reply = self.replies.bind(self.pipeline.reply_shape, outbound.meta)
+        return outbound.reply
 
     def held_conflated(self, held: list[Held]) -> None:
         for outbound, _ in held:
             self.observer.conflate(None, outbound)
+            self._ended_call(outbound, "latest_only", "conflated: a newer message with the same key was held while the "
+                                                      "sink was down (buffer.latest_only)")
+
+    async def held_lost(self, held: list[Held]) -> None:
+        """The buffer closed (the route or the engine stopped) with calls held in memory only:
+        they can no longer be delivered, so each caller gets its one ``error`` reply now."""
+        error = "the route stopped before its sink could take it (held in memory, not spilled)"
+        await asyncio.gather(*(self.replies.failed(self._reply_of(outbound), outbound.meta, "buffer", error)
+                               for outbound, _ in held if outbound.meta.get("reply_to")))
 
     async def held_rejected(self, message: Outbound, error: BaseException, attempts: int) -> None:
         """A held message the sink rejected, or kept failing while it could take messages."""
+        self._reply_of(message)
         inbound = Inbound(body=message.body, meta=dict(message.meta))
         await self._dead_letter([_Message(0, inbound, message, attempts, self.pipeline, classify(error, "sink"))], [False])
 
@@ -572,8 +605,15 @@ class StandbyGate:
     def queue_limit(self) -> int:
         return self.runner.queue_limit
 
+    @property
+    def fair(self) -> FairOptions | None:
+        return self.runner.fair
+
     def dropped(self, count: int = 1) -> None:
         self.runner.dropped(count)
+
+    def agent_dropped(self, agent: Any, count: int = 1) -> None:
+        self.runner.agent_dropped(agent, count)
 
     async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
         if not self.runner.lease.active:

@@ -22,6 +22,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
+from engine.agents import AGENTS
 from engine.route_yaml import Path_, Problem
 from engine.suggest import did_you_mean
 
@@ -132,12 +133,16 @@ def _complete_items(file: str, line: int, where: Path_, template: Any, items: It
                     source_file: str | None) -> Items:
     """The items that give every variable the template uses that some item gives: an item
     without one would leave its ``{var}`` to be read from the canonical message (or in its
-    route's name), which is never what a list of robots means."""
+    route's name), which is never what a list of robots means. Over the agents table
+    (``for_each: agents``) such an agent is left out instead: a MAVLink route is for the agents
+    with a ``system_id``, a ROS 2 one for those with its own keys."""
     given = {key for item in items for key in item}
     used = {name for name in _placeholders(template) if name in given}
     complete = []
     for number, item in enumerate(items):
         missing = sorted(used - set(item))
+        if missing and source_file == AGENTS:
+            continue  # the agents table: the route is for the agents that have what it uses (UAVs, not robots)
         if missing:
             named = f"{_dotted(where)}[{number}]" + (f" (in {source_file})" if source_file else "")
             problems.append(Problem(file, line, f"{named}: no {', '.join(missing)} (the route uses "

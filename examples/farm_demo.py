@@ -2,10 +2,13 @@
 
 - a UAV (the simulated vehicle) speaks MAVLink 2 through an emulated SiK radio pair: telemetry
   at realistic rates and, every few seconds, weed detections as JSON over the radio;
-- a ground robot is a plain ROS 2 node: GNSS fix, missions in, acknowledgements out;
+- a ground robot is a plain ROS 2 node: GNSS fix, missions in, acknowledgements out, a sprayer
+  service and a row action;
 - the engine runs ``examples/farm_uav_gcs.yaml`` against a private RabbitMQ node;
-- the supervisory software speaks only AMQP: it prints the canonical messages and turns weed
-  detections into spraying missions for the ground robot.
+- the supervisory software speaks only AMQP: it prints the canonical messages, turns weed
+  detections into spraying missions for the ground robot, and calls the robot (AMQP
+  request/reply): sprayer on through its service, along a row with an action goal (accepted,
+  feedback per stop, result), sprayer off.
 
 On a terminal the demo shows, in place, each route's rates and counts and its last canonical
 message (from the engine's admin endpoint); otherwise (or with ``--plain``) it prints plain lines.
@@ -114,11 +117,14 @@ def main() -> int:
     parser.add_argument("--work", type=Path, help="directory for logs, the status file and the supervisor's record "
                         "of every canonical message (default: a new temporary directory)")
     parser.add_argument("--plain", action="store_true", help="plain lines even on a terminal")
+    parser.add_argument("--ros-domain", type=int, default=random.randint(1, 100),
+                        help="ROS 2 domain of the engine and the robot (default: a random one, 1..100, so the "
+                        "demo does not meet other ROS 2 programs on the machine)")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="rabbitros-farm-"))
     work.mkdir(parents=True, exist_ok=True)
     live = sys.stdout.isatty() and not args.plain
-    env = {**os.environ, "ROS_DOMAIN_ID": str(random.randint(1, 100)), "PYTHONPATH": str(REPO)}
+    env = {**os.environ, "ROS_DOMAIN_ID": str(args.ros_domain), "PYTHONPATH": str(REPO)}
     processes: list[subprocess.Popen[bytes]] = []
     lines: deque[str] = deque(maxlen=12)
     admin = ("127.0.0.1", free_port())

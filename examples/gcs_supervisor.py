@@ -6,7 +6,13 @@ commands the UAV's companion computer to start its weed detector (a canonical co
 When the UAV reports weeds it turns the detections into a spraying mission for the ground robot
 (the paper's scenario) and one for the UAV itself (the engine uploads it to the vehicle with the
 MAVLink mission protocol; the vehicle's MISSION_ACK comes back as a canonical ack), and it exits
-with a summary after ``--duration`` seconds: 0 when every flow was seen.
+with a summary after ``--duration`` seconds: 0 when every flow was seen and every call answered.
+
+Calls (AMQP request/reply: ``reply_to`` RabbitMQ's direct reply-to, a ``correlation_id``): when
+the ground robot first reports, the supervisor switches its sprayer on through the robot's ROS 2
+service (``call.robot1.spray``) and sends it along a row with a ROS 2 action goal
+(``call.robot1.row``); it prints every reply (``x-rabbitros-reply``: accepted, feedback, result,
+rejected or error) and, once the row is done, switches the sprayer off.
 """
 
 from __future__ import annotations
@@ -27,6 +33,9 @@ UAV_ALT_M = 20.0
 uploads in MAV_FRAME_GLOBAL_RELATIVE_ALT_INT (``alt_msl`` would be above mean sea level)."""
 DETECT_EVERY_S = 6.0
 """Seconds between the UAV's weed detections, set by the ground station's command."""
+ROW_STOPS = 5
+"""Stops along the row the robot is sent down (each is a feedback reply)."""
+DIRECT_REPLY_TO = "amq.rabbitmq.reply-to"
 
 
 def canonical_stamp() -> dict[str, int]:
@@ -45,6 +54,29 @@ async def main(url: str, duration: float, robot: str, record: str | None = None,
     missions = 0
     commanded: set[str] = set()
     recording = open(record, "a", encoding="utf-8") if record else None
+    calls: dict[str, str] = {}
+    """correlation id -> what was asked (spray-on, row, spray-off)."""
+    answered: dict[str, str] = {}
+    """what was asked -> its final reply's kind."""
+
+    async def call(what: str, routing_key: str, request: dict[str, object]) -> None:
+        correlation_id = uuid.uuid4().hex
+        calls[correlation_id] = what
+        await farm.publish(aio_pika.Message(json.dumps(request).encode(), content_type="application/json",
+                                            correlation_id=correlation_id, reply_to=DIRECT_REPLY_TO), routing_key)
+        print(f"gcs -> {routing_key}: {what} {json.dumps(request)}", flush=True)
+
+    async def on_reply(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        what = calls.get(message.correlation_id or "", "?")
+        kind = (message.headers or {}).get("x-rabbitros-reply")
+        print(f"gcs <- reply {what}: {kind} {message.body.decode()[:160]}", flush=True)
+        if kind in ("result", "rejected", "error"):
+            answered[what] = str(kind)
+            if what == "row":
+                await call("spray-off", f"call.{robot}.spray", {"spray": False})
+
+    replies = await channel.get_queue(DIRECT_REPLY_TO, ensure=False)
+    await replies.consume(on_reply, no_ack=True)  # before the first call: direct reply-to needs it
 
     async def on_message(message: aio_pika.abc.AbstractIncomingMessage) -> None:
         nonlocal missions
@@ -56,6 +88,9 @@ async def main(url: str, duration: float, robot: str, record: str | None = None,
         if seen[kind] == 1 or kind.startswith(("weeds", "ack")):
             print(f"gcs <- {message.routing_key}: {message.body.decode()[:160]}", flush=True)
         agent = body.get("agent_id", "")
+        if kind == f"position.{robot}" and seen[kind] == 1:  # the robot is up: spray along a row
+            await call("spray-on", f"call.{robot}.spray", {"spray": True})
+            await call("row", f"call.{robot}.row", {"stops": ROW_STOPS})
         if kind.startswith("status.") and agent.startswith("uav") and agent not in commanded:
             commanded.add(agent)  # the UAV is up: start its weed detector
             command = {"agent_id": agent, "id": uuid.uuid4().hex, "type": "command", "stamp": canonical_stamp(),
@@ -89,10 +124,14 @@ async def main(url: str, duration: float, robot: str, record: str | None = None,
     if recording is not None:
         recording.close()
     print("canonical messages seen: " + ", ".join(f"{k}={v}" for k, v in sorted(seen.items())))
+    print("calls answered: " + ", ".join(f"{what}={kind}" for what, kind in sorted(answered.items())))
     missing = [kind for kind in (*UAV_FLOWS, f"position.{robot}", f"ack.{robot}") if not seen[kind]]
     if missing:
         print(f"flows with no message: {', '.join(missing)}", file=sys.stderr)
-    return 1 if missing else 0
+    unanswered = [what for what in ("spray-on", "row", "spray-off") if answered.get(what) != "result"]
+    if unanswered:
+        print(f"calls without a result: {', '.join(unanswered)}", file=sys.stderr)
+    return 1 if missing or unanswered else 0
 
 
 if __name__ == "__main__":

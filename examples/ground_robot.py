@@ -1,7 +1,12 @@
 """A ground robot of the farm demo, as a plain ROS 2 node (it knows nothing of the engine).
 
 It publishes its GNSS fix (``sensor_msgs/NavSatFix``) at 1 Hz, takes missions as canonical
-JSON in a ``std_msgs/String`` and acknowledges each one as canonical JSON.
+JSON in a ``std_msgs/String`` and acknowledges each one as canonical JSON. It offers a service
+that switches its sprayer (``/<name>/set_spray``, ``std_srvs/srv/SetBool``) and an action that
+sends it along a row (``/<name>/follow_row``): ``test_msgs/action/Fibonacci`` stands in for a
+navigation action (no such package is installed with the engine): the goal's ``order`` is the
+number of stops along the row, each feedback's ``sequence`` the stops reached so far (metres
+along the row), the result the whole row.
 """
 
 from __future__ import annotations
@@ -14,11 +19,18 @@ import threading
 import time
 
 import rclpy
+from rclpy.action import ActionServer, GoalResponse
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import NavSatFix, NavSatStatus
 from std_msgs.msg import String
+from std_srvs.srv import SetBool
+from test_msgs.action import Fibonacci
+
+ROW_STOP_S = 0.2
+"""Seconds between two stops along a row (the demo's rows are short)."""
+MAX_STOPS = 50
 
 
 def main() -> int:
@@ -52,6 +64,29 @@ def main() -> int:
         fix.altitude = 600.0
         fix_pub.publish(fix)
 
+    def set_spray(request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        response.success = True
+        response.message = f"{args.name}: sprayer {'on' if request.data else 'off'}"
+        print(response.message, flush=True)
+        return response
+
+    def follow_row(goal: Fibonacci.Goal) -> GoalResponse:
+        return GoalResponse.ACCEPT if 0 < goal.order <= MAX_STOPS else GoalResponse.REJECT
+
+    def drive_row(goal_handle: object) -> Fibonacci.Result:
+        stops = goal_handle.request.order  # type: ignore[attr-defined]
+        print(f"{args.name}: along the row, {stops} stops", flush=True)
+        reached = [0]
+        for _ in range(1, stops):
+            time.sleep(ROW_STOP_S)
+            reached.append(reached[-1] + (reached[-2] if len(reached) > 1 else 1))
+            goal_handle.publish_feedback(Fibonacci.Feedback(sequence=reached))  # type: ignore[attr-defined]
+        goal_handle.succeed()  # type: ignore[attr-defined]
+        print(f"{args.name}: row done at {reached[-1]} m", flush=True)
+        return Fibonacci.Result(sequence=reached)
+
+    node.create_service(SetBool, f"/{args.name}/set_spray", set_spray)
+    ActionServer(node, Fibonacci, f"/{args.name}/follow_row", drive_row, goal_callback=follow_row)
     missions_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
                               durability=DurabilityPolicy.TRANSIENT_LOCAL)
     node.create_subscription(String, f"/{args.name}/mission", on_mission, missions_qos)

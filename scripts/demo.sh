@@ -2,7 +2,8 @@
 # Sets everything up, then runs the main job: the farm example (examples/farm_uav_gcs.yaml) with
 # every part real on this machine: a simulated UAV on MAVLink 2 through an emulated SiK radio, a
 # ROS 2 ground robot, the engine with a private RabbitMQ node, and the supervisory software that
-# turns the UAV's weed detections into missions for the robot.
+# turns the UAV's weed detections into missions for the robot and calls the robot (its sprayer's
+# service, a row action) over AMQP request/reply.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import socket
 import threading
 import time
@@ -16,6 +15,7 @@ from typing import Any, Callable, Coroutine
 import aio_pika
 
 from engine.runtime import Engine
+from tests import workers
 
 
 def free_udp_port() -> int:
@@ -86,4 +86,4 @@ def start_engine(loop: LoopThread, routes: Path, schemas: Path) -> Engine:
 
 
 def ros_domain() -> int:
-    return 1 + (os.getpid() + 37) % 100
+    return workers.ros_domain(1)

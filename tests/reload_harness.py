@@ -18,6 +18,7 @@ from typing import Any, Callable
 import aio_pika
 
 from tests.engine_process import EngineProcess
+from tests.workers import ros_domain
 
 ROUTE = """
 connections:
@@ -171,7 +172,7 @@ async def run_reloads(
 ) -> ReloadRun:
     tag = "r" + uuid.uuid4().hex[:8]
     names = {"tag": tag, "inbox": f"in-{tag}", "outbox": f"out-{tag}", "queue": f"q-{tag}",
-             "domain": str(151 + os.getpid() % 80)}
+             "domain": str(ros_domain(5))}
     routes = workdir / "routes"
     routes.mkdir()
     farm = routes / "farm.yaml"

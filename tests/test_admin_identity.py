@@ -62,6 +62,7 @@ def engine_command(tmp_path: Path, *extra: str) -> subprocess.CompletedProcess[s
                            *extra], cwd=REPO, capture_output=True, text=True, timeout=70)
 
 
+@pytest.mark.alone  # "at once" is measured in wall time: two engine starts took 36 s beside busy workers
 def test_refuses_to_start_on_a_network_address_without_a_token_file(tmp_path: Path):
     began = time.monotonic()
     done = engine_command(tmp_path, "--admin", f"0.0.0.0:{free_port()}")

@@ -245,3 +245,134 @@ def test_a_call_that_expires_under_max_age_gets_an_error_reply(tmp_path: Path, a
     assert kind == "error" and error["stage"] == "max_age" and error["route"] == f"arm-{tag}", error
     assert 1.0 <= elapsed < 5.0, elapsed
     assert status["failed"] == 0 and status["replies"]["errors"] == 1, status
+
+
+def test_a_spilled_call_gets_its_reply_and_one_conflated_by_latest_only_an_error(
+        tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """A route with a spilling buffer and ``latest_only`` per agent: two arm calls for the same
+    vehicle while it is silent are held on disk. The older is conflated by the newer and its
+    caller gets one ``error`` reply naming the stage ``latest_only``; the newer, read back from
+    the spill file once the vehicle is there, still reaches its caller: ``MAV_RESULT_ACCEPTED``
+    (a held message read from disk had lost its way back)."""
+    port = free_udp_port()
+    tag = uuid.uuid4().hex[:8]
+    routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag)
+    text = (routes / "routes.yaml").read_text().replace(
+        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3}").replace(
+        f"  - name: arm-{tag}\n", f"  - name: arm-{tag}\n    max_attempts: 1000\n"
+        f"    buffer: {{spill_dir: spill, latest_only: {{per: agent_id}}}}\n")
+    (routes / "routes.yaml").write_text(text)
+
+    async def scenario() -> tuple[Caller, str, str, dict[str, Any], list[Path]]:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        stop = asyncio.Event()
+        running = None
+        route = f"arm-{tag}"
+        try:
+            channel = await connection.channel()
+            caller = await Caller.open(channel)
+            older = await caller.call("", route, _command())
+            newer = await caller.call("", route, _command())
+            await caller.wait(lambda r: older in r, 20, "the conflated call's error reply")
+            spilled = sorted((routes / "spill").rglob("*.jsonl"))
+            sim = SimVehicle(f"udpout:127.0.0.1:{port}")
+            running = asyncio.create_task(sim.run(stop))
+            await caller.wait(lambda r: newer in r, 20, "the spilled call's reply")
+            status = engine.status()["routes"][route]
+            await channel.queue_delete(route)
+        finally:
+            await engine.stop()
+            stop.set()
+            if running is not None:
+                await running
+            await connection.close()
+        return caller, older, newer, status, spilled
+
+    caller, older, newer, status, spilled = run(scenario(), 60)
+    assert spilled, "nothing was spilled"
+    [(kind, error)] = [_reply(m) for m in caller.replies[older]]
+    assert kind == "error" and error["stage"] == "latest_only" and error["route"] == f"arm-{tag}", error
+    assert [_reply(m) for m in caller.replies[newer]] == [
+        ("result", {"kind": "result", "result": "MAV_RESULT_ACCEPTED", "command": 400})]
+    assert status["buffer"]["conflated"] == 1 and status["buffer"]["delivered"] == 1, status["buffer"]
+    assert status["replies"] == {"sent": 2, "errors": 1, "unrequested": 0, "late": 0, "undelivered": 0}, status
+
+
+def test_a_call_conflated_by_the_throttle_gets_an_error_reply(tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """``throttle`` at 0.5 per second: the first call goes at once (to an AMQP queue: no answer),
+    the second is parked in the slot and conflated by the third; the second's caller gets one
+    ``error`` reply naming the stage ``throttle``."""
+    tag = uuid.uuid4().hex[:8]
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "routes.yaml").write_text(f"""\
+connections:
+  bus: {{amqp: "{amqp_url}"}}
+routes:
+  - name: slow-{tag}
+    source: {{amqp: {{connection: bus, queue: slow-{tag}}}}}
+    schema: raw_json
+    throttle: {{max_rate: 0.5}}
+    sink: {{amqp: {{connection: bus, routing_key: out-{tag}}}}}
+""")
+
+    async def scenario() -> tuple[Caller, list[str]]:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            await channel.declare_queue(f"out-{tag}", exclusive=True)
+            caller = await Caller.open(channel)
+            calls = [await caller.call("", f"slow-{tag}", json.dumps({"n": n}).encode()) for n in range(3)]
+            await caller.wait(lambda r: calls[1] in r, 10, "the conflated call's error reply")
+            await channel.queue_delete(f"slow-{tag}")
+        finally:
+            await engine.stop()
+            await connection.close()
+        return caller, calls
+
+    caller, calls = run(scenario(), 60)
+    [(kind, error)] = [_reply(m) for m in caller.replies[calls[1]]]
+    assert kind == "error" and error["stage"] == "throttle" and error["route"] == f"slow-{tag}", error
+    assert calls[0] not in caller.replies
+
+
+def test_a_call_held_in_memory_when_the_engine_stops_gets_an_error_reply(
+        tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """A route whose buffer holds in memory only (no spill_dir): an arm call for a silent
+    vehicle is held; when the engine stops it cannot be delivered any more, and its caller gets
+    one ``error`` reply naming the stage ``buffer`` instead of waiting forever."""
+    port = free_udp_port()
+    tag = uuid.uuid4().hex[:8]
+    routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag)
+    text = (routes / "routes.yaml").read_text().replace(
+        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3}").replace(
+        f"  - name: arm-{tag}\n", f"  - name: arm-{tag}\n    max_attempts: 1000\n    buffer: {{max_messages: 10}}\n")
+    (routes / "routes.yaml").write_text(text)
+
+    async def scenario() -> tuple[Caller, str, dict[str, Any]]:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        route = f"arm-{tag}"
+        try:
+            channel = await connection.channel()
+            caller = await Caller.open(channel)
+            held = await caller.call("", route, _command())
+            await until(lambda: (engine.status()["routes"][route]["buffer"] or {}).get("held") == 1, 20, "the call held")
+            await channel.queue_delete(route)
+            await engine.stop(drain_timeout=0.5)
+            status = engine.status()["routes"][route]
+            await caller.wait(lambda r: held in r, 10, "the lost call's error reply")
+        finally:
+            await engine.stop()
+            await connection.close()
+        return caller, held, status
+
+    caller, held, status = run(scenario(), 60)
+    [(kind, error)] = [_reply(m) for m in caller.replies[held]]
+    assert kind == "error" and error["stage"] == "buffer" and error["route"] == f"arm-{tag}", error
+    assert status["buffer"]["lost"] == 1 and status["replies"]["errors"] == 1, status

@@ -95,7 +95,7 @@ def test_shipped_routes_and_examples_pass_check_without_a_warning(tmp_path: Path
                                 capture_output=True, text=True, timeout=120, cwd=REPO)
         assert result.returncode == 0 and result.stderr == "" and result.stdout.endswith(": ok\n"), (routes, result.stderr)
     cases = len(yaml.safe_load((REPO / "examples" / "farm_uav_gcs.test.yaml").read_text())["tests"])
-    assert f"11 routes, 3 connections, {cases} tests" in subprocess.run(
+    assert f"13 routes, 3 connections, {cases} tests" in subprocess.run(
         [sys.executable, "-m", "engine", "check", "--routes", "examples/"], capture_output=True, text=True, timeout=120, cwd=REPO).stdout
 
 

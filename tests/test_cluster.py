@@ -19,9 +19,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 import aio_pika
+import pytest
 
 from engine.endpoints.amqp.broker import LocalCluster
 from tests.engine_process import EngineProcess
+from tests.workers import ros_domain
 
 CLIENT_NODE = 2
 """Index of the node the test's own clients use; only node 0 is ever killed."""
@@ -136,6 +138,7 @@ SHARED_ROUTE = """routes:
 """
 
 
+@pytest.mark.soak
 def test_two_engines_on_quorum_queues_lose_nothing_when_a_broker_node_is_killed(amqp_cluster, tmp_path):
     """10,000 messages AMQP -> AMQP through two engines; node 0 (the one both engines use,
     and the queue's leader) is killed with -9 mid-stream and restarted afterwards."""
@@ -198,6 +201,7 @@ ORDERED_ROUTE = """routes:
 """
 
 
+@pytest.mark.soak
 def test_ordered_route_fails_over_to_the_other_engine_in_order(amqp_cluster, tmp_path):
     cluster: LocalCluster = amqp_cluster
     tag = uuid.uuid4().hex[:8]
@@ -279,6 +283,7 @@ TAKEOVER_BOUND_S = 2 * STANDBY_HEARTBEAT + 2.0
 slack, plus 2 s for the broker to drop the dead consumer and for a slow shared machine."""
 
 
+@pytest.mark.soak
 def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_dies(amqp_cluster, tmp_path):
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -287,7 +292,7 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
 
     cluster: LocalCluster = amqp_cluster
     tag = "t" + uuid.uuid4().hex[:8]
-    domain = 1 + (os.getpid() + 37) % 100
+    domain = ros_domain(2)
     rate = 200.0
     directory = routes_file(tmp_path / "routes", cluster, STANDBY_ROUTE, tag=tag, domain=str(domain),
                             heartbeat=str(STANDBY_HEARTBEAT))
@@ -437,6 +442,7 @@ def test_routes_pinned_to_an_instance_run_only_there(amqp_cluster, tmp_path, sch
     assert status["brokers"]["gcs"] == amqp_cluster.urls[0].split("@")[1].rstrip("/")
 
 
+@pytest.mark.soak
 def test_cli_local_cluster_runs_routes_on_three_nodes(tmp_path):
     """``--local-broker --cluster 3``: three nodes joined in one cluster, the default AMQP
     connection lists them all and declares quorum queues; stopped with the engine."""

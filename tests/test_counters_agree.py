@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import socket
 import threading
 import time
@@ -30,10 +29,12 @@ from pathlib import Path
 from typing import Any, Callable
 
 import aio_pika
+import pytest
 
 from engine.endpoints.amqp.broker import LocalBroker
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, Tally, robust, wait_for
+from tests.workers import ros_domain
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
@@ -152,9 +153,10 @@ def agreed(views: dict[str, Callable[[], dict[str, Any]]], timeout: float = 30.0
         time.sleep(0.3)
 
 
+@pytest.mark.soak
 def test_log_status_metrics_and_tap_count_the_same_known_traffic(tmp_path: Path, amqp_url: str) -> None:
     tag = "c" + uuid.uuid4().hex[:8]
-    domain = 1 + (os.getpid() + 71) % 100
+    domain = ros_domain(6)
     flaky = LocalBroker()
     flaky.start()
     routes = tmp_path / "routes"

@@ -25,6 +25,7 @@ from engine.endpoints.ros2.rosmsg import resolve_type
 from engine.runtime import Engine
 from tests.amqp_helpers import Collector
 from tests.faults_harness import wait_for
+from tests.workers import ros_domain
 
 MAX_ATTEMPTS = 3
 
@@ -115,7 +116,7 @@ def test_no_amqp_dead_letters_go_to_a_bounded_spool_and_wrong_ros_types_are_repo
     """ROS 2 -> ROS 2 only: bad messages are kept in the JSON-lines spool (rotated within its
     bound); a NavSatFix publisher on a String route's topic is reported (log and status)
     while the route keeps carrying the right type."""
-    domain = 1 + (os.getpid() + 53) % 100
+    domain = ros_domain(7)
     tag = "s" + uuid.uuid4().hex[:8]
     spool = tmp_path / "spool"
     routes = tmp_path / "routes"

@@ -12,6 +12,7 @@ from collections import Counter
 from pathlib import Path
 
 import aio_pika
+import pytest
 
 from tests.engine_process import EngineProcess
 from tests.faults_harness import Recorder, wait_for
@@ -36,6 +37,7 @@ def kill(engine: EngineProcess) -> None:
     engine.process.wait(30)
 
 
+@pytest.mark.soak
 def test_engine_killed_twice_loses_nothing(tmp_path: Path, amqp_url: str) -> None:
     tag = uuid.uuid4().hex[:8]
     inbox, outbox = f"k-in-{tag}", f"k-out-{tag}"

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import uuid
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import pytest
 
 from engine.runtime import Engine
 from tests.amqp_helpers import Collector, publish
+from tests.workers import ros_domain
 
 ROUTES = """
 connections:
@@ -39,7 +39,7 @@ def test_two_routes_on_one_ros_topic_each_get_every_message(amqp_url: str, tmp_p
                                                            monkeypatch: pytest.MonkeyPatch):
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "f" + uuid.uuid4().hex[:8]
-    n = {"tag": tag, "inbox": f"in-{tag}", "outbox": f"out-{tag}", "domain": str(181 + os.getpid() % 40)}
+    n = {"tag": tag, "inbox": f"in-{tag}", "outbox": f"out-{tag}", "domain": str(ros_domain(10))}
     (tmp_path / "fanout.yaml").write_text(ROUTES.format(**n))
 
     async def scenario() -> dict[str, list[int]]:

@@ -14,18 +14,22 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+import pytest
+
 from engine.endpoints.mavlink.dialect import mavlink2
 from engine.schemas import SchemaRegistry
 from tests.conftest import REPO
+from tests.workers import ros_domain
 
 DURATION = 30
 
 
+@pytest.mark.soak
 def test_farm_example_end_to_end(tmp_path: Path):
     work = tmp_path / "farm"
     result = subprocess.run(
         ["timeout", "-s", "KILL", "300", sys.executable, "examples/farm_demo.py", "--duration", str(DURATION),
-         "--work", str(work), "--plain"],
+         "--work", str(work), "--plain", "--ros-domain", str(ros_domain(11))],
         cwd=REPO, capture_output=True, text=True, timeout=320,
     )
     out = result.stdout
@@ -94,6 +98,21 @@ def test_farm_example_end_to_end(tmp_path: Path):
     assert re.findall(r"gcs -> command\.uav1: detect_weeds", out) == ["gcs -> command.uav1: detect_weeds"], out[-3000:]
     assert status["uav1-commands"]["received"] == status["uav1-commands"]["delivered"] == 1, status["uav1-commands"]
 
+    # The supervisor's calls, answered over AMQP request/reply: the robot's sprayer service through
+    # the route's reply mapping; the row goal accepted, followed stop by stop, SUCCEEDED; then the
+    # sprayer switched off once the row was done.
+    replies: dict[str, list[tuple[str, dict]]] = defaultdict(list)
+    for what, kind, body in re.findall(r"gcs <- reply (spray-on|row|spray-off): (\w+) (\{[^{}\n]*\})", out):
+        replies[what].append((kind, json.loads(body)))
+    assert replies["spray-on"] == [("result", {"ok": True, "detail": "robot1: sprayer on"})], out[-3000:]
+    assert replies["row"] == [("accepted", {"kind": "accepted", "status": None, "reached": None}),
+                              *[("feedback", {"kind": "feedback", "status": None, "reached": n}) for n in (1, 1, 2, 3)],
+                              ("result", {"kind": "result", "status": "SUCCEEDED", "reached": 3})], replies["row"]
+    assert replies["spray-off"] == [("result", {"ok": True, "detail": "robot1: sprayer off"})], out[-3000:]
+    for route in ("robot1-spray", "robot1-rows"):
+        assert status[route]["replies"]["errors"] == 0 and status[route]["failed"] == 0, status[route]
+    assert status["robot1-spray"]["replies"]["sent"] == 2 and status["robot1-rows"]["replies"]["sent"] == 6, status
+
     # Every flow the demo promises carried messages (the demo exits 1 otherwise, naming them).
     assert all(route["delivered"] > 0 for route in status.values()), status
     sys.path.insert(0, str(REPO / "examples"))
@@ -101,4 +120,5 @@ def test_farm_example_end_to_end(tmp_path: Path):
     assert unkept_promises(status) == []
     idle = {**status, "uav1-commands": {**status["uav1-commands"], "delivered": 0}}
     assert unkept_promises(idle) == ["flows that carried nothing: uav1-commands"]
-    print(f"weeds {len(numbers)}, missions {sent}, acks {len(acks)}, uav missions {uav_sent}, uav acks {len(uav_acks)}")
+    print(f"weeds {len(numbers)}, missions {sent}, acks {len(acks)}, uav missions {uav_sent}, uav acks {len(uav_acks)}, "
+          f"calls {dict((what, len(r)) for what, r in replies.items())}")

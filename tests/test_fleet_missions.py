@@ -1,4 +1,4 @@
-"""Missions to several vehicles on one link (issue 20): three simulated vehicles (systems 1-3,
+"""Missions and commands to several vehicles on one link (issue 20): three simulated vehicles (systems 1-3,
 rabbitros_sim) share one UDP link; a mission sink with ``target_system: "{vehicle}"`` uploads
 each canonical mission to the vehicle its message names, one upload per target, the targets at
 once. Each vehicle gets only its own mission (the link writes a targeted frame only to the peer
@@ -142,4 +142,37 @@ def test_a_silent_vehicle_does_not_hold_the_others_missions() -> None:
 
     results = run(scenario(), 30)
     assert isinstance(results[0], EndpointError) and "did not answer the mission upload" in str(results[0]), results
+    assert results[1:] == [None, None]
+
+
+def test_a_silent_vehicle_does_not_hold_the_others_commands() -> None:
+    """The same for acknowledged commands: one batch of arm commands to vehicles 1-3, vehicle 1
+    never acknowledging; 2 and 3 acknowledge theirs while 1's is still being retried."""
+    port = free_udp_port()
+
+    async def scenario() -> list[BaseException | None]:
+        gcs: MavlinkConnection = mavlink.TRANSPORT.connect("gcs", {"url": f"udpin:127.0.0.1:{port}"})
+        await gcs.open()
+        vehicles = {s: SimVehicle(f"udpout:127.0.0.1:{port}", system_id=s,
+                                  command_results=["silent"] if s == 1 else ["MAV_RESULT_ACCEPTED"]) for s in (1, 2, 3)}
+        stop = asyncio.Event()
+        running = [asyncio.create_task(v.run(stop)) for v in vehicles.values()]
+        try:
+            sink = gcs.sink("arm", {"message": "COMMAND_LONG", "acknowledged": True, "target_system": "{vehicle}",
+                                    "timeout": 1.0, "retries": 3})
+            await until(lambda: all(gcs.has_heard(s) for s in vehicles), 10, "every vehicle's HEARTBEAT")
+            batch = asyncio.create_task(sink.send_batch([
+                Outbound(b"", {"vehicle": s}, {"command": 400, "param1": 1}, uuid.uuid4().hex, {}) for s in (1, 2, 3)]))
+            await until(lambda: gcs.stats.get("commands_acknowledged", 0) == 2, 3.0,
+                        "vehicles 2 and 3 acknowledging theirs while vehicle 1 is silent")
+            assert not batch.done()
+            assert [len(vehicles[s].autopilot.commands) >= 1 for s in (1, 2, 3)] == [True, True, True]
+            return await batch
+        finally:
+            stop.set()
+            await asyncio.gather(*running)
+            await gcs.close()
+
+    results = run(scenario(), 30)
+    assert isinstance(results[0], EndpointError) and "did not acknowledge" in str(results[0]), results
     assert results[1:] == [None, None]

@@ -31,6 +31,7 @@ from engine.endpoints.amqp.broker import LocalBroker
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, Tally, robust, wait_for
 from tests.test_counters_agree import TapReader, free_port
+from tests.workers import ros_domain
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
@@ -58,7 +59,7 @@ MAX_AGE = 1.0
 
 def test_max_age_expires_stale_held_messages_and_latest_only_replays_one_per_key(tmp_path: Path) -> None:
     tag = "f" + uuid.uuid4().hex[:8]
-    domain = 1 + (os.getpid() + 37) % 100
+    domain = ros_domain(3)
     flaky = LocalBroker()
     flaky.start()
     routes = tmp_path / "routes"

@@ -387,6 +387,7 @@ def kill(engine: EngineProcess) -> None:
     engine.process.wait(30)
 
 
+@pytest.mark.soak
 @pytest.mark.parametrize("protocol", ["5", "'3.1.1'"])
 def test_qos1_engine_killed_twice_mid_stream_loses_nothing(tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str,
                                                             protocol: str) -> None:
@@ -536,6 +537,7 @@ routes:
 SHARED_TOTAL = 1000
 
 
+@pytest.mark.soak
 def test_two_engines_with_one_shared_group_split_the_stream_every_message_once(
         tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str) -> None:
     """Two engines, one route file, ``shared: workers``: the broker gives each QoS 1 message to

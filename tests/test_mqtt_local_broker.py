@@ -72,3 +72,85 @@ def test_run_local_broker_starts_a_private_mosquitto_for_an_mqtt_connection_with
             os.killpg(process.pid, signal.SIGKILL)
     with socket.socket() as probe:
         assert probe.connect_ex((host, port)) != 0, "the private mosquitto outlived the engine"
+
+
+TLS_ROUTES = """
+connections:
+  field: {mqtt: {client_id: tls-engine}}      # no url: the private broker, over mqtts://
+routes:
+  - {name: relay, source: {mqtt: {topic: "farm/+/weather", qos: 1}}, schema: raw_json, sink: {mqtt: {topic: farm/weather, qos: 1}}}
+"""
+
+
+def test_run_local_broker_tls_gives_a_private_mosquitto_with_a_tls_listener(tmp_path: Path):
+    """``--local-broker --local-broker-tls`` with a named MQTT connection without url: the URL
+    file names mqtts://localhost:PORT, a plain MQTT client cannot talk to that port, a client
+    without the run's CA is refused, and one verifying it gets its message carried by a route
+    (the engine connected over TLS, verifying the same CA)."""
+    import ssl
+
+    url_file, status_file, routes = tmp_path / "broker-url", tmp_path / "status.json", tmp_path / "routes"
+    routes.mkdir()
+    (routes / "field.yaml").write_text(TLS_ROUTES)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RABBITROS_")}
+    process = subprocess.Popen(
+        ["timeout", "-s", "KILL", "180", sys.executable, "-m", "engine", "--routes", str(routes), "--schemas", "schemas",
+         "--local-broker", "--local-broker-tls", "--broker-url-file", str(url_file), "--status-file", str(status_file),
+         "--log-format", "json"],
+        cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True, env={**env, "PYTHONPATH": str(REPO)},
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not status_file.exists() and time.monotonic() < deadline and process.poll() is None:
+            time.sleep(0.2)
+        assert status_file.exists(), "engine did not start"
+        mqtt_url = next(url for url in url_file.read_text().split() if url.startswith("mqtt"))
+        assert mqtt_url.startswith("mqtts://localhost:"), mqtt_url
+        port = urlsplit(mqtt_url).port
+        started = None
+        while started is None and process.poll() is None:
+            line = process.stderr.readline()  # type: ignore[union-attr]
+            if line.startswith("{") and json.loads(line)["msg"] == "local broker started":
+                started = json.loads(line)
+        assert started is not None, "no 'local broker started' line"
+        ca_file = Path(started["environment"]["RABBITROS_MQTT_CA_FILE"])
+        verified = ssl.create_default_context(cafile=str(ca_file))
+
+        async def roundtrip() -> bytes:
+            try:  # a CONNECT in plain MQTT is no TLS ClientHello: no CONNACK
+                async with aiomqtt.Client("localhost", port, identifier="plain", timeout=5):
+                    raise AssertionError("a plain MQTT client talked to the TLS port")
+            except aiomqtt.MqttError:
+                pass
+            try:  # the system's CAs do not know the run's throwaway CA
+                async with aiomqtt.Client("localhost", port, identifier="unverified", timeout=5,
+                                          tls_context=ssl.create_default_context()):
+                    raise AssertionError("a client without the run's CA trusted the broker")
+            except aiomqtt.MqttError:
+                pass
+            async with aiomqtt.Client("localhost", port, identifier="test-reader", tls_context=verified) as reader:
+                await reader.subscribe("farm/weather", qos=1)
+                async with aiomqtt.Client("localhost", port, identifier="test-writer", tls_context=verified) as writer:
+                    async def publish_until_answered() -> None:
+                        while True:  # the route subscribes once its connection is up
+                            await writer.publish("farm/station1/weather", b'{"t": 21.5}', qos=1)
+                            await asyncio.sleep(0.5)
+                    publishing = asyncio.create_task(publish_until_answered())
+                    try:
+                        async with asyncio.timeout(30):
+                            async for message in reader.messages:
+                                return bytes(message.payload)
+                    finally:
+                        publishing.cancel()
+            raise AssertionError("no message")
+
+        assert json.loads(asyncio.run(roundtrip())) == {"t": 21.5}
+        status = json.loads(status_file.read_text())
+        assert status["connections"]["field"]["healthy"], status["connections"]
+        process.send_signal(signal.SIGTERM)
+        _, stderr = process.communicate(timeout=60)
+        assert process.returncode == 0, stderr
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert not ca_file.exists(), "the throwaway CA outlived the private mosquitto"

@@ -22,6 +22,7 @@ from engine.endpoints.amqp.broker import LocalBroker
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, RosPeer, Tally, publish_reliably, robust, wait_for
+from tests.workers import ros_domain
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
@@ -32,7 +33,7 @@ N_SPILL = 5_000
 
 def _names() -> dict[str, str]:
     tag = "o" + uuid.uuid4().hex[:8]
-    return {"tag": tag, "inbox": f"in-{tag}", "outbox": f"out-{tag}", "domain": str(20 + os.getpid() % 80)}
+    return {"tag": tag, "inbox": f"in-{tag}", "outbox": f"out-{tag}", "domain": str(ros_domain(8))}
 
 
 ROUTES = """
@@ -96,6 +97,7 @@ def broker() -> Any:
     node.stop()
 
 
+@pytest.mark.soak
 def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path: Path, broker: LocalBroker) -> None:
     """10,000 AMQP -> ROS 2 and 10,000 ROS 2 -> AMQP at 250 msg/s each while the broker is
     killed with -9 and restarted (same data directory and port) twice."""
@@ -156,6 +158,7 @@ def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path
     assert code == 0, "graceful stop must exit 0"
 
 
+@pytest.mark.soak
 def test_spilled_messages_survive_an_engine_restart_during_the_outage(tmp_path: Path, broker: LocalBroker) -> None:
     """ROS 2 -> AMQP with spill_dir: broker down, 5,000 messages, engine stopped (SIGTERM) and
     started again while the broker is still down, broker back: all 5,000 delivered."""
@@ -237,6 +240,7 @@ def _free_udp_port() -> int:
         return int(sock.getsockname()[1])
 
 
+@pytest.mark.soak
 def test_engine_starts_without_the_broker_and_routes_that_do_not_need_it_run_at_once(tmp_path: Path) -> None:
     """MAVLink -> ROS 2 works while the broker is down; AMQP -> ROS 2 starts when the broker
     comes up; ROS 2 -> AMQP holds what it gets meanwhile and delivers it then.

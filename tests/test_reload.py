@@ -5,9 +5,12 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
+import pytest
+
 from tests.reload_harness import run_reloads
 
 
+@pytest.mark.soak
 def test_fifty_rewrites_under_500_msg_per_s_lose_nothing(amqp_url: str, tmp_path: Path):
     """AMQP->AMQP, AMQP->ROS 2 and ROS 2->AMQP at 500 msg/s each while farm.yaml is rewritten
     50 times: mapping changes, a route added and removed, atomic renames, an invalid file

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import threading
 import time
 import uuid
@@ -29,6 +28,7 @@ from engine.endpoints.ros2.calls import service_qos
 from engine.runtime import Engine
 from tests.amqp_helpers import Caller
 from tests.conftest import REPO
+from tests.workers import ros_domain
 
 CALLS = 200
 MAX_IN_FLIGHT = 64
@@ -72,7 +72,7 @@ class BasicTypesServer:
 @pytest.fixture
 def call_routes(tmp_path: Path, amqp_url: str) -> Iterator[tuple[Path, dict[str, Any], BasicTypesServer]]:
     tag = "c" + uuid.uuid4().hex[:8]
-    domain = 101 + os.getpid() % 100
+    domain = ros_domain(4)
     names = {"tag": tag, "domain": domain, "service": f"/{tag}/basic", "missing": f"/{tag}/nobody"}
     (tmp_path / "calls.yaml").write_text(f"""\
 connections:
@@ -249,7 +249,7 @@ def test_fibonacci_goals_accepted_feedback_result_rejected_and_canceled(tmp_path
     ``x-rabbitros-cancel: <its correlation id>`` (no reply_to, body ignored) cancels a goal
     mid-way, whose own caller gets ``result`` with CANCELED."""
     tag = "a" + uuid.uuid4().hex[:8]
-    domain = 101 + os.getpid() % 100
+    domain = ros_domain(4)
     action = f"/{tag}/fibonacci"
     (tmp_path / "actions.yaml").write_text(f"""\
 connections:
@@ -312,7 +312,7 @@ def test_a_ros2_client_calls_the_engines_service_and_gets_the_amqp_workers_answe
     response the rclpy client gets. A call the worker leaves unanswered gets no response (ROS 2
     has no error response: the client's own wait ends it) and is counted as failed."""
     tag = "o" + uuid.uuid4().hex[:8]
-    domain = 101 + os.getpid() % 100
+    domain = ros_domain(4)
     service = f"/{tag}/offered"
     (tmp_path / "offered.yaml").write_text(f"""\
 connections:

@@ -146,6 +146,50 @@ def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_messa
     assert results["final"]["received"] == ROBOTS * MESSAGES + 1
 
 
+def test_a_reloaded_discovering_route_follows_the_same_topics_and_leaves_no_subscription_behind(
+        tmp_path: Path, amqp_url: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A route whose source changed gets a new source: it follows every robot's topic at once,
+    and the old source's subscriptions are all destroyed (one subscriber per topic)."""
+    monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
+    tag = "r" + uuid.uuid4().hex[:8]
+    outbox, topic = f"out-{tag}", "/{}/fix_" + tag
+    routes = tmp_path / "fleet.yaml"
+    routes.write_text(FLEET.format(domain=DOMAIN, tag=tag, outbox=outbox, forget_after=30))
+
+    async def scenario() -> tuple[list[Any], dict[str, Any], list[int]]:
+        engine = Engine(tmp_path, REPO / "schemas")
+        await engine.start()
+        robots = Peer()
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            output = await Collector.bind(channel, outbox, "farm.#")
+            publishers = [robots.publisher(NavSatFix, topic.format(f"robot{i}")) for i in range(3)]
+            await wait_until(lambda: all(p.get_subscription_count() > 0 for p in publishers), 15, "every robot followed")
+            routes.write_text(routes.read_text().replace("alt_msl: altitude", "alt_msl: altitude, alt_rel: altitude")
+                              .replace("forget_after: 30", "forget_after: 20"))  # a new source, not only a new mapping
+            assert await engine.reload(), engine.reloads.last_error
+            await wait_until(lambda: all(robots.node.count_subscribers(topic.format(f"robot{i}")) == 1 for i in range(3)),
+                             10, "one subscription per topic after the reload")
+            await wait_until(lambda: all(p.get_subscription_count() == 1 for p in publishers), 10, "the new subscriptions matched")
+            for robot, publisher in enumerate(publishers):
+                publisher.publish(_fix(robot, 0))
+            received = await output.wait_for(3, timeout=10)
+            return ([(m.routing_key, json.loads(m.body)) for m in received], engine.status()["routes"]["fleet-fix"]["source"],
+                    [robots.node.count_subscribers(topic.format(f"robot{i}")) for i in range(3)])
+        finally:
+            await connection.close()
+            robots.close()
+            await engine.stop()
+
+    received, source, subscribers = asyncio.run(asyncio.wait_for(scenario(), 60))
+    assert sorted(received, key=lambda r: r[0]) == [
+        (f"farm.robot{i}.fix", {"agent_id": f"robot{i}", "lat": float(i), "lon": 0.0, "alt_msl": 0.0, "alt_rel": 0.0})
+        for i in range(3)]
+    assert sorted(source["following"]) == [topic.format(f"robot{i}") for i in range(3)]
+    assert subscribers == [1, 1, 1]
+
+
 def test_a_pattern_captures_exactly_one_segment_expanded_as_rcl_expands_the_topic() -> None:
     fix = compile_pattern("/{agent}/fix", "engine", "/")
     assert fix.match("/robot3/fix") == {"agent": "robot3"}

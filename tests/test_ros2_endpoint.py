@@ -28,8 +28,9 @@ from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbo
 from engine.endpoints.ros2 import TRANSPORT  # noqa: E402
 from engine.endpoints.ros2.rosmsg import resolve_type, to_dict  # noqa: E402
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
+from tests.workers import ros_domain
 
-DOMAIN = 1 + os.getpid() % 100
+DOMAIN = ros_domain(0)
 String = resolve_type("std_msgs/msg/String")
 NavSatFix = resolve_type("sensor_msgs/msg/NavSatFix")
 PoseArray = resolve_type("geometry_msgs/msg/PoseArray")

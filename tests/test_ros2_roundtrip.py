@@ -14,6 +14,7 @@ from bench.roundtrip_ros2 import run_experiment
 SIZES = [50, 150, 250]
 
 
+@pytest.mark.soak
 def test_round_trip_across_two_hosts_is_byte_identical(tmp_path: Path):
     try:
         summary = run_experiment(runs=1, count=100, rate=200.0, sizes=SIZES, out=tmp_path)

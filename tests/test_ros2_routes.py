@@ -24,6 +24,7 @@ from tests.amqp_helpers import Collector, publish  # noqa: E402
 from tests.test_cli import cli  # noqa: E402
 from tests.conftest import REPO  # noqa: E402
 from tests.engine_process import EngineProcess  # noqa: E402
+from tests.workers import ros_domain
 
 TYPED = """
 connections:
@@ -50,7 +51,7 @@ routes:
 def typed_routes(tmp_path: Path, amqp_url: str, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, dict[str, str]]:
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "t" + uuid.uuid4().hex[:8]
-    names = {"tag": tag, "inbox": f"in-{tag}", "outbox": f"out-{tag}", "domain": str(101 + os.getpid() % 100)}
+    names = {"tag": tag, "inbox": f"in-{tag}", "outbox": f"out-{tag}", "domain": str(ros_domain(9))}
     (tmp_path / "typed.yaml").write_text(TYPED.format(**names))
     return tmp_path, names
 

@@ -42,11 +42,11 @@ def test_shipped_routes_pass_without_broker_or_rclpy():
 def test_farm_example_passes():
     result = engine_cli("test", "--routes", "examples/farm_uav_gcs.yaml")
     assert result.returncode == 0, result.stdout + result.stderr
-    assert result.stdout.splitlines()[-1] == "20 passed, 0 failed"
+    assert result.stdout.splitlines()[-1] == "23 passed, 0 failed"
     routes = {line.split()[2].rstrip(":") for line in result.stdout.splitlines() if line.startswith("ok ")}
     assert routes == {"uav1-position", "uav1-attitude", "uav1-battery", "uav1-status", "uav1-commands",
                       "uav1-weeds", "uav1-missions", "uav1-mission-acks", "robot-missions", "robot1-position",
-                      "robot1-acks"}, "every route of the farm example has a test"
+                      "robot1-acks", "robot1-spray", "robot1-rows"}, "every route of the farm example has a test"
 
 
 def _copy_routes(tmp_path: Path) -> Path:

@@ -14,6 +14,7 @@ import uuid
 from pathlib import Path
 
 import aio_pika
+import pytest
 
 from engine.endpoints.amqp.broker import LocalBroker
 from engine.logs import JsonFormatter, LogfmtFormatter
@@ -93,6 +94,7 @@ routes:
 """
 
 
+@pytest.mark.soak
 def test_logs_status_and_dead_letters_never_show_the_password_and_sigterm_loses_nothing(tmp_path: Path) -> None:
     """A user with a password; debug logs; a dead letter; the broker killed with -9 while the
     engine runs (reconnect errors are logged); then 3,000 messages with a SIGTERM in the middle
@@ -184,6 +186,7 @@ routes:
 """
 
 
+@pytest.mark.soak
 def test_sigterm_with_the_sink_down_exits_0_within_the_drain_timeout_and_requeues(tmp_path: Path, amqp_url: str) -> None:
     """The sink's broker is killed; 500 messages wait in the source queue and the engine's
     prefetch; SIGTERM with --drain-timeout 2: exit 0 in about the drain timeout, and all 500

@@ -188,6 +188,11 @@ class Deliver(Protocol):
     def dropped(self, count: int = 1) -> None:
         """Count messages the source dropped (overflow, or not settled and not redeliverable)."""
 
+    def agent_dropped(self, agent: Any, count: int = 1) -> None:
+        """Count, per agent, messages a fair inbox dropped (engine/fairness.py; the source
+        counts them in :meth:`dropped` as well). A Deliver with a ``fair`` attribute (the
+        route's ``fair:`` options) gets a fair inbox from ``engine.fairness.route_inbox``."""
+
 
 T = TypeVar("T")
 
@@ -225,6 +230,12 @@ class Inbox(Generic[T]):
 
     def wake(self) -> None:
         self._arrived.set()
+
+    def clear(self) -> int:
+        """Forget what is queued (a stopping source); returns how many."""
+        left = len(self.items)
+        self.items.clear()
+        return left
 
     def close(self) -> None:
         self.closed = True
@@ -394,6 +405,9 @@ class EndpointOptions:
 
     connection: str | None = option(None, description="name of a connection from any file of the directory; default: the only "
                                                        "connection of the protocol, else the protocol's default connection")
+    agents: Mapping[str, Mapping[str, Any]] | None = option(None, internal=True)
+    """The agents table's entries on the endpoint's connection (engine/agents.py), handed by
+    the route loader to an endpoint that looks agents up per message; None otherwise."""
     priority: str = option("normal", internal=True)
     """The route's ``priority`` (high, normal, low), handed to its sink by the route loader: a
     sink whose connection carries several routes over one slow link orders its writes by it
@@ -568,6 +582,22 @@ class Transport(ABC):
         not settle (a broker keeps what was not acknowledged): its route needs no buffer while
         the sink is down. False (the default, and an MQTT QoS 0 subscription): a message not
         settled is gone, so the route holds messages in a buffer by default."""
+        return False
+
+    agent_options: ClassVar[Mapping[str, str]] = {}
+    """Options that take an agent's name (engine/agents.py), each with the key of the agent's
+    entry whose value replaces the name at load (MAVLink: ``target_system`` -> ``system_id``)."""
+
+    def looks_up_agents(self, options: Any) -> bool:
+        """Whether a sink with these (typed) options resolves agents' names per message (a
+        ``{field}`` holding ``uav2``): the loader then hands it the agents on its connection in
+        its ``agents`` option. A source gets them when its route reads ``meta('agent')``."""
+        return False
+
+    def queues_per_agent(self, options: Any) -> bool:
+        """Whether a source with these (typed) options queues its messages in the engine
+        (``engine.fairness.route_inbox``), where a route's ``fair:`` gives each agent its own
+        queue; False (the default): a broker holds the backlog, and ``fair`` is a check error."""
         return False
 
     supports_ordered: ClassVar[bool] = False

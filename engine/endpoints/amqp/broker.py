@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Iterable
 from urllib.parse import urlsplit
 
-from engine.local_broker import BrokerError
+from engine.local_broker import BrokerError, bounded, lifetime_from_environment
 from engine.tls import throwaway_certificates
 
 SERVER_GLOB = "/usr/lib/rabbitmq/lib/rabbitmq_server-*/sbin/rabbitmq-server"
@@ -122,7 +122,9 @@ class BrokerTls:
 
 class LocalBroker:
     """``with LocalBroker() as broker: broker.url``; stopped and deleted on exit.
-    ``LocalBroker(tls=BrokerTls(...))`` adds a TLS listener: ``broker.tls_url``."""
+    ``LocalBroker(tls=BrokerTls(...))`` adds a TLS listener: ``broker.tls_url``.
+    ``lifetime`` (seconds; default $RABBITROS_PRIVATE_BROKER_LIFETIME, else none) kills the
+    node from outside if its owner never stops it (a killed test run)."""
 
     def __init__(
         self,
@@ -131,8 +133,10 @@ class LocalBroker:
         node: str | None = None,
         cookie: str | None = None,
         tls: BrokerTls | None = None,
+        lifetime: float | None = None,
     ) -> None:
         self.tls = tls
+        self.lifetime = lifetime if lifetime is not None else lifetime_from_environment()
         self.tls_port = _free_port() if tls is not None else None
         self.keep_dir = keep_dir
         self.directory = directory or Path(tempfile.mkdtemp(prefix="rabbitros-broker-"))
@@ -191,7 +195,7 @@ class LocalBroker:
         server = find_server()
         with open(self.log_file, "ab") as out:
             self._process = subprocess.Popen(
-                [server],
+                bounded([server], self.lifetime),
                 env=self.environment(),
                 stdin=subprocess.DEVNULL,
                 stdout=out,
@@ -286,7 +290,7 @@ class LocalCluster:
     :meth:`restart` lose a node with -9 and bring it back on its data directory and ports.
     """
 
-    def __init__(self, size: int = 3, keep_dir: bool = False) -> None:
+    def __init__(self, size: int = 3, keep_dir: bool = False, lifetime: float | None = None) -> None:
         if size < 1:
             raise BrokerError("a cluster needs at least one node")
         self.keep_dir = keep_dir
@@ -295,7 +299,7 @@ class LocalCluster:
         tag = uuid.uuid4().hex[:6]
         self.nodes = [
             LocalBroker(keep_dir=True, directory=self.directory / f"node{index + 1}",
-                        node=f"rabbitros-{tag}-{index + 1}@localhost", cookie=cookie)
+                        node=f"rabbitros-{tag}-{index + 1}@localhost", cookie=cookie, lifetime=lifetime)
             for index in range(size)
         ]
 

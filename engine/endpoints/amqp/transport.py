@@ -446,8 +446,13 @@ def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
 
 
 async def _settle_frame(method: Any, tag: int | None, **kwargs: Any) -> None:
+    """An ack or nack queued for the connection's writer, not waited for (``wait=False``):
+    the source moves on to its next batch at once instead of sleeping until the frame is on
+    the socket (a loop round trip per batch, which at a robot's pace is one per message).
+    Frames leave in the order they were queued; one lost with its connection changes nothing,
+    as the broker requeues whatever was not acknowledged."""
     try:
-        await method(tag, **kwargs)
+        await method(tag, wait=False, **kwargs)
     except LIBRARY_ERRORS:
         pass  # the channel is gone: the broker requeues whatever was not acked
 

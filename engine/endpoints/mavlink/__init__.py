@@ -90,11 +90,18 @@ class MavlinkTransport(Transport):
     sink_options = MavlinkSinkOptions
     connection_shorthand = "url"
     options_beside = True
-    source_meta = ("system_id", "component_id", "message", "connection")
+    source_meta = ("system_id", "component_id", "message", "connection", "agent")
+    agent_options = {"system_id": "system_id", "target_system": "system_id"}
 
     def meta_names(self, options: MavlinkSourceOptions) -> tuple[str, ...]:
-        """A JSON tunnel's messages carry their sender, not the connection's name."""
+        """A JSON tunnel's messages carry their sender, not the connection's name (nor an agent's)."""
         return ("system_id", "component_id", "message") if options.json_tunnel else self.source_meta
+
+    def looks_up_agents(self, options: MavlinkSinkOptions) -> bool:
+        return bool(target_fields(options)) and not options.json_tunnel
+
+    def queues_per_agent(self, options: MavlinkSourceOptions) -> bool:
+        return not options.json_tunnel  # telemetry waits in the route's inbox; a tunnel's sender holds its own
 
     def connection_problems(self, options: MavlinkConnectionOptions) -> CheckResult:
         return settings_problems(options)[1]

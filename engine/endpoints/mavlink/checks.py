@@ -63,15 +63,33 @@ def _unused(options: MavlinkSourceOptions, used: set[str], kind: str) -> Iterato
             yield key, f"unknown option {key!r}"
 
 
+def _agent_problems(options: MavlinkSourceOptions, keys: tuple[str, ...]) -> list[tuple[str | None, str]]:
+    """A name where an id is wanted that the route loader did not resolve (an endpoint built
+    without it), and agents the link cannot tell apart: never a guessed vehicle."""
+    problems: list[tuple[str | None, str]] = [
+        (key, f"{key}: {value!r} names an agent, which only a route file's agents table resolves")
+        for key in keys if isinstance(value := getattr(options, key), str) and not value.startswith("{")]
+    by_id: dict[Any, list[str]] = {}
+    for name, entry in (options.agents or {}).items():
+        if "system_id" in entry:
+            by_id.setdefault(entry["system_id"], []).append(name)
+    problems.extend((None, f"agents {', '.join(names)} have one system_id ({system_id}) on one connection: a message "
+                           "from it could not be told apart") for system_id, names in by_id.items() if len(names) > 1)
+    return problems
+
+
 def source_problems(options: MavlinkSourceOptions) -> list[tuple[str | None, str]]:
     if options.json_tunnel:
         problems = list(_common_problems(options, _TUNNEL_SOURCE, "json_tunnel source"))
         return [("message", "a json_tunnel source reads TUNNEL frames; drop 'message'") if key == "message" else (key, text)
-                for key, text in problems]
-    return list(_common_problems(options, _MESSAGE_SOURCE, "message source"))
+                for key, text in problems] + _agent_problems(options, ("system_id",))
+    return list(_common_problems(options, _MESSAGE_SOURCE, "message source")) + _agent_problems(options, ("system_id",))
 
 
 def sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tuple[str | None, str]]:
+    unresolved = _agent_problems(options, ("target_system", "target_component"))
+    if unresolved:
+        return unresolved
     templated = [key for key in ("target_system", "target_component") if isinstance(getattr(options, key), str)]
     if templated and options.json_tunnel:
         return [(key, f"{key}: a \"{{field}}\" target is read per message by message, command and mission sinks; a "

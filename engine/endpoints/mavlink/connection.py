@@ -115,7 +115,8 @@ class MavlinkConnection(Connection):
             return TunnelSource(self.hub, route=route, payload_type=options.payload_type,
                                 system_id=options.system_id, component_id=options.component_id)
         name = options.message
-        return MessageSource(self, route, MESSAGES[name].id if name else None, options.system_id, options.component_id)
+        return MessageSource(self, route, MESSAGES[name].id if name else None, options.system_id,  # type: ignore[arg-type]
+                             options.component_id, options.agents)
 
     def sink(self, route: str, options: MavlinkSinkOptions | Mapping[str, Any]) -> Sink:
         options = sink_options(route, options)

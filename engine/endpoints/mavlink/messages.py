@@ -12,7 +12,7 @@ import asyncio
 import functools
 import logging
 import time
-from collections.abc import Callable, Collection, Hashable, Sequence
+from collections.abc import Callable, Collection, Hashable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from engine.endpoints.base import Deliver, Inbound, Inbox, MessageRejected, Outbound, Sink, Source
@@ -21,6 +21,8 @@ from engine.endpoints.mavlink.command import AcknowledgedCommandSink, Encoder
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.mission import MissionUploadSink, Targets, mission_items, mission_target, refuse_unguessed
 from engine.endpoints.mavlink.transaction import TransactionOptions
+from engine.fairness import route_inbox
+from engine.suggest import did_you_mean
 from engine.throttle import slot_key
 
 if TYPE_CHECKING:
@@ -52,9 +54,12 @@ class MessageSource(Source):
     """
 
     def __init__(self, connection: SharedLink, route: str, msg_id: int | None,
-                 system_id: int | None = None, component_id: int | None = None) -> None:
+                 system_id: int | None = None, component_id: int | None = None,
+                 agents: Mapping[str, Mapping[str, Any]] | None = None) -> None:
         self.connection = connection
         self.route = route
+        self.agents = {entry["system_id"]: name for name, entry in (agents or {}).items() if "system_id" in entry}
+        """System id -> the agent's name (``meta('agent')``), when the route reads it."""
         self.msg_id = msg_id
         self.system_id = system_id
         self.component_id = component_id
@@ -67,7 +72,7 @@ class MessageSource(Source):
 
     async def start(self, deliver: Deliver) -> None:
         overflow = "drop_oldest" if deliver.overflow == "block" else deliver.overflow
-        self._inbox = Inbox(deliver.queue_limit, overflow)
+        self._inbox = route_inbox(deliver, overflow)
         self._deliver = deliver
         self.connection.listen(self.msg_id, self.offer)
         self._task = asyncio.create_task(self._run(deliver), name=f"mavlink-source:{self.route}")
@@ -82,8 +87,7 @@ class MessageSource(Source):
         self._inbox.close()
         done, _ = await asyncio.wait({task}, timeout=STOP_DRAIN)
         if not done:
-            left = len(self._inbox)
-            self._inbox.items.clear()
+            left = self._inbox.clear()
             if left:
                 self._count_dropped(left)
                 log.warning("mavlink route %r: stopped with %d messages queued; dropped", self.route, left)
@@ -108,6 +112,8 @@ class MessageSource(Source):
             "connection": self.connection.name,
             "signed": bool(buf[0] == mavlink2.PROTOCOL_MARKER_V2 and buf[2] & mavlink2.MAVLINK_IFLAG_SIGNED),
         }
+        if self.agents:
+            meta["agent"] = self.agents.get(header.srcSystem)
         fields = message_fields(msg)
         if self.msg_id == MISSION_ACK:
             ref = self.connection.mission_refs.get((header.srcSystem, header.srcComponent))
@@ -219,6 +225,9 @@ def message_targets(options: MavlinkSinkOptions) -> Targets | None:
     targets = [(key, tuple(path.split("."))) for key, path in target_fields(options)]
     if not targets:
         return None
+    agents = options.agents or {}
+    ids = {key: {name: entry[entry_key] for name, entry in agents.items() if entry_key in entry}
+           for key, entry_key in AGENT_IDS.items()}
 
     def read(message: Outbound, skip: Collection[str] = ()) -> dict[str, int]:
         out: dict[str, int] = {}
@@ -230,12 +239,29 @@ def message_targets(options: MavlinkSinkOptions) -> Targets | None:
                 if not isinstance(value, dict) or step not in value:
                     raise MessageRejected(f"{key}: the canonical message has no field {'.'.join(path)!r}")
                 value = value[step]
+            if isinstance(value, str) and agents:
+                value = _agent_id(key, path, value, ids[key])
             if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 255:
-                raise MessageRejected(f"{key}: field {'.'.join(path)!r} is {value!r}, not a MAVLink id (an integer 0-255)")
+                raise MessageRejected(f"{key}: field {'.'.join(path)!r} is {value!r}, not a MAVLink id (an integer 0-255)"
+                                      + (" nor an agent's name" if agents else ""))
             out[key] = value
         return out
 
     return read
+
+
+AGENT_IDS = {"target_system": "system_id", "target_component": "component_id"}
+"""The agent entry's key that gives each target, for a ``{field}`` holding an agent's name."""
+
+
+def _agent_id(key: str, path: tuple[str, ...], name: str, ids: dict[str, Any]) -> Any:
+    """The id of the agent ``name`` for target ``key``; a name the table (on this connection)
+    does not hold is refused naming the field, never sent to a guessed vehicle."""
+    if name in ids:
+        return ids[name]
+    known = ", ".join(ids) or "none"
+    raise MessageRejected(f"{key}: field {'.'.join(path)!r} is {name!r}, which is no agent on this connection with "
+                          f"a {AGENT_IDS[key]}{did_you_mean(name, ids) or f' (agents: {known})'}")
 
 
 def targeted_fields(options: MavlinkSinkOptions) -> Callable[[Outbound], Any] | None:

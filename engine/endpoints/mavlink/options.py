@@ -15,8 +15,11 @@ from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelSettings
 from engine.options import option
 
 _BYTE = {"minimum": 0, "maximum": 255}
-TARGET_FIELD = r"^\{[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*\}$"
-"""A sink target read from the canonical message: ``"{vehicle}"``, ``"{target.system}"``."""
+TARGET_FIELD = r"^(\{[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*\}|[A-Za-z_][A-Za-z0-9_.-]*)$"
+"""A sink target read from the canonical message (``"{vehicle}"``, ``"{target.system}"``), or
+an agent's name (``uav2``: engine/agents.py, resolved by the route loader)."""
+AGENT_NAME = r"^[A-Za-z_][A-Za-z0-9_.-]*$"
+"""An agent's name where a number is wanted (``system_id: uav2``)."""
 _SERIAL = TunnelSettings.from_settings(None, serial=True)
 _NETWORK = TunnelSettings.from_settings(None, serial=False)
 
@@ -113,13 +116,16 @@ class MavlinkSourceOptions(EndpointOptions):
                                                    "needs sink.mapping producing its fields")
     json_tunnel: bool = option(False, description="carry canonical JSON in TUNNEL frames (fragmented, CRC-32, selectively "
                                                   "acknowledged: at-least-once over a lossy radio)")
-    system_id: int | None = option(None, **_BYTE, description="sources only: accept only messages from this system id")
+    system_id: int | str | None = option(None, **_BYTE, pattern=AGENT_NAME,
+                                         description="sources only: accept only messages from this system id (or the "
+                                                     "agents table's agent of that name: its system_id)")
     component_id: int | None = option(None, **_BYTE, description="sources only: accept only messages from this component id")
     target_system: int | str | None = option(None, **_BYTE, pattern=TARGET_FIELD,
                                              description="sinks only: the receiver's system id (the message's target_system "
                                                          "when the mapping sets none; 1 for acknowledged commands and missions; "
-                                                         "0, everyone, for a tunnel); \"{field}\": a message, command or "
-                                                         "mission sink takes it from that canonical field of each message")
+                                                         "0, everyone, for a tunnel); an agent's name: its system_id; "
+                                                         "\"{field}\": a message, command or mission sink takes it from "
+                                                         "that canonical field of each message (an id, or an agent's name)")
     target_component: int | str | None = option(None, **_BYTE, pattern=TARGET_FIELD,
                                                 description="sinks only: the receiver's component id (as target_system; "
                                                             "1 for acknowledged commands and missions)")

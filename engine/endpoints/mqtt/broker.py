@@ -9,6 +9,11 @@ subscriptions and the messages queued for them come back, as after a real broker
 
 Started as root, mosquitto would switch to the ``mosquitto`` user, which cannot write the
 private directory; the configuration names the current user instead (ignored when not root).
+
+With ``tls`` (``--local-broker-tls``) its one listener speaks TLS only (mosquitto's ``cafile``,
+``certfile``, ``keyfile`` after ``listener``), with a certificate for ``localhost`` from a CA
+made when it starts (engine/tls.py, openssl); clients verify it against that CA and need no
+certificate of their own, as with the private RabbitMQ node.
 """
 
 from __future__ import annotations
@@ -24,7 +29,8 @@ import time
 from pathlib import Path
 from typing import Iterable
 
-from engine.local_broker import BrokerError
+from engine.local_broker import BrokerError, bounded, lifetime_from_environment
+from engine.tls import ThrowawayCertificates, throwaway_certificates
 
 MOSQUITTO = "mosquitto"
 INSTALL_HINT = "mosquitto is not installed (apt-get install -y mosquitto), or set MOSQUITTO_BIN to its path"
@@ -56,8 +62,9 @@ class LocalMosquitto:
 
     ``max_queued_messages`` bounds what mosquitto keeps per offline persistent session
     (its own default, 1000, would drop messages published while an engine is down for a
-    few seconds at a high rate; 0 is unlimited). ``lifetime`` (seconds) kills the broker
-    from outside if its owner never stops it. ``extra`` are more configuration lines."""
+    few seconds at a high rate; 0 is unlimited). ``lifetime`` (seconds; default
+    $RABBITROS_PRIVATE_BROKER_LIFETIME, else none) kills the broker from outside if its owner
+    never stops it. ``extra`` are more configuration lines."""
 
     def __init__(
         self,
@@ -67,19 +74,28 @@ class LocalMosquitto:
         max_queued_messages: int = 0,
         lifetime: float | None = None,
         extra: Iterable[str] = (),
+        tls: bool = False,
     ) -> None:
         self.keep_dir = keep_dir
         self.directory = directory or Path(tempfile.mkdtemp(prefix="rabbitros-mosquitto-"))
         self.directory.mkdir(parents=True, exist_ok=True)
         self.port = port or free_port()
         self.max_queued_messages = max_queued_messages
-        self.lifetime = lifetime
+        self.lifetime = lifetime if lifetime is not None else lifetime_from_environment()
         self.extra = tuple(extra)
+        self.tls = tls
+        self.certificates: ThrowawayCertificates | None = None
+        """With ``tls``: the CA and the broker's certificate, made at the first start."""
         self._process: subprocess.Popen[bytes] | None = None
 
     @property
     def url(self) -> str:
-        return f"mqtt://127.0.0.1:{self.port}"
+        """With ``tls``, by name (``localhost``, as its certificate names a host)."""
+        return f"mqtts://localhost:{self.port}" if self.tls else f"mqtt://127.0.0.1:{self.port}"
+
+    @property
+    def ca_file(self) -> Path | None:
+        return self.certificates.ca_file if self.certificates is not None else None
 
     @property
     def config_file(self) -> Path:
@@ -96,8 +112,13 @@ class LocalMosquitto:
     def configuration(self) -> str:
         data = self.directory / "data"
         data.mkdir(exist_ok=True)
-        lines = [
-            f"listener {self.port} 127.0.0.1",
+        lines = [f"listener {self.port} 127.0.0.1"]
+        if self.tls:
+            if self.certificates is None:
+                self.certificates = throwaway_certificates(self.directory / "tls", "localhost")
+            lines += [f"cafile {self.certificates.ca_file}", f"certfile {self.certificates.cert_file}",
+                      f"keyfile {self.certificates.key_file}", "require_certificate false", "tls_version tlsv1.2"]
+        lines += [
             "allow_anonymous true",
             f"user {pwd.getpwuid(os.getuid()).pw_name}",
             "persistence true",
@@ -117,10 +138,12 @@ class LocalMosquitto:
         """Start the broker (again, after :meth:`halt` or :meth:`kill`: same port and data)."""
         if self.running:
             return self.url
-        self.config_file.write_text(self.configuration())
-        command = [find_mosquitto(), "-c", str(self.config_file)]
-        if self.lifetime is not None:
-            command = ["timeout", "-s", "KILL", str(int(self.lifetime)), *command]
+        try:
+            configuration = self.configuration()
+        except RuntimeError as exc:  # openssl missing or failing: the throwaway certificates
+            raise MosquittoError(f"TLS listener: {exc}") from None
+        self.config_file.write_text(configuration)
+        command = bounded([find_mosquitto(), "-c", str(self.config_file)], self.lifetime)
         with open(self.directory / "mosquitto.out", "ab") as out:
             self._process = subprocess.Popen(
                 command, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
@@ -187,17 +210,22 @@ class LocalMosquitto:
 URL_ENV = "RABBITROS_MQTT_URL"
 """The broker of an MQTT connection that names no ``url`` (else mqtt://localhost:1883);
 ``run --local-broker`` sets it to the private mosquitto's."""
-CHECK_ENV: dict[str, str | None] = {URL_ENV: "mqtt://local-broker.invalid:1883"}
+CA_ENV = "RABBITROS_MQTT_CA_FILE"
+"""The CA an MQTT connection that names no ``url`` (nor ``tls``) verifies its broker against;
+``run --local-broker --local-broker-tls`` sets it to the private mosquitto's throwaway CA."""
+CHECK_ENV: dict[str, str | None] = {URL_ENV: "mqtt://local-broker.invalid:1883", CA_ENV: None}
 """``check --local-broker``'s stand-in for the private broker's URL (``.invalid`` is never a host)."""
 ALWAYS = False
 """Started by ``--local-broker`` only when the routes have an MQTT connection."""
 
 
 class PrivateMosquitto:
-    """``--local-broker``'s MQTT broker: one mosquitto (it does not cluster)."""
+    """``--local-broker``'s MQTT broker: one mosquitto (it does not cluster); with ``tls``
+    (``--local-broker-tls``) listening with TLS only, its URL ``mqtts://localhost:PORT`` and
+    its CA in :data:`CA_ENV`, which connections without a url verify it against."""
 
-    def __init__(self, cluster: int = 1) -> None:
-        self.broker = LocalMosquitto()
+    def __init__(self, cluster: int = 1, tls: bool = False) -> None:
+        self.broker = LocalMosquitto(tls=tls)
 
     @property
     def nodes(self) -> list[str]:
@@ -209,7 +237,8 @@ class PrivateMosquitto:
 
     @property
     def environment(self) -> dict[str, str]:
-        return {URL_ENV: self.broker.url}
+        ca_file = self.broker.ca_file
+        return {URL_ENV: self.broker.url, **({CA_ENV: str(ca_file)} if ca_file is not None else {})}
 
     def start(self) -> object:
         try:
@@ -222,8 +251,4 @@ class PrivateMosquitto:
 
 
 def private_broker(cluster: int = 1, tls: bool = False) -> PrivateMosquitto:
-    """``tls`` (``--local-broker-tls``): refused, the private mosquitto has no TLS listener yet."""
-    if tls:
-        raise BrokerError("--local-broker-tls: the private mosquitto has no TLS listener (only RabbitMQ's node has); "
-                          "leave out --local-broker-tls for routes with an MQTT connection")
-    return PrivateMosquitto(cluster)
+    return PrivateMosquitto(cluster, tls)

@@ -50,12 +50,12 @@ from paho.mqtt.subscribeoptions import SubscribeOptions
 
 from engine.backoff import Backoff
 from engine.endpoints.base import Connection, EndpointError, typed
-from engine.endpoints.mqtt.broker import URL_ENV
+from engine.endpoints.mqtt.broker import CA_ENV, URL_ENV
 from engine.endpoints.mqtt.errors import describe, edge_error, from_code, mapped
 from engine.endpoints.mqtt.options import DEFAULT_URL, MqttConnectionOptions, MqttMessageOptions
 from engine.endpoints.mqtt.topics import subscription_id
 from engine.redaction import MASK, redact_urls, reveal
-from engine.tls import LastTlsError, tls_context, tls_failure
+from engine.tls import LastTlsError, TlsOptions, tls_context, tls_failure
 
 log = logging.getLogger("engine.mqtt")
 
@@ -99,6 +99,15 @@ class Endpoint:
 
     def shown(self) -> str:
         return f"{'mqtts' if self.tls else 'mqtt'}://{self.host}:{self.port}"
+
+
+def broker_tls(settings: MqttConnectionOptions) -> TlsOptions | None:
+    """The connection's ``tls``; for one that names no url (nor tls), the CA the environment
+    names (:data:`CA_ENV`: the private mosquitto's under ``--local-broker-tls``), so it
+    verifies the broker that environment points it at."""
+    if settings.tls is None and settings.url is None and os.environ.get(CA_ENV):
+        return TlsOptions(ca_file=os.environ[CA_ENV])
+    return settings.tls
 
 
 class Session:
@@ -250,7 +259,7 @@ class MqttLink(Connection):
         the reopen on. A file that cannot be read is transient (it may be being renewed)."""
         self._tls_log.text = ""  # what paho logs about this attempt only
         try:
-            return tls_context(self.settings.tls)
+            return tls_context(broker_tls(self.settings))
         except ValueError as exc:
             raise EndpointError(f"{self.where}: TLS: {exc}") from None
 

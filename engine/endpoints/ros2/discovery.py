@@ -7,10 +7,11 @@ with the route's QoS; each message carries the captured values as metadata (``me
 which sink templates read too (``farm.{agent}.fix``). A followed topic that has had no
 publisher of that type for ``forget_after`` seconds is let go (its subscription destroyed); if a
 publisher comes back it is followed again. A matching topic of another type is reported once
-(log and status), never subscribed. Which ``{var}`` is a discovery variable is decided at load:
-``for_each`` variables are filled in before the endpoint sees the topic, so any ``{var}`` left
-in a ROS 2 source topic is one (``check`` warns in a ``for_each`` route, where it may be a
-misspelt item variable).
+(a warning in the log, and the status), never subscribed: a wide pattern (``/{name}``) matches
+``/rosout`` and ``/parameter_events`` too, which is no failure. Which ``{var}`` is a discovery
+variable is decided at load: ``for_each`` variables are filled in before the endpoint sees the
+topic, so any ``{var}`` left in a ROS 2 source topic is one (``check`` warns in a ``for_each``
+route, where it may be a misspelt item variable).
 
 How the graph is read. rclpy (Jazzy) exposes no graph event to Python (rcl's graph guard
 condition is not bound), so the connection polls ``Node.get_topic_names_and_types()`` every
@@ -188,8 +189,8 @@ class Discovery:
     def _mismatch(self, topic: str, types: tuple[str, ...]) -> None:
         if self.mismatched.get(topic) != types:
             self.mismatched[topic] = types
-            log.error("%s: topic %s matches but has type %s, not %s; not subscribed",
-                      self.where, topic, ", ".join(types), self.type_name)
+            log.warning("%s: topic %s matches but has type %s, not %s; not subscribed",
+                        self.where, topic, ", ".join(types), self.type_name)
 
     def _follow(self, topic: str, captured: Mapping[str, str]) -> None:
         if not self.follow(topic, captured):

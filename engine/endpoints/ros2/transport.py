@@ -68,6 +68,7 @@ from engine.endpoints.base import (
     CheckResult, Connection, FieldProblem, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
     Source, Transport, typed,
 )
+from engine.fairness import route_inbox
 from engine.mapping import template_problem
 from engine.options import given, option
 from engine.suggest import did_you_mean
@@ -301,6 +302,9 @@ class Ros2Transport(Transport):
 
     def source_answers(self, options: Ros2EndpointOptions) -> bool:
         return options.service is not None  # a topic's publishers await no answer
+
+    def queues_per_agent(self, options: Ros2EndpointOptions) -> bool:
+        return options.service is None  # a topic's messages wait in the route's inbox
 
     def source_problems(self, options: Ros2SourceOptions, mapping: str | None) -> CheckResult:
         if "forget_after" in given(options) and not self.source_variables(options):
@@ -699,7 +703,7 @@ class Ros2Source(Source):
     async def start(self, deliver: Deliver) -> None:
         self._connection.node  # raises EndpointError when not open
         self._deliver = deliver
-        self._queue = Inbox(deliver.queue_limit, deliver.overflow)
+        self._queue = route_inbox(deliver, deliver.overflow)
         if self._discovery is None:
             self._subscribe(self._topic, {})
         self._pump = asyncio.create_task(self._run(deliver), name=f"ros2-source-{self._route}")
