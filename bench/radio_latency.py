@@ -104,8 +104,12 @@ async def one(url: str, signed: bool, loaded: bool, seconds: float) -> dict[str,
         telemetry: list[float] = []
         boot = vehicle._boot  # the loop time its time_boot_ms counts from (loop time is time.monotonic here)
 
+        measuring_from = float("inf")
+
         async def on_position(message: Any) -> None:
-            telemetry.append(time.monotonic() - (boot + json.loads(message.body)["t"] / 1000))
+            sent = boot + json.loads(message.body)["t"] / 1000
+            if sent >= measuring_from:  # not what waited in the queue before the measurement
+                telemetry.append(time.monotonic() - sent)
 
         replies = await channel.declare_queue(exclusive=True)
         waiting: dict[str, asyncio.Future[float]] = {}
@@ -122,8 +126,9 @@ async def one(url: str, signed: bool, loaded: bool, seconds: float) -> dict[str,
                 await channel.default_exchange.publish(
                     aio_pika.Message(json.dumps({"n": n, "pad": pad}).encode()), f"{exchange}-bulk")
             await asyncio.sleep(3.0)  # the tunnel's window and the writer's queue are full
-        await asyncio.sleep(1.0)
         await positions.consume(on_position, no_ack=True)
+        await asyncio.sleep(1.0)
+        measuring_from = time.monotonic()
         commands: list[float] = []
         failed = 0
         end = time.monotonic() + seconds

@@ -47,10 +47,11 @@ from typing import Any
 
 STALE_S = 3.0
 """Seconds after which a RADIO_STATUS no longer describes the radio (SiK sends one a second)."""
-TXBUF_HALF, TXBUF_IDLE = 50, 90
-"""Percent free of the radio's buffer: a first report below HALF measures the air by what it
-carried even though the buffer was not backlogged before; at IDLE or above the radio waits
-for us and the budget climbs (see the module docstring)."""
+TXBUF_IDLE = 90
+"""Percent free of the radio's buffer at or above which the radio waits for us and the budget
+climbs; below it, a buffer that grew measures the air's rate for the first time by what it
+carried (at most the air's rate: the buffer was empty for part of the interval), so the first
+sign of a backlog already steers (see the module docstring)."""
 RADIO_BUFFER = 2048
 """Bytes of a SiK radio's serial buffer (the ArduPilot wiki's figure; Si1000 boards have
 1,850 for input): what txbuf is a percentage of."""
@@ -126,8 +127,8 @@ class RadioBudget:
         carried = max(0.0, sent - (used - used_before)) / max(now - previous.at, 0.1)
         if min(used, used_before) >= BACKLOG * RADIO_BUFFER:  # backlogged throughout: the air's own rate
             self._air = carried if self._air is None else 0.5 * (self._air + carried)
-        elif self._air is None and report.txbuf < TXBUF_HALF:  # filled at once: at most what was carried
-            self._air = carried
+        elif self._air is None and report.txbuf < TXBUF_IDLE and used > used_before:
+            self._air = carried  # a backlog begins: the air carried at least this (the buffer was empty for a while)
         if self._air is None or report.txbuf >= TXBUF_IDLE:  # the radio waits for us: climb
             rate = max(self._rate, carried) + INCREASE * self.ceiling
         else:
