@@ -22,11 +22,9 @@ from __future__ import annotations
 
 from typing import Any, Iterator
 
-import jmespath
-from jmespath import exceptions as jmespath_errors
-
 from engine import endpoints
 from engine.endpoints.base import ELEMENT, EndpointError, FieldPath, FieldProblem
+from engine.mapping import parsed
 from engine.suggest import closest
 
 _BARE_LITERALS = frozenset({"null", "true", "false"})
@@ -36,14 +34,8 @@ _BARE_LITERALS = frozenset({"null", "true", "false"})
 
 def mapping_reads(expression: str | None) -> list[FieldPath]:
     """The source-message field paths a mapping reads, in order, without duplicates."""
-    if not expression:
-        return []
-    try:
-        tree = jmespath.compile(expression).parsed
-    except jmespath_errors.JMESPathError:
-        return []
     found: list[FieldPath] = []
-    _walk(tree, (), found)
+    _walk(parsed(expression), (), found)
     return list(dict.fromkeys(found))
 
 
@@ -102,13 +94,7 @@ def mapping_writes(expression: str | None) -> Written | None:
     """The keys a mapping sets, read from its JMESPath tree: ``{a: x, b: {c: y}}`` (multi-select
     hashes), ``l[].{e: f}`` (projections), ``merge(@, {h: ...})``, ``a || {m: n}``, JSON
     literals and the right side of a pipe; None when nothing is known (a bare field, identity)."""
-    if not expression:
-        return None
-    try:
-        tree = jmespath.compile(expression).parsed
-    except jmespath_errors.JMESPathError:
-        return None
-    return _writes(tree)
+    return _writes(parsed(expression))
 
 
 def _writes(node: dict[str, Any]) -> Written | None:

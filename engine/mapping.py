@@ -382,25 +382,24 @@ def literal_name(node: dict[str, Any]) -> str | None:
 def recall_names(expression: str | None) -> list[str | None]:
     """The store names ``expression`` passes to ``recall()``, in order (None for a call that
     does not give one literal name); [] for an expression that does not compile."""
-    if not expression:
-        return []
-    try:
-        tree = jmespath.compile(expression).parsed
-    except jmespath_errors.JMESPathError:
-        return []
-    return [literal_name(node) for node in _calls(tree, RECALL_FUNCTION)]
+    return [literal_name(node) for node in _calls(parsed(expression), RECALL_FUNCTION)]
 
 
 def meta_names(expression: str | None) -> list[str | None]:
     """The names ``expression`` passes to ``meta()``, in order (None for a call that does not
     give one literal name); [] for an expression that does not compile."""
+    return [meta_name(node) for node in _calls(parsed(expression), META_FUNCTION)]
+
+
+def parsed(expression: str | None) -> dict[str, Any]:
+    """The parse tree of ``expression``; an empty tree when there is none or it does not compile
+    (the compile error is reported where the mapping is compiled, not by the checks reading it)."""
     if not expression:
-        return []
+        return {}
     try:
-        tree = jmespath.compile(expression).parsed
+        return jmespath.compile(expression).parsed
     except jmespath_errors.JMESPathError:
-        return []
-    return [meta_name(node) for node in _calls(tree, META_FUNCTION)]
+        return {}
 
 
 def _calls(node: Any, function: str | None = None) -> list[dict[str, Any]]:
