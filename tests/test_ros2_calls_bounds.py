@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import threading
 import time
 import uuid
@@ -33,6 +32,7 @@ from engine.endpoints.ros2.calls import service_qos
 from engine.runtime import Engine
 from tests.amqp_helpers import Caller
 from tests.conftest import REPO
+from tests.workers import ros_domain
 
 CLIENTS, CALLS_EACH = 25, 4
 BURST = CLIENTS * CALLS_EACH
@@ -84,7 +84,7 @@ def test_a_burst_of_ros2_clients_up_to_max_in_flight_loses_no_call_and_a_late_an
     the worker answers after the sink's timeout gets no response, and its late answer is counted
     in the route's ``replies.late``."""
     tag = "b" + uuid.uuid4().hex[:8]
-    domain = 101 + os.getpid() % 100
+    domain = ros_domain(12)
     service = f"/{tag}/offered"
     (tmp_path / "offered.yaml").write_text(f"""\
 connections:
@@ -171,7 +171,7 @@ def test_a_service_response_after_the_timeout_is_an_error_reply_then_counted_lat
     within the timeout, and the response that comes later is dropped and counted ``late``
     (rclpy alone would drop it without a trace), for a fire-and-forget call too."""
     tag = "l" + uuid.uuid4().hex[:8]
-    domain = 101 + os.getpid() % 100
+    domain = ros_domain(12)
     service = f"/{tag}/slow"
     (tmp_path / "slow.yaml").write_text(f"""\
 connections:
