@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import aio_pika
+import pytest
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -166,6 +167,7 @@ routes:
     print(f"burst of {BURST} calls from {CLIENTS} clients answered in {elapsed:.2f} s")
 
 
+@pytest.mark.alone  # an error reply within 1 s, in wall time
 def test_a_service_response_after_the_timeout_is_an_error_reply_then_counted_late(tmp_path: Path, amqp_url: str) -> None:
     """A server that answers after the route's timeout: the caller gets one ``error`` reply
     within the timeout, and the response that comes later is dropped and counted ``late``
