@@ -21,6 +21,11 @@ it is worthless, and replaying every one floods the link for as long as the outa
 (ros-foxglove-bridge#329). Events that must all arrive (detections, mission results,
 commands) want neither: leave ``max_age`` and ``latest_only`` unset on their routes.
 
+Calls (requests with a reply address, engine/replies.py) keep their way back through the
+buffer: one read back from the spill files is bound to the route's replies again by the runner,
+and one held in memory only when the buffer closes is answered with an ``error`` reply
+(``on_lost``): it can no longer be delivered.
+
 Bounded: at most ``max_messages`` are held; a full buffer makes ``hold`` wait (back-pressure
 to the source, whose own bounded queue then applies its overflow policy).
 
@@ -167,6 +172,7 @@ class HoldingBuffer:
         stale: Callable[[Held], bool] = lambda held: False,
         on_expired: Callable[[list[Held]], None] = lambda held: None,
         on_conflated: Callable[[list[Held]], None] = lambda held: None,
+        on_lost: Callable[[list[Held]], Awaitable[None]] | None = None,
     ) -> None:
         self.route = route
         self._send = send
@@ -182,6 +188,9 @@ class HoldingBuffer:
         self._stale = stale
         self._on_expired = on_expired
         self._on_conflated = on_conflated
+        self._on_lost = on_lost
+        """Told of the messages held in memory only that a close lets go of (the route answers
+        the calls among them with an error reply)."""
         self._latest: dict[Any, int] = {}
         """``latest_only``: key -> sequence number of the newest held message with that key."""
         self._head_seq = 0
@@ -266,6 +275,11 @@ class HoldingBuffer:
         if not self.spills and self.stats.held:
             self.stats.lost += self.stats.held
             log.error("buffer closed with undelivered messages", extra={"route": self.route, "lost": self.stats.held})
+            if self._on_lost is not None:
+                try:
+                    await self._on_lost(self._store.peek(self.stats.held))
+                except Exception as exc:  # telling the callers must not keep the engine from stopping
+                    log.error("buffer: telling the lost messages' senders failed", extra={"route": self.route, "error": repr(exc)})
         elif self.stats.held:
             log.info("spilled messages kept for the next start", extra={"route": self.route, "messages": self.stats.held})
 
@@ -415,6 +429,8 @@ class BufferOwner(Protocol):
 
     def held_conflated(self, held: list[Held]) -> None: ...
 
+    async def held_lost(self, held: list[Held]) -> None: ...
+
 
 class _Shared:
     __slots__ = ("buffer", "users", "owner")
@@ -456,6 +472,7 @@ class Buffers:
             latest_per=spec.latest_per, stale=lambda held: shared.owner.held_stale(held),
             on_expired=lambda held: shared.owner.held_expired(held),
             on_conflated=lambda held: shared.owner.held_conflated(held),
+            on_lost=lambda held: shared.owner.held_lost(held),
         )
         shared = _Shared(buffer, owner)
         return shared

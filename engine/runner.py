@@ -430,6 +430,13 @@ class RouteRunner:
             self._ended_call(outbound, "latest_only", "conflated: a newer message with the same key was held while the "
                                                       "sink was down (buffer.latest_only)")
 
+    async def held_lost(self, held: list[Held]) -> None:
+        """The buffer closed (the route or the engine stopped) with calls held in memory only:
+        they can no longer be delivered, so each caller gets its one ``error`` reply now."""
+        error = "the route stopped before its sink could take it (held in memory, not spilled)"
+        await asyncio.gather(*(self.replies.failed(self._reply_of(outbound), outbound.meta, "buffer", error)
+                               for outbound, _ in held if outbound.meta.get("reply_to")))
+
     async def held_rejected(self, message: Outbound, error: BaseException, attempts: int) -> None:
         """A held message the sink rejected, or kept failing while it could take messages."""
         self._reply_of(message)

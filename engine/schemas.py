@@ -47,7 +47,11 @@ _FLOAT_FORMS_THAT_DIFFER = re.compile(rb"[0-9]e[-+]|0\.0000")
 """orjson writes ``1e-7`` and ``0.000015`` where Python writes ``1e-07`` and ``1.5e-05``;
 output with an exponent or a number below 1e-4 anywhere (rare in field data, and a match
 inside a string only costs time) takes the standard library's path."""
-_LONG_NUMBER = re.compile(rb"[0-9]{19}")
+_LONG_NUMBER = re.compile(rb"[0-9]{20}|-[0-9]{19}")
+"""Integers orjson may read as a float instead (beyond -2^63 .. 2^64-1): 20 digits or more,
+or negative with 19. A 19-digit positive integer is exact in orjson, and a nanosecond
+timestamp has 19 digits: the fleet benchmark's robots (bench/fleet.py) send one in every
+message, and matching those sent every message through the standard library's parser."""
 """orjson parses integers beyond 64 bits as floats; the standard library keeps them exact."""
 
 

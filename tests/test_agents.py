@@ -52,13 +52,13 @@ routes:
     source: {{amqp: {{connection: gcs, exchange: {commands}, binding_key: cmd, queue: {queue}}}}}
     schema: raw_json
     sink:
-      mavlink: {{message: COMMAND_LONG, acknowledged: true, target_system: "{{vehicle}}", target_component: 1, timeout: 0.3}}
+      mavlink: {{message: COMMAND_LONG, acknowledged: true, target_system: "{{vehicle}}", target_component: 1, timeout: 1.0}}
       mapping: "{{command: `400`, param1: `1`, param2: param}}"
   - name: arm-uav3
     source: {{amqp: {{connection: gcs, exchange: {commands}, binding_key: "arm3", queue: {queue}-arm3}}}}
     schema: raw_json
     sink:
-      mavlink: {{message: COMMAND_LONG, acknowledged: true, target_system: uav3, target_component: 1, timeout: 0.3}}
+      mavlink: {{message: COMMAND_LONG, acknowledged: true, target_system: uav3, target_component: 1, timeout: 1.0}}
       mapping: "{{command: `400`, param1: `1`, param2: param}}"
 """
 
@@ -118,7 +118,8 @@ def test_routes_name_vehicles_from_the_agents_table(tmp_path: Path, schemas_dir:
         system = -220000000 - position["lat"]  # each vehicle's own stream
         assert position["vehicle"] == f"uav{system}", position
         assert position["key"].endswith(position["vehicle"]), position
-    params = {system_id: sorted(int(msg.param2) for msg in vehicle.received()) for system_id, vehicle in vehicles.items()}
+    params = {system_id: sorted({int(msg.param2) for msg in vehicle.received()})  # at least once: a lost ack repeats
+              for system_id, vehicle in vehicles.items()}
     assert params == {1: [0], 2: [1, 3], 3: [2, 9]}, params
     assert [vehicle.foreign for vehicle in vehicles.values()] == [0, 0, 0]
     assert [m.headers["x-rabbitros-stage"] for m in letters] == ["sink"]
@@ -184,3 +185,18 @@ tests:
     config, cases, problems, _ = load_checked(directory, schemas)
     assert config is not None and not problems, problems
     assert [r.reason for r in run_tests(cases, config, schemas)] == ["", "", ""]
+
+
+def test_a_new_agent_adds_its_routes_and_leaves_the_others_running(tmp_path: Path, schemas_dir: Path) -> None:
+    from engine.plan import plan_reload
+
+    directory = _directory(tmp_path, url="amqp://localhost:1/", port=14992, outbox="o", commands="c", queue="q")
+    schemas = SchemaRegistry(schemas_dir)
+    before = load_routes(directory, schemas)
+    (directory / "agents.yaml").write_text(AGENTS + "  uav4: {connection: radio, system_id: 4}\n  robot2: {namespace: /r2}\n")
+    plan = plan_reload(before, load_routes(directory, schemas))
+    assert plan.add == ("uav4-position",) and plan.remove == ()
+    assert set(plan.keep) == {"arm-uav3", "uav1-position", "uav2-position", "uav3-position"}, plan
+    # the two routes that look any agent on the radio up take the new table: the source that names
+    # the agent heard is replaced, the sink that resolves names gets a new pipeline
+    assert (plan.replace_source, plan.swap_pipeline) == (("fleet-position",), ("fleet-commands",)), plan

@@ -338,3 +338,41 @@ routes:
     [(kind, error)] = [_reply(m) for m in caller.replies[calls[1]]]
     assert kind == "error" and error["stage"] == "throttle" and error["route"] == f"slow-{tag}", error
     assert calls[0] not in caller.replies
+
+
+def test_a_call_held_in_memory_when_the_engine_stops_gets_an_error_reply(
+        tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """A route whose buffer holds in memory only (no spill_dir): an arm call for a silent
+    vehicle is held; when the engine stops it cannot be delivered any more, and its caller gets
+    one ``error`` reply naming the stage ``buffer`` instead of waiting forever."""
+    port = free_udp_port()
+    tag = uuid.uuid4().hex[:8]
+    routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag)
+    text = (routes / "routes.yaml").read_text().replace(
+        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3}").replace(
+        f"  - name: arm-{tag}\n", f"  - name: arm-{tag}\n    max_attempts: 1000\n    buffer: {{max_messages: 10}}\n")
+    (routes / "routes.yaml").write_text(text)
+
+    async def scenario() -> tuple[Caller, str, dict[str, Any]]:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        route = f"arm-{tag}"
+        try:
+            channel = await connection.channel()
+            caller = await Caller.open(channel)
+            held = await caller.call("", route, _command())
+            await until(lambda: (engine.status()["routes"][route]["buffer"] or {}).get("held") == 1, 20, "the call held")
+            await channel.queue_delete(route)
+            await engine.stop(drain_timeout=0.5)
+            status = engine.status()["routes"][route]
+            await caller.wait(lambda r: held in r, 10, "the lost call's error reply")
+        finally:
+            await engine.stop()
+            await connection.close()
+        return caller, held, status
+
+    caller, held, status = run(scenario(), 60)
+    [(kind, error)] = [_reply(m) for m in caller.replies[held]]
+    assert kind == "error" and error["stage"] == "buffer" and error["route"] == f"arm-{tag}", error
+    assert status["buffer"]["lost"] == 1 and status["replies"]["errors"] == 1, status

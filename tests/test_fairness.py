@@ -17,19 +17,16 @@ from engine.schemas import SchemaRegistry
 from tests.fairness_load import FLOODER, flood
 
 
-@pytest.mark.alone  # a p99 latency bound: a starved engine misses it
+@pytest.mark.alone  # p99 is wall time: it needs the machine to itself (./scripts/test.sh runs it after the parallel run)
 def test_one_agent_flooding_does_not_hold_the_others(tmp_path: Path) -> None:
-    """Ten agents at 3 Hz, one at 300 Hz, a sink taking ~150 frames/s: the benchmark's load at
-    0.3 of its rates, as the machine running the suite is shared (a starved engine cannot read
-    its socket, whose one kernel queue no fairness inside the engine reaches). A run that misses
-    the bound is run once more: on the shared 2-core machine (load average ~20) one in several
-    runs had a second-long stall; without ``fair`` every run misses it by seconds."""
-    outcomes = [flood(tmp_path / "first", fair=True, scale=0.3)]
-    if outcomes[0].quiet_p99_ms > 500:  # a second run only when the first missed: the engine starved of CPU for a second
-        outcomes.append(flood(tmp_path / "second", fair=True, scale=0.3))  # (without fair both miss by seconds)
-    outcome = min(outcomes, key=lambda o: o.quiet_p99_ms)
-    assert outcome.quiet_lost == 0, [o.summary() for o in outcomes]
-    assert outcome.quiet_p99_ms <= 500, [o.summary() for o in outcomes]
+    """Ten agents at 5 Hz, one at 500 Hz, a sink taking ~250 frames/s: the benchmark's load at
+    half its rates (bench/bench_fairness.py runs the full rates: p99 408 ms at load 13-24). A
+    starved engine cannot read its socket, whose one kernel queue no fairness inside the engine
+    reaches, so this test runs alone; without ``fair`` it misses the bound by seconds (p99 9.8 s
+    at these rates)."""
+    outcome = flood(tmp_path, fair=True, scale=0.5)
+    assert outcome.quiet_lost == 0, outcome.summary()
+    assert outcome.quiet_p99_ms <= 500, outcome.summary()
     dropped = outcome.route["dropped_by_agent"]
     assert set(dropped) <= {str(FLOODER)} and sum(dropped.values()) == outcome.route["dropped"], outcome.summary()
     assert outcome.flood_received > 0, outcome.summary()

@@ -27,6 +27,10 @@ from engine.endpoints.mavlink.errors import edge_error, mapped
 from engine.endpoints.mavlink.settings import Address
 
 PEER_TTL = 30.0
+MAX_PEERS = 256
+"""Peers a ``udpin`` link remembers (the least recently heard goes first): one per MAVLink system
+id and then some. It was 8, and a fleet of 50 vehicles on a few links (bench/fleet.py) made a
+command for a forgotten vehicle go to every remembered peer instead of its own."""
 READ_CHUNK = 4096
 UDP_CLOSE_TIMEOUT = 1.0
 """Bound on waiting for asyncio to close a UDP socket (it takes one loop turn)."""
@@ -252,7 +256,7 @@ class UdpLink(Link):
         if self.address.kind == "udpin":
             self.peers[addr] = time.monotonic()
             self.peers.move_to_end(addr)
-            while len(self.peers) > 8:
+            while len(self.peers) > MAX_PEERS:
                 self.peers.popitem(last=False)
         self.on_bytes(data, addr)
 
