@@ -405,9 +405,11 @@ def _rss_kib(child: tp.Child) -> int:
 
 
 async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration: float, rate: float = 10.0,
-                   command_rate: float = 1.0, publishers: int = 2) -> dict[str, Any]:
+                   command_rate: float = 1.0, publishers: int = 2, domain: int | None = None) -> dict[str, Any]:
     """One measurement: the engine on the fleet's routes written ``mode`` (templated or
-    hand_written), the load for ``duration`` seconds, then everything drained and counted."""
+    hand_written), the load for ``duration`` seconds, then everything drained and counted.
+    ``domain``: the ROS 2 domain (the tests give each of their workers its own), else one
+    derived from the pid and the mode."""
     import aiormq
 
     from engine.routes import load_routes
@@ -415,7 +417,7 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
 
     tag = uuid.uuid4().hex[:6]
     names = {"out": f"fleet-out-{tag}", "cmd": f"fleet-cmd-{tag}"}
-    domain = 60 + (os.getpid() + hash(mode)) % 40
+    domain = domain if domain is not None else 60 + (os.getpid() + hash(mode)) % 40
     links = links_for(vehicles_n)
     ports = [tp.free_udp_port() for _ in links]
     agents = robot_names(robots_n)

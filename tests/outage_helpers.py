@@ -79,9 +79,13 @@ class Collector:
 
 
 async def publish_reliably(connection: Any, exchange: str, key: str, seqs: range, rate: float,
-                           tally: Tally, extra: Callable[[int], dict[str, Any]] = lambda seq: {}) -> None:
-    """Publish every seq with publisher confirms at ``rate`` msg/s; a publish that fails (the
-    broker died) is retried until confirmed."""
+                           tally: Tally, extra: Callable[[int], dict[str, Any]] = lambda seq: {},
+                           window: int = 64) -> None:
+    """Publish every seq with publisher confirms at ``rate`` msg/s, up to ``window`` of them
+    awaiting their confirm at once; a publish that fails (the broker died) is retried until
+    confirmed, and ``tally.sent`` counts the confirmed ones. One at a time, the round trip of a
+    loaded machine set the pace instead of ``rate``: 10,000 at a nominal 250 msg/s took 320 s
+    beside three test workers."""
     deadline = time.monotonic() + 60
     while True:  # a robust connection may still be reconnecting after a broker restart
         try:
@@ -92,20 +96,30 @@ async def publish_reliably(connection: Any, exchange: str, key: str, seqs: range
             if time.monotonic() > deadline:
                 raise
             await asyncio.sleep(0.2)
+    slots = asyncio.Semaphore(window)
+
+    async def confirmed(body: bytes) -> None:
+        try:
+            while True:
+                try:
+                    await asyncio.wait_for(target.publish(
+                        aio_pika.Message(body, delivery_mode=aio_pika.DeliveryMode.PERSISTENT), key), 30)
+                    break
+                except Exception:
+                    await asyncio.sleep(0.2)
+            tally.sent += 1
+        finally:
+            slots.release()
+
     started = time.monotonic()
+    publishing: list[asyncio.Task[None]] = []
     for index, seq in enumerate(seqs):
-        body = json.dumps({"seq": seq, **extra(seq)}).encode()
-        while True:
-            try:
-                await asyncio.wait_for(target.publish(
-                    aio_pika.Message(body, delivery_mode=aio_pika.DeliveryMode.PERSISTENT), key), 30)
-                break
-            except Exception:
-                await asyncio.sleep(0.2)
-        tally.sent += 1
+        await slots.acquire()
+        publishing.append(asyncio.create_task(confirmed(json.dumps({"seq": seq, **extra(seq)}).encode())))
         delay = started + (index + 1) / rate - time.monotonic()
         if delay > 0:
             await asyncio.sleep(delay)
+    await asyncio.gather(*publishing)
 
 
 class RosPeer:

@@ -9,10 +9,11 @@ from __future__ import annotations
 import asyncio
 
 from bench.fleet import STREAM_KINDS, run_mode
+from tests.workers import ros_domain
 
 
 def test_fleet_smoke_loses_nothing(amqp_url: str) -> None:
-    result = asyncio.run(run_mode(amqp_url, "templated", robots_n=3, vehicles_n=9, duration=2.0))
+    result = asyncio.run(run_mode(amqp_url, "templated", robots_n=3, vehicles_n=9, duration=2.0, domain=ros_domain(13)))
     assert result["links"] == 2 and result["routes"] == 3 * 3 + 9 * 3  # nine vehicles need two udpin links
     assert result["unmatched_publishers"] == 0
     assert result["telemetry_sent"] >= (3 * 2 + 9 * 2) * 10  # 10 Hz for 2 s at least (each stream sends whole rounds)

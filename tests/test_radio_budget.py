@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import aio_pika
+import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 
@@ -137,6 +138,7 @@ async def offer(target: Any) -> None:
         events += 1
 
 
+@pytest.mark.alone  # the emulated radio's buffer against the engine's pace
 def test_the_budget_conflates_telemetry_when_radio_status_reports_a_filling_buffer(
         tmp_path: Path, schemas_dir: Path, amqp_url: str) -> None:
     got = run(tmp_path, schemas_dir, amqp_url, radio_status=0.5)
@@ -156,6 +158,7 @@ def test_the_budget_conflates_telemetry_when_radio_status_reports_a_filling_buff
     assert got["link"]["budget_queued"] > 0, got["link"]
 
 
+@pytest.mark.alone  # the emulated radio's buffer against the engine's pace
 def test_without_radio_status_the_budget_stays_at_its_ceiling_and_the_radio_drops(
         tmp_path: Path, schemas_dir: Path, amqp_url: str) -> None:
     """The control: the conflation above is the reports' doing, and without them the radio

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import aio_pika
+import pytest
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -84,7 +85,7 @@ def test_a_burst_of_ros2_clients_up_to_max_in_flight_loses_no_call_and_a_late_an
     the worker answers after the sink's timeout gets no response, and its late answer is counted
     in the route's ``replies.late``."""
     tag = "b" + uuid.uuid4().hex[:8]
-    domain = ros_domain(3)  # shared with test_freshness, far from it in the run; names are tagged
+    domain = ros_domain(12)
     service = f"/{tag}/offered"
     (tmp_path / "offered.yaml").write_text(f"""\
 connections:
@@ -166,12 +167,13 @@ routes:
     print(f"burst of {BURST} calls from {CLIENTS} clients answered in {elapsed:.2f} s")
 
 
+@pytest.mark.alone  # an error reply within 1 s, in wall time
 def test_a_service_response_after_the_timeout_is_an_error_reply_then_counted_late(tmp_path: Path, amqp_url: str) -> None:
     """A server that answers after the route's timeout: the caller gets one ``error`` reply
     within the timeout, and the response that comes later is dropped and counted ``late``
     (rclpy alone would drop it without a trace), for a fire-and-forget call too."""
     tag = "l" + uuid.uuid4().hex[:8]
-    domain = ros_domain(3)  # shared with test_freshness, far from it in the run; names are tagged
+    domain = ros_domain(12)
     service = f"/{tag}/slow"
     (tmp_path / "slow.yaml").write_text(f"""\
 connections:
