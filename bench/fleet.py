@@ -5,7 +5,7 @@ through one hand-written route per agent, in one run.
   ``/robotN/battery`` (std_msgs/String JSON) at 10 Hz, from one or two child processes with
   rclpy (:func:`robots`);
 * 50 MAVLink vehicles (system ids 1-50), each from its own UDP socket, on a few ``udpin``
-  links of at most 8 vehicles each (a ``udpin`` link answers the 8 peers it heard last),
+  links of at most 8 vehicles each ("a few UDP links", as a farm's radios would be),
   sending GLOBAL_POSITION_INT and ATTITUDE at 10 Hz and a HEARTBEAT at 1 Hz, from one child
   process with pymavlink (:func:`vehicles`);
 * everything to one RabbitMQ exchange, routing key ``<agent>.<stream>``; and the other way
@@ -48,8 +48,8 @@ VEHICLE_STREAMS = ("position", "attitude")
 STREAM_KINDS = ("ros2 fix", "ros2 battery", "mavlink position", "mavlink attitude", "command amqp->ros2",
                 "command amqp->mavlink")
 PEERS_PER_LINK = 8
-"""A ``udpin`` link remembers the 8 peers it heard last (engine/endpoints/mavlink/links.py):
-a targeted command reaches its vehicle only among those."""
+"""Vehicles per link: 50 vehicles on 7 links. A ``udpin`` link remembers up to 256 peers
+(engine/endpoints/mavlink/links.py; it was 8, which this bench found)."""
 COMMAND = 31010
 """MAV_CMD_USER_1: a command no autopilot acts on."""
 
