@@ -40,11 +40,12 @@ the request with that correlation id; see :attr:`Sink.cancels`).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar, Generic, Iterable, Mapping, Protocol, Sequence, TypeVar
+from typing import Any, Callable, ClassVar, Generic, Iterable, Iterator, Mapping, Protocol, Sequence, TypeVar
 
 from engine.options import OptionError, describe, dotted, option, parse
 from engine.suggest import closest
@@ -66,6 +67,42 @@ class MessageRejected(EndpointError):
     def __init__(self, message: str, stage: str = "sink") -> None:
         super().__init__(message)
         self.stage = stage
+
+
+@dataclass(frozen=True)
+class ExceptionTable:
+    """One protocol's library exceptions -> the two edge errors, first match wins (as httpx's
+    ``map_httpcore_exceptions``). Each protocol's ``errors.py`` declares its table and how it
+    words a failure; how a failure is looked up and raised is decided here, once."""
+
+    entries: tuple[tuple[type[BaseException], Callable[[str], EndpointError]], ...]
+    """Library exception -> edge error (a class, or a function of the text)."""
+    describe: Callable[[BaseException], str] = str
+    """The failure in words, after ``where: `` (a protocol trims its library's text, hides passwords)."""
+
+    @property
+    def catches(self) -> tuple[type[BaseException], ...]:
+        """Every library exception the table names (anything else is a bug, not an edge error)."""
+        return tuple(cls for cls, _ in self.entries)
+
+    def edge_error(self, error: BaseException, where: str) -> EndpointError:
+        """``error`` as the edge error the table maps it to (EndpointError if it names none)."""
+        if isinstance(error, EndpointError):
+            return error
+        kind = next((edge for cls, edge in self.entries if isinstance(error, cls)), EndpointError)
+        mapped_error = kind(f"{where}: {self.describe(error)}")
+        mapped_error.__cause__ = error
+        return mapped_error
+
+    @contextlib.contextmanager
+    def mapped(self, where: str) -> Iterator[None]:
+        """Run library calls; their failures leave as the edge error naming ``where``."""
+        try:
+            yield
+        except EndpointError:
+            raise
+        except self.catches as exc:
+            raise self.edge_error(exc, where) from exc
 
 
 class NotSent(Exception):

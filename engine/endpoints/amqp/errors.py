@@ -20,42 +20,25 @@ from typing import Iterator
 import aiormq.exceptions
 from aio_pika.exceptions import AMQPError
 
-from engine.endpoints.base import EndpointError
+from engine.endpoints.base import EndpointError, ExceptionTable
 from engine.redaction import redact_urls
 
-EXCEPTIONS: tuple[tuple[type[BaseException], type[EndpointError]], ...] = (
+EXCEPTIONS = ExceptionTable((
     (AMQPError, EndpointError),  # aio-pika: a closed channel or connection, a refused declaration
     (aiormq.exceptions.AMQPError, EndpointError),  # aiormq: a channel or connection closed by the broker
     (ConnectionError, EndpointError),  # the TCP connection refused or reset
     (OSError, EndpointError),  # DNS, TLS (ssl.SSLError is an OSError)
     (asyncio.TimeoutError, EndpointError),  # CONNECT_TIMEOUT, a declaration the broker does not answer
     (RuntimeError, EndpointError),  # aio-pika: an operation on a connection being closed
-)
-"""Library exception -> edge error, first match wins."""
+), describe=lambda error: redact_urls(str(error)))
+"""Library exception -> edge error, first match wins; the text without URL passwords."""
 
-LIBRARY_ERRORS: tuple[type[BaseException], ...] = tuple(cls for cls, _ in EXCEPTIONS)
+LIBRARY_ERRORS: tuple[type[BaseException], ...] = EXCEPTIONS.catches
 """Every failure the AMQP libraries raise that the endpoint handles (anything else is a bug)."""
 
-
-def edge_error(error: BaseException, where: str) -> EndpointError:
-    """``error`` as the edge error :data:`EXCEPTIONS` maps it to, naming ``where`` (no URL password)."""
-    if isinstance(error, EndpointError):
-        return error
-    kind = next((edge for cls, edge in EXCEPTIONS if isinstance(error, cls)), EndpointError)
-    mapped_error = kind(redact_urls(f"{where}: {error}"))
-    mapped_error.__cause__ = error
-    return mapped_error
-
-
-@contextlib.contextmanager
-def mapped(where: str) -> Iterator[None]:
-    """Run library calls; their failures leave as the edge error naming ``where``."""
-    try:
-        yield
-    except EndpointError:
-        raise
-    except LIBRARY_ERRORS as exc:
-        raise edge_error(exc, where) from exc
+edge_error = EXCEPTIONS.edge_error
+mapped = EXCEPTIONS.mapped
+"""Run library calls; their failures leave as the edge error naming ``where``."""
 
 
 @contextlib.contextmanager

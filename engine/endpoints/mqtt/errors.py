@@ -10,17 +10,15 @@ and which can never succeed for this message (:class:`MessageRejected`: dead-let
 from __future__ import annotations
 
 import asyncio
-import contextlib
-from typing import Iterator
 
 import aiomqtt
 from paho.mqtt.enums import MQTTErrorCode
 from paho.mqtt.reasoncodes import ReasonCode
 
-from engine.endpoints.base import EndpointError, MessageRejected
+from engine.endpoints.base import EndpointError, ExceptionTable, MessageRejected
 from engine.redaction import redact_urls
 
-EXCEPTIONS: tuple[tuple[type[BaseException], type[EndpointError]], ...] = (
+_EXCEPTIONS: tuple[tuple[type[BaseException], type[EndpointError]], ...] = (
     (ValueError, MessageRejected),  # paho: a topic with wildcards or a NUL, a payload over 256 MiB
     (aiomqtt.MqttError, EndpointError),  # refused CONNACK, timeouts, a lost connection
     (OSError, EndpointError),  # DNS, TCP, TLS (TimeoutError and ssl.SSLError are OSErrors)
@@ -51,25 +49,10 @@ def describe(error: BaseException) -> str:
     return redact_urls(f"{type(error).__name__}: {text}" if type(error).__name__ not in text else text)
 
 
-def edge_error(error: BaseException, where: str) -> EndpointError:
-    """``error`` as the edge error :data:`EXCEPTIONS` maps it to (EndpointError if unknown)."""
-    if isinstance(error, EndpointError):
-        return error
-    kind = next((edge for cls, edge in EXCEPTIONS if isinstance(error, cls)), EndpointError)
-    mapped_error = kind(f"{where}: {describe(error)}")
-    mapped_error.__cause__ = error
-    return mapped_error
-
-
-@contextlib.contextmanager
-def mapped(where: str) -> Iterator[None]:
-    """Run a library call; its exceptions leave as the edge error naming ``where``."""
-    try:
-        yield
-    except EndpointError:
-        raise
-    except tuple(cls for cls, _ in EXCEPTIONS) as exc:
-        raise edge_error(exc, where) from exc
+EXCEPTIONS = ExceptionTable(_EXCEPTIONS, describe=describe)
+edge_error = EXCEPTIONS.edge_error
+mapped = EXCEPTIONS.mapped
+"""Run a library call; its exceptions leave as the edge error naming ``where``."""
 
 
 def from_code(code: int | ReasonCode, where: str) -> EndpointError | None:

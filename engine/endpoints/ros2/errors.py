@@ -12,13 +12,12 @@ subscription) is never one message's fault: :func:`setup_error` makes every fail
 
 from __future__ import annotations
 
-import contextlib
 import re
-from typing import Callable, Iterator
+from typing import Callable
 
 from rclpy.exceptions import NameValidationException
 
-from engine.endpoints.base import EndpointError, MessageRejected
+from engine.endpoints.base import EndpointError, ExceptionTable, MessageRejected
 from engine.endpoints.ros2.rosmsg import MessageError, NullValue
 
 
@@ -26,7 +25,7 @@ def _in_sink_mapping(message: str) -> EndpointError:
     return MessageRejected(message, stage="sink mapping")
 
 
-EXCEPTIONS: tuple[tuple[type[BaseException], Callable[[str], EndpointError]], ...] = (
+_EXCEPTIONS: tuple[tuple[type[BaseException], Callable[[str], EndpointError]], ...] = (
     (NullValue, _in_sink_mapping),  # a null from the sink mapping: no default stands in for it
     (MessageError, MessageRejected),  # a field the type lacks, a value out of its range
     (UnicodeDecodeError, MessageRejected),  # a String sink given bytes that are not UTF-8
@@ -47,25 +46,15 @@ def rcl_reason(exc: BaseException) -> str:
     return re.sub(r", at /\S+:\d+$", "", line).rstrip(":")
 
 
-def edge_error(exc: BaseException, where: str) -> EndpointError:
-    """``exc`` as the edge error :data:`EXCEPTIONS` maps it to, naming ``where``."""
-    if isinstance(exc, EndpointError):
-        return exc
-    kind = next(edge for cls, edge in EXCEPTIONS if isinstance(exc, cls))
-    error = kind(f"{where}: {exc if isinstance(exc, _OURS) else rcl_reason(exc)}")
-    error.__cause__ = exc
-    return error
+def _reason(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, _OURS) else rcl_reason(exc)
 
 
-@contextlib.contextmanager
-def mapped(where: str) -> Iterator[None]:
-    """Handle one message; a failure leaves as the edge error naming ``where``."""
-    try:
-        yield
-    except EndpointError:
-        raise
-    except Exception as exc:
-        raise edge_error(exc, where) from exc
+EXCEPTIONS = ExceptionTable(_EXCEPTIONS, describe=_reason)
+edge_error = EXCEPTIONS.edge_error
+mapped = EXCEPTIONS.mapped
+"""Handle one message; a failure leaves as the edge error naming ``where`` (the table ends with
+``Exception``: whatever rcl raises is one of the two edge errors)."""
 
 
 def setup_error(exc: BaseException, where: str) -> EndpointError:
