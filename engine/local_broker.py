@@ -13,7 +13,13 @@ from __future__ import annotations
 
 import importlib
 import os
-from typing import Any, Iterable, Mapping, Protocol, Sequence
+import shutil
+import signal
+import socket
+import subprocess
+import time
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Protocol, Self, Sequence
 
 LOCAL_BROKER_ENV = "RABBITROS_LOCAL_BROKER"
 """Set by ``run --local-broker`` to the private brokers' names (``check --local-broker``:
@@ -51,6 +57,98 @@ def bounded(command: list[str], lifetime: float | None) -> list[str]:
     if lifetime is None:
         return command
     return ["timeout", "-s", "KILL", str(max(1, int(lifetime))), *command]
+
+
+class ServerProcess:
+    """One broker process of our own, from start to stop, the same way for every protocol:
+    started in its own process group under the lifetime bound (:func:`bounded`), ready once
+    every port it serves accepts a connection, halted with SIGTERM to the group (the broker
+    saves what it keeps), killed with SIGKILL as in a power cut, its directory removed on
+    :meth:`stop` unless ``keep_dir``. Subclasses say how to run the broker (:meth:`start`
+    calls :meth:`_launch` and :meth:`_wait_listening`) and what their log says (:meth:`_tail`)."""
+
+    error: type[Exception] = BrokerError
+    """Raised when the process exits or never listens (the subclass's own error type)."""
+
+    def __init__(self, directory: Path, keep_dir: bool, lifetime: float | None) -> None:
+        self.directory = directory
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.keep_dir = keep_dir
+        self.lifetime = lifetime if lifetime is not None else lifetime_from_environment()
+        self._process: subprocess.Popen[bytes] | None = None
+
+    @property
+    def running(self) -> bool:
+        return self._process is not None and self._process.poll() is None
+
+    def start(self) -> str:
+        raise NotImplementedError
+
+    def _tail(self) -> str:
+        """The last lines of the broker's log, for an error message."""
+        return ""
+
+    def _launch(self, command: list[str], output: Path, env: Mapping[str, str] | None = None) -> None:
+        with open(output, "ab") as out:
+            self._process = subprocess.Popen(
+                bounded(command, self.lifetime), env=env, stdin=subprocess.DEVNULL, stdout=out,
+                stderr=subprocess.STDOUT, cwd=self.directory, start_new_session=True,
+            )
+
+    def _wait_listening(self, name: str, ports: Iterable[int], timeout: float, poll: float) -> None:
+        """Until every port takes a connection; the error (the log's tail in it) if the
+        process exits first or ``timeout`` passes (then it is killed)."""
+        assert self._process is not None
+        ports = list(ports)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self._process.poll() is not None:
+                raise self.error(f"{name} exited with {self._process.returncode}: {self._tail()}")
+            try:
+                for port in ports:
+                    with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                        pass
+                return
+            except OSError:
+                time.sleep(poll)
+        self.kill()
+        raise self.error(f"{name} did not listen on {ports[0]} within {timeout:.0f}s: {self._tail()}")
+
+    def halt(self, timeout: float = 20.0) -> None:
+        """Stop cleanly (SIGTERM to the group), keeping the data for a restart."""
+        process, self._process = self._process, None
+        if process is None or process.poll() is not None:
+            return
+        try:
+            os.killpg(process.pid, signal.SIGTERM)
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+        except ProcessLookupError:
+            pass
+
+    def kill(self) -> None:
+        """SIGKILL the whole group at once: what was not saved yet is lost; the data stays."""
+        process, self._process = self._process, None
+        if process is not None and process.poll() is None:
+            try:
+                os.killpg(process.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            process.wait()
+
+    def stop(self, timeout: float = 20.0) -> None:
+        self.halt(timeout)
+        if not self.keep_dir:
+            shutil.rmtree(self.directory, ignore_errors=True)
+
+    def __enter__(self) -> Self:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
 
 
 class PrivateBroker(Protocol):

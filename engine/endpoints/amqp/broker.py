@@ -16,7 +16,6 @@ from __future__ import annotations
 import glob
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import tempfile
@@ -28,7 +27,7 @@ from pathlib import Path
 from typing import Iterable
 from urllib.parse import urlsplit
 
-from engine.local_broker import BrokerError, bounded, lifetime_from_environment
+from engine.local_broker import BrokerError, ServerProcess
 from engine.tls import throwaway_certificates
 
 SERVER_GLOB = "/usr/lib/rabbitmq/lib/rabbitmq_server-*/sbin/rabbitmq-server"
@@ -120,7 +119,7 @@ class BrokerTls:
         return "\n".join(lines) + "\n"
 
 
-class LocalBroker:
+class LocalBroker(ServerProcess):
     """``with LocalBroker() as broker: broker.url``; stopped and deleted on exit.
     ``LocalBroker(tls=BrokerTls(...))`` adds a TLS listener: ``broker.tls_url``.
     ``lifetime`` (seconds; default $RABBITROS_PRIVATE_BROKER_LIFETIME, else none) kills the
@@ -135,17 +134,13 @@ class LocalBroker:
         tls: BrokerTls | None = None,
         lifetime: float | None = None,
     ) -> None:
+        super().__init__(directory or Path(tempfile.mkdtemp(prefix="rabbitros-broker-")), keep_dir, lifetime)
         self.tls = tls
-        self.lifetime = lifetime if lifetime is not None else lifetime_from_environment()
         self.tls_port = _free_port() if tls is not None else None
-        self.keep_dir = keep_dir
-        self.directory = directory or Path(tempfile.mkdtemp(prefix="rabbitros-broker-"))
-        self.directory.mkdir(parents=True, exist_ok=True)
         self.port = _free_port()
         self.dist_port = _free_port(self.port + 20000 if self.port + 20000 < 65536 else None)
         self.node = node or f"rabbitros-{uuid.uuid4().hex[:8]}@localhost"
         self.cookie = cookie
-        self._process: subprocess.Popen[bytes] | None = None
 
     @property
     def url(self) -> str:
@@ -185,48 +180,13 @@ class LocalBroker:
             "RABBITMQ_SERVER_ADDITIONAL_ERL_ARGS": QUIET_SCHEDULERS,
         }
 
-    @property
-    def running(self) -> bool:
-        return self._process is not None and self._process.poll() is None
-
     def start(self, timeout: float = 90.0) -> str:
         """Start the node (again, after :meth:`kill` or :meth:`halt`: same data directory,
         node name and ports, so durable queues and persistent messages come back)."""
-        server = find_server()
-        with open(self.log_file, "ab") as out:
-            self._process = subprocess.Popen(
-                bounded([server], self.lifetime),
-                env=self.environment(),
-                stdin=subprocess.DEVNULL,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                cwd=self.directory,
-                start_new_session=True,
-            )
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self._process.poll() is not None:
-                raise BrokerError(f"rabbitmq-server exited with {self._process.returncode}: {self._tail()}")
-            try:
-                for port in (self.port, self.tls_port):
-                    if port is not None:
-                        with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-                            pass
-                return self.url
-            except OSError:
-                time.sleep(0.25)
-        self.stop()
-        raise BrokerError(f"rabbitmq-server did not listen on {self.port} within {timeout:.0f}s: {self._tail()}")
-
-    def kill(self) -> None:
-        """SIGKILL the whole node (beam and its helpers) at once; its data directory stays."""
-        process, self._process = self._process, None
-        if process is not None and process.poll() is None:
-            try:
-                os.killpg(process.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            process.wait()
+        self._launch([find_server()], self.log_file, env=self.environment())
+        self._wait_listening("rabbitmq-server", [port for port in (self.port, self.tls_port) if port is not None],
+                             timeout, poll=0.25)
+        return self.url
 
     def ctl(self, *args: str, timeout: float = 120.0) -> str:
         """``rabbitmqctl -n NODE ARGS`` with this node's HOME (hence its cookie)."""
@@ -244,31 +204,6 @@ class LocalBroker:
             return " | ".join(self.log_file.read_text(errors="replace").splitlines()[-5:])
         except OSError:
             return ""
-
-    def halt(self, timeout: float = 20.0) -> None:
-        """Stop the node cleanly (SIGTERM), keeping its data for a restart."""
-        process, self._process = self._process, None
-        if process is not None and process.poll() is None:
-            try:
-                os.killpg(process.pid, signal.SIGTERM)
-                process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGKILL)
-                process.wait()
-            except ProcessLookupError:
-                pass
-
-    def stop(self, timeout: float = 20.0) -> None:
-        self.halt(timeout)
-        if not self.keep_dir:
-            shutil.rmtree(self.directory, ignore_errors=True)
-
-    def __enter__(self) -> LocalBroker:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
 
 def _write_cookie(path: Path, cookie: str) -> None:

@@ -21,15 +21,12 @@ from __future__ import annotations
 import os
 import pwd
 import shutil
-import signal
 import socket
-import subprocess
 import tempfile
-import time
 from pathlib import Path
 from typing import Iterable
 
-from engine.local_broker import BrokerError, bounded, lifetime_from_environment
+from engine.local_broker import BrokerError, ServerProcess
 from engine.tls import ThrowawayCertificates, throwaway_certificates
 
 MOSQUITTO = "mosquitto"
@@ -57,7 +54,7 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
-class LocalMosquitto:
+class LocalMosquitto(ServerProcess):
     """``with LocalMosquitto() as broker: broker.url``; stopped and its directory deleted on exit.
 
     ``max_queued_messages`` bounds what mosquitto keeps per offline persistent session
@@ -76,17 +73,15 @@ class LocalMosquitto:
         extra: Iterable[str] = (),
         tls: bool = False,
     ) -> None:
-        self.keep_dir = keep_dir
-        self.directory = directory or Path(tempfile.mkdtemp(prefix="rabbitros-mosquitto-"))
-        self.directory.mkdir(parents=True, exist_ok=True)
+        super().__init__(directory or Path(tempfile.mkdtemp(prefix="rabbitros-mosquitto-")), keep_dir, lifetime)
         self.port = port or free_port()
         self.max_queued_messages = max_queued_messages
-        self.lifetime = lifetime if lifetime is not None else lifetime_from_environment()
         self.extra = tuple(extra)
         self.tls = tls
         self.certificates: ThrowawayCertificates | None = None
         """With ``tls``: the CA and the broker's certificate, made at the first start."""
-        self._process: subprocess.Popen[bytes] | None = None
+
+    error = MosquittoError
 
     @property
     def url(self) -> str:
@@ -104,10 +99,6 @@ class LocalMosquitto:
     @property
     def log_file(self) -> Path:
         return self.directory / "mosquitto.log"
-
-    @property
-    def running(self) -> bool:
-        return self._process is not None and self._process.poll() is None
 
     def configuration(self) -> str:
         data = self.directory / "data"
@@ -143,52 +134,9 @@ class LocalMosquitto:
         except RuntimeError as exc:  # openssl missing or failing: the throwaway certificates
             raise MosquittoError(f"TLS listener: {exc}") from None
         self.config_file.write_text(configuration)
-        command = bounded([find_mosquitto(), "-c", str(self.config_file)], self.lifetime)
-        with open(self.directory / "mosquitto.out", "ab") as out:
-            self._process = subprocess.Popen(
-                command, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
-                cwd=self.directory, start_new_session=True,
-            )
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self._process.poll() is not None:
-                raise MosquittoError(f"mosquitto exited with {self._process.returncode}: {self._tail()}")
-            try:
-                with socket.create_connection(("127.0.0.1", self.port), timeout=0.5):
-                    return self.url
-            except OSError:
-                time.sleep(0.05)
-        self.kill()
-        raise MosquittoError(f"mosquitto did not listen on {self.port} within {timeout:.0f}s: {self._tail()}")
-
-    def halt(self, timeout: float = 10.0) -> None:
-        """Stop cleanly (SIGTERM: mosquitto writes its persistence file), keeping the data."""
-        process, self._process = self._process, None
-        if process is None or process.poll() is not None:
-            return
-        try:
-            os.killpg(process.pid, signal.SIGTERM)
-            process.wait(timeout)
-        except subprocess.TimeoutExpired:
-            os.killpg(process.pid, signal.SIGKILL)
-            process.wait()
-        except ProcessLookupError:
-            pass
-
-    def kill(self) -> None:
-        """SIGKILL: what was not saved yet is lost, as in a power cut."""
-        process, self._process = self._process, None
-        if process is not None and process.poll() is None:
-            try:
-                os.killpg(process.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            process.wait()
-
-    def stop(self, timeout: float = 10.0) -> None:
-        self.halt(timeout)
-        if not self.keep_dir:
-            shutil.rmtree(self.directory, ignore_errors=True)
+        self._launch([find_mosquitto(), "-c", str(self.config_file)], self.directory / "mosquitto.out")
+        self._wait_listening("mosquitto", [self.port], timeout, poll=0.05)
+        return self.url
 
     def _tail(self) -> str:
         lines: list[str] = []
@@ -199,12 +147,6 @@ class LocalMosquitto:
                 continue
         return " | ".join(lines)
 
-    def __enter__(self) -> LocalMosquitto:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
 
 
 URL_ENV = "RABBITROS_MQTT_URL"
