@@ -95,7 +95,6 @@ def test_run_local_broker_tls_gives_a_private_mosquitto_with_a_tls_listener(tmp_
     file names mqtts://localhost:PORT, a plain MQTT client cannot talk to that port, a client
     without the run's CA is refused, and one verifying it gets its message carried by a route
     (the engine connected over TLS, verifying the same CA)."""
-    import ssl
 
     url_file, status_file, routes = tmp_path / "broker-url", tmp_path / "status.json", tmp_path / "routes"
     routes.mkdir()
