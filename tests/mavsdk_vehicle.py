@@ -13,7 +13,7 @@ from typing import Any
 
 from mavsdk import ComponentType, Configuration, Mavsdk
 from mavsdk.plugins.action_server.action_server import ActionServer
-from mavsdk.plugins.mission_raw_server.mission_raw_server import MissionRawServer
+from mavsdk.plugins.mission_raw_server.mission_raw_server import MissionRawServer, MissionRawServerResult
 from mavsdk.plugins.telemetry_server.telemetry_server import Heading, Position, TelemetryServer, VelocityNed
 
 LATITUDE_E7 = -220_000_000
@@ -21,10 +21,13 @@ STEP_E7 = 10  # a number is sent as LATITUDE_E7 + 10 n + 5: MAVSDK's rounding of
 
 
 class MavsdkAutopilot:
-    """Records the missions uploaded to it and the arm commands it acknowledged (from MAVSDK's threads)."""
+    """Records the missions uploaded to it, the transfers that did not complete (a lost answer
+    over a lossy radio makes the ground station start again) and the arm commands it
+    acknowledged (from MAVSDK's threads)."""
 
     def __init__(self, connection: int | str) -> None:
         self.missions: list[list[Any]] = []
+        self.failed_transfers: list[MissionRawServerResult] = []
         self.arm_requests: list[Any] = []
         self._lock = threading.Lock()
         self._config = Configuration.create_with_component_type(ComponentType.AUTOPILOT)
@@ -49,7 +52,10 @@ class MavsdkAutopilot:
 
     def _on_mission(self, result: Any, plan: Any, _: Any) -> None:
         with self._lock:
-            self.missions.append(list(plan.mission_items))
+            if result == MissionRawServerResult.SUCCESS:
+                self.missions.append(list(plan.mission_items))
+            else:
+                self.failed_transfers.append(result)
 
     def _on_arm(self, result: Any, arm: Any, _: Any) -> None:
         with self._lock:
