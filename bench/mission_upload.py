@@ -215,17 +215,21 @@ def run(sizes: list[int], losses: list[float], repeat: int = 1,
                     row[client.removesuffix("_s") + "_failed"] = len(values) - len(done)
                 row["mission_resends"] = runs[-1]["stats"].get("mission_resends", 0)
                 row["vehicle_missions"] = runs[-1]["vehicle"].get("missions_accepted")
+                row["loadavg"] = os.getloadavg()[0]
                 rows.append(row)
                 print(format_row(row), flush=True)
     return rows
 
 
 def cell(row: dict[str, Any], client: str) -> str:
-    """The median seconds, with how many runs gave up; or the error when every run did."""
+    """The median seconds, with how many runs gave up and why; or the error when every run did."""
     value, failed = row[client], row.get(client.removesuffix("_s") + "_failed", 0)
     if not isinstance(value, float):
-        return f"failed: {str(value)[:40]}" + (f" ({failed}/{failed})" if failed > 1 else "")
-    return f"{value:.2f}" + (f" ({failed} of {len(row['runs'][client])} failed)" if failed else "")
+        return f"failed: {str(value)[:40]}" + (f" ({failed} of {failed})" if failed > 1 else "")
+    if not failed:
+        return f"{value:.2f}"
+    errors = sorted({str(v).rpartition(": ")[2] for v in row["runs"][client] if not isinstance(v, float)})
+    return f"{value:.2f} ({failed} of {len(row['runs'][client])} failed: {', '.join(errors)[:40]})"
 
 
 def ratio(row: dict[str, Any], client: str) -> str:
@@ -233,13 +237,14 @@ def ratio(row: dict[str, Any], client: str) -> str:
 
 
 HEADER = ("| Vehicle | Items | Loss | Engine (s) | pymavlink (s) | MAVSDK, 0.5 s timeout (s) | MAVSDK, 1.5 s (s) "
-          "| engine/pymavlink | engine/MAVSDK 1.5 s |\n|---|---|---|---|---|---|---|---|---|")
+          "| engine/pymavlink | engine/MAVSDK 1.5 s | Load avg |\n|---|---|---|---|---|---|---|---|---|---|")
 
 
 def format_row(row: dict[str, Any]) -> str:
     return (f"| {'MAVSDK' if row.get('vehicle') == 'mavsdk' else 'simulated'} | {row['items']} | {row['loss']:.0%} | "
             + " | ".join(cell(row, c) if c in row else "-" for c in CLIENTS)
-            + f" | {ratio(row, 'pymavlink_s')} | {ratio(row, 'mavsdk_slow_s') if 'mavsdk_slow_s' in row else '-'} |")
+            + f" | {ratio(row, 'pymavlink_s')} | {ratio(row, 'mavsdk_slow_s') if 'mavsdk_slow_s' in row else '-'} | "
+            + (f"{row['loadavg']:.1f} |" if "loadavg" in row else "- |"))
 
 
 def main() -> int:

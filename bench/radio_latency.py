@@ -109,7 +109,13 @@ class Window:
         self.telemetry: list[float] = []
         self.commands: list[float] = []
         self.timeouts = 0
+        self.failures: dict[str, int] = {}
+        """What the commands that got no answer failed with (MAVSDK's ActionResult name, or ``no reply``)."""
         self.radio: dict[str, Any] = {}
+
+    def fail(self, why: str) -> None:
+        self.timeouts += 1
+        self.failures[why] = self.failures.get(why, 0) + 1
 
     def position(self, sent: float | None, arrived: float) -> None:
         if sent is not None and sent >= self.opened:  # not what waited in a queue before the window
@@ -242,7 +248,7 @@ async def engine_gcs(url: str, pair: Any, vehicle: Vehicle, signed: bool, load: 
                 try:
                     window.commands.append(await asyncio.wait_for(answered, 15) - sent)
                 except TimeoutError:
-                    window.timeouts += 1
+                    window.fail("no reply in 15 s")
                 await asyncio.sleep(COMMAND_GAP)
         link = next(c for c in engine.connections if c.name == "radio")
         routes = engine.status()["routes"]
@@ -302,8 +308,8 @@ def mavsdk_gcs(device: str, vehicle: Vehicle, load: str, seconds: float, window:
                 try:
                     action.arm()
                     window.commands.append(time.monotonic() - sent)
-                except ActionError:  # MAVSDK gave up (TIMEOUT) or the vehicle refused
-                    window.timeouts += 1
+                except ActionError as error:  # MAVSDK gave up (TIMEOUT) or the vehicle refused
+                    window.fail(error.result.name)
                 time.sleep(COMMAND_GAP)
         return {"tunnel_frames_sent": tunnel_frames}
     finally:
@@ -346,7 +352,7 @@ async def one(url: str, stack: str, vehicle_kind: str, signed: bool, load: str, 
             extra = await asyncio.to_thread(mavsdk_gcs, pair.device_a, vehicle, load, seconds, window, pair)
     return {"stack": stack, "vehicle": vehicle_kind, "signed": signed, "load": load,
             "telemetry": percentiles(window.telemetry), "command": percentiles(window.commands),
-            "command_timeouts": window.timeouts, **window.radio, **extra}
+            "command_timeouts": window.timeouts, "command_failures": window.failures, **window.radio, **extra}
 
 
 def combinations() -> list[tuple[str, str, bool, str]]:
@@ -397,6 +403,11 @@ def load_name(row: dict[str, Any]) -> str:
     return {"idle": "idle", "tunnel frames": "TUNNEL frames", "json tunnel": "JSON tunnel (engine's protocol)"}[load]
 
 
+def failures(row: dict[str, Any]) -> str:
+    kinds = row.get("command_failures") or {}
+    return f"{row['command_timeouts']}" + (" (" + ", ".join(f"{n} {why}" for why, n in kinds.items()) + ")" if kinds else "")
+
+
 def format_row(row: dict[str, Any]) -> str:
     def cell(figures: dict[str, Any], key: str) -> str:
         return f"{figures[key]:.0f}" if key in figures else "-"
@@ -410,11 +421,11 @@ def format_row(row: dict[str, Any]) -> str:
     radio = (f"{row['uplink_B_per_s']:.0f} | {row['ground_radio_dropped_B']}" if "uplink_B_per_s" in row else "- | -")
     load = f"{row['loadavg']:.1f}" if "loadavg" in row else "-"
     return (head + f"{cell(t, 'p50_ms')} | {cell(t, 'p99_ms')} | {t['n']} | {cell(c, 'p50_ms')} | {cell(c, 'p99_ms')} | "
-            f"{c['n']} | {row['command_timeouts']} | {radio} | {load} |")
+            f"{c['n']} | {failures(row)} | {radio} | {load} |")
 
 
 HEADER = ("| Ground station | Vehicle | Signing | Load | Telemetry p50 (ms) | p99 | n | Command to COMMAND_ACK p50 (ms) "
-          "| p99 | n | timed out | Uplink air (B/s) | Ground radio dropped (B) | Load avg |\n"
+          "| p99 | n | failed | Uplink air (B/s) | Ground radio dropped (B) | Load avg |\n"
           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 
 
