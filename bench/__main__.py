@@ -1,6 +1,7 @@
 """``python -m bench``: every measurement of issue 10 in one run, written to bench/results/<date>/.
 
-Starts a private RabbitMQ node, runs each section (the paper's latency method, zero-loss
+Starts a private RabbitMQ node, runs each section (the paper's latency method, CT-L1 at 100
+and 200 msg/s against the paper's design re-implemented (bench/ct_l1.py), zero-loss
 throughput of each route kind against its reference pass-through and the paper's design,
 latency at half that rate, throughput against message size, 1/100/1,000 routes, JSON over
 the emulated SiK radio at 0 and 5 % loss, ROS 2 topic discovery latency for 20 robots, the round trip of a ROS 2
@@ -28,12 +29,12 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from bench import bench_discovery, call_ros2, fleet, mission_upload, radio_latency, sections
+from bench import bench_discovery, call_ros2, ct_l1, fleet, mission_upload, radio_latency, sections
 from bench import throughput as tp
 from bench.report import write_report
 
 REPO = Path(__file__).resolve().parent.parent
-SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "calls", "fleet", "radio_latency", "mission")
+SECTIONS = ("latency", "ct_l1", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "calls", "fleet", "radio_latency", "mission")
 KINDS = {
     "amqp-amqp": ("ref-amqp-amqp", None),
     "amqp-ros2": ("ref-amqp-ros2", "paper-amqp-ros2"),
@@ -96,6 +97,7 @@ async def run(args: argparse.Namespace) -> Path:
     await broker.open()
     steps = [
         ("latency", lambda: sections.paper_latency(url, args.rate, args.runs, 100)),
+        ("ct_l1", lambda: ct_l1.measure(url, tp.domain_id(), [100.0, 200.0], 1000, 3)),
         ("throughput", lambda: throughput(broker, args.count, args.mavlink_rates, args.half_rate_seconds)),
         ("sizes", lambda: sections.throughput_by_size(broker, [50, 250, 1000, 4000], args.count)),
         ("routes", lambda: sections.many_routes(broker, [1, 100, 1000], args.count)),

@@ -200,7 +200,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"{before.get('date')}, commit {before.get('commit')}, {before.get('cpus')} CPUs, loop {before.get('loop')}; "
              f"load average before {_load(before)}, after {_load(after)} (the machine is shared: absolute figures "
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
-    for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
+    for key, render in (("latency", latency_tables), ("ct_l1", ct_l1_table), ("throughput", throughput_table), ("sizes", sizes_table),
                         ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table),
                         ("calls", calls_table), ("fleet", fleet_table),
                         ("radio_latency", radio_latency_table), ("mission", mission_table)):
@@ -216,6 +216,13 @@ def write_report(results: dict[str, Any], out: Path) -> None:
             lines += [f"## {key}: cannot render ({type(exc).__name__}: {exc})", ""]
     lines += ["Plots: " + ", ".join(f"`{p}`" for p in plots(results, out)), ""]
     (out / "report.md").write_text("\n".join(lines))
+
+
+def ct_l1_table(result: dict[str, Any]) -> list[str]:
+    from bench.ct_l1 import report
+
+    return ["## 1b. CT-L1 at a robot's pace: the engine against the paper's design, same machine, same run", "",
+            *report(result), ""]
 
 
 def fleet_table(fleet: dict[str, Any]) -> list[str]:
