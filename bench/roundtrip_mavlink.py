@@ -46,7 +46,7 @@ connections:
 routes:
   - name: gcs-to-uav
     source:
-      amqp: {{connection: gcs, exchange: {exchange}, binding_key: to_uav, queue: {exchange}-to-uav}}
+      amqp: {{connection: gcs, exchange: {exchange}, binding_key: to_uav, queue: {exchange}-to-uav{prefetch}}}
     schema: raw_json
     sink:
       mavlink: {{connection: radio, json_tunnel: true, target_system: 1, target_component: 1}}
@@ -77,6 +77,8 @@ class Settings:
     exchange: str = "roundtrip"
     window: int | None = None
     """Tunnel messages in flight per direction (engine route and vehicle); None: the default."""
+    prefetch: int | None = None
+    """The AMQP source's prefetch on the way to the vehicle (its batches are half of it); None: the default."""
     out: Path = REPO / "results" / "mavlink_roundtrip"
 
     def rate_for(self, size: int) -> float:
@@ -96,6 +98,9 @@ class Batch:
     duplicates_back: int
     seconds: float
     """From the first publish to the last message back: the batch's throughput."""
+    forward_seconds: float | None
+    """From the first publish to the last message stored by the vehicle (the store is read
+    every 20 ms): the way to the vehicle alone, which no telemetry shares."""
     latencies_ms: list[float] = field(repr=False)
     csv: str
 
@@ -217,7 +222,8 @@ async def _with_broker(settings: Settings, amqp_url: str) -> dict[str, Any]:
         routes.mkdir()
         tunnel = f", tunnel: {{window: {settings.window}}}" if settings.window else ""
         (routes / "roundtrip.yaml").write_text(
-            ROUTES.format(amqp_url=amqp_url, link=pair.link_a, exchange=settings.exchange, tunnel=tunnel))
+            ROUTES.format(amqp_url=amqp_url, link=pair.link_a, exchange=settings.exchange, tunnel=tunnel,
+                          prefetch=f", prefetch: {settings.prefetch}" if settings.prefetch else ""))
         engine = Engine(routes, REPO / "schemas")
         await engine.start()
         rig.push_async_callback(engine.stop)
@@ -265,6 +271,9 @@ async def _batch(settings: Settings, exchange: Any, recorder: Recorder, store: P
     duplicates_before = recorder.duplicates
     sent_at: list[float] = []
     started = time.monotonic()
+    stored_at: dict[tuple[Any, Any, Any], float] = {}
+    watching = asyncio.Event()
+    watcher = asyncio.create_task(_watch_store(store, (run, size), stored_at, watching))
     if settings.outage is not None:
         pair.add_outage(pair.elapsed() + settings.outage[0], settings.outage[1])
     for index, body in enumerate(originals):
@@ -279,12 +288,35 @@ async def _batch(settings: Settings, exchange: Any, recorder: Recorder, store: P
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(recorder.arrived.wait(), 0.5)
     await asyncio.sleep(0.3)
+    watching.set()
+    await watcher
+    forward = max(stored_at.values()) - sent_at[0] if len(stored_at) == len(originals) else None
     return _record(settings.out, run, size, originals, sent_at, store, recorder,
-                   recorder.duplicates - duplicates_before)
+                   recorder.duplicates - duplicates_before, forward)
+
+
+async def _watch_store(store: Path, batch: tuple[int, int], stored_at: dict[tuple[Any, Any, Any], float],
+                       done: asyncio.Event) -> None:
+    """When each message of ``batch`` (run, size) appeared in the vehicle's store, read every 20 ms."""
+    rest = b""
+    with open(store, "rb") as handle:
+        while True:
+            finished = done.is_set()
+            lines = (rest + handle.read()).split(b"\n")
+            rest = lines.pop()
+            now = time.monotonic()
+            for line in lines:
+                key = _key(line)
+                if key is not None and key[:2] == batch:
+                    stored_at.setdefault(key, now)
+            if finished:
+                return
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(done.wait(), 0.02)
 
 
 def _record(out: Path, run: int, size: int, originals: list[bytes], sent_at: list[float], store: Path,
-            recorder: Recorder, duplicates: int) -> Batch:
+            recorder: Recorder, duplicates: int, forward_seconds: float | None = None) -> Batch:
     at_robot: dict[tuple[Any, Any, Any], bytes] = {}
     for line in store.read_bytes().splitlines():
         key = _key(line)
@@ -308,7 +340,7 @@ def _record(out: Path, run: int, size: int, originals: list[bytes], sent_at: lis
             identical += same
             writer.writerow([seq, original.decode(), robot.decode(), station.decode(), same])
     return Batch(run, size, len(originals), len(at_robot), back, identical, duplicates, last - sent_at[0],
-                 latencies, str(path))
+                 forward_seconds, latencies, str(path))
 
 
 def _jsonable(settings: Settings) -> dict[str, Any]:
