@@ -9,6 +9,7 @@ import json
 import os
 import signal
 import socket
+import ssl
 import subprocess
 import sys
 import time
@@ -22,6 +23,27 @@ ROUTES = """
 routes:
   - {name: relay, source: {mqtt: {topic: "farm/+/weather", qos: 1}}, schema: raw_json, sink: {mqtt: {topic: farm/weather, qos: 1}}}
 """
+
+
+
+async def weather_through_the_engine(host: str, port: int | None, tls_context: ssl.SSLContext | None = None) -> bytes:
+    """Publish a station's weather until the engine's route has carried one to ``farm/weather``
+    (it subscribes once its connection is up), and return what arrived there."""
+    async with aiomqtt.Client(host, port, identifier="test-reader", tls_context=tls_context) as reader:
+        await reader.subscribe("farm/weather", qos=1)
+        async with aiomqtt.Client(host, port, identifier="test-writer", tls_context=tls_context) as writer:
+            async def publish_until_answered() -> None:
+                while True:
+                    await writer.publish("farm/station1/weather", b'{"t": 21.5}', qos=1)
+                    await asyncio.sleep(0.5)
+            publishing = asyncio.create_task(publish_until_answered())
+            try:
+                async with asyncio.timeout(30):
+                    async for message in reader.messages:
+                        return bytes(message.payload)
+            finally:
+                publishing.cancel()
+    raise AssertionError("no message")
 
 
 def test_run_local_broker_starts_a_private_mosquitto_for_an_mqtt_connection_without_url(tmp_path: Path):
@@ -45,21 +67,7 @@ def test_run_local_broker_starts_a_private_mosquitto_for_an_mqtt_connection_with
         assert port != 1883  # its own port, not a system broker's
 
         async def roundtrip() -> bytes:
-            async with aiomqtt.Client(host, port, identifier="test-reader") as reader:
-                await reader.subscribe("farm/weather", qos=1)
-                async with aiomqtt.Client(host, port, identifier="test-writer") as writer:
-                    async def publish_until_answered() -> None:
-                        while True:  # the route subscribes once its connection is up
-                            await writer.publish("farm/station1/weather", b'{"t": 21.5}', qos=1)
-                            await asyncio.sleep(0.5)
-                    publishing = asyncio.create_task(publish_until_answered())
-                    try:
-                        async with asyncio.timeout(30):
-                            async for message in reader.messages:
-                                return bytes(message.payload)
-                    finally:
-                        publishing.cancel()
-            raise AssertionError("no message")
+            return await weather_through_the_engine(host, port)
 
         assert json.loads(asyncio.run(roundtrip())) == {"t": 21.5}
         process.send_signal(signal.SIGTERM)
@@ -87,7 +95,6 @@ def test_run_local_broker_tls_gives_a_private_mosquitto_with_a_tls_listener(tmp_
     file names mqtts://localhost:PORT, a plain MQTT client cannot talk to that port, a client
     without the run's CA is refused, and one verifying it gets its message carried by a route
     (the engine connected over TLS, verifying the same CA)."""
-    import ssl
 
     url_file, status_file, routes = tmp_path / "broker-url", tmp_path / "status.json", tmp_path / "routes"
     routes.mkdir()
@@ -128,21 +135,7 @@ def test_run_local_broker_tls_gives_a_private_mosquitto_with_a_tls_listener(tmp_
                     raise AssertionError("a client without the run's CA trusted the broker")
             except aiomqtt.MqttError:
                 pass
-            async with aiomqtt.Client("localhost", port, identifier="test-reader", tls_context=verified) as reader:
-                await reader.subscribe("farm/weather", qos=1)
-                async with aiomqtt.Client("localhost", port, identifier="test-writer", tls_context=verified) as writer:
-                    async def publish_until_answered() -> None:
-                        while True:  # the route subscribes once its connection is up
-                            await writer.publish("farm/station1/weather", b'{"t": 21.5}', qos=1)
-                            await asyncio.sleep(0.5)
-                    publishing = asyncio.create_task(publish_until_answered())
-                    try:
-                        async with asyncio.timeout(30):
-                            async for message in reader.messages:
-                                return bytes(message.payload)
-                    finally:
-                        publishing.cancel()
-            raise AssertionError("no message")
+            return await weather_through_the_engine("localhost", port, tls_context=verified)
 
         assert json.loads(asyncio.run(roundtrip())) == {"t": 21.5}
         status = json.loads(status_file.read_text())

@@ -17,17 +17,13 @@ from typing import Any, Iterator
 
 import aio_pika
 import pytest
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 from test_msgs.srv import BasicTypes
 
 from engine.endpoints.ros2.calls import service_qos
 from engine.runtime import Engine
 from tests.amqp_helpers import Caller
 from tests.conftest import REPO
+from tests.ros_nodes import SpunNode
 from tests.workers import ros_domain
 
 CALLS = 200
@@ -39,22 +35,9 @@ class BasicTypesServer:
     ``int64_value * 2`` and ``string_value + '!'``; its queue is sized for the route's bound."""
 
     def __init__(self, domain_id: int, service: str, depth: int) -> None:
-        self.context = Context()
-        rclpy.init(args=[], context=self.context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
-        self.node = Node("basic_types_server", context=self.context, start_parameter_services=False)
+        self.ros = SpunNode(domain_id, "basic_types_server")
         self.calls = 0
-        self.node.create_service(BasicTypes, service, self._answer, qos_profile=service_qos(depth))
-        self.client = self.node.create_client(BasicTypes, service)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except ExternalShutdownException:
-            pass
+        self.ros.node.create_service(BasicTypes, service, self._answer, qos_profile=service_qos(depth))
 
     def _answer(self, request: Any, response: Any) -> Any:
         self.calls += 1
@@ -63,10 +46,7 @@ class BasicTypesServer:
         return response
 
     def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2)
-        self.thread.join(5)
-        self.node.destroy_node()
-        self.context.try_shutdown()
+        self.ros.close()
 
 
 @pytest.fixture
@@ -203,23 +183,12 @@ class FibonacciServer:
 
         self.Fibonacci, self.step_s = Fibonacci, step_s
         self.feedback_sent: dict[int, int] = {}
-        self.context = Context()
-        rclpy.init(args=[], context=self.context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
-        self.node = Node("fibonacci_server", context=self.context, start_parameter_services=False)
-        self.server = ActionServer(
-            self.node, Fibonacci, action, self._execute, callback_group=ReentrantCallbackGroup(),
+        self.ros = SpunNode(domain_id, "fibonacci_server",
+                            executor=lambda context: MultiThreadedExecutor(num_threads=4, context=context))
+        self.ros.destroy_on_close(ActionServer(
+            self.ros.node, Fibonacci, action, self._execute, callback_group=ReentrantCallbackGroup(),
             goal_callback=lambda goal: GoalResponse.REJECT if goal.order > 100 else GoalResponse.ACCEPT,
-            cancel_callback=lambda _: CancelResponse.ACCEPT)
-        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except ExternalShutdownException:
-            pass
+            cancel_callback=lambda _: CancelResponse.ACCEPT))
 
     def _execute(self, goal_handle: Any) -> Any:
         order = goal_handle.request.order
@@ -236,11 +205,7 @@ class FibonacciServer:
         return self.Fibonacci.Result(sequence=sequence)
 
     def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2)
-        self.thread.join(5)
-        self.server.destroy()
-        self.node.destroy_node()
-        self.context.try_shutdown()
+        self.ros.close()
 
 
 def test_fibonacci_goals_accepted_feedback_result_rejected_and_canceled(tmp_path: Path, amqp_url: str) -> None:
@@ -326,15 +291,8 @@ routes:
     sink: {{amqp: {{connection: bus, routing_key: work-{tag}, timeout: 2}}}}
     reply: {{mapping: "{{int64_value: answer, string_value: note}}"}}
 """)
-    client_node = BasicTypesServer.__new__(BasicTypesServer)  # a context and an executor thread, no service
-    client_node.context = Context()
-    rclpy.init(args=[], context=client_node.context, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
-    client_node.node = Node("offered_client", context=client_node.context, start_parameter_services=False)
+    client_node = SpunNode(domain, "offered_client")
     client = client_node.node.create_client(BasicTypes, service)
-    client_node.executor = SingleThreadedExecutor(context=client_node.context)
-    client_node.executor.add_node(client_node.node)
-    client_node.thread = threading.Thread(target=client_node._spin, daemon=True)
-    client_node.thread.start()
 
     def call(n: int, ask: str, wait: float) -> Any:
         done = threading.Event()

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import threading
 import time
 import uuid
 from pathlib import Path
@@ -22,17 +21,13 @@ from typing import Any, Callable
 
 import aio_pika
 import pytest
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 from test_msgs.srv import BasicTypes
 
 from engine.endpoints.ros2.calls import service_qos
 from engine.runtime import Engine
 from tests.amqp_helpers import Caller
 from tests.conftest import REPO
+from tests.ros_nodes import SpunNode
 from tests.workers import ros_domain
 
 CLIENTS, CALLS_EACH = 25, 4
@@ -41,34 +36,6 @@ LATE_TIMEOUT_S = 0.5
 """The sink timeout of the route whose worker answers late (after twice that)."""
 SLOW_S = 1.0
 """How long the slow server takes to answer: twice the route's timeout."""
-
-
-class RosNode:
-    """A node in its own context, spun by an executor thread; ``serve`` offers BasicTypes."""
-
-    def __init__(self, domain_id: int, name: str) -> None:
-        self.context = Context()
-        rclpy.init(args=[], context=self.context, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
-        self.node = Node(name, context=self.context, start_parameter_services=False)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except ExternalShutdownException:
-            pass
-
-    def serve(self, service: str, answer: Callable[[Any, Any], Any]) -> None:
-        self.node.create_service(BasicTypes, service, answer)
-
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2)
-        self.thread.join(5)
-        self.node.destroy_node()
-        self.context.try_shutdown()
 
 
 async def _until(condition: Callable[[], bool], timeout: float, what: str) -> None:
@@ -105,7 +72,7 @@ routes:
     sink: {{amqp: {{connection: bus, routing_key: work-{tag}, timeout: {LATE_TIMEOUT_S}}}}}
     reply: {{mapping: "{{int64_value: answer, string_value: note}}"}}
 """)
-    ros = RosNode(domain, "burst_clients")
+    ros = SpunNode(domain, "burst_clients")
     clients = [ros.node.create_client(BasicTypes, service, qos_profile=service_qos(BURST)) for _ in range(CLIENTS)]
     late_client = ros.node.create_client(BasicTypes, f"{service}_late")
 
@@ -185,14 +152,14 @@ routes:
     schema: raw_json
     sink: {{ros2: {{connection: ros, service: {service}, type: test_msgs/srv/BasicTypes, timeout: 0.5}}}}
 """)
-    server = RosNode(domain, "slow_server")
+    server = SpunNode(domain, "slow_server")
 
     def slow(request: Any, response: Any) -> Any:
         time.sleep(SLOW_S)
         response.int64_value = request.int64_value
         return response
 
-    server.serve(service, slow)
+    server.node.create_service(BasicTypes, service, slow)
 
     async def scenario() -> tuple[list[Any], float, dict[str, Any]]:
         engine = Engine(tmp_path, REPO / "schemas")
