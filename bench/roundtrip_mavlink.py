@@ -101,6 +101,11 @@ class Batch:
     forward_seconds: float | None
     """From the first publish to the last message stored by the vehicle (the store is read
     every 20 ms): the way to the vehicle alone, which no telemetry shares."""
+    back_span_seconds: float | None
+    """From the first message back to the last: the round trip's steady pace, without the
+    first message's way there and back (the flood reference leaves out its first second too)."""
+    forward_span_seconds: float | None
+    """From the first message stored by the vehicle to the last."""
     latencies_ms: list[float] = field(repr=False)
     csv: str
 
@@ -290,9 +295,10 @@ async def _batch(settings: Settings, exchange: Any, recorder: Recorder, store: P
     await asyncio.sleep(0.3)
     watching.set()
     await watcher
-    forward = max(stored_at.values()) - sent_at[0] if len(stored_at) == len(originals) else None
+    stored = sorted(stored_at.values()) if len(stored_at) == len(originals) else None
     return _record(settings.out, run, size, originals, sent_at, store, recorder,
-                   recorder.duplicates - duplicates_before, forward)
+                   recorder.duplicates - duplicates_before,
+                   (stored[-1] - sent_at[0], stored[-1] - stored[0]) if stored else None)
 
 
 async def _watch_store(store: Path, batch: tuple[int, int], stored_at: dict[tuple[Any, Any, Any], float],
@@ -316,7 +322,7 @@ async def _watch_store(store: Path, batch: tuple[int, int], stored_at: dict[tupl
 
 
 def _record(out: Path, run: int, size: int, originals: list[bytes], sent_at: list[float], store: Path,
-            recorder: Recorder, duplicates: int, forward_seconds: float | None = None) -> Batch:
+            recorder: Recorder, duplicates: int, forward: tuple[float, float] | None = None) -> Batch:
     at_robot: dict[tuple[Any, Any, Any], bytes] = {}
     for line in store.read_bytes().splitlines():
         key = _key(line)
@@ -325,7 +331,7 @@ def _record(out: Path, run: int, size: int, originals: list[bytes], sent_at: lis
     path = out / f"mavlink_roundtrip_run{run}_{size}B.csv"
     identical = back = 0
     latencies = []
-    last = sent_at[0]
+    last, first = sent_at[0], None
     with open(path, "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["seq", "original", "at_robot", "back_at_gcs", "identical"])
@@ -336,11 +342,13 @@ def _record(out: Path, run: int, size: int, originals: list[bytes], sent_at: lis
                 back += 1
                 latencies.append((arrived - sent_at[seq]) * 1000)
                 last = max(last, arrived)
+                first = arrived if first is None else min(first, arrived)
             same = original == robot == station
             identical += same
             writer.writerow([seq, original.decode(), robot.decode(), station.decode(), same])
     return Batch(run, size, len(originals), len(at_robot), back, identical, duplicates, last - sent_at[0],
-                 forward_seconds, latencies, str(path))
+                 forward[0] if forward else None, None if first is None else last - first,
+                 forward[1] if forward else None, latencies, str(path))
 
 
 def _jsonable(settings: Settings) -> dict[str, Any]:
