@@ -132,7 +132,13 @@ def sik_table(sik: dict[str, Any]) -> list[str]:
                   f"| the radio flooded with {sik['tunnel_payload']} B payloads at the same loss | {sik['flood_payload_bytes_per_s']:.0f} | "
                   f"{sik['fraction_of_flood']:.2f} |",
                   f"| the same, with the vehicle's telemetry on the link (the way back) | "
-                  f"{sik['flood_with_telemetry_bytes_per_s']:.0f} | {sik['fraction_of_flood_with_telemetry']:.2f} |", "",
+                  f"{sik['flood_with_telemetry_bytes_per_s']:.0f} | {sik['fraction_of_flood_with_telemetry']:.2f} |"]
+        if sik.get("forward_goodput_bytes_per_s"):
+            lines += [f"| the way to the vehicle alone ({sik['forward_goodput_bytes_per_s']:.0f} B/s to the last message "
+                      f"stored), against the plain flood | {sik['flood_payload_bytes_per_s']:.0f} | "
+                      f"{sik['forward_fraction_of_flood']:.2f} |"]
+        lines += ["", "The round trip is bounded by its way back, which the vehicle's telemetry shares: compare it with "
+                  "the flood with telemetry. bench/goodput.py repeats these figures (median and spread).", "",
                   "The flood keeps the radio's buffer backlogged without overflowing it; it shows what the emulator "
                   "carries (each air packet starts at its next 4 ms tick, not the instant the window opens). "
                   "Goodput counts JSON bytes, the capacities TUNNEL payload (the tunnel's header included).", ""]
