@@ -59,7 +59,7 @@ async def throughput(broker: tp.Broker, count: int, pairs: int, half_rate_s: flo
     domain, count = tp.domain_id(), min(count, tp.MAX_BURST)
     for kind, (reference, paper) in KINDS.items():
         systems = {"reference": reference, "engine": "engine", **({"paper": paper} if paper else {})}
-        row = await tp.interleaved(broker, kind, systems, pairs, count, domain, counts={"paper": count // 4})
+        row = await tp.interleaved(broker, kind, systems, pairs, count, domain, counts={"paper": count // 6})
         engine_rate = row["engine"].get("msg_per_s", float("nan"))
         if math.isfinite(engine_rate) and engine_rate > 0:
             print(f"  {kind}: latency at half rate ({engine_rate / 2:.0f} msg/s)", flush=True)

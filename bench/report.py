@@ -74,9 +74,9 @@ def _us(ms: float | None) -> str:
     return "-" if ms is None else f"{ms * 1000:.0f}"
 
 
-def _ratio(row: dict[str, Any], role: str) -> str:
+def _ratio(row: dict[str, Any], role: str, key: str = "vs") -> str:
     """The median per-round ratio with its min-max and interquartile range."""
-    spread = row.get(f"vs_{role}_spread")
+    spread = row.get(f"{key}_{role}_spread")
     if not spread:
         return _f(row.get(f"vs_{role}"), 2)
     return (f"**{spread['median']:.2f}** ({spread['min']:.2f}-{spread['max']:.2f}; "
@@ -97,8 +97,9 @@ def throughput_table(throughput: dict[str, Any]) -> list[str]:
              "the ratio taken within each round (bench/throughput.py). Ratios: median per round (min-max; interquartile "
              "range; rounds); rates: median msg/s (min-max).", "",
              "| Route kind (GNSS position route) | Engine / reference | Engine msg/s | Reference msg/s | "
-             "Engine / paper | Paper's design msg/s | Engine latency at half rate p50 / p99 (ms) |",
-             "|---|---|---|---|---|---|---|"]
+             "CPU per message, reference / engine | Engine / paper | Paper's design msg/s | "
+             "Engine latency at half rate p50 / p99 (ms) |",
+             "|---|---|---|---|---|---|---|---|"]
     names = {"amqp-amqp": "AMQP -> AMQP", "amqp-ros2": "AMQP -> ROS 2", "ros2-amqp": "ROS 2 -> AMQP",
              "mavlink-amqp": "MAVLink (UDP) -> AMQP"}
     for kind, row in throughput.items():
@@ -106,11 +107,16 @@ def throughput_table(throughput: dict[str, Any]) -> list[str]:
         latency = f"{_f(half.get('p50'))} / {_f(half.get('p99'))}" if "p50" in half else "-"
         loads = [r["load"] for r in row.get("rounds", []) if "load" in r]
         load = f" (load {min(loads):.1f}-{max(loads):.1f})" if loads else ""
+        cpu = _ratio(row, "reference", "cpu_vs")
+        if "cpu_us_per_msg" in (row.get("engine") or {}) and "cpu_us_per_msg" in (row.get("reference") or {}):
+            cpu += f" [{row['reference']['cpu_us_per_msg']:.0f} / {row['engine']['cpu_us_per_msg']:.0f} us]"
         lines.append(f"| {names.get(kind, kind)}{load} | {_ratio(row, 'reference')} | {_rates(row.get('engine'))} | "
-                     f"{_rates(row.get('reference'))} | {_ratio(row, 'paper')} | {_rates(row.get('paper'))} | {latency} |")
-    lines += ["", "Drains: AMQP sources a pre-filled queue (rate at the source); ROS 2 sources a burst held by DDS "
-              "history (rate at the sink); MAVLink a UDP receive buffer filled while the bridge was stopped (rate at "
-              "the sink). References: aiormq consume (prefetch 1,000) -> the route's conversion written by hand -> "
+                     f"{_rates(row.get('reference'))} | {cpu} | {_ratio(row, 'paper')} | {_rates(row.get('paper'))} | {latency} |")
+    lines += ["", "Drains (rate at the sink, from 10 % of the messages to the last; only the measured system runs, "
+              "the others are stopped): AMQP sources a queue filled while the bridge was stopped; ROS 2 sources a "
+              "burst held by DDS history; MAVLink a UDP receive buffer filled while the bridge was stopped. CPU per "
+              "message: the bridge's processes' user + system time over the same window (medians in brackets, "
+              "microseconds), the ratio per round, above 1 when the engine spends less. References: aiormq consume (prefetch 1,000) -> the route's conversion written by hand -> "
               "pipelined publish per batch on a confirm channel -> one ack(multiple) per batch; the same consumer -> "
               "rclpy String publish; an rclpy subscription taken in batches -> the batched aiormq publisher; UDP -> "
               "pymavlink parse_buffer -> the batched aiormq publisher. Paper's design: aio-pika, rclpy's default "
