@@ -74,23 +74,54 @@ def _us(ms: float | None) -> str:
     return "-" if ms is None else f"{ms * 1000:.0f}"
 
 
+def _ratio(row: dict[str, Any], role: str, key: str = "vs") -> str:
+    """The median per-round ratio with its min-max and interquartile range."""
+    spread = row.get(f"{key}_{role}_spread")
+    if not spread:
+        return _f(row.get(f"vs_{role}"), 2)
+    return (f"**{spread['median']:.2f}** ({spread['min']:.2f}-{spread['max']:.2f}; "
+            f"IQR {spread['q1']:.2f}-{spread['q3']:.2f}; n={spread['n']})")
+
+
+def _rates(result: dict[str, Any] | None) -> str:
+    """The median rate of a role's drains, with its min-max."""
+    if not result or "min" not in result:
+        return _rate(result)
+    text = f"{result['median']:.0f} ({result['min']:.0f}-{result['max']:.0f})"
+    return text + (f" (lost {result['lost']})" if result.get("lost") else "")
+
+
 def throughput_table(throughput: dict[str, Any]) -> list[str]:
-    lines = ["## 2-3. Maximum zero-loss throughput, msg/s, same run (ratios are what count)", "",
-             "| Route kind (GNSS position route) | Engine | Reference pass-through | Engine / reference | "
-             "Paper's design | Engine / paper | Engine latency at half rate p50 / p99 (ms) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["## 2-3. Throughput against the references, interleaved rounds in the same run", "",
+             "Each route kind: rounds of one drain per system of the same backlog, in alternating order (A B, B A, ...), "
+             "the ratio taken within each round (bench/throughput.py). Ratios: median per round (min-max; interquartile "
+             "range; rounds); rates: median msg/s (min-max).", "",
+             "| Route kind (GNSS position route) | Engine / reference | Engine msg/s | Reference msg/s | "
+             "CPU per message, reference / engine | Engine / paper | Paper's design msg/s | "
+             "Engine latency at half rate p50 / p99 (ms) |",
+             "|---|---|---|---|---|---|---|---|"]
     names = {"amqp-amqp": "AMQP -> AMQP", "amqp-ros2": "AMQP -> ROS 2", "ros2-amqp": "ROS 2 -> AMQP",
              "mavlink-amqp": "MAVLink (UDP) -> AMQP"}
     for kind, row in throughput.items():
         half = row.get("latency_half_rate") or {}
         latency = f"{_f(half.get('p50'))} / {_f(half.get('p99'))}" if "p50" in half else "-"
-        lines.append(f"| {names.get(kind, kind)} | {_rate(row.get('engine'))} | {_rate(row.get('reference'))} | "
-                     f"{_f(row.get('vs_reference'), 2)} | {_rate(row.get('paper'))} | {_f(row.get('vs_paper'), 2)} | {latency} |")
-    lines += ["", "References: aiormq consume (prefetch 1,000) -> pipelined publish per batch on a confirm channel -> "
-              "one ack(multiple) per batch; the same consumer -> rclpy String publish; an rclpy subscription taken in "
-              "batches -> the batched aiormq publisher; UDP -> pymavlink parse_buffer -> hand-written conversion -> "
-              "the batched aiormq publisher. Paper's design: aio-pika, rclpy's default executor spun from the asyncio "
-              "loop, jsonschema, synchronous logging, confirms off.", ""]
+        loads = [r["load"] for r in row.get("rounds", []) if "load" in r]
+        load = f" (load {min(loads):.1f}-{max(loads):.1f})" if loads else ""
+        cpu = _ratio(row, "reference", "cpu_vs")
+        if "cpu_us_per_msg" in (row.get("engine") or {}) and "cpu_us_per_msg" in (row.get("reference") or {}):
+            cpu += f" [{row['reference']['cpu_us_per_msg']:.0f} / {row['engine']['cpu_us_per_msg']:.0f} us]"
+        lines.append(f"| {names.get(kind, kind)}{load} | {_ratio(row, 'reference')} | {_rates(row.get('engine'))} | "
+                     f"{_rates(row.get('reference'))} | {cpu} | {_ratio(row, 'paper')} | {_rates(row.get('paper'))} | {latency} |")
+    lines += ["", "Drains (rate at the sink, from 10 % of the messages to the last; only the measured system runs, "
+              "the others are stopped): AMQP sources a queue filled while the bridge was stopped; ROS 2 sources a "
+              "burst held by DDS history; MAVLink a UDP receive buffer filled while the bridge was stopped. CPU per "
+              "message: the bridge's processes' user + system time over the same window (medians in brackets, "
+              "microseconds), the ratio per round, above 1 when the engine spends less. References: aiormq consume (prefetch 1,000) -> the route's conversion written by hand -> "
+              "pipelined publish per batch on a confirm channel -> one ack(multiple) per batch; the same consumer -> "
+              "rclpy String publish; an rclpy subscription taken in batches -> the batched aiormq publisher; UDP -> "
+              "pymavlink parse_buffer -> the batched aiormq publisher. Paper's design: aio-pika, rclpy's default "
+              "executor spun from the asyncio loop, jsonschema, synchronous logging, confirms off. Load: the 1-minute "
+              "load average at each round's start.", ""]
     return lines
 
 

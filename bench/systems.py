@@ -19,7 +19,11 @@
   ``latency_out`` the AMQP -> ROS 2 one records t2 - t1 as the engine does (bench/ct_l1.py);
   with ``minimal`` it neither validates nor logs (the least the design can do per message).
 
-References do no schema validation: they are what the client libraries allow, the bound.
+References do no schema validation: they are what the client libraries allow, the bound. They
+do the route's conversion written by hand (``convert``: orjson, the mapping as code, sorted-key
+orjson), the same work on the body the engine's route does, with the same acknowledgement
+and confirm semantics (a source message acknowledged once its batch is published; confirms
+awaited per batch).
 """
 
 from __future__ import annotations
@@ -101,6 +105,24 @@ class BatchPublisher:
                 await asyncio.gather(*(publish(b, exchange=exchange, routing_key=key, properties=properties) for b in batch))
 
 
+def _converter(args: dict[str, Any]) -> Any:
+    """What a reference does to each body: the route's GNSS mapping written by hand
+    (orjson in, :func:`to_canonical`, sorted-key orjson out: the engine's canonical bytes)
+    where the engine's route has that mapping (``args['convert']``), else nothing (an
+    identity route). A reference that forwarded the bytes untouched would be measured
+    against an engine that parses, maps and serializes every message."""
+    if not args.get("convert"):
+        return None
+    import orjson
+
+    loads, dumps, sort = orjson.loads, orjson.dumps, orjson.OPT_SORT_KEYS
+
+    def convert(body: bytes) -> bytes:
+        return dumps(to_canonical(loads(body)), option=sort)
+
+    return convert
+
+
 def position_from_global_position_int(msg: Any) -> dict[str, Any]:
     """What the engine's uav1-position mapping computes, written by hand."""
     vx, vy, vz = msg.vx / 100, msg.vy / 100, msg.vz / 100
@@ -178,8 +200,11 @@ async def ref_amqp_amqp(args: dict[str, Any]) -> None:
     publish_channel = await out.channel(publisher_confirms=True)
     properties = Properties(delivery_mode=2, content_type="application/json")
     publish, exchange, key = publish_channel.basic_publish, args["exchange"], args["routing_key"]
+    convert = _converter(args)
 
     async def forward(bodies: list[bytes]) -> None:
+        if convert:
+            bodies = [convert(b) for b in bodies]
         await asyncio.gather(*(publish(b, exchange=exchange, routing_key=key, properties=properties) for b in bodies))
 
     connection, task = await _aiormq_consumer(args, forward)
@@ -195,10 +220,11 @@ async def ref_amqp_ros2(args: dict[str, Any]) -> None:
     context, node = _ros_context(args["domain"])
     publisher = node.create_publisher(String, args["topic"], _qos(latched=True))
     message = String()
+    convert = _converter(args)
 
     async def forward(bodies: list[bytes]) -> None:
         for body in bodies:
-            message.data = body.decode()
+            message.data = (convert(body) if convert else body).decode()
             publisher.publish(message)
 
     connection, task = await _aiormq_consumer(args, forward)
@@ -256,8 +282,11 @@ async def ref_ros2_amqp(args: dict[str, Any]) -> None:
         for body in bodies:
             batcher.put(body)
 
+    convert = _converter(args)
+
     def on_batch(batch: list[Any]) -> None:  # the take thread
-        loop.call_soon_threadsafe(put_all, [msg.data.encode() for msg in batch])
+        bodies = [msg.data.encode() for msg in batch]
+        loop.call_soon_threadsafe(put_all, [convert(b) for b in bodies] if convert else bodies)
 
     subscription = node.create_subscription(String, args["topic"], lambda msg: None, _qos())
     taker = TakeLoop(context, subscription, String, on_batch)
@@ -444,7 +473,8 @@ async def ros_publisher(args: dict[str, Any]) -> None:
 
 
 async def mavlink_sender(args: dict[str, Any]) -> None:
-    """Send ``count`` GLOBAL_POSITION_INT frames (system 1) over UDP at ``rate`` per second."""
+    """Send ``count`` GLOBAL_POSITION_INT frames (system 1) over UDP at ``rate`` per second
+    (0: as fast as the socket takes them)."""
     import socket
 
     os.environ["MAVLINK20"] = "1"
@@ -460,7 +490,7 @@ async def mavlink_sender(args: dict[str, Any]) -> None:
     began = time.monotonic()
     for index in range(count):
         sock.sendto(frames[index % len(frames)], target)
-        delay = began + (index + 1) / rate - time.monotonic()
+        delay = began + (index + 1) / rate - time.monotonic() if rate else 0.0
         if delay > 0.001:
             await asyncio.sleep(delay)
     print(f"sent {count} in {time.monotonic() - began:.3f}", flush=True)
