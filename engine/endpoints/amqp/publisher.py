@@ -33,6 +33,7 @@ from typing import Any, Sequence
 
 import aio_pika.abc
 import aiormq.abc
+import aiormq.exceptions
 from aiormq import spec
 from pamqp import frame as pamqp_frame
 from pamqp.body import ContentBody
@@ -129,14 +130,14 @@ class SharedPublisher:
         confirms = channel.publisher_confirms
         loop = asyncio.get_running_loop()
         confirmations: list[asyncio.Future[Any]] = []
-        drained = None if confirms else loop.create_future()
+        drained = None if confirms else channel.create_future()  # the channel's: rejected if it closes
         try:
             async with channel.lock:  # the broker numbers publishes in the order they arrive
                 first = channel.delivery_tag + 1
                 if confirms:
                     table = channel.confirmations
                     for tag in range(first, first + len(payloads)):
-                        future = channel.create_future()
+                        future = loop.create_future()
                         table[tag] = future
                         confirmations.append(future)
                 channel.delivery_tag += len(payloads)
@@ -155,7 +156,7 @@ class SharedPublisher:
         self.rounds += 1
         self.messages += len(payloads)
         if confirms:
-            return await asyncio.gather(*confirmations, return_exceptions=True)
+            return await _confirmed(channel, confirmations)
         try:
             await drained  # type: ignore[misc]
         except LIBRARY_ERRORS as exc:
@@ -170,6 +171,45 @@ class SharedPublisher:
         for part, part_results in zip(parts, results):
             if not part.answer.done():  # its caller may have been cancelled meanwhile
                 part.answer.set_result(part_results)
+
+
+async def _confirmed(channel: aiormq.abc.AbstractChannel, confirmations: list[asyncio.Future[Any]]) -> list[Any]:
+    """Each confirmation's outcome (the broker's Ack or Nack) once all arrived, or the channel's
+    failure for those still open when it closes. The confirmations are plain futures and the
+    round holds one of the channel's own (which aiormq rejects when the channel or connection
+    closes): registering every message's future with the channel cost three callbacks each.
+    """
+    loop = asyncio.get_running_loop()
+    confirmed = loop.create_future()
+    remaining = len(confirmations)
+
+    def arrived(_: asyncio.Future[Any]) -> None:
+        nonlocal remaining
+        remaining -= 1
+        if not remaining and not confirmed.done():
+            confirmed.set_result(None)
+
+    for future in confirmations:
+        future.add_done_callback(arrived)
+    closed = channel.create_future()
+    try:
+        await asyncio.wait((confirmed, closed), return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        if not closed.done():
+            closed.cancel()
+    failure: BaseException | None = None
+    if not confirmed.done():
+        failure = closed.exception() if not closed.cancelled() else None
+        failure = failure or aiormq.exceptions.ChannelInvalidStateError("the publish channel closed before confirming")
+    outcomes: list[Any] = []
+    for future in confirmations:
+        if not future.done():
+            outcomes.append(failure)
+        elif future.cancelled():
+            outcomes.append(aiormq.exceptions.ChannelInvalidStateError("the confirmation was cancelled"))
+        else:
+            outcomes.append(future.exception() or future.result())
+    return outcomes
 
 
 def _frames(channel: int, frame_max: int, exchange: str, key: str, body: bytes, properties: spec.Basic.Properties) -> bytes:
