@@ -51,6 +51,7 @@ from engine.endpoints.base import (
 )
 import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.endpoints.amqp.calls import AmqpCaller
+from engine.endpoints.amqp.publisher import SharedPublisher
 import engine.endpoints.amqp.tls as amqp_tls
 from engine import tls as tls_common
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
@@ -62,6 +63,8 @@ from engine.redaction import Secret, has_url_password, redact_urls, reveal
 from engine.schemas import SchemaError, canonical_bytes
 
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
+MAX_ROUTING_KEY = 255
+"""Bytes in a routing key (an AMQP short string): a longer one can never be published."""
 log = logging.getLogger("engine.amqp")
 
 
@@ -90,6 +93,8 @@ class AmqpConnection(Connection):
         super().__init__(name, typed(AmqpConnectionOptions, settings, f"amqp connection {name!r}"))
         self._connection: aio_pika.abc.AbstractRobustConnection | None = None
         self._publish_channel: aio_pika.abc.AbstractChannel | None = None
+        self._publisher: SharedPublisher | None = None
+        """Every route's publishes on the publish channel, one round per loop turn."""
         self._exchanges: dict[str, aio_pika.abc.AbstractExchange] = {}
         self._declare_lock = asyncio.Lock()
         self._state = "connecting"
@@ -120,7 +125,9 @@ class AmqpConnection(Connection):
         return self._state == "up"
 
     def health(self) -> dict[str, Any]:
-        return {"state": self._state, "last_error": self._last_error}
+        publisher = self._publisher
+        return {"state": self._state, "last_error": self._last_error,
+                "published": publisher.messages if publisher else 0, "publish_rounds": publisher.rounds if publisher else 0}
 
     def _failed(self, error: BaseException | None) -> None:
         if error is not None:
@@ -170,6 +177,7 @@ class AmqpConnection(Connection):
             self._publish_channel = await self._connection.channel(
                 publisher_confirms=self.settings.publisher_confirms
             )
+            self._publisher = SharedPublisher(self._publish_channel, self.name)
         except LIBRARY_ERRORS as exc:
             self._failed(exc)
             if self._connection is not None:
@@ -206,42 +214,19 @@ class AmqpConnection(Connection):
         kind: str = "topic",
         durable: bool = True,
     ) -> list[BaseException | None]:
-        """Publish ``(routing_key, body, properties)`` pipelined on the confirm channel and
-        await the confirms together; ``result[i]`` is None once the broker took message i."""
+        """Publish ``(routing_key, body, properties)`` on the confirm channel; ``result[i]`` is
+        None once the broker took message i. Every route's messages of one loop turn go out
+        together, one write and one confirm wait (engine/endpoints/amqp/publisher.py)."""
         if self._state != "up":  # a robust channel would wait for the broker; the engine buffers instead
             error = EndpointError(f"amqp connection {self.name!r} is {self._state}: {self._last_error}")
             return [error] * len(messages)
         try:
             await self.exchange(exchange_name, kind, durable)
-            assert self._publish_channel is not None
-            channel = await self._publish_channel.get_underlay_channel()
         except LIBRARY_ERRORS as exc:
             error = edge_error(exc, f"amqp publish to {exchange_name!r} on {self.name!r}")
             return [error] * len(messages)
-        confirms = self._publish_channel.publisher_confirms
-        if len(messages) == 1:  # the common case at low rates: no task, one loop iteration less
-            key, body, properties = messages[0]
-            try:
-                outcomes: list[Any] = [await channel.basic_publish(
-                    body, exchange=exchange_name, routing_key=key, properties=properties, wait=not confirms)]
-            except Exception as exc:  # as gather(return_exceptions=True) would report it
-                outcomes = [exc]
-        else:
-            outcomes = await asyncio.gather(
-                *(
-                    channel.basic_publish(body, exchange=exchange_name, routing_key=key, properties=properties, wait=not confirms)
-                    for key, body, properties in messages
-                ),
-                return_exceptions=True,
-            )
-        results: list[BaseException | None] = []
-        for (key, _, _), outcome in zip(messages, outcomes):
-            if isinstance(outcome, BaseException) or isinstance(outcome, (spec.Basic.Nack, spec.Basic.Reject)):
-                reason = outcome if isinstance(outcome, BaseException) else "the broker nacked it"
-                results.append(EndpointError(f"amqp publish to {exchange_name!r}/{key!r} on {self.name!r}: {reason}"))
-            else:
-                results.append(None)
-        return results
+        assert self._publisher is not None
+        return await self._publisher.publish(exchange_name, messages)
 
     async def prepare_dead_letters(self, max_length: int | None) -> None:
         """The durable exchange and queue ``rabbitros.dead-letter`` (bounded by ``x-max-length``),
@@ -587,6 +572,10 @@ class AmqpSink(Sink):
                 body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
             except (MappingError, SchemaError) as exc:  # a field the key needs is missing: no retry can help
                 results[index] = MessageRejected(str(exc))
+                continue
+            if len(routing_key) > 85 and len(routing_key.encode()) > MAX_ROUTING_KEY:  # (85: 3 bytes a character at most)
+                results[index] = MessageRejected(f"routing key {routing_key[:60]!r}... is {len(routing_key.encode())} bytes; "
+                                                 f"AMQP allows {MAX_ROUTING_KEY}")
                 continue
             meta = message.meta
             key = (meta["route"], meta["generation"])

@@ -88,7 +88,12 @@ SOURCE_QUEUE = 10_000
 otherwise (``Deliver.queue_limit``); beyond it, the route's ``overflow`` applies."""
 _TAKE_BUDGET = 1024
 """Most messages taken from one subscription per wake-up: everything ready, within reason."""
-_BATCH = 512
+_BATCH = 1024
+"""Most messages handed to the route in one ``Deliver.batch``. A batch waits for its sink (an
+AMQP sink: the broker's confirms) before the next one starts, so a backlogged route carries
+at most _BATCH per confirm round trip, which reaches tens of ms on a loaded machine: the
+MAVLink source's batch of 1,024 (engine/endpoints/mavlink/messages.py) for the same reason;
+the reference (bench/systems.py) publishes all it has taken at once."""
 _TYPE_CHECK_INTERVAL = 2.0
 _RELIABILITY = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT}
 _DURABILITY = {"volatile": DurabilityPolicy.VOLATILE, "transient_local": DurabilityPolicy.TRANSIENT_LOCAL}
@@ -587,41 +592,58 @@ class Ros2Connection(Connection):
 
     def _wait_loop(self) -> None:
         """Blocks in rcl_wait; hands ready subscription handles to the loop, then waits for
-        the loop to take them (the wait set is level-triggered)."""
+        the loop to take them (the wait set is level-triggered).
+
+        The wait set and the hold on its subscriptions' handles are kept until the
+        subscriptions change (``_readers_changed``), not rebuilt at every wake-up: rebuilding
+        entered every handle in Python, O(subscriptions) with the GIL held at every message
+        of a fleet's 100 topics at 10 Hz (15 % of the engine's samples in bench/fleet.py)."""
         context, guard = self._context, self._guard
-        while not self._closing:
-            try:
-                with ExitStack() as held:
-                    handles = []
-                    for sub in self._waited:
-                        try:
-                            held.enter_context(sub.handle)
-                        except InvalidHandle:
-                            continue
-                        handles.append(sub.handle)
-                    held.enter_context(guard.handle)
-                    held.enter_context(context.handle)
-                    wait_set = _rclpy.WaitSet(len(handles), 1, 0, 0, 0, 0, context.handle)
+        held = ExitStack()
+        waited: tuple[Any, ...] | None = None
+        handles: list[Any] = []
+        wait_set: Any = None
+        try:
+            while not self._closing:
+                try:
+                    if waited is not self._waited:  # (re)build: hold the handles, size the wait set
+                        held.close()
+                        held = ExitStack()
+                        waited = self._waited
+                        handles = []
+                        for sub in waited:
+                            try:
+                                held.enter_context(sub.handle)
+                            except InvalidHandle:
+                                continue
+                            handles.append(sub.handle)
+                        held.enter_context(guard.handle)
+                        held.enter_context(context.handle)
+                        wait_set = _rclpy.WaitSet(len(handles), 1, 0, 0, 0, 0, context.handle)
                     wait_set.clear_entities()
                     for handle in handles:
                         wait_set.add_subscription(handle)
                     wait_set.add_guard_condition(guard.handle)
                     wait_set.wait(-1)
                     ready = wait_set.get_ready_entities("subscription")
-            except Exception as exc:
-                if self._closing or not context.ok():
-                    return
-                log.error("ros2 connection %r: wait failed: %s", self.name, exc)
-                time.sleep(0.1)
-                continue
-            if not ready or self._closing:
-                continue
-            self._taken.clear()
-            try:
-                self._loop.call_soon_threadsafe(self._take_ready, ready)
-            except RuntimeError:
-                return  # the loop is closed
-            self._taken.wait()
+                except Exception as exc:
+                    held.close()
+                    waited = None
+                    if self._closing or not context.ok():
+                        return
+                    log.error("ros2 connection %r: wait failed: %s", self.name, exc)
+                    time.sleep(0.1)
+                    continue
+                if not ready or self._closing:
+                    continue
+                self._taken.clear()
+                try:
+                    self._loop.call_soon_threadsafe(self._take_ready, ready)
+                except RuntimeError:
+                    return  # the loop is closed
+                self._taken.wait()
+        finally:
+            held.close()
 
     def _take_ready(self, ready: list[int]) -> None:
         try:
