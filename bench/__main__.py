@@ -1,11 +1,13 @@
 """``python -m bench``: every measurement of issue 10 in one run, written to bench/results/<date>/.
 
-Starts a private RabbitMQ node, runs each section (the paper's latency method, zero-loss
+Starts a private RabbitMQ node, runs each section (the paper's latency method, CT-L1 at 100
+and 200 msg/s against the paper's design re-implemented (bench/ct_l1.py), zero-loss
 throughput of each route kind against its reference pass-through and the paper's design,
 latency at half that rate, throughput against message size, 1/100/1,000 routes, JSON over
 the emulated SiK radio at 0 and 5 % loss, ROS 2 topic discovery latency for 20 robots, the round trip of a ROS 2
 service call from AMQP next to a plain rclpy client, a fleet of 100 agents (bench/fleet.py), MAVLink latency over
-the radio, a 20-waypoint mission uploaded by the engine, pymavlink and MAVSDK) and writes
+the radio against MAVSDK as the ground station, a 20-waypoint mission uploaded by the engine, pymavlink and MAVSDK,
+to the simulated vehicle and to MAVSDK's own behind the radio) and writes
 ``results.json``, ``report.md`` (the paper's table format
 plus p50/p99) and PNG plots. Throughput is reported as ratios measured in the same run: the
 machine is shared, absolute numbers move with its load (recorded in the report).
@@ -29,12 +31,12 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from bench import bench_discovery, call_ros2, fleet, mission_upload, radio_latency, sections
+from bench import bench_discovery, call_ros2, ct_l1, fleet, mission_upload, radio_latency, sections
 from bench import throughput as tp
 from bench.report import write_report
 
 REPO = Path(__file__).resolve().parent.parent
-SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "calls", "fleet", "radio_latency", "mission")
+SECTIONS = ("latency", "ct_l1", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "calls", "fleet", "radio_latency", "mission")
 KINDS = {
     "amqp-amqp": ("ref-amqp-amqp", None),
     "amqp-ros2": ("ref-amqp-ros2", "paper-amqp-ros2"),
@@ -85,6 +87,7 @@ async def run(args: argparse.Namespace) -> Path:
     await broker.open()
     steps = [
         ("latency", lambda: sections.paper_latency(url, args.rate, args.runs, 100)),
+        ("ct_l1", lambda: ct_l1.measure(url, tp.domain_id(), [100.0, 200.0], 1000, 3)),
         ("throughput", lambda: throughput(broker, args.count, args.pairs, args.half_rate_seconds)),
         ("sizes", lambda: sections.throughput_by_size(broker, [50, 250, 1000, 4000], args.count)),
         ("routes", lambda: sections.many_routes(broker, [1, 100, 1000], args.count)),
@@ -93,8 +96,8 @@ async def run(args: argparse.Namespace) -> Path:
         ("sik5", lambda: sections.sik_goodput(url, args.sik_count, 250, loss=0.05)),
         ("calls", lambda: call_ros2.measure(url, tp.domain_id(), args.calls)),
         ("fleet", lambda: fleet.fleet(url, ["templated", "hand_written"], duration=args.fleet_seconds)),
-        ("radio_latency", lambda: radio_latency.run(url, 12.0)),
-        ("mission", lambda: asyncio.to_thread(mission_upload.run, [20], [0.0, 0.05])),
+        ("radio_latency", lambda: radio_latency.run(url, 8.0)),
+        ("mission", lambda: asyncio.to_thread(mission_upload.run, [20], [0.0, 0.05], args.mission_repeat)),
     ]
     try:
         for name, step in steps:
@@ -137,6 +140,8 @@ def main() -> None:
                         help="ROS 2 service calls, one at a time, through the engine and by a plain rclpy client")
     parser.add_argument("--fleet-seconds", type=float, default=60.0,
                         help="seconds of the fleet's load (bench/fleet.py), each way of writing its routes")
+    parser.add_argument("--mission-repeat", type=int, default=2,
+                        help="uploads of the 20-waypoint mission per client, vehicle and loss (about 25 s each round)")
     parser.add_argument("--only", help=f"comma-separated sections of {', '.join(SECTIONS)}")
     parser.add_argument("--out", help="output directory (default bench/results/<date>)")
     parser.add_argument("--report-only", help="rewrite report.md and plots from this results.json")

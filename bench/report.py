@@ -163,7 +163,13 @@ def sik_table(sik: dict[str, Any]) -> list[str]:
                   f"| the radio flooded with {sik['tunnel_payload']} B payloads at the same loss | {sik['flood_payload_bytes_per_s']:.0f} | "
                   f"{sik['fraction_of_flood']:.2f} |",
                   f"| the same, with the vehicle's telemetry on the link (the way back) | "
-                  f"{sik['flood_with_telemetry_bytes_per_s']:.0f} | {sik['fraction_of_flood_with_telemetry']:.2f} |", "",
+                  f"{sik['flood_with_telemetry_bytes_per_s']:.0f} | {sik['fraction_of_flood_with_telemetry']:.2f} |"]
+        if sik.get("forward_goodput_bytes_per_s"):
+            lines += [f"| the way to the vehicle alone ({sik['forward_goodput_bytes_per_s']:.0f} B/s to the last message "
+                      f"stored), against the plain flood | {sik['flood_payload_bytes_per_s']:.0f} | "
+                      f"{sik['forward_fraction_of_flood']:.2f} |"]
+        lines += ["", "The round trip is bounded by its way back, which the vehicle's telemetry shares: compare it with "
+                  "the flood with telemetry. bench/goodput.py repeats these figures (median and spread).", "",
                   "The flood keeps the radio's buffer backlogged without overflowing it; it shows what the emulator "
                   "carries (each air packet starts at its next 4 ms tick, not the instant the window opens). "
                   "Goodput counts JSON bytes, the capacities TUNNEL payload (the tunnel's header included).", ""]
@@ -206,23 +212,27 @@ def calls_table(calls: dict[str, Any]) -> list[str]:
 def radio_latency_table(rows: list[dict[str, Any]]) -> list[str]:
     from bench.radio_latency import HEADER, format_row
 
-    return ["## 9. MAVLink latency over the emulated SiK radio", "",
-            "Telemetry: the vehicle's GLOBAL_POSITION_INT from its send to an AMQP consumer; command: an AMQP call "
-            "to COMMAND_LONG over the radio and the vehicle's COMMAND_ACK back as the call's reply (bench/radio_latency.py).",
+    return ["## 9. MAVLink latency over the emulated SiK radio: the engine against MAVSDK", "",
+            "Telemetry: the vehicle's GLOBAL_POSITION_INT from its send to the ground station's consumer (the engine: "
+            "an AMQP consumer behind a telemetry route; MAVSDK 4.1.0: its MavlinkDirect subscription). Command: an "
+            "arm COMMAND_LONG to its COMMAND_ACK (the engine: an AMQP call answered by the ack; MAVSDK: Action.arm() "
+            "returning). Two vehicles behind the same radio: the simulated one and MAVSDK's own (its C++ core as an "
+            "autopilot on the radio's serial port). One clock stamps both ends. Loads: TUNNEL frames (the engine: a "
+            "low route, paced; MAVSDK: MavlinkDirect at 2,880 B/s, it has no tunnel client and no priorities) and the "
+            "engine's JSON tunnel (needs the simulated vehicle). MAVSDK has no MAVLink signing: signed rows are the "
+            "engine's only (bench/radio_latency.py).",
             "", HEADER, *(format_row(row) for row in rows), ""]
 
 
 def mission_table(rows: list[dict[str, Any]]) -> list[str]:
-    def cell(value: Any) -> str:
-        return f"{value:.2f}" if isinstance(value, float) else f"failed: {value}"
+    from bench.mission_upload import HEADER, format_row
 
-    lines = ["## 10. Mission upload over the emulated SiK radio", "",
-             "The engine's mission sink, a plain pymavlink loop and MAVSDK's MissionRaw client (the mavsdk wheel as the "
-             "ground station), one after the other, to the simulated vehicle behind the same radio (bench/mission_upload.py).",
-             "", "| Items | Loss | Engine (s) | pymavlink (s) | MAVSDK (s) |", "|---|---|---|---|---|"]
-    lines += [f"| {r['items']} | {r['loss']:.0%} | {cell(r['engine_s'])} | {cell(r['pymavlink_s'])} | {cell(r['mavsdk_s'])} |"
-              for r in rows]
-    return lines + [""]
+    return ["## 10. Mission upload over the emulated SiK radio: the engine against MAVSDK", "",
+            "The engine's mission sink, a plain pymavlink loop and MAVSDK's MissionRaw client (the mavsdk wheel as the "
+            "ground station, with its default 0.5 s timeout and with set_timeout_s(1.5), the engine's), one after the "
+            "other through the same radio to the same vehicle: the simulated one and MAVSDK's own (MissionRawServer on "
+            "the radio's serial port). Median of the runs; a client that gave up says so (bench/mission_upload.py).",
+            "", HEADER, *(format_row(row) for row in rows), ""]
 
 
 def write_report(results: dict[str, Any], out: Path) -> None:
@@ -231,7 +241,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"{before.get('date')}, commit {before.get('commit')}, {before.get('cpus')} CPUs, loop {before.get('loop')}; "
              f"load average before {_load(before)}, after {_load(after)} (the machine is shared: absolute figures "
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
-    for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
+    for key, render in (("latency", latency_tables), ("ct_l1", ct_l1_table), ("throughput", throughput_table), ("sizes", sizes_table),
                         ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table),
                         ("calls", calls_table), ("fleet", fleet_table),
                         ("radio_latency", radio_latency_table), ("mission", mission_table)):
@@ -247,6 +257,13 @@ def write_report(results: dict[str, Any], out: Path) -> None:
             lines += [f"## {key}: cannot render ({type(exc).__name__}: {exc})", ""]
     lines += ["Plots: " + ", ".join(f"`{p}`" for p in plots(results, out)), ""]
     (out / "report.md").write_text("\n".join(lines))
+
+
+def ct_l1_table(result: dict[str, Any]) -> list[str]:
+    from bench.ct_l1 import report
+
+    return ["## 1b. CT-L1 at a robot's pace: the engine against the paper's design, same machine, same run", "",
+            *report(result), ""]
 
 
 def fleet_table(fleet: dict[str, Any]) -> list[str]:

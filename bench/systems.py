@@ -15,7 +15,9 @@
   converted by hand to the canonical position -> the batched aiormq publisher.
 * ``paper-amqp-ros2`` / ``paper-ros2-amqp``: the paper's own design re-implemented:
   aio-pika, rclpy's default executor spun from the asyncio loop, pure-Python ``jsonschema``
-  validation and synchronous logging of every message, publisher confirms off.
+  validation and synchronous logging of every message, publisher confirms off; with
+  ``latency_out`` the AMQP -> ROS 2 one records t2 - t1 as the engine does (bench/ct_l1.py);
+  with ``minimal`` it neither validates nor logs (the least the design can do per message).
 
 References do no schema validation: they are what the client libraries allow, the bound. They
 do the route's conversion written by hand (``convert``: orjson, the mapping as code, sorted-key
@@ -383,16 +385,26 @@ async def paper_amqp_ros2(args: dict[str, Any]) -> None:
     await channel.set_qos(prefetch_count=256)
     queue = await channel.get_queue(args["queue"])
 
+    latency_ns: list[int] | None = [] if args.get("latency_out") else None
+    validate = not args.get("minimal")
+
     async def on_message(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        received_ns = time.monotonic_ns()  # t1: aio-pika hands the message over
         async with message.process():
             canonical = to_canonical(json.loads(message.body))
-            validator.validate(canonical)
+            if validate:
+                validator.validate(canonical)
             publisher.publish(String(data=json.dumps(canonical)))
-            log.info("AMQP -> ROS 2 %s: %s", args["topic"], canonical)
+            if latency_ns is not None:  # t2: ROS 2 took it
+                latency_ns.append(time.monotonic_ns() - received_ns)
+            if validate:
+                log.info("AMQP -> ROS 2 %s: %s", args["topic"], canonical)
 
     spinner = asyncio.create_task(_spin_default_executor(node))
     await queue.consume(on_message)
     await _until_stopped()
+    if latency_ns is not None:
+        Path(args["latency_out"]).write_text(json.dumps(latency_ns))
     spinner.cancel()
     await connection.close()
     node.destroy_node()

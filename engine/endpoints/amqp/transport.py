@@ -5,8 +5,10 @@ appends to a list; one loop per source hands everything received (up to half the
 to the route as one batch, then acknowledges with a single ``basic_ack(multiple=True)`` up
 to the highest delivery tag whose whole prefix was settled (accepted by the sink or
 dead-lettered); the rest of the batch is acked one by one or nacked with requeue. Batches
-are settled in order, one at a time, so every earlier tag is already acked or nacked and
-at-least-once holds: a crash or a reload redelivers instead of losing. Sinks publish a
+are acknowledged in order, so every earlier tag is already acked or nacked and
+at-least-once holds: a crash or a reload redelivers instead of losing. They are settled one
+at a time unless the route's sink declares it can send more meanwhile
+(``Sink.batches_in_flight``: the JSON tunnel over a radio). Sinks publish a
 batch pipelined on a channel with publisher confirms (configurable) and await the batch's
 confirms together, so "accepted" means the broker took responsibility.
 
@@ -49,6 +51,7 @@ from engine.endpoints.base import (
 )
 import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.endpoints.amqp.calls import AmqpCaller
+from engine.endpoints.amqp.publisher import SharedPublisher
 import engine.endpoints.amqp.tls as amqp_tls
 from engine import tls as tls_common
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
@@ -60,6 +63,8 @@ from engine.redaction import Secret, has_url_password, redact_urls, reveal
 from engine.schemas import SchemaError, canonical_bytes
 
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
+MAX_ROUTING_KEY = 255
+"""Bytes in a routing key (an AMQP short string): a longer one can never be published."""
 log = logging.getLogger("engine.amqp")
 
 
@@ -88,6 +93,8 @@ class AmqpConnection(Connection):
         super().__init__(name, typed(AmqpConnectionOptions, settings, f"amqp connection {name!r}"))
         self._connection: aio_pika.abc.AbstractRobustConnection | None = None
         self._publish_channel: aio_pika.abc.AbstractChannel | None = None
+        self._publisher: SharedPublisher | None = None
+        """Every route's publishes on the publish channel, one round per loop turn."""
         self._exchanges: dict[str, aio_pika.abc.AbstractExchange] = {}
         self._declare_lock = asyncio.Lock()
         self._state = "connecting"
@@ -118,7 +125,9 @@ class AmqpConnection(Connection):
         return self._state == "up"
 
     def health(self) -> dict[str, Any]:
-        return {"state": self._state, "last_error": self._last_error}
+        publisher = self._publisher
+        return {"state": self._state, "last_error": self._last_error,
+                "published": publisher.messages if publisher else 0, "publish_rounds": publisher.rounds if publisher else 0}
 
     def _failed(self, error: BaseException | None) -> None:
         if error is not None:
@@ -168,6 +177,7 @@ class AmqpConnection(Connection):
             self._publish_channel = await self._connection.channel(
                 publisher_confirms=self.settings.publisher_confirms
             )
+            self._publisher = SharedPublisher(self._publish_channel, self.name)
         except LIBRARY_ERRORS as exc:
             self._failed(exc)
             if self._connection is not None:
@@ -204,42 +214,19 @@ class AmqpConnection(Connection):
         kind: str = "topic",
         durable: bool = True,
     ) -> list[BaseException | None]:
-        """Publish ``(routing_key, body, properties)`` pipelined on the confirm channel and
-        await the confirms together; ``result[i]`` is None once the broker took message i."""
+        """Publish ``(routing_key, body, properties)`` on the confirm channel; ``result[i]`` is
+        None once the broker took message i. Every route's messages of one loop turn go out
+        together, one write and one confirm wait (engine/endpoints/amqp/publisher.py)."""
         if self._state != "up":  # a robust channel would wait for the broker; the engine buffers instead
             error = EndpointError(f"amqp connection {self.name!r} is {self._state}: {self._last_error}")
             return [error] * len(messages)
         try:
             await self.exchange(exchange_name, kind, durable)
-            assert self._publish_channel is not None
-            channel = await self._publish_channel.get_underlay_channel()
         except LIBRARY_ERRORS as exc:
             error = edge_error(exc, f"amqp publish to {exchange_name!r} on {self.name!r}")
             return [error] * len(messages)
-        confirms = self._publish_channel.publisher_confirms
-        if len(messages) == 1:  # the common case at low rates: no task, one loop iteration less
-            key, body, properties = messages[0]
-            try:
-                outcomes: list[Any] = [await channel.basic_publish(
-                    body, exchange=exchange_name, routing_key=key, properties=properties, wait=not confirms)]
-            except Exception as exc:  # as gather(return_exceptions=True) would report it
-                outcomes = [exc]
-        else:
-            outcomes = await asyncio.gather(
-                *(
-                    channel.basic_publish(body, exchange=exchange_name, routing_key=key, properties=properties, wait=not confirms)
-                    for key, body, properties in messages
-                ),
-                return_exceptions=True,
-            )
-        results: list[BaseException | None] = []
-        for (key, _, _), outcome in zip(messages, outcomes):
-            if isinstance(outcome, BaseException) or isinstance(outcome, (spec.Basic.Nack, spec.Basic.Reject)):
-                reason = outcome if isinstance(outcome, BaseException) else "the broker nacked it"
-                results.append(EndpointError(f"amqp publish to {exchange_name!r}/{key!r} on {self.name!r}: {reason}"))
-            else:
-                results.append(None)
-        return results
+        assert self._publisher is not None
+        return await self._publisher.publish(exchange_name, messages)
 
     async def prepare_dead_letters(self, max_length: int | None) -> None:
         """The durable exchange and queue ``rabbitros.dead-letter`` (bounded by ``x-max-length``),
@@ -312,6 +299,9 @@ class AmqpSource(Source):
         self._loop: asyncio.Task[None] | None = None
         self._max_batch = max(1, options.prefetch // 2)
         """Half the prefetch: the broker keeps streaming the next batch while one is settled."""
+        self._in_flight = 0
+        """Batches handed to the route and not yet acknowledged, beyond the one settled inline."""
+        self._room = asyncio.Event()
 
     @property
     def queue_name(self) -> str:
@@ -364,14 +354,47 @@ class AmqpSource(Source):
         self._received.wake()
 
     async def _run(self, deliver: Deliver) -> None:
-        while batch := await self._received.take(self._max_batch):
-            inbounds = [_inbound(message, received_ns) for message, received_ns in batch]
-            try:
-                settled = await deliver.batch(inbounds)
-            except Exception as exc:  # a bug in the engine must not lose messages: requeue them
-                log.exception("route %r: settling a batch failed", self._route, exc_info=exc)
-                settled = [False] * len(batch)
+        """Hand each batch to the route, then acknowledge it. While the route lets more than
+        one batch be in flight (``deliver.batches_in_flight``, asked before each batch: a
+        reload may swap the sink), the next batch is handed over while earlier ones await
+        their sink, and a second task acknowledges them in the order they were taken, so
+        ``basic_ack(multiple=True)`` never covers a message of a batch not yet settled. One
+        at a time (most routes), a batch is settled and acknowledged here, with no task."""
+        taken: asyncio.Queue[tuple[list[tuple[aiormq.abc.DeliveredMessage, int]], asyncio.Task[list[bool]]] | None]
+        taken = asyncio.Queue()
+        settler = asyncio.create_task(self._acknowledge_in_order(taken), name=f"amqp-settle:{self._route}")
+        try:
+            while True:
+                while self._in_flight and self._in_flight >= deliver.batches_in_flight:
+                    self._room.clear()
+                    await self._room.wait()
+                batch = await self._received.take(self._max_batch)
+                if not batch:
+                    break
+                if not self._in_flight and deliver.batches_in_flight <= 1:
+                    await self._acknowledge([message for message, _ in batch], await self._deliver_batch(deliver, batch))
+                    continue
+                self._in_flight += 1
+                taken.put_nowait((batch, asyncio.create_task(self._deliver_batch(deliver, batch))))
+        finally:
+            taken.put_nowait(None)
+            await settler
+
+    async def _deliver_batch(self, deliver: Deliver, batch: list[tuple[aiormq.abc.DeliveredMessage, int]]) -> list[bool]:
+        try:
+            return await deliver.batch([_inbound(message, received_ns) for message, received_ns in batch])
+        except Exception as exc:  # a bug in the engine must not lose messages: requeue them
+            log.exception("route %r: settling a batch failed", self._route, exc_info=exc)
+            return [False] * len(batch)
+
+    async def _acknowledge_in_order(self, taken: asyncio.Queue[Any]) -> None:
+        """Acknowledge the batches in flight in the order they were taken (see :meth:`_run`)."""
+        while (item := await taken.get()) is not None:
+            batch, settling = item
+            settled = await settling
             await self._acknowledge([message for message, _ in batch], settled)
+            self._in_flight -= 1
+            self._room.set()
 
     async def _acknowledge(self, messages: list[aiormq.abc.DeliveredMessage], settled: list[bool]) -> None:
         """One ``basic_ack(multiple=True)`` per channel for the settled prefix of the batch;
@@ -549,6 +572,10 @@ class AmqpSink(Sink):
                 body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
             except (MappingError, SchemaError) as exc:  # a field the key needs is missing: no retry can help
                 results[index] = MessageRejected(str(exc))
+                continue
+            if len(routing_key) > 85 and len(routing_key.encode()) > MAX_ROUTING_KEY:  # (85: 3 bytes a character at most)
+                results[index] = MessageRejected(f"routing key {routing_key[:60]!r}... is {len(routing_key.encode())} bytes; "
+                                                 f"AMQP allows {MAX_ROUTING_KEY}")
                 continue
             meta = message.meta
             key = (meta["route"], meta["generation"])
