@@ -6,9 +6,10 @@ to the route as one batch, then acknowledges with a single ``basic_ack(multiple=
 to the highest delivery tag whose whole prefix was settled (accepted by the sink or
 dead-lettered); the rest of the batch is acked one by one or nacked with requeue. Batches
 are settled in order, one at a time, so every earlier tag is already acked or nacked and
-at-least-once holds: a crash or a reload redelivers instead of losing. Sinks publish a
-batch pipelined on a channel with publisher confirms (configurable) and await the batch's
-confirms together, so "accepted" means the broker took responsibility.
+at-least-once holds: a crash or a reload redelivers instead of losing. Sinks publish on
+the connection's channel with publisher confirms (configurable), every route's batch of a
+loop turn in one shared round (one write, one confirm wait: engine/endpoints/amqp/publisher.py),
+each route answered per message, so "accepted" means the broker took responsibility.
 
 One robust connection per named connection is shared by all routes (aio-pika re-opens it,
 its channels and consumers after a broker restart); each source has its own channel so its
