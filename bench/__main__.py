@@ -1,11 +1,13 @@
 """``python -m bench``: every measurement of issue 10 in one run, written to bench/results/<date>/.
 
-Starts a private RabbitMQ node, runs each section (the paper's latency method, zero-loss
+Starts a private RabbitMQ node, runs each section (the paper's latency method, CT-L1 at 100
+and 200 msg/s against the paper's design re-implemented (bench/ct_l1.py), zero-loss
 throughput of each route kind against its reference pass-through and the paper's design,
 latency at half that rate, throughput against message size, 1/100/1,000 routes, JSON over
 the emulated SiK radio at 0 and 5 % loss, ROS 2 topic discovery latency for 20 robots, the round trip of a ROS 2
 service call from AMQP next to a plain rclpy client, a fleet of 100 agents (bench/fleet.py), MAVLink latency over
-the radio, a 20-waypoint mission uploaded by the engine, pymavlink and MAVSDK) and writes
+the radio against MAVSDK as the ground station, a 20-waypoint mission uploaded by the engine, pymavlink and MAVSDK,
+to the simulated vehicle and to MAVSDK's own behind the radio) and writes
 ``results.json``, ``report.md`` (the paper's table format
 plus p50/p99) and PNG plots. Throughput is reported as ratios measured in the same run: the
 machine is shared, absolute numbers move with its load (recorded in the report).
@@ -21,6 +23,7 @@ import argparse
 import asyncio
 import datetime
 import json
+import math
 import os
 import subprocess
 import time
@@ -28,12 +31,12 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from bench import bench_discovery, call_ros2, fleet, mission_upload, radio_latency, sections
+from bench import bench_discovery, call_ros2, ct_l1, fleet, mission_upload, radio_latency, sections
 from bench import throughput as tp
 from bench.report import write_report
 
 REPO = Path(__file__).resolve().parent.parent
-SECTIONS = ("latency", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "calls", "fleet", "radio_latency", "mission")
+SECTIONS = ("latency", "ct_l1", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "calls", "fleet", "radio_latency", "mission")
 KINDS = {
     "amqp-amqp": ("ref-amqp-amqp", None),
     "amqp-ros2": ("ref-amqp-ros2", "paper-amqp-ros2"),
@@ -50,29 +53,17 @@ def machine() -> dict[str, Any]:
             "commit": commit, "cpus": os.cpu_count(), "loadavg": os.getloadavg(), "loop": loop_name()}
 
 
-async def throughput(broker: tp.Broker, count: int, mavlink_rates: list[int], half_rate_s: float) -> dict[str, Any]:
+async def throughput(broker: tp.Broker, count: int, pairs: int, half_rate_s: float) -> dict[str, Any]:
+    """Each route kind: ``pairs`` interleaved rounds of reference, engine (and the paper's
+    design) draining the same backlog (bench/throughput.py ``interleaved``), then the engine's
+    latency at half its median rate."""
     out: dict[str, Any] = {}
-    domain = tp.domain_id()
+    domain, count = tp.domain_id(), min(count, tp.MAX_BURST)
     for kind, (reference, paper) in KINDS.items():
-        row: dict[str, Any] = {}
-        for role, system in (("reference", reference), ("engine", "engine"), ("paper", paper)):
-            if system is None:
-                continue
-            print(f"  {kind}: {system}", flush=True)
-            try:
-                if kind == "mavlink-amqp":
-                    row[role] = await tp.mavlink_ladder(broker, system, mavlink_rates, 2.0)
-                elif kind == "ros2-amqp":
-                    row[role] = await tp.drain_ros2_source(broker, system, count, domain)
-                else:
-                    row[role] = await tp.drain_amqp_source(broker, kind, system, count, domain)
-            except Exception as exc:
-                row[role] = {"error": f"{type(exc).__name__}: {exc}"[:2000], "msg_per_s": float("nan")}
+        systems = {"reference": reference, "engine": "engine", **({"paper": paper} if paper else {})}
+        row = await tp.interleaved(broker, kind, systems, pairs, count, domain, counts={"paper": count // 6})
         engine_rate = row["engine"].get("msg_per_s", float("nan"))
-        row["vs_reference"] = engine_rate / row["reference"]["msg_per_s"] if row["reference"].get("msg_per_s") else None
-        if "paper" in row and row["paper"].get("msg_per_s"):
-            row["vs_paper"] = engine_rate / row["paper"]["msg_per_s"]
-        if engine_rate == engine_rate and engine_rate > 0:
+        if math.isfinite(engine_rate) and engine_rate > 0:
             print(f"  {kind}: latency at half rate ({engine_rate / 2:.0f} msg/s)", flush=True)
             try:
                 row["latency_half_rate"] = await tp.engine_latency_at_rate(broker, kind, engine_rate / 2, half_rate_s, domain)
@@ -96,7 +87,8 @@ async def run(args: argparse.Namespace) -> Path:
     await broker.open()
     steps = [
         ("latency", lambda: sections.paper_latency(url, args.rate, args.runs, 100)),
-        ("throughput", lambda: throughput(broker, args.count, args.mavlink_rates, args.half_rate_seconds)),
+        ("ct_l1", lambda: ct_l1.measure(url, tp.domain_id(), [100.0, 200.0], 1000, 3)),
+        ("throughput", lambda: throughput(broker, args.count, args.pairs, args.half_rate_seconds)),
         ("sizes", lambda: sections.throughput_by_size(broker, [50, 250, 1000, 4000], args.count)),
         ("routes", lambda: sections.many_routes(broker, [1, 100, 1000], args.count)),
         ("sik", lambda: sections.sik_goodput(url, args.sik_count, 250)),
@@ -104,8 +96,8 @@ async def run(args: argparse.Namespace) -> Path:
         ("sik5", lambda: sections.sik_goodput(url, args.sik_count, 250, loss=0.05)),
         ("calls", lambda: call_ros2.measure(url, tp.domain_id(), args.calls)),
         ("fleet", lambda: fleet.fleet(url, ["templated", "hand_written"], duration=args.fleet_seconds)),
-        ("radio_latency", lambda: radio_latency.run(url, 12.0)),
-        ("mission", lambda: asyncio.to_thread(mission_upload.run, [20], [0.0, 0.05])),
+        ("radio_latency", lambda: radio_latency.run(url, 8.0)),
+        ("mission", lambda: asyncio.to_thread(mission_upload.run, [20], [0.0, 0.05], args.mission_repeat)),
     ]
     try:
         for name, step in steps:
@@ -136,9 +128,10 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=100.0, help="msg/s of the latency method (the paper: 1)")
     parser.add_argument("--runs", type=int, default=5, help="runs per size of the latency method")
     parser.add_argument("--count", type=int, default=6000,
-                        help="messages per throughput drain (well above the prefetch of 1,000)")
-    parser.add_argument("--mavlink-rates", type=lambda s: [int(x) for x in s.split(",")],
-                        default=[1000, 2000, 3000, 4000, 5000, 6000, 7000, 8000, 10000, 12000, 14000, 17000, 20000], help="the MAVLink ladder (msg/s)")
+                        help="messages per throughput drain (well above the prefetch of 1,000; at most 9,000: "
+                             "a ROS 2 burst must fit DDS history, a MAVLink one the socket's buffer)")
+    parser.add_argument("--pairs", type=int, default=5,
+                        help="interleaved rounds per route kind of the throughput section (reference, engine, paper)")
     parser.add_argument("--half-rate-seconds", type=float, default=4.0)
     parser.add_argument("--sik-count", type=int, default=400,
                         help="250-byte messages through the emulated SiK radio (the link's fill and drain, a few "
@@ -147,6 +140,8 @@ def main() -> None:
                         help="ROS 2 service calls, one at a time, through the engine and by a plain rclpy client")
     parser.add_argument("--fleet-seconds", type=float, default=60.0,
                         help="seconds of the fleet's load (bench/fleet.py), each way of writing its routes")
+    parser.add_argument("--mission-repeat", type=int, default=2,
+                        help="uploads of the 20-waypoint mission per client, vehicle and loss (about 25 s each round)")
     parser.add_argument("--only", help=f"comma-separated sections of {', '.join(SECTIONS)}")
     parser.add_argument("--out", help="output directory (default bench/results/<date>)")
     parser.add_argument("--report-only", help="rewrite report.md and plots from this results.json")

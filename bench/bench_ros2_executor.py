@@ -78,6 +78,7 @@ class Meter:
 
     overflow = "block"
     queue_limit = 10_000
+    batches_in_flight = 1
 
     def __init__(self) -> None:
         self.count = 0

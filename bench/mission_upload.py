@@ -1,22 +1,28 @@
 """Mission upload time over the emulated SiK radio (57,600 baud, 64 kbps air, ~237 ms TDM).
 
-For 5, 20, 50 and 200 waypoints, at 0 % and 5 % air-packet loss: the engine's mission sink
-(``mission: upload``) against the simulated vehicle in its own process, and, as references on
-the same radio in the same run: a plain pymavlink upload loop (one thread, blocking reads, the
-same 1.5 s answer timeout) and MAVSDK's own mission client (the ``mavsdk`` wheel's C++ core as
-the ground station, ``MissionRaw.upload_mission`` over the radio's serial port, with MAVSDK's
-default timeouts). The vehicle is the simulated one (rabbitros_sim/vehicle.py) for all three:
-MAVSDK's vehicle side (tests/mavsdk_vehicle.py) listens on UDP, and the radio emulator is a
-serial device, so one vehicle behind the radio serves every client alike. Prints seconds,
-items/s and the ratios; ``--json`` writes them.
+For 5, 20, 50 and 200 waypoints, at 0 % and 5 % air-packet loss, to two vehicles behind the
+radio: the simulated vehicle (rabbitros_sim/vehicle.py, its own process) and MAVSDK's own
+vehicle (tests/mavsdk_vehicle.py: the ``mavsdk`` wheel's C++ core as an autopilot with its
+MissionRawServer, opening the radio's vehicle-side pseudo-terminal as ``serial://``). Each is
+sent the same mission, one client after the other on the same radio, by: the engine's mission
+sink (``mission: upload``, 1.5 s answer timeout), a plain pymavlink upload loop (one thread,
+blocking reads, the same 1.5 s timeout) and MAVSDK's own mission client (the wheel's C++ core
+as the ground station, ``MissionRaw.upload_mission`` over the radio's serial port) twice: with
+MAVSDK's default timeout (0.5 s) and with ``Mavsdk::set_timeout_s(1.5)``, which MAVSDK advises
+for slow links and which matches the engine's. A MAVSDK upload that gives up is reported as its
+error (e.g. ``TIMEOUT``), the others' figures stand. Prints seconds and the ratios; ``--json``
+writes them.
 
-    .venv/bin/python -m bench.mission_upload [--sizes 5 20 50 200] [--loss 0 0.05] [--repeat 1] [--json out.json]
+    .venv/bin/python -m bench.mission_upload [--sizes 5 20 50 200] [--loss 0 0.05] [--repeat 1]
+                                             [--vehicles simulated mavsdk] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
+import ctypes
 import os
 import select
 import statistics
@@ -25,6 +31,7 @@ import tempfile
 import time
 import uuid
 from pathlib import Path
+from collections.abc import AsyncIterator
 from typing import Any
 
 os.environ["MAVLINK20"] = "1"
@@ -37,6 +44,8 @@ from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 from rabbitros_sim.vehicle import open_serial  # noqa: E402
 
 TIMEOUT = 1.5
+CLIENTS = ("engine_s", "pymavlink_s", "mavsdk_s", "mavsdk_slow_s")
+VEHICLES = ("simulated", "mavsdk")
 
 
 def waypoints(count: int) -> dict[str, Any]:
@@ -114,14 +123,25 @@ def reference_upload(link: str, count: int) -> float:
         os.close(fd)
 
 
-def mavsdk_upload(link: str, count: int) -> float:
+def set_mavsdk_timeout(sdk: Any, seconds: float) -> None:
+    """``Mavsdk::set_timeout_s``: the wheel exports it from its C library but wraps it in no
+    Python method."""
+    function = sdk._lib.mavsdk_set_timeout_s
+    function.argtypes, function.restype = [ctypes.c_void_p, ctypes.c_double], None
+    function(sdk._handle, seconds)
+
+
+def mavsdk_upload(link: str, count: int, timeout: float | None = None) -> float:
     """MAVSDK's MissionRaw client as the ground station: seconds of ``upload_mission`` (the
-    vehicle's MAV_MISSION_ACCEPTED), after MAVSDK found the vehicle."""
+    vehicle's MAV_MISSION_ACCEPTED), after MAVSDK found the vehicle; ``timeout`` replaces
+    MAVSDK's default 0.5 s for each answer."""
     from mavsdk import ComponentType, Configuration, Mavsdk
     from mavsdk.plugins.mission_raw.mission_raw import MissionItem, MissionRaw
 
     sdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
     try:
+        if timeout is not None:
+            set_mavsdk_timeout(sdk, timeout)
         result = sdk.add_any_connection(f"serial://{link}:57600")
         system = sdk.first_autopilot(20.0)
         if system is None:
@@ -139,43 +159,92 @@ def mavsdk_upload(link: str, count: int) -> float:
         sdk.destroy()
 
 
-async def measure(count: int, loss: float, seed: int, work: Path) -> dict[str, Any]:
-    """One upload by each client, one after the other, through the same radio and vehicle."""
-    async with SikRadioPair(loss=loss, seed=seed) as pair, vehicle_process(pair.link_b, work / "store", 600) as vehicle:
+@contextlib.asynccontextmanager
+async def vehicle_behind(kind: str, pair: SikRadioPair, work: Path) -> AsyncIterator[dict[str, Any]]:
+    """The vehicle on radio B; yields a dict that receives its counters when it stops."""
+    if kind == "simulated":
+        async with vehicle_process(pair.link_b, work / "store", 600) as final:
+            yield final
+        return
+    from tests.mavsdk_vehicle import MavsdkAutopilot
+
+    autopilot = MavsdkAutopilot(f"serial://{pair.device_b}:57600")
+    final: dict[str, Any] = {}
+    try:
+        yield final
+    finally:
+        final["missions_accepted"] = len(autopilot.missions)
+        autopilot.close()
+
+
+async def failed_as(upload: Any) -> float | str:
+    """The seconds, or the error a client gave up with (reported, not fatal to the others)."""
+    try:
+        return float(await upload)
+    except Exception as exc:
+        return f"{type(exc).__name__}: {str(exc).split(';')[0]}"
+
+
+async def measure(count: int, loss: float, seed: int, work: Path, vehicle_kind: str = "simulated") -> dict[str, Any]:
+    """One upload by each client, one after the other, through the same radio to the same vehicle."""
+    async with SikRadioPair(loss=loss, seed=seed) as pair, vehicle_behind(vehicle_kind, pair, work) as vehicle:
         engine_s, stats = await engine_upload(pair.link_a, count)
-        reference_s = await asyncio.to_thread(reference_upload, pair.link_a, count)
-        try:
-            mavsdk_s: float | str = await asyncio.to_thread(mavsdk_upload, pair.link_a, count)
-        except Exception as exc:  # reported in the table, not fatal to the others' figures
-            mavsdk_s = f"{type(exc).__name__}: {str(exc).split(';')[0]}"
-    return {"engine_s": engine_s, "pymavlink_s": reference_s, "mavsdk_s": mavsdk_s, "stats": stats, "vehicle": vehicle}
+        row: dict[str, Any] = {"engine_s": engine_s, "stats": stats, "vehicle": vehicle}
+        row["pymavlink_s"] = await failed_as(asyncio.to_thread(reference_upload, pair.link_a, count))
+        row["mavsdk_s"] = await failed_as(asyncio.to_thread(mavsdk_upload, pair.device_a, count))
+        row["mavsdk_slow_s"] = await failed_as(asyncio.to_thread(mavsdk_upload, pair.device_a, count, TIMEOUT))
+    return row
 
 
-def run(sizes: list[int], losses: list[float], repeat: int = 1) -> list[dict[str, Any]]:
-    """Every size at every loss; the median of ``repeat`` runs of each client."""
+def run(sizes: list[int], losses: list[float], repeat: int = 1,
+        vehicles: tuple[str, ...] | list[str] = VEHICLES) -> list[dict[str, Any]]:
+    """Every size at every loss to every vehicle; per client the median of the ``repeat`` runs
+    that succeeded (every run's figure or error is kept in ``runs``)."""
     work = Path(tempfile.mkdtemp(prefix="rabbitros-mission-bench-"))
     rows = []
     for loss in losses:
         for count in sizes:
-            runs = [asyncio.run(measure(count, loss, 100 + r, work)) for r in range(repeat)]
-            row: dict[str, Any] = {"items": count, "loss": loss}
-            for client in ("engine_s", "pymavlink_s", "mavsdk_s"):
-                values = [r[client] for r in runs if isinstance(r[client], float)]
-                row[client] = statistics.median(values) if values else next(r[client] for r in runs)
-            row["mission_resends"] = runs[-1]["stats"].get("mission_resends", 0)
-            row["vehicle_missions"] = runs[-1]["vehicle"].get("missions_accepted")
-            rows.append(row)
-            print(format_row(row), flush=True)
+            for kind in vehicles:
+                runs = [asyncio.run(measure(count, loss, 100 + r, work, kind)) for r in range(repeat)]
+                row: dict[str, Any] = {"items": count, "loss": loss, "vehicle": kind, "runs": {}}
+                for client in CLIENTS:
+                    values = [r[client] for r in runs]
+                    row["runs"][client] = values
+                    done = [v for v in values if isinstance(v, float)]
+                    row[client] = statistics.median(done) if done else values[0]
+                    row[client.removesuffix("_s") + "_failed"] = len(values) - len(done)
+                row["mission_resends"] = runs[-1]["stats"].get("mission_resends", 0)
+                row["vehicle_missions"] = runs[-1]["vehicle"].get("missions_accepted")
+                row["loadavg"] = os.getloadavg()[0]
+                rows.append(row)
+                print(format_row(row), flush=True)
     return rows
 
 
-def format_row(row: dict[str, Any]) -> str:
-    def cell(value: Any) -> str:
-        return f"{value:.2f}" if isinstance(value, float) else str(value)[:40]
+def cell(row: dict[str, Any], client: str) -> str:
+    """The median seconds, with how many runs gave up and why; or the error when every run did."""
+    value, failed = row[client], row.get(client.removesuffix("_s") + "_failed", 0)
+    if not isinstance(value, float):
+        return f"failed: {str(value)[:40]}" + (f" ({failed} of {failed})" if failed > 1 else "")
+    if not failed:
+        return f"{value:.2f}"
+    errors = sorted({str(v).rpartition(": ")[2] for v in row["runs"][client] if not isinstance(v, float)})
+    return f"{value:.2f} ({failed} of {len(row['runs'][client])} failed: {', '.join(errors)[:40]})"
 
-    ratio = (f"{row['engine_s'] / row['mavsdk_s']:.2f}" if isinstance(row["mavsdk_s"], float) else "-")
-    return (f"{row['items']:5} {row['loss']:5.0%} {cell(row['engine_s']):>9} {cell(row['pymavlink_s']):>12} "
-            f"{cell(row['mavsdk_s']):>9} {row['engine_s'] / row['pymavlink_s']:8.2f} {ratio:>8}")
+
+def ratio(row: dict[str, Any], client: str) -> str:
+    return f"{row['engine_s'] / row[client]:.2f}" if isinstance(row[client], float) else "-"
+
+
+HEADER = ("| Vehicle | Items | Loss | Engine (s) | pymavlink (s) | MAVSDK, 0.5 s timeout (s) | MAVSDK, 1.5 s (s) "
+          "| engine/pymavlink | engine/MAVSDK 1.5 s | Load avg |\n|---|---|---|---|---|---|---|---|---|---|")
+
+
+def format_row(row: dict[str, Any]) -> str:
+    return (f"| {'MAVSDK' if row.get('vehicle') == 'mavsdk' else 'simulated'} | {row['items']} | {row['loss']:.0%} | "
+            + " | ".join(cell(row, c) if c in row else "-" for c in CLIENTS)
+            + f" | {ratio(row, 'pymavlink_s')} | {ratio(row, 'mavsdk_slow_s') if 'mavsdk_slow_s' in row else '-'} | "
+            + (f"{row['loadavg']:.1f} |" if "loadavg" in row else "- |"))
 
 
 def main() -> int:
@@ -183,10 +252,11 @@ def main() -> int:
     parser.add_argument("--sizes", type=int, nargs="+", default=[5, 20, 50, 200])
     parser.add_argument("--loss", type=float, nargs="+", default=[0.0, 0.05])
     parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--vehicles", nargs="+", choices=VEHICLES, default=list(VEHICLES))
     parser.add_argument("--json", type=Path, help="write the rows here")
     args = parser.parse_args()
-    print(f"{'items':>5} {'loss':>5} {'engine s':>9} {'pymavlink s':>12} {'mavsdk s':>9} {'e/pymav':>8} {'e/mavsdk':>8}")
-    rows = run(args.sizes, args.loss, args.repeat)
+    print(HEADER)
+    rows = run(args.sizes, args.loss, args.repeat, args.vehicles)
     if args.json:
         import json
 

@@ -74,23 +74,54 @@ def _us(ms: float | None) -> str:
     return "-" if ms is None else f"{ms * 1000:.0f}"
 
 
+def _ratio(row: dict[str, Any], role: str, key: str = "vs") -> str:
+    """The median per-round ratio with its min-max and interquartile range."""
+    spread = row.get(f"{key}_{role}_spread")
+    if not spread:
+        return _f(row.get(f"vs_{role}"), 2)
+    return (f"**{spread['median']:.2f}** ({spread['min']:.2f}-{spread['max']:.2f}; "
+            f"IQR {spread['q1']:.2f}-{spread['q3']:.2f}; n={spread['n']})")
+
+
+def _rates(result: dict[str, Any] | None) -> str:
+    """The median rate of a role's drains, with its min-max."""
+    if not result or "min" not in result:
+        return _rate(result)
+    text = f"{result['median']:.0f} ({result['min']:.0f}-{result['max']:.0f})"
+    return text + (f" (lost {result['lost']})" if result.get("lost") else "")
+
+
 def throughput_table(throughput: dict[str, Any]) -> list[str]:
-    lines = ["## 2-3. Maximum zero-loss throughput, msg/s, same run (ratios are what count)", "",
-             "| Route kind (GNSS position route) | Engine | Reference pass-through | Engine / reference | "
-             "Paper's design | Engine / paper | Engine latency at half rate p50 / p99 (ms) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["## 2-3. Throughput against the references, interleaved rounds in the same run", "",
+             "Each route kind: rounds of one drain per system of the same backlog, in alternating order (A B, B A, ...), "
+             "the ratio taken within each round (bench/throughput.py). Ratios: median per round (min-max; interquartile "
+             "range; rounds); rates: median msg/s (min-max).", "",
+             "| Route kind (GNSS position route) | Engine / reference | Engine msg/s | Reference msg/s | "
+             "CPU per message, reference / engine | Engine / paper | Paper's design msg/s | "
+             "Engine latency at half rate p50 / p99 (ms) |",
+             "|---|---|---|---|---|---|---|---|"]
     names = {"amqp-amqp": "AMQP -> AMQP", "amqp-ros2": "AMQP -> ROS 2", "ros2-amqp": "ROS 2 -> AMQP",
              "mavlink-amqp": "MAVLink (UDP) -> AMQP"}
     for kind, row in throughput.items():
         half = row.get("latency_half_rate") or {}
         latency = f"{_f(half.get('p50'))} / {_f(half.get('p99'))}" if "p50" in half else "-"
-        lines.append(f"| {names.get(kind, kind)} | {_rate(row.get('engine'))} | {_rate(row.get('reference'))} | "
-                     f"{_f(row.get('vs_reference'), 2)} | {_rate(row.get('paper'))} | {_f(row.get('vs_paper'), 2)} | {latency} |")
-    lines += ["", "References: aiormq consume (prefetch 1,000) -> pipelined publish per batch on a confirm channel -> "
-              "one ack(multiple) per batch; the same consumer -> rclpy String publish; an rclpy subscription taken in "
-              "batches -> the batched aiormq publisher; UDP -> pymavlink parse_buffer -> hand-written conversion -> "
-              "the batched aiormq publisher. Paper's design: aio-pika, rclpy's default executor spun from the asyncio "
-              "loop, jsonschema, synchronous logging, confirms off.", ""]
+        loads = [r["load"] for r in row.get("rounds", []) if "load" in r]
+        load = f" (load {min(loads):.1f}-{max(loads):.1f})" if loads else ""
+        cpu = _ratio(row, "reference", "cpu_vs")
+        if "cpu_us_per_msg" in (row.get("engine") or {}) and "cpu_us_per_msg" in (row.get("reference") or {}):
+            cpu += f" [{row['reference']['cpu_us_per_msg']:.0f} / {row['engine']['cpu_us_per_msg']:.0f} us]"
+        lines.append(f"| {names.get(kind, kind)}{load} | {_ratio(row, 'reference')} | {_rates(row.get('engine'))} | "
+                     f"{_rates(row.get('reference'))} | {cpu} | {_ratio(row, 'paper')} | {_rates(row.get('paper'))} | {latency} |")
+    lines += ["", "Drains (rate at the sink, from 10 % of the messages to the last; only the measured system runs, "
+              "the others are stopped): AMQP sources a queue filled while the bridge was stopped; ROS 2 sources a "
+              "burst held by DDS history; MAVLink a UDP receive buffer filled while the bridge was stopped. CPU per "
+              "message: the bridge's processes' user + system time over the same window (medians in brackets, "
+              "microseconds), the ratio per round, above 1 when the engine spends less. References: aiormq consume (prefetch 1,000) -> the route's conversion written by hand -> "
+              "pipelined publish per batch on a confirm channel -> one ack(multiple) per batch; the same consumer -> "
+              "rclpy String publish; an rclpy subscription taken in batches -> the batched aiormq publisher; UDP -> "
+              "pymavlink parse_buffer -> the batched aiormq publisher. Paper's design: aio-pika, rclpy's default "
+              "executor spun from the asyncio loop, jsonschema, synchronous logging, confirms off. Load: the 1-minute "
+              "load average at each round's start.", ""]
     return lines
 
 
@@ -132,7 +163,13 @@ def sik_table(sik: dict[str, Any]) -> list[str]:
                   f"| the radio flooded with {sik['tunnel_payload']} B payloads at the same loss | {sik['flood_payload_bytes_per_s']:.0f} | "
                   f"{sik['fraction_of_flood']:.2f} |",
                   f"| the same, with the vehicle's telemetry on the link (the way back) | "
-                  f"{sik['flood_with_telemetry_bytes_per_s']:.0f} | {sik['fraction_of_flood_with_telemetry']:.2f} |", "",
+                  f"{sik['flood_with_telemetry_bytes_per_s']:.0f} | {sik['fraction_of_flood_with_telemetry']:.2f} |"]
+        if sik.get("forward_goodput_bytes_per_s"):
+            lines += [f"| the way to the vehicle alone ({sik['forward_goodput_bytes_per_s']:.0f} B/s to the last message "
+                      f"stored), against the plain flood | {sik['flood_payload_bytes_per_s']:.0f} | "
+                      f"{sik['forward_fraction_of_flood']:.2f} |"]
+        lines += ["", "The round trip is bounded by its way back, which the vehicle's telemetry shares: compare it with "
+                  "the flood with telemetry. bench/goodput.py repeats these figures (median and spread).", "",
                   "The flood keeps the radio's buffer backlogged without overflowing it; it shows what the emulator "
                   "carries (each air packet starts at its next 4 ms tick, not the instant the window opens). "
                   "Goodput counts JSON bytes, the capacities TUNNEL payload (the tunnel's header included).", ""]
@@ -175,23 +212,27 @@ def calls_table(calls: dict[str, Any]) -> list[str]:
 def radio_latency_table(rows: list[dict[str, Any]]) -> list[str]:
     from bench.radio_latency import HEADER, format_row
 
-    return ["## 9. MAVLink latency over the emulated SiK radio", "",
-            "Telemetry: the vehicle's GLOBAL_POSITION_INT from its send to an AMQP consumer; command: an AMQP call "
-            "to COMMAND_LONG over the radio and the vehicle's COMMAND_ACK back as the call's reply (bench/radio_latency.py).",
+    return ["## 9. MAVLink latency over the emulated SiK radio: the engine against MAVSDK", "",
+            "Telemetry: the vehicle's GLOBAL_POSITION_INT from its send to the ground station's consumer (the engine: "
+            "an AMQP consumer behind a telemetry route; MAVSDK 4.1.0: its MavlinkDirect subscription). Command: an "
+            "arm COMMAND_LONG to its COMMAND_ACK (the engine: an AMQP call answered by the ack; MAVSDK: Action.arm() "
+            "returning). Two vehicles behind the same radio: the simulated one and MAVSDK's own (its C++ core as an "
+            "autopilot on the radio's serial port). One clock stamps both ends. Loads: TUNNEL frames (the engine: a "
+            "low route, paced; MAVSDK: MavlinkDirect at 2,880 B/s, it has no tunnel client and no priorities) and the "
+            "engine's JSON tunnel (needs the simulated vehicle). MAVSDK has no MAVLink signing: signed rows are the "
+            "engine's only (bench/radio_latency.py).",
             "", HEADER, *(format_row(row) for row in rows), ""]
 
 
 def mission_table(rows: list[dict[str, Any]]) -> list[str]:
-    def cell(value: Any) -> str:
-        return f"{value:.2f}" if isinstance(value, float) else f"failed: {value}"
+    from bench.mission_upload import HEADER, format_row
 
-    lines = ["## 10. Mission upload over the emulated SiK radio", "",
-             "The engine's mission sink, a plain pymavlink loop and MAVSDK's MissionRaw client (the mavsdk wheel as the "
-             "ground station), one after the other, to the simulated vehicle behind the same radio (bench/mission_upload.py).",
-             "", "| Items | Loss | Engine (s) | pymavlink (s) | MAVSDK (s) |", "|---|---|---|---|---|"]
-    lines += [f"| {r['items']} | {r['loss']:.0%} | {cell(r['engine_s'])} | {cell(r['pymavlink_s'])} | {cell(r['mavsdk_s'])} |"
-              for r in rows]
-    return lines + [""]
+    return ["## 10. Mission upload over the emulated SiK radio: the engine against MAVSDK", "",
+            "The engine's mission sink, a plain pymavlink loop and MAVSDK's MissionRaw client (the mavsdk wheel as the "
+            "ground station, with its default 0.5 s timeout and with set_timeout_s(1.5), the engine's), one after the "
+            "other through the same radio to the same vehicle: the simulated one and MAVSDK's own (MissionRawServer on "
+            "the radio's serial port). Median of the runs; a client that gave up says so (bench/mission_upload.py).",
+            "", HEADER, *(format_row(row) for row in rows), ""]
 
 
 def write_report(results: dict[str, Any], out: Path) -> None:
@@ -200,7 +241,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
              f"{before.get('date')}, commit {before.get('commit')}, {before.get('cpus')} CPUs, loop {before.get('loop')}; "
              f"load average before {_load(before)}, after {_load(after)} (the machine is shared: absolute figures "
              f"move with its load, ratios are measured in the same run). Total {results.get('seconds', 0):.0f} s.", ""]
-    for key, render in (("latency", latency_tables), ("throughput", throughput_table), ("sizes", sizes_table),
+    for key, render in (("latency", latency_tables), ("ct_l1", ct_l1_table), ("throughput", throughput_table), ("sizes", sizes_table),
                         ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table),
                         ("calls", calls_table), ("fleet", fleet_table),
                         ("radio_latency", radio_latency_table), ("mission", mission_table)):
@@ -216,6 +257,13 @@ def write_report(results: dict[str, Any], out: Path) -> None:
             lines += [f"## {key}: cannot render ({type(exc).__name__}: {exc})", ""]
     lines += ["Plots: " + ", ".join(f"`{p}`" for p in plots(results, out)), ""]
     (out / "report.md").write_text("\n".join(lines))
+
+
+def ct_l1_table(result: dict[str, Any]) -> list[str]:
+    from bench.ct_l1 import report
+
+    return ["## 1b. CT-L1 at a robot's pace: the engine against the paper's design, same machine, same run", "",
+            *report(result), ""]
 
 
 def fleet_table(fleet: dict[str, Any]) -> list[str]:

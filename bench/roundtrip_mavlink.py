@@ -46,7 +46,7 @@ connections:
 routes:
   - name: gcs-to-uav
     source:
-      amqp: {{connection: gcs, exchange: {exchange}, binding_key: to_uav, queue: {exchange}-to-uav}}
+      amqp: {{connection: gcs, exchange: {exchange}, binding_key: to_uav, queue: {exchange}-to-uav{prefetch}}}
     schema: raw_json
     sink:
       mavlink: {{connection: radio, json_tunnel: true, target_system: 1, target_component: 1}}
@@ -77,6 +77,8 @@ class Settings:
     exchange: str = "roundtrip"
     window: int | None = None
     """Tunnel messages in flight per direction (engine route and vehicle); None: the default."""
+    prefetch: int | None = None
+    """The AMQP source's prefetch on the way to the vehicle (its batches are half of it); None: the default."""
     out: Path = REPO / "results" / "mavlink_roundtrip"
 
     def rate_for(self, size: int) -> float:
@@ -96,6 +98,14 @@ class Batch:
     duplicates_back: int
     seconds: float
     """From the first publish to the last message back: the batch's throughput."""
+    forward_seconds: float | None
+    """From the first publish to the last message stored by the vehicle (the store is read
+    every 20 ms): the way to the vehicle alone, which no telemetry shares."""
+    back_span_seconds: float | None
+    """From the first message back to the last: the round trip's steady pace, without the
+    first message's way there and back (the flood reference leaves out its first second too)."""
+    forward_span_seconds: float | None
+    """From the first message stored by the vehicle to the last."""
     latencies_ms: list[float] = field(repr=False)
     csv: str
 
@@ -217,7 +227,8 @@ async def _with_broker(settings: Settings, amqp_url: str) -> dict[str, Any]:
         routes.mkdir()
         tunnel = f", tunnel: {{window: {settings.window}}}" if settings.window else ""
         (routes / "roundtrip.yaml").write_text(
-            ROUTES.format(amqp_url=amqp_url, link=pair.link_a, exchange=settings.exchange, tunnel=tunnel))
+            ROUTES.format(amqp_url=amqp_url, link=pair.link_a, exchange=settings.exchange, tunnel=tunnel,
+                          prefetch=f", prefetch: {settings.prefetch}" if settings.prefetch else ""))
         engine = Engine(routes, REPO / "schemas")
         await engine.start()
         rig.push_async_callback(engine.stop)
@@ -265,6 +276,9 @@ async def _batch(settings: Settings, exchange: Any, recorder: Recorder, store: P
     duplicates_before = recorder.duplicates
     sent_at: list[float] = []
     started = time.monotonic()
+    stored_at: dict[tuple[Any, Any, Any], float] = {}
+    watching = asyncio.Event()
+    watcher = asyncio.create_task(_watch_store(store, (run, size), stored_at, watching))
     if settings.outage is not None:
         pair.add_outage(pair.elapsed() + settings.outage[0], settings.outage[1])
     for index, body in enumerate(originals):
@@ -279,12 +293,36 @@ async def _batch(settings: Settings, exchange: Any, recorder: Recorder, store: P
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(recorder.arrived.wait(), 0.5)
     await asyncio.sleep(0.3)
+    watching.set()
+    await watcher
+    stored = sorted(stored_at.values()) if len(stored_at) == len(originals) else None
     return _record(settings.out, run, size, originals, sent_at, store, recorder,
-                   recorder.duplicates - duplicates_before)
+                   recorder.duplicates - duplicates_before,
+                   (stored[-1] - sent_at[0], stored[-1] - stored[0]) if stored else None)
+
+
+async def _watch_store(store: Path, batch: tuple[int, int], stored_at: dict[tuple[Any, Any, Any], float],
+                       done: asyncio.Event) -> None:
+    """When each message of ``batch`` (run, size) appeared in the vehicle's store, read every 20 ms."""
+    rest = b""
+    with open(store, "rb") as handle:
+        while True:
+            finished = done.is_set()
+            lines = (rest + handle.read()).split(b"\n")
+            rest = lines.pop()
+            now = time.monotonic()
+            for line in lines:
+                key = _key(line)
+                if key is not None and key[:2] == batch:
+                    stored_at.setdefault(key, now)
+            if finished:
+                return
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(done.wait(), 0.02)
 
 
 def _record(out: Path, run: int, size: int, originals: list[bytes], sent_at: list[float], store: Path,
-            recorder: Recorder, duplicates: int) -> Batch:
+            recorder: Recorder, duplicates: int, forward: tuple[float, float] | None = None) -> Batch:
     at_robot: dict[tuple[Any, Any, Any], bytes] = {}
     for line in store.read_bytes().splitlines():
         key = _key(line)
@@ -293,7 +331,7 @@ def _record(out: Path, run: int, size: int, originals: list[bytes], sent_at: lis
     path = out / f"mavlink_roundtrip_run{run}_{size}B.csv"
     identical = back = 0
     latencies = []
-    last = sent_at[0]
+    last, first = sent_at[0], None
     with open(path, "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(["seq", "original", "at_robot", "back_at_gcs", "identical"])
@@ -304,11 +342,13 @@ def _record(out: Path, run: int, size: int, originals: list[bytes], sent_at: lis
                 back += 1
                 latencies.append((arrived - sent_at[seq]) * 1000)
                 last = max(last, arrived)
+                first = arrived if first is None else min(first, arrived)
             same = original == robot == station
             identical += same
             writer.writerow([seq, original.decode(), robot.decode(), station.decode(), same])
     return Batch(run, size, len(originals), len(at_robot), back, identical, duplicates, last - sent_at[0],
-                 latencies, str(path))
+                 forward[0] if forward else None, None if first is None else last - first,
+                 forward[1] if forward else None, latencies, str(path))
 
 
 def _jsonable(settings: Settings) -> dict[str, Any]:

@@ -212,7 +212,10 @@ async def sik_goodput(url: str, count: int, size: int, loss: float = 0.0) -> dic
     """The paper's MAVLink round trip (engine -> JSON tunnel -> radio -> vehicle and back) driven
     faster than the radio carries; goodput = JSON bytes per second each way, from the first
     publish to the last message back, at ``loss``; against the constants' capacity and the
-    flood reference measured in the same run at the same loss (:func:`flood_capacity`)."""
+    flood reference measured in the same run at the same loss (:func:`flood_capacity`).
+    The way back shares the radio with the vehicle's telemetry, so the round trip is bounded
+    by the flood *with* telemetry; the way there alone (``forward_*``: the first publish to
+    the last message stored by the vehicle) compares with the plain flood."""
     from bench.roundtrip_mavlink import Settings, run_experiment
 
     capacity = link_payload_capacity()
@@ -225,11 +228,14 @@ async def sik_goodput(url: str, count: int, size: int, loss: float = 0.0) -> dic
         summary = await run_experiment(settings, amqp_url=url)
     batch = summary["batches"][0]
     goodput = batch["identical"] * size / batch["seconds"]
+    forward = batch["at_robot"] * size / batch["forward_seconds"] if batch.get("forward_seconds") else None
     return {"size": size, "loss": loss, "sent": batch["sent"], "identical": batch["identical"], "seconds": batch["seconds"],
             "goodput_bytes_per_s": goodput, **capacity, **flood,
             "fraction_of_capacity": goodput / capacity["payload_bytes_per_s"],
             "fraction_of_flood": goodput / flood["flood_payload_bytes_per_s"],
             "fraction_of_flood_with_telemetry": goodput / flood["flood_with_telemetry_bytes_per_s"],
+            "forward_seconds": batch.get("forward_seconds"), "forward_goodput_bytes_per_s": forward,
+            "forward_fraction_of_flood": forward / flood["flood_payload_bytes_per_s"] if forward else None,
             "radio": summary.get("radio"), "vehicle": summary.get("vehicle")}
 
 

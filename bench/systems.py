@@ -15,9 +15,15 @@
   converted by hand to the canonical position -> the batched aiormq publisher.
 * ``paper-amqp-ros2`` / ``paper-ros2-amqp``: the paper's own design re-implemented:
   aio-pika, rclpy's default executor spun from the asyncio loop, pure-Python ``jsonschema``
-  validation and synchronous logging of every message, publisher confirms off.
+  validation and synchronous logging of every message, publisher confirms off; with
+  ``latency_out`` the AMQP -> ROS 2 one records t2 - t1 as the engine does (bench/ct_l1.py);
+  with ``minimal`` it neither validates nor logs (the least the design can do per message).
 
-References do no schema validation: they are what the client libraries allow, the bound.
+References do no schema validation: they are what the client libraries allow, the bound. They
+do the route's conversion written by hand (``convert``: orjson, the mapping as code, sorted-key
+orjson), the same work on the body the engine's route does, with the same acknowledgement
+and confirm semantics (a source message acknowledged once its batch is published; confirms
+awaited per batch).
 """
 
 from __future__ import annotations
@@ -99,6 +105,24 @@ class BatchPublisher:
                 await asyncio.gather(*(publish(b, exchange=exchange, routing_key=key, properties=properties) for b in batch))
 
 
+def _converter(args: dict[str, Any]) -> Any:
+    """What a reference does to each body: the route's GNSS mapping written by hand
+    (orjson in, :func:`to_canonical`, sorted-key orjson out: the engine's canonical bytes)
+    where the engine's route has that mapping (``args['convert']``), else nothing (an
+    identity route). A reference that forwarded the bytes untouched would be measured
+    against an engine that parses, maps and serializes every message."""
+    if not args.get("convert"):
+        return None
+    import orjson
+
+    loads, dumps, sort = orjson.loads, orjson.dumps, orjson.OPT_SORT_KEYS
+
+    def convert(body: bytes) -> bytes:
+        return dumps(to_canonical(loads(body)), option=sort)
+
+    return convert
+
+
 def position_from_global_position_int(msg: Any) -> dict[str, Any]:
     """What the engine's uav1-position mapping computes, written by hand."""
     vx, vy, vz = msg.vx / 100, msg.vy / 100, msg.vz / 100
@@ -176,8 +200,11 @@ async def ref_amqp_amqp(args: dict[str, Any]) -> None:
     publish_channel = await out.channel(publisher_confirms=True)
     properties = Properties(delivery_mode=2, content_type="application/json")
     publish, exchange, key = publish_channel.basic_publish, args["exchange"], args["routing_key"]
+    convert = _converter(args)
 
     async def forward(bodies: list[bytes]) -> None:
+        if convert:
+            bodies = [convert(b) for b in bodies]
         await asyncio.gather(*(publish(b, exchange=exchange, routing_key=key, properties=properties) for b in bodies))
 
     connection, task = await _aiormq_consumer(args, forward)
@@ -193,10 +220,11 @@ async def ref_amqp_ros2(args: dict[str, Any]) -> None:
     context, node = _ros_context(args["domain"])
     publisher = node.create_publisher(String, args["topic"], _qos(latched=True))
     message = String()
+    convert = _converter(args)
 
     async def forward(bodies: list[bytes]) -> None:
         for body in bodies:
-            message.data = body.decode()
+            message.data = (convert(body) if convert else body).decode()
             publisher.publish(message)
 
     connection, task = await _aiormq_consumer(args, forward)
@@ -254,8 +282,11 @@ async def ref_ros2_amqp(args: dict[str, Any]) -> None:
         for body in bodies:
             batcher.put(body)
 
+    convert = _converter(args)
+
     def on_batch(batch: list[Any]) -> None:  # the take thread
-        loop.call_soon_threadsafe(put_all, [msg.data.encode() for msg in batch])
+        bodies = [msg.data.encode() for msg in batch]
+        loop.call_soon_threadsafe(put_all, [convert(b) for b in bodies] if convert else bodies)
 
     subscription = node.create_subscription(String, args["topic"], lambda msg: None, _qos())
     taker = TakeLoop(context, subscription, String, on_batch)
@@ -354,16 +385,26 @@ async def paper_amqp_ros2(args: dict[str, Any]) -> None:
     await channel.set_qos(prefetch_count=256)
     queue = await channel.get_queue(args["queue"])
 
+    latency_ns: list[int] | None = [] if args.get("latency_out") else None
+    validate = not args.get("minimal")
+
     async def on_message(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        received_ns = time.monotonic_ns()  # t1: aio-pika hands the message over
         async with message.process():
             canonical = to_canonical(json.loads(message.body))
-            validator.validate(canonical)
+            if validate:
+                validator.validate(canonical)
             publisher.publish(String(data=json.dumps(canonical)))
-            log.info("AMQP -> ROS 2 %s: %s", args["topic"], canonical)
+            if latency_ns is not None:  # t2: ROS 2 took it
+                latency_ns.append(time.monotonic_ns() - received_ns)
+            if validate:
+                log.info("AMQP -> ROS 2 %s: %s", args["topic"], canonical)
 
     spinner = asyncio.create_task(_spin_default_executor(node))
     await queue.consume(on_message)
     await _until_stopped()
+    if latency_ns is not None:
+        Path(args["latency_out"]).write_text(json.dumps(latency_ns))
     spinner.cancel()
     await connection.close()
     node.destroy_node()
@@ -432,7 +473,8 @@ async def ros_publisher(args: dict[str, Any]) -> None:
 
 
 async def mavlink_sender(args: dict[str, Any]) -> None:
-    """Send ``count`` GLOBAL_POSITION_INT frames (system 1) over UDP at ``rate`` per second."""
+    """Send ``count`` GLOBAL_POSITION_INT frames (system 1) over UDP at ``rate`` per second
+    (0: as fast as the socket takes them)."""
     import socket
 
     os.environ["MAVLINK20"] = "1"
@@ -448,7 +490,7 @@ async def mavlink_sender(args: dict[str, Any]) -> None:
     began = time.monotonic()
     for index in range(count):
         sock.sendto(frames[index % len(frames)], target)
-        delay = began + (index + 1) / rate - time.monotonic()
+        delay = began + (index + 1) / rate - time.monotonic() if rate else 0.0
         if delay > 0.001:
             await asyncio.sleep(delay)
     print(f"sent {count} in {time.monotonic() - began:.3f}", flush=True)

@@ -1,16 +1,39 @@
-"""Maximum zero-loss throughput of each route kind, against its references, in one run.
+"""Throughput of each route kind against its references, interleaved and repeated in one run.
 
 Every bridge (the engine, the reference pass-throughs on the client libraries, the paper's
-design) runs alone in a child process (``bench.systems``) on the same broker and the same
-load, and is observed from outside the same way:
+design) runs in a child process (``bench.systems``) on the same broker and the same load, and
+is observed from outside the same way. A sequential search of each system's maximum zero-loss
+rate gave the same code ratios from 0.39 to 1.28 for one kind on a quiet 2-core machine
+(bench/results/2026-11-23/ratios): the broker, the load generator, the counter and the bridge
+share two cores, so a reference measured a minute before the engine saw another machine.
+:func:`interleaved` therefore starts every system of a kind once (:class:`Bridge`), drains
+the same backlog through each in rounds, A B then B A (``pairs`` rounds, after one warm-up
+drain each), and takes the ratio within each round: the median per-round ratio and its spread
+(min-max and interquartile range) are what the report gives, next to the absolute rates. Only
+the system being measured runs; the others are stopped (SIGSTOP). Each drain also gives the
+bridge's CPU time per message (its processes' user + system time over the same window), which
+the machine's other load moves much less than the wall-clock rate.
 
-* AMQP sources drain a pre-filled durable queue of persistent messages; ROS 2 sources drain a
-  burst held by DDS history (depth 10,000); the rate is taken between 10 % and 100 % of the
-  messages at the sink, so start-up is not counted;
-* MAVLink (UDP) has no buffer to drain: a sender paces GLOBAL_POSITION_INT at rising rates and
-  the highest rate at which every message arrived is the zero-loss throughput;
-* zero loss is checked by counting at the sink (AMQP: the bound queue's message count; ROS 2:
-  a subscriber in this process).
+How each source kind is drained (the rate is taken at the sink, from 10 % of the messages to
+the last, so the bridge's wake-up is not counted), and why that is the least noisy choice:
+
+* AMQP sources: the bridge's durable queue is filled with ``count`` persistent messages
+  (confirmed by the broker) while the bridge is stopped, then it continues and drains them.
+  The same N each time, and no publisher runs during the measurement.
+* ROS 2 sources: a publisher bursts ``count`` messages as fast as rclpy goes once the bridge's
+  subscription matched; reliable, keep-last 10,000 on both sides, so the burst (at most 9,000)
+  is held by DDS history and none may be lost. A fixed offered rate above capacity would lose
+  messages by design (keep-last history overwrites) and keep the publisher busy for the whole
+  measurement, where a burst is published in a fraction of the drain and leaves the bridge
+  draining its reader history alone for the rest. The bridge cannot be stopped while its
+  history fills: a stopped reliable reader stalls the writer's protocol, whose resends are
+  timed.
+* MAVLink over UDP: while the bridge is stopped a sender fills its socket's receive buffer
+  (4 MiB asked, the engine's own: about 10,000 datagrams of GLOBAL_POSITION_INT) with
+  ``count`` frames, none dropped by the kernel (checked), then the bridge continues and drains
+  them. A paced ladder of rates decided each step by the longest pause in it (one pause of a
+  few hundred ms on a shared machine overflows any UDP buffer) and ran the sender during the
+  measurement; the drain measures the same carrying capacity with nothing else running.
 
 Latency p50/p99 at half the measured rate comes from the engine itself (t2 - t1 of every message).
 """
@@ -19,7 +42,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -44,6 +69,10 @@ MAVLINK_POSITION_MAPPING = (
     "lat: deg_e7_to_deg(lat), lon: deg_e7_to_deg(lon), alt_msl: mm_to_m(alt), alt_rel: mm_to_m(relative_alt), "
     "velocity_enu: ned_to_enu([cm_to_m(vx), cm_to_m(vy), cm_to_m(vz)]), heading: heading_cdeg_to_deg(hdg)}"
 )
+MAX_BURST = 9000
+"""Most messages of one drain: a ROS 2 burst must fit DDS history (keep-last 10,000) and a
+MAVLink one the UDP socket's receive buffer (about 10,000 datagrams of 8 MiB at Linux's
+accounting)."""
 STALL_S = 8.0
 """No progress at the sink for this long ends a measurement (the rest counts as lost)."""
 
@@ -101,14 +130,34 @@ class Child:
                 total += int(fields[11]) + int(fields[12])
         return total / os.sysconf("SC_CLK_TCK")
 
+    def group_pids(self) -> list[int]:
+        """The processes of the child's group besides its leader (``timeout``)."""
+        pids = []
+        for entry in Path("/proc").iterdir():
+            if entry.name.isdigit() and int(entry.name) != self.process.pid:
+                try:
+                    if int((entry / "stat").read_text().rsplit(")", 1)[1].split()[2]) == self.process.pid:
+                        pids.append(int(entry.name))
+                except OSError:
+                    continue
+        return pids
+
+    def pause(self) -> None:
+        """Stop the child's processes (SIGSTOP): whatever is sent to it waits in its buffers."""
+        os.killpg(self.process.pid, signal.SIGSTOP)
+
+    def resume(self) -> None:
+        os.killpg(self.process.pid, signal.SIGCONT)
+
     async def stop(self, timeout: float = 20.0) -> None:
         if self.process.poll() is None:
-            os.killpg(self.process.pid, 15)
+            os.killpg(self.process.pid, signal.SIGTERM)
+            os.killpg(self.process.pid, signal.SIGCONT)  # a paused child must see its SIGTERM
             deadline = time.monotonic() + timeout
             while self.process.poll() is None and time.monotonic() < deadline:
                 await asyncio.sleep(0.05)
             if self.process.poll() is None:
-                os.killpg(self.process.pid, 9)
+                os.killpg(self.process.pid, signal.SIGKILL)
                 self.process.wait()
 
 
@@ -157,6 +206,18 @@ class Broker:
         deadline = time.monotonic() + 60
         while wait and await self.count(queue) < len(bodies) and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
+
+    async def prefill_confirmed(self, queue: str, bodies: list[bytes]) -> None:
+        """Publish ``bodies`` (persistent) to ``queue`` and return once the broker confirmed
+        every one: they are all in the queue or already delivered to its consumer."""
+        channel = await self.connection.channel(publisher_confirms=True)
+        properties = Properties(delivery_mode=2, content_type="application/json")
+        try:
+            for begin in range(0, len(bodies), 1000):
+                await asyncio.gather(*(channel.basic_publish(body, routing_key=queue, properties=properties)
+                                       for body in bodies[begin:begin + 1000]))
+        finally:
+            await channel.close()
 
     async def publish_paced(self, queue: str, count: int, rate: float) -> None:
         properties = Properties(delivery_mode=2, content_type="application/json")
@@ -284,7 +345,7 @@ async def drain_amqp_source(broker: Broker, kind: str, system: str, count: int, 
     await broker.prefill(names["queue"], [body(i) for i in range(count)])
     try:
         with tempfile.TemporaryDirectory() as work:
-            args: dict[str, Any] = {"url": broker.url, "domain": domain, "topic": topic, **names}
+            args: dict[str, Any] = {"url": broker.url, "domain": domain, "topic": topic, "convert": mapping is not None, **names}
             if system == "engine":
                 args["routes"] = str(routes_file(Path(work), kind, names, broker.url, domain, schema=schema, mapping=mapping).parent)
             async with child(system, args) as bridge:
@@ -325,7 +386,7 @@ async def drain_ros2_source(broker: Broker, system: str, count: int, domain: int
     topic = f"/bench/{names['queue'].replace('-', '_')}"
     try:
         with tempfile.TemporaryDirectory() as work:
-            args: dict[str, Any] = {"url": broker.url, "domain": domain, "topic": topic, **names}
+            args: dict[str, Any] = {"url": broker.url, "domain": domain, "topic": topic, "convert": True, **names}
             if system == "engine":
                 args["routes"] = str(routes_file(Path(work), "ros2-amqp", names, broker.url, domain).parent)
             async with child(system, args) as bridge:
@@ -350,77 +411,188 @@ def udp_drops(port: int) -> int:
     return 0
 
 
-async def mavlink_ladder(broker: Broker, system: str, rates: list[int], seconds: float,
-                         attempts: int = 2, refine: int = 2) -> dict[str, Any]:
-    """MAVLink (UDP) -> AMQP: the highest paced rate the bridge sustains with zero loss.
+class Bridge:
+    """One system of a route kind (``engine``, a reference or the paper's design), started once
+    for all its drains on its own topology, and stopped (SIGSTOP) whenever it is not the one
+    being measured: the paper's design spins its executor every 0.5 ms even when idle, and only
+    the system under measurement may use the machine. A pause lasts a few seconds, well within
+    DDS's participant lease (Fast DDS: 20 s), so ROS 2 matches survive it."""
 
-    A step passes when every message arrived and the sink kept up: the messages reached it
-    at no less than 90 % of the paced rate, from the sender's first frame to the last
-    message at the sink (a bridge that only queues what it cannot carry would otherwise pass
-    a short step and fall behind for good on a long one). Every system climbs the same
-    ladder in the same way: each rate is sent for ``seconds`` by a fresh sender; a step
-    that fails (or whose sender fell behind) is tried again, up to
-    ``attempts`` times, since on a shared machine one pause of a few hundred ms fills any UDP
-    receive buffer; the climb ends at the first rate that fails every attempt, and ``refine``
-    bisections between it and the last rate passed sharpen the result (1,000 msg/s steps
-    alone would move a ratio by a sixth). Each step
-    records the kernel's drops at the bridge's socket (``udp_drops``): loss there means the
-    bridge did not read in time, loss elsewhere is the bridge's own."""
-    tag = uuid.uuid4().hex[:8]
-    names = await broker.topology(tag)
-    port = free_udp_port()
-    steps = []
+    def __init__(self, broker: Broker, kind: str, system: str, domain: int, work: Path) -> None:
+        self.broker, self.kind, self.system, self.domain, self.work = broker, kind, system, domain, work
+        self.names: dict[str, str] = {}
+        self.port = free_udp_port()
+        self.counter: RosCounter | None = None
+        self.child: Child | None = None
+        self.pids: list[int] = []
+
+    @property
+    def topic(self) -> str:
+        return f"/bench/{self.names['queue'].replace('-', '_')}"
+
+    async def start(self) -> None:
+        self.names = await self.broker.topology(uuid.uuid4().hex[:8])
+        if self.kind == "amqp-ros2":
+            self.counter = RosCounter(self.domain, self.topic)
+        args: dict[str, Any] = {"url": self.broker.url, "domain": self.domain, "topic": self.topic, "port": self.port,
+                                "convert": True, **self.names}
+        if self.system == "engine":
+            directory = self.work / self.names["queue"]
+            directory.mkdir()
+            args["routes"] = str(routes_file(directory, self.kind, self.names, self.broker.url, self.domain, port=self.port).parent)
+        self.child = Child(self.system, args)
+        await self.child.wait_for("ready")
+        self.pids = [self.child.process.pid, *self.child.group_pids()]
+        if self.counter is not None:
+            await self.counter.matched()
+        self.child.pause()
+
+    async def sunk(self) -> int:
+        """Messages at the sink so far."""
+        if self.counter is not None:
+            return self.counter.count
+        return await self.broker.count(self.names["sink"])
+
+    def cpu_seconds(self) -> float:
+        return sum(process_cpu_seconds(pid) for pid in self.pids)
+
+    async def drain(self, count: int) -> dict[str, Any]:
+        """One drain of ``count`` messages (the module's docstring says how, per source kind);
+        the bridge runs only during it."""
+        assert self.child is not None
+        if self.counter is None:
+            await self.broker.channel.queue_purge(self.names["sink"])
+        base, extra = await self.sunk(), {}
+        if self.kind == "ros2-amqp":
+            self.child.resume()
+            publisher = Child("ros-publisher", {"domain": self.domain, "topic": self.topic, "count": count, "rate": 0})
+            try:
+                result = await observe_drain(self.sunk, base, count, self.cpu_seconds)
+            finally:
+                await publisher.stop()
+        else:
+            if self.kind == "mavlink-amqp":
+                drops_before = udp_drops(self.port)
+                sender = Child("mavlink-sender", {"port": self.port, "rate": 0, "count": count})
+                await sender.wait_for("sent", timeout=60)
+                extra["kernel_drops"] = udp_drops(self.port) - drops_before
+            else:
+                await self.broker.prefill_confirmed(self.names["queue"], [gnss_json(i) for i in range(count)])
+            self.child.resume()
+            result = await observe_drain(self.sunk, base, count - extra.get("kernel_drops", 0), self.cpu_seconds)
+        self.child.pause()
+        result.update(extra, sent=count, lost=count - result["delivered"])
+        if result["lost"]:
+            result["errors"] = self.child.errors()[-1000:]
+        return result
+
+    async def stop(self) -> None:
+        if self.child is not None:
+            await self.child.stop()
+        if self.counter is not None:
+            self.counter.close()
+        if self.names:
+            await self.broker.drop(self.names)
+
+
+def process_cpu_seconds(pid: int) -> float:
+    """CPU time (user + system, all threads) process ``pid`` has used, 0 once it is gone."""
     try:
-        with tempfile.TemporaryDirectory() as work:
-            args: dict[str, Any] = {"url": broker.url, "port": port, **names}
-            if system == "engine":
-                args["routes"] = str(routes_file(Path(work), "mavlink-amqp", names, broker.url, domain_id(), port=port).parent)
-            async with child(system, args):
-                delivered = [0]
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
-                async def passes(rate: int) -> bool:
-                    for attempt in range(1, attempts + 1):
-                        count = int(rate * seconds)
-                        drops_before = udp_drops(port)
-                        sender = Child("mavlink-sender", {"port": port, "rate": rate, "count": count})
-                        await sender.wait_for("sending", timeout=30)
-                        began = time.monotonic()
-                        sent_line = await sender.wait_for("sent", timeout=seconds * 4 + 30)
-                        achieved = count / float(sent_line.split()[-1])
-                        result = await observe(lambda: broker.count(names["sink"]), delivered[0] + count,
-                                               stall=2.0, first=10.0)
-                        arrived = result["delivered"] - delivered[0]
-                        delivered[0] = result["delivered"]
-                        step = {"rate": rate, "attempt": attempt, "sent_rate": achieved, "sent": count,
-                                "delivered": arrived, "lost": count - arrived,
-                                "sink_rate": arrived / max(1e-3, result["done_at"] - began),
-                                "udp_drops": udp_drops(port) - drops_before}
-                        step["passed"] = (not step["lost"] and achieved >= rate * 0.9
-                                          and step["sink_rate"] >= rate * 0.9)
-                        steps.append(step)
-                        if step["passed"]:
-                            return True
-                    return False
 
-                passed, failed = 0, None
-                for rate in rates:
-                    if not await passes(rate):
-                        failed = rate
-                        break
-                    passed = rate
-                for _ in range(refine if failed is not None else 0):  # between the last rate passed and the first failed
-                    middle = (passed + failed) // 2
-                    if middle in (passed, failed):
-                        break
-                    if await passes(middle):
-                        passed = middle
-                    else:
-                        failed = middle
-    finally:
-        await broker.drop(names)
-    zero_loss = [s for s in steps if s["passed"]]
-    return {"msg_per_s": max((s["rate"] for s in zero_loss), default=0), "steps": steps,
-            "lost": 0 if zero_loss else steps[-1]["lost"]}
+async def observe_drain(sunk: Any, base: int, total: int, cpu: Any, stall: float = STALL_S) -> dict[str, Any]:
+    """Poll the sink until ``total`` messages arrived past ``base`` or it stalls; the rate and
+    the bridge's CPU time per message between 10 % of them and the last (start-up, the first
+    batches and, for ROS 2, the publisher's start are not counted)."""
+    samples: list[tuple[float, int, float]] = []
+    last_change, last = time.monotonic() + 40.0 - stall, 0
+    while True:
+        now, seen = time.monotonic(), await sunk() - base
+        samples.append((now, seen, cpu()))
+        if seen != last:
+            last_change, last = now, seen
+        if seen >= total or now - last_change > stall:
+            break
+        await asyncio.sleep(0.02)
+    start = next((sample for sample in samples if sample[1] >= total * 0.1), samples[0])
+    end = next(sample for sample in samples if sample[1] >= seen)
+    carried = end[1] - start[1]
+    rate = carried / (end[0] - start[0]) if end[0] > start[0] else float("nan")
+    cpu_us = (end[2] - start[2]) * 1e6 / carried if carried > 0 else float("nan")
+    return {"msg_per_s": rate, "cpu_us_per_msg": cpu_us, "delivered": seen}
+
+
+def spread(values: list[float]) -> dict[str, float]:
+    """Median, min-max and interquartile range of ``values`` (at least one)."""
+    ordered = sorted(values)
+    quartiles = statistics.quantiles(ordered, n=4, method="inclusive") if len(ordered) > 1 else [ordered[0]] * 3
+    return {"median": statistics.median(ordered), "min": ordered[0], "max": ordered[-1],
+            "q1": quartiles[0], "q3": quartiles[2], "n": len(ordered)}
+
+
+async def interleaved(broker: Broker, kind: str, systems: dict[str, str], pairs: int, count: int,
+                      domain: int, counts: dict[str, int] | None = None) -> dict[str, Any]:
+    """``pairs`` rounds of one drain per system (``systems``: role -> system, ``engine`` among
+    them), in alternating order (A B, B A, ...), after one warm-up drain each; the engine's
+    ratio to every other role taken within each round, for the rate and (inverted, so that
+    above 1 is better for the engine too) for CPU time per message. A failed drain (an error,
+    or messages lost) gives its round no ratio. ``counts`` gives a role a smaller drain (the
+    paper's design carries a few hundred msg/s: ``count`` messages would take it half a
+    minute a round)."""
+    roles = list(systems)
+    counts = {role: count for role in roles} | (counts or {})
+    rounds: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as work:
+        # one ROS 2 domain per bridge: a stopped participant on the measured one's domain slowed its drains 5-10x
+        bridges = {role: Bridge(broker, kind, systems[role], 100 + (domain - 100 + 33 * index) % 100, Path(work))
+                   for index, role in enumerate(roles)}
+        try:
+            for role, bridge in bridges.items():
+                await bridge.start()
+                await bridge.drain(max(500, counts[role] // 5))  # warm-up, not counted
+            for index in range(pairs):
+                trial: dict[str, Any] = {"load": os.getloadavg()[0]}
+                for role in (roles if index % 2 == 0 else roles[::-1]):
+                    print(f"  {kind} round {index + 1}/{pairs}: {systems[role]}", flush=True)
+                    try:
+                        trial[role] = await bridges[role].drain(counts[role])
+                    except Exception as exc:
+                        trial[role] = {"error": f"{type(exc).__name__}: {exc}"[:2000], "msg_per_s": float("nan")}
+                rounds.append(trial)
+        finally:
+            for bridge in bridges.values():
+                await bridge.stop()
+    return summarize(rounds, roles, pairs, counts)
+
+
+def summarize(rounds: list[dict[str, Any]], roles: list[str], pairs: int, counts: dict[str, int]) -> dict[str, Any]:
+    row: dict[str, Any] = {"rounds": rounds, "pairs": pairs, "counts": counts}
+    for role in roles:
+        good = [r[role] for r in rounds if _good(r[role])]
+        row[role] = {**spread([g["msg_per_s"] for g in good]), "msg_per_s": statistics.median(g["msg_per_s"] for g in good),
+                     "cpu_us_per_msg": statistics.median(g["cpu_us_per_msg"] for g in good)} if good else {
+            "msg_per_s": float("nan"), "error": next((r[role]["error"] for r in rounds if "error" in r[role]), "lost")}
+        row[role]["lost"] = sum(r[role].get("lost", 0) for r in rounds)
+    for role in roles:
+        if role == "engine":
+            continue
+        pairs_good = [(r["engine"], r[role]) for r in rounds if _good(r["engine"]) and _good(r[role])]
+        if pairs_good:
+            ratios = [engine["msg_per_s"] / other["msg_per_s"] for engine, other in pairs_good]
+            row[f"vs_{role}"] = statistics.median(ratios)
+            row[f"vs_{role}_spread"] = spread(ratios)
+            row[f"cpu_vs_{role}_spread"] = spread([other["cpu_us_per_msg"] / engine["cpu_us_per_msg"]
+                                                   for engine, other in pairs_good])
+    return row
+
+
+def _good(result: dict[str, Any]) -> bool:
+    rate = result.get("msg_per_s", float("nan"))
+    return "error" not in result and not result.get("lost") and math.isfinite(rate) and rate > 0
 
 
 async def engine_latency_at_rate(broker: Broker, kind: str, rate: float, seconds: float, domain: int) -> dict[str, Any]:

@@ -132,6 +132,15 @@ class RouteRunner:
     def queue_limit(self) -> int:
         return self.spec.delivery.queue_limit
 
+    @property
+    def batches_in_flight(self) -> int:
+        """The one decision of how many batches the source may have in flight (the
+        ``Deliver`` contract): what the sink declares, but one at a time where the route
+        keeps order (``ordered``) or its buffer does (held messages go out in order)."""
+        if self.spec.placement.ordered or self.buffer is not None:
+            return 1
+        return max(1, self.pipeline.sink.batches_in_flight)
+
     async def __call__(self, inbound: Inbound) -> None:
         if not (await self.batch((inbound,)))[0]:
             raise EndpointError(f"route {self.spec.name!r}: message not settled (route stopping)")
@@ -604,6 +613,10 @@ class StandbyGate:
     @property
     def queue_limit(self) -> int:
         return self.runner.queue_limit
+
+    @property
+    def batches_in_flight(self) -> int:
+        return self.runner.batches_in_flight
 
     @property
     def fair(self) -> FairOptions | None:

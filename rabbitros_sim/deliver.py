@@ -17,6 +17,7 @@ class FunctionDeliver:
         self.function = function
         self.overflow = overflow
         self.queue_limit = queue_limit
+        self.batches_in_flight = 1
         self.drops = 0
 
     async def __call__(self, inbound: Inbound) -> None:

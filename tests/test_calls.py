@@ -18,6 +18,7 @@ from typing import Any
 import aio_pika
 
 from engine.runtime import Engine
+from rabbitros_sim.sik_radio import SikRadioPair
 from rabbitros_sim.vehicle import SimVehicle
 from tests.amqp_helpers import Caller
 from tests.mavsdk_vehicle import MavsdkAutopilot
@@ -136,6 +137,55 @@ def test_denied_command_is_one_error_reply_and_a_mission_call_is_answered_throug
     [(kind, error)] = [_reply(m) for m in caller.replies[arm]]
     assert kind == "error" and error["stage"] == "sink" and "MAV_RESULT_DENIED" in error["error"], error
     assert [_reply(m) for m in caller.replies[mission]] == [("result", {"accepted": True, "waypoints": len(WEEDS)})]
+
+
+def test_arm_and_mission_calls_through_the_emulated_radio_are_answered_by_mavsdk(
+        tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """MAVSDK's vehicle behind the emulated SiK radio (57,600 baud, 5 % air-packet loss): MAVSDK
+    opens the radio's vehicle-side pseudo-terminal as a serial port, the engine the ground side.
+    The arm call gets MAVSDK's MAV_RESULT_ACCEPTED back through the radio, and the mission call
+    MAV_MISSION_ACCEPTED with MAVSDK holding the waypoints in order (a transfer the loss made
+    the engine start again is MAVSDK's failed transfer, not a second mission)."""
+    tag = uuid.uuid4().hex[:8]
+
+    async def scenario() -> tuple[Caller, str, str, MavsdkAutopilot]:
+        async with SikRadioPair(loss=0.05, seed=21) as pair:
+            autopilot = MavsdkAutopilot(f"serial://{pair.device_b}:57600")
+            try:
+                routes = _routes(tmp_path / "routes", amqp_url, pair.link_a, tag, f"""\
+  - name: mission-{tag}
+    source: {{amqp: {{connection: bus, queue: mission-{tag}}}}}
+    schema: mission
+    sink: {{mavlink: {{connection: uav, mission: upload, retries: 10}}}}
+    reply: {{mapping: "{{accepted: result == 'MAV_MISSION_ACCEPTED', waypoints: items}}"}}
+""")
+                engine = Engine(routes, schemas_dir)
+                await engine.start()
+                connection = await aio_pika.connect(amqp_url)
+                try:
+                    channel = await connection.channel()
+                    caller = await Caller.open(channel)
+                    arm = await caller.call("", f"arm-{tag}", _command())
+                    mission = await caller.call("", f"mission-{tag}", json.dumps(canonical_mission(WEEDS)).encode())
+                    await caller.wait(lambda r: arm in r and mission in r, 60, "the arm's and the mission's replies")
+                    for queue in (f"arm-{tag}", f"mission-{tag}"):
+                        await channel.queue_delete(queue)
+                finally:
+                    await engine.stop()
+                    await connection.close()
+            finally:
+                autopilot.close()
+        return caller, arm, mission, autopilot
+
+    caller, arm, mission, autopilot = run(scenario(), 120)
+    assert [_reply(m) for m in caller.replies[arm]] == [
+        ("result", {"kind": "result", "result": "MAV_RESULT_ACCEPTED", "command": 400})]
+    # a lost COMMAND_ACK makes the engine send the command again, and MAVSDK acts on each copy
+    assert autopilot.arm_requests and all(arm.arm for arm in autopilot.arm_requests), autopilot.arm_requests
+    assert [_reply(m) for m in caller.replies[mission]] == [("result", {"accepted": True, "waypoints": len(WEEDS)})]
+    expected = [(seq, round(lat * 1e7), round(lon * 1e7)) for seq, (lat, lon) in enumerate(WEEDS)]
+    assert autopilot.missions, autopilot.failed_transfers
+    assert all([(item.seq, item.x, item.y) for item in items] == expected for items in autopilot.missions), autopilot.missions
 
 
 def test_reply_is_checked_at_load(tmp_path: Path, schemas_dir: Path) -> None:

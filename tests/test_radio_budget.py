@@ -210,3 +210,29 @@ def test_the_budget_follows_txbuf_and_the_fade_margin() -> None:
     assert budget.rate(35.0) == 720.0
     assert budget.rate(38.5) == 2880.0, "a report older than 3 s no longer counts"
     assert RadioBudget(0.0).rate(1.0) == 0.0, "a network link is not paced"
+
+
+def test_a_low_first_estimate_of_the_air_does_not_hold_the_budget_down() -> None:
+    """The first sign of a backlog measures the air by what it carried, a lower bound (the
+    buffer was empty for part of the interval). Reports that then land between the radio's
+    transmit windows alternate between an empty buffer and a few hundred bytes, so no
+    interval is backlogged throughout and that estimate was never measured again: the budget
+    stayed at 550-1,150 B/s on a radio carrying 2,300 (on the emulated radio, the simulated
+    vehicle's sat at 1,600-2,300 B/s with its frames queued). What left a buffer that ran dry
+    is a lower bound too, and the estimate moves up to it."""
+    from engine.endpoints.mavlink.budget import RadioBudget
+
+    budget = RadioBudget(2880.0)
+    budget.report(radio_status(100), 0.0)
+    budget.sent(600)
+    budget.report(radio_status(85), 1.0)  # 307 B in use: the air "carried 300 B/s"
+    used, air, rates = 307.0, 2300.0, []
+    for t in range(2, 14):
+        sent = budget.rate(float(t))
+        budget.sent(round(sent))
+        used = max(0.0, used + sent - air)
+        assert used < 2048, f"the radio's buffer overflowed at {t} s"
+        at_report = used + (300 if t % 2 else 0)  # between the transmit windows: what the other side's window left
+        budget.report(radio_status(round(100 - at_report * 100 / 2048)), float(t))
+        rates.append(budget.rate(float(t)))
+    assert min(rates[-4:]) > 2000, rates

@@ -215,6 +215,11 @@ class Deliver(Protocol):
     """One of :data:`OVERFLOW_POLICIES`, for sources that queue messages in memory."""
     queue_limit: int
     """The most messages a source may hold between its protocol and ``batch``."""
+    batches_in_flight: int
+    """How many ``batch`` calls a source that settles in batches (AMQP) may have running at
+    once: 1 unless the route's sink declares more (:attr:`Sink.batches_in_flight`) and the
+    route neither keeps order (``ordered``) nor holds messages in a buffer. The source still
+    settles its batches in the order it took them, each message only once ``batch`` said so."""
 
     async def __call__(self, inbound: Inbound) -> None:
         """Settle one message; raises :class:`EndpointError` if it could not be settled."""
@@ -313,6 +318,15 @@ class Source(ABC):
 
 
 class Sink(ABC):
+    batches_in_flight: ClassVar[int] = 1
+    """How many of a route's batches the sink may be sending at once (see
+    :attr:`Deliver.batches_in_flight`). With 1 the source hands the next batch only once the
+    sink accepted the previous one, so the sink idles for its own acceptance round trip
+    between batches. A sink that takes long to accept but can send more meanwhile declares
+    more: the JSON tunnel over a radio (engine/endpoints/mavlink/tunnel.py) accepts a message
+    only when the vehicle acknowledged it (a TDM round and more; seconds when a last fragment
+    or its acknowledgement was lost), and measured on the emulated SiK radio the radio stood
+    idle for that long after every batch (bench/results/2026-11-23/goodput/)."""
     cancels: ClassVar[bool] = False
     """True when the sink understands a cancel: a message whose source marked it
     ``meta["cancel"] = <correlation id of an earlier request>`` reaches the sink unconverted

@@ -5,10 +5,12 @@ appends to a list; one loop per source hands everything received (up to half the
 to the route as one batch, then acknowledges with a single ``basic_ack(multiple=True)`` up
 to the highest delivery tag whose whole prefix was settled (accepted by the sink or
 dead-lettered); the rest of the batch is acked one by one or nacked with requeue. Batches
-are settled in order, one at a time, so every earlier tag is already acked or nacked and
-at-least-once holds: a crash or a reload redelivers instead of losing. Sinks publish on
-the connection's channel with publisher confirms (configurable), every route's batch of a
-loop turn in one shared round (one write, one confirm wait: engine/endpoints/amqp/publisher.py),
+are acknowledged in order, so every earlier tag is already acked or nacked and
+at-least-once holds: a crash or a reload redelivers instead of losing. They are settled one
+at a time unless the route's sink declares it can send more meanwhile
+(``Sink.batches_in_flight``: the JSON tunnel over a radio). Sinks publish on the
+connection's channel with publisher confirms (configurable), every route's batch of a loop
+turn in one shared round (one write, one confirm wait: engine/endpoints/amqp/publisher.py),
 each route answered per message, so "accepted" means the broker took responsibility.
 
 One robust connection per named connection is shared by all routes (aio-pika re-opens it,
@@ -298,6 +300,9 @@ class AmqpSource(Source):
         self._loop: asyncio.Task[None] | None = None
         self._max_batch = max(1, options.prefetch // 2)
         """Half the prefetch: the broker keeps streaming the next batch while one is settled."""
+        self._in_flight = 0
+        """Batches handed to the route and not yet acknowledged, beyond the one settled inline."""
+        self._room = asyncio.Event()
 
     @property
     def queue_name(self) -> str:
@@ -350,14 +355,47 @@ class AmqpSource(Source):
         self._received.wake()
 
     async def _run(self, deliver: Deliver) -> None:
-        while batch := await self._received.take(self._max_batch):
-            inbounds = [_inbound(message, received_ns) for message, received_ns in batch]
-            try:
-                settled = await deliver.batch(inbounds)
-            except Exception as exc:  # a bug in the engine must not lose messages: requeue them
-                log.exception("route %r: settling a batch failed", self._route, exc_info=exc)
-                settled = [False] * len(batch)
+        """Hand each batch to the route, then acknowledge it. While the route lets more than
+        one batch be in flight (``deliver.batches_in_flight``, asked before each batch: a
+        reload may swap the sink), the next batch is handed over while earlier ones await
+        their sink, and a second task acknowledges them in the order they were taken, so
+        ``basic_ack(multiple=True)`` never covers a message of a batch not yet settled. One
+        at a time (most routes), a batch is settled and acknowledged here, with no task."""
+        taken: asyncio.Queue[tuple[list[tuple[aiormq.abc.DeliveredMessage, int]], asyncio.Task[list[bool]]] | None]
+        taken = asyncio.Queue()
+        settler = asyncio.create_task(self._acknowledge_in_order(taken), name=f"amqp-settle:{self._route}")
+        try:
+            while True:
+                while self._in_flight and self._in_flight >= deliver.batches_in_flight:
+                    self._room.clear()
+                    await self._room.wait()
+                batch = await self._received.take(self._max_batch)
+                if not batch:
+                    break
+                if not self._in_flight and deliver.batches_in_flight <= 1:
+                    await self._acknowledge([message for message, _ in batch], await self._deliver_batch(deliver, batch))
+                    continue
+                self._in_flight += 1
+                taken.put_nowait((batch, asyncio.create_task(self._deliver_batch(deliver, batch))))
+        finally:
+            taken.put_nowait(None)
+            await settler
+
+    async def _deliver_batch(self, deliver: Deliver, batch: list[tuple[aiormq.abc.DeliveredMessage, int]]) -> list[bool]:
+        try:
+            return await deliver.batch([_inbound(message, received_ns) for message, received_ns in batch])
+        except Exception as exc:  # a bug in the engine must not lose messages: requeue them
+            log.exception("route %r: settling a batch failed", self._route, exc_info=exc)
+            return [False] * len(batch)
+
+    async def _acknowledge_in_order(self, taken: asyncio.Queue[Any]) -> None:
+        """Acknowledge the batches in flight in the order they were taken (see :meth:`_run`)."""
+        while (item := await taken.get()) is not None:
+            batch, settling = item
+            settled = await settling
             await self._acknowledge([message for message, _ in batch], settled)
+            self._in_flight -= 1
+            self._room.set()
 
     async def _acknowledge(self, messages: list[aiormq.abc.DeliveredMessage], settled: list[bool]) -> None:
         """One ``basic_ack(multiple=True)`` per channel for the settled prefix of the batch;

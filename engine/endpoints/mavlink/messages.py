@@ -34,7 +34,7 @@ BATCH = 1024
 (an AMQP sink: the broker's confirms) before the next one starts, so a backlogged route
 carries at most BATCH per confirm round trip: 256 held the engine to ~3,300 msg/s where
 the broker's round trip was ~80 ms under load, 1,024 keeps up with the plain pymavlink ->
-aiormq reference (bench/throughput.py, mavlink_ladder)."""
+aiormq reference (bench/throughput.py)."""
 STOP_DRAIN = 2.0
 """Seconds :meth:`MessageSource.stop` keeps handing queued telemetry to the route; what is
 still queued after that is dropped and counted (a reload must not wait on a stuck sink)."""

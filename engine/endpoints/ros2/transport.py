@@ -88,7 +88,12 @@ SOURCE_QUEUE = 10_000
 otherwise (``Deliver.queue_limit``); beyond it, the route's ``overflow`` applies."""
 _TAKE_BUDGET = 1024
 """Most messages taken from one subscription per wake-up: everything ready, within reason."""
-_BATCH = 512
+_BATCH = 1024
+"""Most messages handed to the route in one ``Deliver.batch``. A batch waits for its sink (an
+AMQP sink: the broker's confirms) before the next one starts, so a backlogged route carries
+at most _BATCH per confirm round trip, which reaches tens of ms on a loaded machine: the
+MAVLink source's batch of 1,024 (engine/endpoints/mavlink/messages.py) for the same reason;
+the reference (bench/systems.py) publishes all it has taken at once."""
 _TYPE_CHECK_INTERVAL = 2.0
 _RELIABILITY = {"reliable": ReliabilityPolicy.RELIABLE, "best_effort": ReliabilityPolicy.BEST_EFFORT}
 _DURABILITY = {"volatile": DurabilityPolicy.VOLATILE, "transient_local": DurabilityPolicy.TRANSIENT_LOCAL}
