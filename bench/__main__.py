@@ -1,8 +1,9 @@
 """``python -m bench``: every measurement of issue 10 in one run, written to bench/results/<date>/.
 
 Starts a private RabbitMQ node, runs each section (the paper's latency method, CT-L1 at 100
-and 200 msg/s against the paper's design re-implemented (bench/ct_l1.py), zero-loss
-throughput of each route kind against its reference pass-through and the paper's design,
+and 200 msg/s against the paper's design re-implemented (bench/ct_l1.py), the
+throughput of each route kind against its reference pass-through and the paper's design in
+interleaved rounds (bench/throughput.py),
 latency at half that rate, throughput against message size, 1/100/1,000 routes, JSON over
 the emulated SiK radio at 0 and 5 % loss, ROS 2 topic discovery latency for 20 robots, the round trip of a ROS 2
 service call from AMQP next to a plain rclpy client, a fleet of 100 agents (bench/fleet.py), MAVLink latency over

@@ -522,7 +522,8 @@ async def observe_drain(sunk: Any, base: int, total: int, cpu: Any, stall: float
     end = next(sample for sample in samples if sample[1] >= seen)
     carried = end[1] - start[1]
     rate = carried / (end[0] - start[0]) if end[0] > start[0] else float("nan")
-    cpu_us = (end[2] - start[2]) * 1e6 / carried if carried > 0 else float("nan")
+    cpu_s = end[2] - start[2]  # clock ticks (10 ms): a drain shorter than a few of them has no figure
+    cpu_us = cpu_s * 1e6 / carried if carried > 0 and cpu_s > 0 else float("nan")
     return {"msg_per_s": rate, "cpu_us_per_msg": cpu_us, "delivered": seen}
 
 
@@ -574,7 +575,7 @@ def summarize(rounds: list[dict[str, Any]], roles: list[str], pairs: int, counts
     for role in roles:
         good = [r[role] for r in rounds if _good(r[role])]
         row[role] = {**spread([g["msg_per_s"] for g in good]), "msg_per_s": statistics.median(g["msg_per_s"] for g in good),
-                     "cpu_us_per_msg": statistics.median(g["cpu_us_per_msg"] for g in good)} if good else {
+                     "cpu_us_per_msg": _median_finite(g["cpu_us_per_msg"] for g in good)} if good else {
             "msg_per_s": float("nan"), "error": next((r[role]["error"] for r in rounds if "error" in r[role]), "lost")}
         row[role]["lost"] = sum(r[role].get("lost", 0) for r in rounds)
     for role in roles:
@@ -585,9 +586,16 @@ def summarize(rounds: list[dict[str, Any]], roles: list[str], pairs: int, counts
             ratios = [engine["msg_per_s"] / other["msg_per_s"] for engine, other in pairs_good]
             row[f"vs_{role}"] = statistics.median(ratios)
             row[f"vs_{role}_spread"] = spread(ratios)
-            row[f"cpu_vs_{role}_spread"] = spread([other["cpu_us_per_msg"] / engine["cpu_us_per_msg"]
-                                                   for engine, other in pairs_good])
+            cpu = [other["cpu_us_per_msg"] / engine["cpu_us_per_msg"] for engine, other in pairs_good
+                   if math.isfinite(engine["cpu_us_per_msg"]) and math.isfinite(other["cpu_us_per_msg"])]
+            if cpu:
+                row[f"cpu_vs_{role}_spread"] = spread(cpu)
     return row
+
+
+def _median_finite(values: Any) -> float:
+    finite = [value for value in values if math.isfinite(value)]
+    return statistics.median(finite) if finite else float("nan")
 
 
 def _good(result: dict[str, Any]) -> bool:

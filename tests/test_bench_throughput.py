@@ -8,6 +8,7 @@ summary and the table are built from the rounds."""
 from __future__ import annotations
 
 import asyncio
+import math
 
 from bench import throughput as tp
 from bench.report import throughput_table
@@ -18,7 +19,7 @@ async def _rounds(url: str) -> dict:
     await broker.open()
     try:
         return await tp.interleaved(broker, "mavlink-amqp", {"reference": "ref-mavlink-amqp", "engine": "engine"},
-                                    pairs=2, count=600, domain=tp.domain_id())
+                                    pairs=2, count=1500, domain=tp.domain_id())
     finally:
         await broker.close()
 
@@ -29,8 +30,9 @@ def test_interleaved_rounds_drain_everything_and_give_a_ratio_per_round(amqp_url
     assert [list(r)[1:] for r in rounds] == [["reference", "engine"], ["engine", "reference"]]  # A B, then B A
     for trial in rounds:
         for role in ("reference", "engine"):
-            assert (trial[role]["delivered"], trial[role]["lost"], trial[role]["kernel_drops"]) == (600, 0, 0), trial[role]
-            assert trial[role]["msg_per_s"] > 0 and trial[role]["cpu_us_per_msg"] > 0
+            assert (trial[role]["delivered"], trial[role]["lost"], trial[role]["kernel_drops"]) == (1500, 0, 0), trial[role]
+            cpu = trial[role]["cpu_us_per_msg"]
+            assert trial[role]["msg_per_s"] > 0 and (cpu > 0 or math.isnan(cpu))  # nan: shorter than the CPU clock's ticks
     ratios = sorted(r["engine"]["msg_per_s"] / r["reference"]["msg_per_s"] for r in rounds)
     spread = row["vs_reference_spread"]
     assert (spread["min"], spread["max"], spread["n"]) == (ratios[0], ratios[1], 2)

@@ -330,6 +330,9 @@ def test_a_spilled_call_gets_its_reply_and_one_conflated_by_latest_only_an_error
             sim = SimVehicle(f"udpout:127.0.0.1:{port}")
             running = asyncio.create_task(sim.run(stop))
             await caller.wait(lambda r: newer in r, 20, "the spilled call's reply")
+            # the reply is published while the held message is being sent; the buffer counts it
+            # delivered once the send returned, a moment after the caller may have its reply
+            await until(lambda: engine.status()["routes"][route]["buffer"]["delivered"] == 1, 10, "delivered counted")
             status = engine.status()["routes"][route]
             await channel.queue_delete(route)
         finally:

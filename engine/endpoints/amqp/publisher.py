@@ -4,9 +4,12 @@ Every AMQP sink of a connection publishes on the connection's one confirm channe
 fleet's pace (200 telemetry routes at 10 Hz each) every route's batch is one message, and
 publishing each through ``aiormq.Channel.basic_publish`` cost per message: the channel lock,
 a timeout scope, a frame of its own through aiormq's ten-frame write queue (a writer task
-wake-up and one socket write each) and a confirm wait of its own. Measured on the fleet
-bench (25 robots and 25 vehicles, 150 routes, bench/results/2026-11-23/fleet-v2/): the engine
-spent 428 µs of CPU per message, and in the engine a message waited 618 ms at the median.
+wake-up and one socket write each) and a confirm wait of its own.
+
+Measured on bench/fleet.py (bench/results/2026-11-23/fleet-v2/, the machine shared, load
+average 4-9): 25 robots and 25 vehicles, before / after in interleaved runs, telemetry end to
+end p50 229-1,446 ms / 4-6 ms, p99 1.8-2.9 s / 0.14-0.34 s (after: with the ROS 2 waiter's
+kept wait set, engine/endpoints/ros2/transport.py); the full fleet (2,100 msg/s) 335-351 µs / 193-196 µs of engine CPU per message.
 
 So a route's ``publish`` only queues its messages and its future; the first one queued in a
 loop turn schedules a *round* for the next turn, which takes everything queued meanwhile
@@ -21,9 +24,9 @@ last one's confirms are still on their way.
 
 Publishing goes below aiormq's ``basic_publish`` to its channel's delivery-tag counter,
 confirmation table and write queue (what ``basic_publish`` itself does, once per round
-instead of once per message); the confirmation futures are the channel's own, so a channel
-or connection that closes rejects them (``FutureStore``) and every route in flight sees a
-failure, never a silent loss.
+instead of once per message); each round also holds one future of the channel's own, which
+aiormq rejects when the channel or connection closes (``FutureStore``), so every route in
+flight then sees a failure, never a silent loss.
 """
 
 from __future__ import annotations

@@ -8,9 +8,10 @@ dead-lettered); the rest of the batch is acked one by one or nacked with requeue
 are acknowledged in order, so every earlier tag is already acked or nacked and
 at-least-once holds: a crash or a reload redelivers instead of losing. They are settled one
 at a time unless the route's sink declares it can send more meanwhile
-(``Sink.batches_in_flight``: the JSON tunnel over a radio). Sinks publish a
-batch pipelined on a channel with publisher confirms (configurable) and await the batch's
-confirms together, so "accepted" means the broker took responsibility.
+(``Sink.batches_in_flight``: the JSON tunnel over a radio). Sinks publish on the
+connection's channel with publisher confirms (configurable), every route's batch of a loop
+turn in one shared round (one write, one confirm wait: engine/endpoints/amqp/publisher.py),
+each route answered per message, so "accepted" means the broker took responsibility.
 
 One robust connection per named connection is shared by all routes (aio-pika re-opens it,
 its channels and consumers after a broker restart); each source has its own channel so its
