@@ -364,6 +364,7 @@ class AmqpSource(Source):
         taken: asyncio.Queue[tuple[list[tuple[aiormq.abc.DeliveredMessage, int]], asyncio.Task[list[bool]]] | None]
         taken = asyncio.Queue()
         settler = asyncio.create_task(self._acknowledge_in_order(taken), name=f"amqp-settle:{self._route}")
+        delivering: set[asyncio.Task[list[bool]]] = set()
         try:
             while True:
                 while self._in_flight and self._in_flight >= deliver.batches_in_flight:
@@ -376,10 +377,22 @@ class AmqpSource(Source):
                     await self._acknowledge([message for message, _ in batch], await self._deliver_batch(deliver, batch))
                     continue
                 self._in_flight += 1
-                taken.put_nowait((batch, asyncio.create_task(self._deliver_batch(deliver, batch))))
+                task = asyncio.create_task(self._deliver_batch(deliver, batch))
+                delivering.add(task)
+                task.add_done_callback(delivering.discard)
+                taken.put_nowait((batch, task))
+        except asyncio.CancelledError:
+            # The engine stopped waiting (its drain timeout and grace are over): the batches
+            # still in their sink are given up unsettled, as the one awaited inline above is,
+            # and the broker redelivers them once the channel closes. Left running, they
+            # would hold the stop until their sink answered (a tunnel with a silent vehicle:
+            # never).
+            for task in delivering:
+                task.cancel()
+            raise
         finally:
             taken.put_nowait(None)
-            await settler
+            await asyncio.gather(settler, return_exceptions=True)
 
     async def _deliver_batch(self, deliver: Deliver, batch: list[tuple[aiormq.abc.DeliveredMessage, int]]) -> list[bool]:
         try:
