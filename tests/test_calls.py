@@ -51,6 +51,23 @@ def _reply(message: aio_pika.abc.AbstractIncomingMessage) -> tuple[str, Any]:
     return message.headers["x-rabbitros-reply"], json.loads(message.body)
 
 
+async def arm_and_mission(amqp_url: str, tag: str, timeout: float) -> tuple[Caller, str, str]:
+    """Call ``arm-TAG`` (an arm command) and ``mission-TAG`` (the weeds mission) at once and wait
+    for both replies; the caller with its replies, and the two calls' correlation ids."""
+    connection = await aio_pika.connect(amqp_url)
+    try:
+        channel = await connection.channel()
+        caller = await Caller.open(channel)
+        arm = await caller.call("", f"arm-{tag}", _command())
+        mission = await caller.call("", f"mission-{tag}", json.dumps(canonical_mission(WEEDS)).encode())
+        await caller.wait(lambda r: arm in r and mission in r, timeout, "the arm's and the mission's replies")
+        for queue in (f"arm-{tag}", f"mission-{tag}"):
+            await channel.queue_delete(queue)
+        return caller, arm, mission
+    finally:
+        await connection.close()
+
+
 def test_arm_command_as_a_call_gets_mav_result_accepted_from_mavsdk(tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
     """An arm COMMAND_LONG published with direct reply-to is answered by MAVSDK's ActionServer:
     one ``result`` reply ``{kind, result: MAV_RESULT_ACCEPTED, command: 400}`` with the
@@ -117,21 +134,12 @@ def test_denied_command_is_one_error_reply_and_a_mission_call_is_answered_throug
         sim = SimVehicle(f"udpout:127.0.0.1:{port}", command_results=["MAV_RESULT_DENIED"])
         stop = asyncio.Event()
         running = asyncio.create_task(sim.run(stop))
-        connection = await aio_pika.connect(amqp_url)
         try:
-            channel = await connection.channel()
-            caller = await Caller.open(channel)
-            arm = await caller.call("", f"arm-{tag}", _command())
-            mission = await caller.call("", f"mission-{tag}", json.dumps(canonical_mission(WEEDS)).encode())
-            await caller.wait(lambda r: arm in r and mission in r, 30, "the denied arm's and the mission's replies")
-            for queue in (f"arm-{tag}", f"mission-{tag}"):
-                await channel.queue_delete(queue)
+            return await arm_and_mission(amqp_url, tag, 30)
         finally:
             await engine.stop()
             stop.set()
             await running
-            await connection.close()
-        return caller, arm, mission
 
     caller, arm, mission = run(scenario(), 60)
     [(kind, error)] = [_reply(m) for m in caller.replies[arm]]
@@ -161,18 +169,10 @@ def test_arm_and_mission_calls_through_the_emulated_radio_are_answered_by_mavsdk
 """)
                 engine = Engine(routes, schemas_dir)
                 await engine.start()
-                connection = await aio_pika.connect(amqp_url)
                 try:
-                    channel = await connection.channel()
-                    caller = await Caller.open(channel)
-                    arm = await caller.call("", f"arm-{tag}", _command())
-                    mission = await caller.call("", f"mission-{tag}", json.dumps(canonical_mission(WEEDS)).encode())
-                    await caller.wait(lambda r: arm in r and mission in r, 60, "the arm's and the mission's replies")
-                    for queue in (f"arm-{tag}", f"mission-{tag}"):
-                        await channel.queue_delete(queue)
+                    caller, arm, mission = await arm_and_mission(amqp_url, tag, 60)
                 finally:
                     await engine.stop()
-                    await connection.close()
             finally:
                 autopilot.close()
         return caller, arm, mission, autopilot
