@@ -32,7 +32,6 @@ import os
 import selectors
 import socket
 import statistics
-import sys
 import tempfile
 import threading
 import time
@@ -200,7 +199,6 @@ def robots(args: dict[str, Any]) -> None:
     """``args``: domain, agents (names), rate, go/stop file paths. Publishes each agent's
     streams (JSON with seq and the send time) once every engine subscription matched, records
     the commands on ``/<agent>/cmd``; prints ``matched``, then ``result {...}`` at the end."""
-    import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import String
@@ -473,8 +471,7 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             cpu_before, wall_before = engine.cpu_seconds(), time.monotonic()
             received_before = telemetry.count
             Path(files["go"]).touch()
-            sent_commands = await _commands(channel, names["cmd"], agents, vehicles_n, duration, command_rate)
-            Path(files["stop"]).touch()
+            sent_commands = await _commands(channel, names["cmd"], agents, vehicles_n, duration, command_rate, Path(files["stop"]))
             telemetry_sent = robots_n * len(ROBOT_STREAMS) * rate * duration + vehicles_n * len(VEHICLE_STREAMS) * rate * duration
             phase("load")
             await _drain(telemetry, received_before + telemetry_sent * 0.98)
@@ -522,13 +519,17 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
 
 
 async def _commands(channel: Any, exchange: str, robots: list[str], vehicles: int, duration: float,
-                    rate: float) -> dict[str, int]:
-    """A command to every agent at ``rate``, staggered, for ``duration``: {agent: commands sent}."""
+                    rate: float, stop: Path) -> dict[str, int]:
+    """A command to every agent at ``rate``, staggered, for ``duration``: {agent: commands sent}.
+    Each publish's confirm is not waited for before the next command is due (a loaded broker
+    would stretch the load phase: a run was seen sending telemetry for 145 s instead of 60);
+    at ``duration`` the ``stop`` file ends the telemetry, then every command is confirmed."""
     from pamqp.commands import Basic
 
     properties = Basic.Properties(delivery_mode=2, content_type="application/json")
     agents = robots + [f"uav{sid}" for sid in range(1, vehicles + 1)]
     sent = dict.fromkeys(agents, 0)
+    confirming: list[asyncio.Future[Any]] = []
     began = time.monotonic()
     period = 1.0 / rate
     rounds = max(1, int(duration * rate))
@@ -539,11 +540,14 @@ async def _commands(channel: Any, exchange: str, robots: list[str], vehicles: in
             if delay > 0:
                 await asyncio.sleep(delay)
             body = json.dumps({"agent": agent, "seq": round_, "t_ns": time.time_ns(), "t_ms": _ms24()}).encode()
-            await channel.basic_publish(body, exchange=exchange, routing_key=agent, properties=properties)
+            confirming.append(asyncio.ensure_future(
+                channel.basic_publish(body, exchange=exchange, routing_key=agent, properties=properties)))
             sent[agent] += 1
     delay = began + duration - time.monotonic()
     if delay > 0:
         await asyncio.sleep(delay)
+    stop.touch()
+    await asyncio.gather(*confirming)
     return sent
 
 
