@@ -474,8 +474,6 @@ def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
             "headers": properties.headers,
             "content_type": properties.content_type,
             "redelivered": message.redelivered,
-            "reply_to": properties.reply_to,
-            "correlation_id": properties.correlation_id,
             "cancel": (properties.headers or {}).get("x-rabbitros-cancel"),
         },
         received_ns=received_ns,
