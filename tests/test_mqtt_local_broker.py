@@ -14,6 +14,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 from urllib.parse import urlsplit
 
 import aiomqtt
@@ -24,6 +25,35 @@ routes:
   - {name: relay, source: {mqtt: {topic: "farm/+/weather", qos: 1}}, schema: raw_json, sink: {mqtt: {topic: farm/weather, qos: 1}}}
 """
 
+
+def start_engine(tmp_path: Path, routes_text: str, env: dict[str, str], *flags: str) -> tuple[subprocess.Popen[str], list[str]]:
+    """``rabbitros-engine --local-broker FLAGS`` on ``routes_text``, waited for until it writes
+    its status; the process and the brokers' URLs from its URL file."""
+    url_file, status_file, routes = tmp_path / "broker-url", tmp_path / "status.json", tmp_path / "routes"
+    routes.mkdir()
+    (routes / "field.yaml").write_text(routes_text)
+    process = subprocess.Popen(
+        ["timeout", "-s", "KILL", "180", sys.executable, "-m", "engine", "--routes", str(routes), "--schemas", "schemas",
+         "--local-broker", *flags, "--broker-url-file", str(url_file), "--status-file", str(status_file),
+         "--log-format", "json"],
+        cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True, env={**env, "PYTHONPATH": str(REPO)},
+    )
+    deadline = time.monotonic() + 120
+    while not status_file.exists() and time.monotonic() < deadline and process.poll() is None:
+        time.sleep(0.2)
+    if not status_file.exists():
+        os.killpg(process.pid, signal.SIGKILL)
+        raise AssertionError("engine did not start")
+    return process, url_file.read_text().split()
+
+
+def local_broker_started(process: subprocess.Popen[str]) -> dict[str, Any]:
+    """The engine's ``local broker started`` log line (read from its stderr as it runs)."""
+    while process.poll() is None:
+        line = process.stderr.readline()  # type: ignore[union-attr]
+        if line.startswith("{") and json.loads(line)["msg"] == "local broker started":
+            return json.loads(line)
+    raise AssertionError("no 'local broker started' line")
 
 
 async def weather_through_the_engine(host: str, port: int | None, tls_context: ssl.SSLContext | None = None) -> bytes:
@@ -47,34 +77,19 @@ async def weather_through_the_engine(host: str, port: int | None, tls_context: s
 
 
 def test_run_local_broker_starts_a_private_mosquitto_for_an_mqtt_connection_without_url(tmp_path: Path):
-    url_file, status_file, routes = tmp_path / "broker-url", tmp_path / "status.json", tmp_path / "routes"
-    routes.mkdir()
-    (routes / "field.yaml").write_text(ROUTES)
     env = {k: v for k, v in os.environ.items() if k not in ("RABBITROS_MQTT_URL", "RABBITROS_AMQP_URL")}
-    process = subprocess.Popen(
-        ["timeout", "-s", "KILL", "180", sys.executable, "-m", "engine", "--routes", str(routes), "--schemas", "schemas",
-         "--local-broker", "--broker-url-file", str(url_file), "--status-file", str(status_file), "--log-format", "json"],
-        cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True, env={**env, "PYTHONPATH": str(REPO)},
-    )
+    process, urls = start_engine(tmp_path, ROUTES, env)
     try:
-        deadline = time.monotonic() + 120
-        while not status_file.exists() and time.monotonic() < deadline and process.poll() is None:
-            time.sleep(0.2)
-        assert status_file.exists(), "engine did not start"
-        urls = url_file.read_text().split()
         mqtt_url = next(url for url in urls if url.startswith("mqtt://"))
         host, port = urlsplit(mqtt_url).hostname, urlsplit(mqtt_url).port
         assert port != 1883  # its own port, not a system broker's
+        started = local_broker_started(process)
+        assert any("mosquitto" in node for node in started["nodes"]), started
 
-        async def roundtrip() -> bytes:
-            return await weather_through_the_engine(host, port)
-
-        assert json.loads(asyncio.run(roundtrip())) == {"t": 21.5}
+        assert json.loads(asyncio.run(weather_through_the_engine(host, port))) == {"t": 21.5}
         process.send_signal(signal.SIGTERM)
         _, stderr = process.communicate(timeout=60)
         assert process.returncode == 0, stderr
-        started = next(json.loads(line) for line in stderr.splitlines() if line.startswith("{") and "local broker started" in line)
-        assert any("mosquitto" in node for node in started["nodes"]), started
     finally:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
@@ -96,30 +111,14 @@ def test_run_local_broker_tls_gives_a_private_mosquitto_with_a_tls_listener(tmp_
     without the run's CA is refused, and one verifying it gets its message carried by a route
     (the engine connected over TLS, verifying the same CA)."""
 
-    url_file, status_file, routes = tmp_path / "broker-url", tmp_path / "status.json", tmp_path / "routes"
-    routes.mkdir()
-    (routes / "field.yaml").write_text(TLS_ROUTES)
     env = {k: v for k, v in os.environ.items() if not k.startswith("RABBITROS_")}
-    process = subprocess.Popen(
-        ["timeout", "-s", "KILL", "180", sys.executable, "-m", "engine", "--routes", str(routes), "--schemas", "schemas",
-         "--local-broker", "--local-broker-tls", "--broker-url-file", str(url_file), "--status-file", str(status_file),
-         "--log-format", "json"],
-        cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True, env={**env, "PYTHONPATH": str(REPO)},
-    )
+    process, urls = start_engine(tmp_path, TLS_ROUTES, env, "--local-broker-tls")
+    status_file = tmp_path / "status.json"
     try:
-        deadline = time.monotonic() + 120
-        while not status_file.exists() and time.monotonic() < deadline and process.poll() is None:
-            time.sleep(0.2)
-        assert status_file.exists(), "engine did not start"
-        mqtt_url = next(url for url in url_file.read_text().split() if url.startswith("mqtt"))
+        mqtt_url = next(url for url in urls if url.startswith("mqtt"))
         assert mqtt_url.startswith("mqtts://localhost:"), mqtt_url
         port = urlsplit(mqtt_url).port
-        started = None
-        while started is None and process.poll() is None:
-            line = process.stderr.readline()  # type: ignore[union-attr]
-            if line.startswith("{") and json.loads(line)["msg"] == "local broker started":
-                started = json.loads(line)
-        assert started is not None, "no 'local broker started' line"
+        started = local_broker_started(process)
         ca_file = Path(started["environment"]["RABBITROS_MQTT_CA_FILE"])
         verified = ssl.create_default_context(cafile=str(ca_file))
 
