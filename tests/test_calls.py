@@ -42,6 +42,17 @@ routes:
     return directory
 
 
+def _impatient_arm_routes(tmp_path: Path, amqp_url: str, port: int, tag: str, route_keys: str) -> Path:
+    """:func:`_routes` on ``udpin`` ``port`` whose arm route asks once (``retries: 0``, a 0.3 s
+    ``vehicle_timeout``) and has ``route_keys`` (indented YAML lines) besides."""
+    routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag)
+    text = (routes / "routes.yaml").read_text().replace(
+        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3}").replace(
+        f"  - name: arm-{tag}\n", f"  - name: arm-{tag}\n{route_keys}")
+    (routes / "routes.yaml").write_text(text)
+    return routes
+
+
 def _command(**extra: Any) -> bytes:
     return json.dumps({"type": "command", "agent_id": "uav1", "id": uuid.uuid4().hex, "stamp": canonical_stamp(),
                        "command": "arm", **extra}).encode()
@@ -266,11 +277,7 @@ def test_a_call_that_expires_under_max_age_gets_an_error_reply(tmp_path: Path, a
     with stage ``max_age`` instead of waiting forever."""
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
-    routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag)
-    text = (routes / "routes.yaml").read_text().replace(
-        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3}").replace(
-        f"  - name: arm-{tag}\n", f"  - name: arm-{tag}\n    max_age: 1\n    max_attempts: 50\n")
-    (routes / "routes.yaml").write_text(text)
+    routes = _impatient_arm_routes(tmp_path, amqp_url, port, tag, "    max_age: 1\n    max_attempts: 50\n")
 
     async def scenario() -> tuple[Caller, str, dict[str, Any], float]:
         engine = Engine(routes, schemas_dir)
@@ -306,12 +313,8 @@ def test_a_spilled_call_gets_its_reply_and_one_conflated_by_latest_only_an_error
     (a held message read from disk had lost its way back)."""
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
-    routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag)
-    text = (routes / "routes.yaml").read_text().replace(
-        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3}").replace(
-        f"  - name: arm-{tag}\n", f"  - name: arm-{tag}\n    max_attempts: 1000\n"
-        f"    buffer: {{spill_dir: spill, latest_only: {{per: agent_id}}}}\n")
-    (routes / "routes.yaml").write_text(text)
+    routes = _impatient_arm_routes(tmp_path, amqp_url, port, tag,
+                                   "    max_attempts: 1000\n    buffer: {spill_dir: spill, latest_only: {per: agent_id}}\n")
 
     async def scenario() -> tuple[Caller, str, str, dict[str, Any], list[Path]]:
         engine = Engine(routes, schemas_dir)
@@ -400,11 +403,7 @@ def test_a_call_held_in_memory_when_the_engine_stops_gets_an_error_reply(
     one ``error`` reply naming the stage ``buffer`` instead of waiting forever."""
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
-    routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag)
-    text = (routes / "routes.yaml").read_text().replace(
-        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3}").replace(
-        f"  - name: arm-{tag}\n", f"  - name: arm-{tag}\n    max_attempts: 1000\n    buffer: {{max_messages: 10}}\n")
-    (routes / "routes.yaml").write_text(text)
+    routes = _impatient_arm_routes(tmp_path, amqp_url, port, tag, "    max_attempts: 1000\n    buffer: {max_messages: 10}\n")
 
     async def scenario() -> tuple[Caller, str, dict[str, Any]]:
         engine = Engine(routes, schemas_dir)
