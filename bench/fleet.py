@@ -1,5 +1,5 @@
 """A fleet-sized load (issue 20): 100 agents through templated routes, against the same load
-through one hand-written route per agent, in one run.
+through routes shared by many agents and through one hand-written route per agent, in one run.
 
 * 50 ROS 2 robots (``robot1`` ... ``robot50``), each publishing ``/robotN/fix`` and
   ``/robotN/battery`` (std_msgs/String JSON) at 10 Hz, from one or two child processes with
@@ -17,6 +17,11 @@ where the bench consumes it from RabbitMQ, command latency where the robot or ve
 it. Loss is counted per stream from sequence numbers (every message sent in the measured
 period must arrive). The engine runs alone in its own process; its CPU time during the
 measured period over the messages it carried (both ways) is its CPU per message.
+
+Three ways of writing the same routes (``--modes``): ``templated`` (``for_each``: one route per
+agent and stream, 300 routes), ``shared`` (:func:`shared_routes`: discovery and one route per
+link, 116 routes, of which the 100 command routes) and ``hand_written`` (the 300 routes written
+out).
 
     .venv/bin/python -m bench.fleet                   # 60 s each way of writing the routes
     .venv/bin/python -m bench.fleet --duration 10 --modes templated
@@ -111,6 +116,54 @@ routes:
     return routes, agents
 
 
+def shared_routes(names: dict[str, str], robots: int, links: list[list[int]]) -> tuple[str, str]:
+    """The fleet as a user who knows discovery and the agents table writes it: one route per
+    robot stream for every robot (``/{agent}/fix`` discovered), one per link and MAVLink message
+    for every vehicle on it (no ``system_id``: the agents table names the vehicle), so each
+    route takes its agents' messages in batches; the commands stay one route per agent (a
+    route's queue and its target are the agent's). Returns (routes, the agents file)."""
+    out, cmd = names["out"], names["cmd"]
+    robots_file = "".join(f"- {{agent: {agent}}}\n" for agent in robot_names(robots))
+    table = "".join(f"  uav{sid}: {{connection: link{index}, system_id: {sid}}}\n"
+                    for index, ids in enumerate(links) for sid in ids)
+    link_items = ", ".join(f"{{link: link{index}}}" for index in range(len(links)))
+    routes = f"""
+agents:
+{table}
+routes:
+  - name: "robots-{{stream}}"
+    for_each: [{", ".join(f"{{stream: {s}}}" for s in ROBOT_STREAMS)}]
+    source: {{ros2: {{connection: ros, topic: "/{{agent}}/{{stream}}"}}}}
+    schema: raw_json
+    sink: {{amqp: {{connection: gcs, exchange: {out}, routing_key: "{{agent}}.{{stream}}"}}}}
+  - name: "{{agent}}-cmd"
+    for_each: robots.yaml
+    source: {{amqp: {{connection: gcs, exchange: {cmd}, binding_key: "{{agent}}", queue: "{cmd}-{{agent}}"}}}}
+    schema: raw_json
+    sink: {{ros2: {{connection: ros, topic: "/{{agent}}/cmd"}}}}
+  - name: "{{link}}-position"
+    for_each: &links [{link_items}]
+    source: {{mavlink: {{connection: "{{link}}", message: GLOBAL_POSITION_INT}}}}
+    mapping: "{{agent: meta('agent'), seq: lat, time_boot_ms: time_boot_ms, alt_msl: mm_to_m(alt), heading: heading_cdeg_to_deg(hdg)}}"
+    schema: raw_json
+    sink: {{amqp: {{connection: gcs, exchange: {out}, routing_key: "{{agent}}.position"}}}}
+  - name: "{{link}}-attitude"
+    for_each: *links
+    source: {{mavlink: {{connection: "{{link}}", message: ATTITUDE}}}}
+    mapping: "{{agent: meta('agent'), seq: roll, time_boot_ms: time_boot_ms, pitch: pitch, yaw: yaw}}"
+    schema: raw_json
+    sink: {{amqp: {{connection: gcs, exchange: {out}, routing_key: "{{agent}}.attitude"}}}}
+  - name: "{{agent}}-cmd"
+    for_each: agents
+    source: {{amqp: {{connection: gcs, exchange: {cmd}, binding_key: "{{agent}}", queue: "{cmd}-{{agent}}"}}}}
+    schema: raw_json
+    sink:
+      mavlink: {{message: COMMAND_LONG, target_system: "{{agent}}", target_component: 1}}
+      mapping: "{{command: `{COMMAND}`, param1: t_ms, param2: seq}}"
+"""
+    return routes, robots_file
+
+
 def hand_written_routes(names: dict[str, str], robots: int, links: list[list[int]]) -> str:
     """The same routes as :func:`templated_routes` expands to, written out one per agent."""
     out, cmd = names["out"], names["cmd"]
@@ -149,8 +202,8 @@ def write_routes(directory: Path, mode: str, url: str, domain: int, ports: list[
                  robots: int, links: list[list[int]]) -> Path:
     directory.mkdir(parents=True, exist_ok=True)
     head = "\n".join(header(url, domain, ports))
-    if mode == "templated":
-        routes, agents = templated_routes(names, robots, links)
+    if mode in ("templated", "shared"):
+        routes, agents = (templated_routes if mode == "templated" else shared_routes)(names, robots, links)
         (directory / "robots.yaml").write_text(agents)
         (directory / "fleet.yaml").write_text(head + "\n" + routes)
     else:
@@ -451,7 +504,8 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             mark = time.monotonic()
 
         try:
-            engine = tp.Child("engine", {"routes": str(routes), "latency_out": str(Path(work) / "latency.json")})
+            engine = tp.Child("engine", {"routes": str(routes), "latency_out": str(Path(work) / "latency.json"),
+                                        "handed_out": str(Path(work) / "handed.json")})
             children.append(engine)
             started = await engine.wait_for("started", timeout=300)
             await engine.wait_for("ready", timeout=60)
@@ -488,10 +542,15 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             await connection.close()
         phase("stop")
         internal = json.loads((Path(work) / "latency.json").read_text())
+        handed = json.loads((Path(work) / "handed.json").read_text())
     by_kind: dict[str, list[float]] = {}
     for route, samples in internal.items():
         by_kind.setdefault(_route_kind(route), []).extend(ns / 1e6 for ns in samples)
     result["engine_latency_ms"] = {kind: _pcts(samples) for kind, samples in by_kind.items()}
+    to_sink: dict[str, list[float]] = {}
+    for route, samples in handed.items():
+        to_sink.setdefault(_route_kind(route), []).extend(ns / 1e6 for ns in samples)
+    result["engine_to_sink_ms"] = {kind: _pcts(samples) for kind, samples in to_sink.items()}
     sent: dict[str, int] = {}
     for output in outputs:
         sent.update(output["sent"])
@@ -581,20 +640,20 @@ async def fleet(url: str, modes: list[str], robots_n: int = 50, vehicles_n: int 
 
 def fleet_report(results: dict[str, Any]) -> list[str]:
     """The fleet section of a report: one column per way of writing the routes."""
-    modes = [mode for mode in ("templated", "hand_written") if isinstance(results.get(mode), dict) and "lost" in results[mode]]
+    modes = [mode for mode in ("templated", "shared", "hand_written") if isinstance(results.get(mode), dict) and "lost" in results[mode]]
     if not modes:
         return [f"Fleet run failed: {results}"]
     first = results[modes[0]]
-    labels = {"templated": "Templated routes (for_each)", "hand_written": "One hand-written route per agent"}
+    labels = {"templated": "Templated routes (for_each)", "shared": "Shared routes (discovery, one per link)", "hand_written": "One hand-written route per agent"}
     lines = [f"{first['robots']} ROS 2 robots x {len(ROBOT_STREAMS)} topics and {first['vehicles']} MAVLink vehicles "
              f"x {len(VEHICLE_STREAMS)} messages ({first['links']} UDP links) at {first['rate_hz']:g} Hz each, a "
-             f"{first['command_hz']:g} Hz command to each agent the other way, {first['duration_s']:.0f} s "
-             f"({first['routes']} routes).", "",
+             f"{first['command_hz']:g} Hz command to each agent the other way, {first['duration_s']:.0f} s.", "",
              "| | " + " | ".join(labels[m] for m in modes) + " |", "|---|" + "---|" * len(modes)]
 
     def row(label: str, value: Any) -> None:
         lines.append(f"| {label} | " + " | ".join(value(results[m]) for m in modes) + " |")
 
+    row("Routes (expanded)", lambda r: str(r["routes"]))
     row("Telemetry lost / sent", lambda r: f"{r['telemetry_lost']} / {r['telemetry_sent']}")
     row("Commands lost / sent", lambda r: f"{r['commands_lost']} / {r['commands_sent']}")
     for kind in STREAM_KINDS:
@@ -604,6 +663,10 @@ def fleet_report(results: dict[str, Any]) -> list[str]:
         row(f"{kind}: in the engine p50 / p99 (ms)", lambda r, k=kind: (
             f"{r['engine_latency_ms'][k]['p50']:.2f} / {r['engine_latency_ms'][k]['p99']:.2f}"
             if r.get("engine_latency_ms", {}).get(k, {}).get("n") else "-"))
+    for kind in STREAM_KINDS:
+        row(f"{kind}: in the engine until handed to its sink p50 / p99 (ms)", lambda r, k=kind: (
+            f"{r['engine_to_sink_ms'][k]['p50']:.2f} / {r['engine_to_sink_ms'][k]['p99']:.2f}"
+            if r.get("engine_to_sink_ms", {}).get(k, {}).get("n") else "-"))
     row("Engine CPU per message (us)", lambda r: f"{r['engine_cpu_us_per_message']:.0f}")
     row("Engine CPU (cores)", lambda r: f"{r['engine_cores']:.2f}")
     row("RSS after load / at the end (MiB)", lambda r: f"{r['rss_after_load_mib']:.0f} / {r['rss_end_mib']:.0f}")

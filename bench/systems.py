@@ -152,12 +152,18 @@ async def engine(args: dict[str, Any]) -> None:
     if args.get("latency_out"):
         for runner in bridge.runners.values():
             runner.latency_samples = []
+    if args.get("handed_out"):  # reception to the sink (without the sink's own wait): bench/fleet.py
+        for runner in bridge.runners.values():
+            runner.send_samples = []
     try:
         await _until_stopped()
     finally:
         if args.get("latency_out"):
             samples = {name: getattr(runner, "latency_samples", None) or [] for name, runner in bridge.runners.items()}
             Path(args["latency_out"]).write_text(json.dumps(samples))
+        if args.get("handed_out"):
+            handed = {name: getattr(runner, "send_samples", None) or [] for name, runner in bridge.runners.items()}
+            Path(args["handed_out"]).write_text(json.dumps(handed))
         await bridge.stop()
 
 

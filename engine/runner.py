@@ -103,6 +103,10 @@ class RouteRunner:
         """The broker lease of an ``active_standby`` route: only its holder forwards."""
         self.latency_samples: list[int] | None = None
         """Set to a list to record every message's reception-to-acceptance time (benchmarks)."""
+        self.send_samples: list[int] | None = None
+        """Set to a list to record every message's reception-to-sink time, each time it is
+        handed to its sink (benchmarks: the engine's own share, without the sink's wait for
+        the broker's confirm or the vehicle's acknowledgement)."""
         self.observer = host.observers.get(spec.name)
         """The route's one set of counters, and its taps (engine/observe.py)."""
         self.observer.generation = lambda: self.pipeline.generation
@@ -279,6 +283,9 @@ class RouteRunner:
             pending = self._fresh(pending, settled)
             if not pending:
                 return
+            if self.send_samples is not None:
+                handed = time.monotonic_ns()
+                self.send_samples.extend(handed - message.inbound.received_ns for message in pending)
             results = await pipeline.sink.send_batch([message.outbound for message in pending])  # type: ignore[misc]
             pending = self._sent(pending, results, settled, dead, waiting=not self.sink_can_take(pipeline))
             if pending and buffer is not None:  # transient: the buffer retries them, the source moves on
