@@ -580,9 +580,9 @@ async def ref_fleet(args: dict[str, Any]) -> None:
 
     async def to_robot(agent: str, delivery: Any) -> None:
         received = time.monotonic_ns()
-        if record:
-            handed["robots-cmd"].append(0)  # nothing between the delivery and the publish
         message.data = delivery.body.decode()
+        if record:
+            handed["robots-cmd"].append(time.monotonic_ns() - received)
         command_publishers[agent].publish(message)
         if record:
             accepted["robots-cmd"].append(time.monotonic_ns() - received)
