@@ -529,15 +529,15 @@ async def ref_fleet(args: dict[str, Any]) -> None:
                 names = self.agents.get(msg.get_srcSystem())
                 if names is None:
                     continue
-                if msg_id == GPI:
-                    items.append((names[3], names[1], dumps({"agent": names[0], "seq": msg.lat, "time_boot_ms": msg.time_boot_ms,
-                                                   "alt_msl": msg.alt / 1e3,
-                                                   "heading": None if msg.hdg == 65535 else msg.hdg / 1e2}, option=sort),
-                                  received, "uavs-position"))
-                elif msg_id == ATT:
-                    items.append((names[3], names[2], dumps({"agent": names[0], "seq": msg.roll, "time_boot_ms": msg.time_boot_ms,
-                                                   "pitch": msg.pitch, "yaw": msg.yaw}, option=sort),
-                                  received, "uavs-attitude"))
+                if msg_id == GPI:  # the position route's mapping: lat as seq, mm_to_m, heading_cdeg_to_deg
+                    body = dumps({"agent": names[0], "seq": msg.lat, "time_boot_ms": msg.time_boot_ms,
+                                  "alt_msl": msg.alt / 1e3, "heading": None if msg.hdg == 65535 else msg.hdg / 1e2},
+                                 option=sort)
+                    items.append((names[3], names[1], body, received, "uavs-position"))
+                elif msg_id == ATT:  # the attitude route's mapping: roll as seq
+                    body = dumps({"agent": names[0], "seq": msg.roll, "time_boot_ms": msg.time_boot_ms,
+                                  "pitch": msg.pitch, "yaw": msg.yaw}, option=sort)
+                    items.append((names[3], names[2], body, received, "uavs-attitude"))
                 elif msg_id == HB:
                     sid = msg.get_srcSystem()
                     assert self.transport is not None
