@@ -21,7 +21,12 @@ measured period over the messages it carried (both ways) is its CPU per message.
 Three ways of writing the same routes (``--modes``): ``templated`` (``for_each``: one route per
 agent and stream, 300 routes), ``shared`` (:func:`shared_routes`: discovery and one route per
 link, 116 routes, of which the 100 command routes) and ``hand_written`` (the 300 routes written
-out).
+out); and ``reference``: no engine, the same bridge written directly on the client libraries
+(bench/systems.py ``ref_fleet``: rclpy, pymavlink, aiormq with confirms, one process, uvloop)
+in the engine's place, on the same load, consumer and accounting ("engine" figures are then
+the reference process's). The engine's figures are stated as ratios of the reference's,
+measured in the same run: on a 2-core machine the broker, the load generators and the bench's
+consumer bound the latency of any bridge, and the reference measures that bound.
 
     .venv/bin/python -m bench.fleet                   # 60 s each way of writing the routes
     .venv/bin/python -m bench.fleet --duration 10 --modes templated
@@ -56,6 +61,13 @@ PEERS_PER_LINK = 8
 (engine/endpoints/mavlink/links.py; it was 8, which this bench found)."""
 COMMAND = 31010
 """MAV_CMD_USER_1: a command no autopilot acts on."""
+REFERENCE = "reference"
+"""The mode that runs no engine: the same bridge written on rclpy, pymavlink and aiormq
+(bench/systems.py ``ref_fleet``), in its place on the same load: the figure the engine's are
+a ratio of (the project's rule), and what this machine allows a fleet bridge at all."""
+MODES = ("templated", "shared", "hand_written", REFERENCE)
+LABELS = {"templated": "Templated routes (for_each)", "shared": "Shared routes (discovery, one per link)",
+          "hand_written": "One hand-written route per agent", REFERENCE: "Reference (rclpy, pymavlink, aiormq; no engine)"}
 
 
 # ---------------------------------------------------------------- the routes
@@ -465,8 +477,9 @@ def _rss_kib(child: tp.Child) -> int:
 
 async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration: float, rate: float = 10.0,
                    command_rate: float = 1.0, publishers: int = 2, domain: int | None = None) -> dict[str, Any]:
-    """One measurement: the engine on the fleet's routes written ``mode`` (templated or
-    hand_written), the load for ``duration`` seconds, then everything drained and counted.
+    """One measurement: the engine on the fleet's routes written ``mode`` (templated, shared or
+    hand_written), or the reference bridge in its place (``reference``), the load for
+    ``duration`` seconds, then everything drained and counted.
     ``domain``: the ROS 2 domain (the tests give each of their workers its own), else one
     derived from the pid and the mode."""
     import aiormq
@@ -496,12 +509,19 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
     result: dict[str, Any] = {"mode": mode, "robots": robots_n, "vehicles": vehicles_n, "links": len(links),
                               "duration_s": duration, "rate_hz": rate, "command_hz": command_rate}
     with tempfile.TemporaryDirectory() as work:
-        routes = write_routes(Path(work) / "routes", mode, url, domain, ports, names, robots_n, links)
-        load_routes(routes, SchemaRegistry(REPO / "schemas"))  # the transports imported: not the config's cost
-        began = time.perf_counter()
-        config = load_routes(routes, SchemaRegistry(REPO / "schemas"))
-        result["check_s"] = time.perf_counter() - began
-        result["routes"] = len(config.routes)
+        samples = {"latency_out": str(Path(work) / "latency.json"), "handed_out": str(Path(work) / "handed.json")}
+        if mode == REFERENCE:  # no routes: the bridge written on the client libraries (bench/systems.py ref_fleet)
+            result["check_s"] = result["routes"] = None
+            bridge = ("ref-fleet", {"url": url, **names, "domain": domain, "robots": agents,
+                                    "links": [[port, ids] for port, ids in zip(ports, links)], **samples})
+        else:
+            routes = write_routes(Path(work) / "routes", mode, url, domain, ports, names, robots_n, links)
+            load_routes(routes, SchemaRegistry(REPO / "schemas"))  # the transports imported: not the config's cost
+            began = time.perf_counter()
+            config = load_routes(routes, SchemaRegistry(REPO / "schemas"))
+            result["check_s"] = time.perf_counter() - began
+            result["routes"] = len(config.routes)
+            bridge = ("engine", {"routes": str(routes), **samples})
         files = {name: str(Path(work) / name) for name in ("go", "stop", "done")}
         phases: dict[str, float] = result.setdefault("phases_s", {})
         mark = time.monotonic()
@@ -512,8 +532,7 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             mark = time.monotonic()
 
         try:
-            engine = tp.Child("engine", {"routes": str(routes), "latency_out": str(Path(work) / "latency.json"),
-                                        "handed_out": str(Path(work) / "handed.json")})
+            engine = tp.Child(*bridge)
             children.append(engine)
             started = await engine.wait_for("started", timeout=300)
             await engine.wait_for("ready", timeout=60)
@@ -659,11 +678,12 @@ async def fleet(url: str, modes: list[str], robots_n: int = 50, vehicles_n: int 
 
 def fleet_report(results: dict[str, Any]) -> list[str]:
     """The fleet section of a report: one column per way of writing the routes."""
-    modes = [mode for mode in ("templated", "shared", "hand_written") if isinstance(results.get(mode), dict) and "lost" in results[mode]]
+    modes = [mode for mode in MODES if isinstance(results.get(mode), dict) and "lost" in results[mode]]
     if not modes:
         return [f"Fleet run failed: {results}"]
     first = results[modes[0]]
-    labels = {"templated": "Templated routes (for_each)", "shared": "Shared routes (discovery, one per link)", "hand_written": "One hand-written route per agent"}
+    labels = LABELS
+    reference = results.get(REFERENCE) if REFERENCE in modes else None
     lines = [f"{first['robots']} ROS 2 robots x {len(ROBOT_STREAMS)} topics and {first['vehicles']} MAVLink vehicles "
              f"x {len(VEHICLE_STREAMS)} messages ({first['links']} UDP links) at {first['rate_hz']:g} Hz each, a "
              f"{first['command_hz']:g} Hz command to each agent the other way, {first['duration_s']:.0f} s.", "",
@@ -672,7 +692,7 @@ def fleet_report(results: dict[str, Any]) -> list[str]:
     def row(label: str, value: Any) -> None:
         lines.append(f"| {label} | " + " | ".join(value(results[m]) for m in modes) + " |")
 
-    row("Routes (expanded)", lambda r: str(r["routes"]))
+    row("Routes (expanded)", lambda r: "-" if r["routes"] is None else str(r["routes"]))
     row("Telemetry lost / sent", lambda r: f"{r['telemetry_lost']} / {r['telemetry_sent']}")
     row("Commands lost / sent", lambda r: f"{r['commands_lost']} / {r['commands_sent']}")
     for kind in STREAM_KINDS:
@@ -686,17 +706,33 @@ def fleet_report(results: dict[str, Any]) -> list[str]:
         row(f"{kind}: in the engine until handed to its sink p50 / p99 (ms)", lambda r, k=kind: (
             f"{r['engine_to_sink_ms'][k]['p50']:.2f} / {r['engine_to_sink_ms'][k]['p99']:.2f}"
             if r.get("engine_to_sink_ms", {}).get(k, {}).get("n") else "-"))
+    if reference is not None:
+        for kind in STREAM_KINDS:
+            row(f"{kind} p99 / the reference's", lambda r, k=kind: _ratio(r["latency_ms"][k], reference["latency_ms"][k], "p99"))
     row("Engine CPU per message (us)", lambda r: f"{r['engine_cpu_us_per_message']:.0f}")
+    if reference is not None:
+        row("Engine CPU per message / the reference's", lambda r: f"{r['engine_cpu_us_per_message'] / reference['engine_cpu_us_per_message']:.2f}")
     row("Engine CPU (cores)", lambda r: f"{r['engine_cores']:.2f}")
     row("RSS after load / at the end (MiB)", lambda r: f"{r['rss_after_load_mib']:.0f} / {r['rss_end_mib']:.0f}")
-    row("check: parse, expand, compile (s)", lambda r: f"{r['check_s']:.3f}")
-    row("load: Engine.start (s)", lambda r: f"{r['load_s']:.2f}")
+    row("check: parse, expand, compile (s)", lambda r: "-" if r["check_s"] is None else f"{r['check_s']:.3f}")
+    row("load: Engine.start, or the reference's setup (s)", lambda r: f"{r['load_s']:.2f}")
     row("Load average before / after", lambda r: " / ".join(f"{x:.1f}" for x in r["loadavg_before"][:1] + r["loadavg_after"][:1]))
     lines += ["", "Latency is end to end on one machine's wall clock: from the robot's or vehicle's send to the bench's "
               "consumer of the RabbitMQ queue (telemetry), from the bench's AMQP publish to the robot's or vehicle's "
               "receipt (commands). Engine CPU per message = the engine process's CPU time during the load and its drain "
               "/ every message it carried, both ways. Targets: 0 lost, p99 <= 50 ms, under one core."]
+    if reference is not None:
+        lines += ["", "The reference column runs no engine: the same bridge written directly on rclpy, pymavlink and aiormq "
+                  "(bench/systems.py ref_fleet) in its place, on the same load; its \"engine\" rows are that process's "
+                  "(\"in the engine\": reception to the broker's confirm or to the command's send; \"until handed\": "
+                  "reception to its publish). Ratios are each column's figure over the reference's, in the same run."]
     return lines
+
+
+def _ratio(value: dict[str, Any], reference: dict[str, Any], key: str) -> str:
+    if not value.get("n") or not reference.get("n") or not reference[key]:
+        return "-"
+    return f"{value[key] / reference[key]:.2f}"
 
 
 def main() -> None:
@@ -707,7 +743,7 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of load per mode")
     parser.add_argument("--robots", type=int, default=50)
     parser.add_argument("--vehicles", type=int, default=50)
-    parser.add_argument("--modes", default="templated,hand_written")
+    parser.add_argument("--modes", default="templated,hand_written", help=f"comma-separated, of {', '.join(MODES)}")
     parser.add_argument("--url", help="a running broker (default: a private RabbitMQ node)")
     parser.add_argument("--out", help="output directory (default bench/results/<date>)")
     args = parser.parse_args()

@@ -269,7 +269,7 @@ def ct_l1_table(result: dict[str, Any]) -> list[str]:
 def fleet_table(fleet: dict[str, Any]) -> list[str]:
     from bench.fleet import fleet_report
 
-    return ["## 8. A fleet: 100 agents through templated routes, against one hand-written route per agent", "",
+    return ["## 8. A fleet: 100 agents through templated, shared and hand-written routes, against the same bridge on the client libraries", "",
             *fleet_report(fleet), ""]
 
 

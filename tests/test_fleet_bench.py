@@ -1,8 +1,9 @@
 """The fleet benchmark (bench/fleet.py, issue 20) runs short and loses nothing: ROS 2 robots
 (rclpy, a child process) and MAVLink vehicles (pymavlink, several on each UDP link) through
-templated routes (and routes shared by the fleet) to RabbitMQ, and a command to every agent the other way. Timings are the
-benchmark's to report (bench/results/), not this test's: it asserts that every message sent
-arrived, once the engine and the load generators ran under ``timeout -s KILL``."""
+templated routes (and routes shared by the fleet, and the reference bridge written on the
+client libraries in the engine's place) to RabbitMQ, and a command to every agent the other
+way. Timings are the benchmark's to report (bench/results/), not this test's: it asserts that
+every message sent arrived, once the bridge and the load generators ran under ``timeout -s KILL``."""
 
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ from bench.fleet import STREAM_KINDS, run_mode
 from tests.workers import ros_domain
 
 ROUTES = {"templated": 3 * 3 + 9 * 3,
-          "shared": 2 + 3 + 2 * 2 + 9}  # discovery per robot stream, per link and message, a command route per agent
+          "shared": 2 + 3 + 2 * 2 + 9,  # discovery per robot stream, per link and message, a command route per agent
+          "reference": None}  # no engine: the bridge on the client libraries (bench/systems.py ref_fleet)
 
 
 @pytest.mark.parametrize("mode", sorted(ROUTES))
