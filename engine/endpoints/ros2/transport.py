@@ -514,7 +514,7 @@ class Ros2Connection(Connection):
                 self._publishers[key] = (shared, users - 1)
                 return
             del self._publishers[key]
-            await asyncio.to_thread(publisher.wait_for_all_acked, Duration(seconds=2))
+            await _all_acked(publisher, RELEASE_ACK_WAIT)
             if self._node is not None:
                 self._node.destroy_publisher(publisher)
             return
@@ -660,6 +660,31 @@ class Ros2Connection(Connection):
 
 
 # ---------------------------------------------------------------- source
+
+RELEASE_ACK_WAIT = 2.0
+"""Seconds a released publisher waits for its reliable readers to acknowledge what it sent."""
+_ACK_POLL = 0.02
+
+
+async def _all_acked(publisher: Any, timeout: float) -> bool:
+    """Whether every reliable reader of ``publisher`` acknowledged what it published, waiting
+    at most ``timeout`` s without holding up the loop or the process.
+
+    rclpy's ``wait_for_all_acked`` keeps the GIL for its whole wait: one reader that did not
+    answer (a robot stopped or gone, still matched until its lease expires) froze every
+    thread of the engine for the 2 s, one publisher after another, so a stop of the fleet's
+    50 robot command routes took 100 s (bench/fleet.py, killed at 20 s). It is asked with a
+    zero timeout instead (~160 us), between loop turns; a publisher no reader matched has
+    nothing to wait for."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    now = Duration(nanoseconds=0)
+    while publisher.get_subscription_count() and not publisher.wait_for_all_acked(now):
+        if loop.time() >= deadline:
+            return False
+        await asyncio.sleep(_ACK_POLL)
+    return True
+
 
 class _Reader:
     """One subscription of a source, and the metadata each of its messages carries."""
