@@ -462,19 +462,24 @@ class AmqpSource(Source):
 
 
 def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
+    """The message's meta, read off its ``Basic.Deliver`` frame and properties directly: a
+    consumer is only ever given deliveries, and aiormq's ``routing_key``/``exchange``/
+    ``redelivered`` properties check the frame's class on every read."""
     properties = message.header.properties
+    delivery = message.delivery
+    headers = properties.headers
     return Inbound(
         body=message.body,
         meta={
-            "routing_key": message.routing_key,
-            "exchange": message.exchange,
+            "routing_key": delivery.routing_key,
+            "exchange": delivery.exchange,
             "message_id": properties.message_id,
             "correlation_id": properties.correlation_id,
             "reply_to": properties.reply_to,
-            "headers": properties.headers,
+            "headers": headers,
             "content_type": properties.content_type,
-            "redelivered": message.redelivered,
-            "cancel": (properties.headers or {}).get("x-rabbitros-cancel"),
+            "redelivered": delivery.redelivered,
+            "cancel": headers.get("x-rabbitros-cancel") if headers else None,
         },
         received_ns=received_ns,
     )
