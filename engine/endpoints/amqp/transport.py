@@ -2,14 +2,14 @@
 
 Batch-shaped, as a plain aiormq pass-through would be: a source's consumer callback only
 appends to a list (unless the message arrives alone while the source is idle: it is then
-settled in the callback, see ``AmqpSource._on_message``); one loop per source hands everything received (up to half the prefetch)
-to the route as one batch, then acknowledges with a single ``basic_ack(multiple=True)`` up
-to the highest delivery tag whose whole prefix was settled (accepted by the sink or
-dead-lettered); the rest of the batch is acked one by one or nacked with requeue. Batches
-are acknowledged in order, so every earlier tag is already acked or nacked and
-at-least-once holds: a crash or a reload redelivers instead of losing. They are settled one
-at a time unless the route's sink declares it can send more meanwhile
-(``Sink.batches_in_flight``: the JSON tunnel over a radio). Sinks publish on the
+settled in the callback, see ``AmqpSource._on_message``); one loop per source hands
+everything received (up to half the prefetch) to the route as one batch, then acknowledges
+with a single ``basic_ack(multiple=True)`` up to the highest delivery tag whose whole
+prefix was settled (accepted by the sink or dead-lettered); the rest of the batch is acked
+one by one or nacked with requeue. Batches are acknowledged in order, so every earlier tag
+is already acked or nacked and at-least-once holds: a crash or a reload redelivers instead
+of losing. They are settled one at a time unless the route's sink declares it can send more
+meanwhile (``Sink.batches_in_flight``: the JSON tunnel over a radio). Sinks publish on the
 connection's channel with publisher confirms (configurable), every route's batch of a loop
 turn in one shared round (one write, one confirm wait: engine/endpoints/amqp/publisher.py),
 each route answered per message, so "accepted" means the broker took responsibility.
