@@ -100,7 +100,9 @@ def retry_delay(attempt: int) -> float:
 def prior_attempts(meta: Mapping[str, Any]) -> int:
     """Delivery attempts made before this reception: our own header, a quorum queue's
     delivery count, or at least one when the broker marks the message redelivered."""
-    headers = meta.get("headers") or {}
+    headers = meta.get("headers")
+    if not headers:  # most messages: no header to look through
+        return 1 if meta.get("redelivered") else 0
     for key in (ATTEMPTS_HEADER, "x-delivery-count"):
         value = headers.get(key)
         if isinstance(value, int) and not isinstance(value, bool) and value > 0:

@@ -21,7 +21,7 @@ import jmespath
 from jmespath import exceptions as jmespath_errors
 from jmespath import functions
 
-from engine import frames
+from engine import frames, stamps
 from engine.jmespath_compile import Compiled, compile_parsed
 from engine.stores import RECALL_FUNCTION, SEQUENCE_FUNCTION, Stores
 
@@ -39,12 +39,6 @@ class MappingError(ValueError):
 
 def _frames() -> Any:
     return frames  # imported once at load: an import statement per call cost ~1 us per function
-
-
-def _stamps() -> Any:
-    from engine import stamps
-
-    return stamps
 
 
 class FieldFunctions(functions.Functions):
@@ -98,14 +92,14 @@ class FieldFunctions(functions.Functions):
     # Stamps in their one canonical form {sec, nanosec}, see engine.stamps.
     @functions.signature({"types": ["number", "object"]})
     def _func_to_stamp(self, value: Any) -> dict[str, int]:
-        return _stamps().to_stamp(value)
+        return stamps.to_stamp(value)
 
 
     @functions.signature({"types": ["number", "object"]})
     def _func_iso8601(self, value: Any) -> str:
         """UNIX seconds or a {sec, nanosec} stamp -> ISO 8601 UTC to the millisecond
         (``2023-11-14T22:13:20.500Z``): the timestamp VDA 5050 messages carry."""
-        return _stamps().to_iso8601(_stamps().to_stamp(value))
+        return stamps.to_iso8601(stamps.to_stamp(value))
 
     @functions.signature({"types": ["array"]}, {"types": ["array"]})
     def _func_without(self, items: list[Any], removed: list[Any]) -> list[Any]:

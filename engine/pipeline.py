@@ -123,7 +123,7 @@ class Pipeline:
             body=body,
             canonical=data,
             fields=fields,
-            message_id=meta.get("message_id") or os.urandom(16).hex(),
+            message_id=meta.get("message_id") or new_message_id(),
             meta=meta,
             captured={name: meta[name] for name in self.captured if name in meta} if self.captured else None,
         )
@@ -135,7 +135,7 @@ class Pipeline:
         meta["route"] = self.route
         meta["generation"] = self.generation
         return Outbound(body=b"", canonical=None, fields=None,
-                        message_id=meta.get("message_id") or os.urandom(16).hex(), meta=meta)
+                        message_id=meta.get("message_id") or new_message_id(), meta=meta)
 
     def enter(self) -> None:
         self.in_flight += 1
@@ -150,6 +150,26 @@ class Pipeline:
         """Wait until every message this pipeline started has been settled."""
         if self.in_flight:
             await self._drained.wait()
+
+
+_IDS: list[str] = []
+"""Random message ids drawn 256 at a time: ``os.urandom(16).hex()`` per message cost 0.9 us
+(measured in the AMQP -> ROS 2 path, a getrandom call each), the pool's ``pop`` a few
+hundredths of that. ``list.pop`` is atomic, so no two callers get one id; a forked child
+starts with an empty pool, so it never repeats its parent's."""
+
+
+def new_message_id() -> str:
+    """A message id for a message that came without one: 128 random bits, 32 hex digits."""
+    try:
+        return _IDS.pop()
+    except IndexError:
+        pool = os.urandom(16 * 256).hex()
+        _IDS.extend([pool[i:i + 32] for i in range(0, len(pool), 32)])
+        return _IDS.pop()
+
+
+os.register_at_fork(after_in_child=_IDS.clear)
 
 
 def _unexpected(exc: BaseException) -> str:

@@ -276,7 +276,8 @@ class RouteRunner:
             if buffer is not None and (buffer.holding or not self.sink_can_take(pipeline)):
                 await self._hold(pending, settled)  # behind what the buffer holds, in order
                 return
-            if not await self._sink_ready(pipeline):
+            # the ready sink is the common case: asked once here, no coroutine (_sink_ready's loop)
+            if not (self.sink_can_take(pipeline) and not self._stopping.is_set()) and not await self._sink_ready(pipeline):
                 if buffer is not None:  # kept: spilled, or delivered by the runner replacing this one
                     await self._hold(pending, settled)
                 return  # the route is stopping: what is left stays unsettled
@@ -287,7 +288,12 @@ class RouteRunner:
                 handed = time.monotonic_ns()
                 self.send_samples.extend(handed - message.inbound.received_ns for message in pending)
             results = await pipeline.sink.send_batch([message.outbound for message in pending])  # type: ignore[misc]
-            pending = self._sent(pending, results, settled, dead, waiting=not self.sink_can_take(pipeline))
+            # whether the sink can take messages now matters only for a failure (see _sent): a
+            # batch that all went out does not ask again (a ROS 2 sink's readiness is an rcl
+            # call, 2.8 us, and a drain's batches are 3 messages long: measured 3,960 batches
+            # for 13,200 messages)
+            failed = results.count(None) != len(results)
+            pending = self._sent(pending, results, settled, dead, waiting=failed and not self.sink_can_take(pipeline))
             if pending and buffer is not None:  # transient: the buffer retries them, the source moves on
                 await self._hold(pending, settled)
                 return

@@ -1,0 +1,106 @@
+"""An AMQP message that arrives alone is settled in its consumer callback, without the batch
+loop's wake-up (engine/endpoints/amqp/transport.py ``AmqpSource._on_message``): order,
+acknowledgement after the sink accepted, and the route's counters stay the batch loop's.
+
+The hard case is a message alone whose sink cannot take it yet (a ROS 2 topic no reader has
+matched): it waits in its callback while the messages behind it are queued for the batch
+loop, which must not send them first nor acknowledge past it."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+import uuid
+from pathlib import Path
+
+import aio_pika
+import pytest
+
+import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
+
+from engine.endpoints.amqp.transport import ALONE_GAP_NS, AmqpSource
+from engine.runtime import Engine
+from tests.conftest import REPO
+
+ROUTE = """
+connections:
+  ros: {{ros2: {{domain_id: {domain}, node: engine_{tag}}}}}
+routes:
+  - name: alone
+    source: {{amqp: {{queue: {queue}}}}}
+    schema: raw_json
+    sink: {{ros2: {{topic: /{tag}/alone}}}}
+"""
+
+
+async def _wait(condition, what: str, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, what
+        await asyncio.sleep(0.02)
+
+
+def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_order_once(
+        amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from tests.test_ros2_endpoint import DOMAIN, Peer, String
+
+    monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
+    tag = "a" + uuid.uuid4().hex[:8]
+    queue = f"alone-{tag}"
+    (tmp_path / "alone.yaml").write_text(ROUTE.format(domain=DOMAIN, tag=tag, queue=queue))
+    alone: list[int] = []
+    settle_alone = AmqpSource._settle_alone
+
+    async def counted(self, deliver, message, received_ns):  # the real method, counted
+        alone.append(int(message.delivery_tag))
+        await settle_alone(self, deliver, message, received_ns)
+
+    monkeypatch.setattr(AmqpSource, "_settle_alone", counted)
+    bodies = [b'{"seq": %d}' % i for i in range(60)]
+
+    async def scenario() -> tuple[list[bytes], int, dict]:
+        engine = Engine(tmp_path, REPO / "schemas")
+        await engine.start()
+        peer = None
+        try:
+            connection = await aio_pika.connect(amqp_url)
+            async with connection:
+                channel = await connection.channel(publisher_confirms=True)
+                runner = engine.runners["alone"]
+                # 1: alone, and no reader yet: it waits in its callback for the sink
+                await channel.default_exchange.publish(aio_pika.Message(bodies[0]), queue)
+                await _wait(lambda: runner.observer.received == 1, "the first message was not taken")
+                assert alone == [1]
+                # 2-30: a burst behind it, queued for the batch loop, which must wait for 1
+                await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
+                                       for body in bodies[1:30]))
+                await asyncio.sleep(0.3)  # time for the loop to take them, were it to hand them on
+                # the route has been handed nothing behind the waiting one: no batch can overtake it
+                # or acknowledge past it (basic_ack multiple=True) before it is settled
+                assert runner.observer.received == 1 and runner.observer.delivered == 0, runner.observer.counters()
+                peer = Peer()
+                received = peer.subscribe(String, f"/{tag}/alone")
+                peer.start()
+                await _wait(lambda: len(received) == 30, "the first 30 did not all arrive")
+                # 31-60 at a robot's pace: each one alone
+                for body in bodies[30:]:
+                    await asyncio.sleep(ALONE_GAP_NS / 1e9 * 5)
+                    await channel.default_exchange.publish(aio_pika.Message(body), queue)
+                await _wait(lambda: len(received) == 60, "the last 30 did not all arrive")
+                await asyncio.sleep(0.3)  # nothing more may arrive
+                await _wait(lambda: runner.observer.delivered == 60, "not counted delivered")
+                counters = runner.observer.counters()
+                await asyncio.sleep(0.3)  # the acknowledgements reach the broker
+                declared = await (await connection.channel()).declare_queue(queue, passive=True)
+                left = declared.declaration_result.message_count
+                return [m.data.encode() for m in received], left, counters
+        finally:
+            await engine.stop()
+            if peer is not None:
+                peer.close()
+
+    arrived, left, counters = asyncio.run(asyncio.wait_for(scenario(), 90))
+    assert arrived == bodies  # in order, each once
+    assert left == 0  # every message acknowledged
+    assert counters["received"] == 60 and counters["delivered"] == 60 and counters["failed"] == 0, counters
+    assert 1 in alone and len(alone) >= 20, alone  # the paced ones went the alone way (a loaded machine may bunch a few)
