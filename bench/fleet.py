@@ -88,6 +88,16 @@ def header(url: str, domain: int, ports: list[int]) -> list[str]:
     return lines
 
 
+def _robot_commands(cmd: str) -> str:
+    """The robots' command route (one per robot of robots.yaml), as every templated way writes it."""
+    return f"""  - name: "{{agent}}-cmd"
+    for_each: robots.yaml
+    source: {{amqp: {{connection: gcs, exchange: {cmd}, binding_key: "{{agent}}", queue: "{cmd}-{{agent}}"}}}}
+    schema: raw_json
+    sink: {{ros2: {{connection: ros, topic: "/{{agent}}/cmd"}}}}
+"""
+
+
 def templated_routes(names: dict[str, str], robots: int, links: list[list[int]]) -> tuple[str, str]:
     """The fleet in five templated routes (and the agents file they name)."""
     out, cmd = names["out"], names["cmd"]
@@ -100,12 +110,7 @@ routes:
     source: {{ros2: {{connection: ros, topic: "/{{agent}}/{{stream}}"}}}}
     schema: raw_json
     sink: {{amqp: {{connection: gcs, exchange: {out}, routing_key: "{{agent}}.{{stream}}"}}}}
-  - name: "{{agent}}-cmd"
-    for_each: robots.yaml
-    source: {{amqp: {{connection: gcs, exchange: {cmd}, binding_key: "{{agent}}", queue: "{cmd}-{{agent}}"}}}}
-    schema: raw_json
-    sink: {{ros2: {{connection: ros, topic: "/{{agent}}/cmd"}}}}
-  - name: "uav{{sys}}-position"
+{_robot_commands(cmd)}  - name: "uav{{sys}}-position"
     for_each: &vehicles [{vehicles}]
     source: {{mavlink: {{connection: "{{link}}", message: GLOBAL_POSITION_INT, system_id: "{{sys}}"}}}}
     mapping: "{{agent: meta('agent'), seq: lat, time_boot_ms: time_boot_ms, alt_msl: mm_to_m(alt), heading: heading_cdeg_to_deg(hdg)}}"
@@ -148,12 +153,7 @@ routes:
     source: {{ros2: {{connection: ros, topic: "/{{agent}}/{{stream}}"}}}}
     schema: raw_json
     sink: {{amqp: {{connection: gcs, exchange: {out}, routing_key: "{{agent}}.{{stream}}"}}}}
-  - name: "{{agent}}-cmd"
-    for_each: robots.yaml
-    source: {{amqp: {{connection: gcs, exchange: {cmd}, binding_key: "{{agent}}", queue: "{cmd}-{{agent}}"}}}}
-    schema: raw_json
-    sink: {{ros2: {{connection: ros, topic: "/{{agent}}/cmd"}}}}
-  - name: "{{link}}-position"
+{_robot_commands(cmd)}  - name: "{{link}}-position"
     for_each: &links [{link_items}]
     source: {{mavlink: {{connection: "{{link}}", message: GLOBAL_POSITION_INT}}}}
     mapping: "{{agent: meta('agent'), seq: lat, time_boot_ms: time_boot_ms, alt_msl: mm_to_m(alt), heading: heading_cdeg_to_deg(hdg)}}"
