@@ -659,8 +659,6 @@ class Ros2Connection(Connection):
             self._taken.set()
 
 
-# ---------------------------------------------------------------- source
-
 RELEASE_ACK_WAIT = 2.0
 """Seconds a released publisher waits for its reliable readers to acknowledge what it sent."""
 _ACK_POLL = 0.02
@@ -685,6 +683,8 @@ async def _all_acked(publisher: Any, timeout: float) -> bool:
         await asyncio.sleep(_ACK_POLL)
     return True
 
+
+# ---------------------------------------------------------------- source
 
 class _Reader:
     """One subscription of a source, and the metadata each of its messages carries."""
