@@ -552,8 +552,8 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
                    for group in groups if group]
             mav = tp.Child("fleet-vehicles", {"links": [[port, ids] for port, ids in zip(ports, links)], "rate": rate, **files})
             children += [*ros, mav]
-            for agents in (*ros, mav):
-                os.setpriority(os.PRIO_PGRP, agents.process.pid, agents_nice)
+            for generator in (*ros, mav):
+                os.setpriority(os.PRIO_PGRP, generator.process.pid, agents_nice)
             matched = [await child.wait_for("matched", timeout=180) for child in ros]
             result["unmatched_publishers"] = sum(int(line.split()[1]) for line in matched)
             await mav.wait_for("ready", timeout=60)

@@ -11,7 +11,7 @@ import asyncio
 
 import pytest
 
-from bench.fleet import STREAM_KINDS, run_mode
+from bench.fleet import AGENTS_NICE, STREAM_KINDS, run_mode
 from tests.workers import ros_domain
 
 ROUTES = {"templated": 3 * 3 + 9 * 3,
@@ -21,8 +21,10 @@ ROUTES = {"templated": 3 * 3 + 9 * 3,
 
 @pytest.mark.parametrize("mode", sorted(ROUTES))
 def test_fleet_smoke_loses_nothing(amqp_url: str, mode: str) -> None:
+    nice = AGENTS_NICE if mode == "shared" else 0  # the load generators at a lower priority, once
     result = asyncio.run(run_mode(amqp_url, mode, robots_n=3, vehicles_n=9, duration=2.0,
-                                  domain=ros_domain(13)))
+                                  domain=ros_domain(13), agents_nice=nice))
+    assert result["agents_nice"] == nice
     assert result["links"] == 2 and result["routes"] == ROUTES[mode]  # nine vehicles need two udpin links
     assert result["unmatched_publishers"] == 0
     assert result["telemetry_sent"] >= (3 * 2 + 9 * 2) * 10  # 10 Hz for 2 s at least (each stream sends whole rounds)
