@@ -96,7 +96,7 @@ async def run(args: argparse.Namespace) -> Path:
         ("discovery", lambda: bench_discovery.measure(url, tp.domain_id())),
         ("sik5", lambda: sections.sik_goodput(url, args.sik_count, 250, loss=0.05)),
         ("calls", lambda: call_ros2.measure(url, tp.domain_id(), args.calls)),
-        ("fleet", lambda: fleet.fleet(url, ["reference", "templated", "shared", "hand_written"], duration=args.fleet_seconds)),
+        ("fleet", lambda: fleet.fleet(None, ["reference", "templated", "shared", "hand_written"], duration=args.fleet_seconds)),
         ("radio_latency", lambda: radio_latency.run(url, 8.0)),
         ("mission", lambda: asyncio.to_thread(mission_upload.run, [20], [0.0, 0.05], args.mission_repeat)),
     ]
