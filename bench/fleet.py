@@ -675,12 +675,11 @@ async def _drain(telemetry: Telemetry, at_least: float, stall: float = 1.5, time
 async def fleet(url: str | None, modes: list[str], robots_n: int = 50, vehicles_n: int = 50, duration: float = 60.0,
                 agents_nice: int = 0) -> dict[str, Any]:
     """Each way of writing the routes on the same load, one after the other, with the load
-    average before and after each; ``url`` None: each on a fresh private RabbitMQ node.
-
-    On one node for all, the mode that ran first had the lowest p99 in three runs of four
-    (bench/results/2026-11-27: templated 26-33 ms first, 36-64 ms second), whichever it was:
-    what a mode leaves in the broker (100 durable queues' message stores, its connections'
-    and queues' processes until they are collected) is not the next mode's to carry."""
+    average before and after each; ``url`` None: each on a fresh private RabbitMQ node, so no
+    mode carries what another left in the broker (on one node for all, the mode that ran first
+    had the lowest p99 in three runs of four). The spread from run to run stays large on a
+    shared 2-core machine: the same mode's telemetry p99 ranged 26-65 ms over five runs and the
+    reference's 18-64 ms over three (bench/results/2026-11-27/README.md); compare runs, not one."""
     from engine.endpoints.amqp.broker import LocalBroker
 
     out: dict[str, Any] = {}
