@@ -28,7 +28,7 @@ the reference process's). The engine's figures are stated as ratios of the refer
 measured in the same run: on a 2-core machine the broker, the load generators and the bench's
 consumer bound the latency of any bridge, and the reference measures that bound.
 
-    .venv/bin/python -m bench.fleet                   # 60 s each way of writing the routes
+    .venv/bin/python -m bench.fleet                   # 60 s for each of the four modes
     .venv/bin/python -m bench.fleet --duration 10 --modes templated
 """
 
@@ -706,14 +706,13 @@ def fleet_report(results: dict[str, Any]) -> list[str]:
     if not modes:
         return [f"Fleet run failed: {results}"]
     first = results[modes[0]]
-    labels = LABELS
     reference = results.get(REFERENCE) if REFERENCE in modes else None
     lines = [f"{first['robots']} ROS 2 robots x {len(ROBOT_STREAMS)} topics and {first['vehicles']} MAVLink vehicles "
              f"x {len(VEHICLE_STREAMS)} messages ({first['links']} UDP links) at {first['rate_hz']:g} Hz each, a "
              f"{first['command_hz']:g} Hz command to each agent the other way, {first['duration_s']:.0f} s"
              + (f"; the robots' and vehicles' processes at nice {first['agents_nice']}" if first.get("agents_nice") else "")
              + ".", "",
-             "| | " + " | ".join(labels[m] for m in modes) + " |", "|---|" + "---|" * len(modes)]
+             "| | " + " | ".join(LABELS[m] for m in modes) + " |", "|---|" + "---|" * len(modes)]
 
     def row(label: str, value: Any) -> None:
         lines.append(f"| {label} | " + " | ".join(value(results[m]) for m in modes) + " |")
@@ -768,7 +767,7 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of load per mode")
     parser.add_argument("--robots", type=int, default=50)
     parser.add_argument("--vehicles", type=int, default=50)
-    parser.add_argument("--modes", default="templated,hand_written", help=f"comma-separated, of {', '.join(MODES)}")
+    parser.add_argument("--modes", default=",".join(MODES), help=f"comma-separated, of {', '.join(MODES)}")
     parser.add_argument("--agents-nice", type=int, nargs="?", const=AGENTS_NICE, default=0,
                         help=f"the robots' and vehicles' processes at this nice value (alone: {AGENTS_NICE}; default 0)")
     parser.add_argument("--url", help="a running broker for every mode (default: a fresh private RabbitMQ node for each)")

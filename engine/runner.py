@@ -276,8 +276,7 @@ class RouteRunner:
             if buffer is not None and (buffer.holding or not self.sink_can_take(pipeline)):
                 await self._hold(pending, settled)  # behind what the buffer holds, in order
                 return
-            # the ready sink is the common case: asked once here, no coroutine (_sink_ready's loop)
-            if not (self.sink_can_take(pipeline) and not self._stopping.is_set()) and not await self._sink_ready(pipeline):
+            if not self._ready_now(pipeline) and not await self._sink_ready(pipeline):
                 if buffer is not None:  # kept: spilled, or delivered by the runner replacing this one
                     await self._hold(pending, settled)
                 return  # the route is stopping: what is left stays unsettled
@@ -369,6 +368,11 @@ class RouteRunner:
         if self.latency_samples is not None:
             self.latency_samples.append(latency)
         self.observer.accepted(inbound, outbound, latency)
+
+    def _ready_now(self, pipeline: Pipeline) -> bool:
+        """What :meth:`_sink_ready` answers when it need not wait: asked first, inline, as the
+        ready sink is the common case and a coroutine per batch is not free."""
+        return self.sink_can_take(pipeline) and not self._stopping.is_set()
 
     async def _sink_ready(self, pipeline: Pipeline) -> bool:
         """Wait while the sink cannot take messages; False once the route stops, or once a

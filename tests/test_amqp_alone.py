@@ -59,48 +59,52 @@ def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_
     bodies = [b'{"seq": %d}' % i for i in range(60)]
 
     async def scenario() -> tuple[list[bytes], int, dict]:
-        engine = Engine(tmp_path, REPO / "schemas")
-        await engine.start()
         peer = None
         try:
+            engine = Engine(tmp_path, REPO / "schemas")
+            await engine.start()
+            try:
+                connection = await aio_pika.connect(amqp_url)
+                async with connection:
+                    channel = await connection.channel(publisher_confirms=True)
+                    runner = engine.runners["alone"]
+                    # 1: alone, and no reader yet: it waits in its callback for the sink
+                    await channel.default_exchange.publish(aio_pika.Message(bodies[0]), queue)
+                    await _wait(lambda: runner.observer.received == 1, "the first message was not taken")
+                    assert alone == [1]
+                    # 2-30: a burst behind it, queued for the batch loop, which must wait for 1
+                    await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
+                                           for body in bodies[1:30]))
+                    source = runner.source
+                    # the batch loop has taken (some of) the burst: were it to hand it on, it would have in the same step
+                    await _wait(lambda: not source._parked, "the batch loop never took any of the burst")
+                    # the route has been handed nothing behind the waiting one: no batch can overtake it
+                    # or acknowledge past it (basic_ack multiple=True) before it is settled
+                    assert runner.observer.received == 1 and runner.observer.delivered == 0, runner.observer.counters()
+                    peer = Peer()
+                    received = peer.subscribe(String, f"/{tag}/alone")
+                    peer.start()
+                    await _wait(lambda: len(received) == 30, "the first 30 did not all arrive")
+                    # 31-60 at a robot's pace: each one alone
+                    for body in bodies[30:]:
+                        await asyncio.sleep(ALONE_GAP_NS / 1e9 * 5)
+                        await channel.default_exchange.publish(aio_pika.Message(body), queue)
+                    await _wait(lambda: len(received) == 60, "the last 30 did not all arrive")
+                    await _wait(lambda: runner.observer.delivered == 60, "not counted delivered")
+                    counters = runner.observer.counters()
+            finally:
+                await engine.stop()  # its channel closed: a message it did not acknowledge is ready again
             connection = await aio_pika.connect(amqp_url)
             async with connection:
-                channel = await connection.channel(publisher_confirms=True)
-                runner = engine.runners["alone"]
-                # 1: alone, and no reader yet: it waits in its callback for the sink
-                await channel.default_exchange.publish(aio_pika.Message(bodies[0]), queue)
-                await _wait(lambda: runner.observer.received == 1, "the first message was not taken")
-                assert alone == [1]
-                # 2-30: a burst behind it, queued for the batch loop, which must wait for 1
-                await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
-                                       for body in bodies[1:30]))
-                await asyncio.sleep(0.3)  # time for the loop to take them, were it to hand them on
-                # the route has been handed nothing behind the waiting one: no batch can overtake it
-                # or acknowledge past it (basic_ack multiple=True) before it is settled
-                assert runner.observer.received == 1 and runner.observer.delivered == 0, runner.observer.counters()
-                peer = Peer()
-                received = peer.subscribe(String, f"/{tag}/alone")
-                peer.start()
-                await _wait(lambda: len(received) == 30, "the first 30 did not all arrive")
-                # 31-60 at a robot's pace: each one alone
-                for body in bodies[30:]:
-                    await asyncio.sleep(ALONE_GAP_NS / 1e9 * 5)
-                    await channel.default_exchange.publish(aio_pika.Message(body), queue)
-                await _wait(lambda: len(received) == 60, "the last 30 did not all arrive")
-                await asyncio.sleep(0.3)  # nothing more may arrive
-                await _wait(lambda: runner.observer.delivered == 60, "not counted delivered")
-                counters = runner.observer.counters()
-                await asyncio.sleep(0.3)  # the acknowledgements reach the broker
                 declared = await (await connection.channel()).declare_queue(queue, passive=True)
                 left = declared.declaration_result.message_count
-                return [m.data.encode() for m in received], left, counters
+            return [m.data.encode() for m in received], left, counters  # all that arrived until the stop
         finally:
-            await engine.stop()
             if peer is not None:
                 peer.close()
 
     arrived, left, counters = asyncio.run(asyncio.wait_for(scenario(), 90))
     assert arrived == bodies  # in order, each once
-    assert left == 0  # every message acknowledged
+    assert left == 0  # every message acknowledged (none requeued when the engine's channel closed)
     assert counters["received"] == 60 and counters["delivered"] == 60 and counters["failed"] == 0, counters
     assert 1 in alone and len(alone) >= 20, alone  # the paced ones went the alone way (a loaded machine may bunch a few)

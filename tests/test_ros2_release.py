@@ -88,7 +88,7 @@ async def _sinks_beside_a_stalled_reader(body) -> None:  # type: ignore[no-untyp
         os.killpg(reader.pid, signal.SIGSTOP)
         for n, sink in enumerate(sinks):
             await sink.send(_outbound(f"m{n}"))
-        await body(reader, sinks)
+        await body(sinks)
     finally:
         os.killpg(reader.pid, signal.SIGKILL)
         reader.wait(10)
@@ -96,7 +96,7 @@ async def _sinks_beside_a_stalled_reader(body) -> None:  # type: ignore[no-untyp
 
 
 def test_sinks_released_beside_a_stalled_reader_wait_together_and_leave_the_loop_running() -> None:
-    async def body(reader: subprocess.Popen[str], sinks: list) -> None:  # type: ignore[type-arg]
+    async def body(sinks: list) -> None:  # type: ignore[type-arg]
         lag = LoopLag()
         began = time.monotonic()
         await asyncio.gather(*(sink.close() for sink in sinks))
