@@ -283,6 +283,12 @@ class Inbox(Generic[T]):
         self.closed = True
         self._arrived.set()
 
+    async def arrival(self) -> None:
+        """Wait for the next :meth:`wake` or :meth:`close` without taking anything (a loop
+        that has something of its own to do when woken with nothing queued)."""
+        self._arrived.clear()
+        await self._arrived.wait()
+
     async def take(self, most: int) -> list[T]:
         items = self.items
         while not items:

@@ -1,0 +1,89 @@
+"""A queue's backlog reaches an AMQP route in large batches, not 3 messages at a time: the
+source's channel holds more frames between aiormq's connection reader and its channel reader
+than aiormq's default of 10 (engine/endpoints/amqp/transport.py ``FRAME_BUFFER``). With 10, a
+drain was taken exactly 3.3 messages (10 frames) per batch, each batch paying the route's
+per-batch costs; every message must still arrive once and in order."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+import uuid
+from pathlib import Path
+
+import aio_pika
+import pytest
+
+import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
+
+from engine.endpoints.amqp.transport import FRAME_BUFFER, AmqpSource
+from engine.runtime import Engine
+from tests.conftest import REPO
+
+ROUTE = """
+connections:
+  ros: {{ros2: {{domain_id: {domain}, node: engine_{tag}}}}}
+routes:
+  - name: backlog
+    source: {{amqp: {{queue: {queue}, prefetch: 1000}}}}
+    schema: raw_json
+    sink: {{ros2: {{topic: /{tag}/backlog}}}}
+"""
+
+
+async def _wait(condition, what: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, what
+        await asyncio.sleep(0.02)
+
+
+def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
+        amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from tests.test_ros2_endpoint import DOMAIN, Peer, String
+
+    monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
+    tag = "b" + uuid.uuid4().hex[:8]
+    queue = f"backlog-{tag}"
+    (tmp_path / "backlog.yaml").write_text(ROUTE.format(domain=DOMAIN, tag=tag, queue=queue))
+    sizes: list[int] = []
+    deliver_batch = AmqpSource._deliver_batch
+
+    async def counted(self, deliver, batch):  # the real method, its batch sizes recorded
+        sizes.append(len(batch))
+        return await deliver_batch(self, deliver, batch)
+
+    monkeypatch.setattr(AmqpSource, "_deliver_batch", counted)
+    bodies = [b'{"seq": %d}' % i for i in range(3000)]
+
+    async def scenario() -> tuple[list[bytes], int]:
+        peer = Peer()
+        try:
+            received = peer.subscribe(String, f"/{tag}/backlog")
+            peer.start()
+            engine = Engine(tmp_path, REPO / "schemas")
+            await engine.start()
+            try:
+                runner = engine.runners["backlog"]
+                frames = (await runner.source._channel.get_underlay_channel()).frames.maxsize
+                await _wait(lambda: runner.pipeline.sink.ready, "the reader never matched")
+                # published faster than the route takes them: a backlog builds up in the queue, which the
+                # broker streams to the engine up to the prefetch
+                connection = await aio_pika.connect(amqp_url)
+                async with connection:
+                    channel = await connection.channel(publisher_confirms=True)
+                    await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
+                                           for body in bodies))
+                await _wait(lambda: len(received) == len(bodies), "the reader did not get them all")
+            finally:
+                await engine.stop()
+            return [m.data.encode() for m in received], frames
+        finally:
+            peer.close()
+
+    arrived, frames = asyncio.run(asyncio.wait_for(scenario(), 120))
+    assert arrived == bodies  # once each, in order
+    assert frames == FRAME_BUFFER
+    # 10 frames held 3 messages; a loaded machine may split batches, but not all of them
+    assert max(sizes) >= 20, sorted(sizes)[-20:]
+    assert sum(sizes) == len(bodies), sum(sizes)
