@@ -5,8 +5,8 @@
 * ``engine``: the RabbitROS engine on a routes file (uvloop where installed); with
   ``latency_out`` it records every message's reception-to-acceptance time (t2 - t1) and
   writes them there when stopped.
-* ``ref-amqp-amqp``: the plain aiormq pass-through of issue 10: consume with prefetch 1,000,
-  publish each batch of received messages pipelined on a confirm channel (persistent),
+* ``ref-amqp-amqp``: the plain aiormq pass-through of issue 10: consume with prefetch 1,000
+  (a 300-frame channel buffer, as the engine's sources), publish each batch of received messages pipelined on a confirm channel (persistent),
   one ``basic_ack(multiple=True)`` per batch.
 * ``ref-amqp-ros2``: the same consumer, each batch published as std_msgs/String with rclpy.
 * ``ref-ros2-amqp``: an rclpy subscription taken in batches from rcl's wait set in a thread
@@ -178,7 +178,10 @@ async def _aiormq_consumer(args: dict[str, Any], handle_batch: Any) -> Any:
     import aiormq
 
     connection = await aiormq.connect(args["url"])
-    channel = await connection.channel()
+    # the engine's sources buffer 300 frames (engine/endpoints/amqp/transport.py FRAME_BUFFER:
+    # aiormq's default of 10 let a drain reach the consumer 3 messages at a time); the
+    # reference asks the same through aiormq's public argument, so neither is held to the default
+    channel = await connection.channel(frame_buffer_size=300)
     await channel.basic_qos(prefetch_count=1000)
     received: list[Any] = []
     ready = asyncio.Event()
@@ -572,7 +575,7 @@ async def ref_fleet(args: dict[str, Any]) -> None:
     link_of = {sid: index for index, (_, ids) in enumerate(links) for sid in ids}
 
     # -- commands: each agent's queue, as the engine's command routes declare it
-    command_channel = await connection.channel()
+    command_channel = await connection.channel(frame_buffer_size=300)  # as the engine's sources
     await command_channel.basic_qos(prefetch_count=256)
     await command_channel.exchange_declare(cmd, exchange_type="topic", durable=True)
     await publish_channels[0].exchange_declare(out, exchange_type="topic", durable=True)
