@@ -166,3 +166,40 @@ def test_a_channel_closed_before_its_confirms_fails_every_route_of_the_round(amq
     assert "NOT_FOUND" in str(failed[0][0]) or "closed" in str(failed[0][0]), failed
     assert after == [None], after
     assert rounds >= 3
+
+
+def test_confirms_settle_the_acknowledged_prefix_of_the_table(amqp_url: str) -> None:
+    """The publisher's confirm handler (publisher.py ``_confirm_in_order``) on a real aiormq
+    confirm channel, fed the broker's confirm frames: a multiple Ack settles exactly the tags up
+    to its own (not the newer ones), a single Nack fails only its tag with aiormq's
+    ``DeliveryError``, a multiple Nack fails the rest of its prefix, and an unknown tag changes
+    nothing."""
+    from aiormq import spec
+    from aiormq.exceptions import DeliveryError
+
+    from engine.endpoints.amqp.publisher import _confirm_in_order
+
+    async def scenario() -> None:
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await (await connection.channel(publisher_confirms=True)).get_underlay_channel()
+            _confirm_in_order(channel)
+            loop = asyncio.get_running_loop()
+            futures = {tag: loop.create_future() for tag in range(1, 9)}
+            channel.confirmations.update(futures)
+            await channel._on_confirm_frame(spec.Basic.Ack(delivery_tag=3, multiple=True))
+            assert [tag for tag, f in futures.items() if f.done()] == [1, 2, 3]
+            assert all(isinstance(futures[tag].result(), spec.Basic.Ack) for tag in (1, 2, 3))
+            await channel._on_confirm_frame(spec.Basic.Nack(delivery_tag=5, multiple=False))
+            assert isinstance(futures[5].exception(), DeliveryError) and not futures[4].done()
+            await channel._on_confirm_frame(spec.Basic.Ack(delivery_tag=42, multiple=True))  # not ours: ignored
+            assert not futures[4].done() and list(channel.confirmations) == [4, 6, 7, 8]
+            await channel._on_confirm_frame(spec.Basic.Nack(delivery_tag=7, multiple=True))
+            assert isinstance(futures[4].exception(), DeliveryError) and isinstance(futures[6].exception(), DeliveryError)
+            assert isinstance(futures[7].exception(), DeliveryError) and not futures[8].done()
+            assert list(channel.confirmations) == [8]
+            channel.confirmations.clear()
+        finally:
+            await connection.close()
+
+    asyncio.run(scenario())
