@@ -529,7 +529,7 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             config = load_routes(routes, SchemaRegistry(REPO / "schemas"))
             result["check_s"] = time.perf_counter() - began
             result["routes"] = len(config.routes)
-            bridge = ("engine", {"routes": str(routes), **samples})
+            bridge = ("engine", {"routes": str(routes), "publish_out": str(Path(work) / "publish.json"), **samples})
         files = {name: str(Path(work) / name) for name in ("go", "stop", "done")}
         phases: dict[str, float] = result.setdefault("phases_s", {})
         mark = time.monotonic()
@@ -581,6 +581,9 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
         phase("stop")
         internal = json.loads((Path(work) / "latency.json").read_text())
         handed = json.loads((Path(work) / "handed.json").read_text())
+        published = Path(work) / "publish.json"
+        if published.exists():  # the engine's AMQP publishes over the whole run, and the rounds (one write each) they took
+            result["amqp_publish"] = json.loads(published.read_text())
     telemetry.digest()
     by_kind: dict[str, list[float]] = {}
     for route, samples in internal.items():
@@ -738,6 +741,7 @@ def fleet_report(results: dict[str, Any]) -> list[str]:
     if reference is not None:
         row("Engine CPU per message / the reference's", lambda r: f"{r['engine_cpu_us_per_message'] / reference['engine_cpu_us_per_message']:.2f}")
     row("Engine CPU (cores)", lambda r: f"{r['engine_cores']:.2f}")
+    row("AMQP publishes per round (one write, one confirm wait)", _per_round)
     row("RSS after load / at the end (MiB)", lambda r: f"{r['rss_after_load_mib']:.0f} / {r['rss_end_mib']:.0f}")
     row("check: parse, expand, compile (s)", lambda r: "-" if r["check_s"] is None else f"{r['check_s']:.3f}")
     row("load: Engine.start, or the reference's setup (s)", lambda r: f"{r['load_s']:.2f}")
@@ -752,6 +756,14 @@ def fleet_report(results: dict[str, Any]) -> list[str]:
                   "(\"in the engine\": reception to the broker's confirm or to the command's send; \"until handed\": "
                   "reception to its publish). Ratios are each column's figure over the reference's, in the same run."]
     return lines
+
+
+def _per_round(result: dict[str, Any]) -> str:
+    """The engine's AMQP publishes over its publish rounds (engine/endpoints/amqp/publisher.py),
+    over the whole run; "-" for the reference or a run without the counts."""
+    counts = list((result.get("amqp_publish") or {}).values())
+    rounds = sum(count["publish_rounds"] for count in counts)
+    return f"{sum(count['published'] for count in counts) / rounds:.2f}" if rounds else "-"
 
 
 def _ratio(value: dict[str, Any], reference: dict[str, Any], key: str) -> str:

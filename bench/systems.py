@@ -167,6 +167,11 @@ async def engine(args: dict[str, Any]) -> None:
         if args.get("handed_out"):
             handed = {name: getattr(runner, "send_samples", None) or [] for name, runner in bridge.runners.items()}
             Path(args["handed_out"]).write_text(json.dumps(handed))
+        if args.get("publish_out"):  # each AMQP connection's publishes and the rounds that carried them
+            rounds = {connection.name: {key: health[key] for key in ("published", "publish_rounds")}
+                      for protocol, connection in bridge.open_connections() if protocol == "amqp"
+                      for health in (connection.health(),)}
+            Path(args["publish_out"]).write_text(json.dumps(rounds))
         await bridge.stop()
 
 

@@ -168,3 +168,16 @@ def test_generated_values_serialise_and_parse_like_the_standard_library(value: A
         return
     assert canonical_bytes(value) == expected
     assert json.dumps(parse_json(expected)) == json.dumps(reference_parse(expected))
+
+
+@settings(max_examples=3000, deadline=None)
+@given(st.lists(st.sampled_from([b"0", b"1", b"9", b"5", b"-", b".", b'"', b"e", b" ", b"\xe9"]), max_size=60)
+       .map(b"".join) | st.builds(lambda a, n, b: a + b"7" * n + b, st.binary(max_size=8), st.integers(17, 22),
+                                  st.binary(max_size=8)))
+def test_the_long_number_check_answers_what_its_expression_does(body: bytes) -> None:
+    """``_may_hold_long_number`` searches the digits-as-zeros body instead of running
+    ``_LONG_NUMBER`` (engine/schemas.py): the same answer for every body, bytes or bytearray."""
+    from engine.schemas import _LONG_NUMBER, _may_hold_long_number
+
+    assert _may_hold_long_number(body) == (_LONG_NUMBER.search(body) is not None)
+    assert _may_hold_long_number(bytearray(body)) == (_LONG_NUMBER.search(body) is not None)

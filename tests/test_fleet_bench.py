@@ -33,3 +33,7 @@ def test_fleet_smoke_loses_nothing(amqp_url: str, mode: str) -> None:
     assert result["foreign_commands"] == 0  # each command reached only the vehicle it names
     assert all(result["latency_ms"][kind]["n"] > 0 for kind in STREAM_KINDS), result["latency_ms"]
     assert all(result["engine_to_sink_ms"][kind]["n"] > 0 for kind in STREAM_KINDS), result["engine_to_sink_ms"]
+    if mode != "reference":  # the engine's AMQP publishes (telemetry, from its load on) and the rounds they took
+        counts = result["amqp_publish"]["gcs"]
+        assert counts["published"] >= result["telemetry_sent"], counts
+        assert 0 < counts["publish_rounds"] <= counts["published"], counts

@@ -296,6 +296,45 @@ def test_source_delivers_fields_and_filters_by_system() -> None:
     run(scenario())
 
 
+def test_sources_of_one_vehicle_each_hear_only_theirs_and_stop_hearing_when_stopped() -> None:
+    """Per-vehicle sources on one link are listened to by system id (connection.py ``listen``):
+    each gets its own vehicle's messages only; a stopped one gets nothing more while the
+    other and a source of every vehicle keep theirs."""
+    async def scenario() -> None:
+        conn = TRANSPORT.connect("gcs", {"url": "udpin:127.0.0.1:0", "heartbeat": 0})
+        await conn.open()
+        peer = await UdpPeer.bind()
+        got1, got2, every = Collector(), Collector(), Collector()
+        one = conn.source("uav1", {"message": "GLOBAL_POSITION_INT", "system_id": 1})
+        two = conn.source("uav2", {"message": "GLOBAL_POSITION_INT", "system_id": 2})
+        both = conn.source("all", {"message": "GLOBAL_POSITION_INT"})
+        for source, collector in ((one, got1), (two, got2), (both, every)):
+            await source.start(collector)
+        try:
+            vehicle1, vehicle2 = packer(1, 1), packer(2, 1)
+            port = conn.address[1]
+            peer.send(gpi(vehicle2, lat=2) + gpi(vehicle1, lat=1) + gpi(vehicle2, lat=3), port)
+            await every.wait_for(3)
+            await got2.wait_for(2)
+            await got1.wait_for(1)
+            assert [i.fields["lat"] for i in got1.items] == [1]
+            assert [i.fields["lat"] for i in got2.items] == [2, 3]
+            await one.stop()
+            peer.send(gpi(vehicle1, lat=4) + gpi(vehicle2, lat=5), port)
+            await every.wait_for(5)
+            await got2.wait_for(3)
+            assert [i.fields["lat"] for i in got1.items] == [1]
+            assert [i.fields["lat"] for i in got2.items] == [2, 3, 5]
+            assert [i.fields["lat"] for i in every.items] == [2, 1, 3, 4, 5]
+        finally:
+            await two.stop()
+            await both.stop()
+            peer.close()
+            await conn.close()
+
+    run(scenario())
+
+
 def test_sink_encodes_command_long_from_fields() -> None:
     async def scenario() -> None:
         peer = await UdpPeer.bind()

@@ -68,6 +68,8 @@ class MavlinkConnection(Connection):
         source gives it as ``ref_id`` (MISSION_ACK itself carries no reference)."""
         self._heard: list[asyncio.Future[None]] = []
         self._listeners: dict[int | None, list[Listener]] = {}
+        self._from_system: dict[tuple[int | None, int], list[Listener]] = {}
+        """Listeners of one vehicle's messages (:meth:`listen` with a ``system_id``)."""
         self._locks: dict[Hashable, asyncio.Lock] = {}
         self._tasks: list[asyncio.Task[None]] = []
 
@@ -167,14 +169,31 @@ class MavlinkConnection(Connection):
         for key in (msg_id, None):
             for listener in self._listeners.get(key, ()):
                 listener(msg)
+        if self._from_system:
+            system = msg.get_header().srcSystem
+            for key in ((msg_id, system), (None, system)):  # type: ignore[assignment]
+                for listener in self._from_system.get(key, ()):  # type: ignore[call-overload]
+                    listener(msg)
 
-    def listen(self, msg_id: int | None, listener: Listener) -> None:
-        """Call ``listener`` with every accepted message of ``msg_id`` (None: all)."""
-        self._listeners.setdefault(msg_id, []).append(listener)
+    def listen(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None:
+        """Call ``listener`` with every accepted message of ``msg_id`` (None: all), from
+        vehicle ``system_id`` only when given.
 
-    def unlisten(self, msg_id: int | None, listener: Listener) -> None:
+        A link carries several vehicles (bench/fleet.py: 7 or 8 per ``udpin`` link), each with
+        a route per message it sends: a listener that filtered by sender itself was called for
+        every vehicle's message of its type, 8 calls where one is for it."""
+        if system_id is None:
+            self._listeners.setdefault(msg_id, []).append(listener)
+        else:
+            self._from_system.setdefault((msg_id, system_id), []).append(listener)
+
+    def unlisten(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None:
+        listeners = self._listeners if system_id is None else self._from_system
+        key = msg_id if system_id is None else (msg_id, system_id)
         with contextlib.suppress(KeyError, ValueError):
-            self._listeners[msg_id].remove(listener)
+            listeners[key].remove(listener)  # type: ignore[index]
+            if not listeners[key] and system_id is not None:  # type: ignore[index]
+                del listeners[key]  # type: ignore[arg-type]
 
     # presence
 

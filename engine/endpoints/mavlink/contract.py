@@ -29,10 +29,11 @@ class SharedLink(Protocol):
     mission_refs: dict[tuple[int, int], str]
     """Per vehicle, the id of the message whose mission was uploaded last (MISSION_ACK's ``ref_id``)."""
 
-    def listen(self, msg_id: int | None, listener: Listener) -> None:
-        """Call ``listener`` with every accepted message of ``msg_id`` (None: all)."""
+    def listen(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None:
+        """Call ``listener`` with every accepted message of ``msg_id`` (None: all), from
+        vehicle ``system_id`` only when given."""
 
-    def unlisten(self, msg_id: int | None, listener: Listener) -> None: ...
+    def unlisten(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None: ...
 
     async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
                            priority: str | None = None) -> float:

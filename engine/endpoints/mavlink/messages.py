@@ -74,13 +74,13 @@ class MessageSource(Source):
         overflow = "drop_oldest" if deliver.overflow == "block" else deliver.overflow
         self._inbox = route_inbox(deliver, overflow)
         self._deliver = deliver
-        self.connection.listen(self.msg_id, self.offer)
+        self.connection.listen(self.msg_id, self.offer, self.system_id)  # only its vehicle's, when it names one
         self._task = asyncio.create_task(self._run(deliver), name=f"mavlink-source:{self.route}")
 
     async def stop(self) -> None:
         """Stop listening, hand what is queued to the route (for at most :data:`STOP_DRAIN`
         seconds; the rest is dropped and counted), and return once the last batch settled."""
-        self.connection.unlisten(self.msg_id, self.offer)
+        self.connection.unlisten(self.msg_id, self.offer, self.system_id)
         task, self._task = self._task, None
         if task is None:
             return
