@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import uuid
+from typing import Any
 
 import aio_pika
 
@@ -185,6 +186,21 @@ def test_confirms_settle_the_acknowledged_prefix_of_the_table(amqp_url: str) -> 
             channel = await (await connection.channel(publisher_confirms=True)).get_underlay_channel()
             _confirm_in_order(channel)
             loop = asyncio.get_running_loop()
+            # aiormq's reader dispatches to the handler installed on the instance: a frame put
+            # where the connection's reader puts it reaches it (else aiormq's own would answer)
+            installed, seen = channel._on_confirm_frame, []
+
+            async def counting(frame: Any) -> None:
+                seen.append(frame)
+                await installed(frame)
+
+            channel._on_confirm_frame = counting
+            probe = loop.create_future()
+            channel.confirmations[100] = probe
+            channel.frames.put_nowait((0, spec.Basic.Ack(delivery_tag=100, multiple=True)))
+            await asyncio.wait_for(probe, 10)
+            assert len(seen) == 1 and channel.confirmations == {}
+            channel._on_confirm_frame = installed
             futures = {tag: loop.create_future() for tag in range(1, 9)}
             channel.confirmations.update(futures)
             await channel._on_confirm_frame(spec.Basic.Ack(delivery_tag=3, multiple=True))
@@ -203,3 +219,14 @@ def test_confirms_settle_the_acknowledged_prefix_of_the_table(amqp_url: str) -> 
             await connection.close()
 
     asyncio.run(scenario())
+
+
+def test_a_frame_size_without_limit_still_sends_the_body() -> None:
+    """A broker that negotiates frame_max 0 ("no limit") leaves aiormq's max_content_size at
+    -8: the body goes as one frame, as aiormq's own split sends it, never dropped."""
+    from aiormq import spec
+
+    from engine.endpoints.amqp.publisher import _frames
+
+    encoded = _frames(1, -8, "e", "k", b"abc", spec.Basic.Properties())
+    assert encoded.endswith(b"\x03\x00\x01\x00\x00\x00\x03abc\xce"), encoded

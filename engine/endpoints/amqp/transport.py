@@ -89,8 +89,10 @@ batch loop 3.3 messages at a time (2,700 batches for 9,000 messages, every drain
 paying the route's per-batch costs. Measured on bench amqp-ros2, 5 interleaved rounds of
 6,000: the engine's CPU per message 140 us (median) at 10 frames, 114 at 100, 78 at 300, 100
 at 3,000 (whole batches of half the prefetch: the broker and the engine overlap less). The
-broker sends no more than the prefetch unacknowledged, so memory stays bounded by it either
-way; a larger buffer only lets the reader take what is already in the socket."""
+broker sends no more than the prefetch unacknowledged, so memory stays bounded by it in
+messages either way; in bytes a buffer of 300 frames may hold up to 300 frame-size chunks of
+large messages (39 MB at RabbitMQ's 128 KiB frames), so it is capped at three frames per
+prefetched message (a small message's three)."""
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
 MAX_ROUTING_KEY = 255
 """Bytes in a routing key (an AMQP short string): a longer one can never be published."""
@@ -221,7 +223,10 @@ class AmqpConnection(Connection):
         return self._connection
 
     async def exchange(self, name: str, kind: str = "topic", durable: bool = True) -> aio_pika.abc.AbstractExchange:
-        """The publish channel's exchange, declared once (durable topic unless told)."""
+        """The publish channel's exchange, declared once (durable topic unless told). For
+        declaring and naming only: never publish through it. The connection's
+        :class:`~engine.endpoints.amqp.publisher.SharedPublisher` must be the only publisher on
+        this channel, since it numbers the channel's delivery tags itself."""
         exchange = self._exchanges.get(name)
         if exchange is not None:
             return exchange
@@ -389,7 +394,7 @@ class AmqpSource(Source):
         and :meth:`_reconsume` then consumes again."""
         assert self._channel is not None
         channel = await self._channel.get_underlay_channel()
-        _widen_frame_buffer(channel, FRAME_BUFFER)
+        _widen_frame_buffer(channel, min(FRAME_BUFFER, 3 * self._options.prefetch))
         result = await channel.basic_consume(self.queue_name, self._on_message, no_ack=False)
         self._consumer = (channel, result.consumer_tag)
 
