@@ -54,13 +54,16 @@ def machine() -> dict[str, Any]:
             "commit": commit, "cpus": os.cpu_count(), "loadavg": os.getloadavg(), "loop": loop_name()}
 
 
-async def throughput(broker: tp.Broker, count: int, pairs: int, half_rate_s: float) -> dict[str, Any]:
+async def throughput(broker: tp.Broker, count: int, pairs: int, half_rate_s: float,
+                     kinds: list[str] | None = None) -> dict[str, Any]:
     """Each route kind: ``pairs`` interleaved rounds of reference, engine (and the paper's
     design) draining the same backlog (bench/throughput.py ``interleaved``), then the engine's
     latency at half its median rate."""
     out: dict[str, Any] = {}
     domain, count = tp.domain_id(), min(count, tp.MAX_BURST)
     for kind, (reference, paper) in KINDS.items():
+        if kinds and kind not in kinds:
+            continue
         systems = {"reference": reference, "engine": "engine", **({"paper": paper} if paper else {})}
         row = await tp.interleaved(broker, kind, systems, pairs, count, domain, counts={"paper": count // 6})
         engine_rate = row["engine"].get("msg_per_s", float("nan"))
@@ -89,7 +92,8 @@ async def run(args: argparse.Namespace) -> Path:
     steps = [
         ("latency", lambda: sections.paper_latency(url, args.rate, args.runs, 100)),
         ("ct_l1", lambda: ct_l1.measure(url, tp.domain_id(), [100.0, 200.0], 1000, 3)),
-        ("throughput", lambda: throughput(broker, args.count, args.pairs, args.half_rate_seconds)),
+        ("throughput", lambda: throughput(broker, args.count, args.pairs, args.half_rate_seconds,
+                                                 args.kinds.split(",") if args.kinds else None)),
         ("sizes", lambda: sections.throughput_by_size(broker, [50, 250, 1000, 4000], args.count)),
         ("routes", lambda: sections.many_routes(broker, [1, 100, 1000], args.count)),
         ("sik", lambda: sections.sik_goodput(url, args.sik_count, 250)),
@@ -143,6 +147,7 @@ def main() -> None:
                         help="seconds of the fleet's load (bench/fleet.py), each way of writing its routes")
     parser.add_argument("--mission-repeat", type=int, default=2,
                         help="uploads of the 20-waypoint mission per client, vehicle and loss (about 25 s each round)")
+    parser.add_argument("--kinds", help=f"comma-separated route kinds of the throughput section ({', '.join(KINDS)}; default all)")
     parser.add_argument("--only", help=f"comma-separated sections of {', '.join(SECTIONS)}")
     parser.add_argument("--out", help="output directory (default bench/results/<date>)")
     parser.add_argument("--report-only", help="rewrite report.md and plots from this results.json")
