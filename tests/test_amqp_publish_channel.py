@@ -184,3 +184,64 @@ def test_exchange_deleted_behind_the_engine_fails_only_its_route_and_it_recovers
     assert connection["state"] == "up" and connection["publish_channel_reopens"] >= 1, connection
     assert "NOT_FOUND" in connection["last_error"] and result["connection"]["last_error"].count(f"'{names['ex_a']}'"), connection
     assert result["dead"] == {"a": {}, "b": {}}, result["dead"]
+
+
+def test_publish_channel_closed_under_concurrent_rounds_is_reopened(node: LocalBroker) -> None:
+    """The reviewer's reproduction, at the connection's level: thirty publishers without a
+    pause, one of them to an exchange another client deleted. Before, aio-pika's restore of
+    the robust channel raced the rounds (ChannelNotFoundEntity) and the channel stayed "not
+    opened": every publish of the connection failed for good, healthy exchange too, while the
+    health said up. Now a publish to the healthy exchange is confirmed again within the
+    deadline, the health names the deleted exchange, and no round is left between the
+    channel's lock and its frames (the publisher's fast path stays on)."""
+    from aiormq import spec
+
+    from engine.endpoints.amqp.transport import TRANSPORT
+
+    tag = uuid.uuid4().hex[:8]
+    healthy, gone = f"pc-ok-{tag}", f"pc-gone-{tag}"
+
+    def messages(n: int) -> list[tuple[str, bytes, Any]]:
+        return [("k", b'{"a": 1}', spec.Basic.Properties(delivery_mode=1)) for _ in range(n)]
+
+    async def scenario() -> dict[str, Any]:
+        connection = TRANSPORT.connect("c", {"url": node.url})
+        await connection.open()
+        client = await aio_pika.connect(node.url)
+        try:
+            assert await connection.publish_batch(healthy, messages(2)) == [None, None]
+            assert await connection.publish_batch(gone, messages(1)) == [None]
+            await (await client.channel()).exchange_delete(gone)
+            loop = asyncio.get_running_loop()
+            stop = loop.time() + 1.5
+            outcomes: dict[str, int] = {}
+            states: set[str] = set()
+
+            async def pump(index: int) -> None:
+                while loop.time() < stop:
+                    for error in await connection.publish_batch(gone if index == 0 else healthy, messages(1)):
+                        kind = "ok" if error is None else type(error).__name__
+                        outcomes[kind] = outcomes.get(kind, 0) + 1
+                    states.add(connection.health()["state"])
+                    await asyncio.sleep(0)
+
+            await asyncio.gather(*(pump(index) for index in range(30)))
+            deadline = loop.time() + DEADLINE_S
+            while (after := await connection.publish_batch(healthy, messages(1))) != [None]:
+                assert loop.time() < deadline, f"publishing to a healthy exchange still fails: {after}, {connection.health()}"
+                await asyncio.sleep(0.05)
+            publisher = connection._publisher  # type: ignore[attr-defined]
+            return {"outcomes": outcomes, "states": states, "health": connection.health(),
+                    "writing": dict(publisher._writing), "gone_again": await connection.publish_batch(gone, messages(1))}
+        finally:
+            await client.close()
+            await connection.close()
+
+    result = asyncio.run(scenario())
+    print(result)
+    health = result["health"]
+    assert health["state"] == "up" and health["publish_channel_reopens"] >= 1, health
+    assert f"no exchange '{gone}'" in health["last_error"], health
+    assert result["outcomes"].get("ok", 0) > 0, result["outcomes"]
+    assert result["writing"] == {}, result["writing"]
+    assert result["gone_again"] == [None]  # declared again, as at start

@@ -277,14 +277,17 @@ class AmqpConnection(Connection):
             connection = self._connection
             if connection is None or self._state == "down":
                 return
-            await connection.ready()
+            await connection.ready()  # a lost connection: until aio-pika reconnected it
             if self._state == "down":
                 return
             try:
                 await self._open_publish_channel()
             except LIBRARY_ERRORS as exc:
-                self._failed(exc)
-                delay = self._reopen_backoff.next()
+                if self._link_up:  # the channel's own failure: the engine's backoff
+                    self._failed(exc)
+                    delay = self._reopen_backoff.next()
+                else:  # the connection went (its close callback came first): wait for it, no backoff
+                    delay = REOPEN_FIRST_S
                 continue
             self.publish_channel_reopens += 1
             if self._state == "degraded" and self._link_up:
