@@ -245,3 +245,89 @@ def test_publish_channel_closed_under_concurrent_rounds_is_reopened(node: LocalB
     assert result["outcomes"].get("ok", 0) > 0, result["outcomes"]
     assert result["writing"] == {}, result["writing"]
     assert result["gone_again"] == [None]  # declared again, as at start
+
+
+async def _proxy(target_port: int) -> tuple[asyncio.AbstractServer, dict[str, Any]]:
+    """A TCP relay to the node that can stop reading from its clients (``state["paused"]``
+    set) and cut them (``state["cut"]()``): a connection whose peer no longer reads fills its
+    socket, then aiormq's write queue, then dies."""
+    state: dict[str, Any] = {"paused": asyncio.Event(), "clients": []}
+
+    async def relay(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, pause: bool) -> None:
+        try:
+            while data := await reader.read(65536):
+                if pause and state["paused"].is_set():
+                    await asyncio.Event().wait()  # reads nothing more: the client's socket fills
+                writer.write(data)
+                await writer.drain()
+        except (ConnectionError, OSError, asyncio.CancelledError):
+            pass
+        finally:
+            writer.close()
+
+    async def serve(client_reader: asyncio.StreamReader, client_writer: asyncio.StreamWriter) -> None:
+        broker_reader, broker_writer = await asyncio.open_connection("127.0.0.1", target_port)
+        tasks = [asyncio.create_task(relay(client_reader, broker_writer, True)),
+                 asyncio.create_task(relay(broker_reader, client_writer, False))]
+        state["clients"].append((client_writer, broker_writer, tasks))
+
+    def cut() -> None:
+        for client_writer, broker_writer, tasks in state["clients"]:
+            client_writer.transport.abort()  # RST: the engine's connection dies
+            broker_writer.transport.abort()
+            for task in tasks:
+                task.cancel()
+
+    state["cut"] = cut
+    server = await asyncio.start_server(serve, "127.0.0.1", 0)
+    return server, state
+
+
+def test_a_round_waiting_for_room_in_the_write_queue_ends_with_its_connection(node: LocalBroker) -> None:
+    """Reviewer's finding 3: a round of the publisher's slow path waiting in aiormq's full
+    write queue when the connection dies was never woken (aiormq stops draining the queue and
+    wakes no ``put``), so its routes waited for ever and ``_writing`` never went back to 0,
+    which kept the fast path off for the connection's life. The broker here is reached
+    through a relay that stops reading (the socket, then the write queue fill) and then
+    cuts the connection: every round must end, with a failure, and nothing stays counted."""
+    from aiormq import spec
+
+    from engine.endpoints.amqp.transport import TRANSPORT
+
+    tag = uuid.uuid4().hex[:8]
+    exchange = f"pc-big-{tag}"
+    body = b"x" * 60_000
+
+    async def scenario() -> dict[str, Any]:
+        server, relay = await _proxy(int(node.url.rsplit(":", 1)[1].split("/")[0]))
+        port = server.sockets[0].getsockname()[1]
+        # without confirms each round's frame asks aiormq's writer to drain the socket, so a
+        # peer that stops reading stops the writer and fills the write queue (with confirms
+        # aiormq writes without draining: the transport's buffer grows instead)
+        connection = TRANSPORT.connect("c", {"url": f"amqp://guest:guest@127.0.0.1:{port}/", "publisher_confirms": False})
+        await connection.open()
+        try:
+            assert await connection.publish_batch(exchange, [("k", b"{}", spec.Basic.Properties())]) == [None]
+            publisher = connection._publisher  # type: ignore[attr-defined]
+            relay["paused"].set()
+            loop = asyncio.get_running_loop()
+            publishing: list[asyncio.Task[list[BaseException | None]]] = []
+            deadline = loop.time() + DEADLINE_S
+            while not publisher._writing:  # until a round waits for room in the write queue
+                assert loop.time() < deadline and len(publishing) < 5000, f"the write queue never filled ({len(publishing)} rounds)"
+                publishing.append(asyncio.create_task(
+                    connection.publish_batch(exchange, [("k", body, spec.Basic.Properties())])))
+                await asyncio.sleep(0)
+            relay["cut"]()
+            server.close()  # aio-pika's reconnection attempts are refused from now on
+            done, waiting = await asyncio.wait(publishing, timeout=DEADLINE_S)
+            return {"rounds": len(publishing), "waiting": len(waiting), "writing": dict(publisher._writing),
+                    "failed": sum(1 for task in done if task.result() != [None])}
+        finally:
+            await connection.close()
+
+    result = asyncio.run(scenario())
+    print(result)
+    assert result["waiting"] == 0, result  # every route heard back
+    assert result["writing"] == {}, result  # the fast path is not kept off
+    assert result["failed"] >= 1, result

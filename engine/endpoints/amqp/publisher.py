@@ -192,11 +192,11 @@ class SharedPublisher:
         except LIBRARY_ERRORS as exc:
             results = [[edge_error(exc, self._describe(part.exchange, ""))] * len(part.messages) for part in parts]
             return self._answer(parts, results)  # type: ignore[arg-type]
-        if channel in self._refused:
-            results = [[EndpointError(f"{self._describe(part.exchange, '')}: the broker closed the publish channel")]
-                       * len(part.messages) for part in parts]
-            return self._answer(parts, results)  # type: ignore[arg-type]
-        if channel is not self._underlay:
+        if channel is not self._underlay:  # (the hook below unsets a channel the broker closed)
+            if channel in self._refused:
+                results = [[EndpointError(f"{self._describe(part.exchange, '')}: the broker closed the publish channel")]
+                           * len(part.messages) for part in parts]
+                return self._answer(parts, results)  # type: ignore[arg-type]
             _confirm_in_order(channel)
             self._watch_close(channel)
             self._underlay = channel
@@ -328,11 +328,15 @@ async def _put_frame(channel: aiormq.abc.AbstractChannel, frame: aiormq.abc.Chan
     closed = channel.create_future()  # the channel's own: rejected when it (or its connection) closes
     try:
         await asyncio.wait((put, closed), return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        if not put.done():
-            put.cancel()  # an asyncio.Queue put cancelled while waiting queues nothing
-        if not closed.done():
-            closed.cancel()
+    except BaseException:  # cancelled: the caller takes its tags back
+        put.cancel()
+        closed.cancel()
+        raise
+    if not closed.done():
+        closed.cancel()
+    if not put.done():
+        put.cancel()  # a put cancelled while it waits queues nothing; it ends in one step
+        await asyncio.wait((put,))
     failure = None if closed.cancelled() else closed.exception()  # (retrieved either way)
     if put.cancelled():
         raise failure or aiormq.exceptions.ChannelInvalidStateError("the publish channel closed before the round was written")
