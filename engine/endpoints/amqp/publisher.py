@@ -126,7 +126,7 @@ class SharedPublisher:
     def _write_now(self, parts: list[_Part]) -> bool:
         """The round written in this callback, without a task of its own, where nothing would
         make it wait: the confirm channel last seen is still open, no round of the other way
-        is between taking its tags (under the channel's lock) and queuing its frames, and the
+        is between taking its tags on that channel (under its lock) and queuing its frames, and the
         connection's write queue has room. Nothing else publishes on this channel
         (``AmqpConnection.exchange`` says so), so no one else holds its lock. The broker's confirms then answer the routes from
         their futures' callbacks (:class:`_Confirming`). False (nothing done): the round
@@ -214,7 +214,9 @@ class SharedPublisher:
         measured in tests/test_amqp_publish_channel.py: every source's channel went with it).
         aiormq checks its own private close event for that in ``basic_publish``'s callers; the
         publisher hooks the frame's handler as it hooks the confirms' (:func:`_confirm_in_order`)."""
-        on_close_frame = channel._on_close_frame  # type: ignore[attr-defined]
+        on_close_frame = getattr(channel, "_on_close_frame", None)  # aiormq 7.2's (pinned ~=7.2.4)
+        if on_close_frame is None:  # another aiormq: its own handler; the race above stays open
+            return
         refused = self._refused
 
         async def close_frame(frame: Any) -> None:
