@@ -404,7 +404,7 @@ class Connection(ABC):
         return True
 
     def health(self) -> dict[str, Any]:
-        """What the status shows: ``state`` (up, connecting, reconnecting, down) and, when
+        """What the status shows: ``state`` (up, connecting, reconnecting, degraded, down) and, when
         known, ``last_error`` (never a secret)."""
         return {"state": "up" if self.healthy else "down"}
 

@@ -42,6 +42,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import struct
+import weakref
 from typing import Any, Sequence
 
 import aio_pika.abc
@@ -73,20 +74,33 @@ class _Part:
 class SharedPublisher:
     """The publishes of one connection's routes, coalesced per loop turn (module docstring)."""
 
-    def __init__(self, channel: aio_pika.abc.AbstractChannel, connection: str) -> None:
+    def __init__(self, channel: aio_pika.abc.AbstractChannel | None, connection: str) -> None:
         self._channel = channel
         self._connection = connection
         self._queued: list[_Part] = []
         self._rounds: set[asyncio.Task[None]] = set()
-        self._writing = 0
-        """Rounds of :meth:`_write` between asking for the channel's lock and queuing their frames."""
+        self._writing: dict[aiormq.abc.AbstractChannel, int] = {}
+        """Per aiormq channel: rounds of :meth:`_write` between asking for its lock and queuing
+        their frames. Per channel, so a round stuck on a channel that closed can never keep the
+        fast path off on the next one (and :func:`_put_frame` does not stay stuck: it gives up
+        when its channel closes)."""
         self._underlay: aiormq.abc.AbstractChannel | None = None
         """The confirm channel's aiormq channel as last fetched (a reconnect replaces it, and
         the closed one sends rounds back the way that fetches it again)."""
+        self._refused: weakref.WeakSet[aiormq.abc.AbstractChannel] = weakref.WeakSet()
+        """Channels the broker closed (:meth:`_watch_close`), from its ``Channel.Close`` on:
+        nothing more may be written on them."""
         self.rounds = 0
         """Rounds written so far (each one socket write and one confirm wait)."""
         self.messages = 0
         """Messages written so far: ``messages / rounds`` is the mean round."""
+
+    def replace(self, channel: aio_pika.abc.AbstractChannel | None) -> None:
+        """Publish on ``channel`` from the next round on (the connection reopened its publish
+        channel; None while it reopens: rounds fail at once, transiently). Rounds in flight on
+        the old one fail with it (its futures), none waits."""
+        self._channel = channel
+        self._underlay = None
 
     async def publish(self, exchange: str, messages: Sequence[Message]) -> list[BaseException | None]:
         """``result[i]`` is None once the broker took ``messages[i]``, else why not."""
@@ -112,7 +126,7 @@ class SharedPublisher:
     def _write_now(self, parts: list[_Part]) -> bool:
         """The round written in this callback, without a task of its own, where nothing would
         make it wait: the confirm channel last seen is still open, no round of the other way
-        is between taking its tags (under the channel's lock) and queuing its frames, and the
+        is between taking its tags on that channel (under its lock) and queuing its frames, and the
         connection's write queue has room. Nothing else publishes on this channel
         (``AmqpConnection.exchange`` says so), so no one else holds its lock. The broker's confirms then answer the routes from
         their futures' callbacks (:class:`_Confirming`). False (nothing done): the round
@@ -131,8 +145,8 @@ class SharedPublisher:
         200 one-message batches, staggered, to a private broker; five interleaved runs), with
         :func:`_frames`: 46-63 (median 50) -> 36-43 (median 40) us of CPU per message."""
         channel = self._underlay
-        if self._writing or channel is None or channel.is_closed or not channel.publisher_confirms \
-                or channel.write_queue.full():
+        if channel is None or channel.is_closed or not channel.publisher_confirms \
+                or channel.write_queue.full() or channel in self._writing:
             return False
         results, payloads, slots = self._encode(parts, channel)
         if not payloads:
@@ -170,17 +184,48 @@ class SharedPublisher:
 
     async def _publish(self, parts: list[_Part]) -> None:
         try:
+            if self._channel is None:
+                raise aiormq.exceptions.ChannelInvalidStateError("the publish channel is being reopened")
             channel = await self._channel.get_underlay_channel()
+            if channel.is_closed:  # nothing would ever write (or confirm) this round's frames
+                raise aiormq.exceptions.ChannelInvalidStateError("the publish channel is closed")
         except LIBRARY_ERRORS as exc:
             results = [[edge_error(exc, self._describe(part.exchange, ""))] * len(part.messages) for part in parts]
             return self._answer(parts, results)  # type: ignore[arg-type]
-        if channel is not self._underlay:
+        if channel is not self._underlay:  # (the hook below unsets a channel the broker closed)
+            if channel in self._refused:
+                results = [[EndpointError(f"{self._describe(part.exchange, '')}: the broker closed the publish channel")]
+                           * len(part.messages) for part in parts]
+                return self._answer(parts, results)  # type: ignore[arg-type]
             _confirm_in_order(channel)
+            self._watch_close(channel)
             self._underlay = channel
         results, payloads, slots = self._encode(parts, channel)
         if payloads:
             self._settle(parts, results, slots, await self._write(channel, payloads))
         self._answer(parts, results)
+
+    def _watch_close(self, channel: aiormq.abc.AbstractChannel) -> None:
+        """Stop writing on ``channel`` the moment the broker's ``Channel.Close`` arrives.
+        aiormq answers it with ``Channel.CloseOk`` at once (the broker then knows the channel
+        number no more) but marks the channel closed only a few loop turns later, after its
+        close task ran; a round written in between reached the broker after the CloseOk,
+        which closed the whole CONNECTION (504 CHANNEL_ERROR "expected 'channel.open'",
+        measured in tests/test_amqp_publish_channel.py: every source's channel went with it).
+        aiormq checks its own private close event for that in ``basic_publish``'s callers; the
+        publisher hooks the frame's handler as it hooks the confirms' (:func:`_confirm_in_order`)."""
+        on_close_frame = getattr(channel, "_on_close_frame", None)  # aiormq 7.2's (pinned ~=7.2.4)
+        if on_close_frame is None:  # another aiormq: its own handler; the race above stays open
+            return
+        refused = self._refused
+
+        async def close_frame(frame: Any) -> None:
+            refused.add(channel)
+            if self._underlay is channel:
+                self._underlay = None  # the fast path: not this channel any more
+            await on_close_frame(frame)
+
+        channel._on_close_frame = close_frame  # type: ignore[attr-defined,method-assign]
 
     def _encode(self, parts: list[_Part], channel: aiormq.abc.AbstractChannel) -> tuple[
             list[list[BaseException | None]], list[bytes], list[tuple[int, int]]]:
@@ -216,9 +261,12 @@ class SharedPublisher:
         loop = asyncio.get_running_loop()
         confirmations: list[asyncio.Future[Any]] = []
         drained = None if confirms else channel.create_future()  # the channel's: rejected if it closes
-        self._writing += 1
+        writing = self._writing
+        writing[channel] = writing.get(channel, 0) + 1
         try:
             async with channel.lock:  # the broker numbers publishes in the order they arrive
+                if channel in self._refused:  # closed by the broker while this round waited
+                    raise aiormq.exceptions.ChannelInvalidStateError("the broker closed the publish channel")
                 first = channel.delivery_tag + 1
                 if confirms:
                     table = channel.confirmations
@@ -228,7 +276,7 @@ class SharedPublisher:
                         confirmations.append(future)
                 channel.delivery_tag += len(payloads)
                 try:
-                    await channel.write_queue.put(aiormq.abc.ChannelFrame(
+                    await _put_frame(channel, aiormq.abc.ChannelFrame(
                         payload=b"".join(payloads), should_close=False, drain_future=drained))
                 except BaseException:  # not written: the broker never saw these tags
                     channel.delivery_tag = first - 1
@@ -240,7 +288,11 @@ class SharedPublisher:
         except LIBRARY_ERRORS as exc:
             return [exc] * len(payloads)
         finally:
-            self._writing -= 1
+            left = writing[channel] - 1
+            if left:
+                writing[channel] = left
+            else:
+                del writing[channel]
         self.rounds += 1
         self.messages += len(payloads)
         if confirms:
@@ -259,6 +311,38 @@ class SharedPublisher:
         for part, part_results in zip(parts, results):
             if not part.answer.done():  # its caller may have been cancelled meanwhile
                 part.answer.set_result(part_results)
+
+
+async def _put_frame(channel: aiormq.abc.AbstractChannel, frame: aiormq.abc.ChannelFrame) -> None:
+    """Queue ``frame`` for the connection's writer; when the queue is full, wait for room or
+    for the channel to close, whichever comes first (then raise the channel's failure). aiormq
+    drains the write queue only while its connection lives and wakes no ``put`` waiting on it
+    when the connection dies: a round waiting there waited for ever, holding the channel's
+    lock and keeping the fast path (:meth:`SharedPublisher._write_now`) off. The room is
+    there nearly always: ``put_nowait`` first, no future nor task."""
+    queue = channel.write_queue
+    try:
+        queue.put_nowait(frame)
+        return
+    except asyncio.QueueFull:
+        pass
+    put = asyncio.ensure_future(queue.put(frame))
+    closed = channel.create_future()  # the channel's own: rejected when it (or its connection) closes
+    try:
+        await asyncio.wait((put, closed), return_when=asyncio.FIRST_COMPLETED)
+    except BaseException:  # cancelled: the caller takes its tags back
+        put.cancel()
+        closed.cancel()
+        raise
+    if not closed.done():
+        closed.cancel()
+    if not put.done():
+        put.cancel()  # a put cancelled while it waits queues nothing; it ends in one step
+        await asyncio.wait((put,))
+    failure = None if closed.cancelled() else closed.exception()  # (retrieved either way)
+    if put.cancelled():
+        raise failure or aiormq.exceptions.ChannelInvalidStateError("the publish channel closed before the round was written")
+    put.result()
 
 
 async def _confirmed(channel: aiormq.abc.AbstractChannel, confirmations: list[asyncio.Future[Any]]) -> list[Any]:

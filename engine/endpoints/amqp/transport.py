@@ -22,6 +22,17 @@ One robust connection per named connection is shared by all routes (aio-pika re-
 its channels and consumers after a broker restart); each source has its own channel so its
 prefetch and its stop are its own. Deliveries from a channel that has since been replaced
 are not acked on the new one: the broker has requeued them already.
+
+The publish channel is the connection's own, not a robust channel: the broker closes it on
+its own (a publish to an exchange another client deleted: 404 NOT_FOUND; a declaration it
+refuses), and aio-pika's channel restore raced the publisher, which wrote the next round on
+the half-restored channel before the restore's ``basic.qos`` returned; the second 404 failed
+the restore (``ChannelNotFoundEntity``) and left the channel "not opened" for good: every
+route of the connection failed from then on while its health said ``up``. The connection
+now reopens a fresh publish channel itself (:meth:`AmqpConnection._reopen_publish_channel`,
+the engine's one backoff between attempts), forgets the exchanges it declared (the next
+publish declares its exchange again, as the first one did at start), and reports itself
+``degraded`` with the broker's error meanwhile.
 """
 
 from __future__ import annotations
@@ -65,6 +76,7 @@ from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions
 from engine.mapping import MappingError, compile_template, template_fields, template_problem
 from engine.options import evolve, given
 from engine.endpoints.amqp.broker import CA_ENV, URL_ENV, URLS_ENV, elsewhere
+from engine.backoff import Backoff
 from engine.redaction import Secret, has_url_password, redact_urls, reveal
 from engine.schemas import SchemaError, canonical_bytes
 
@@ -112,6 +124,11 @@ def redact(url: Any) -> str:
 CONNECT_TIMEOUT = 10.0
 """Seconds one attempt to open the connection may take (an unreachable host would otherwise
 hold the engine's start for the TCP timeout, minutes)."""
+REOPEN_FIRST_S = 0.05
+REOPEN_CAP_S = 5.0
+"""The engine's backoff (engine/backoff.py) between attempts to reopen the publish channel
+after the broker closed it: the first attempt at once, then 25-50 ms, doubling up to 2.5-5 s.
+A channel that lived :data:`REOPEN_CAP_S` or longer starts the backoff over."""
 
 
 class AmqpConnection(Connection):
@@ -124,13 +141,24 @@ class AmqpConnection(Connection):
         super().__init__(name, typed(AmqpConnectionOptions, settings, f"amqp connection {name!r}"))
         self._connection: aio_pika.abc.AbstractRobustConnection | None = None
         self._publish_channel: aio_pika.abc.AbstractChannel | None = None
+        """The confirm channel every sink publishes on (a plain channel, reopened by this
+        connection: module docstring); None while it is being reopened."""
         self._publisher: SharedPublisher | None = None
         """Every route's publishes on the publish channel, one round per loop turn."""
         self._exchanges: dict[str, aio_pika.abc.AbstractExchange] = {}
+        """Exchanges declared on the current publish channel (forgotten when it closes)."""
         self._declare_lock = asyncio.Lock()
         self._state = "connecting"
+        self._link_up = False
+        """The connection itself is open (aio-pika reconnects it)."""
         self._last_error: str | None = None
         self._tls: ssl.SSLContext | None = None
+        self._reopening: asyncio.Task[None] | None = None
+        self._reopen_backoff = Backoff(REOPEN_FIRST_S, REOPEN_CAP_S)
+        self._publish_opened = 0.0
+        """When (monotonic) the current publish channel was opened."""
+        self.publish_channel_reopens = 0
+        """Publish channels opened after the first (the status shows it)."""
 
     @property
     def url(self) -> str:
@@ -156,9 +184,13 @@ class AmqpConnection(Connection):
         return self._state == "up"
 
     def health(self) -> dict[str, Any]:
+        """``state``: up, connecting, reconnecting (the connection is lost; aio-pika reconnects
+        it), degraded (the connection is up, its publish channel is being reopened: every sink
+        and dead letter of the connection waits), down; ``last_error``: the last failure of either."""
         publisher = self._publisher
         return {"state": self._state, "last_error": self._last_error,
-                "published": publisher.messages if publisher else 0, "publish_rounds": publisher.rounds if publisher else 0}
+                "published": publisher.messages if publisher else 0, "publish_rounds": publisher.rounds if publisher else 0,
+                "publish_channel_reopens": self.publish_channel_reopens}
 
     def _failed(self, error: BaseException | None) -> None:
         if error is not None:
@@ -179,12 +211,89 @@ class AmqpConnection(Connection):
         return [str(URL(url).update_query(auth="external")) for url in self.urls]
 
     def _on_close(self, _connection: Any, error: BaseException | None = None) -> None:
-        if self._state == "up":
+        self._link_up = False
+        if self._state in ("up", "degraded"):
             self._state = "reconnecting"
         self._failed(error)
 
     def _on_reconnect(self, _connection: Any) -> None:
-        self._state = "up"
+        self._link_up = True
+        if self._state != "down":
+            self._state = "up" if self._publish_channel_open() else "degraded"
+
+    def _publish_channel_open(self) -> bool:
+        channel = self._publish_channel
+        return channel is not None and not channel.is_closed
+
+    async def _open_publish_channel(self) -> None:
+        """A fresh confirm channel for the sinks, the publisher moved onto it. A plain
+        ``aio_pika.Channel`` (public API) rather than the robust connection's ``channel()``:
+        no restore of aio-pika's own races the publisher (module docstring)."""
+        assert self._connection is not None
+        channel = aio_pika.Channel(self._connection, publisher_confirms=self.settings.publisher_confirms)
+        await channel.initialize(timeout=CONNECT_TIMEOUT)
+        channel.close_callbacks.add(self._on_publish_channel_close)
+        if channel.is_closed:  # closed before its callback was there: nobody would reopen it
+            raise aiormq.exceptions.ChannelInvalidStateError("the publish channel closed as it opened")
+        self._exchanges = {}
+        self._publish_channel = channel
+        self._publish_opened = time.monotonic()
+        if self._publisher is None:
+            self._publisher = SharedPublisher(channel, self.name)
+        else:
+            self._publisher.replace(channel)
+
+    def _on_publish_channel_close(self, channel: Any, error: BaseException | None = None) -> None:
+        """The broker (or a lost connection) closed the publish channel: forget what was
+        declared on it, say so in the health, and reopen it (not when the engine closes)."""
+        if channel is not self._publish_channel:
+            return
+        self._publish_channel = None
+        self._exchanges = {}
+        if self._publisher is not None:
+            self._publisher.replace(None)
+        if self._state == "down" or self._connection is None:
+            return
+        if error is not None and not isinstance(error, asyncio.CancelledError):
+            self._failed(error)
+            log.warning("amqp publish channel closed; reopening it",
+                        extra={"connection": self.name, "error": self._last_error})
+        if self._state == "up":
+            self._state = "degraded"
+        if time.monotonic() - self._publish_opened >= REOPEN_CAP_S:
+            self._reopen_backoff.reset()
+        if self._reopening is None or self._reopening.done():
+            self._reopening = asyncio.get_running_loop().create_task(
+                self._reopen_publish_channel(), name=f"amqp-publish-channel:{self.name}")
+
+    async def _reopen_publish_channel(self) -> None:
+        """Open the publish channel again: once the connection is up (aio-pika reconnects a
+        lost one), at once, then after each failed attempt the engine's backoff (each attempt
+        bounded by :data:`CONNECT_TIMEOUT`), until it opens or the engine closes the connection."""
+        delay = self._reopen_backoff.next() if self._reopen_backoff.failures else 0.0
+        while self._state != "down" and self._connection is not None:
+            if delay:
+                await asyncio.sleep(delay)
+            connection = self._connection
+            if connection is None or self._state == "down":
+                return
+            await connection.ready()  # a lost connection: until aio-pika reconnected it
+            if self._state == "down":
+                return
+            try:
+                await self._open_publish_channel()
+            except LIBRARY_ERRORS as exc:
+                if self._link_up:  # the channel's own failure: the engine's backoff
+                    self._failed(exc)
+                    delay = self._reopen_backoff.next()
+                else:  # the connection went (its close callback came first): wait for it, no backoff
+                    delay = REOPEN_FIRST_S
+                continue
+            self.publish_channel_reopens += 1
+            if self._state == "degraded" and self._link_up:
+                self._state = "up"
+            log.info("amqp publish channel reopened", extra={"connection": self.name})
+            return
 
     async def open(self) -> None:
         nodes = ", ".join(redact(url) for url in self.urls)
@@ -205,10 +314,8 @@ class AmqpConnection(Connection):
             )
             self._connection.close_callbacks.add(self._on_close)
             self._connection.reconnect_callbacks.add(self._on_reconnect)
-            self._publish_channel = await self._connection.channel(
-                publisher_confirms=self.settings.publisher_confirms
-            )
-            self._publisher = SharedPublisher(self._publish_channel, self.name)
+            self._link_up = True
+            await self._open_publish_channel()
         except LIBRARY_ERRORS as exc:
             self._failed(exc)
             if self._connection is not None:
@@ -223,23 +330,29 @@ class AmqpConnection(Connection):
         return self._connection
 
     async def exchange(self, name: str, kind: str = "topic", durable: bool = True) -> aio_pika.abc.AbstractExchange:
-        """The publish channel's exchange, declared once (durable topic unless told). For
-        declaring and naming only: never publish through it. The connection's
+        """The publish channel's exchange, declared once per publish channel (durable topic
+        unless told): a reopened channel declares again what its sinks publish to, as at
+        start, so an exchange deleted behind the engine's back is there again. For declaring
+        and naming only: never publish through it. The connection's
         :class:`~engine.endpoints.amqp.publisher.SharedPublisher` must be the only publisher on
         this channel, since it numbers the channel's delivery tags itself."""
         exchange = self._exchanges.get(name)
         if exchange is not None:
             return exchange
-        assert self._publish_channel is not None
         async with self._declare_lock:
-            if name not in self._exchanges:
+            exchange = self._exchanges.get(name)
+            if exchange is None:
+                channel = self._publish_channel
+                if channel is None:
+                    raise aiormq.exceptions.ChannelInvalidStateError(
+                        f"the publish channel is being reopened ({self._last_error})")
                 if name == "":
-                    self._exchanges[name] = self._publish_channel.default_exchange
+                    exchange = channel.default_exchange
                 else:
-                    self._exchanges[name] = await self._publish_channel.declare_exchange(
-                        name, aio_pika.ExchangeType(kind), durable=durable
-                    )
-        return self._exchanges[name]
+                    exchange = await channel.declare_exchange(name, aio_pika.ExchangeType(kind), durable=durable)
+                if channel is self._publish_channel:  # not one that closed meanwhile
+                    self._exchanges[name] = exchange
+        return exchange
 
     async def publish_batch(
         self,
@@ -311,6 +424,10 @@ class AmqpConnection(Connection):
 
     async def close(self) -> None:
         self._state = "down"
+        reopening, self._reopening = self._reopening, None
+        if reopening is not None and not reopening.done():
+            reopening.cancel()
+            await asyncio.gather(reopening, return_exceptions=True)
         if self._connection is not None:
             try:
                 await self._connection.close()
