@@ -12,7 +12,6 @@ known from the design, and the stop is the only way out for the last ones."""
 from __future__ import annotations
 
 import asyncio
-import time
 import uuid
 from pathlib import Path
 
@@ -38,16 +37,10 @@ routes:
 """
 
 
-async def _wait(condition, what: str, timeout: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, what
-        await asyncio.sleep(0.02)
-
 
 def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_rest_at_stop(
         amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from tests.test_ros2_endpoint import DOMAIN, Peer, String
+    from tests.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     monkeypatch.setattr(amqp_transport, "ACK_IDLE_NS", 60_000_000_000)
@@ -89,19 +82,19 @@ def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_res
             try:
                 runner = engine.runners["acks"]
                 runners.append(runner)
-                await _wait(lambda: runner.pipeline.sink.ready, "the reader never matched")
+                await wait_until(lambda: runner.pipeline.sink.ready, 60, "the reader never matched")
                 connection = await aio_pika.connect(amqp_url)
                 async with connection:
                     channel = await connection.channel(publisher_confirms=True)
                     await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
                                            for body in burst))
-                    await _wait(lambda: runner.observer.delivered == len(burst), "the burst was not all delivered")
+                    await wait_until(lambda: runner.observer.delivered == len(burst), 60, "the burst was not all delivered")
                     # a short burst after a pause (its first one may be settled alone): held with the rest
                     # until the stop, as the source never goes idle for 60 s
                     await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
                                            for body in tail))
-                    await _wait(lambda: runner.observer.delivered == len(burst) + len(tail), "the tail was not delivered")
-                    await _wait(lambda: len(received) == len(burst) + len(tail), "the reader did not get them all")
+                    await wait_until(lambda: runner.observer.delivered == len(burst) + len(tail), 60, "the tail was not delivered")
+                    await wait_until(lambda: len(received) == len(burst) + len(tail), 60, "the reader did not get them all")
                     source = runner.source
                     held = source._acks_held
                     counters = runner.observer.counters()

@@ -7,7 +7,6 @@ per-batch costs; every message must still arrive once and in order."""
 from __future__ import annotations
 
 import asyncio
-import time
 import uuid
 from pathlib import Path
 
@@ -31,16 +30,10 @@ routes:
 """
 
 
-async def _wait(condition, what: str, timeout: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, what
-        await asyncio.sleep(0.02)
-
 
 def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
         amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from tests.test_ros2_endpoint import DOMAIN, Peer, String
+    from tests.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "b" + uuid.uuid4().hex[:8]
@@ -66,7 +59,7 @@ def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
             try:
                 runner = engine.runners["backlog"]
                 frames = (await runner.source._channel.get_underlay_channel()).frames.maxsize
-                await _wait(lambda: runner.pipeline.sink.ready, "the reader never matched")
+                await wait_until(lambda: runner.pipeline.sink.ready, 60, "the reader never matched")
                 # published faster than the route takes them: a backlog builds up in the queue, which the
                 # broker streams to the engine up to the prefetch
                 connection = await aio_pika.connect(amqp_url)
@@ -74,7 +67,7 @@ def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
                     channel = await connection.channel(publisher_confirms=True)
                     await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
                                            for body in bodies))
-                await _wait(lambda: len(received) == len(bodies), "the reader did not get them all")
+                await wait_until(lambda: len(received) == len(bodies), 60, "the reader did not get them all")
             finally:
                 await engine.stop()
             return [m.data.encode() for m in received], frames
