@@ -57,6 +57,27 @@ async def publish(channel: Any, exchange: str, routing_key: str, bodies: list[by
         )
 
 
+async def publish_burst(channel: Any, queue: str, bodies: list[bytes]) -> None:
+    """Publish ``bodies`` to ``queue`` through the default exchange, pipelined (all in flight
+    at once, as a burst reaches the broker), in order."""
+    await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue) for body in bodies))
+
+
+def amqp_to_ros2_routes(name: str, queue: str, domain: int, tag: str, prefetch: int | None = None) -> str:
+    """A routes file of one raw_json route ``name`` from AMQP ``queue`` to the ROS 2 topic
+    ``/{tag}/{name}`` (std_msgs/String), on its own node in ``domain``."""
+    source = f"queue: {queue}" + (f", prefetch: {prefetch}" if prefetch is not None else "")
+    return f"""
+connections:
+  ros: {{ros2: {{domain_id: {domain}, node: engine_{tag}}}}}
+routes:
+  - name: {name}
+    source: {{amqp: {{{source}}}}}
+    schema: raw_json
+    sink: {{ros2: {{topic: /{tag}/{name}}}}}
+"""
+
+
 @contextlib.asynccontextmanager
 async def started_with_client(engine: Any, amqp_url: str) -> AsyncIterator[aio_pika.abc.AbstractConnection]:
     """Start ``engine`` (an engine.runtime.Engine) and open a plain aio-pika connection beside

@@ -23,20 +23,10 @@ import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 import engine.endpoints.amqp.transport as amqp_transport
 from engine.endpoints.amqp.transport import AmqpSource
 from engine.runtime import Engine
+from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.conftest import REPO
 
 PREFETCH = 400
-ROUTE = """
-connections:
-  ros: {{ros2: {{domain_id: {domain}, node: engine_{tag}}}}}
-routes:
-  - name: acks
-    source: {{amqp: {{queue: {queue}, prefetch: {prefetch}}}}}
-    schema: raw_json
-    sink: {{ros2: {{topic: /{tag}/acks}}}}
-"""
-
-
 
 def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_rest_at_stop(
         amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -47,7 +37,7 @@ def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_res
     monkeypatch.setattr(amqp_transport, "ACK_HOLD_NS", 60_000_000_000)
     tag = "k" + uuid.uuid4().hex[:8]
     queue = f"acks-{tag}"
-    (tmp_path / "acks.yaml").write_text(ROUTE.format(domain=DOMAIN, tag=tag, queue=queue, prefetch=PREFETCH))
+    (tmp_path / "acks.yaml").write_text(amqp_to_ros2_routes("acks", queue, DOMAIN, tag, PREFETCH))
     frames: list[tuple[str, int, bool]] = []  # (ack or nack, delivery tag, multiple), in the order sent
     premature: list[tuple[int, int]] = []  # a tag acknowledged before the sink had accepted that many messages
     runners: list = []
@@ -86,13 +76,11 @@ def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_res
                 connection = await aio_pika.connect(amqp_url)
                 async with connection:
                     channel = await connection.channel(publisher_confirms=True)
-                    await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
-                                           for body in burst))
+                    await publish_burst(channel, queue, burst)
                     await wait_until(lambda: runner.observer.delivered == len(burst), 60, "the burst was not all delivered")
                     # a short burst after a pause (its first one may be settled alone): held with the rest
                     # until the stop, as the source never goes idle for 60 s
-                    await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
-                                           for body in tail))
+                    await publish_burst(channel, queue, tail)
                     await wait_until(lambda: runner.observer.delivered == len(burst) + len(tail), 60, "the tail was not delivered")
                     await wait_until(lambda: len(received) == len(burst) + len(tail), 60, "the reader did not get them all")
                     source = runner.source

@@ -19,18 +19,8 @@ import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 
 from engine.endpoints.amqp.transport import ALONE_GAP_NS, AmqpSource
 from engine.runtime import Engine
+from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.conftest import REPO
-
-ROUTE = """
-connections:
-  ros: {{ros2: {{domain_id: {domain}, node: engine_{tag}}}}}
-routes:
-  - name: alone
-    source: {{amqp: {{queue: {queue}}}}}
-    schema: raw_json
-    sink: {{ros2: {{topic: /{tag}/alone}}}}
-"""
-
 
 
 def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_order_once(
@@ -40,7 +30,7 @@ def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "a" + uuid.uuid4().hex[:8]
     queue = f"alone-{tag}"
-    (tmp_path / "alone.yaml").write_text(ROUTE.format(domain=DOMAIN, tag=tag, queue=queue))
+    (tmp_path / "alone.yaml").write_text(amqp_to_ros2_routes("alone", queue, DOMAIN, tag))
     alone: list[int] = []
     settle_alone = AmqpSource._settle_alone
 
@@ -66,8 +56,7 @@ def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_
                     await wait_until(lambda: runner.observer.received == 1, 30, "the first message was not taken")
                     assert alone == [1]
                     # 2-30: a burst behind it, queued for the batch loop, which must wait for 1
-                    await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
-                                           for body in bodies[1:30]))
+                    await publish_burst(channel, queue, bodies[1:30])
                     source = runner.source
                     # the batch loop has taken (some of) the burst: were it to hand it on, it would have in the same step
                     await wait_until(lambda: not source._parked, 30, "the batch loop never took any of the burst")

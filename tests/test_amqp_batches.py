@@ -17,18 +17,8 @@ import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 
 from engine.endpoints.amqp.transport import FRAME_BUFFER, AmqpSource
 from engine.runtime import Engine
+from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.conftest import REPO
-
-ROUTE = """
-connections:
-  ros: {{ros2: {{domain_id: {domain}, node: engine_{tag}}}}}
-routes:
-  - name: backlog
-    source: {{amqp: {{queue: {queue}, prefetch: 1000}}}}
-    schema: raw_json
-    sink: {{ros2: {{topic: /{tag}/backlog}}}}
-"""
-
 
 
 def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
@@ -38,7 +28,7 @@ def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "b" + uuid.uuid4().hex[:8]
     queue = f"backlog-{tag}"
-    (tmp_path / "backlog.yaml").write_text(ROUTE.format(domain=DOMAIN, tag=tag, queue=queue))
+    (tmp_path / "backlog.yaml").write_text(amqp_to_ros2_routes("backlog", queue, DOMAIN, tag, 1000))
     sizes: list[int] = []
     deliver_batch = AmqpSource._deliver_batch
 
@@ -65,8 +55,7 @@ def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
                 connection = await aio_pika.connect(amqp_url)
                 async with connection:
                     channel = await connection.channel(publisher_confirms=True)
-                    await asyncio.gather(*(channel.default_exchange.publish(aio_pika.Message(body), queue)
-                                           for body in bodies))
+                    await publish_burst(channel, queue, bodies)
                 await wait_until(lambda: len(received) == len(bodies), 60, "the reader did not get them all")
             finally:
                 await engine.stop()
