@@ -717,9 +717,10 @@ async def fleet(url: str | None, modes: list[str], robots_n: int = 50, vehicles_
     """Each way of writing the routes on the same load, one after the other, with the load
     average before and after each; ``url`` None: each on a fresh private RabbitMQ node, so no
     mode carries what another left in the broker (on one node for all, the mode that ran first
-    had the lowest p99 in three runs of four). The spread from run to run stays large on a
-    shared 2-core machine: the same mode's telemetry p99 ranged 26-65 ms over five runs and the
-    reference's 18-64 ms over three (bench/results/2026-11-27/README.md); compare runs, not one."""
+    had the lowest p99 in three runs of four). With the aiormq consumer the spread from run to
+    run was large (templated telemetry p99 26-130 ms, the reference's 18-1,634 ms); with
+    :func:`consumer` two runs gave templated 7-11 ms and the reference 13-29 ms
+    (bench/results/2026-11-27/README.md); compare runs, not one."""
     from engine.endpoints.amqp.broker import LocalBroker
 
     out: dict[str, Any] = {}
