@@ -247,6 +247,134 @@ def test_publish_channel_closed_under_concurrent_rounds_is_reopened(node: LocalB
     assert result["gone_again"] == [None]  # declared again, as at start
 
 
+def test_a_refused_declaration_fails_only_its_route_and_closes_no_publish_channel(node: LocalBroker) -> None:
+    """An exchange of the route's name exists with another type (406 PRECONDITION_FAILED on
+    the declaration). The declaration is made on the connection's declare channel, so thirty
+    other publishers going on at the same time see no error at all and the publish channel is
+    never reopened (on the publish channel the refusal closed it under every route's rounds);
+    the refused route's messages fail with the broker's text naming the exchange, and once the
+    exchange is fixed they are declared and published again."""
+    from aiormq import spec
+
+    from engine.endpoints.amqp.transport import TRANSPORT
+
+    tag = uuid.uuid4().hex[:8]
+    healthy, clash = f"pc-ok-{tag}", f"pc-clash-{tag}"
+
+    def messages(n: int) -> list[tuple[str, bytes, Any]]:
+        return [("k", b'{"a": 1}', spec.Basic.Properties(delivery_mode=1)) for _ in range(n)]
+
+    async def scenario() -> dict[str, Any]:
+        connection = TRANSPORT.connect("c", {"url": node.url})
+        await connection.open()
+        client = await aio_pika.connect(node.url)
+        try:
+            await (await client.channel()).declare_exchange(clash, aio_pika.ExchangeType.FANOUT)
+            loop = asyncio.get_running_loop()
+            stop = loop.time() + 1.5
+            outcomes: dict[str, dict[str, int]] = {"healthy": {}, "clash": {}}
+            texts: set[str] = set()
+
+            async def pump(index: int) -> None:
+                which = "clash" if index == 0 else "healthy"
+                while loop.time() < stop:
+                    for error in await connection.publish_batch(clash if index == 0 else healthy, messages(1)):
+                        kind = "ok" if error is None else type(error).__name__
+                        outcomes[which][kind] = outcomes[which].get(kind, 0) + 1
+                        if error is not None:
+                            texts.add(str(error))
+                    await asyncio.sleep(0)
+
+            await asyncio.gather(*(pump(index) for index in range(30)))
+            health = connection.health()
+            await (await client.channel()).exchange_delete(clash)
+            return {"outcomes": outcomes, "texts": texts, "health": health,
+                    "fixed": await connection.publish_batch(clash, messages(2))}
+        finally:
+            await client.close()
+            await connection.close()
+
+    result = asyncio.run(scenario())
+    print(result)
+    outcomes = result["outcomes"]
+    assert set(outcomes["healthy"]) == {"ok"} and outcomes["healthy"]["ok"] > 29, outcomes
+    assert "ok" not in outcomes["clash"] and sum(outcomes["clash"].values()) >= 1, outcomes
+    assert all("PRECONDITION_FAILED" in text and clash in text for text in result["texts"]), result["texts"]
+    assert result["health"]["state"] == "up" and result["health"]["publish_channel_reopens"] == 0, result["health"]
+    assert result["fixed"] == [None, None]  # the exchange declared anew on a fresh declare channel
+
+
+def test_the_calls_channel_closed_by_the_broker_is_opened_again_and_only_once(node: LocalBroker) -> None:
+    """The AMQP sink as a caller (engine/endpoints/amqp/calls.py) keeps a channel of its own for
+    direct reply-to. A request to an exchange deleted behind the engine makes the broker close
+    it (404); the call fails with a clear error, the next call opens one fresh channel, declares
+    the exchange again and is answered, on one calls channel. On the robust channel it had
+    before, aio-pika restored the closed channel itself and the call after the exchange was
+    back got no answer (``no answer within 3 s``): the caller's replies never came."""
+    from engine.endpoints.amqp.calls import AmqpCaller
+    from engine.endpoints.amqp.transport import TRANSPORT
+    from engine.endpoints.base import EndpointError, MessageRejected
+
+    tag = uuid.uuid4().hex[:8]
+    exchange, queue, name = f"pc-calls-{tag}", f"pc-worker-{tag}", f"calls-{tag}"
+
+    def channels() -> int:
+        rows = node.ctl("list_channels", "connection", "name", "--no-table-headers", "--quiet").splitlines()
+        return sum(1 for row in rows if row.strip())
+
+    async def scenario() -> dict[str, Any]:
+        connection = TRANSPORT.connect(name, {"url": node.url})
+        await connection.open()
+        caller = AmqpCaller(connection, f"route {name!r}", timeout=3.0)
+        worker = await aio_pika.connect(node.url)
+        try:
+            channel = await worker.channel()
+
+            async def bind() -> None:
+                target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
+                await (await channel.declare_queue(queue, exclusive=True)).bind(target, "svc")
+
+            async def answer(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+                await channel.default_exchange.publish(
+                    aio_pika.Message(b'{"sum": %d}' % (json.loads(message.body)["a"] + 1), correlation_id=message.correlation_id),
+                    message.reply_to or "")
+
+            await bind()
+            await (await channel.get_queue(queue)).consume(answer, no_ack=True)
+
+            async def call(a: int) -> Any:
+                return await caller.call(exchange, "topic", True, "svc", b'{"a": %d}' % a, "application/json", None)
+
+            first = await call(1)
+            before = await asyncio.to_thread(channels)
+            await channel.exchange_delete(exchange)
+            failed: list[str] = []
+            loop = asyncio.get_running_loop()
+            deadline = loop.time() + DEADLINE_S
+            while True:  # the calls channel is closed by the broker after the request, not before
+                try:
+                    await call(2)
+                except (MessageRejected, EndpointError) as exc:
+                    failed.append(str(exc))
+                    break
+                assert loop.time() < deadline, "a request to a deleted exchange was answered"
+            await bind()
+            again = await call(3)
+            await asyncio.sleep(1.0)  # a restore of the closed channel, if any, is done by now
+            return {"first": first, "again": again, "failed": failed, "before": before,
+                    "after": await asyncio.to_thread(channels)}
+        finally:
+            await worker.close()
+            await caller.close()
+            await connection.close()
+
+    result = asyncio.run(scenario())
+    print(result)
+    assert (result["first"], result["again"]) == ({"sum": 2}, {"sum": 4})
+    assert result["failed"] and f"route {name!r}" in result["failed"][0], result["failed"]
+    assert result["after"] == result["before"], result  # one calls channel, not a restored one beside it
+
+
 async def _proxy(target_port: int) -> tuple[asyncio.AbstractServer, dict[str, Any]]:
     """A TCP relay to the node that can stop reading from its clients (``state["paused"]``
     set) and cut them (``state["cut"]()``): a connection whose peer no longer reads fills its

@@ -30,6 +30,8 @@ class Channels(Protocol):
     def channel_factory(self) -> aio_pika.abc.AbstractRobustConnection: ...
 
 DIRECT_REPLY_TO = "amq.rabbitmq.reply-to"
+OPEN_TIMEOUT = 10.0
+"""Seconds to open the calls channel (as the connection's CONNECT_TIMEOUT)."""
 
 
 class AmqpCaller:
@@ -48,7 +50,12 @@ class AmqpCaller:
     async def _ready(self) -> aio_pika.abc.AbstractChannel:
         async with self._opening:
             if self._channel is None or self._channel.is_closed:
-                channel = await self._connection.channel_factory().channel(publisher_confirms=False)
+                # a plain channel, opened again here at the next call once the broker (a request
+                # to an exchange deleted meanwhile: 404) or a lost connection closed it; on a
+                # robust one aio-pika's restore got there first and no reply came on it again
+                # (tests/test_amqp_publish_channel.py)
+                channel = aio_pika.Channel(self._connection.channel_factory(), publisher_confirms=False)
+                await channel.initialize(timeout=OPEN_TIMEOUT)
                 queue = await channel.get_queue(DIRECT_REPLY_TO, ensure=False)
                 await queue.consume(self._on_reply, no_ack=True)
                 self._channel, self._exchanges = channel, {}

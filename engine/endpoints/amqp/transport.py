@@ -24,8 +24,7 @@ prefetch and its stop are its own. Deliveries from a channel that has since been
 are not acked on the new one: the broker has requeued them already.
 
 The publish channel is the connection's own, not a robust channel: the broker closes it on
-its own (a publish to an exchange another client deleted: 404 NOT_FOUND; a declaration it
-refuses), and aio-pika's channel restore raced the publisher, which wrote the next round on
+its own (a publish to an exchange another client deleted: 404 NOT_FOUND), and aio-pika's channel restore raced the publisher, which wrote the next round on
 the half-restored channel before the restore's ``basic.qos`` returned; the second 404 failed
 the restore (``ChannelNotFoundEntity``) and left the channel "not opened" for good: every
 route of the connection failed from then on while its health said ``up``. The connection
@@ -33,6 +32,12 @@ now reopens a fresh publish channel itself (:meth:`AmqpConnection._reopen_publis
 the engine's one backoff between attempts), forgets the exchanges it declared (the next
 publish declares its exchange again, as the first one did at start), and reports itself
 ``degraded`` with the broker's error meanwhile.
+
+Exchanges are declared on a channel of their own (the *declare channel*, opened again at the
+next declaration once the broker closed it): a declaration the broker refuses (406 an exchange
+of that name and another type, 403 no permission) fails its route's messages, named by the
+broker's text, and closes no channel another route publishes on. On the publish channel it
+closed that channel, so every route's rounds in flight were published again.
 """
 
 from __future__ import annotations
@@ -145,8 +150,11 @@ class AmqpConnection(Connection):
         connection: module docstring); None while it is being reopened."""
         self._publisher: SharedPublisher | None = None
         """Every route's publishes on the publish channel, one round per loop turn."""
-        self._exchanges: dict[str, aio_pika.abc.AbstractExchange] = {}
-        """Exchanges declared on the current publish channel (forgotten when it closes)."""
+        self._exchanges: set[str] = set()
+        """Exchanges declared since the current publish channel opened (forgotten when it
+        closes: an exchange deleted behind the engine closed it, and is declared again)."""
+        self._declare_channel: aio_pika.abc.AbstractChannel | None = None
+        """Where exchanges are declared (module docstring); opened on demand."""
         self._declare_lock = asyncio.Lock()
         self._state = "connecting"
         self._link_up = False
@@ -235,7 +243,7 @@ class AmqpConnection(Connection):
         channel.close_callbacks.add(self._on_publish_channel_close)
         if channel.is_closed:  # closed before its callback was there: nobody would reopen it
             raise aiormq.exceptions.ChannelInvalidStateError("the publish channel closed as it opened")
-        self._exchanges = {}
+        self._exchanges = set()
         self._publish_channel = channel
         self._publish_opened = time.monotonic()
         if self._publisher is None:
@@ -249,7 +257,7 @@ class AmqpConnection(Connection):
         if channel is not self._publish_channel:
             return
         self._publish_channel = None
-        self._exchanges = {}
+        self._exchanges = set()
         if self._publisher is not None:
             self._publisher.replace(None)
         if self._state == "down" or self._connection is None:
@@ -329,30 +337,30 @@ class AmqpConnection(Connection):
             raise EndpointError(f"amqp connection {self.name!r} is not open")
         return self._connection
 
-    async def exchange(self, name: str, kind: str = "topic", durable: bool = True) -> aio_pika.abc.AbstractExchange:
-        """The publish channel's exchange, declared once per publish channel (durable topic
-        unless told): a reopened channel declares again what its sinks publish to, as at
-        start, so an exchange deleted behind the engine's back is there again. For declaring
-        and naming only: never publish through it. The connection's
-        :class:`~engine.endpoints.amqp.publisher.SharedPublisher` must be the only publisher on
-        this channel, since it numbers the channel's delivery tags itself."""
-        exchange = self._exchanges.get(name)
-        if exchange is not None:
-            return exchange
+    async def exchange(self, name: str, kind: str = "topic", durable: bool = True) -> None:
+        """Declare the exchange the sinks publish to (durable topic unless told), once per
+        publish channel: a reopened channel declares again what its sinks publish to, as at
+        start, so an exchange deleted behind the engine's back is there again. It is declared
+        on the declare channel (module docstring), so a refusal closes no publish channel."""
+        if name in self._exchanges:
+            return
         async with self._declare_lock:
-            exchange = self._exchanges.get(name)
-            if exchange is None:
-                channel = self._publish_channel
-                if channel is None:
-                    raise aiormq.exceptions.ChannelInvalidStateError(
-                        f"the publish channel is being reopened ({self._last_error})")
-                if name == "":
-                    exchange = channel.default_exchange
-                else:
-                    exchange = await channel.declare_exchange(name, aio_pika.ExchangeType(kind), durable=durable)
-                if channel is self._publish_channel:  # not one that closed meanwhile
-                    self._exchanges[name] = exchange
-        return exchange
+            if name in self._exchanges:
+                return
+            publishing = self._publish_channel
+            if publishing is None:
+                raise aiormq.exceptions.ChannelInvalidStateError(
+                    f"the publish channel is being reopened ({self._last_error})")
+            if name != "":  # the default exchange is always there
+                channel = self._declare_channel
+                if channel is None or channel.is_closed:
+                    assert self._connection is not None
+                    channel = aio_pika.Channel(self._connection, publisher_confirms=False)
+                    await channel.initialize(timeout=CONNECT_TIMEOUT)
+                    self._declare_channel = channel
+                await channel.declare_exchange(name, aio_pika.ExchangeType(kind), durable=durable)
+            if publishing is self._publish_channel:  # not one that closed meanwhile
+                self._exchanges.add(name)
 
     async def publish_batch(
         self,
