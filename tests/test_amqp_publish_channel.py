@@ -14,10 +14,11 @@ there, counted, in order."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import uuid
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, AsyncIterator, Callable, Iterator
 
 import aio_pika
 import aiormq
@@ -186,6 +187,27 @@ def test_exchange_deleted_behind_the_engine_fails_only_its_route_and_it_recovers
     assert result["dead"] == {"a": {}, "b": {}}, result["dead"]
 
 
+def _messages(n: int) -> list[tuple[str, bytes, Any]]:
+    from aiormq import spec
+
+    return [("k", b'{"a": 1}', spec.Basic.Properties(delivery_mode=1)) for _ in range(n)]
+
+
+@contextlib.asynccontextmanager
+async def _connection_and_client(node: LocalBroker, name: str = "c") -> AsyncIterator[tuple[Any, aio_pika.abc.AbstractConnection]]:
+    """The engine's AMQP connection ``name`` on ``node``, opened, and another client beside it."""
+    from engine.endpoints.amqp.transport import TRANSPORT
+
+    connection = TRANSPORT.connect(name, {"url": node.url})
+    await connection.open()
+    client = await aio_pika.connect(node.url)
+    try:
+        yield connection, client
+    finally:
+        await client.close()
+        await connection.close()
+
+
 def test_publish_channel_closed_under_concurrent_rounds_is_reopened(node: LocalBroker) -> None:
     """The reviewer's reproduction, at the connection's level: thirty publishers without a
     pause, one of them to an exchange another client deleted. Before, aio-pika's restore of
@@ -194,23 +216,13 @@ def test_publish_channel_closed_under_concurrent_rounds_is_reopened(node: LocalB
     health said up. Now a publish to the healthy exchange is confirmed again within the
     deadline, the health names the deleted exchange, and no round is left between the
     channel's lock and its frames (the publisher's fast path stays on)."""
-    from aiormq import spec
-
-    from engine.endpoints.amqp.transport import TRANSPORT
-
     tag = uuid.uuid4().hex[:8]
     healthy, gone = f"pc-ok-{tag}", f"pc-gone-{tag}"
 
-    def messages(n: int) -> list[tuple[str, bytes, Any]]:
-        return [("k", b'{"a": 1}', spec.Basic.Properties(delivery_mode=1)) for _ in range(n)]
-
     async def scenario() -> dict[str, Any]:
-        connection = TRANSPORT.connect("c", {"url": node.url})
-        await connection.open()
-        client = await aio_pika.connect(node.url)
-        try:
-            assert await connection.publish_batch(healthy, messages(2)) == [None, None]
-            assert await connection.publish_batch(gone, messages(1)) == [None]
+        async with _connection_and_client(node) as (connection, client):
+            assert await connection.publish_batch(healthy, _messages(2)) == [None, None]
+            assert await connection.publish_batch(gone, _messages(1)) == [None]
             await (await client.channel()).exchange_delete(gone)
             loop = asyncio.get_running_loop()
             stop = loop.time() + 1.5
@@ -219,7 +231,7 @@ def test_publish_channel_closed_under_concurrent_rounds_is_reopened(node: LocalB
 
             async def pump(index: int) -> None:
                 while loop.time() < stop:
-                    for error in await connection.publish_batch(gone if index == 0 else healthy, messages(1)):
+                    for error in await connection.publish_batch(gone if index == 0 else healthy, _messages(1)):
                         kind = "ok" if error is None else type(error).__name__
                         outcomes[kind] = outcomes.get(kind, 0) + 1
                     states.add(connection.health()["state"])
@@ -227,15 +239,12 @@ def test_publish_channel_closed_under_concurrent_rounds_is_reopened(node: LocalB
 
             await asyncio.gather(*(pump(index) for index in range(30)))
             deadline = loop.time() + DEADLINE_S
-            while (after := await connection.publish_batch(healthy, messages(1))) != [None]:
+            while (after := await connection.publish_batch(healthy, _messages(1))) != [None]:
                 assert loop.time() < deadline, f"publishing to a healthy exchange still fails: {after}, {connection.health()}"
                 await asyncio.sleep(0.05)
             publisher = connection._publisher  # type: ignore[attr-defined]
             return {"outcomes": outcomes, "states": states, "health": connection.health(),
-                    "writing": dict(publisher._writing), "gone_again": await connection.publish_batch(gone, messages(1))}
-        finally:
-            await client.close()
-            await connection.close()
+                    "writing": dict(publisher._writing), "gone_again": await connection.publish_batch(gone, _messages(1))}
 
     result = asyncio.run(scenario())
     print(result)
@@ -254,21 +263,11 @@ def test_a_refused_declaration_fails_only_its_route_and_closes_no_publish_channe
     never reopened (on the publish channel the refusal closed it under every route's rounds);
     the refused route's messages fail with the broker's text naming the exchange, and once the
     exchange is fixed they are declared and published again."""
-    from aiormq import spec
-
-    from engine.endpoints.amqp.transport import TRANSPORT
-
     tag = uuid.uuid4().hex[:8]
     healthy, clash = f"pc-ok-{tag}", f"pc-clash-{tag}"
 
-    def messages(n: int) -> list[tuple[str, bytes, Any]]:
-        return [("k", b'{"a": 1}', spec.Basic.Properties(delivery_mode=1)) for _ in range(n)]
-
     async def scenario() -> dict[str, Any]:
-        connection = TRANSPORT.connect("c", {"url": node.url})
-        await connection.open()
-        client = await aio_pika.connect(node.url)
-        try:
+        async with _connection_and_client(node) as (connection, client):
             await (await client.channel()).declare_exchange(clash, aio_pika.ExchangeType.FANOUT)
             loop = asyncio.get_running_loop()
             stop = loop.time() + 1.5
@@ -278,7 +277,7 @@ def test_a_refused_declaration_fails_only_its_route_and_closes_no_publish_channe
             async def pump(index: int) -> None:
                 which = "clash" if index == 0 else "healthy"
                 while loop.time() < stop:
-                    for error in await connection.publish_batch(clash if index == 0 else healthy, messages(1)):
+                    for error in await connection.publish_batch(clash if index == 0 else healthy, _messages(1)):
                         kind = "ok" if error is None else type(error).__name__
                         outcomes[which][kind] = outcomes[which].get(kind, 0) + 1
                         if error is not None:
@@ -289,10 +288,7 @@ def test_a_refused_declaration_fails_only_its_route_and_closes_no_publish_channe
             health = connection.health()
             await (await client.channel()).exchange_delete(clash)
             return {"outcomes": outcomes, "texts": texts, "health": health,
-                    "fixed": await connection.publish_batch(clash, messages(2))}
-        finally:
-            await client.close()
-            await connection.close()
+                    "fixed": await connection.publish_batch(clash, _messages(2))}
 
     result = asyncio.run(scenario())
     print(result)
@@ -312,7 +308,6 @@ def test_the_calls_channel_closed_by_the_broker_is_opened_again_and_only_once(no
     before, aio-pika restored the closed channel itself and the call after the exchange was
     back got no answer (``no answer within 3 s``): the caller's replies never came."""
     from engine.endpoints.amqp.calls import AmqpCaller
-    from engine.endpoints.amqp.transport import TRANSPORT
     from engine.endpoints.base import EndpointError, MessageRejected
 
     tag = uuid.uuid4().hex[:8]
@@ -323,50 +318,45 @@ def test_the_calls_channel_closed_by_the_broker_is_opened_again_and_only_once(no
         return sum(1 for row in rows if row.strip())
 
     async def scenario() -> dict[str, Any]:
-        connection = TRANSPORT.connect(name, {"url": node.url})
-        await connection.open()
-        caller = AmqpCaller(connection, f"route {name!r}", timeout=3.0)
-        worker = await aio_pika.connect(node.url)
-        try:
-            channel = await worker.channel()
+        async with _connection_and_client(node, name) as (connection, worker):
+            caller = AmqpCaller(connection, f"route {name!r}", timeout=3.0)
+            try:
+                channel = await worker.channel()
 
-            async def bind() -> None:
-                target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
-                await (await channel.declare_queue(queue, exclusive=True)).bind(target, "svc")
+                async def bind() -> None:
+                    target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
+                    await (await channel.declare_queue(queue, exclusive=True)).bind(target, "svc")
 
-            async def answer(message: aio_pika.abc.AbstractIncomingMessage) -> None:
-                await channel.default_exchange.publish(
-                    aio_pika.Message(b'{"sum": %d}' % (json.loads(message.body)["a"] + 1), correlation_id=message.correlation_id),
-                    message.reply_to or "")
+                async def answer(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+                    await channel.default_exchange.publish(
+                        aio_pika.Message(b'{"sum": %d}' % (json.loads(message.body)["a"] + 1), correlation_id=message.correlation_id),
+                        message.reply_to or "")
 
-            await bind()
-            await (await channel.get_queue(queue)).consume(answer, no_ack=True)
+                await bind()
+                await (await channel.get_queue(queue)).consume(answer, no_ack=True)
 
-            async def call(a: int) -> Any:
-                return await caller.call(exchange, "topic", True, "svc", b'{"a": %d}' % a, "application/json", None)
+                async def call(a: int) -> Any:
+                    return await caller.call(exchange, "topic", True, "svc", b'{"a": %d}' % a, "application/json", None)
 
-            first = await call(1)
-            before = await asyncio.to_thread(channels)
-            await channel.exchange_delete(exchange)
-            failed: list[str] = []
-            loop = asyncio.get_running_loop()
-            deadline = loop.time() + DEADLINE_S
-            while True:  # the calls channel is closed by the broker after the request, not before
-                try:
-                    await call(2)
-                except (MessageRejected, EndpointError) as exc:
-                    failed.append(str(exc))
-                    break
-                assert loop.time() < deadline, "a request to a deleted exchange was answered"
-            await bind()
-            again = await call(3)
-            await asyncio.sleep(1.0)  # a restore of the closed channel, if any, is done by now
-            return {"first": first, "again": again, "failed": failed, "before": before,
-                    "after": await asyncio.to_thread(channels)}
-        finally:
-            await worker.close()
-            await caller.close()
-            await connection.close()
+                first = await call(1)
+                before = await asyncio.to_thread(channels)
+                await channel.exchange_delete(exchange)
+                failed: list[str] = []
+                loop = asyncio.get_running_loop()
+                deadline = loop.time() + DEADLINE_S
+                while True:  # the calls channel is closed by the broker after the request, not before
+                    try:
+                        await call(2)
+                    except (MessageRejected, EndpointError) as exc:
+                        failed.append(str(exc))
+                        break
+                    assert loop.time() < deadline, "a request to a deleted exchange was answered"
+                await bind()
+                again = await call(3)
+                return {"first": first, "again": again, "failed": failed, "before": before,
+                        "after": await asyncio.to_thread(channels)}
+            finally:
+                await caller.close()
 
     result = asyncio.run(scenario())
     print(result)

@@ -24,10 +24,11 @@ prefetch and its stop are its own. Deliveries from a channel that has since been
 are not acked on the new one: the broker has requeued them already.
 
 The publish channel is the connection's own, not a robust channel: the broker closes it on
-its own (a publish to an exchange another client deleted: 404 NOT_FOUND), and aio-pika's channel restore raced the publisher, which wrote the next round on
-the half-restored channel before the restore's ``basic.qos`` returned; the second 404 failed
-the restore (``ChannelNotFoundEntity``) and left the channel "not opened" for good: every
-route of the connection failed from then on while its health said ``up``. The connection
+its own (a publish to an exchange another client deleted: 404 NOT_FOUND), and aio-pika's
+channel restore raced the publisher, which wrote the next round on the half-restored channel
+before the restore's ``basic.qos`` returned; the second 404 failed the restore
+(``ChannelNotFoundEntity``) and left the channel "not opened" for good: every route of the
+connection failed from then on while its health said ``up``. The connection
 now reopens a fresh publish channel itself (:meth:`AmqpConnection._reopen_publish_channel`,
 the engine's one backoff between attempts), forgets the exchanges it declared (the next
 publish declares its exchange again, as the first one did at start), and reports itself
