@@ -34,6 +34,15 @@ Arrival = tuple[int, str, bytes]
 """(wall-clock ns at arrival, routing key, body)"""
 
 
+class _Message:
+    """The delivery being read: its routing key, body size and the body so far."""
+
+    __slots__ = ("key", "size", "body")
+
+    def __init__(self) -> None:
+        self.key, self.size, self.body = "", 0, bytearray()
+
+
 class BrokerClosed(RuntimeError):
     """The broker closed the connection or the channel; the message gives its reply text."""
 
@@ -64,11 +73,8 @@ class QueueReader:
     def _expect(self, kind: type) -> object:
         """The next frame, which must be ``kind`` (handshake and declarations only)."""
         while True:
-            if self._buffer:
-                try:
-                    used, _, value = frame.unmarshal(bytes(self._buffer))
-                except Exception:  # an incomplete frame: read on
-                    used = 0
+            if len(self._buffer) >= 8 and len(self._buffer) >= 8 + _HEAD.unpack_from(self._buffer)[2]:  # a whole frame
+                used, _, value = frame.unmarshal(bytes(self._buffer))
                 if used:
                     del self._buffer[:used]
                     if isinstance(value, (commands.Connection.Close, commands.Channel.Close)):
@@ -95,48 +101,54 @@ class QueueReader:
 
     def read(self, arrived: Callable[[Arrival], None], until: Callable[[], bool], poll: float = 0.1) -> None:
         """Hand every delivered message to ``arrived`` until ``until()`` (asked at least every
-        ``poll`` s)."""
-        sock, buffer = self._sock, self._buffer
-        sock.settimeout(poll)
-        key, size, body = "", 0, bytearray()
+        ``poll`` s). What came with the handshake's last frame is read first."""
+        self._sock.settimeout(poll)
+        message = _Message()
+        if self._buffer:
+            self._parse(time.time_ns(), message, arrived)
         while not until():
             try:
-                data = sock.recv(262144)
+                data = self._sock.recv(262144)
             except socket.timeout:
                 continue
             if not data:
                 raise BrokerClosed("the broker closed the socket")
             now = time.time_ns()
-            buffer += data
-            at, length = 0, len(buffer)
-            while length - at >= 8:
-                kind, _, payload = _HEAD.unpack_from(buffer, at)
-                end = at + 7 + payload
-                if end >= length:
-                    break
-                if buffer[end] != FRAME_END:
-                    raise BrokerClosed(f"frame end missing at byte {end}")
-                if kind == 3:  # body
-                    body += buffer[at + 7:end]
-                    if len(body) >= size:
-                        arrived((now, key, bytes(body)))
-                        body.clear()
-                elif kind == 2:  # content header: class, weight, body size
-                    (size,) = _BODY_SIZE.unpack_from(buffer, at + 11)
-                    if size == 0:
-                        arrived((now, key, b""))
-                elif kind == 1:
-                    method = _METHOD.unpack_from(buffer, at + 7)
-                    if method == DELIVER:  # consumer tag, delivery tag, redelivered, exchange, routing key
-                        p = at + 11
-                        p += 1 + buffer[p] + 8 + 1
-                        p += 1 + buffer[p]
-                        key = buffer[p + 1:p + 1 + buffer[p]].decode()
-                    elif method in CLOSES:
-                        _, _, value = frame.unmarshal(bytes(buffer[at:end + 1]))
-                        raise BrokerClosed(f"{CLOSES[method]} closed: {value.reply_code} {value.reply_text}")
-                at = end + 1
-            del buffer[:at]
+            self._buffer += data
+            self._parse(now, message, arrived)
+
+    def _parse(self, now: int, message: "_Message", arrived: Callable[[Arrival], None]) -> None:
+        """Every whole frame in the buffer; a frame cut by the read stays for the next."""
+        buffer = self._buffer
+        at, length = 0, len(buffer)
+        while length - at >= 8:
+            kind, _, payload = _HEAD.unpack_from(buffer, at)
+            end = at + 7 + payload
+            if end >= length:
+                break
+            if buffer[end] != FRAME_END:
+                raise BrokerClosed(f"frame end missing at byte {end}")
+            if kind == 3:  # body
+                message.body += buffer[at + 7:end]
+                if len(message.body) >= message.size:
+                    arrived((now, message.key, bytes(message.body)))
+                    message.body.clear()
+            elif kind == 2:  # content header: class, weight, body size
+                (message.size,) = _BODY_SIZE.unpack_from(buffer, at + 11)
+                if message.size == 0:
+                    arrived((now, message.key, b""))
+            elif kind == 1:
+                method = _METHOD.unpack_from(buffer, at + 7)
+                if method == DELIVER:  # consumer tag, delivery tag, redelivered, exchange, routing key
+                    p = at + 11
+                    p += 1 + buffer[p] + 8 + 1
+                    p += 1 + buffer[p]
+                    message.key = buffer[p + 1:p + 1 + buffer[p]].decode()
+                elif method in CLOSES:
+                    _, _, value = frame.unmarshal(bytes(buffer[at:end + 1]))
+                    raise BrokerClosed(f"{CLOSES[method]} closed: {value.reply_code} {value.reply_text}")
+            at = end + 1
+        del buffer[:at]
 
     def close(self) -> None:
         try:

@@ -421,14 +421,16 @@ def vehicles(args: dict[str, Any]) -> None:
 class Telemetry:
     """What the bench's consumer (:func:`consumer`, a child process) received: while it runs
     only how many (its ``count`` lines); then every arrival, of which :meth:`digest` gives per
-    stream the sequence numbers seen and per stream kind the end-to-end latencies (ms) of what
-    arrived before :meth:`stop_recording`."""
+    stream the sequence numbers seen and per stream kind the end-to-end latencies (ms) of every
+    message: all were sent during the load (the robots and vehicles send telemetry from ``go``
+    to ``stop`` only), and those still arriving in the drain are its slowest. (Until this
+    session, what arrived after the commands' last confirm was counted, not timed: the tail
+    was cut.)"""
 
     def __init__(self, child: Any) -> None:
         self.child = child
         self.seqs: dict[str, set[int]] = {}
         self.latency: dict[str, list[float]] = {kind: [] for kind in STREAM_KINDS}
-        self.recorded_until_ns: int | None = None
 
     @property
     def count(self) -> int:
@@ -437,13 +439,8 @@ class Telemetry:
                 return int(line.split()[1])
         return 0
 
-    def stop_recording(self) -> None:
-        """What arrives from now on (the backlog after the load) is counted, not timed."""
-        self.recorded_until_ns = time.time_ns()
-
     def digest(self, arrived: list[tuple[int, str, bytes]]) -> None:
         """Parse what arrived into ``seqs`` and ``latency`` (after the run)."""
-        until = self.recorded_until_ns if self.recorded_until_ns is not None else 1 << 63
         for now_ns, key, body in arrived:
             data = json.loads(body)
             if key.startswith("robot"):
@@ -451,9 +448,8 @@ class Telemetry:
             else:
                 latency = float((now_ns // 1_000_000 - int(data["time_boot_ms"])) % (1 << 32))
             self.seqs.setdefault(key, set()).add(int(data["seq"]))
-            if now_ns < until:
-                kind = ("ros2 " if key.startswith("robot") else "mavlink ") + key.rsplit(".", 1)[1]
-                self.latency[kind].append(latency)
+            kind = ("ros2 " if key.startswith("robot") else "mavlink ") + key.rsplit(".", 1)[1]
+            self.latency[kind].append(latency)
 
 
 def consumer(args: dict[str, Any]) -> None:
@@ -562,7 +558,9 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             bridge = ("engine", {"routes": str(routes), "publish_out": str(Path(work) / "publish.json"), **samples})
         files = {name: str(Path(work) / name) for name in ("go", "stop", "done")}
         arrivals, finish = Path(work) / "arrivals.pickle", Path(work) / "finish"
-        reader = tp.Child("fleet-consumer", {"url": url, "exchange": names["out"], "out": str(arrivals), "finish": str(finish)})
+        limit = duration + 600  # each child outlives the load by the set-up's and drain's bounds
+        reader = tp.Child("fleet-consumer", {"url": url, "exchange": names["out"], "out": str(arrivals), "finish": str(finish)},
+                          limit_s=limit)
         telemetry = Telemetry(reader)
         phases: dict[str, float] = result.setdefault("phases_s", {})
         mark = time.monotonic()
@@ -574,7 +572,7 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
 
         try:
             await reader.wait_for("ready", timeout=60)
-            engine = tp.Child(*bridge)
+            engine = tp.Child(*bridge, limit_s=limit)
             children.append(engine)
             started = await engine.wait_for("started", timeout=300)
             await engine.wait_for("ready", timeout=60)
@@ -582,9 +580,10 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             _, load_s, rss_kib = started.split()
             result["load_s"], result["rss_after_load_mib"] = float(load_s), int(rss_kib) / 1024
             groups = [agents[index::publishers] for index in range(publishers)]
-            ros = [tp.Child("fleet-robots", {"domain": domain, "agents": group, "rate": rate, **files})
+            ros = [tp.Child("fleet-robots", {"domain": domain, "agents": group, "rate": rate, **files}, limit_s=limit)
                    for group in groups if group]
-            mav = tp.Child("fleet-vehicles", {"links": [[port, ids] for port, ids in zip(ports, links)], "rate": rate, **files})
+            mav = tp.Child("fleet-vehicles", {"links": [[port, ids] for port, ids in zip(ports, links)], "rate": rate, **files},
+                           limit_s=limit)
             children += [*ros, mav]
             for generator in (*ros, mav):
                 os.setpriority(os.PRIO_PGRP, generator.process.pid, agents_nice)
@@ -701,7 +700,6 @@ async def _commands(channel: Any, exchange: str, robots: list[str], vehicles: in
 async def _drain(telemetry: Telemetry, at_least: float, stall: float = 1.5, timeout: float = 60.0) -> None:
     """Wait for the backlog to arrive: until no message came for ``stall`` s once ``at_least``
     arrived (or ``timeout``)."""
-    telemetry.stop_recording()
     deadline = time.monotonic() + timeout
     last, changed = telemetry.count, time.monotonic()
     while time.monotonic() < deadline:

@@ -84,11 +84,12 @@ def domain_id() -> int:
 class Child:
     """A bench.systems process; ``ready`` once it has printed so, stopped with SIGTERM."""
 
-    def __init__(self, system: str, args: dict[str, Any], env: dict[str, str] | None = None) -> None:
+    def __init__(self, system: str, args: dict[str, Any], env: dict[str, str] | None = None, limit_s: float = 600) -> None:
+        """``limit_s``: the child is killed (SIGKILL) after this long whatever happens."""
         self.system = system
         self.stderr = tempfile.TemporaryFile("w+")
         self.process = subprocess.Popen(
-            ["timeout", "-s", "KILL", "600", sys.executable, "-m", "bench.systems", system, json.dumps(args)],
+            ["timeout", "-s", "KILL", str(int(limit_s)), sys.executable, "-m", "bench.systems", system, json.dumps(args)],
             cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})},
             stdout=subprocess.PIPE, stderr=self.stderr, text=True, start_new_session=True,
         )

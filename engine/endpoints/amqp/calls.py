@@ -9,6 +9,14 @@ id, as JSON, is the answer. None within the sink's ``timeout``: the call fails f
 (:class:`MessageRejected`: the caller has given up), and a reply up to ``late_window`` later
 (engine/endpoints/base.py) is dropped and counted (the route's ``replies.late``); after that it is only counted here
 (``stray``), like a reply naming no call of this sink.
+
+The calls channel is a plain channel (engine/endpoints/amqp/channels.py), opened again at the
+next call once the broker (a request to an exchange deleted meanwhile: 404) or a lost
+connection closed it: on a robust one aio-pika's restore got there first and no reply came on
+it again (tests/test_amqp_publish_channel.py). A direct reply can only come on the channel
+that published the request, so the calls waiting on a channel that closed fail at once with
+:class:`EndpointError` (retried: the request may never have reached a worker), not at their
+timeout as if the worker had not answered.
 """
 
 from __future__ import annotations
@@ -21,6 +29,8 @@ import aio_pika
 import aio_pika.abc
 import orjson
 
+from engine.endpoints.amqp.channels import open_plain_channel
+from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error, ignored
 from engine.endpoints.base import EndpointError, MessageRejected, late_window
 
 
@@ -30,8 +40,6 @@ class Channels(Protocol):
     def channel_factory(self) -> aio_pika.abc.AbstractRobustConnection: ...
 
 DIRECT_REPLY_TO = "amq.rabbitmq.reply-to"
-OPEN_TIMEOUT = 10.0
-"""Seconds to open the calls channel (as the connection's CONNECT_TIMEOUT)."""
 
 
 class AmqpCaller:
@@ -41,7 +49,8 @@ class AmqpCaller:
         self._timeout = timeout
         self._channel: aio_pika.abc.AbstractChannel | None = None
         self._exchanges: dict[str, aio_pika.abc.AbstractExchange] = {}
-        self._pending: dict[str, asyncio.Future[bytes]] = {}
+        self._pending: dict[str, tuple[asyncio.Future[bytes], aio_pika.abc.AbstractChannel]] = {}
+        """Calls waiting for their answer, by correlation id, with the channel they were published on."""
         self._opening = asyncio.Lock()
         self._timed_out: dict[str, Callable[[], None]] = {}
         """Correlation ids of calls that timed out, for one more ``timeout``: their late reply's counter."""
@@ -50,16 +59,24 @@ class AmqpCaller:
     async def _ready(self) -> aio_pika.abc.AbstractChannel:
         async with self._opening:
             if self._channel is None or self._channel.is_closed:
-                # a plain channel, opened again here at the next call once the broker (a request
-                # to an exchange deleted meanwhile: 404) or a lost connection closed it; on a
-                # robust one aio-pika's restore got there first and no reply came on it again
-                # (tests/test_amqp_publish_channel.py)
-                channel = aio_pika.Channel(self._connection.channel_factory(), publisher_confirms=False)
-                await channel.initialize(timeout=OPEN_TIMEOUT)
-                queue = await channel.get_queue(DIRECT_REPLY_TO, ensure=False)
-                await queue.consume(self._on_reply, no_ack=True)
+                channel = await open_plain_channel(self._connection.channel_factory(), publisher_confirms=False)
+                try:
+                    queue = await channel.get_queue(DIRECT_REPLY_TO, ensure=False)
+                    await queue.consume(self._on_reply, no_ack=True)
+                except BaseException:
+                    with ignored():
+                        await channel.close()
+                    raise
+                channel.close_callbacks.add(self._on_channel_close)
                 self._channel, self._exchanges = channel, {}
             return self._channel
+
+    def _on_channel_close(self, channel: Any, error: BaseException | None = None) -> None:
+        """The calls published on ``channel`` can get no answer any more: they fail now."""
+        for answered, published_on in self._pending.values():
+            if published_on is channel and not answered.done():
+                answered.set_exception(EndpointError(
+                    f"{self._where}: the calls channel closed before the answer came ({error or 'closed'})"))
 
     async def _exchange(self, channel: aio_pika.abc.AbstractChannel, name: str, kind: str,
                         durable: bool) -> aio_pika.abc.AbstractExchange:
@@ -67,12 +84,13 @@ class AmqpCaller:
         if exchange is None:
             exchange = channel.default_exchange if name == "" else await channel.declare_exchange(
                 name, aio_pika.ExchangeType(kind), durable=durable)
-            self._exchanges[name] = exchange
+            if channel is self._channel:  # not one that closed meanwhile
+                self._exchanges[name] = exchange
         return exchange
 
     async def _on_reply(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
         correlation_id = message.correlation_id or ""
-        answered = self._pending.get(correlation_id)
+        answered, _ = self._pending.get(correlation_id, (None, None))
         if answered is None or answered.done():
             late = self._timed_out.pop(correlation_id, None)
             if late is not None:
@@ -93,10 +111,13 @@ class AmqpCaller:
             raise EndpointError(f"{self._where}: cannot open the calls channel: {exc}") from exc
         correlation_id = uuid.uuid4().hex
         answered: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
-        self._pending[correlation_id] = answered
+        self._pending[correlation_id] = (answered, channel)
         try:
-            await target.publish(aio_pika.Message(body, content_type=content_type, correlation_id=correlation_id,
-                                                  reply_to=DIRECT_REPLY_TO, message_id=message_id), routing_key)
+            try:
+                await target.publish(aio_pika.Message(body, content_type=content_type, correlation_id=correlation_id,
+                                                      reply_to=DIRECT_REPLY_TO, message_id=message_id), routing_key)
+            except LIBRARY_ERRORS as exc:  # the channel closed between its opening and this request
+                raise edge_error(exc, f"{self._where}: cannot publish the request") from exc
             try:
                 answer = await asyncio.wait_for(answered, self._timeout)
             except asyncio.TimeoutError:

@@ -74,6 +74,7 @@ from engine.endpoints.base import (
 )
 import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.endpoints.amqp.calls import AmqpCaller
+from engine.endpoints.amqp.channels import open_plain_channel
 from engine.endpoints.amqp.publisher import SharedPublisher
 import engine.endpoints.amqp.tls as amqp_tls
 from engine import tls as tls_common
@@ -239,8 +240,8 @@ class AmqpConnection(Connection):
         ``aio_pika.Channel`` (public API) rather than the robust connection's ``channel()``:
         no restore of aio-pika's own races the publisher (module docstring)."""
         assert self._connection is not None
-        channel = aio_pika.Channel(self._connection, publisher_confirms=self.settings.publisher_confirms)
-        await channel.initialize(timeout=CONNECT_TIMEOUT)
+        channel = await open_plain_channel(self._connection, publisher_confirms=self.settings.publisher_confirms,
+                                           timeout=CONNECT_TIMEOUT)
         channel.close_callbacks.add(self._on_publish_channel_close)
         if channel.is_closed:  # closed before its callback was there: nobody would reopen it
             raise aiormq.exceptions.ChannelInvalidStateError("the publish channel closed as it opened")
@@ -356,10 +357,9 @@ class AmqpConnection(Connection):
                 channel = self._declare_channel
                 if channel is None or channel.is_closed:
                     assert self._connection is not None
-                    channel = aio_pika.Channel(self._connection, publisher_confirms=False)
-                    await channel.initialize(timeout=CONNECT_TIMEOUT)
+                    channel = await open_plain_channel(self._connection, publisher_confirms=False, timeout=CONNECT_TIMEOUT)
                     self._declare_channel = channel
-                await channel.declare_exchange(name, aio_pika.ExchangeType(kind), durable=durable)
+                await channel.declare_exchange(name, aio_pika.ExchangeType(kind), durable=durable, timeout=CONNECT_TIMEOUT)
             if publishing is self._publish_channel:  # not one that closed meanwhile
                 self._exchanges.add(name)
 
