@@ -349,7 +349,8 @@ def test_the_calls_channel_closed_by_the_broker_is_opened_again_and_only_once(no
                 failed_after = loop.time() - began
                 await bind()
                 again = await call(3)
-                return {"first": first, "again": again, "failed": str(failed.value), "failed_after": failed_after, "before": before,
+                return {"first": first, "again": again, "failed": str(failed.value), "failed_kind": type(failed.value).__name__,
+                        "failed_after": failed_after, "before": before,
                         "after": await asyncio.to_thread(channels)}
             finally:
                 await caller.close()
@@ -358,6 +359,7 @@ def test_the_calls_channel_closed_by_the_broker_is_opened_again_and_only_once(no
     print(result)
     assert (result["first"], result["again"]) == ({"sum": 2}, {"sum": 4})
     assert f"route {name!r}: the calls channel closed" in result["failed"] and f"NOT_FOUND - no exchange '{exchange}'" in result["failed"], result["failed"]
+    assert result["failed_kind"] == "EndpointError", result  # retried, not MessageRejected (dead-lettered)
     assert result["failed_after"] < 2.0, result  # at the channel's close, not at the call's 3 s timeout
     assert result["after"] == result["before"], result  # one calls channel, not a restored one beside it
 
