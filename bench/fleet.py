@@ -321,11 +321,15 @@ def robots(args: dict[str, Any]) -> None:
 
     rounds = _paced(1.0 / float(args["rate"]), streams, time.monotonic(), send, stop)
     _wait_file(done, 120)
-    executor.shutdown(timeout_sec=1)
-    with lock:
+    with lock:  # the result first: what follows is teardown, which must not be able to lose it
         result = {"sent": {f"{agent}.{stream}": rounds for agent, stream, _ in publishers},
                   "commands": {agent: sorted(seqs) for agent, seqs in commands.items()}, "command_ms": latencies}
     print("result " + json.dumps(result), flush=True)
+    # the spinning thread ends before the node and context go: destroyed under a spin that had
+    # not yet seen the shutdown (1 s was not enough on a loaded CI machine), the process
+    # aborted in C++ ("terminate called without an active exception") before its result
+    executor.shutdown(timeout_sec=10)
+    spinner.join(10)
     node.destroy_node()
     context.try_shutdown()
 
