@@ -16,8 +16,8 @@ Each message carries its send time (wall clock, one machine): telemetry latency 
 where the bench consumes it from RabbitMQ (:func:`consumer`, its own process, reading the
 socket with bench/amqp_reader.py: the aiormq consumer it replaced took 0.32 of the 2 cores and
 put the machine at ~86 % busy; the same templated run's telemetry p99 went 96-130 ms -> 9 ms),
-command latency where the robot or vehicle receives it. Loss is counted per stream from sequence numbers (every message sent in the measured
-period must arrive). The engine runs alone in its own process; its CPU time during the
+command latency where the robot or vehicle receives it. Loss is counted per stream from
+sequence numbers (every message sent in the measured period must arrive). The engine runs alone in its own process; its CPU time during the
 measured period over the messages it carried (both ways) is its CPU per message.
 
 Three ways of writing the same routes (``--modes``): ``templated`` (``for_each``: one route per
@@ -427,9 +427,8 @@ class Telemetry:
     only how many (its ``count`` lines); then every arrival, of which :meth:`digest` gives per
     stream the sequence numbers seen and per stream kind the end-to-end latencies (ms) of every
     message: all were sent during the load (the robots and vehicles send telemetry from ``go``
-    to ``stop`` only), and those still arriving in the drain are its slowest. (Until this
-    session, what arrived after the commands' last confirm was counted, not timed: the tail
-    was cut.)"""
+    to ``stop`` only), and those still arriving in the drain are its slowest. (Before e3d0fbf,
+    what arrived after the commands' last confirm was counted, not timed: the tail was cut.)"""
 
     def __init__(self, child: Any) -> None:
         self.child = child
@@ -461,8 +460,6 @@ def consumer(args: dict[str, Any]) -> None:
     ``exchange`` (every routing key) and reads it with :class:`bench.amqp_reader.QueueReader`
     (why not aiormq: its docstring) until ``finish`` exists; prints ``ready``, ``count N`` at
     most every 0.2 s, and at the end writes every arrival to ``out`` (pickle) and prints ``done``."""
-    import pickle
-
     from bench.amqp_reader import QueueReader
 
     reader = QueueReader(args["url"])
@@ -721,7 +718,8 @@ async def fleet(url: str | None, modes: list[str], robots_n: int = 50, vehicles_
     mode carries what another left in the broker (on one node for all, the mode that ran first
     had the lowest p99 in three runs of four). With the aiormq consumer the spread from run to
     run was large (templated telemetry p99 26-130 ms, the reference's 18-1,634 ms); with
-    :func:`consumer` two runs gave templated 7-11 ms and the reference 13-29 ms
+    :func:`consumer` templated routes gave 10.5-37 ms in four full runs and the reference 20-45,
+    and in a fifth, a bad stretch of the shared machine, both ~850
     (bench/results/2026-11-27/README.md); compare runs, not one."""
     from engine.endpoints.amqp.broker import LocalBroker
 

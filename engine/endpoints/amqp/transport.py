@@ -6,8 +6,8 @@ settled in the callback, see ``AmqpSource._on_message``); one loop per source ha
 everything received (up to half the prefetch; a backlog arrives about 100 messages at a
 time, as the source's channel buffers :data:`FRAME_BUFFER` frames, not aiormq's 10) to the
 route as one batch, then acknowledges with a single ``basic_ack(multiple=True)`` up to the
-highest delivery tag whose whole prefix was settled (accepted by the sink or dead-lettered); the rest of the batch is acked
-one by one or nacked with requeue. That ``multiple`` ack is held across batches while a
+highest delivery tag whose whole prefix was settled (accepted by the sink or dead-lettered);
+the rest of the batch is acked one by one or nacked with requeue. That ``multiple`` ack is held across batches while a
 burst lasts and sent once it covers a quarter of the prefetch, once the source goes idle
 (5 ms without a message), after 50 ms at most, and at a stop or reload
 (``AmqpSource._acknowledge`` says why). Batches are acknowledged in order, so every earlier
@@ -678,17 +678,18 @@ class AmqpSource(Source):
         ``basic_ack(multiple=True)`` per channel, sent once it covers a quarter of the
         prefetch, once the source goes idle (:meth:`_park`), after :data:`ACK_HOLD_NS`, at
         once for a message settled alone with nothing held (``hold`` False: at a robot's pace
-        every message is alone), and before anything else is acked or nacked: single acks and requeueing nacks
-        for the rest of the batch, after it, so no frame names a tag a later ``multiple``
-        ack already covered. Only settled messages are ever acked.
+        every message is alone), and before anything else is acked or nacked: single acks and
+        requeueing nacks for the rest of the batch, after it, so no frame names a tag a later
+        ``multiple`` ack already covered. Only settled messages are ever acked.
 
         Why held: a batch is whatever arrived since the last one, a few messages when the
         route keeps up with the broker (3,960 batches for 13,200 messages measured before
         :data:`FRAME_BUFFER`, and still small whenever the engine is faster than the stream),
         and an ack per batch was a tenth of the engine's CPU time in py-spy (a frame, a writer
-        task wake-up and a socket write each), besides the broker's own work per ack; held, ~2 %. The cost: a crash (not a stop or reload, which send
-        what is held) redelivers up to a quarter of the prefetch more messages that had
-        reached the sink, within the at-least-once contract a crash already has."""
+        task wake-up and a socket write each), besides the broker's own work per ack; held,
+        ~2 %. The cost: a crash (not a stop or reload, which send what is held) redelivers up
+        to a quarter of the prefetch more messages that had reached the sink, within the
+        at-least-once contract a crash already has."""
         prefix = 0
         while prefix < len(settled) and settled[prefix]:
             prefix += 1
