@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import random
 import shutil
 import signal
 import socket
@@ -34,6 +35,45 @@ an engine the test ran cannot outlive a killed run by more than that. Unset: no 
 
 class BrokerError(RuntimeError):
     pass
+
+
+PORT_FLOOR = 10000
+"""The lowest port :func:`listening_port` gives (below: well-known and registered services)."""
+EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+
+
+def listening_port(host: str = "127.0.0.1") -> int:
+    """A free TCP port for a server of ours (a private broker, an admin endpoint), chosen at
+    random below the kernel's ephemeral range.
+
+    Why not ``bind(0)``: that port is in the ephemeral range, which every outgoing connection on
+    the machine draws its local port from. Once our server is down (a test kills a broker and
+    starts it again on the same port), a client elsewhere may hold that port, or a client
+    retrying to connect to it may connect to itself (a TCP self-connect); the server then
+    cannot listen again (``eaddrinuse``). Below the range neither can happen. Random, so that
+    parallel test workers seldom pick one port; bound once, so that it is free now."""
+    ceiling = _ephemeral_low()
+    if ceiling - PORT_FLOOR >= 1000:
+        draw = random.SystemRandom()
+        for _ in range(100):
+            port = draw.randrange(PORT_FLOOR, ceiling)
+            with socket.socket() as sock:
+                try:
+                    sock.bind((host, port))
+                except OSError:
+                    continue
+                return port
+    with socket.socket() as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
+def _ephemeral_low() -> int:
+    """The low end of the kernel's ephemeral port range (Linux's default, 32768, where unknown)."""
+    try:
+        return int(EPHEMERAL_RANGE.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
 
 
 def lifetime_from_environment() -> float | None:
@@ -106,8 +146,9 @@ class ServerProcess:
                 raise self.error(f"{name} exited with {self._process.returncode}: {self._tail()}")
             try:
                 for port in ports:
-                    with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-                        pass
+                    with socket.create_connection(("127.0.0.1", port), timeout=0.5) as probe:
+                        if probe.getsockname() == probe.getpeername():
+                            raise ConnectionRefusedError(f"connected to itself on {port}, nobody listens")
                 return
             except OSError:
                 time.sleep(poll)

@@ -27,7 +27,6 @@ import json
 import os
 import random
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -40,6 +39,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from engine.local_broker import listening_port  # noqa: E402
 from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 
 PYTHON = sys.executable
@@ -69,12 +69,6 @@ def wait_for(path: Path, process: subprocess.Popen[bytes], timeout: float) -> No
         time.sleep(0.2)
     if not path.exists():
         raise TimeoutError(f"{path} did not appear")
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def follow(process: subprocess.Popen[bytes], lines: deque[str]) -> threading.Thread:
@@ -127,7 +121,7 @@ def main() -> int:
     env = {**os.environ, "ROS_DOMAIN_ID": str(args.ros_domain), "PYTHONPATH": str(REPO)}
     processes: list[subprocess.Popen[bytes]] = []
     lines: deque[str] = deque(maxlen=12)
-    admin = ("127.0.0.1", free_port())
+    admin = ("127.0.0.1", listening_port())
     with SikRadioPair(link_a=str(work / "radio-gcs"), link_b=str(work / "radio-uav"), seed=1) as radio:
         env["RABBITROS_RADIO"] = radio.link_a
         try:

@@ -48,8 +48,9 @@ class EngineProcess:
             return None
 
     def log(self) -> str:
-        self._log.flush()
-        return self.log_file.read_text()[-4000:]
+        """The engine's last 4,000 characters of output, while it runs and once it is stopped
+        (the child writes to the file itself: nothing of ours to flush)."""
+        return self.log_file.read_text(errors="replace")[-4000:]
 
     def run(self, scenario: Callable[[], Awaitable[T]]) -> tuple[T, dict[str, Any]]:
         """Wait for the engine to start, run ``scenario`` against it, and stop it (exit status 0

@@ -22,6 +22,7 @@ import aio_pika
 import pytest
 
 from engine.endpoints.amqp.broker import LocalBroker
+from engine.local_broker import listening_port
 from tests.amqp_helpers import Collector, publish
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
@@ -45,12 +46,6 @@ routes:
     throttle: {max_rate: 2, per: agent_id}
     sink: {amqp: {exchange: admin-test, routing_key: "out.throttled.{agent_id}"}}
 """
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def get(port: int, path: str) -> tuple[int, str]:
@@ -98,7 +93,7 @@ def admin(amqp_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[A
     work = tmp_path_factory.mktemp("admin")
     (work / "routes").mkdir()
     (work / "routes" / "admin.yaml").write_text(ROUTES)
-    port = free_port()
+    port = listening_port()
     engine = EngineProcess(work / "routes", work / "status.json", {"RABBITROS_AMQP_URL": amqp_url},
                            "--admin", str(port))
     try:
@@ -273,7 +268,7 @@ def test_status_and_tap_commands(admin: Admin):
 
     missing = cli("tap", "nope", "--admin", str(admin.port))
     assert missing.returncode == 1 and "unknown route 'nope'" in missing.stderr
-    nobody = cli("tap", "tapped", "--admin", str(free_port()))
+    nobody = cli("tap", "tapped", "--admin", str(listening_port()))
     assert nobody.returncode == 1 and "cannot reach the engine's admin endpoint" in nobody.stderr, nobody.stderr
 
 
@@ -336,7 +331,7 @@ def test_tap_command_fails_clearly_when_the_engine_goes_away(amqp_url: str, tmp_
     routes = tmp_path / "routes"
     routes.mkdir()
     (routes / "r.yaml").write_text(ROUTES.split("  - name: throttled")[0].replace("admin-", "gone-"))
-    port = free_port()
+    port = listening_port()
     engine = EngineProcess(routes, tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url}, "--admin", str(port))
     try:
         engine.wait_started()
@@ -361,7 +356,7 @@ def test_healthz_follows_the_broker(tmp_path: Path):
     routes.mkdir()
     (routes / "r.yaml").write_text(
         f"connections:\n  farm-broker: {{amqp: '{broker.url}'}}\n" + ROUTES.split("  - name: tapped")[0])
-    port = free_port()
+    port = listening_port()
     engine = EngineProcess(routes, tmp_path / "status.json", {}, "--admin", str(port))
     try:
         engine.wait_started()
@@ -389,7 +384,7 @@ def test_status_shows_why_the_last_reload_was_rejected_and_the_log_says_when_it_
     routes.mkdir()
     good = ROUTES.split("  - name: throttled")[0].replace("admin-", "rejected-")
     (routes / "r.yaml").write_text(good)
-    port = free_port()
+    port = listening_port()
     engine = EngineProcess(routes, tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url}, "--admin", str(port))
 
     def status_table() -> str:

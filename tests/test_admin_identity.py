@@ -10,7 +10,6 @@ wildcard serves too."""
 from __future__ import annotations
 
 import json
-import socket
 import ssl
 import subprocess
 import sys
@@ -22,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from engine.local_broker import listening_port
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
 from tests.tls_helpers import make_pki
@@ -34,12 +34,6 @@ ROUTES = """routes:
     schema: raw_json
     sink: {amqp: {exchange: identity-out, routing_key: out}}
 """
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def request(port: int, path: str, token: str | None, tls: ssl.SSLContext | None) -> int:
@@ -65,11 +59,11 @@ def engine_command(tmp_path: Path, *extra: str) -> subprocess.CompletedProcess[s
 @pytest.mark.alone  # "at once" is measured in wall time: two engine starts took 36 s beside busy workers
 def test_refuses_to_start_on_a_network_address_without_a_token_file(tmp_path: Path):
     began = time.monotonic()
-    done = engine_command(tmp_path, "--admin", f"0.0.0.0:{free_port()}")
+    done = engine_command(tmp_path, "--admin", f"0.0.0.0:{listening_port()}")
     assert done.returncode == 2, done.stdout + done.stderr
     assert "--admin-token-file" in done.stdout + done.stderr
     (tmp_path / "empty").write_text("\n")
-    done = engine_command(tmp_path, "--admin", f"0.0.0.0:{free_port()}", "--admin-token-file", str(tmp_path / "empty"))
+    done = engine_command(tmp_path, "--admin", f"0.0.0.0:{listening_port()}", "--admin-token-file", str(tmp_path / "empty"))
     assert done.returncode == 2 and "is empty" in done.stdout + done.stderr, done.stdout + done.stderr
     assert time.monotonic() - began < 30
 
@@ -82,7 +76,7 @@ def test_token_and_tls_on_the_wildcard_address(tmp_path: Path, amqp_url: str):
     routes = tmp_path / "routes"
     routes.mkdir()
     (routes / "r.yaml").write_text(ROUTES)
-    port = free_port()
+    port = listening_port()
     engine = EngineProcess(routes, tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url},
                            "--admin", f"0.0.0.0:{port}", "--admin-token-file", str(token_file),
                            "--admin-tls-cert", str(pki.server_cert), "--admin-tls-key", str(pki.server_key))
@@ -140,7 +134,7 @@ def test_fuzzed_paths_and_headers_never_pass_without_the_token(tmp_path: Path, a
     routes = tmp_path / "routes"
     routes.mkdir()
     (routes / "r.yaml").write_text(ROUTES)
-    port = free_port()
+    port = listening_port()
     engine = EngineProcess(routes, tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url},
                            "--admin", str(port), "--admin-token-file", str(token_file))
     counts = {"requests": 0, "answered_200": 0, "server_errors": 0}

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 import time
 import urllib.error
 import urllib.request
@@ -18,6 +17,7 @@ import aio_pika.abc
 import pytest
 
 from engine.endpoints.amqp.broker import BrokerTls, LocalBroker
+from engine.local_broker import listening_port
 from tests.engine_process import EngineProcess
 from tests.tls_helpers import Pki, make_pki, renew_client
 
@@ -35,12 +35,6 @@ def tls_broker(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Local
         yield broker, pki
     finally:
         broker.stop()
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def wait_for(check: Callable[[], Any], timeout: float, what: str) -> Any:
@@ -149,7 +143,7 @@ def test_each_failed_check_is_named_and_a_renewed_ca_file_reconnects(tls_broker:
         f"  no_cert: {{amqp: {{url: \"{url}\", tls: {tls_block(pki.ca)}}}}}\n"
         "dead_letters: {connection: bad_ca}\n"
         "routes:\n" + route("a", "bad_ca") + route("b", "bad_host") + route("c", "no_cert"))
-    admin = free_port()
+    admin = listening_port()
     engine = EngineProcess(routes, tmp_path / "status.json", {}, "--admin", str(admin))
     expected = {
         "bad_ca": "unknown CA: the broker's certificate is not signed by a CA in tls.ca_file",

@@ -19,6 +19,7 @@ import aio_pika
 
 from engine import __version__
 from engine.cli import COMMANDS, build_parser
+from engine.local_broker import listening_port
 from tests.amqp_helpers import Collector, publish
 from tests.conftest import REPO
 
@@ -153,12 +154,6 @@ routes:
 """
 
 
-def _unused_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def test_check_local_broker_names_connections_that_go_elsewhere(tmp_path: Path):
     (tmp_path / "gcs.yaml").write_text((REPO / "routes" / "gcs.yaml").read_text())
     (tmp_path / "own.yaml").write_text(ELSEWHERE.format(port=5999))
@@ -181,7 +176,7 @@ def test_run_with_local_broker_routes_and_stops_cleanly(tmp_path: Path):
     routes = tmp_path / "routes"
     routes.mkdir()
     (routes / "gcs.yaml").write_text((REPO / "routes" / "gcs.yaml").read_text())
-    (routes / "own.yaml").write_text(ELSEWHERE.format(port=_unused_port()))
+    (routes / "own.yaml").write_text(ELSEWHERE.format(port=listening_port()))
     process = subprocess.Popen(
         [sys.executable, "-m", "engine", "--routes", str(routes), "--schemas", "schemas", "--local-broker",
          "--broker-url-file", str(url_file), "--status-file", str(status_file), "--log-format", "json"],
@@ -214,7 +209,7 @@ def test_run_with_local_broker_routes_and_stops_cleanly(tmp_path: Path):
         records = [json.loads(line) for line in stderr.splitlines() if line.startswith("{")]
         started = next(r for r in records if r["msg"] == "local broker started")
         warnings = [r["problem"] for r in records if r["msg"] == "route warning"]
-        assert len(warnings) == 1 and f"own.yaml:3: connection 'own' names its own broker" in warnings[0] \
+        assert len(warnings) == 1 and "own.yaml:3: connection 'own' names its own broker" in warnings[0] \
             and f"--local-broker's private node ({started['nodes'][0]}) does not serve it" in warnings[0], warnings
         assert "guest:guest" not in stderr, "a password reached the log"
     finally:

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 import threading
 import time
 import urllib.request
@@ -32,6 +31,7 @@ import aio_pika
 import pytest
 
 from engine.endpoints.amqp.broker import LocalBroker
+from engine.local_broker import listening_port
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, Tally, robust, wait_for
 from tests.workers import ros_domain
@@ -59,12 +59,6 @@ routes:
 STAGES = ("decode", "size", "mapping", "schema", "sink mapping", "sink")
 AGENTS, PER_AGENT, NOT_JSON = ("uav1", "uav2"), 40, 4
 UP_GOOD, UP_BAD, DOWN_GOOD, DOWN_BAD = 10, 2, 100, 3
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 class TapReader:
@@ -162,7 +156,7 @@ def test_log_status_metrics_and_tap_count_the_same_known_traffic(tmp_path: Path,
     routes = tmp_path / "routes"
     routes.mkdir()
     (routes / "counters.yaml").write_text(ROUTES.format(steady=amqp_url, flaky=flaky.url, domain=domain, tag=tag))
-    port = free_port()
+    port = listening_port()
     engine = EngineProcess(routes, tmp_path / "status.json", {}, "--admin", str(port))
     arrived = Tally("buffered")
     try:

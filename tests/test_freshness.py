@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import time
 import urllib.request
 import uuid
@@ -28,9 +27,10 @@ from pathlib import Path
 from typing import Any
 
 from engine.endpoints.amqp.broker import LocalBroker
+from engine.local_broker import listening_port
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, Tally, robust, wait_for
-from tests.test_counters_agree import TapReader, free_port
+from tests.test_counters_agree import TapReader
 from tests.workers import ros_domain
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
@@ -65,7 +65,7 @@ def test_max_age_expires_stale_held_messages_and_latest_only_replays_one_per_key
     routes = tmp_path / "routes"
     routes.mkdir()
     (routes / "fresh.yaml").write_text(ROUTES.format(flaky=flaky.url, domain=domain, tag=tag))
-    port = free_port()
+    port = listening_port()
     engine = EngineProcess(routes, tmp_path / "status.json", {}, "--admin", str(port))
     aged, latest = Tally("aged"), Tally("latest")
     try:

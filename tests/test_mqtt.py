@@ -11,7 +11,6 @@ import asyncio
 import json
 import os
 import signal
-import socket
 import time
 import uuid
 from collections import Counter
@@ -23,6 +22,7 @@ import aiomqtt
 import pytest
 
 from engine.endpoints.mqtt.broker import LocalMosquitto
+from engine.local_broker import listening_port
 from engine.runtime import Engine
 from tests.amqp_helpers import Collector
 from tests.conftest import REPO
@@ -463,12 +463,6 @@ routes:
 """
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 @pytest.mark.parametrize("session", ["persistent", "clean"])
 def test_mosquitto_stopped_and_started_routes_resume_and_healthz_follows(
         tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str, session: str) -> None:
@@ -479,7 +473,7 @@ def test_mosquitto_stopped_and_started_routes_resume_and_healthz_follows(
     client_id = ", client_id: restart-1" if session == "persistent" else ""
     routes = routes_dir(tmp_path, RESTART.format(mqtt=mosquitto.url, amqp=amqp_url, outbox=f"o-{tag}",
                                                  inbox=f"i-{tag}", client_id=client_id))
-    port = free_port()
+    port = listening_port()
     engine = EngineProcess(routes, tmp_path / "status.json", {}, "--admin", str(port))
 
     async def round_trip(out: Collector, inbox: aio_pika.abc.AbstractExchange, seq: int) -> None:
@@ -558,11 +552,12 @@ def test_two_engines_with_one_shared_group_split_the_stream_every_message_once(
             await publish(mosquitto, (weather(f"a{seq % 5}", seq) for seq in range(SHARED_TOTAL)))
             await wait_for(lambda: len(out.messages) >= SHARED_TOTAL, 60, f"{SHARED_TOTAL} messages")
             await asyncio.sleep(1.0)  # a duplicate would arrive meanwhile
-            return list(out.messages)
+            messages = list(out.messages)
         finally:
-            for engine in engines:
-                assert engine.stop() == 0, engine.log()
+            exits = [await asyncio.to_thread(engine.stop) for engine in engines]
             await connection.close()
+        assert exits == [0, 0], "\n".join(f"engine exited {code}: {engine.log()}" for code, engine in zip(exits, engines))
+        return messages
 
     messages = asyncio.run(asyncio.wait_for(scenario(), 180))
     seqs = Counter(json.loads(m.body)["seq"] for m in messages)

@@ -5,26 +5,20 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 import time
 from pathlib import Path
 
 import aiomqtt
 
 from engine.endpoints.mqtt.broker import LocalMosquitto
+from engine.local_broker import listening_port
 from tests.engine_process import EngineProcess
 from tests.tls_helpers import make_pki
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 def test_mqtts_with_a_client_certificate_carries_and_names_failed_checks(tmp_path: Path):
     pki = make_pki(tmp_path / "pki")
-    tls_port = free_port()
+    tls_port = listening_port()
     broker = LocalMosquitto(tmp_path / "mosquitto", extra=[
         f"listener {tls_port} 127.0.0.1", f"cafile {pki.ca}", f"certfile {pki.server_cert}", f"keyfile {pki.server_key}",
         "require_certificate true"])

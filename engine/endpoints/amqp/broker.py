@@ -16,7 +16,6 @@ from __future__ import annotations
 import glob
 import os
 import shutil
-import socket
 import subprocess
 import tempfile
 import threading
@@ -27,7 +26,7 @@ from pathlib import Path
 from typing import Iterable
 from urllib.parse import urlsplit
 
-from engine.local_broker import BrokerError, ServerProcess
+from engine.local_broker import BrokerError, ServerProcess, listening_port
 from engine.tls import throwaway_certificates
 
 SERVER_GLOB = "/usr/lib/rabbitmq/lib/rabbitmq_server-*/sbin/rabbitmq-server"
@@ -79,15 +78,6 @@ def find_server() -> str:
     return found[-1]
 
 
-def _free_port(preferred: int | None = None) -> int:
-    with socket.socket() as sock:
-        try:
-            sock.bind(("127.0.0.1", preferred or 0))
-        except OSError:
-            sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 @dataclass(frozen=True)
 class BrokerTls:
     """A TLS listener for the private node (tests and demos of ``amqps://``): the node's
@@ -136,9 +126,9 @@ class LocalBroker(ServerProcess):
     ) -> None:
         super().__init__(directory or Path(tempfile.mkdtemp(prefix="rabbitros-broker-")), keep_dir, lifetime)
         self.tls = tls
-        self.tls_port = _free_port() if tls is not None else None
-        self.port = _free_port()
-        self.dist_port = _free_port(self.port + 20000 if self.port + 20000 < 65536 else None)
+        self.tls_port = listening_port() if tls is not None else None
+        self.port = listening_port()
+        self.dist_port = listening_port()
         self.node = node or f"rabbitros-{uuid.uuid4().hex[:8]}@localhost"
         self.cookie = cookie
 

@@ -21,12 +21,11 @@ from __future__ import annotations
 import os
 import pwd
 import shutil
-import socket
 import tempfile
 from pathlib import Path
 from typing import Iterable
 
-from engine.local_broker import BrokerError, ServerProcess
+from engine.local_broker import BrokerError, ServerProcess, listening_port
 from engine.tls import ThrowawayCertificates, throwaway_certificates
 
 MOSQUITTO = "mosquitto"
@@ -46,12 +45,6 @@ def find_mosquitto() -> str:
     if found is None:
         raise MosquittoError(INSTALL_HINT)
     return found
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 class LocalMosquitto(ServerProcess):
@@ -74,7 +67,7 @@ class LocalMosquitto(ServerProcess):
         tls: bool = False,
     ) -> None:
         super().__init__(directory or Path(tempfile.mkdtemp(prefix="rabbitros-mosquitto-")), keep_dir, lifetime)
-        self.port = port or free_port()
+        self.port = port or listening_port()
         self.max_queued_messages = max_queued_messages
         self.extra = tuple(extra)
         self.tls = tls

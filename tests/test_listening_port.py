@@ -1,0 +1,49 @@
+"""Our servers' ports (private brokers, admin endpoints) come from below the kernel's ephemeral
+range, so that no outgoing connection can hold one while its server is down, and no client
+retrying a connection to it can connect to itself (CI once saw a killed broker fail to listen
+again on its port: the 2026-11-27 run, tests/test_outage.py)."""
+
+from __future__ import annotations
+
+import socket
+
+from engine.endpoints.amqp.broker import BrokerTls, LocalBroker
+from engine.endpoints.mqtt.broker import LocalMosquitto
+from engine.local_broker import EPHEMERAL_RANGE, PORT_FLOOR, listening_port
+
+
+def ephemeral_range() -> tuple[int, int]:
+    low, high = (int(part) for part in EPHEMERAL_RANGE.read_text().split())
+    return low, high
+
+
+def test_listening_ports_are_free_below_the_ephemeral_range_and_spread() -> None:
+    low, _ = ephemeral_range()
+    assert low - PORT_FLOOR >= 1000, f"this machine's ephemeral range starts at {low}: nothing to draw from"
+    ports = [listening_port() for _ in range(200)]
+    assert all(PORT_FLOOR <= port < low for port in ports), sorted(ports)[:5] + sorted(ports)[-5:]
+    assert len(set(ports)) >= 190, "parallel workers would pick the same ports"
+    for port in ports[:20]:
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", port))
+
+
+def test_a_port_in_use_is_not_given() -> None:
+    taken = listening_port()
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", taken))
+        holder.listen()
+        assert taken not in {listening_port() for _ in range(300)}
+
+
+def test_private_brokers_listen_below_the_ephemeral_range(tmp_path) -> None:
+    low, _ = ephemeral_range()
+    node = LocalBroker(tls=BrokerTls(tmp_path / "ca", tmp_path / "cert", tmp_path / "key"))
+    mosquitto = LocalMosquitto()
+    try:
+        ports = {"amqp": node.port, "distribution": node.dist_port, "amqps": node.tls_port, "mqtt": mosquitto.port}
+        assert all(port is not None and PORT_FLOOR <= port < low for port in ports.values()), ports
+        assert len(set(ports.values())) == len(ports), ports
+    finally:
+        node.stop()
+        mosquitto.stop()
