@@ -42,9 +42,9 @@ PORT_FLOOR = 10000
 EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
 
 
-def listening_port(host: str = "127.0.0.1") -> int:
-    """A free TCP port for a server of ours (a private broker, an admin endpoint), chosen at
-    random below the kernel's ephemeral range.
+def listening_port(host: str = "127.0.0.1", kind: socket.SocketKind = socket.SOCK_STREAM) -> int:
+    """A free port for a server of ours (a private broker, an admin endpoint; ``SOCK_DGRAM``: a
+    MAVLink ``udpin`` link), chosen at random below the kernel's ephemeral range.
 
     Why not ``bind(0)``: that port is in the ephemeral range, which every outgoing connection on
     the machine draws its local port from. Once our server is down (a test kills a broker and
@@ -57,13 +57,13 @@ def listening_port(host: str = "127.0.0.1") -> int:
         draw = random.SystemRandom()
         for _ in range(100):
             port = draw.randrange(PORT_FLOOR, ceiling)
-            with socket.socket() as sock:
+            with socket.socket(socket.AF_INET, kind) as sock:
                 try:
                     sock.bind((host, port))
                 except OSError:
                     continue
                 return port
-    with socket.socket() as sock:
+    with socket.socket(socket.AF_INET, kind) as sock:
         sock.bind((host, 0))
         return int(sock.getsockname()[1])
 

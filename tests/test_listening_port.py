@@ -28,6 +28,15 @@ def test_listening_ports_are_free_below_the_ephemeral_range_and_spread() -> None
             sock.bind(("127.0.0.1", port))
 
 
+def test_udp_ports_for_udpin_links_are_free_below_the_ephemeral_range() -> None:
+    low, _ = ephemeral_range()
+    ports = [listening_port(kind=socket.SOCK_DGRAM) for _ in range(50)]
+    assert all(PORT_FLOOR <= port < low for port in ports), sorted(ports)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", ports[0]))
+        assert ports[0] not in {listening_port(kind=socket.SOCK_DGRAM) for _ in range(300)}
+
+
 def test_a_port_in_use_is_not_given() -> None:
     taken = listening_port()
     with socket.socket() as holder:

@@ -12,7 +12,6 @@ import asyncio
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
 import time
@@ -38,15 +37,9 @@ from rabbitros_sim.vehicle import SimVehicle  # noqa: E402
 from tests.amqp_helpers import Collector  # noqa: E402
 from tests.conftest import REPO  # noqa: E402
 from tests.mavsdk_vehicle import MavsdkAutopilot  # noqa: E402
+from tests.udp_vehicle import free_udp_port  # noqa: E402
 
 WEEDS = [(-22.0004563, -47.9001234), (-22.0004571, -47.9001301), (-21.99951234, -47.89987651)]
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 def canonical_stamp() -> dict[str, int]:

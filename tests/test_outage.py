@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -22,6 +21,7 @@ from engine.endpoints.amqp.broker import LocalBroker
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, RosPeer, Tally, publish_reliably, robust, wait_for
+from tests.udp_vehicle import free_udp_port
 from tests.workers import ros_domain
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
@@ -234,12 +234,6 @@ routes:
 """
 
 
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 @pytest.mark.soak
 def test_engine_starts_without_the_broker_and_routes_that_do_not_need_it_run_at_once(tmp_path: Path) -> None:
     """MAVLink -> ROS 2 works while the broker is down; AMQP -> ROS 2 starts when the broker
@@ -247,7 +241,7 @@ def test_engine_starts_without_the_broker_and_routes_that_do_not_need_it_run_at_
     ``--require-connections`` keeps the old fail-fast start."""
     from pymavlink import mavutil
 
-    names = {**_names(), "port": str(_free_udp_port())}
+    names = {**_names(), "port": str(free_udp_port())}
     routes = tmp_path / "routes"
     routes.mkdir()
     (routes / "outage.yaml").write_text(ROUTES.format(extra="", **names))

@@ -15,7 +15,6 @@ import json
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -37,6 +36,7 @@ from tests.faults_harness import wait_for
 from tests.test_cli import cli
 from tests.test_mqtt import Subscriber, mqtt_client, publish, retained_state
 from tests.test_ros2_endpoint import DOMAIN, Peer, String
+from tests.udp_vehicle import free_udp_port
 
 EXAMPLE = REPO / "examples" / "vda5050"
 Path_ = resolve_type("nav_msgs/msg/Path")
@@ -148,12 +148,6 @@ RESUME = {**ORDER_HEADER, "headerId": 3, "serialNumber": "uav1",
 ITEM_SECONDS = 3.0
 """The simulated UAV reaches a mission item this long after the previous one: long enough for
 the pause to arrive while it flies to the first node, on a loaded machine too."""
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def start_vehicle(port: int) -> subprocess.Popen[str]:

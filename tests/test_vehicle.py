@@ -32,6 +32,7 @@ from rabbitros_sim.vehicle import (  # noqa: E402
     open_serial,
 )
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
+from tests.udp_vehicle import free_udp_port  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 TUNNEL_TYPE = 0xA900
@@ -216,19 +217,12 @@ def test_tunnel_echo_over_the_radio_is_byte_identical(radio: SikRadioPair, tmp_p
     assert stats["tunnels_echoed"] == 3 and stats["tunnels_ignored"] == 2
 
 
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
 @pytest.mark.parametrize("transport", ["udpin", "udpout", "tcp"])
 def test_network_transports_carry_telemetry_and_echo(transport: str) -> None:
     payload = b"over " + transport.encode()
     with contextlib.ExitStack() as stack:
         if transport == "udpin":
-            port = _free_udp_port()
+            port = free_udp_port()
             sock = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
             proc = stack.enter_context(vehicle("--device", f"udpin:127.0.0.1:{port}", "--echo-frames", "--duration", "15"))
             peer = Peer(lambda: sock.recv(65535), lambda d: sock.sendto(d, ("127.0.0.1", port)), sock.fileno())
@@ -261,7 +255,7 @@ def test_network_transports_carry_telemetry_and_echo(transport: str) -> None:
 
 
 def test_signing_signs_everything_and_rejects_unsigned_tunnels() -> None:
-    port = _free_udp_port()
+    port = free_udp_port()
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock, \
             vehicle("--device", f"udpin:127.0.0.1:{port}", "--echo-frames", "--signing-key", KEY.hex(),
                     "--link-id", "5", "--duration", "15") as proc:
@@ -296,7 +290,7 @@ def test_json_tunnel_peer_stores_before_acknowledging_and_sends_back(tmp_path: P
     from engine.endpoints.base import Outbound
     from engine.endpoints.mavlink.tunnel import fragment
 
-    port = _free_udp_port()
+    port = free_udp_port()
     bodies = [b"{}", json.dumps({"agent_id": "uav1", "pad": "x" * 230}).encode(),
               json.dumps({"big": list(range(700))}, separators=(",", ":")).encode()]
     store = tmp_path / "robot.jsonl"

@@ -10,6 +10,8 @@ import time
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from engine.local_broker import listening_port
+
 
 class Vehicle(threading.Thread):
     """A pymavlink sender: GLOBAL_POSITION_INT at ``rate`` Hz, ``time_boot_ms`` = sequence,
@@ -39,9 +41,8 @@ class Vehicle(threading.Thread):
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+    """A free UDP port for an engine's ``udpin`` link (below the ephemeral range, as every server's)."""
+    return listening_port(kind=socket.SOCK_DGRAM)
 
 
 def telemetry_routes(amqp_url: str, outbox: str, port: int, host: str = "127.0.0.1", heartbeat: float = 1,
