@@ -314,11 +314,12 @@ def routes_file(directory: Path, kind: str, names: dict[str, str], url: str, dom
 
 
 def free_udp_port() -> int:
+    """A port for the engine's (or the reference's) ``udpin`` link, below the ephemeral range."""
     import socket
 
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    from engine.local_broker import listening_port
+
+    return listening_port(kind=socket.SOCK_DGRAM)
 
 
 @asynccontextmanager

@@ -6,7 +6,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -14,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from engine.local_broker import listening_port
 from engine.mapping import compile_mapping, known_functions
 from engine.schemas import SchemaError, SchemaRegistry
 from tests.conftest import REPO
@@ -140,9 +140,7 @@ def test_the_tutorial_steps_work_as_written(tmp_path: Path):
     work = tmp_path / "farm"
     work.mkdir()
     (work / "schemas").symlink_to(REPO / "schemas")
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port = listening_port()
     script, expected = tutorial_script(text, work, port)
     (work / "tutorial.sh").write_text(script)
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}",
