@@ -15,10 +15,11 @@ through routes shared by many agents and through one hand-written route per agen
 Each message carries its send time (wall clock, one machine): telemetry latency is measured
 where the bench consumes it from RabbitMQ (:func:`consumer`, its own process, reading the
 socket with bench/amqp_reader.py: the aiormq consumer it replaced took 0.32 of the 2 cores and
-put the machine at ~86 % busy; the same templated run's telemetry p99 went 96-130 ms -> 9 ms),
-command latency where the robot or vehicle receives it. Loss is counted per stream from
-sequence numbers (every message sent in the measured period must arrive). The engine runs alone in its own process; its CPU time during the
-measured period over the messages it carried (both ways) is its CPU per message.
+put the machine at ~86 % busy; the same templated run's telemetry p99 went from 96-130 ms to
+10.5-12.2 ms in three quiet full runs), command latency where the robot or vehicle receives it.
+Loss is counted per stream from sequence numbers (every message sent in the measured period
+must arrive). The engine runs alone in its own process; its CPU time during the measured
+period over the messages it carried (both ways) is its CPU per message.
 
 Three ways of writing the same routes (``--modes``): ``templated`` (``for_each``: one route per
 agent and stream, 300 routes), ``shared`` (:func:`shared_routes`: discovery and one route per

@@ -55,6 +55,15 @@ async def robust(url: str) -> aio_pika.abc.AbstractRobustConnection:
     return await aio_pika.connect_robust(url, reconnect_interval=0.5)
 
 
+async def declare_bound_queue(channel: Any, queue: str, exchange: str, key: str = "#") -> Any:
+    """The durable queue ``queue`` bound to the durable topic ``exchange`` with ``key`` (both
+    declared); the queue, not consumed."""
+    target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
+    declared = await channel.declare_queue(queue, durable=True)
+    await declared.bind(target, key)
+    return declared
+
+
 class Collector:
     """A durable queue bound to ``exchange``; acks each message after recording it, so a
     broker killed mid-delivery redelivers (a duplicate) instead of losing it."""
@@ -65,10 +74,7 @@ class Collector:
     async def bind(self, connection: Any, queue: str, exchange: str, key: str = "#") -> None:
         channel = await connection.channel()
         await channel.set_qos(prefetch_count=500)
-        target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
-        declared = await channel.declare_queue(queue, durable=True)
-        await declared.bind(target, key)
-        await declared.consume(self._on_message)
+        await (await declare_bound_queue(channel, queue, exchange, key)).consume(self._on_message)
 
     async def _on_message(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
         try:

@@ -23,6 +23,7 @@ from typing import Any, AsyncIterator, Callable, Iterator
 import aio_pika
 import aiormq
 import pytest
+from aiormq import spec
 
 from engine.endpoints.amqp.broker import LocalBroker
 from engine.runtime import Engine
@@ -188,8 +189,6 @@ def test_exchange_deleted_behind_the_engine_fails_only_its_route_and_it_recovers
 
 
 def _messages(n: int) -> list[tuple[str, bytes, Any]]:
-    from aiormq import spec
-
     return [("k", b'{"a": 1}', spec.Basic.Properties(delivery_mode=1)) for _ in range(n)]
 
 
@@ -307,7 +306,8 @@ def test_the_calls_channel_closed_by_the_broker_is_opened_again_and_only_once(no
     no longer come), the next call opens one fresh channel, declares the exchange again and is
     answered, on one calls channel. On the robust channel it had
     before, aio-pika restored the closed channel itself and the call after the exchange was
-    back got no answer (``no answer within 3 s``): the caller's replies never came."""
+    back got no answer (``no answer within 3 s``): the caller's replies never came. (The
+    calls' timeout is 30 s here, so that "at once" stands far from it on a loaded machine.)"""
     from engine.endpoints.amqp.calls import AmqpCaller
     from engine.endpoints.base import EndpointError
 
@@ -320,7 +320,7 @@ def test_the_calls_channel_closed_by_the_broker_is_opened_again_and_only_once(no
 
     async def scenario() -> dict[str, Any]:
         async with _connection_and_client(node, name) as (connection, worker):
-            caller = AmqpCaller(connection, f"route {name!r}", timeout=3.0)
+            caller = AmqpCaller(connection, f"route {name!r}", timeout=30.0)
             try:
                 channel = await worker.channel()
 
@@ -360,7 +360,7 @@ def test_the_calls_channel_closed_by_the_broker_is_opened_again_and_only_once(no
     assert (result["first"], result["again"]) == ({"sum": 2}, {"sum": 4})
     assert f"route {name!r}: the calls channel closed" in result["failed"] and f"NOT_FOUND - no exchange '{exchange}'" in result["failed"], result["failed"]
     assert result["failed_kind"] == "EndpointError", result  # retried, not MessageRejected (dead-lettered)
-    assert result["failed_after"] < 2.0, result  # at the channel's close, not at the call's 3 s timeout
+    assert result["failed_after"] < 10.0, result  # at the channel's close, not at the call's 30 s timeout
     assert result["after"] == result["before"], result  # one calls channel, not a restored one beside it
 
 
@@ -400,6 +400,42 @@ async def _proxy(target_port: int) -> tuple[asyncio.AbstractServer, dict[str, An
     return server, state
 
 
+def test_a_channel_the_broker_never_opens_fails_within_its_bound(node: LocalBroker) -> None:
+    """The publish, declare and calls channels open through engine/endpoints/amqp/channels.py
+    within a bound: aio-pika's own ``Channel.initialize(timeout=...)`` ignores its timeout, so a
+    Channel.Open the broker never answers (here a relay that stops passing the client's bytes
+    on) held the opener, and every route behind its lock, for ever. Bounded at 0.5 s, the open
+    fails with ``asyncio.TimeoutError`` within a few seconds (the outer 30 s bound is the old
+    code's hang) and the relay is still connected when it does."""
+    from engine.endpoints.amqp.channels import open_plain_channel
+
+    async def scenario() -> dict[str, Any]:
+        server, relay = await _proxy(node.port)
+        port = server.sockets[0].getsockname()[1]
+        connection = await aio_pika.connect(f"amqp://guest:guest@127.0.0.1:{port}/")
+        loop = asyncio.get_running_loop()
+        try:
+            relay["paused"].set()
+            began = loop.time()
+            try:
+                await asyncio.wait_for(open_plain_channel(connection, publisher_confirms=False, timeout=0.5), 30)
+                failure = "none"
+            except asyncio.TimeoutError as exc:
+                failure = type(exc).__name__
+            return {"failure": failure, "after_s": loop.time() - began, "connection_closed": connection.is_closed}
+        finally:
+            relay["cut"]()
+            server.close()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(connection.close(), 5)
+
+    result = asyncio.run(scenario())
+    print(result)
+    assert result["failure"] == "TimeoutError", result
+    assert result["after_s"] < 5.0, result  # 0.5 s, and the half-open channel's close (1 s at most)
+    assert result["connection_closed"] is False, result
+
+
 def test_a_round_waiting_for_room_in_the_write_queue_ends_with_its_connection(node: LocalBroker) -> None:
     """Reviewer's finding 3: a round of the publisher's slow path waiting in aiormq's full
     write queue when the connection dies was never woken (aiormq stops draining the queue and
@@ -407,8 +443,6 @@ def test_a_round_waiting_for_room_in_the_write_queue_ends_with_its_connection(no
     which kept the fast path off for the connection's life. The broker here is reached
     through a relay that stops reading (the socket, then the write queue fill) and then
     cuts the connection: every round must end, with a failure, and nothing stays counted."""
-    from aiormq import spec
-
     from engine.endpoints.amqp.transport import TRANSPORT
 
     tag = uuid.uuid4().hex[:8]

@@ -6,19 +6,15 @@ again on its port: the 2026-11-27 run, tests/test_outage.py)."""
 from __future__ import annotations
 
 import socket
+from pathlib import Path
 
 from engine.endpoints.amqp.broker import BrokerTls, LocalBroker
 from engine.endpoints.mqtt.broker import LocalMosquitto
-from engine.local_broker import EPHEMERAL_RANGE, PORT_FLOOR, listening_port
-
-
-def ephemeral_range() -> tuple[int, int]:
-    low, high = (int(part) for part in EPHEMERAL_RANGE.read_text().split())
-    return low, high
+from engine.local_broker import PORT_FLOOR, ephemeral_low, listening_port
 
 
 def test_listening_ports_are_free_below_the_ephemeral_range_and_spread() -> None:
-    low, _ = ephemeral_range()
+    low = ephemeral_low()
     assert low - PORT_FLOOR >= 1000, f"this machine's ephemeral range starts at {low}: nothing to draw from"
     ports = [listening_port() for _ in range(200)]
     assert all(PORT_FLOOR <= port < low for port in ports), sorted(ports)[:5] + sorted(ports)[-5:]
@@ -29,7 +25,7 @@ def test_listening_ports_are_free_below_the_ephemeral_range_and_spread() -> None
 
 
 def test_udp_ports_for_udpin_links_are_free_below_the_ephemeral_range() -> None:
-    low, _ = ephemeral_range()
+    low = ephemeral_low()
     ports = [listening_port(kind=socket.SOCK_DGRAM) for _ in range(50)]
     assert all(PORT_FLOOR <= port < low for port in ports), sorted(ports)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
@@ -37,16 +33,18 @@ def test_udp_ports_for_udpin_links_are_free_below_the_ephemeral_range() -> None:
         assert ports[0] not in {listening_port(kind=socket.SOCK_DGRAM) for _ in range(300)}
 
 
-def test_a_port_in_use_is_not_given() -> None:
+def test_a_port_in_use_or_excluded_is_not_given() -> None:
     taken = listening_port()
     with socket.socket() as holder:
         holder.bind(("127.0.0.1", taken))
         holder.listen()
         assert taken not in {listening_port() for _ in range(300)}
+    excluded = set(range(PORT_FLOOR, ephemeral_low() - 50))  # all but the range's last 50 ports
+    assert all(listening_port(exclude=excluded) >= ephemeral_low() - 50 for _ in range(20))
 
 
-def test_private_brokers_listen_below_the_ephemeral_range(tmp_path) -> None:
-    low, _ = ephemeral_range()
+def test_private_brokers_listen_below_the_ephemeral_range(tmp_path: Path) -> None:
+    low = ephemeral_low()
     node = LocalBroker(tls=BrokerTls(tmp_path / "ca", tmp_path / "cert", tmp_path / "key"))
     mosquitto = LocalMosquitto()
     try:

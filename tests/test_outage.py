@@ -20,7 +20,7 @@ import pytest
 from engine.endpoints.amqp.broker import LocalBroker
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
-from tests.outage_helpers import Collector, RosPeer, Tally, publish_reliably, robust, wait_for
+from tests.outage_helpers import Collector, RosPeer, Tally, declare_bound_queue, publish_reliably, robust, wait_for
 from tests.udp_vehicle import free_udp_port
 from tests.workers import ros_domain
 
@@ -239,7 +239,7 @@ async def _declare_collector_queue(broker: LocalBroker, names: dict[str, str]) -
     broker is back, it could come after the engine's first publishes, which the broker drops
     (no queue bound, and not mandatory): CI saw the 200 held messages "lost" that way."""
     connection = await robust(broker.url)
-    await Collector(Tally("unused")).bind(connection, f"collect-{names['tag']}", names["outbox"], "up.#")
+    await declare_bound_queue(await connection.channel(), f"collect-{names['tag']}", names["outbox"], "up.#")
     await connection.close()
 
 

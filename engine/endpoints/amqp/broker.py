@@ -126,9 +126,9 @@ class LocalBroker(ServerProcess):
     ) -> None:
         super().__init__(directory or Path(tempfile.mkdtemp(prefix="rabbitros-broker-")), keep_dir, lifetime)
         self.tls = tls
-        self.tls_port = listening_port() if tls is not None else None
         self.port = listening_port()
-        self.dist_port = listening_port()
+        self.dist_port = listening_port(exclude={self.port})
+        self.tls_port = listening_port(exclude={self.port, self.dist_port}) if tls is not None else None
         self.node = node or f"rabbitros-{uuid.uuid4().hex[:8]}@localhost"
         self.cookie = cookie
 

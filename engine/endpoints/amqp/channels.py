@@ -6,12 +6,12 @@ engine/endpoints/amqp/calls.py) and opens them again itself. aio-pika's
 ``Channel.initialize(timeout=...)`` ignores its timeout (aio-pika 10.2 calls ``_open()`` without
 it), so a broker that never answers Channel.Open (a connection blocked by a resource alarm)
 held the opener, and every route queued behind its lock, for ever; the bound is put around
-the whole open here instead."""
+the whole open here instead. (The channels aio-pika's robust connection opens and restores,
+the sources', dead letters' and topology's, still open without this bound: left alone.)"""
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 
 import aio_pika
 import aio_pika.abc
@@ -25,12 +25,12 @@ OPEN_TIMEOUT = 10.0
 async def open_plain_channel(connection: aio_pika.abc.AbstractConnection, *, publisher_confirms: bool,
                              timeout: float = OPEN_TIMEOUT) -> aio_pika.Channel:
     """An open channel of ``connection``; on any failure (``asyncio.TimeoutError`` after
-    ``timeout``) the half-open channel is closed and the failure raised."""
+    ``timeout``) the half-open channel is closed (bounded too) and the failure raised."""
     channel = aio_pika.Channel(connection, publisher_confirms=publisher_confirms)  # type: ignore[arg-type]
     try:
         await asyncio.wait_for(channel.initialize(), timeout)
     except BaseException:
-        with ignored(), contextlib.suppress(asyncio.TimeoutError):
+        with ignored():  # asyncio.TimeoutError is one of the library errors it ignores
             await asyncio.wait_for(channel.close(), 1.0)
         raise
     return channel

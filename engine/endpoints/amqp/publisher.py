@@ -127,10 +127,11 @@ class SharedPublisher:
         """The round written in this callback, without a task of its own, where nothing would
         make it wait: the confirm channel last seen is still open, no round of the other way
         is between taking its tags on that channel (under its lock) and queuing its frames, and the
-        connection's write queue has room. Nothing else publishes on this channel
-        (``AmqpConnection.exchange`` says so), so no one else holds its lock. The broker's confirms then answer the routes from
-        their futures' callbacks (:class:`_Confirming`). False (nothing done): the round
-        goes the way that can wait (:meth:`_round`).
+        connection's write queue has room. Nothing else uses this channel (exchanges are declared
+        on one of their own: ``AmqpConnection.declare_exchange``), so no one else holds its lock.
+        The broker's confirms then answer the routes from their futures' callbacks
+        (:class:`_Confirming`). False (nothing done): the round goes the way that can wait
+        (:meth:`_round`).
 
         Delivery tags stay in the order the broker numbers the frames: this connection's
         publisher is the only one that publishes on its channel, tags are allocated in the

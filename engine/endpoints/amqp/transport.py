@@ -240,8 +240,7 @@ class AmqpConnection(Connection):
         ``aio_pika.Channel`` (public API) rather than the robust connection's ``channel()``:
         no restore of aio-pika's own races the publisher (module docstring)."""
         assert self._connection is not None
-        channel = await open_plain_channel(self._connection, publisher_confirms=self.settings.publisher_confirms,
-                                           timeout=CONNECT_TIMEOUT)
+        channel = await open_plain_channel(self._connection, publisher_confirms=self.settings.publisher_confirms)
         channel.close_callbacks.add(self._on_publish_channel_close)
         if channel.is_closed:  # closed before its callback was there: nobody would reopen it
             raise aiormq.exceptions.ChannelInvalidStateError("the publish channel closed as it opened")
@@ -339,7 +338,7 @@ class AmqpConnection(Connection):
             raise EndpointError(f"amqp connection {self.name!r} is not open")
         return self._connection
 
-    async def exchange(self, name: str, kind: str = "topic", durable: bool = True) -> None:
+    async def declare_exchange(self, name: str, kind: str = "topic", durable: bool = True) -> None:
         """Declare the exchange the sinks publish to (durable topic unless told), once per
         publish channel: a reopened channel declares again what its sinks publish to, as at
         start, so an exchange deleted behind the engine's back is there again. It is declared
@@ -357,7 +356,7 @@ class AmqpConnection(Connection):
                 channel = self._declare_channel
                 if channel is None or channel.is_closed:
                     assert self._connection is not None
-                    channel = await open_plain_channel(self._connection, publisher_confirms=False, timeout=CONNECT_TIMEOUT)
+                    channel = await open_plain_channel(self._connection, publisher_confirms=False)
                     self._declare_channel = channel
                 await channel.declare_exchange(name, aio_pika.ExchangeType(kind), durable=durable, timeout=CONNECT_TIMEOUT)
             if publishing is self._publish_channel:  # not one that closed meanwhile
@@ -377,7 +376,7 @@ class AmqpConnection(Connection):
             error = EndpointError(f"amqp connection {self.name!r} is {self._state}: {self._last_error}")
             return [error] * len(messages)
         try:
-            await self.exchange(exchange_name, kind, durable)
+            await self.declare_exchange(exchange_name, kind, durable)
         except LIBRARY_ERRORS as exc:
             error = edge_error(exc, f"amqp publish to {exchange_name!r} on {self.name!r}")
             return [error] * len(messages)
@@ -391,7 +390,7 @@ class AmqpConnection(Connection):
             AmqpSourceOptions(queue_arguments={"x-max-length": max_length} if max_length else {}), self.queue_type
         )
         try:
-            await self.exchange(DEAD_LETTER_EXCHANGE)
+            await self.declare_exchange(DEAD_LETTER_EXCHANGE)
             channel = await self.channel_factory().channel()
             try:
                 try:
