@@ -47,7 +47,7 @@ KINDS = {
 
 
 def machine() -> dict[str, Any]:
-    from engine.loop import loop_name
+    from engine.running.loop import loop_name
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
     return {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
@@ -127,7 +127,7 @@ async def run(args: argparse.Namespace) -> Path:
 
 
 def main() -> None:
-    from engine.loop import run as run_loop
+    from engine.running.loop import run as run_loop
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rate", type=float, default=100.0, help="msg/s of the latency method (the paper: 1)")

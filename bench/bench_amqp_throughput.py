@@ -21,7 +21,7 @@ from pathlib import Path
 import aio_pika
 
 from engine.endpoints.amqp.broker import LocalBroker
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 
 REPO = Path(__file__).resolve().parent.parent
 ROUTE = """

@@ -15,10 +15,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Inbound, Outbound, Sink
-from engine.pipeline import Pipeline
-from engine.routes import RouteSpec, load_routes
-from engine.schemas import SchemaRegistry
+from engine.language.routes import RouteSpec, load_routes
+from engine.running.pipeline import Pipeline
 
 REPO = Path(__file__).resolve().parent.parent
 

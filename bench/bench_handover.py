@@ -24,7 +24,7 @@ from pathlib import Path
 import aio_pika
 
 from engine.endpoints.amqp.broker import LocalBroker
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector
 from tests.udp_vehicle import Vehicle, free_udp_port, telemetry_routes
 

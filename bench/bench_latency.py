@@ -27,9 +27,9 @@ from typing import Any
 import aio_pika
 
 from bench.roundtrip_ros2 import make_message
-from engine.endpoints.base import Inbound, Outbound
 from engine.endpoints.amqp.broker import LocalBroker
-from engine.runtime import Engine
+from engine.endpoints.base import Inbound, Outbound
+from engine.running.runtime import Engine
 
 REPO = Path(__file__).resolve().parent.parent
 PAPER = {"CT-L1": {50: 0.112, 150: 0.111, 250: 0.113}, "CT-L2": {50: 0.832, 150: 0.838, 250: 0.831}}

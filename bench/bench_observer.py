@@ -13,12 +13,12 @@ import asyncio
 import json
 import time
 
+from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Inbound
-from engine.observe import DELIVERED, RouteObserver, Tap
-from engine.pipeline import Pipeline
-from engine.routes import EndpointSpec, RouteSpec
-from engine.route_tests import DrySink
-from engine.schemas import SchemaRegistry
+from engine.language.routes import EndpointSpec, RouteSpec
+from engine.ops.route_tests import DrySink
+from engine.running.observe import DELIVERED, RouteObserver, Tap
+from engine.running.pipeline import Pipeline
 
 N = 20_000
 

@@ -76,7 +76,7 @@ def percentiles(samples: list[float]) -> dict[str, float]:
 
 
 async def through_engine(url: str, domain_id: int, calls: int) -> list[float]:
-    from engine.runtime import Engine
+    from engine.running.runtime import Engine
 
     with tempfile.TemporaryDirectory() as directory:
         (Path(directory) / "calls.yaml").write_text(f"""\

@@ -174,7 +174,7 @@ def report(result: dict[str, Any]) -> list[str]:
 
 def main() -> None:
     from engine.endpoints.amqp.broker import LocalBroker
-    from engine.loop import run
+    from engine.running.loop import run
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rates", type=lambda s: [float(x) for x in s.split(",")], default=[100.0, 200.0])

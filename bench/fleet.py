@@ -528,8 +528,8 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
     run at this nice value (see :data:`AGENTS_NICE`)."""
     import aiormq
 
-    from engine.routes import load_routes
-    from engine.schemas import SchemaRegistry
+    from engine.common.schemas import SchemaRegistry
+    from engine.language.routes import load_routes
 
     tag = uuid.uuid4().hex[:6]
     names = {"out": f"fleet-out-{tag}", "cmd": f"fleet-cmd-{tag}"}
@@ -812,7 +812,7 @@ def _ratio(value: dict[str, Any], reference: dict[str, Any], key: str) -> str:
 
 
 def main() -> None:
-    from engine.loop import run as run_loop
+    from engine.running.loop import run as run_loop
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of load per mode")

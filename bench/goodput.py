@@ -192,7 +192,7 @@ async def main_async(args: argparse.Namespace) -> Path:
 
 
 def main() -> None:
-    from engine.loop import run
+    from engine.running.loop import run
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--reps", type=int, default=3)

@@ -188,7 +188,7 @@ async def engine_gcs(url: str, pair: Any, vehicle: Vehicle, signed: bool, load: 
     """The engine on radio A with AMQP on the other side; returns the engine's own counters."""
     import aio_pika
 
-    from engine.runtime import Engine
+    from engine.running.runtime import Engine
 
     exchange = f"lat-{uuid.uuid4().hex[:6]}"
     async with contextlib.AsyncExitStack() as rig:

@@ -208,7 +208,7 @@ async def run_experiment(settings: Settings, amqp_url: str | None = None) -> dic
 async def _with_broker(settings: Settings, amqp_url: str) -> dict[str, Any]:
     import aio_pika
 
-    from engine.runtime import Engine
+    from engine.running.runtime import Engine
     from rabbitros_sim.sik_radio import SikRadioPair
 
     out = settings.out

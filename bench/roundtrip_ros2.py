@@ -60,7 +60,7 @@ async def gcs_side(args: argparse.Namespace) -> dict[str, Any]:
     import aio_pika
 
     from engine.endpoints.amqp.broker import LocalBroker
-    from engine.runtime import Engine
+    from engine.running.runtime import Engine
 
     out = Path(args.out)
     robot_store = Path(args.robot_store)

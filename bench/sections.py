@@ -78,8 +78,8 @@ async def many_routes(broker: tp.Broker, counts: list[int], messages: int) -> li
     load (engine start: connections, queues, consumers), the same load again once the queues
     exist (a restart), RSS after load, and the per-message cost of draining ``messages``
     through one route while all are loaded."""
-    from engine.routes import load_routes
-    from engine.schemas import SchemaRegistry
+    from engine.common.schemas import SchemaRegistry
+    from engine.language.routes import load_routes
 
     rows = []
     for routes in [1, *counts]:  # the first, not reported, warms the broker up

@@ -45,7 +45,7 @@ from typing import Any
 
 from pamqp.commands import Basic
 
-from engine.stamps import from_ns, to_stamp
+from engine.common.stamps import from_ns, to_stamp
 
 Properties = Basic.Properties
 
@@ -146,7 +146,7 @@ def _rss_kib() -> int:
 # ---------------------------------------------------------------- the engine
 
 async def engine(args: dict[str, Any]) -> None:
-    from engine.runtime import Engine
+    from engine.running.runtime import Engine
 
     bridge = Engine(Path(args["routes"]), REPO / "schemas")
     began = time.perf_counter()
@@ -829,7 +829,7 @@ SYSTEMS = {
 
 
 def main() -> None:
-    from engine.loop import run
+    from engine.running.loop import run
 
     system, args = sys.argv[1], json.loads(sys.argv[2])
     if system.startswith("fleet-"):  # bench/fleet.py's load generators: plain threads, no loop

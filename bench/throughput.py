@@ -317,7 +317,7 @@ def free_udp_port() -> int:
     """A port for the engine's (or the reference's) ``udpin`` link, below the ephemeral range."""
     import socket
 
-    from engine.local_broker import listening_port
+    from engine.common.processes import listening_port
 
     return listening_port(kind=socket.SOCK_DGRAM)
 

@@ -39,7 +39,7 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from engine.local_broker import listening_port  # noqa: E402
+from engine.common.processes import listening_port  # noqa: E402
 from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 
 PYTHON = sys.executable
@@ -90,7 +90,7 @@ def live_view(admin: tuple[str, int], supervisor: subprocess.Popen[bytes], lines
     from rich.live import Live
     from rich.panel import Panel
 
-    from engine.opsview import fetch_status, status_table
+    from engine.ops.opsview import fetch_status, status_table
 
     def render() -> Group:
         try:

@@ -80,7 +80,7 @@ routes:
 
 @contextlib.asynccontextmanager
 async def started_with_client(engine: Any, amqp_url: str) -> AsyncIterator[aio_pika.abc.AbstractConnection]:
-    """Start ``engine`` (an engine.runtime.Engine) and open a plain aio-pika connection beside
+    """Start ``engine`` (an engine.running.runtime.Engine) and open a plain aio-pika connection beside
     it; on the way out close the connection, then stop the engine."""
     await engine.start()
     try:

@@ -10,15 +10,15 @@ from typing import Iterator
 
 import pytest
 
-from engine.endpoints.mqtt.broker import LocalMosquitto
+from engine.common.processes import LIFETIME_ENV
 from engine.endpoints.amqp.broker import LocalBroker, LocalCluster
-from engine.local_broker import LIFETIME_ENV
+from engine.endpoints.mqtt.broker import LocalMosquitto
 
 REPO = Path(__file__).resolve().parent.parent
 
 BROKER_LIFETIME_S = 900
 """Every private broker a test starts, itself or through an engine (``--local-broker``), is
-killed from outside after this long (engine/local_broker.py LIFETIME_ENV): a killed run leaves
+killed from outside after this long (engine/common/processes.py LIFETIME_ENV): a killed run leaves
 none behind for longer. Per test; an engine the tests run lives at most 600 s."""
 SESSION_BROKER_LIFETIME_S = 3600
 """The session's nodes (``amqp_url``, ``amqp_cluster``) live as long as the worker's session,

@@ -13,7 +13,7 @@ from typing import Any, Callable, Coroutine
 
 import aio_pika
 
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from tests import workers
 
 

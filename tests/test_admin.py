@@ -21,8 +21,8 @@ from typing import Any, Callable, Iterator
 import aio_pika
 import pytest
 
+from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import LocalBroker
-from engine.local_broker import listening_port
 from tests.amqp_helpers import Collector, publish
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess

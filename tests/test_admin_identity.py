@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from engine.local_broker import listening_port
+from engine.common.processes import listening_port
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
 from tests.tls_helpers import make_pki

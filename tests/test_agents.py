@@ -18,9 +18,9 @@ from pathlib import Path
 import aio_pika
 import pytest
 
-from engine.routes import RoutesInvalid, load_routes
-from engine.runtime import Engine
-from engine.schemas import SchemaRegistry
+from engine.common.schemas import SchemaRegistry
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector, started_with_client
 from tests.udp_vehicle import FleetVehicle, free_udp_port
 
@@ -179,7 +179,7 @@ tests:
     expect: {vehicle: uav3, system: 3, lat: 1}
     expect_routing_key: fleet.uav3
 """)
-    from engine.route_tests import load_checked, run_tests
+    from engine.ops.route_tests import load_checked, run_tests
 
     schemas = SchemaRegistry(schemas_dir)
     config, cases, problems, _ = load_checked(directory, schemas)
@@ -188,7 +188,7 @@ tests:
 
 
 def test_a_new_agent_adds_its_routes_and_leaves_the_others_running(tmp_path: Path, schemas_dir: Path) -> None:
-    from engine.plan import plan_reload
+    from engine.running.plan import plan_reload
 
     directory = _directory(tmp_path, url="amqp://localhost:1/", port=14992, outbox="o", commands="c", queue="q")
     schemas = SchemaRegistry(schemas_dir)

@@ -20,9 +20,9 @@ import pytest
 
 import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 
-import engine.endpoints.amqp.transport as amqp_transport
 from engine.endpoints.amqp.transport import AmqpSource
-from engine.runtime import Engine
+import engine.endpoints.amqp.transport as amqp_transport
+from engine.running.runtime import Engine
 from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.conftest import REPO
 

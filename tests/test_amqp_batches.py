@@ -16,7 +16,7 @@ import pytest
 import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 
 from engine.endpoints.amqp.transport import FRAME_BUFFER, AmqpSource
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.conftest import REPO
 

@@ -26,7 +26,7 @@ import pytest
 from aiormq import spec
 
 from engine.endpoints.amqp.broker import LocalBroker
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 
 AFTER = 100
 """Messages fed to each route once route a's queue is bound to its exchange again."""

@@ -10,8 +10,8 @@ from pathlib import Path
 import aio_pika
 import pytest
 
-from engine.runtime import Engine
-from engine.schemas import canonical_bytes
+from engine.common.schemas import canonical_bytes
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector, publish
 
 ROUTES = """

@@ -16,8 +16,8 @@ import aio_pika
 import aio_pika.abc
 import pytest
 
+from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import BrokerTls, LocalBroker
-from engine.local_broker import listening_port
 from tests.engine_process import EngineProcess
 from tests.tls_helpers import Pki, make_pki, renew_client
 

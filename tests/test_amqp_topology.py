@@ -12,7 +12,7 @@ import aio_pika
 import aiormq.exceptions
 import pytest
 
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector, publish, started_with_client
 
 ROUTES = """

@@ -205,7 +205,7 @@ def json_cases(draw: Any) -> tuple[str, Any]:
 def _nested_stage(body: bytes) -> str:
     """Whether the engine's parser gives up (decode) or returns a value that has no fields
     for the mapping (mapping) depends on its depth limit (stdlib json, orjson's 1024), so ask it."""
-    from engine.schemas import parse_json
+    from engine.common.schemas import parse_json
 
     try:
         parse_json(body)

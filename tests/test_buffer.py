@@ -1,4 +1,4 @@
-"""engine/buffer.py on its own: order, bounds, retries, spill files that survive a restart,
+"""engine/running/buffer.py on its own: order, bounds, retries, spill files that survive a restart,
 torn lines, and rejections that are dead-lettered instead of retried."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from engine.buffer import SEGMENT_MESSAGES, HoldingBuffer, decode, encode
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound
+from engine.running.buffer import SEGMENT_MESSAGES, HoldingBuffer, decode, encode
 
 
 def message(index: int) -> Outbound:
@@ -229,9 +229,9 @@ def test_a_message_the_healthy_sink_keeps_failing_is_given_up_after_max_attempts
 
 
 def test_route_files_parse_buffer_options_and_check_the_spill_dir(tmp_path: Path) -> None:
-    from engine.buffer import BufferSpec
-    from engine.routes import RoutesInvalid, load_routes
-    from engine.schemas import SchemaRegistry
+    from engine.common.schemas import SchemaRegistry
+    from engine.language.routes import RoutesInvalid, load_routes
+    from engine.language.stage_options import BufferSpec
     from tests.conftest import REPO
 
     (tmp_path / "not-a-dir").write_text("")

@@ -17,7 +17,7 @@ from typing import Any
 
 import aio_pika
 
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from rabbitros_sim.sik_radio import SikRadioPair
 from rabbitros_sim.vehicle import SimVehicle
 from tests.amqp_helpers import Caller
@@ -201,8 +201,8 @@ def test_arm_and_mission_calls_through_the_emulated_radio_are_answered_by_mavsdk
 
 def test_reply_is_checked_at_load(tmp_path: Path, schemas_dir: Path) -> None:
     """``reply:`` needs a source that can answer; its mapping compiles and its schema exists."""
-    from engine.routes import RoutesInvalid, load_routes
-    from engine.schemas import SchemaRegistry
+    from engine.common.schemas import SchemaRegistry
+    from engine.language.routes import RoutesInvalid, load_routes
     import pytest
 
     (tmp_path / "a.yaml").write_text("""\
@@ -232,8 +232,8 @@ def test_route_test_cases_give_a_response_and_expect_the_reply(tmp_path: Path, s
     route's ``reply:`` and is compared with ``expect_reply``; a reply the mapping refuses is an
     ``expect_error: reply mapping``; the request is built as the service's Request (a key the
     type lacks is a ``sink`` error)."""
-    from engine.route_tests import format_result, load_checked, run_tests
-    from engine.schemas import SchemaRegistry
+    from engine.common.schemas import SchemaRegistry
+    from engine.ops.route_tests import format_result, load_checked, run_tests
 
     (tmp_path / "calls.yaml").write_text("""\
 routes:

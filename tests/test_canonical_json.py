@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from engine.schemas import SchemaError, SchemaRegistry, canonical_bytes, parse_json
+from engine.common.schemas import SchemaError, SchemaRegistry, canonical_bytes, parse_json
 
 SCHEMAS = Path(__file__).resolve().parent.parent / "schemas"
 HEADER = {"id": "0f4c2a", "type": "x", "stamp": {"sec": 1732320000, "nanosec": 123456789}}
@@ -176,8 +176,8 @@ def test_generated_values_serialise_and_parse_like_the_standard_library(value: A
                                   st.binary(max_size=8)))
 def test_the_long_number_check_answers_what_its_expression_does(body: bytes) -> None:
     """``_may_hold_long_number`` searches the digits-as-zeros body instead of running
-    ``_LONG_NUMBER`` (engine/schemas.py): the same answer for every body, bytes or bytearray."""
-    from engine.schemas import _LONG_NUMBER, _may_hold_long_number
+    ``_LONG_NUMBER`` (engine/common/schemas.py): the same answer for every body, bytes or bytearray."""
+    from engine.common.schemas import _LONG_NUMBER, _may_hold_long_number
 
     assert _may_hold_long_number(body) == (_LONG_NUMBER.search(body) is not None)
     assert _may_hold_long_number(bytearray(body)) == (_LONG_NUMBER.search(body) is not None)

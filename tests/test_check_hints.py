@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from engine.fieldcheck import mapping_reads
-from engine.routes import RoutesInvalid, load_routes
-from engine.schemas import SchemaRegistry
+from engine.common.schemas import SchemaRegistry
+from engine.language.fieldcheck import mapping_reads
+from engine.language.routes import RoutesInvalid, load_routes
 from tests.conftest import REPO
 
 ROUTES = """connections:

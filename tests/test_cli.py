@@ -18,8 +18,8 @@ from pathlib import Path
 import aio_pika
 
 from engine import __version__
-from engine.cli import COMMANDS, build_parser
-from engine.local_broker import listening_port
+from engine.common.processes import listening_port
+from engine.ops.cli import COMMANDS, build_parser
 from tests.amqp_helpers import Collector, publish
 from tests.conftest import REPO
 
@@ -70,7 +70,7 @@ def test_top_level_help_shows_how_to_run():
 
 
 def test_operations_documents_every_option_of_every_command():
-    """docs/operations.md names every option engine/cli.py accepts: the run options in its
+    """docs/operations.md names every option engine/ops/cli.py accepts: the run options in its
     Running table, the other commands' in its Commands block."""
     text = (REPO / "docs" / "operations.md").read_text()
     running = text.split("## Running", 1)[1].split("\n## ", 1)[0]

@@ -422,7 +422,7 @@ PINNED_ROUTES = """routes:
 
 
 def test_routes_pinned_to_an_instance_run_only_there(amqp_cluster, tmp_path, schemas_dir):
-    from engine.runtime import Engine
+    from engine.running.runtime import Engine
 
     tag = uuid.uuid4().hex[:8]
     directory = routes_file(tmp_path / "routes", amqp_cluster, PINNED_ROUTES, tag=tag)

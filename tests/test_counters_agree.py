@@ -30,8 +30,8 @@ from typing import Any, Callable
 import aio_pika
 import pytest
 
+from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import LocalBroker
-from engine.local_broker import listening_port
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, Tally, robust, wait_for
 from tests.workers import ros_domain

@@ -19,10 +19,10 @@ import rclpy.executors
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 
-from engine.dead_letters import DeadLetterSpool
-from engine.delivery import BACKOFF_FIRST
 from engine.endpoints.ros2.rosmsg import resolve_type
-from engine.runtime import Engine
+from engine.running.dead_letters import DeadLetterSpool
+from engine.running.delivery import BACKOFF_FIRST
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector
 from tests.faults_harness import wait_for
 from tests.workers import ros_domain

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from engine.local_broker import listening_port
-from engine.mapping import compile_mapping, known_functions
-from engine.schemas import SchemaError, SchemaRegistry
+from engine.common.processes import listening_port
+from engine.common.schemas import SchemaError, SchemaRegistry
+from engine.language.mapping import compile_mapping, known_functions
 from tests.conftest import REPO
 
 DOCS = REPO / "docs"

@@ -8,9 +8,9 @@ import pytest
 
 from pathlib import Path
 
-from engine.buffer import BufferSpec
-from engine.routes import load_routes
-from engine.schemas import SchemaRegistry
+from engine.common.schemas import SchemaRegistry
+from engine.language.routes import load_routes
+from engine.language.stage_options import BufferSpec
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -43,7 +43,7 @@ def test_each_protocols_mapping_functions_are_the_ones_it_declares():
     import importlib
 
     from engine import endpoints
-    from engine.mapping import compile_mapping
+    from engine.language.mapping import compile_mapping
 
     from jmespath import functions
 
@@ -56,7 +56,7 @@ def test_each_protocols_mapping_functions_are_the_ones_it_declares():
 def test_local_broker_warns_about_an_mqtt_connection_naming_its_own_broker(tmp_path: Path):
     """Under --local-broker a connection without a url uses the private mosquitto; one with a url
     keeps its broker, and the loader says so (the MQTT transport's private_broker_warning)."""
-    from engine.local_broker import LOCAL_BROKER_ENV
+    from engine.common.processes import LOCAL_BROKER_ENV
 
     (tmp_path / "r.yaml").write_text(
         "connections:\n  own: {mqtt: \"mqtt://10.0.0.5:1883\"}\n  private: {mqtt: {client_id: engine-1}}\n"

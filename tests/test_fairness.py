@@ -10,10 +10,11 @@ from pathlib import Path
 
 import pytest
 
+from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Inbound
-from engine.fairness import FairInbox, FairOptions
-from engine.routes import RoutesInvalid, load_routes
-from engine.schemas import SchemaRegistry
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.language.stage_options import FairOptions
+from engine.running.fairness import FairInbox
 from tests.fairness_load import FLOODER, flood
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import aio_pika
 import pytest
 
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector, publish
 from tests.workers import ros_domain
 

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from engine.common.schemas import SchemaRegistry
 from engine.endpoints.mavlink.dialect import mavlink2
-from engine.schemas import SchemaRegistry
 from tests.conftest import REPO
 from tests.workers import ros_domain
 

@@ -15,9 +15,9 @@ from pathlib import Path
 import aio_pika
 import pytest
 
-from engine.routes import RoutesInvalid, load_routes
-from engine.runtime import Engine
-from engine.schemas import SchemaRegistry
+from engine.common.schemas import SchemaRegistry
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector, started_with_client
 from tests.udp_vehicle import FleetVehicle, free_udp_port
 
@@ -137,7 +137,7 @@ tests:
     expect: {vehicle: 3, link: null, seq: 7, lat: 1}
     expect_routing_key: uav.3.position
 """)
-    from engine.route_tests import load_checked, run_tests
+    from engine.ops.route_tests import load_checked, run_tests
 
     schemas = SchemaRegistry(schemas_dir)
     config, cases, problems, _ = load_checked(directory, schemas)

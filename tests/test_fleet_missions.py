@@ -20,7 +20,7 @@ import aio_pika
 from engine.endpoints import mavlink
 from engine.endpoints.base import EndpointError, Outbound
 from engine.endpoints.mavlink.connection import MavlinkConnection
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from rabbitros_sim.vehicle import SimVehicle
 from tests.amqp_helpers import Caller
 from tests.test_mavlink_transactions import canonical_mission, free_udp_port, run, until

@@ -1,4 +1,4 @@
-"""engine.frames against values computed independently (rotation matrices, MAVROS rules)."""
+"""engine.common.frames against values computed independently (rotation matrices, MAVROS rules)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import random
 import numpy as np
 import pytest
 
-from engine import frames
+from engine.common import frames
 
 ANGLES = [
     (0.0, 0.0, 0.0),

@@ -26,8 +26,8 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import LocalBroker
-from engine.local_broker import listening_port
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, Tally, robust, wait_for
 from tests.test_counters_agree import TapReader
@@ -178,8 +178,8 @@ def wait_for_sync(read: Any, want: int, what: str, timeout: float = 15.0) -> Non
 
 
 def test_check_warns_when_latest_only_reads_a_field_the_schema_lacks(tmp_path: Path) -> None:
-    from engine.routes import load_routes
-    from engine.schemas import SchemaRegistry
+    from engine.common.schemas import SchemaRegistry
+    from engine.language.routes import load_routes
     from tests.conftest import REPO
 
     (tmp_path / "r.yaml").write_text("""
@@ -227,7 +227,7 @@ def test_max_age_expires_what_waited_in_a_throttle_slot_or_for_a_retry(tmp_path:
     older than 0.4 s: expired, neither dead-lettered nor tried 50 times."""
     import aio_pika
 
-    from engine.runtime import Engine
+    from engine.running.runtime import Engine
     from tests.amqp_helpers import Collector as AmqpCollector
 
     tag = "ft" + uuid.uuid4().hex[:8]

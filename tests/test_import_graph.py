@@ -1,4 +1,4 @@
-"""The engine's modules import one another without a cycle.
+"""The engine's modules import one another without a cycle, and its groups one way.
 
 Every module under engine/ is parsed with ``ast`` (nothing is imported) and every import is
 an edge: at module level, under ``if TYPE_CHECKING:``, and inside functions. A cycle means
@@ -7,6 +7,13 @@ happens to tolerate it at import time or not; specs and option values belong bel
 behaviour that uses them. ``from a.b import c`` is an edge to ``a.b.c`` when that is a module
 of the package, else to ``a.b``; a parent package's ``__init__`` is not counted as imported
 (it is, by Python, but it declares nothing the child uses).
+
+The groups of engine/, bottom to top (:data:`GROUPS`): the foundation (engine/common/), the
+protocol packages (engine/endpoints/), the route language (engine/language/), the running
+engine (engine/running/) and the operator's surface (engine/ops/). A module imports its own
+group and the groups below it, never one above: the language is checked without starting
+anything, the running engine runs what the language compiled, and nothing depends on the
+command line. Every module belongs to a group: a new flat module in engine/ fails here.
 """
 
 from __future__ import annotations
@@ -124,25 +131,25 @@ def describe(edges: dict[str, set[str]]) -> list[str]:
 
 def test_the_graph_sees_every_kind_of_import():
     edges = graph()
-    assert "engine.runtime" in edges and "engine.endpoints.mavlink.connection" in edges
-    assert "engine.endpoints.base" in edges["engine.runtime"] or any(
-        "engine.endpoints" in target for target in edges["engine.runtime"])
+    assert "engine.running.runtime" in edges and "engine.endpoints.mavlink.connection" in edges
+    assert "engine.endpoints.base" in edges["engine.running.runtime"] or any(
+        "engine.endpoints" in target for target in edges["engine.running.runtime"])
     found = cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}})
     assert found == [["a", "b", "c"]]
     assert a_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}, ["a", "b", "c"]) == ["a", "b", "c", "a"]
 
 
 def test_function_level_and_type_checking_imports_are_edges(tmp_path: Path):
-    source = (
+    source = (  # a made-up package "pkg", so no rename of the engine's modules touches it
         "from typing import TYPE_CHECKING\n"
-        "if TYPE_CHECKING:\n    from engine.runtime import Engine\n"
-        "def f():\n    from engine import plan\n    import engine.routes\n"
+        "if TYPE_CHECKING:\n    from pkg.runtime import Engine\n"
+        "def f():\n    from pkg import plan\n    import pkg.routes\n"
         "from . import pipeline\n"
     )
     path = tmp_path / "x.py"
     path.write_text(source)
-    known = {"engine.runtime", "engine.plan", "engine.routes", "engine.pipeline", "engine.x"}
-    assert imports("engine.x", path, known) == {"engine.runtime", "engine.plan", "engine.routes", "engine.pipeline"}
+    known = {"pkg.runtime", "pkg.plan", "pkg.routes", "pkg.pipeline", "pkg.x"}
+    assert imports("pkg.x", path, known) == {"pkg.runtime", "pkg.plan", "pkg.routes", "pkg.pipeline"}
 
 
 def test_engine_modules_import_without_a_cycle():
@@ -150,5 +157,67 @@ def test_engine_modules_import_without_a_cycle():
     assert not problems, "import cycles among engine/ modules:\n" + "\n".join(problems)
 
 
+GROUPS = ("engine.common", "engine.endpoints", "engine.language", "engine.running", "engine.ops")
+"""The groups of engine/, bottom to top (see the module docstring)."""
+TOP_LEVEL = {"engine": "engine.common", "engine.__main__": "engine.ops"}
+"""The package itself (its version) sits with the foundation; ``python -m engine`` with the CLI."""
+UPWARD_ALLOWED = {
+    ("engine.endpoints.mavlink.messages", "engine.running.fairness"),
+    ("engine.endpoints.ros2.transport", "engine.running.fairness"),
+}
+"""Known imports against the direction, each to go: two sources build their fair inbox with
+``fairness.route_inbox`` because each source still runs its own read loop; issue 30's "the
+engine owns the read loop" removes them. Nothing may be added; a stale entry fails."""
+
+
+def group_of(module: str) -> str | None:
+    if module in TOP_LEVEL:
+        return TOP_LEVEL[module]
+    return next((group for group in GROUPS if module == group or module.startswith(group + ".")), None)
+
+
+def upward(edges: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """Imports from a lower group into a higher one, ``(importer, imported)``."""
+    rank = {group: index for index, group in enumerate(GROUPS)}
+    found = []
+    for importer, targets in edges.items():
+        for target in targets:
+            low, high = group_of(importer), group_of(target)
+            if low is not None and high is not None and rank[low] < rank[high]:
+                found.append((importer, target))
+    return sorted(found)
+
+
+def test_every_module_belongs_to_a_group():
+    loose = sorted(name for name in modules() if group_of(name) is None)
+    assert not loose, f"modules outside the groups {GROUPS} (move each into the group it belongs to): {loose}"
+
+
+def test_the_groups_import_one_way():
+    found = set(upward(graph()))
+    against = sorted(found - UPWARD_ALLOWED)
+    assert not against, ("imports from a lower group into a higher one (bottom to top: " + ", ".join(GROUPS) + "); move "
+                         "the declaration the lower module needs down instead:\n"
+                         + "\n".join(f"  {importer} -> {target}" for importer, target in against))
+    stale = sorted(UPWARD_ALLOWED - found)
+    assert not stale, f"UPWARD_ALLOWED lists imports that are gone; remove them: {stale}"
+
+
+def test_the_direction_check_finds_an_upward_import():
+    edges = {"engine.common.options": {"engine.language.routes"}, "engine.ops.cli": {"engine.running.runtime"},
+             "engine.language.routes": {"engine.endpoints.base", "engine.common.options"}, "engine.__main__": {"engine.ops.cli"}}
+    assert upward(edges) == [("engine.common.options", "engine.language.routes")]
+
+
+def test_the_core_reaches_a_protocol_only_through_the_registry():
+    """Outside engine/endpoints/ a protocol package is never imported: only the registry
+    (engine/endpoints/__init__.py) and the contract (engine/endpoints/base.py)."""
+    contract = {"engine.endpoints", "engine.endpoints.base"}
+    found = sorted((importer, target) for importer, targets in graph().items() if group_of(importer) != "engine.endpoints"
+                   for target in targets if group_of(target) == "engine.endpoints" and target not in contract)
+    assert not found, f"the core imports a protocol package: {found}"
+
+
 if __name__ == "__main__":  # python -m tests.test_import_graph: print the cycles
     print("\n".join(describe(graph())) or "no cycle")
+    print("\n".join(f"{importer} -> {target}" for importer, target in upward(graph())) or "no upward import")

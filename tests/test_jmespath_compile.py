@@ -1,4 +1,4 @@
-"""Compiled JMESPath (engine.jmespath_compile) gives exactly jmespath's results.
+"""Compiled JMESPath (engine.language.jmespath_compile) gives exactly jmespath's results.
 
 Hypothesis generates expressions of every form the compiler handles (field paths,
 subexpressions, index/slice, projections, flatten, filters, multiselect hashes and lists,
@@ -21,8 +21,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from jmespath import functions
 
-from engine.jmespath_compile import compile_parsed, is_compiled
-from engine.mapping import FieldFunctions, compile_mapping
+from engine.language.jmespath_compile import compile_parsed, is_compiled
+from engine.language.mapping import FieldFunctions, compile_mapping
 
 REPO = Path(__file__).resolve().parent.parent
 NAMES = ["a", "b", "c", "n", "s"]

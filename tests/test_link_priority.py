@@ -121,9 +121,9 @@ def high_waits(priority: str) -> tuple[list[float], int]:
 
 def sink_options(target: dict[str, Any], payload_type: int, priority: str) -> Any:
     """The typed sink options as the route loader hands them over: with the route's priority."""
+    from engine.common.options import evolve
     from engine.endpoints.base import typed
     from engine.endpoints.mavlink.options import MavlinkSinkOptions
-    from engine.options import evolve
 
     return evolve(typed(MavlinkSinkOptions, {**target, "payload_type": payload_type}, "sink"), priority=priority)
 
@@ -140,8 +140,8 @@ def test_the_route_priority_reaches_the_sink_options_and_is_checked(tmp_path: An
     options' ``priority``; a value that is not one of the three is refused naming the key."""
     import pytest
 
-    from engine.routes import RoutesInvalid, load_routes
-    from engine.schemas import SchemaRegistry
+    from engine.common.schemas import SchemaRegistry
+    from engine.language.routes import RoutesInvalid, load_routes
     from tests.conftest import REPO
 
     route = """

@@ -8,9 +8,9 @@ from __future__ import annotations
 import socket
 from pathlib import Path
 
+from engine.common.processes import PORT_FLOOR, ephemeral_low, listening_port
 from engine.endpoints.amqp.broker import BrokerTls, LocalBroker
 from engine.endpoints.mqtt.broker import LocalMosquitto
-from engine.local_broker import PORT_FLOOR, ephemeral_low, listening_port
 
 
 def test_listening_ports_are_free_below_the_ephemeral_range_and_spread() -> None:

@@ -6,7 +6,7 @@ import asyncio
 
 import pytest
 
-from engine import loop
+from engine.running import loop
 
 
 def running_loop_module() -> str:

@@ -216,9 +216,9 @@ routes:
 def test_engine_status_shows_link_rejections_and_source_counters(tmp_path: Path, schemas_dir: Path) -> None:
     from rich.console import Console
 
-    from engine.admin import status_document
-    from engine.opsview import status_table
-    from engine.runtime import Engine
+    from engine.ops.admin import status_document
+    from engine.ops.opsview import status_table
+    from engine.running.runtime import Engine
     from tests.udp_vehicle import free_udp_port
 
     async def scenario() -> dict[str, Any]:
@@ -258,7 +258,7 @@ def test_engine_status_shows_link_rejections_and_source_counters(tmp_path: Path,
 
 
 def test_exclusive_resource_and_key_files_come_from_the_mavlink_transport(tmp_path: Path) -> None:
-    from engine import identity
+    from engine.language import identity
 
     assert not hasattr(identity, "mavlink_exclusive_resource") and not hasattr(identity, "mavlink_key_files")
     transport = mavlink.TRANSPORT
@@ -316,7 +316,7 @@ routes:
 
 def test_check_reports_mavlink_options_the_endpoint_does_not_use(
         tmp_path: Path, schemas_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from engine.cli import check
+    from engine.ops.cli import check
 
     routes = tmp_path / "routes"
     routes.mkdir()

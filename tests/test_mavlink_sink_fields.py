@@ -23,7 +23,7 @@ from typing import Any
 
 import aio_pika
 
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector
 from tests.conftest import REPO
 from tests.udp_vehicle import CommandVehicle

@@ -3,7 +3,7 @@
 
 Every canonical value is checked against values computed here from ``expected_state(t)``, with
 ``t`` from the message's ``time_boot_ms``, by math written in this file (numpy rotation matrices),
-not by ``engine.frames``. The example's JSON tunnel routes are checked with one command that the
+not by ``engine.common.frames``. The example's JSON tunnel routes are checked with one command that the
 vehicle stores and sends back.
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from bench.roundtrip_mavlink import vehicle_process
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from rabbitros_sim.sik_radio import SikRadioPair
 from rabbitros_sim.vehicle import expected_state
 from tests.amqp_helpers import Collector

@@ -30,8 +30,8 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound  # noqa: E402
 from engine.endpoints.mavlink.connection import MavlinkConnection  # noqa: E402
-from engine.mapping import compile_mapping  # noqa: E402
-from engine.runtime import Engine  # noqa: E402
+from engine.language.mapping import compile_mapping  # noqa: E402
+from engine.running.runtime import Engine  # noqa: E402
 from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 from rabbitros_sim.vehicle import SimVehicle  # noqa: E402
 from tests.amqp_helpers import Collector  # noqa: E402

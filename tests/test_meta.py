@@ -15,11 +15,12 @@ from pathlib import Path
 import aio_pika
 import pytest
 
-from engine.mapping import MappingError, compile_mapping, meta_names
-from engine.route_tests import load_checked, run_tests
-from engine.routes import RoutesInvalid, load_routes
-from engine.runtime import Engine
-from engine.schemas import SchemaRegistry
+from engine.common.placeholders import MappingError
+from engine.common.schemas import SchemaRegistry
+from engine.language.mapping import compile_mapping, meta_names
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.ops.route_tests import load_checked, run_tests
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector
 
 

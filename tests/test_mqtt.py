@@ -21,9 +21,9 @@ import aio_pika
 import aiomqtt
 import pytest
 
+from engine.common.processes import listening_port
 from engine.endpoints.mqtt.broker import LocalMosquitto
-from engine.local_broker import listening_port
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
@@ -678,7 +678,7 @@ def test_connection_topic_is_online_then_connectionbroken_or_offline(tmp_path: P
     the engine runs; CONNECTIONBROKEN (the will, published by the broker) once the engine is
     killed -9; OFFLINE (on_stop, before the clean disconnection that drops the will) once it
     is stopped. Each is a valid VDA 5050 2.0 connection message, timestamps included."""
-    from engine.schemas import SchemaRegistry
+    from engine.common.schemas import SchemaRegistry
 
     topic = f"uagv/v2/rabbitros/robot1-{uuid.uuid4().hex[:6]}/connection"
     routes = routes_dir(tmp_path, PRESENCE.format(mqtt=mosquitto.url, topic=topic))

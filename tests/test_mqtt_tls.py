@@ -1,4 +1,4 @@
-"""MQTT over TLS (issue 21): mqtts:// with the same ``tls`` options as AMQP (engine/tls.py),
+"""MQTT over TLS (issue 21): mqtts:// with the same ``tls`` options as AMQP (engine/common/tls.py),
 against a private mosquitto whose TLS listener requires a client certificate."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from pathlib import Path
 
 import aiomqtt
 
+from engine.common.processes import listening_port
 from engine.endpoints.mqtt.broker import LocalMosquitto
-from engine.local_broker import listening_port
 from tests.engine_process import EngineProcess
 from tests.tls_helpers import make_pki
 

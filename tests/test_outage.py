@@ -335,7 +335,7 @@ def test_held_messages_survive_a_reload_that_replaces_the_route(tmp_path: Path, 
     """The broker is down; a ROS 2 -> AMQP route holds 300 messages in memory; a reload changes
     the route's source (a new runner) and the held messages move with the route; once the broker
     is up all arrive."""
-    from engine.runtime import Engine
+    from engine.running.runtime import Engine
 
     names = _names()
     routes = tmp_path / "routes"

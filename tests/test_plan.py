@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from engine.plan import ReloadPlan, plan_reload
-from engine.routes import RoutesConfig, RoutesInvalid, load_routes
-from engine.schemas import SchemaRegistry
+from engine.common.schemas import SchemaRegistry
+from engine.language.routes import RoutesConfig, RoutesInvalid, load_routes
+from engine.running.plan import ReloadPlan, plan_reload
 
 BASE = """
 connections:
@@ -219,7 +219,7 @@ def test_options_the_endpoint_does_not_use_are_errors(ws: Workspace):
 
 
 def test_check_prints_warnings_and_still_succeeds(ws: Workspace, capsys: pytest.CaptureFixture[str]):
-    from engine.cli import check
+    from engine.ops.cli import check
 
     ws.load(BASE.replace("queue: raw-in", "queue: weeds-in"))
     assert check(ws.routes, ws.schemas) == 0
@@ -228,7 +228,7 @@ def test_check_prints_warnings_and_still_succeeds(ws: Workspace, capsys: pytest.
 
 
 def test_exclusive_resources_of_mavlink_links(tmp_path: Path):
-    from engine.identity import exclusive_resource
+    from engine.language.identity import exclusive_resource
 
     device = tmp_path / "ttyUSB0"
     device.touch()

@@ -13,7 +13,7 @@ ceiling (5,000 B/s, the connection's ``budget``);
 
 * With the radio reporting (RADIO_STATUS every 0.5 s), its buffer fills, txbuf falls below
   50 % free, the budget comes down below the offered load, and positions are conflated:
-  counted ``conflated`` by the route (engine/observe.py); no byte is lost in the radio; every
+  counted ``conflated`` by the route (engine/running/observe.py); no byte is lost in the radio; every
   event arrives, none conflated.
 * The control: the same load with a radio that sends no RADIO_STATUS. The budget stays at its
   ceiling, nothing is conflated, and the radio silently drops what overflows its buffer.
@@ -35,7 +35,7 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 
 from engine.endpoints import mavlink  # noqa: E402
-from engine.runtime import Engine  # noqa: E402
+from engine.running.runtime import Engine  # noqa: E402
 from rabbitros_sim import sik_radio  # noqa: E402
 from tests.amqp_helpers import started_with_client  # noqa: E402
 

@@ -18,7 +18,7 @@ from typing import Any
 import aio_pika
 import pytest
 
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector, publish, started_with_client
 from tests.engine_process import EngineProcess
 from tests.udp_vehicle import Vehicle, free_udp_port, telemetry_routes

@@ -24,7 +24,7 @@ import pytest
 from test_msgs.srv import BasicTypes
 
 from engine.endpoints.ros2.calls import service_qos
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Caller
 from tests.conftest import REPO
 from tests.ros_nodes import SpunNode

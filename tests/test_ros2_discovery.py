@@ -22,12 +22,12 @@ import pytest
 import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Outbound
 from engine.endpoints.ros2.discovery import compile_pattern
-from engine.route_tests import load_checked, run_tests
-from engine.routes import RoutesInvalid, load_routes
-from engine.runtime import Engine
-from engine.schemas import SchemaRegistry
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.ops.route_tests import load_checked, run_tests
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector
 from tests.conftest import REPO
 from tests.test_ros2_endpoint import DOMAIN, NavSatFix, Peer, String, wait_until
@@ -299,7 +299,7 @@ def test_a_sink_template_reads_the_captured_value_before_a_canonical_field() -> 
 def test_a_held_message_keeps_its_captured_values_on_disk() -> None:
     """A route's buffer spills held messages to disk: the captured values go with them, so the
     routing key rendered when the sink is back is the robot's."""
-    from engine.buffer import decode, encode
+    from engine.running.buffer import decode, encode
 
     canonical = {"agent_id": "robot3", "lat": 1}
     held = decode(encode(Outbound(b'{"lat":1}', canonical, canonical, "id", {"topic": "/robot3/fix"}, captured={"agent": "robot3"})))

@@ -18,8 +18,8 @@ import pytest
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
-from engine.schemas import canonical_bytes  # noqa: E402
-from engine.runtime import Engine  # noqa: E402
+from engine.common.schemas import canonical_bytes  # noqa: E402
+from engine.running.runtime import Engine  # noqa: E402
 from tests.amqp_helpers import Collector, publish  # noqa: E402
 from tests.test_cli import cli  # noqa: E402
 from tests.conftest import REPO  # noqa: E402
@@ -222,7 +222,7 @@ def test_a_prefilled_queue_reaches_a_subscriber_that_starts_before_or_after_the_
     in order, and the queue is empty afterwards."""
     from rich.console import Console
 
-    from engine.opsview import status_table
+    from engine.ops.opsview import status_table
     from tests.test_ros2_endpoint import DOMAIN, Peer, String
 
     tag = "b" + uuid.uuid4().hex[:8]

@@ -6,11 +6,12 @@ from pathlib import Path
 
 import pytest
 
-from engine.mapping import MappingError, compile_mapping, compile_template, top_level_keys, unknown_functions
-from engine.redaction import reveal
-from engine.route_yaml import substitute_env
-from engine.routes import RoutesInvalid, load_routes
-from engine.schemas import SchemaError, SchemaRegistry, parse_json
+from engine.common.placeholders import MappingError, compile_template
+from engine.common.redaction import reveal
+from engine.common.schemas import SchemaError, SchemaRegistry, parse_json
+from engine.language.mapping import compile_mapping, top_level_keys, unknown_functions
+from engine.language.route_yaml import substitute_env
+from engine.language.routes import RoutesInvalid, load_routes
 
 
 def test_env_substitution_defaults_escapes_and_unset():
@@ -167,8 +168,7 @@ def test_ambiguous_connection_and_duplicate_yaml_keys(tmp_path: Path, schemas_di
 def test_delivery_keys_and_the_dead_letter_destination(tmp_path: Path, schemas_dir: Path):
     """max_attempts, overflow and max_message_bytes reach the route's delivery settings and
     its fingerprint; dead_letters resolves to one destination, with file:line errors."""
-    from engine.dead_letters import DeadLetterSpec
-    from engine.delivery import RouteDelivery
+    from engine.language.stage_options import DeadLetterSpec, RouteDelivery
 
     (tmp_path / "a.yaml").write_text(
         "connections:\n  gcs: {amqp: 'amqp://a/', max_message_bytes: 1000}\n  ros: {ros2: {}}\n"

@@ -16,8 +16,8 @@ from pathlib import Path
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from engine.routes import RoutesInvalid, load_routes
-from engine.schemas import SchemaRegistry
+from engine.common.schemas import SchemaRegistry
+from engine.language.routes import RoutesInvalid, load_routes
 from tests.conftest import REPO
 
 VALID = """connections:

@@ -1,4 +1,4 @@
-"""The route-file schema is generated from the option declarations (engine/options.py), and
+"""The route-file schema is generated from the option declarations (engine/common/options.py), and
 the parser of those declarations reports every problem with its key path."""
 
 from __future__ import annotations
@@ -13,14 +13,14 @@ import jsonschema
 import pytest
 
 from engine import endpoints
+from engine.common.options import OptionError, evolve, given, option, parse, schema
+from engine.common.redaction import Secret
+from engine.common.schemas import SchemaRegistry
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSourceOptions
-from engine.options import OptionError, evolve, given, option, parse, schema
-from engine.redaction import Secret
-from engine import route_schema
-from engine.route_keys import anchor
-from engine.route_schema import KEYS_PATH, REGENERATE, SCHEMA_PATH, render, render_reference, route_file_schema
-from engine.routes import RoutesInvalid, load_routes
-from engine.schemas import SchemaRegistry
+from engine.language import route_schema
+from engine.language.route_keys import anchor
+from engine.language.route_schema import KEYS_PATH, REGENERATE, SCHEMA_PATH, render, render_reference, route_file_schema
+from engine.language.routes import RoutesInvalid, load_routes
 
 
 def test_shipped_schema_is_the_generated_one() -> None:
@@ -54,7 +54,7 @@ def test_a_declaration_change_makes_the_shipped_schema_stale(monkeypatch: pytest
 
 def schema_keys(node: Any, path: str = "") -> dict[str, dict[str, Any]]:
     """Every key of the schema by its path (``routes[].sink.mavlink.retries``), walked here
-    independently of engine/route_keys.py: ``properties``, a list's ``items``, a mapping's
+    independently of engine/language/route_keys.py: ``properties``, a list's ``items``, a mapping's
     ``additionalProperties`` (``<name>``) and the alternatives of ``anyOf``."""
     found: dict[str, dict[str, Any]] = {}
     if not isinstance(node, dict):

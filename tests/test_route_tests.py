@@ -18,7 +18,7 @@ class Block:
         if name.split('.')[0] in ('rclpy', 'rosidl_parser', 'rosidl_runtime_py', 'sensor_msgs', 'std_msgs'):
             raise ImportError('blocked: ' + name)
 sys.meta_path.insert(0, Block())
-from engine.cli import main
+from engine.ops.cli import main
 sys.exit(main(sys.argv[1:]))
 """
 

@@ -10,10 +10,10 @@ import time
 import uuid
 from pathlib import Path
 
-from engine.redaction import Secret, reveal
-from engine.route_yaml import substitute_env
-from engine.routes import load_routes
-from engine.schemas import SchemaRegistry
+from engine.common.redaction import Secret, reveal
+from engine.common.schemas import SchemaRegistry
+from engine.language.route_yaml import substitute_env
+from engine.language.routes import load_routes
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
 

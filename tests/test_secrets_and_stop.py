@@ -16,9 +16,9 @@ from pathlib import Path
 import aio_pika
 import pytest
 
+from engine.common.logs import JsonFormatter, LogfmtFormatter
+from engine.common.redaction import Secret, redact_urls, reveal
 from engine.endpoints.amqp.broker import LocalBroker
-from engine.logs import JsonFormatter, LogfmtFormatter
-from engine.redaction import Secret, redact_urls, reveal
 from tests.conftest import REPO
 from tests.engine_process import EngineProcess
 from tests.outage_helpers import Collector, Tally, publish_reliably, robust, wait_for

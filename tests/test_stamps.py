@@ -8,8 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from engine.mapping import MappingError, compile_mapping
-from engine.schemas import SchemaError, SchemaRegistry
+from engine.common.placeholders import MappingError
+from engine.common.schemas import SchemaError, SchemaRegistry
+from engine.language.mapping import compile_mapping
 
 
 def close_to_now(stamp: dict[str, int]) -> bool:

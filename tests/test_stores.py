@@ -1,4 +1,4 @@
-"""Remembered values (engine/stores.py): ``remember:`` writes a named latest-value store once the
+"""Remembered values (engine/language/stores.py): ``remember:`` writes a named latest-value store once the
 sink accepted a message, ``recall('NAME', key)`` reads it, ``sequence()`` counts per route.
 
 Checked at load (a store no route remembers into, a memory sink without remember, two routes
@@ -16,14 +16,15 @@ from pathlib import Path
 
 import pytest
 
+from engine.common.placeholders import MappingError
+from engine.common.schemas import SchemaRegistry
 from engine.endpoints.mqtt.broker import LocalMosquitto
-from engine.mapping import MappingError, compile_mapping
-from engine.pipeline import Pipeline
-from engine.route_tests import load_checked, run_tests
-from engine.routes import RoutesInvalid, load_routes
-from engine.runtime import Engine
-from engine.schemas import SchemaRegistry
-from engine.stores import Stores
+from engine.language.mapping import compile_mapping
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.language.stores import Stores
+from engine.ops.route_tests import load_checked, run_tests
+from engine.running.pipeline import Pipeline
+from engine.running.runtime import Engine
 from tests.conftest import REPO
 from tests.faults_harness import wait_for
 from tests.test_mqtt import Subscriber, publish

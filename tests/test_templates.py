@@ -17,12 +17,12 @@ from pathlib import Path
 import aio_pika
 import pytest
 
-from engine.plan import plan_reload
-from engine.route_tests import load_checked, run_tests
-from engine.routes import RoutesInvalid, load_routes
-from engine.runtime import Engine
-from engine.schemas import SchemaRegistry
-from engine.watch import watch_routes
+from engine.common.schemas import SchemaRegistry
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.ops.route_tests import load_checked, run_tests
+from engine.running.plan import plan_reload
+from engine.running.runtime import Engine
+from engine.running.watch import watch_routes
 from tests.amqp_helpers import Collector
 
 FLEET = """

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from engine.mapping import MappingError, compile_mapping, compile_template
-from engine.routes import RoutesInvalid, load_routes
-from engine.schemas import SchemaRegistry
+from engine.common.placeholders import MappingError, compile_template
+from engine.common.schemas import SchemaRegistry
+from engine.language.mapping import compile_mapping
+from engine.language.routes import RoutesInvalid, load_routes
 from tests.conftest import REPO
 
 HOSTILE = [

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
-from engine.throttle import Throttle
+from engine.running.throttle import Throttle
 
 
 class Runner:

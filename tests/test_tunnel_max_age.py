@@ -17,10 +17,10 @@ from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 
+from engine.common.options import evolve  # noqa: E402
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import Expired, Outbound, typed  # noqa: E402
 from engine.endpoints.mavlink.options import MavlinkSinkOptions  # noqa: E402
-from engine.options import evolve  # noqa: E402
 from rabbitros_sim import sik_radio  # noqa: E402
 from tests.test_link_priority import Arrivals  # noqa: E402
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import aio_pika
 from pymavlink.dialects.v20 import common as mavlink2
 
-from engine.runtime import STOP_GRACE, Engine
+from engine.running.runtime import STOP_GRACE, Engine
 from tests.conftest import REPO
 from tests.udp_vehicle import free_udp_port
 

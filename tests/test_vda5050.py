@@ -25,12 +25,12 @@ from typing import Any
 import pytest
 import yaml
 
+from engine.common.schemas import SchemaRegistry
 from engine.endpoints.mavlink.dialect import mavlink2
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.endpoints.ros2.rosmsg import resolve_type
-from engine.runtime import Engine
-from engine.schemas import SchemaRegistry
-from engine.watch import watch_routes
+from engine.running.runtime import Engine
+from engine.running.watch import watch_routes
 from tests.conftest import REPO
 from tests.faults_harness import wait_for
 from tests.test_cli import cli

@@ -6,7 +6,7 @@ import asyncio
 import time
 from pathlib import Path
 
-from engine.watch import watch_routes
+from engine.running.watch import watch_routes
 
 
 async def _seen(calls: list[float], after: int, timeout: float = 10.0) -> bool:

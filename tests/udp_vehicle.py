@@ -10,7 +10,7 @@ import time
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from engine.local_broker import listening_port
+from engine.common.processes import listening_port
 
 
 class Vehicle(threading.Thread):

@@ -1,7 +1,7 @@
 """What keeps pytest-xdist workers (``./scripts/test.sh`` runs several) apart on one machine.
 
 Ports are never fixed (every server's is drawn at random below the kernel's ephemeral range by
-``engine.local_broker.listening_port``) and private brokers get uuid node names and their own
+``engine.common.processes.listening_port``) and private brokers get uuid node names and their own
 temporary directories, so those need nothing from here. What does: the ROS 2 domain.
 DDS discovers every participant of a domain on the host, so two workers on one domain see
 each other's topics. Each worker gets its own block of :data:`SLOTS` domains, and each test

@@ -12,7 +12,7 @@ Delivery contract: a :class:`Source` hands messages to the :class:`Deliver` it w
 with, in batches (``await deliver.batch(inbounds)``, everything it has ready) or one at a
 time (``await deliver(inbound)``). Either returns once the messages are *settled*: accepted
 by the sink or dead-lettered. Which failures are retried and which are dead-lettered is
-decided by the engine (engine/delivery.py), never by a source or a sink: endpoints only
+decided by the engine (engine/running/delivery.py), never by a source or a sink: endpoints only
 raise :class:`EndpointError` (transient) or :class:`MessageRejected` (permanent) at the edge.
 A sink whose destination cannot take messages yet though its connection is up (a ROS 2 topic
 no subscriber has matched) says so with :attr:`Sink.ready`; the engine then holds the route's
@@ -47,8 +47,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar, Generic, Iterable, Iterator, Mapping, Protocol, Sequence, TypeVar
 
-from engine.options import OptionError, describe, dotted, option, parse
-from engine.suggest import closest
+from engine.common.options import OptionError, describe, dotted, option, parse
+from engine.common.suggest import closest
 
 
 class EndpointError(Exception):
@@ -231,9 +231,9 @@ class Deliver(Protocol):
         """Count messages the source dropped (overflow, or not settled and not redeliverable)."""
 
     def agent_dropped(self, agent: Any, count: int = 1) -> None:
-        """Count, per agent, messages a fair inbox dropped (engine/fairness.py; the source
+        """Count, per agent, messages a fair inbox dropped (engine/running/fairness.py; the source
         counts them in :meth:`dropped` as well). A Deliver with a ``fair`` attribute (the
-        route's ``fair:`` options) gets a fair inbox from ``engine.fairness.route_inbox``."""
+        route's ``fair:`` options) gets a fair inbox from ``engine.running.fairness.route_inbox``."""
 
 
 T = TypeVar("T")
@@ -430,7 +430,7 @@ class Connection(ABC):
 
 
 class Lease(Protocol):
-    """What :meth:`Connection.lease` returns; engine/leases.py starts and stops it."""
+    """What :meth:`Connection.lease` returns; engine/running/leases.py starts and stops it."""
 
     async def start(self) -> None: ...
 
@@ -458,12 +458,12 @@ CheckResult = Iterable[tuple[str | None, str]]
 
 @dataclass(frozen=True, kw_only=True)
 class EndpointOptions:
-    """What every source and sink option class has (engine/options.py declares the rest)."""
+    """What every source and sink option class has (engine/common/options.py declares the rest)."""
 
     connection: str | None = option(None, description="name of a connection from any file of the directory; default: the only "
                                                        "connection of the protocol, else the protocol's default connection")
     agents: Mapping[str, Mapping[str, Any]] | None = option(None, internal=True)
-    """The agents table's entries on the endpoint's connection (engine/agents.py), handed by
+    """The agents table's entries on the endpoint's connection (engine/language/agents.py), handed by
     the route loader to an endpoint that looks agents up per message; None otherwise."""
     priority: str = option("normal", internal=True)
     """The route's ``priority`` (high, normal, low), handed to its sink by the route loader: a
@@ -514,7 +514,7 @@ class Transport(ABC):
     ``holds_leases``) at load, before anything connects."""
     default_settings: ClassVar[Mapping[str, Any]]
     connection_options: ClassVar[type]
-    """The option class of ``connections.<name>.<protocol>`` (engine/options.py)."""
+    """The option class of ``connections.<name>.<protocol>`` (engine/common/options.py)."""
     source_options: ClassVar[type[EndpointOptions]]
     sink_options: ClassVar[type[EndpointOptions]]
     connection_shorthand: ClassVar[str | None] = None
@@ -539,7 +539,7 @@ class Transport(ABC):
         return self.replies
 
     accepts_secrets: ClassVar[bool] = False
-    """True when the connection settings may hold engine.redaction.Secret values, which the
+    """True when the connection settings may hold engine.common.redaction.Secret values, which the
     endpoint reveals only where it connects; otherwise the loader hands it plain values."""
 
     def source_variables(self, options: Any) -> tuple[str, ...]:
@@ -642,7 +642,7 @@ class Transport(ABC):
         return False
 
     agent_options: ClassVar[Mapping[str, str]] = {}
-    """Options that take an agent's name (engine/agents.py), each with the key of the agent's
+    """Options that take an agent's name (engine/language/agents.py), each with the key of the agent's
     entry whose value replaces the name at load (MAVLink: ``target_system`` -> ``system_id``)."""
 
     def looks_up_agents(self, options: Any) -> bool:
@@ -653,7 +653,7 @@ class Transport(ABC):
 
     def queues_per_agent(self, options: Any) -> bool:
         """Whether a source with these (typed) options queues its messages in the engine
-        (``engine.fairness.route_inbox``), where a route's ``fair:`` gives each agent its own
+        (``engine.running.fairness.route_inbox``), where a route's ``fair:`` gives each agent its own
         queue; False (the default): a broker holds the backlog, and ``fair`` is a check error."""
         return False
 

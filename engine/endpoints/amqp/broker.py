@@ -1,5 +1,5 @@
 """Private RabbitMQ nodes (one, or a cluster) for demos, tests and ``--local-broker``
-(engine/local_broker.py asks :func:`private_broker`), on a machine with no broker set up.
+(engine/ops/local_broker.py asks :func:`private_broker`), on a machine with no broker set up.
 
 Debian's ``rabbitmq-server`` wrapper switches user and drops the environment, so the
 package's own ``sbin/rabbitmq-server`` is run instead, with its own HOME (the Erlang
@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Iterable
 from urllib.parse import urlsplit
 
-from engine.local_broker import BrokerError, ServerProcess, listening_port
-from engine.tls import throwaway_certificates
+from engine.common.processes import BrokerError, ServerProcess, listening_port
+from engine.common.tls import throwaway_certificates
 
 SERVER_GLOB = "/usr/lib/rabbitmq/lib/rabbitmq_server-*/sbin/rabbitmq-server"
 QUIET_SCHEDULERS = "+sbwt none +sbwtdcpu none +sbwtdio none"

@@ -22,7 +22,7 @@ import aio_pika.abc
 from aio_pika.robust_connection import RobustConnection
 from yarl import URL
 
-from engine.redaction import reveal
+from engine.common.redaction import reveal
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSourceOptions
 

@@ -20,8 +20,8 @@ from typing import Iterator
 import aiormq.exceptions
 from aio_pika.exceptions import AMQPError
 
+from engine.common.redaction import redact_urls
 from engine.endpoints.base import EndpointError, ExceptionTable
-from engine.redaction import redact_urls
 
 EXCEPTIONS = ExceptionTable((
     (AMQPError, EndpointError),  # aio-pika: a closed channel or connection, a refused declaration

@@ -1,4 +1,4 @@
-"""The AMQP endpoint's options, declared once (engine/options.py): connection, source, sink.
+"""The AMQP endpoint's options, declared once (engine/common/options.py): connection, source, sink.
 
 Apart from engine/endpoints/amqp/transport.py so the cluster helpers (cluster.py, topology.py)
 can use them without importing the endpoint itself.
@@ -9,9 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from engine.common.options import option
+from engine.common.tls import TlsOptions
 from engine.endpoints.base import EndpointOptions
-from engine.options import option
-from engine.tls import TlsOptions
 
 RECONNECT_INTERVAL = 1.0
 """Seconds between aio-pika's reconnection attempts after a lost connection (its default, 5 s,

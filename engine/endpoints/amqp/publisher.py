@@ -18,7 +18,7 @@ channel's lock, writes every message's frames as ONE write, awaits the round's c
 together, and answers each route with its own per-message results (``None`` once the
 broker took the message, else the error). A route still learns the outcome of exactly its
 own messages: a message the broker nacks, or one that cannot be framed (a routing key over
-255 bytes), fails alone; the runner (engine/runner.py) and engine/delivery.py decide what
+255 bytes), fails alone; the runner (engine/running/runner.py) and engine/running/delivery.py decide what
 that failure means, as before. Rounds overlap: the next turn's round is written while the
 last one's confirms are still on their way.
 

@@ -1,4 +1,4 @@
-"""TLS for ``amqps://`` connections: what only AMQP adds to engine/tls.py.
+"""TLS for ``amqps://`` connections: what only AMQP adds to engine/common/tls.py.
 
 aio-pika hands the ``ssl.SSLContext`` to aiormq, which speaks TLS for every ``amqps://`` URL
 and plain TCP for ``amqp://``, by the URL's scheme alone, so there is no path on which a
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Iterator
 
-from engine import tls as tls_common
+from engine.common import tls as tls_common
 from engine.endpoints.amqp.options import AmqpConnectionOptions
 
 

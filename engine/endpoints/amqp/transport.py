@@ -57,6 +57,20 @@ import aiormq.exceptions
 from aiormq import spec
 from yarl import URL
 
+from engine.common import tls as tls_common
+from engine.common.backoff import Backoff
+from engine.common.options import evolve, given
+from engine.common.placeholders import MappingError, compile_template, template_fields, template_problem
+from engine.common.redaction import Secret, has_url_password, redact_urls, reveal
+from engine.common.schemas import SchemaError, canonical_bytes
+from engine.endpoints.amqp.broker import CA_ENV, URL_ENV, URLS_ENV, elsewhere
+from engine.endpoints.amqp.calls import AmqpCaller
+from engine.endpoints.amqp.channels import open_plain_channel
+import engine.endpoints.amqp.cluster as amqp_cluster
+from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
+from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
+from engine.endpoints.amqp.publisher import SharedPublisher
+import engine.endpoints.amqp.tls as amqp_tls
 from engine.endpoints.base import (
     CheckResult,
     Connection,
@@ -72,20 +86,6 @@ from engine.endpoints.base import (
     typed,
     typed_or_problem,
 )
-import engine.endpoints.amqp.cluster as amqp_cluster
-from engine.endpoints.amqp.calls import AmqpCaller
-from engine.endpoints.amqp.channels import open_plain_channel
-from engine.endpoints.amqp.publisher import SharedPublisher
-import engine.endpoints.amqp.tls as amqp_tls
-from engine import tls as tls_common
-from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
-from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
-from engine.mapping import MappingError, compile_template, template_fields, template_problem
-from engine.options import evolve, given
-from engine.endpoints.amqp.broker import CA_ENV, URL_ENV, URLS_ENV, elsewhere
-from engine.backoff import Backoff
-from engine.redaction import Secret, has_url_password, redact_urls, reveal
-from engine.schemas import SchemaError, canonical_bytes
 
 ALONE_GAP_NS = 1_000_000
 """A message received more than this after the previous one is taken to arrive alone (a
@@ -133,7 +133,7 @@ CONNECT_TIMEOUT = 10.0
 hold the engine's start for the TCP timeout, minutes)."""
 REOPEN_FIRST_S = 0.05
 REOPEN_CAP_S = 5.0
-"""The engine's backoff (engine/backoff.py) between attempts to reopen the publish channel
+"""The engine's backoff (engine/common/backoff.py) between attempts to reopen the publish channel
 after the broker closed it: the first attempt at once, then 25-50 ms, doubling up to 2.5-5 s.
 A channel that lived :data:`REOPEN_CAP_S` or longer starts the backoff over."""
 

@@ -61,18 +61,18 @@ import functools
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, ClassVar
 
+from engine.common.suggest import closest
 from engine.endpoints.base import CheckResult, FieldProblem, Outbound, Transport, flat_field_problem, typed_or_problem
-from engine.endpoints.mavlink.checks import sink_problems, source_problems
-from engine.endpoints.mavlink.command import COMMAND_ANSWER
-from engine.endpoints.mavlink.codec import ADDED_FIELDS, MESSAGES, build_message, field_specs, message_fields, mavlink2, received_nan
-from engine.endpoints.mavlink.connection import MavlinkConnection
-from engine.endpoints.mavlink.mission import MISSION_ANSWER
-from engine.endpoints.mavlink.messages import dry_run, field_check, target_fields
 from engine.endpoints.mavlink import settings as _settings
+from engine.endpoints.mavlink.checks import sink_problems, source_problems
+from engine.endpoints.mavlink.codec import ADDED_FIELDS, MESSAGES, build_message, field_specs, message_fields, mavlink2, received_nan
+from engine.endpoints.mavlink.command import COMMAND_ANSWER
+from engine.endpoints.mavlink.connection import MavlinkConnection
+from engine.endpoints.mavlink.messages import dry_run, field_check, target_fields
+from engine.endpoints.mavlink.mission import MISSION_ANSWER
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.settings import Address, LinkConfig, parse_address, settings_problems
 from engine.endpoints.mavlink.signing import signing_now
-from engine.suggest import closest
 
 
 @functools.lru_cache(maxsize=1)

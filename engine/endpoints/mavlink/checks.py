@@ -9,13 +9,13 @@ from typing import Any
 import jmespath
 from jmespath import exceptions as jmespath_errors
 
+from engine.common.options import given
+from engine.common.suggest import did_you_mean
 from engine.endpoints.base import EndpointError, typed_or_problem
 from engine.endpoints.mavlink.codec import MESSAGES, NEVER_GUESSED
 from engine.endpoints.mavlink.enums import mav_enum_value
 from engine.endpoints.mavlink.options import MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.transaction import TransactionOptions
-from engine.options import given
-from engine.suggest import did_you_mean
 
 _SENDER = {"system_id", "component_id"}
 _TARGET = {"target_system", "target_component"}

@@ -22,10 +22,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from engine.common.suggest import did_you_mean
 from engine.endpoints.base import MessageRejected
 from engine.endpoints.mavlink.dialect import mavlink2
 from engine.endpoints.mavlink.enums import mav_enum_value
-from engine.suggest import did_you_mean
 
 MESSAGES: dict[str, type[mavlink2.MAVLink_message]] = {cls.msgname: cls for cls in mavlink2.mavlink_map.values()}
 ADDED_FIELDS: dict[str, tuple[str, ...]] = {"MISSION_ACK": ("ref_id",)}

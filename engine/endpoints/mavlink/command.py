@@ -10,7 +10,7 @@ IN_PROGRESS extends the wait to ``in_progress_timeout`` for the final ACK;
 TEMPORARILY_REJECTED sends again after ``retry_delay`` (counted as a retry); any other result
 (DENIED, FAILED, UNSUPPORTED, ...) is permanent: :class:`MessageRejected` naming it.
 
-As a call (the request asked for replies, engine/replies.py): ACCEPTED replies
+As a call (the request asked for replies, engine/running/replies.py): ACCEPTED replies
 ``{kind: "result", result: "MAV_RESULT_ACCEPTED", command: 400}``, each IN_PROGRESS a
 ``feedback`` with the ACK's ``progress``; a refusal or the silence ends in the runner's
 ``error`` reply (the silence only once the route's delivery attempts are spent).

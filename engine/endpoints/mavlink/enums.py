@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from functools import cache
 
+from engine.common.suggest import closest, did_you_mean
 from engine.endpoints.mavlink.dialect import mavlink2
-from engine.suggest import closest, did_you_mean
 
 
 def _table(enum: str) -> dict[int, object]:

@@ -7,7 +7,7 @@ the reception time, as MAVROS does before it is synchronised; the vehicle's own 
 available in the message (``time_boot_ms``). Enum names come from pymavlink's dialect tables
 (:mod:`.enums`).
 
-engine/mapping.py adds :class:`Functions` to a mapping's functions only when the mapping
+engine/language/mapping.py adds :class:`Functions` to a mapping's functions only when the mapping
 calls one of the names the registry lists for it (engine/endpoints/__init__.py), so a route
 file without MAVLink functions does not import pymavlink.
 """
@@ -18,7 +18,7 @@ from typing import Any
 
 from jmespath import functions
 
-from engine import stamps
+from engine.common import stamps
 from engine.endpoints.mavlink import enums
 
 UNIX_USEC_FROM = 1_000_000_000_000_000

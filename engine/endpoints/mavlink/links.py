@@ -5,7 +5,7 @@ A link hands every received chunk to ``on_bytes(data, peer)`` and writes whole f
 ``transmit``; it translates OS errors into :class:`EndpointError` (through errors.py, the
 package's one table) and reconnects on its own
 (a serial device that disappears is reopened, a TCP client reconnects, both waiting with the
-engine's one backoff, :mod:`engine.backoff`). Used by the engine's connections and by the
+engine's one backoff, :mod:`engine.common.backoff`). Used by the engine's connections and by the
 simulated vehicle alike.
 """
 
@@ -21,7 +21,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Hashable
 from typing import Any
 
-from engine.backoff import Backoff
+from engine.common.backoff import Backoff
 from engine.endpoints.base import EndpointError
 from engine.endpoints.mavlink.errors import edge_error, mapped
 from engine.endpoints.mavlink.settings import Address

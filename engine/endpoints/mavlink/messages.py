@@ -15,15 +15,15 @@ import time
 from collections.abc import Callable, Collection, Hashable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
+from engine.common.field_keys import slot_key
+from engine.common.suggest import did_you_mean
 from engine.endpoints.base import Deliver, Inbound, Inbox, MessageRejected, Outbound, Sink, Source
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, message_fields, mavlink2, refuse_nulls
 from engine.endpoints.mavlink.command import AcknowledgedCommandSink, Encoder
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.mission import MissionUploadSink, Targets, mission_items, mission_target, refuse_unguessed
 from engine.endpoints.mavlink.transaction import TransactionOptions
-from engine.fairness import route_inbox
-from engine.suggest import did_you_mean
-from engine.throttle import slot_key
+from engine.running.fairness import route_inbox
 
 if TYPE_CHECKING:
     from engine.endpoints.mavlink.options import MavlinkSinkOptions

@@ -30,12 +30,12 @@ import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
+from engine.common.suggest import did_you_mean
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
 from engine.endpoints.mavlink.codec import build_message, mavlink2, null_fields, null_problem
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name, enum_or_number
 from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions, per_target
-from engine.suggest import did_you_mean
 
 ITEM = mavlink2.MAVLink_mission_item_int_message
 Targets = Callable[..., dict[str, int]]

@@ -1,4 +1,4 @@
-"""The MAVLink endpoint's options, declared once (engine/options.py): the connection (the
+"""The MAVLink endpoint's options, declared once (engine/common/options.py): the connection (the
 ``mavlink:`` string and the keys beside it), sources and sinks.
 
 Bounds a check below reports in its own words (``retries must be an integer >= 0``) are
@@ -9,15 +9,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from engine.common.options import option
 from engine.endpoints.base import EndpointOptions
 from engine.endpoints.mavlink.codec import mavlink2
 from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelSettings
-from engine.options import option
 
 _BYTE = {"minimum": 0, "maximum": 255}
 TARGET_FIELD = r"^(\{[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*\}|[A-Za-z_][A-Za-z0-9_.-]*)$"
 """A sink target read from the canonical message (``"{vehicle}"``, ``"{target.system}"``), or
-an agent's name (``uav2``: engine/agents.py, resolved by the route loader)."""
+an agent's name (``uav2``: engine/language/agents.py, resolved by the route loader)."""
 AGENT_NAME = r"^[A-Za-z_][A-Za-z0-9_.-]*$"
 """An agent's name where a number is wanted (``system_id: uav2``)."""
 _SERIAL = TunnelSettings.from_settings(None, serial=True)

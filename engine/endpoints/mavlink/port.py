@@ -40,9 +40,9 @@ from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable
 
 from engine.endpoints.base import Conflated, EndpointError
-from engine.endpoints.mavlink.errors import edge_error
-from engine.endpoints.mavlink.codec import RADIO_STATUS, mavlink2
 from engine.endpoints.mavlink.budget import RadioBudget
+from engine.endpoints.mavlink.codec import RADIO_STATUS, mavlink2
+from engine.endpoints.mavlink.errors import edge_error
 from engine.endpoints.mavlink.links import Link, make_link
 from engine.endpoints.mavlink.settings import LinkConfig
 from engine.endpoints.mavlink.signing import SignatureCheck, SigningClock
@@ -76,7 +76,7 @@ class _Queued:
 
 
 PRIORITIES = ("high", "normal", "low")
-"""A route's ``priority`` (engine/routes.py declares it); control frames go before all."""
+"""A route's ``priority`` (engine/language/routes.py declares it); control frames go before all."""
 
 
 class MavlinkPort:

@@ -13,9 +13,9 @@ from collections.abc import Awaitable, Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from engine.common.options import given
 from engine.endpoints.mavlink.codec import mavlink2
 from engine.endpoints.mavlink.contract import SharedLink
-from engine.options import given
 
 if TYPE_CHECKING:
     from engine.endpoints.mavlink.options import MavlinkSinkOptions

@@ -60,6 +60,7 @@ from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
+from engine.common.schemas import SchemaError, canonical_bytes
 from engine.endpoints.base import (
     Deliver,
     EndpointError,
@@ -71,7 +72,6 @@ from engine.endpoints.base import (
     Sink,
     Source,
 )
-from engine.schemas import SchemaError, canonical_bytes
 
 DEFAULT_PAYLOAD_TYPE = 0xA900
 TUNNEL_PAYLOAD = 128

@@ -1,4 +1,4 @@
-"""The memory sink: a route whose only outcome is what it remembers (``remember:``, engine/stores.py).
+"""The memory sink: a route whose only outcome is what it remembers (``remember:``, engine/language/stores.py).
 
 ``sink: {memory: {}}`` accepts every message at once and sends it nowhere, so the route's
 ``remember`` keeps it: a vehicle's mission progress that no topic carries but a VDA 5050

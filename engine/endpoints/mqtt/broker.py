@@ -12,7 +12,7 @@ private directory; the configuration names the current user instead (ignored whe
 
 With ``tls`` (``--local-broker-tls``) its one listener speaks TLS only (mosquitto's ``cafile``,
 ``certfile``, ``keyfile`` after ``listener``), with a certificate for ``localhost`` from a CA
-made when it starts (engine/tls.py, openssl); clients verify it against that CA and need no
+made when it starts (engine/common/tls.py, openssl); clients verify it against that CA and need no
 certificate of their own, as with the private RabbitMQ node.
 """
 
@@ -25,8 +25,8 @@ import tempfile
 from pathlib import Path
 from typing import Iterable
 
-from engine.local_broker import BrokerError, ServerProcess, listening_port
-from engine.tls import ThrowawayCertificates, throwaway_certificates
+from engine.common.processes import BrokerError, ServerProcess, listening_port
+from engine.common.tls import ThrowawayCertificates, throwaway_certificates
 
 MOSQUITTO = "mosquitto"
 INSTALL_HINT = "mosquitto is not installed (apt-get install -y mosquitto), or set MOSQUITTO_BIN to its path"

@@ -15,8 +15,8 @@ import aiomqtt
 from paho.mqtt.enums import MQTTErrorCode
 from paho.mqtt.reasoncodes import ReasonCode
 
+from engine.common.redaction import redact_urls
 from engine.endpoints.base import EndpointError, ExceptionTable, MessageRejected
-from engine.redaction import redact_urls
 
 _EXCEPTIONS: tuple[tuple[type[BaseException], type[EndpointError]], ...] = (
     (ValueError, MessageRejected),  # paho: a topic with wildcards or a NUL, a payload over 256 MiB

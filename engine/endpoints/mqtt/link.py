@@ -1,7 +1,7 @@
 """The MQTT connection's client side: one client, one session, shared by every route that names it.
 
 aiomqtt (on paho-mqtt 2) runs the socket on the engine's event loop; this module keeps the
-connection up (a new client per attempt, waits from engine/backoff.py), and owns every
+connection up (a new client per attempt, waits from engine/common/backoff.py), and owns every
 QoS 1 message the broker sent until it is acknowledged:
 
 - **Manual acknowledgement.** paho's ``manual_ack`` is on: a PUBACK goes out only once every
@@ -48,14 +48,14 @@ from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 from paho.mqtt.subscribeoptions import SubscribeOptions
 
-from engine.backoff import Backoff
+from engine.common.backoff import Backoff
+from engine.common.redaction import MASK, redact_urls, reveal
+from engine.common.tls import LastTlsError, TlsOptions, tls_context, tls_failure
 from engine.endpoints.base import Connection, EndpointError, typed
 from engine.endpoints.mqtt.broker import CA_ENV, URL_ENV
 from engine.endpoints.mqtt.errors import describe, edge_error, from_code, mapped
 from engine.endpoints.mqtt.options import DEFAULT_URL, MqttConnectionOptions, MqttMessageOptions
 from engine.endpoints.mqtt.topics import subscription_id
-from engine.redaction import MASK, redact_urls, reveal
-from engine.tls import LastTlsError, TlsOptions, tls_context, tls_failure
 
 log = logging.getLogger("engine.mqtt")
 

@@ -1,4 +1,4 @@
-"""The MQTT endpoint's options, declared once (engine/options.py): connection, source, sink.
+"""The MQTT endpoint's options, declared once (engine/common/options.py): connection, source, sink.
 
 The descriptions are what editors show and what the generated key reference prints, so each
 says what the option does to the session or the messages, not only its type.
@@ -9,9 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from engine.common.options import option
+from engine.common.tls import TlsOptions
 from engine.endpoints.base import EndpointOptions
-from engine.options import option
-from engine.tls import TlsOptions
 
 ProtocolVersion = Literal[5, "3.1.1"]
 DEFAULT_URL = "mqtt://localhost:1883"

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 from typing import Sequence
 
+from engine.common.schemas import SchemaError, canonical_bytes
 from engine.endpoints.base import MessageRejected, Outbound, Sink
 from engine.endpoints.mqtt.link import MqttLink
 from engine.endpoints.mqtt.options import MqttSinkOptions
 from engine.endpoints.mqtt.topics import topic_renderer
-from engine.schemas import SchemaError, canonical_bytes
 
 
 class MqttSink(Sink):

@@ -5,7 +5,7 @@ Batch-shaped like the AMQP source: the connection's message callback only append
 source's list; one loop hands everything received (up to half the connection's
 ``receive_maximum``) to the route as one batch, then tells the connection which messages
 were settled, which acknowledges each once every route it went to has settled it. A
-message the route did not settle is tried again after a wait (engine/backoff.py), or, when
+message the route did not settle is tried again after a wait (engine/common/backoff.py), or, when
 the source stops, returned to the connection for the route's next source: MQTT has no way
 to hand a message back to the broker on a live connection.
 
@@ -21,7 +21,7 @@ import asyncio
 import logging
 from typing import Any
 
-from engine.backoff import Backoff
+from engine.common.backoff import Backoff
 from engine.endpoints.base import Deliver, Inbound, Inbox, Source
 from engine.endpoints.mqtt.link import MqttLink, Received
 from engine.endpoints.mqtt.options import MqttSourceOptions

@@ -3,7 +3,7 @@
 A source subscribes to one filter (``farm/+/weather``), or with ``shared: GROUP`` to the
 shared subscription ``$share/GROUP/farm/+/weather``. A sink's topic may interpolate
 canonical fields (``farm/{agent_id}/cmd``) with the same template helper the AMQP routing
-keys use (engine.mapping.compile_template); a value that would change the topic's shape
+keys use (engine.common.placeholders.compile_template); a value that would change the topic's shape
 (a ``/`` adding a level, a wildcard, a NUL) refuses the message instead of publishing
 somewhere nobody meant.
 """
@@ -15,8 +15,8 @@ from typing import Any, Callable, Iterator
 
 from aiomqtt import Topic, Wildcard
 
+from engine.common.placeholders import MappingError, compile_template, template_fields, template_problem
 from engine.endpoints.base import MessageRejected
-from engine.mapping import MappingError, compile_template, template_fields, template_problem
 
 SHARED_PREFIX = "$share"
 MAX_SUBSCRIPTION_ID = 268_435_455
@@ -62,7 +62,7 @@ def matcher(filter_: str) -> Callable[[str], bool]:
 def template_problems(template: str) -> Iterator[str]:
     """Why a sink's topic template can never give a topic one may publish on."""
     literal = "".join(part for part in _literals(template))
-    refused = template_problem(template)  # fields only: engine/mapping.py parse_template
+    refused = template_problem(template)  # fields only: engine/common/placeholders.py parse_template
     if refused:
         yield f"topic {refused}"
     elif not template:

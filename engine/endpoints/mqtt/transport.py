@@ -6,15 +6,15 @@ from __future__ import annotations
 from typing import Any, Callable, Iterable, Mapping
 from urllib.parse import urlsplit
 
-from engine import tls as tls_common
+from engine.common import tls as tls_common
+from engine.common.options import given
+from engine.common.placeholders import template_fields
+from engine.common.redaction import redact_urls, reveal
 from engine.endpoints.base import CheckResult, Connection, Outbound, Transport, typed_or_problem
 from engine.endpoints.mqtt.connection import MqttConnection
 from engine.endpoints.mqtt.link import Endpoint
 from engine.endpoints.mqtt.options import MqttConnectionOptions, MqttSinkOptions, MqttSourceOptions
 from engine.endpoints.mqtt.topics import filter_problems, subscription, template_problems, topic_renderer
-from engine.mapping import template_fields
-from engine.options import given
-from engine.redaction import redact_urls, reveal
 
 QOS2_SOURCE = ("qos 2 is not offered on a source: paho acknowledges a QoS 2 message (PUBREC) as it arrives, "
                "before the route settled it, so an engine stopped meanwhile would lose it; qos 1 is at-least-once "
@@ -87,7 +87,7 @@ class MqttTransport(Transport):
         return [("topic", name) for name in template_fields(options.topic)]
 
     def key_files(self, settings: Any) -> Iterable[str]:
-        """The TLS files: a renewed certificate reopens the connection (engine/tls.py)."""
+        """The TLS files: a renewed certificate reopens the connection (engine/common/tls.py)."""
         options, _ = typed_or_problem(MqttConnectionOptions, settings)
         return tls_common.key_files(options.tls) if options is not None else []
 

@@ -4,7 +4,7 @@
 
 Each message is one request (its sink mapping's output, or the canonical message, built as the
 service's ``Request`` by the rules of engine/endpoints/rosmsg.py); the response, in rosbridge
-JSON, is the call's ``result`` reply (engine/replies.py). A message is accepted once its
+JSON, is the call's ``result`` reply (engine/running/replies.py). A message is accepted once its
 response arrived, so the route's source acknowledges a call only once it was answered.
 
 Failures are permanent (:class:`MessageRejected`, so the caller's ``error`` reply comes within
@@ -47,9 +47,9 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future as RclpyFuture
 
-from engine.backoff import Backoff
-from engine.endpoints.ros2 import rosmsg
+from engine.common.backoff import Backoff
 from engine.endpoints.base import Deliver, EndpointError, Inbound, Inbox, MessageRejected, Outbound, Sink, Source, late_window
+from engine.endpoints.ros2 import rosmsg
 
 log = logging.getLogger("engine.ros2")
 

@@ -10,9 +10,9 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from engine.endpoints.ros2 import rosmsg
+from engine.common.suggest import closest
 from engine.endpoints.base import ELEMENT, FieldPath, FieldProblem, Outbound
-from engine.suggest import closest
+from engine.endpoints.ros2 import rosmsg
 
 STRING_TYPE = "std_msgs/msg/String"
 

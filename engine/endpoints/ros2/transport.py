@@ -63,16 +63,16 @@ from rclpy.validate_full_topic_name import validate_full_topic_name
 from rclpy.validate_namespace import validate_namespace
 from rclpy.validate_node_name import validate_node_name
 
-from engine.endpoints.ros2 import calls as ros2_calls, contract as ros2_contract, discovery, rosmsg
-from engine.endpoints.ros2.errors import EXCEPTIONS, mapped, rcl_reason, setup_error
+from engine.common.options import given, option
+from engine.common.placeholders import template_problem
+from engine.common.suggest import did_you_mean
 from engine.endpoints.base import (
     CheckResult, Connection, FieldProblem, Deliver, EndpointError, EndpointOptions, Inbound, Inbox, MessageRejected, Outbound, Sink,
     Source, Transport, typed,
 )
-from engine.fairness import route_inbox
-from engine.mapping import template_problem
-from engine.options import given, option
-from engine.suggest import did_you_mean
+from engine.endpoints.ros2 import calls as ros2_calls, contract as ros2_contract, discovery, rosmsg
+from engine.endpoints.ros2.errors import EXCEPTIONS, mapped, rcl_reason, setup_error
+from engine.running.fairness import route_inbox
 
 log = logging.getLogger("engine.ros2")
 

@@ -1,0 +1,352 @@
+"""``rabbitros-engine``: run the routes of a directory, check them, or show the live status."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import os
+import signal
+import sys
+import tempfile
+from pathlib import Path
+from typing import Sequence
+
+from engine import __version__, endpoints
+from engine.common.logs import setup_logging
+from engine.common.processes import LOCAL_BROKER_ENV, BrokerError, PrivateBroker
+from engine.common.redaction import redact_urls
+from engine.common.schemas import SchemaRegistry
+from engine.endpoints.base import EndpointError
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.ops.admin import AdminAccess, AdminConfigError, AdminServer, admin_access, parse_address, status_document
+from engine.ops.local_broker import private_brokers, stand_in_for_check
+from engine.ops.opsview import AdminClient, print_status, print_tap
+from engine.ops.route_tests import format_result, load_checked, run_tests
+from engine.running.loop import run as run_loop
+from engine.running.observe import COUNTERS
+from engine.running.runtime import Engine
+from engine.running.watch import watch_routes
+
+log = logging.getLogger("engine.ops.cli")
+COMMANDS = ("run", "check", "test", "status", "tap")
+
+
+def default_schemas(routes: Path) -> Path:
+    """``schemas/`` beside the routes directory (or above it), else the working directory's."""
+    base = routes.parent if routes.is_file() else routes
+    for candidate in (base / "schemas", base.parent / "schemas", Path("schemas")):
+        if candidate.is_dir():
+            return candidate
+    return Path("schemas")
+
+
+class _TopLevelParser(argparse.ArgumentParser):
+    """``rabbitros-engine --help`` shows how to run, not only the commands: ``run`` is the
+    default command, so its options follow the command list."""
+
+    run_parser: argparse.ArgumentParser | None = None
+
+    def format_help(self) -> str:
+        text = super().format_help()
+        if self.run_parser is None:
+            return text
+        formatter = self.run_parser._get_formatter()
+        formatter.start_section("run options (run is the default command: rabbitros-engine [run] [OPTIONS])")
+        formatter.add_arguments([a for a in self.run_parser._actions if not isinstance(a, argparse._HelpAction)])
+        formatter.end_section()
+        formatter.add_text("Example: rabbitros-engine --routes routes/ --local-broker --admin 9180. "
+                           "Each command's own options: rabbitros-engine COMMAND --help.")
+        return text + "\n" + formatter.format_help()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _TopLevelParser(
+        prog="rabbitros-engine",
+        usage="%(prog)s [run] [--routes DIR] [--local-broker] [--admin [HOST:]PORT] [OPTIONS]\n"
+              "       %(prog)s {check,test,status,tap} ...",
+        description="Routes messages between " + ", ".join(endpoints.PROTOCOLS) + " endpoints as declared in YAML route files.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="{run,check,test,status,tap}", title="commands")
+
+    def common(sub: argparse.ArgumentParser) -> None:
+        sub.add_argument("--routes", type=Path, default=Path("routes"), metavar="DIR", help="routes directory (or one file); default ./routes")
+        sub.add_argument("--schemas", type=Path, metavar="DIR", help="canonical schemas directory; default: schemas/ beside the routes")
+
+    run = commands.add_parser("run", help="run the routes (the default command)")
+    common(run)
+    run.add_argument("--local-broker", action="store_true", help="start the private broker of each protocol that has one and use it as that protocol's default connection")
+    run.add_argument("--broker-url-file", type=Path, metavar="FILE", help="with --local-broker: write the brokers' URLs to this file, one a line")
+    run.add_argument("--cluster", type=int, default=1, metavar="N",
+                     help="with --local-broker: start N nodes of each broker joined in one cluster (default 1); the default connection lists them all")
+    run.add_argument("--local-broker-tls", action="store_true",
+                     help="with --local-broker: the private broker listens with TLS, its certificate from a CA made for the run; the default connection verifies against it")
+    run.add_argument("--status-file", type=Path, metavar="FILE", help="keep the live status (generation, config hash, counters) in this JSON file")
+    run.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT",
+                     help="serve /metrics, /healthz, /status and /tap/ROUTE over HTTP (a bare port binds 127.0.0.1); off by default")
+    run.add_argument("--admin-token-file", type=Path, metavar="FILE",
+                     help="a bearer token every admin path but /healthz asks for; required when --admin is not a loopback address")
+    run.add_argument("--admin-tls-cert", type=Path, metavar="FILE", help="serve the admin endpoint over HTTPS with this certificate (PEM)")
+    run.add_argument("--admin-tls-key", type=Path, metavar="FILE", help="the private key of --admin-tls-cert (PEM)")
+    run.add_argument("--instance", metavar="NAME", help="this engine's name among instances sharing the routes (routes' instances:); default the host name")
+    run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
+    run.add_argument("--stats-interval", type=float, default=10.0, metavar="SECONDS",
+                     help="seconds between status-file updates and the log's route counter lines; default 10")
+    run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"], help="default info")
+    run.add_argument("--log-format", default="text", choices=["text", "json"],
+                     help="text lines, or one JSON object per line (for a log collector); default text")
+    run.add_argument("--require-connections", action="store_true", help="exit 1 when a connection cannot be opened at start (default: retry it in the background while the other routes run)")
+    run.add_argument("--drain-timeout", type=float, default=10.0, metavar="SECONDS", help="seconds a stop (SIGTERM, SIGINT) waits for in-flight messages before requeueing the rest; default 10")
+    parser.run_parser = run
+
+    check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
+    common(check)
+    check.add_argument("--local-broker", action="store_true",
+                       help="check as run --local-broker would load the routes: warn about connections that name another broker")
+
+    test = commands.add_parser(
+        "test", help="run the *.test.yaml cases through the routes' conversion, connecting to nothing; "
+        "exit 0 when all pass, 1 when one fails, 2 when a route or test file is invalid")
+    common(test)
+
+    status = commands.add_parser("status", help="the live status of a running engine: a table from its admin endpoint, or the JSON of its status file")
+    where = status.add_mutually_exclusive_group(required=True)
+    where.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", help="the engine's --admin address")
+    where.add_argument("--status-file", type=Path, help="the engine's --status-file (printed as JSON)")
+    status.add_argument("--json", action="store_true", help="print the raw status document")
+    _client_access_options(status)
+
+    tap = commands.add_parser("tap", help="print, as JSON lines, every message through a route of a running engine; "
+                              "stderr says 'listening' once it is attached, exit 1 when the engine goes away")
+    tap.add_argument("route")
+    tap.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", required=True, help="the engine's --admin address")
+    tap.add_argument("--count", type=int, default=0, help="stop after this many messages (default: until interrupted)")
+    _client_access_options(tap)
+    return parser
+
+
+def _client_access_options(sub: argparse.ArgumentParser) -> None:
+    sub.add_argument("--admin-token-file", type=Path, metavar="FILE", help="the engine's --admin-token-file (sent as a bearer token)")
+    sub.add_argument("--admin-ca-file", type=Path, metavar="FILE",
+                     help="speak HTTPS to the admin endpoint and verify its certificate with this CA (PEM)")
+
+
+def _client(args: argparse.Namespace) -> AdminClient | int:
+    try:
+        return AdminClient.from_files(args.admin, args.admin_token_file, args.admin_ca_file)
+    except AdminConfigError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+
+
+def _admin_address(text: str) -> tuple[str, int]:
+    try:
+        return parse_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args_list = list(sys.argv[1:] if argv is None else argv)
+    if not any(arg in COMMANDS or arg in ("-h", "--help", "--version") for arg in args_list[:1]):
+        args_list.insert(0, "run")
+    args = build_parser().parse_args(args_list)
+    if args.command == "check":
+        if args.local_broker:  # the private brokers' URLs are not known before they start: stand-ins no route file names
+            stand_in_for_check()
+        return check(args.routes, args.schemas or default_schemas(args.routes))
+    if args.command == "test":
+        return run_route_tests(args.routes, args.schemas or default_schemas(args.routes))
+    if args.command == "status":
+        if args.admin:
+            client = _client(args)
+            return client if isinstance(client, int) else print_status(args.admin, args.json, client)
+        try:
+            print(args.status_file.read_text(), end="")
+        except OSError as exc:
+            print(f"{args.status_file}: {exc.strerror}", file=sys.stderr)
+            return 1
+        return 0
+    if args.command == "tap":
+        client = _client(args)
+        return client if isinstance(client, int) else print_tap(args.admin, args.route, args.count, client)
+    listener = setup_logging(args.log_level, args.log_format)
+    try:
+        return run_loop(run(args))
+    finally:
+        listener.stop()
+
+
+def check(routes: Path, schemas: Path) -> int:
+    try:
+        config, cases, problems, warnings = load_checked(routes, SchemaRegistry(schemas))
+    except Exception as error:  # what the loader did not foresee still gets one line, not a traceback
+        print(f"{routes}: cannot load: {type(error).__name__}: {error}", file=sys.stderr)
+        return 1
+    shown = [(p.file, p.line, str(p)) for p in problems] + [(w.file, w.line, f"{w.file}:{w.line}: warning: {w.message}") for w in warnings]
+    for _, _, line in sorted(shown):  # every problem and warning of the run, in file order
+        print(line, file=sys.stderr)
+    if config is None or problems:
+        return 1
+    tests = f", {len(cases)} tests" if cases else ""
+    print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections{tests}, config {config.content_hash}: ok")
+    return 0
+
+
+def run_route_tests(routes: Path, schemas_dir: Path) -> int:
+    """``rabbitros-engine test``: one line per case, a diff per failure; 0 pass, 1 fail, 2 invalid."""
+    schemas = SchemaRegistry(schemas_dir)
+    config, cases, problems, _ = load_checked(routes, schemas)
+    for problem in problems:
+        print(problem, file=sys.stderr)
+    if config is None or problems:
+        return 2
+    if not cases:
+        print(f"{routes}: no tests (add *.test.yaml files beside the routes)", file=sys.stderr)
+        return 2
+    failed = 0
+    for result in run_tests(cases, config, schemas):
+        failed += not result.passed
+        print("\n".join(format_result(result)), flush=True)
+    print(f"{len(cases) - failed} passed, {failed} failed")
+    return 1 if failed else 0
+
+
+async def run(args: argparse.Namespace) -> int:
+    started: list[PrivateBroker] = []
+    access = None
+    if args.admin:
+        try:
+            access = admin_access(args.admin[0], args.admin_token_file, args.admin_tls_cert, args.admin_tls_key)
+        except AdminConfigError as exc:
+            log.error("admin endpoint refused", extra={"error": str(exc)})
+            return 2
+    if args.cluster < 1 or (args.cluster > 1 and not args.local_broker):
+        log.error("--cluster N needs --local-broker and N >= 1")
+        return 2
+    if args.local_broker_tls and not args.local_broker:
+        log.error("--local-broker-tls needs --local-broker")
+        return 2
+    try:
+        if args.local_broker:
+            try:
+                brokers = private_brokers(args.cluster, _protocols_used(args), tls=args.local_broker_tls)
+            except BrokerError as exc:
+                log.error("local broker refused", extra={"error": str(exc)})
+                return 2
+            for broker in brokers:
+                try:
+                    await asyncio.to_thread(broker.start)
+                except BrokerError as exc:
+                    log.error("local broker failed to start", extra={"error": str(exc)})
+                    return 1
+                started.append(broker)
+                os.environ.update(broker.environment)
+            urls = [url for broker in started for url in broker.urls]
+            nodes = [node for broker in started for node in broker.nodes]
+            os.environ[LOCAL_BROKER_ENV] = ", ".join(nodes)  # the loader warns about connections that go elsewhere
+            environment = {key: redact_urls(value) for broker in started for key, value in broker.environment.items()}
+            log.info("local broker started", extra={"urls": [redact_urls(u) for u in urls], "nodes": nodes, "environment": environment})
+            if args.broker_url_file:
+                _write_atomically(args.broker_url_file, "\n".join(urls) + "\n")
+        return await serve(args, access)
+    finally:
+        for broker in reversed(started):
+            await asyncio.to_thread(broker.stop)
+
+
+def _protocols_used(args: argparse.Namespace) -> set[str] | None:
+    """The protocols of the routes' connections (each protocol's private broker starts only
+    when used, unless it always does); None when the routes do not load (every broker)."""
+    saved = dict(os.environ)
+    try:
+        stand_in_for_check()
+        config = load_routes(args.routes, SchemaRegistry(args.schemas or default_schemas(args.routes)))
+    except (RoutesInvalid, OSError, EndpointError):
+        return None
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    return {connection.protocol for connection in config.connections.values()}
+
+
+async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> int:
+    engine = Engine(args.routes, args.schemas or default_schemas(args.routes), require_connections=args.require_connections,
+                    instance=args.instance)
+    admin = AdminServer(engine, *args.admin, access) if args.admin else None
+    if admin is not None:
+        try:
+            await admin.start()
+        except OSError as exc:
+            log.error("admin endpoint cannot listen", extra={"address": "%s:%s" % args.admin, "error": str(exc)})
+            return 1
+    try:
+        return await _serve(args, engine)
+    finally:
+        if admin is not None:
+            await admin.stop()
+
+
+async def _serve(args: argparse.Namespace, engine: Engine) -> int:
+    stopping = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    loop.add_signal_handler(signal.SIGINT, stopping.set)
+    loop.add_signal_handler(signal.SIGTERM, stopping.set)
+    try:
+        await engine.start()
+    except RoutesInvalid as invalid:
+        for problem in invalid.problems:
+            log.error("invalid routes", extra={"problem": str(problem)})
+        return 2
+    except EndpointError as error:
+        log.error("cannot start", extra={"error": str(error)})
+        await engine.stop(0.0)
+        return 1
+
+    reload_requested = asyncio.Event()
+    loop.add_signal_handler(signal.SIGHUP, reload_requested.set)
+
+    async def reloader() -> None:
+        while True:
+            await reload_requested.wait()
+            reload_requested.clear()
+            try:
+                await engine.reload()
+            except Exception:  # Engine.reload rejects what it can foresee; this loop must outlive the rest
+                log.exception("reload failed")
+            write_status()
+
+    def write_status() -> None:
+        if args.status_file:
+            _write_atomically(args.status_file, json.dumps(status_document(engine), indent=2, default=str) + "\n")
+
+    async def reporter() -> None:
+        while True:
+            engine.observers.sample()
+            write_status()
+            await asyncio.sleep(args.stats_interval)
+            for name, route in engine.status()["routes"].items():
+                log.info("route counters", extra={"route": name, **{k: route[k] for k in (*COUNTERS, "dead_lettered")}})
+
+    tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
+    if not args.no_watch:
+        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dir, engine.key_files)))
+    log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__, "instance": engine.instance})
+    await stopping.wait()
+    log.info("stopping: draining in-flight messages", extra={"drain_timeout": args.drain_timeout})
+    for task in tasks:
+        task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+    await engine.stop(args.drain_timeout)
+    write_status()
+    log.info("stopped")
+    return 0
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.", delete=False) as tmp:
+        tmp.write(text)
+    os.replace(tmp.name, path)

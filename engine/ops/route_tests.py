@@ -1,0 +1,332 @@
+"""Route tests without any middleware: ``*.test.yaml`` cases run through the compiled conversion.
+
+A case gives a source message and what the route must make of it. It runs through the very
+:class:`~engine.running.pipeline.Pipeline` the engine runs (decode, mapping, schema, sink mapping),
+then through a dry run of the sink that renders the routing key or topic and, for typed
+sinks, builds the ROS or MAVLink message from the sink mapping's fields, so a mismatch the
+sink would reject is caught too. Nothing connects to anything: a route whose connection URL
+points nowhere tests the same. ``vector test`` and ``rpk connect test`` are the models.
+
+Test files live beside the routes (``routes/*.test.yaml``, or ``farm.test.yaml`` beside a
+single ``farm.yaml``); the route loader never reads them as routes, ``check`` validates them.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping
+
+import jsonschema
+
+from engine import endpoints
+from engine.common.schemas import SchemaRegistry
+from engine.common.suggest import did_you_mean
+from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound, Sink
+from engine.language.route_yaml import Problem, parse_document
+from engine.language.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes, source_meta_names
+from engine.language.stores import Stores
+from engine.running.pipeline import ConversionError, Pipeline
+from engine.running.replies import ReplyFailed
+
+STAGES = ("input", "decode", "mapping", "schema", "sink mapping", "sink", "reply mapping", "reply schema")
+"""Where a message can be rejected, in pipeline order; ``expect_error`` names one."""
+
+TEST_FILE_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "RabbitROS engine route tests",
+    "type": "object",
+    "additionalProperties": False,
+    "required": ["tests"],
+    "properties": {
+        "tests": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": ["route"],
+                "properties": {
+                    "name": {"type": "string"},
+                    "route": {"type": "string"},
+                    "input": {"description": "the source message: a JSON document, or the field dict of a typed source"},
+                    "input_raw": {"type": "string", "description": "the source bytes as they are (not JSON-encoded)"},
+                    "meta": {"type": "object", "description": "the source's metadata of the message, read by meta(name) "
+                                                              "(routing_key, topic, system_id...)"},
+                    "remembered": {"type": "object", "description": "what the stores hold for this case, read by recall(): "
+                                                                    "{STORE: {KEY: value}}, or {STORE: value} for a store without per"},
+                    "expect": {"description": "the canonical message"},
+                    "ignore": {"type": "array", "items": {"type": "string"}, "description": "keys (a.b) left out"},
+                    "expect_sink": {"description": "the sink mapping's output"},
+                    "expect_routing_key": {"type": "string", "description": "the rendered routing key or topic"},
+                    "expect_error": {"enum": list(STAGES)},
+                    "response": {"description": "the sink's answer to the request, which the route's reply: mapping reads "
+                                                "(what each sink answers: route-language.md, Calls)"},
+                    "expect_reply": {"description": "the reply body the route makes of response"},
+                },
+            },
+        }
+    },
+}
+_VALIDATOR = jsonschema.Draft202012Validator(TEST_FILE_SCHEMA)
+_EXPECTATIONS = ("expect", "expect_sink", "expect_routing_key", "expect_reply")
+
+
+def test_files(routes: Path) -> list[Path]:
+    """``*.test.yaml`` of a routes directory; for a single route file, ``<stem>.test.yaml`` beside it."""
+    if routes.is_file():
+        stem = routes.name.rsplit(".", 1)[0]
+        return [p for p in (routes.with_name(f"{stem}.test.yaml"), routes.with_name(f"{stem}.test.yml")) if p.is_file()]
+    if not routes.is_dir():
+        return []
+    return sorted(p for pattern in ("*.test.yaml", "*.test.yml") for p in routes.glob(pattern)
+                  if p.is_file() and not p.name.startswith("."))
+
+
+@dataclass
+class Case:
+    file: str
+    line: int
+    route: str
+    name: str
+    body: dict[str, Any]
+
+    @property
+    def where(self) -> str:
+        return f"{self.file}:{self.line}"
+
+
+@dataclass
+class Result:
+    case: Case
+    passed: bool
+    reason: str = ""
+    diff: list[str] = field(default_factory=list)
+
+
+def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str] | None = None) -> tuple[list[Case], list[Problem]]:
+    """Every case of every test file, and every problem (``file:line: message``) with them.
+    With ``config``, cases must name one of its routes."""
+    env = os.environ if env is None else env
+    cases: list[Case] = []
+    problems: list[Problem] = []
+    for path in test_files(routes):
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            problems.append(Problem(str(path), 0, f"cannot read: {exc}"))
+            continue
+        document = parse_document(str(path), text, env, problems, _VALIDATOR)
+        if document is None:
+            continue
+        for index, body in enumerate(document.data.get("tests") or ()):
+            where = ("tests", index)
+            line = document.line(where)
+            route = body["route"]
+            before = len(problems)
+            if "input" in body and "input_raw" in body:
+                problems.append(document.problem(where + ("input_raw",), "give either input or input_raw, not both"))
+            elif "input" not in body and "input_raw" not in body:
+                problems.append(document.problem(where, f"test of route {route!r}: 'input' is required"))
+            expectations = [key for key in _EXPECTATIONS if key in body]
+            if "expect_error" in body and expectations:
+                problems.append(document.problem(where + (expectations[0],), f"{expectations[0]!r} and 'expect_error' exclude each other"))
+            elif "expect_error" not in body and not expectations:
+                problems.append(document.problem(where, f"test of route {route!r} expects nothing (expect, expect_sink, expect_routing_key or expect_error)"))
+            if ("response" in body) != ("expect_reply" in body or body.get("expect_error", "").startswith("reply")):
+                problems.append(document.problem(where, f"test of route {route!r}: 'response' and 'expect_reply' (or a reply "
+                                                        "expect_error) go together"))
+            if config is not None and route not in config.routes:
+                problems.append(document.problem(where + ("route",), f"unknown route {route!r}{did_you_mean(route, config.routes)}"))
+            elif config is not None:
+                problems.extend(document.problem(where + ("meta", key), message)
+                                for key, message in _meta_key_problems(config.routes[route], body.get("meta") or {}))
+                known = store_keys(config)
+                problems.extend(document.problem(where + ("remembered", name), f"remembered: no route remembers into store "
+                                                 f"{name!r}{did_you_mean(name, known) or ' (stores: ' + (', '.join(known) or 'none') + ')'}")
+                                for name in body.get("remembered") or {} if name not in known)
+            if len(problems) == before:
+                cases.append(Case(str(path), line, route, body.get("name", ""), body))
+    return cases, problems
+
+
+def _meta_key_problems(spec: RouteSpec, meta: Mapping[str, Any]) -> Iterator[tuple[str, str]]:
+    """A case's ``meta`` keys the route's source never gives, or that the route fixes itself
+    (its template variables)."""
+    given_by_source = source_meta_names(spec.source, {})
+    for key in meta:
+        if key in spec.variables:
+            yield key, f"meta {key!r} is a template variable of route {spec.name!r} ({spec.variables[key]!r}): the route sets it, a test cannot"
+        elif key not in given_by_source:
+            hint = did_you_mean(key, given_by_source) or f" (it gives {', '.join(given_by_source) or 'none'})"
+            yield key, f"meta {key!r}: the {spec.source.protocol} source of route {spec.name!r} gives no {key!r}{hint}"
+
+
+def load_checked(routes: Path, schemas: SchemaRegistry) -> tuple[RoutesConfig | None, list[Case], list[Problem], list[Problem]]:
+    """The routes and their tests, as ``check`` and ``test`` see them: the config (None when
+    the routes do not compile), the cases, every problem of both, sorted, and the routes'
+    warnings (given whether or not they compile)."""
+    try:
+        config = load_routes(routes, schemas)
+    except RoutesInvalid as invalid:
+        _, problems = load_tests(routes, None)
+        return None, [], sorted(invalid.problems + problems), invalid.warnings
+    cases, problems = load_tests(routes, config)
+    return config, cases, problems, list(config.warnings)
+
+
+class DrySink(Sink):
+    """Stands in for the route's sink; the pipeline never calls it."""
+
+    async def send(self, message: Outbound) -> None:  # pragma: no cover - never called
+        raise EndpointError("a route test does not deliver")
+
+
+def store_keys(config: RoutesConfig) -> dict[str, bool]:
+    """Each store some route remembers into, and whether it is keyed (``per``)."""
+    return {route.remember.store: route.remember.per is not None
+            for route in config.routes.values() if route.remember is not None}
+
+
+def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mapping[str, bool] | None = None) -> Result:
+    """``keyed``: each store's ``per`` given or not (:func:`store_keys`), to read the case's
+    ``remembered``; every case starts with stores holding only that, and ``sequence()`` at 1."""
+    schema = schemas.get(spec.schema)
+    assert schema is not None  # the route compiled
+    reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
+    stores = Stores.given(case.body.get("remembered") or {}, keyed or {})
+    pipeline = Pipeline.compile(spec, 0, schema, DrySink(), reply_schema, stores)
+    body = case.body
+    expected_error = body.get("expect_error")
+    reply: Any = None
+    try:
+        inbound = source_message(spec, body)
+        outbound = pipeline.convert(inbound)
+        destination = dry_run_sink(spec)(outbound)
+        if "response" in body:
+            try:
+                reply = json.loads(pipeline.reply_shape.body(body["response"]))
+            except ReplyFailed as failed:
+                raise ConversionError(failed.stage, failed.error) from None
+    except ConversionError as error:
+        if expected_error == error.stage:
+            return Result(case, True)
+        want = f"expected a {expected_error} error" if expected_error else "expected it to pass"
+        return Result(case, False, f"{want}, got a {error.stage} error: {error.detail}")
+    if expected_error:
+        return Result(case, False, f"expected a {expected_error} error, but the message converted",
+                      _diff({"error": expected_error}, {"canonical": _plain(outbound.canonical), "routing_key": destination}))
+    ignore = body.get("ignore") or ()
+    failures: list[tuple[str, list[str]]] = []
+    if "expect" in body:
+        want, got = _without(body["expect"], ignore), _without(_plain(outbound.canonical), ignore)
+        if not same(want, got):
+            failures.append(("canonical message differs", _diff(want, got)))
+    if "expect_sink" in body:
+        want, got = _without(body["expect_sink"], ignore), _without(_plain(outbound.fields), ignore)
+        if not same(want, got):
+            failures.append(("sink mapping output differs", _diff(want, got)))
+    if "expect_reply" in body:
+        want, got = _without(body["expect_reply"], ignore), _without(reply, ignore)
+        if not same(want, got):
+            failures.append(("reply differs", _diff(want, got)))
+    if "expect_routing_key" in body and body["expect_routing_key"] != destination:
+        failures.append((f"routing key/topic is {destination!r}, expected {body['expect_routing_key']!r}", []))
+    if failures:
+        return Result(case, False, "; ".join(reason for reason, _ in failures), [line for _, diff in failures for line in diff])
+    return Result(case, True)
+
+
+def source_message(spec: RouteSpec, body: Mapping[str, Any]) -> Inbound:
+    """The message as the route's source would hand it over: bytes for byte sources, and for
+    typed sources the field dict after a round trip through the real type (so defaults fill
+    in and a field the type lacks is an ``input`` error, as on the wire)."""
+    meta = {"test": True, **(body.get("meta") or {})}
+    if "input_raw" in body:
+        return Inbound(body=body["input_raw"].encode("utf-8"), meta=meta)
+    value = body["input"]
+    typed = _typed_source(spec)
+    if typed is None:
+        return Inbound(body=json.dumps(value, ensure_ascii=False).encode("utf-8"), meta=meta)
+    try:
+        return Inbound(fields=typed(value), meta=meta)
+    except (EndpointError, ValueError, TypeError) as exc:
+        raise ConversionError("input", f"not a valid source message: {exc}") from None
+
+
+def _typed_source(spec: RouteSpec) -> Callable[[Any], dict[str, Any]] | None:
+    return endpoints.transport(spec.source.protocol).test_input(spec.source.options)
+
+
+def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
+    """What the sink would do short of sending (its transport's ``sink_dry_run``): the
+    rendered routing key or topic, and for a typed sink the message built from the fields;
+    what the sink would refuse is an error of the stage it names (``sink`` by default)."""
+    dry_run = endpoints.transport(spec.sink.protocol).sink_dry_run(spec.name, spec.sink.options)
+
+    def sink(outbound: Outbound) -> str | None:
+        try:
+            return dry_run(outbound)
+        except MessageRejected as exc:
+            raise ConversionError(exc.stage, str(exc)) from None
+
+    return sink
+
+
+def run_tests(cases: list[Case], config: RoutesConfig, schemas: SchemaRegistry) -> Iterator[Result]:
+    keyed = store_keys(config)
+    for case in cases:
+        yield run_case(case, config.routes[case.route], schemas, keyed)
+
+
+def format_result(result: Result, base: Path | None = None) -> list[str]:
+    case = result.case
+    label = f"{case.route}" + (f": {case.name}" if case.name else "")
+    if result.passed:
+        return [f"ok    {case.where}  {label}"]
+    lines = [f"FAIL  {case.where}  {label}: {result.reason}"]
+    lines.extend("      " + line for line in result.diff)
+    return lines
+
+
+def same(expected: Any, actual: Any) -> bool:
+    """Equal as JSON, numbers within 1e-9 (relative) so float arithmetic in a mapping
+    (``90.00000000000001``) does not fail a test, NaN equal to NaN (``.nan`` in YAML: what
+    ``nan()`` gives a MAVLink sink); booleans are not numbers."""
+    if isinstance(expected, dict) and isinstance(actual, dict):
+        return expected.keys() == actual.keys() and all(same(v, actual[k]) for k, v in expected.items())
+    if isinstance(expected, list) and isinstance(actual, list):
+        return len(expected) == len(actual) and all(same(a, b) for a, b in zip(expected, actual))
+    numbers = (int, float)
+    if (isinstance(expected, numbers) and isinstance(actual, numbers)
+            and not isinstance(expected, bool) and not isinstance(actual, bool)):
+        return math.isclose(expected, actual, rel_tol=1e-9, abs_tol=1e-12) or (expected != expected and actual != actual)
+    return type(expected) is type(actual) and expected == actual
+
+
+def _plain(value: Any) -> Any:
+    """What the message is as JSON (tuples become lists, and so on)."""
+    return json.loads(json.dumps(value, default=str))
+
+
+def _without(value: Any, ignore: Any) -> Any:
+    value = copy.deepcopy(value)
+    for dotted in ignore:
+        *parents, last = dotted.split(".")
+        target = value
+        for key in parents:
+            target = target.get(key) if isinstance(target, dict) else None
+        if isinstance(target, dict):
+            target.pop(last, None)
+    return value
+
+
+def _diff(expected: Any, actual: Any) -> list[str]:
+    def lines(value: Any) -> list[str]:
+        return json.dumps(value, indent=2, sort_keys=True, ensure_ascii=False).splitlines()
+
+    return list(difflib.unified_diff(lines(expected), lines(actual), "expected", "actual", lineterm="", n=2))
