@@ -148,10 +148,3 @@ def render_keys(route_file_schema: dict[str, Any]) -> str:
         out.extend(f"| {' | '.join(row)} |" for row in section.rows)
         out.append("")
     return "\n".join(out)
-
-
-def documented_keys(route_file_schema: dict[str, Any]) -> list[str]:
-    """Every key path of the schema, as the reference names them (``routes[].sink.mavlink.retries``)."""
-    renderer = _Renderer()
-    renderer.section(route_file_schema, "")
-    return [f"{s.path}.{row[0].strip('`').split('`')[0]}".lstrip(".") for s in renderer.sections for row in s.rows]

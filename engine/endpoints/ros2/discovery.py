@@ -85,11 +85,6 @@ def pattern_problem(topic: str) -> str | None:
     return None
 
 
-def sample_topic(topic: str) -> str:
-    """``topic`` with each variable replaced by a valid token, for rcl's name checks."""
-    return _replace_variables(topic)[0]
-
-
 def _replace_variables(topic: str) -> tuple[str, dict[str, str]]:
     markers: dict[str, str] = {}
 
