@@ -26,6 +26,7 @@ from typing import Any
 
 import aio_pika
 
+from bench import probes
 from bench.roundtrip_ros2 import make_message
 from engine.endpoints.amqp.broker import LocalBroker
 from engine.endpoints.base import Inbound, Outbound
@@ -92,18 +93,15 @@ async def scenario(
                 for name in results:
                     results[name][size] = []
                 for run in range(runs):
-                    runners = [engine.runners[name] for name in results]
-                    for runner in runners:
-                        runner.latency_samples = []
+                    recorded = [probes.latency(engine.runners[name]) for name in results]
                     for seq in range(count):
                         await exchange.publish(aio_pika.Message(make_message(run + 1, size, seq)), "l1")
                         await asyncio.sleep(1 / rate)
                     deadline = time.monotonic() + 10
-                    while any(len(r.latency_samples or []) < count for r in runners) and time.monotonic() < deadline:
+                    while any(len(probe.samples) < count for probe in recorded) and time.monotonic() < deadline:
                         await asyncio.sleep(0.05)
-                    for name, runner in zip(results, runners):
-                        results[name][size].extend(ns / 1e6 for ns in runner.latency_samples or [])
-                        runner.latency_samples = None
+                    for name, probe in zip(results, recorded):
+                        results[name][size].extend(ns / 1e6 for ns in probe.detach())
                 if parts is not None:
                     for name in results:
                         parts.setdefault(name, {})[size] = await parts_alone(engine.runners[name], seen[name], count, rate)

@@ -146,27 +146,23 @@ def _rss_kib() -> int:
 # ---------------------------------------------------------------- the engine
 
 async def engine(args: dict[str, Any]) -> None:
+    from bench import probes
     from engine.running.runtime import Engine
 
     bridge = Engine(Path(args["routes"]), REPO / "schemas")
     began = time.perf_counter()
     await bridge.start()
     print(f"started {time.perf_counter() - began:.4f} {_rss_kib()}", flush=True)
-    if args.get("latency_out"):
-        for runner in bridge.runners.values():
-            runner.latency_samples = []
-    if args.get("handed_out"):  # reception to the sink (without the sink's own wait): bench/fleet.py
-        for runner in bridge.runners.values():
-            runner.send_samples = []
+    latency = {name: probes.latency(runner) for name, runner in bridge.runners.items()} if args.get("latency_out") else {}
+    # reception to the sink (without the sink's own wait): bench/fleet.py
+    handed = {name: probes.handed(runner) for name, runner in bridge.runners.items()} if args.get("handed_out") else {}
     try:
         await _until_stopped()
     finally:
         if args.get("latency_out"):
-            samples = {name: getattr(runner, "latency_samples", None) or [] for name, runner in bridge.runners.items()}
-            Path(args["latency_out"]).write_text(json.dumps(samples))
+            Path(args["latency_out"]).write_text(json.dumps({name: probe.samples for name, probe in latency.items()}))
         if args.get("handed_out"):
-            handed = {name: getattr(runner, "send_samples", None) or [] for name, runner in bridge.runners.items()}
-            Path(args["handed_out"]).write_text(json.dumps(handed))
+            Path(args["handed_out"]).write_text(json.dumps({name: probe.samples for name, probe in handed.items()}))
         if args.get("publish_out"):  # each AMQP connection's publishes and the rounds that carried them
             rounds = {connection.name: {key: health[key] for key in ("published", "publish_rounds")}
                       for protocol, connection in bridge.open_connections() if protocol == "amqp"

@@ -101,12 +101,6 @@ class RouteRunner:
         """The source's then the sink's connection: kept open while the runner lives."""
         self.lease: Any = None
         """The broker lease of an ``active_standby`` route: only its holder forwards."""
-        self.latency_samples: list[int] | None = None
-        """Set to a list to record every message's reception-to-acceptance time (benchmarks)."""
-        self.send_samples: list[int] | None = None
-        """Set to a list to record every message's reception-to-sink time, each time it is
-        handed to its sink (benchmarks: the engine's own share, without the sink's wait for
-        the broker's confirm or the vehicle's acknowledgement)."""
         self.observer = host.observers.get(spec.name)
         """The route's one set of counters, and its taps (engine/running/observe.py)."""
         self.observer.generation = lambda: self.pipeline.generation
@@ -283,9 +277,6 @@ class RouteRunner:
             pending = self._fresh(pending, settled)
             if not pending:
                 return
-            if self.send_samples is not None:
-                handed = time.monotonic_ns()
-                self.send_samples.extend(handed - message.inbound.received_ns for message in pending)
             results = await pipeline.sink.send_batch([message.outbound for message in pending])  # type: ignore[misc]
             # whether the sink can take messages now matters only for a failure (see _sent): a
             # batch that all went out does not ask again (a ROS 2 sink's readiness is an rcl
@@ -364,10 +355,7 @@ class RouteRunner:
             self._expired_call(outbound)
 
     def _accepted(self, inbound: Inbound, outbound: Outbound) -> None:
-        latency = time.monotonic_ns() - inbound.received_ns
-        if self.latency_samples is not None:
-            self.latency_samples.append(latency)
-        self.observer.accepted(inbound, outbound, latency)
+        self.observer.accepted(inbound, outbound, time.monotonic_ns() - inbound.received_ns)
 
     def _ready_now(self, pipeline: Pipeline) -> bool:
         """What :meth:`_sink_ready` answers when it need not wait: asked first, inline, as the
