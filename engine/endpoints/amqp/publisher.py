@@ -9,7 +9,7 @@ wake-up and one socket write each) and a confirm wait of its own.
 Measured on bench/fleet.py (bench/results/2026-11-23/fleet-v2/, the machine shared, load
 average 4-9): 25 robots and 25 vehicles, before / after in interleaved runs, telemetry end to
 end p50 229-1,446 ms / 4-6 ms, p99 1.8-2.9 s / 0.14-0.34 s (after: with the ROS 2 waiter's
-kept wait set, engine/endpoints/ros2/transport.py); the full fleet (2,100 msg/s) 335-351 µs / 193-196 µs of engine CPU per message.
+kept wait set, engine/endpoints/ros2/waiter.py); the full fleet (2,100 msg/s) 335-351 µs / 193-196 µs of engine CPU per message.
 
 So a route's ``publish`` only queues its messages and its future; the first one queued in a
 loop turn schedules a *round* for the next turn, which takes everything queued meanwhile
