@@ -179,7 +179,7 @@ async def _aiormq_consumer(args: dict[str, Any], handle_batch: Any) -> Any:
     import aiormq
 
     connection = await aiormq.connect(args["url"])
-    # the engine's sources buffer 300 frames (engine/endpoints/amqp/transport.py FRAME_BUFFER:
+    # the engine's sources buffer 300 frames (engine/endpoints/amqp/source.py FRAME_BUFFER:
     # aiormq's default of 10 let a drain reach the consumer 3 messages at a time); the
     # reference asks the same through aiormq's public argument, so neither is held to the default
     channel = await connection.channel(frame_buffer_size=300)

@@ -1,6 +1,6 @@
 """An AMQP source holds the acknowledgement of what its route settled across batches and sends
-one ``basic_ack(multiple=True)`` for many of them (engine/endpoints/amqp/transport.py,
-``AmqpSource._acknowledge``): a quarter of the prefetch at a time, when the source goes idle,
+one ``basic_ack(multiple=True)`` for many of them (engine/endpoints/amqp/acks.py,
+``HeldAcks.acknowledge``): a quarter of the prefetch at a time, when the source goes idle,
 or when it stops. What it must keep: every message reaches the sink once and in order, none is
 acknowledged before its sink accepted it, and a stop leaves nothing settled unacknowledged
 (the broker would deliver it again to the next engine).
@@ -20,8 +20,8 @@ import pytest
 
 import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 
-from engine.endpoints.amqp.transport import AmqpSource
-import engine.endpoints.amqp.transport as amqp_transport
+import engine.endpoints.amqp.acks as amqp_acks
+from engine.endpoints.amqp.source import AmqpSource
 from engine.running.runtime import Engine
 from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.conftest import REPO
@@ -33,15 +33,15 @@ def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_res
     from tests.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
-    monkeypatch.setattr(amqp_transport, "ACK_IDLE_NS", 60_000_000_000)
-    monkeypatch.setattr(amqp_transport, "ACK_HOLD_NS", 60_000_000_000)
+    monkeypatch.setattr(amqp_acks, "ACK_IDLE_NS", 60_000_000_000)
+    monkeypatch.setattr(amqp_acks, "ACK_HOLD_NS", 60_000_000_000)
     tag = "k" + uuid.uuid4().hex[:8]
     queue = f"acks-{tag}"
     (tmp_path / "acks.yaml").write_text(amqp_to_ros2_routes("acks", queue, DOMAIN, tag, PREFETCH))
     frames: list[tuple[str, int, bool]] = []  # (ack or nack, delivery tag, multiple), in the order sent
     premature: list[tuple[int, int]] = []  # a tag acknowledged before the sink had accepted that many messages
     runners: list = []
-    settle_frame = amqp_transport._settle_frame
+    settle_frame = amqp_acks._settle_frame
 
     async def counted_frame(method, tag_, **kwargs):  # the real function, recorded
         frames.append((method.__name__, int(tag_), bool(kwargs.get("multiple"))))
@@ -50,7 +50,7 @@ def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_res
             premature.append((int(tag_), delivered))
         await settle_frame(method, tag_, **kwargs)
 
-    monkeypatch.setattr(amqp_transport, "_settle_frame", counted_frame)
+    monkeypatch.setattr(amqp_acks, "_settle_frame", counted_frame)
     alone: list[int] = []
     settle_alone = AmqpSource._settle_alone
 
@@ -84,7 +84,7 @@ def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_res
                     await wait_until(lambda: runner.observer.delivered == len(burst) + len(tail), 60, "the tail was not delivered")
                     await wait_until(lambda: len(received) == len(burst) + len(tail), 60, "the reader did not get them all")
                     source = runner.source
-                    held = source._acks_held
+                    held = source._acks.held
                     counters = runner.observer.counters()
             finally:
                 await engine.stop()  # sends what is held, then closes the channel

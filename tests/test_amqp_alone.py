@@ -1,5 +1,5 @@
 """An AMQP message that arrives alone is settled in its consumer callback, without the batch
-loop's wake-up (engine/endpoints/amqp/transport.py ``AmqpSource._on_message``): order,
+loop's wake-up (engine/endpoints/amqp/source.py ``AmqpSource._on_message``): order,
 acknowledgement after the sink accepted, and the route's counters stay the batch loop's.
 
 The hard case is a message alone whose sink cannot take it yet (a ROS 2 topic no reader has
@@ -17,7 +17,7 @@ import pytest
 
 import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 
-from engine.endpoints.amqp.transport import ALONE_GAP_NS, AmqpSource
+from engine.endpoints.amqp.source import ALONE_GAP_NS, AmqpSource
 from engine.running.runtime import Engine
 from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.conftest import REPO

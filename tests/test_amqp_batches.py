@@ -1,6 +1,6 @@
 """A queue's backlog reaches an AMQP route in large batches, not 3 messages at a time: the
 source's channel holds more frames between aiormq's connection reader and its channel reader
-than aiormq's default of 10 (engine/endpoints/amqp/transport.py ``FRAME_BUFFER``). With 10, a
+than aiormq's default of 10 (engine/endpoints/amqp/source.py ``FRAME_BUFFER``). With 10, a
 drain was taken exactly 3.3 messages (10 frames) per batch, each batch paying the route's
 per-batch costs; every message must still arrive once and in order."""
 
@@ -15,7 +15,7 @@ import pytest
 
 import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 
-from engine.endpoints.amqp.transport import FRAME_BUFFER, AmqpSource
+from engine.endpoints.amqp.source import FRAME_BUFFER, AmqpSource
 from engine.running.runtime import Engine
 from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.conftest import REPO

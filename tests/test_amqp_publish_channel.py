@@ -1,5 +1,5 @@
 """The connection's publish channel outlives a broker's channel error (reviewer's finding on
-engine/endpoints/amqp/transport.py): another client deletes an exchange one route publishes
+engine/endpoints/amqp/link.py): another client deletes an exchange one route publishes
 to, the broker closes the shared publish channel (404 NOT_FOUND), and every other route of
 the connection keeps delivering; the route whose exchange went delivers again once the
 engine declared it anew, and nothing is lost on either.

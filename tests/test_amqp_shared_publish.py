@@ -96,7 +96,7 @@ def test_frames_are_pamqps_bytes() -> None:
     from pamqp.header import ContentHeader
 
     from engine.endpoints.amqp.publisher import _frames
-    from engine.endpoints.amqp.transport import PublishProperties
+    from engine.endpoints.amqp.sink import PublishProperties
 
     def pamqps(channel: int, frame_max: int, exchange: str, key: str, body: bytes, properties: spec.Basic.Properties) -> bytes:
         """The encoding the publisher used before: pamqp's, after its own check of the key."""
@@ -132,7 +132,7 @@ def test_a_channel_closed_before_its_confirms_fails_every_route_of_the_round(amq
     does not exist): every route of that round hears a failure naming its exchange and key,
     none is left waiting; the next round fetches the reopened channel and is confirmed."""
     from engine.endpoints.amqp.publisher import SharedPublisher
-    from engine.endpoints.amqp.transport import PublishProperties
+    from engine.endpoints.amqp.sink import PublishProperties
 
     tag = uuid.uuid4().hex[:8]
     exchange, missing = f"shared-ok-{tag}", f"shared-missing-{tag}"

@@ -35,7 +35,7 @@ from engine.endpoints.base import EndpointError, MessageRejected, late_window
 
 
 class Channels(Protocol):
-    """What the caller needs of its connection (engine/endpoints/amqp/transport.py's AmqpConnection)."""
+    """What the caller needs of its connection (engine/endpoints/amqp/link.py's AmqpLink)."""
 
     def channel_factory(self) -> aio_pika.abc.AbstractRobustConnection: ...
 

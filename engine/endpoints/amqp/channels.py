@@ -1,7 +1,7 @@
 """Plain (not robust) channels, opened within a bound.
 
 The engine opens its own channels where aio-pika's robust restore would race it (the publish
-channel, the declare channel: engine/endpoints/amqp/transport.py; the calls channel:
+channel, the declare channel: engine/endpoints/amqp/link.py; the calls channel:
 engine/endpoints/amqp/calls.py) and opens them again itself. aio-pika's
 ``Channel.initialize(timeout=...)`` ignores its timeout (aio-pika 10.2 calls ``_open()`` without
 it), so a broker that never answers Channel.Open (a connection blocked by a resource alarm)

@@ -1,6 +1,6 @@
 """The AMQP endpoint's options, declared once (engine/common/options.py): connection, source, sink.
 
-Apart from engine/endpoints/amqp/transport.py so the cluster helpers (cluster.py, topology.py)
+Apart from the endpoint (link.py, source.py, sink.py) so the cluster helpers (cluster.py, topology.py)
 can use them without importing the endpoint itself.
 """
 

@@ -1,6 +1,6 @@
 """AMQP topology follows the configuration: what a retired source leaves behind goes.
 
-A source declares its queue and binds it when it starts (engine/endpoints/amqp/transport.py). When a
+A source declares its queue and binds it when it starts (engine/endpoints/amqp/source.py). When a
 route is removed, or its source replaced (say its ``binding_key`` changed), the broker would
 otherwise keep the old binding for ever: messages published with the old key keep flowing,
 and a removed route's durable queue fills. So, once the old source has stopped:
