@@ -78,9 +78,9 @@ def test_mavlink_failures_map_through_its_one_table() -> None:
     from engine.endpoints.mavlink.links import SerialLink
     from engine.endpoints.mavlink.settings import parse_address
 
-    lost = edge_error("write to /dev/ttyUSB0 failed", OSError(errno.EIO, "Input/output error"))
+    lost = edge_error(OSError(errno.EIO, "Input/output error"), "write to /dev/ttyUSB0 failed")
     assert type(lost) is EndpointError and str(lost) == "write to /dev/ttyUSB0 failed: Input/output error"
-    assert type(edge_error("COMMAND_LONG: cannot encode", struct.error("ushort format requires 0 <= number <= 65535"))) \
+    assert type(edge_error(struct.error("ushort format requires 0 <= number <= 65535"), "COMMAND_LONG: cannot encode")) \
         is MessageRejected
     link = SerialLink(parse_address("/dev/rabbitros-no-such-radio", 57600), lambda data, peer: None, {})
     with pytest.raises(EndpointError, match="cannot open /dev/rabbitros-no-such-radio: No such file or directory") as raised:

@@ -172,7 +172,7 @@ class SerialLink(Link):
                 await self._writable(fd)
             except OSError as exc:
                 self._lost()
-                raise edge_error(f"write to {self.address.device} failed", exc) from None
+                raise edge_error(exc, f"write to {self.address.device} failed") from None
 
     async def _writable(self, fd: int) -> None:
         loop = asyncio.get_running_loop()
@@ -238,7 +238,7 @@ class UdpLink(Link):
             else:
                 transport, protocol = await loop.create_datagram_endpoint(lambda: _Datagrams(self), remote_addr=where)
         except OSError as exc:
-            raise edge_error(f"cannot open {self.address.kind}:{where[0]}:{where[1]}", exc) from None
+            raise edge_error(exc, f"cannot open {self.address.kind}:{where[0]}:{where[1]}") from None
         with contextlib.suppress(OSError, AttributeError):
             transport.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
         self._transport = transport
@@ -306,7 +306,7 @@ class TcpLink(Link):
                 reader, writer = await asyncio.open_connection(host, port)
                 self._spawn(self._client(reader, writer))
         except OSError as exc:
-            raise edge_error(f"cannot open {self.address.kind}:{host}:{port}", exc) from None
+            raise edge_error(exc, f"cannot open {self.address.kind}:{host}:{port}") from None
 
     @property
     def ready(self) -> bool:

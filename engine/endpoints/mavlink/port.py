@@ -258,7 +258,7 @@ class MavlinkPort:
             except Exception as exc:  # pymavlink struct errors: this message can never be sent
                 self.stats["send_errors"] += 1
                 if not future.done():
-                    future.set_exception(edge_error(f"{msg.get_type()}: cannot encode", exc))
+                    future.set_exception(edge_error(exc, f"{msg.get_type()}: cannot encode"))
                 continue
             target = getattr(msg, "target_system", 0)
             try:
