@@ -329,7 +329,7 @@ class Sink(ABC):
     :attr:`Deliver.batches_in_flight`). With 1 the source hands the next batch only once the
     sink accepted the previous one, so the sink idles for its own acceptance round trip
     between batches. A sink that takes long to accept but can send more meanwhile declares
-    more: the JSON tunnel over a radio (engine/endpoints/mavlink/tunnel.py) accepts a message
+    more: the JSON tunnel over a radio (engine/endpoints/mavlink/tunnel/sink.py) accepts a message
     only when the vehicle acknowledged it (a TDM round and more; seconds when a last fragment
     or its acknowledgement was lost), and measured on the emulated SiK radio the radio stood
     idle for that long after every batch (bench/results/2026-11-23/goodput/)."""

@@ -1,7 +1,7 @@
 """MAVLink 2 (pymavlink's dialect, our own asyncio link): the transport (transport.py, the
 registry's face, which says how the endpoint works) and its parts, one module per concern
 (options.py, errors.py, settings.py, links.py, port.py, connection.py, messages.py,
-command.py, mission.py, tunnel.py, ...; transport.py lists them). Besides ``TRANSPORT``, the
+command.py, mission.py, tunnel/, ...; transport.py lists them). Besides ``TRANSPORT``, the
 package names what tests, benches and the simulator build messages and links with."""
 
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, field_specs, mavlink2, message_fields

@@ -61,7 +61,7 @@ class MavlinkSigning:
 @dataclass(frozen=True, kw_only=True)
 class MavlinkTunnel:
     """JSON-over-TUNNEL protocol tuning; an absent value takes the link's default
-    (engine/endpoints/mavlink/tunnel.py ``TunnelSettings``: a SiK radio needs patience)."""
+    (engine/endpoints/mavlink/tunnel/hub.py ``TunnelSettings``: a SiK radio needs patience)."""
 
     __schema_description__ = "tuning of JSON over TUNNEL (json_tunnel routes); an absent value takes the link's default"
 
