@@ -29,6 +29,13 @@ PRIVATE_BROKERS: dict[str, str] = {
 ``private_broker(cluster)`` and ``CHECK_ENV``. Imported only under ``--local-broker``."""
 
 
+def protocol_of(connection: object) -> str | None:
+    """The protocol whose package made ``connection`` (by the module of its class), or None."""
+    module = type(connection).__module__
+    return next((protocol for protocol, package in _MODULES.items()
+                 if module == package or module.startswith(package + ".")), None)
+
+
 def transport(protocol: str) -> Transport:
     try:
         module = importlib.import_module(_MODULES[protocol])

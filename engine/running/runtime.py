@@ -139,7 +139,7 @@ class Engine:
     def open_connections(self) -> list[tuple[str, Connection]]:
         """``(protocol, connection)`` of every connection the engine holds (open or being retried)."""
         specs = self.config.connections if self.config is not None else {}
-        return [(specs[c.name].protocol if c.name in specs else type(c).__module__.rsplit(".", 1)[-1], c)
+        return [(specs[c.name].protocol if c.name in specs else endpoints.protocol_of(c) or type(c).__name__, c)
                 for _, c in self.connections.items()]
 
     def compile(self) -> tuple[RoutesConfig, SchemaRegistry]:
