@@ -12,6 +12,7 @@ _MODULES = {
     "ros2": "engine.endpoints.ros2",
     "mavlink": "engine.endpoints.mavlink",
     "mqtt": "engine.endpoints.mqtt",
+    "zenoh": "engine.endpoints.zenoh",
     "memory": "engine.endpoints.memory",
 }
 PROTOCOLS: tuple[str, ...] = tuple(_MODULES)

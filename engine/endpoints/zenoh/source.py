@@ -1,0 +1,110 @@
+"""Zenoh source: one subscriber on the route's key expression, messages handed to the route in batches.
+
+Each sample becomes a message with its payload's bytes untouched, ``meta('key')`` (the key it
+was put on), ``meta('encoding')``, and one ``meta(name)`` per ``{name}`` capture of the key
+(keys.py). Samples come on Zenoh's threads into a bounded queue (handoff.py); one task hands
+everything queued to the route as one batch.
+
+Zenoh's pub/sub keeps no message for a subscriber and has no acknowledgement: a message the
+route did not settle (only while it stops) is gone, and counted as dropped, as a ROS 2 topic's
+is. The route therefore holds messages in its buffer while its sink is down
+(``Transport.redelivers`` is False). A DELETE sample (a ``delete`` on a key) carries no
+payload and is skipped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from typing import Any
+
+import zenoh
+
+from engine.endpoints.base import Deliver, EndpointError, Inbound, Source
+from engine.endpoints.zenoh.errors import mapped
+from engine.endpoints.zenoh.handoff import Handoff
+from engine.endpoints.zenoh.keys import parse_pattern
+from engine.endpoints.zenoh.options import ZenohSourceOptions
+from engine.endpoints.zenoh.session import ZenohLink
+
+log = logging.getLogger("engine.zenoh")
+
+BATCH = 1024
+"""Most messages handed to the route in one ``Deliver.batch`` (as the ROS 2 and MAVLink sources)."""
+
+
+class ZenohSource(Source):
+    def __init__(self, connection: ZenohLink, route: str, options: ZenohSourceOptions) -> None:
+        self._connection = connection
+        self.route = route
+        self._where = f"route {route!r}: zenoh source {options.key!r}"
+        try:
+            self.pattern = parse_pattern(options.key)
+        except ValueError as exc:
+            raise EndpointError(f"{self._where}: {exc}") from None
+        self._handoff: Handoff[Inbound] | None = None
+        self._subscriber: Any = None
+        self._loop: asyncio.Task[None] | None = None
+        self._reported_drops = 0
+        self.received = 0
+        self.dropped = 0
+
+    async def start(self, deliver: Deliver) -> None:
+        handoff: Handoff[Inbound] = Handoff(asyncio.get_running_loop(), deliver.queue_limit, deliver.overflow)
+        self._handoff = handoff
+        captured, encoding_text = self.pattern.captured, str
+
+        def on_sample(sample: zenoh.Sample) -> None:  # a Zenoh thread
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            key = str(sample.key_expr)
+            meta: dict[str, Any] = {"key": key, "encoding": encoding_text(sample.encoding)}
+            meta.update(captured(key))
+            handoff.put(Inbound(body=sample.payload.to_bytes(), meta=meta))
+
+        with mapped(f"{self._where}: subscribe"):
+            self._subscriber = self._connection.session.declare_subscriber(self.pattern.subscription, on_sample)
+        self._loop = asyncio.create_task(self._run(deliver), name=f"zenoh-source:{self.route}")
+
+    async def _run(self, deliver: Deliver) -> None:
+        handoff = self._handoff
+        assert handoff is not None
+        while batch := await handoff.take(BATCH):
+            self.received += len(batch)
+            self._report_drops(deliver)
+            try:
+                settled = await deliver.batch(batch)
+            except Exception as exc:  # a bug in the engine: Zenoh cannot redeliver, count the loss
+                log.exception("%s: settling a batch failed", self._where, exc_info=exc)
+                settled = [False] * len(batch)
+            lost = settled.count(False)
+            if lost:
+                self.dropped += lost
+                deliver.dropped(lost)
+            if len(handoff):  # a backlog must not hold the loop from other routes
+                await asyncio.sleep(0)
+        self._report_drops(deliver)
+
+    def _report_drops(self, deliver: Deliver) -> None:
+        """Count the messages the queue dropped since the last report (overflow)."""
+        handoff = self._handoff
+        if handoff is not None and handoff.dropped != self._reported_drops:
+            increase, self._reported_drops = handoff.dropped - self._reported_drops, handoff.dropped
+            self.dropped += increase
+            deliver.dropped(increase)
+
+    async def stop(self) -> None:
+        """Undeclare the subscriber, settle what was queued, then end."""
+        subscriber, self._subscriber = self._subscriber, None
+        if subscriber is not None:
+            try:
+                await asyncio.to_thread(subscriber.undeclare)
+            except Exception as exc:  # a closed session undeclared it already
+                log.debug("%s: undeclare: %s", self._where, exc)
+        if self._handoff is not None:
+            self._handoff.close()
+        if self._loop is not None:
+            await self._loop
+
+    def status(self) -> dict[str, Any]:
+        return {"subscription": self.pattern.subscription, "received": self.received, "dropped": self.dropped}
