@@ -379,3 +379,45 @@ def test_captures_are_read_from_their_place_in_the_key() -> None:
     assert pattern.subscription == "farm/*/*/**"  # Zenoh's canon form of farm/*/**/*
     assert pattern.captured("farm/r1/a/b/lidar") == {"robot": "r1", "sensor": "lidar"}
     assert parse_pattern("**/{robot}/weather").captured("x/y/r2/weather") == {"robot": "r2"}
+
+
+# ------------------------------------------------------------------------------ as an operator runs it
+
+def test_an_engine_process_carries_zenoh_and_stops_cleanly(tmp_path: Path, peer: Peer) -> None:
+    """``rabbitros-engine`` as a child process (tests/engine_process.py): samples put on
+    {tag}/in come back on {tag}/out through the engine's own session, its status file shows
+    the connection up, and SIGTERM ends it with status 0 (Zenoh's runtime threads do not hold
+    the exit)."""
+    from tests.engine_process import EngineProcess
+
+    tag = "z" + uuid.uuid4().hex[:8]
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text(f"""
+connections:
+  field: {connection_yaml(peer)}
+routes:
+  - name: echo-{tag}
+    source: {{zenoh: {{key: "{tag}/in"}}}}
+    schema: raw_json
+    sink: {{zenoh: {{key: "{tag}/out"}}}}
+""")
+    subscriber = peer.collect(f"{tag}/out")
+    publisher = peer.session.declare_publisher(f"{tag}/in")
+    engine = EngineProcess(routes, tmp_path / "status.json", {})
+
+    async def scenario() -> None:
+        await until_matched(publisher, "the engine's subscriber", timeout=60)
+        for n in range(20):
+            publisher.put(json.dumps({"n": n}).encode())
+        await wait_for(lambda: len(peer.samples) >= 20, 30, "20 echoed samples")
+        await wait_for(lambda: ((engine.status() or {}).get("routes", {}).get(f"echo-{tag}", {}).get("delivered") == 20), 10,
+                       "the status file's count")
+
+    try:
+        _, status = engine.run(scenario)
+    finally:
+        subscriber.undeclare()
+        publisher.undeclare()
+    assert [json.loads(body)["n"] for _, body in peer.samples] == list(range(20))
+    assert status["connections"]["field"]["state"] == "up", status["connections"]

@@ -87,18 +87,31 @@ class QuerySource(Source):
         return Inbound(body=json.dumps(dict(iter(parameters))).encode(), meta=meta)
 
     async def _run(self, deliver: Deliver) -> None:
-        handoff = self._handoff
-        assert handoff is not None
-        while batch := await handoff.take(BATCH):
-            self.counters["queries"] += len(batch)
+        """Read, have the route settle, settle (as the engine's own read loop will call them)."""
+        while batch := await self.read_batch():
             try:
-                settled = await deliver.batch(batch)
+                settled = await deliver.batch(self.inbounds(batch))
             except Exception as exc:  # a bug in the engine must not leave queriers waiting
                 log.exception("%s: settling a batch failed", self._where, exc_info=exc)
                 settled = [False] * len(batch)
-            for inbound, done in zip(batch, settled):
-                if not done:
-                    self._end(str(inbound.meta["reply_to"]), "not settled (the route is stopping)")
+            await self.settle(batch, settled)
+
+    async def read_batch(self) -> list[Inbound]:
+        handoff = self._handoff
+        assert handoff is not None
+        batch = await handoff.take(BATCH)
+        self.counters["queries"] += len(batch)
+        return batch
+
+    @staticmethod
+    def inbounds(batch: list[Inbound]) -> list[Inbound]:
+        return batch
+
+    async def settle(self, batch: list[Inbound], settled: list[bool]) -> None:
+        """A query the route did not settle (it is stopping) is answered with an error now."""
+        for inbound, done in zip(batch, settled):
+            if not done:
+                self._end(str(inbound.meta["reply_to"]), "not settled (the route is stopping)")
 
     async def reply(self, meta: Mapping[str, Any], kind: str, body: bytes) -> None:
         token = str(meta["reply_to"])

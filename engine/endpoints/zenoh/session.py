@@ -66,6 +66,8 @@ class ZenohLink(Connection):
         self._needs_transport = options.mode == "client" or bool(options.connect)
         self._state = "connecting"
         self._last_error: str | None = None
+        self._generation = 0
+        """Counts sessions opened and closed: a transport event of an earlier session is stale."""
 
     # -- health
 
@@ -86,8 +88,11 @@ class ZenohLink(Connection):
             self._state = "reconnecting"
             self._last_error = f"no open transport to any of {', '.join(self.settings.connect) or 'the routers'}"
 
-    def _transport_event(self, opened: bool, zid: str) -> None:
-        """On the loop: a transport to ``zid`` opened or closed."""
+    def _transport_event(self, generation: int, opened: bool, zid: str) -> None:
+        """On the loop: a transport of session ``generation`` to ``zid`` opened or closed
+        (possibly before :meth:`open` has the session: the listener reports history at once)."""
+        if generation != self._generation:
+            return
         (self._transports.add if opened else self._transports.discard)(zid)
         self._judge()
 
@@ -99,12 +104,15 @@ class ZenohLink(Connection):
         if self._session is not None:
             return
         loop = asyncio.get_running_loop()
+        self._generation += 1
+        self._transports.clear()
+        generation = self._generation
 
         def event(change: Any) -> None:  # a Zenoh thread
             opened = change.kind == zenoh.SampleKind.PUT
             zid = str(change.transport.zid)
             try:
-                loop.call_soon_threadsafe(self._transport_event, opened, zid)
+                loop.call_soon_threadsafe(self._transport_event, generation, opened, zid)
             except RuntimeError:  # the loop is closed
                 pass
 
@@ -140,6 +148,7 @@ class ZenohLink(Connection):
     async def close(self) -> None:
         session, self._session = self._session, None
         self._state = "down"
+        self._generation += 1
         self._transports.clear()
         if session is None:
             return

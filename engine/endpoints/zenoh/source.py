@@ -43,6 +43,7 @@ class ZenohSource(Source):
         except ValueError as exc:
             raise EndpointError(f"{self._where}: {exc}") from None
         self._handoff: Handoff[Inbound] | None = None
+        self._deliver: Deliver | None = None
         self._subscriber: Any = None
         self._loop: asyncio.Task[None] | None = None
         self._reported_drops = 0
@@ -51,7 +52,7 @@ class ZenohSource(Source):
 
     async def start(self, deliver: Deliver) -> None:
         handoff: Handoff[Inbound] = Handoff(asyncio.get_running_loop(), deliver.queue_limit, deliver.overflow)
-        self._handoff = handoff
+        self._handoff, self._deliver = handoff, deliver
         captured, encoding_text = self.pattern.captured, str
 
         def on_sample(sample: zenoh.Sample) -> None:  # a Zenoh thread
@@ -67,23 +68,40 @@ class ZenohSource(Source):
         self._loop = asyncio.create_task(self._run(deliver), name=f"zenoh-source:{self.route}")
 
     async def _run(self, deliver: Deliver) -> None:
-        handoff = self._handoff
-        assert handoff is not None
-        while batch := await handoff.take(BATCH):
-            self.received += len(batch)
-            self._report_drops(deliver)
+        """Read, have the route settle, settle: the read loop's three steps, as the engine's
+        own loop (issue 30) will call them."""
+        while batch := await self.read_batch():
             try:
-                settled = await deliver.batch(batch)
+                settled = await deliver.batch(self.inbounds(batch))
             except Exception as exc:  # a bug in the engine: Zenoh cannot redeliver, count the loss
                 log.exception("%s: settling a batch failed", self._where, exc_info=exc)
                 settled = [False] * len(batch)
-            lost = settled.count(False)
-            if lost:
-                self.dropped += lost
-                deliver.dropped(lost)
-            if len(handoff):  # a backlog must not hold the loop from other routes
-                await asyncio.sleep(0)
+            await self.settle(batch, settled)
         self._report_drops(deliver)
+
+    async def read_batch(self) -> list[Inbound]:
+        """Everything queued (at most BATCH), once there is something; [] once stopped."""
+        handoff, deliver = self._handoff, self._deliver
+        assert handoff is not None and deliver is not None
+        batch = await handoff.take(BATCH)
+        self.received += len(batch)
+        self._report_drops(deliver)
+        return batch
+
+    @staticmethod
+    def inbounds(batch: list[Inbound]) -> list[Inbound]:
+        return batch
+
+    async def settle(self, batch: list[Inbound], settled: list[bool]) -> None:
+        """A message not settled is lost (Zenoh keeps nothing to redeliver): counted."""
+        deliver, handoff = self._deliver, self._handoff
+        assert deliver is not None and handoff is not None
+        lost = settled.count(False)
+        if lost:
+            self.dropped += lost
+            deliver.dropped(lost)
+        if len(handoff):  # a backlog must not hold the loop from other routes
+            await asyncio.sleep(0)
 
     def _report_drops(self, deliver: Deliver) -> None:
         """Count the messages the queue dropped since the last report (overflow)."""
