@@ -63,7 +63,7 @@ class QuerySource(Source):
 
     async def start(self, deliver: Deliver) -> None:
         handoff: Handoff[Inbound] = Handoff(asyncio.get_running_loop(), deliver.queue_limit, deliver.overflow,
-                                            on_drop=lambda inbound: self._end(inbound.meta["reply_to"], "the route's queue is full"))
+                                            on_drop=self._dropped)
         self._handoff = handoff
 
         def on_query(query: zenoh.Query) -> None:  # a Zenoh thread
@@ -74,6 +74,11 @@ class QuerySource(Source):
         with mapped(f"{self._where}: declare"):
             self._queryable = self._connection.session.declare_queryable(self.pattern.subscription, on_query)
         self._loop = asyncio.create_task(self._run(deliver), name=f"zenoh-queryable:{self.route}")
+
+    def _dropped(self, inbound: Inbound) -> None:
+        """A query the queue did not take (any thread): answered now, never left to time out."""
+        stopping = self._handoff is not None and self._handoff.closed
+        self._end(str(inbound.meta["reply_to"]), "the route is stopping" if stopping else "the route's queue is full")
 
     def _inbound(self, query: zenoh.Query, token: str) -> Inbound:
         key = str(query.key_expr)
@@ -155,14 +160,16 @@ class QuerySource(Source):
             pass
 
     async def stop(self) -> None:
+        """Take no more queries (those coming meanwhile get an error reply), undeclare the
+        queryable, settle what was queued, and end what is still waiting for an answer."""
+        if self._handoff is not None:
+            self._handoff.close()
         queryable, self._queryable = self._queryable, None
         if queryable is not None:
             try:
                 await asyncio.to_thread(queryable.undeclare)
             except Exception as exc:  # a closed session undeclared it already
                 log.debug("%s: undeclare: %s", self._where, exc)
-        if self._handoff is not None:
-            self._handoff.close()
         if self._loop is not None:
             await self._loop
         for token in list(self._pending):

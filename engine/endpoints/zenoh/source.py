@@ -53,13 +53,13 @@ class ZenohSource(Source):
     async def start(self, deliver: Deliver) -> None:
         handoff: Handoff[Inbound] = Handoff(asyncio.get_running_loop(), deliver.queue_limit, deliver.overflow)
         self._handoff, self._deliver = handoff, deliver
-        captured, encoding_text = self.pattern.captured, str
+        captured = self.pattern.captured
 
         def on_sample(sample: zenoh.Sample) -> None:  # a Zenoh thread
             if sample.kind != zenoh.SampleKind.PUT:
                 return
             key = str(sample.key_expr)
-            meta: dict[str, Any] = {"key": key, "encoding": encoding_text(sample.encoding)}
+            meta: dict[str, Any] = {"key": key, "encoding": str(sample.encoding)}
             meta.update(captured(key))
             handoff.put(Inbound(body=sample.payload.to_bytes(), meta=meta))
 
@@ -112,15 +112,18 @@ class ZenohSource(Source):
             deliver.dropped(increase)
 
     async def stop(self) -> None:
-        """Undeclare the subscriber, settle what was queued, then end."""
+        """Take no more samples, undeclare the subscriber, settle what was queued, then end.
+        The queue closes first: a callback waiting for room (``overflow: block``) is let go
+        (its sample dropped and counted), so undeclaring never waits on a route that cannot
+        take more (its sink down)."""
+        if self._handoff is not None:
+            self._handoff.close()
         subscriber, self._subscriber = self._subscriber, None
         if subscriber is not None:
             try:
                 await asyncio.to_thread(subscriber.undeclare)
             except Exception as exc:  # a closed session undeclared it already
                 log.debug("%s: undeclare: %s", self._where, exc)
-        if self._handoff is not None:
-            self._handoff.close()
         if self._loop is not None:
             await self._loop
 
