@@ -1,9 +1,9 @@
 """The Zenoh endpoint against real eclipse-zenoh peers opened by the test in its own process,
 with RabbitMQ (tests/conftest.py ``amqp_url``) and rclpy, the engine run in-process
-(engine.runtime.Engine) as tests/test_mqtt.py runs it.
+(engine.running.runtime.Engine) as tests/test_mqtt.py runs it.
 
 Every peer has multicast scouting off and is connected explicitly on tcp/127.0.0.1:PORT, its
-port drawn by engine.local_broker.listening_port, so parallel workers never meet. No fixed
+port drawn by engine.common.processes.listening_port, so parallel workers never meet. No fixed
 sleeps: a put waits until the engine's subscriber matches the test's publisher
 (``Publisher.matching_status``), a query until its queryable matches the querier, every
 other wait has a deadline.
@@ -21,8 +21,8 @@ import aio_pika
 import pytest
 import zenoh
 
-from engine.local_broker import listening_port
-from engine.runtime import Engine
+from engine.common.processes import listening_port
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector
 from tests.conftest import REPO
 from tests.faults_harness import wait_for

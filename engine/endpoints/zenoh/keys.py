@@ -1,6 +1,6 @@
 """Key expressions: a source's pattern with ``{name}`` captures, a sink's key template.
 
-Both are read by the engine's one template parser (engine.mapping.parse_template), so
+Both are read by the engine's one template parser (engine.common.placeholders.parse_template), so
 ``check`` and the run agree on every form. A source key ``farm/{robot}/weather`` subscribes
 to ``farm/*/weather`` and gives each message the chunk in that place as ``meta('robot')``; a
 capture is one whole chunk, takes no format spec (``{id:03d}`` is refused: a received key is
@@ -18,9 +18,9 @@ from typing import Any, Callable, Iterator
 
 import zenoh
 
+from engine.common.placeholders import MappingError, TemplateError, compile_template, parse_template, template_fields
 from engine.endpoints.base import MessageRejected
 from engine.endpoints.zenoh.errors import describe, rejected
-from engine.mapping import MappingError, TemplateError, compile_template, parse_template, template_fields
 
 RESERVED = frozenset({"key", "encoding", "parameters", "route", "generation", "test", "reply_to", "correlation_id",
                       "cancel", "message_id"})

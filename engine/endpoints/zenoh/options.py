@@ -1,4 +1,4 @@
-"""The Zenoh endpoint's options, declared once (engine/options.py): connection, source, sink.
+"""The Zenoh endpoint's options, declared once (engine/common/options.py): connection, source, sink.
 
 The descriptions are what editors show and what the generated key reference prints, so each
 says what the option does to the session or the messages, not only its type.
@@ -9,8 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from engine.common.options import option
 from engine.endpoints.base import EndpointOptions
-from engine.options import option
 
 Mode = Literal["peer", "client"]
 CongestionControl = Literal["block", "drop"]

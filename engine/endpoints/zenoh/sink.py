@@ -13,11 +13,11 @@ from __future__ import annotations
 
 from typing import Sequence
 
+from engine.common.schemas import SchemaError, canonical_bytes
 from engine.endpoints.base import MessageRejected, Outbound, Sink
 from engine.endpoints.zenoh.keys import key_renderer
 from engine.endpoints.zenoh.options import ZenohSinkOptions
 from engine.endpoints.zenoh.session import ZenohLink
-from engine.schemas import SchemaError, canonical_bytes
 
 
 class ZenohSink(Sink):

@@ -6,13 +6,13 @@ from __future__ import annotations
 import re
 from typing import Any, Callable, Iterable, Mapping
 
+from engine.common.placeholders import template_fields
 from engine.endpoints.base import CheckResult, Connection, Outbound, Transport, typed_or_problem
 from engine.endpoints.zenoh.connection import ZenohConnection
+from engine.endpoints.zenoh.errors import describe
 from engine.endpoints.zenoh.keys import key_renderer, key_variables, pattern_problems, template_problems
 from engine.endpoints.zenoh.options import ZenohConnectionOptions, ZenohSinkOptions, ZenohSourceOptions
 from engine.endpoints.zenoh.session import session_config
-from engine.endpoints.zenoh.errors import describe
-from engine.mapping import template_fields
 
 ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe|serial|vsock)/[^/\s]+")
 """A Zenoh locator: ``PROTOCOL/ADDRESS`` (``tcp/192.168.1.10:7447``, ``tcp/[::1]:7447``), then
