@@ -421,3 +421,63 @@ routes:
         publisher.undeclare()
     assert [json.loads(body)["n"] for _, body in peer.samples] == list(range(20))
     assert status["connections"]["field"]["state"] == "up", status["connections"]
+
+
+def test_a_client_goes_through_a_router_and_follows_it(tmp_path: Path) -> None:
+    """``mode: client`` reaches the other peers through a router: samples from a peer of the
+    router come back through the engine; the router gone, the connection is ``reconnecting``;
+    a router back on the same port, Zenoh reconnects the client, the engine's subscriber is
+    declared again, and samples flow again without the route restarting."""
+    tag = "z" + uuid.uuid4().hex[:8]
+    port = listening_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    (tmp_path / "r.yaml").write_text(f"""
+connections:
+  field: {{zenoh: {{mode: client, connect: ["{endpoint}"], multicast_scouting: false}}}}
+routes:
+  - name: echo-{tag}
+    source: {{zenoh: {{key: "{tag}/in"}}}}
+    schema: raw_json
+    sink: {{zenoh: {{key: "{tag}/out"}}}}
+""")
+
+    def router() -> zenoh.Session:
+        config = peer_config(listen=[endpoint])
+        config.insert_json5("mode", '"router"')
+        return zenoh.open(config)
+
+    async def echo_once(n: int) -> None:
+        client = await asyncio.to_thread(zenoh.open, peer_config(connect=[endpoint]))
+        got: list[bytes] = []
+        subscriber = client.declare_subscriber(f"{tag}/out", lambda s: got.append(s.payload.to_bytes()))
+        publisher = client.declare_publisher(f"{tag}/in")
+        try:
+            await until_matched(publisher, "the engine's subscriber through the router", timeout=30)
+            publisher.put(json.dumps({"n": n}).encode())
+            await wait_for(lambda: got == [json.dumps({"n": n}).encode()], 20, f"echo {n}")
+        finally:
+            subscriber.undeclare()
+            publisher.undeclare()
+            await asyncio.to_thread(client.close)
+
+    async def scenario() -> dict[str, Any]:
+        first = await asyncio.to_thread(router)
+        engine = Engine(tmp_path, REPO / "schemas")
+        await engine.start()
+        try:
+            await connection_state(engine, "field", "up")
+            await echo_once(1)
+            await asyncio.to_thread(first.close)
+            await connection_state(engine, "field", "reconnecting")
+            second = await asyncio.to_thread(router)
+            try:
+                await connection_state(engine, "field", "up", timeout=30)
+                await echo_once(2)
+            finally:
+                await asyncio.to_thread(second.close)
+            return engine.status()["routes"][f"echo-{tag}"]
+        finally:
+            await engine.stop()
+
+    route = asyncio.run(asyncio.wait_for(scenario(), 120))
+    assert route["delivered"] == 2 and route["generation"] == 1, route
