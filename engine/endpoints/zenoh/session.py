@@ -25,7 +25,7 @@ import zenoh
 
 from engine.endpoints.base import Connection, EndpointError, typed
 from engine.endpoints.zenoh.errors import describe, mapped
-from engine.endpoints.zenoh.options import ZenohConnectionOptions
+from engine.endpoints.zenoh.options import ZenohConnectionOptions, ZenohSinkOptions
 
 log = logging.getLogger("engine.zenoh")
 
@@ -167,7 +167,8 @@ class ZenohLink(Connection):
 
     # -- putting
 
-    async def put_batch(self, messages: Sequence[tuple[str, bytes]], options: Any, where: str) -> list[BaseException | None]:
+    async def put_batch(self, messages: Sequence[tuple[str, bytes]], options: ZenohSinkOptions,
+                        where: str) -> list[BaseException | None]:
         """Put ``(key, payload)`` in order, in one worker thread; ``result[i]`` is None once
         message i was queued for sending, else its edge error."""
         try:

@@ -56,7 +56,7 @@ class ZenohTransport(Transport):
             try:
                 session_config(options)
             except Exception as exc:  # ZError (malformed) or OSError (unreadable)
-                yield "config_file", f"{options.config_file}: {describe(exc)}"
+                yield "config_file", f"config_file {options.config_file}: {describe(exc)}"
 
     def source_problems(self, options: ZenohSourceOptions, mapping: str | None) -> CheckResult:
         for message in pattern_problems(options.key):
