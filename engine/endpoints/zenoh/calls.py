@@ -153,9 +153,14 @@ class QuerySource(Source):
 
     @staticmethod
     def _finish(query: zenoh.Query) -> None:
-        """Finalize: the querier's ``get`` ends once every queryable it reached dropped its query."""
+        """Finalize: the querier's ``get`` ends once every queryable it reached let go of its
+        query: ``drop()`` where the library has it (1.0 has not: there the last reference going,
+        ours, as the caller took it out of ``_pending``, does it)."""
+        drop = getattr(query, "drop", None)
+        if drop is None:
+            return
         try:
-            query.drop()
+            drop()
         except zenoh.ZError:
             pass
 

@@ -6,8 +6,10 @@ closes the session, and follows its transports for health. Health follows the se
 connection that must reach someone (a client, or a peer with ``connect`` endpoints) is
 ``up`` while at least one transport is open, ``reconnecting`` while none is (its sinks then
 hold their messages instead of putting them into the void); a peer that only listens or
-scouts is ``up`` once open, as nobody in particular is missing. Transport events come on a
-Zenoh thread and are handed to the event loop.
+scouts is ``up`` once open, as nobody in particular is missing. The transports are counted
+every HEALTH_POLL seconds (``SessionInfo.routers_zid`` and ``peers_zid``, 4 us a count here):
+stable since eclipse-zenoh 1.0, where the transport events listener is recent and marked
+unstable.
 
 The library's calls are blocking: opening a peer whose ``connect`` endpoint is down waits
 half a second, closing waits for the links to end, and a put with ``block`` waits while the
@@ -29,6 +31,8 @@ from engine.endpoints.zenoh.options import ZenohConnectionOptions, ZenohSinkOpti
 
 log = logging.getLogger("engine.zenoh")
 
+HEALTH_POLL = 0.2
+"""Seconds between two counts of the session's transports (the engine's own health poll)."""
 OPEN_TIMEOUT = 30.0
 """Seconds for ``zenoh.open`` (a peer waits for its connect endpoints' first attempt only)."""
 CONGESTION = {"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP}
@@ -60,14 +64,12 @@ class ZenohLink(Connection):
         shown = ", ".join((*(f"connect {e}" for e in options.connect), *(f"listen {e}" for e in options.listen)))
         self.where = f"zenoh connection {name!r} ({options.mode}{': ' + shown if shown else ''})"
         self._session: zenoh.Session | None = None
-        self._listener: Any = None
-        self._transports: set[str] = set()
-        """The zenoh ids of the peers and routers with an open transport."""
+        self._watch: asyncio.Task[None] | None = None
+        self._transports = 0
+        """Peers and routers with an open transport, at the last count."""
         self._needs_transport = options.mode == "client" or bool(options.connect)
         self._state = "connecting"
         self._last_error: str | None = None
-        self._generation = 0
-        """Counts sessions opened and closed: a transport event of an earlier session is stale."""
 
     # -- health
 
@@ -77,24 +79,27 @@ class ZenohLink(Connection):
 
     def health(self) -> dict[str, Any]:
         return {"state": self._state, "last_error": self._last_error, "mode": self.settings.mode,
-                "transports": len(self._transports)}
+                "transports": self._transports}
 
     def _judge(self) -> None:
-        if self._session is None:
+        session = self._session
+        if session is None:
             return
+        info = session.info
+        self._transports = len(info.routers_zid()) + len(info.peers_zid())
         if self._transports or not self._needs_transport:
             self._state = "up"
         else:
             self._state = "reconnecting"
             self._last_error = f"no open transport to any of {', '.join(self.settings.connect) or 'the routers'}"
 
-    def _transport_event(self, generation: int, opened: bool, zid: str) -> None:
-        """On the loop: a transport of session ``generation`` to ``zid`` opened or closed
-        (possibly before :meth:`open` has the session: the listener reports history at once)."""
-        if generation != self._generation:
-            return
-        (self._transports.add if opened else self._transports.discard)(zid)
-        self._judge()
+    async def _watch_transports(self) -> None:
+        while self._session is not None:
+            try:
+                self._judge()
+            except zenoh.ZError as exc:  # the session closed under us
+                self._state, self._last_error = "down", describe(exc)
+            await asyncio.sleep(HEALTH_POLL)
 
     # -- opening and closing
 
@@ -103,39 +108,21 @@ class ZenohLink(Connection):
         all unreachable; the engine retries) and follow its transports."""
         if self._session is not None:
             return
-        loop = asyncio.get_running_loop()
-        self._generation += 1
-        self._transports.clear()
-        generation = self._generation
 
-        def event(change: Any) -> None:  # a Zenoh thread
-            opened = change.kind == zenoh.SampleKind.PUT
-            zid = str(change.transport.zid)
-            try:
-                loop.call_soon_threadsafe(self._transport_event, generation, opened, zid)
-            except RuntimeError:  # the loop is closed
-                pass
-
-        def opening() -> tuple[zenoh.Session, Any]:
+        def opening() -> zenoh.Session:
             with mapped(self.where):
-                session = zenoh.open(session_config(self.settings))
-                try:
-                    listener = session.info.declare_transport_events_listener(event, history=True)
-                except BaseException:
-                    session.close()
-                    raise
-                return session, listener
+                return zenoh.open(session_config(self.settings))
 
         try:
-            self._session, self._listener = await asyncio.wait_for(asyncio.to_thread(opening), OPEN_TIMEOUT)
+            self._session = await asyncio.wait_for(asyncio.to_thread(opening), OPEN_TIMEOUT)
         except (EndpointError, asyncio.TimeoutError) as error:
             self._state = "down"
             self._last_error = describe(error.__cause__ or error)
             if isinstance(error, asyncio.TimeoutError):
                 raise EndpointError(f"{self.where}: not open within {OPEN_TIMEOUT:.0f} s") from None
             raise
-        self._state = "connecting"
         self._judge()
+        self._watch = asyncio.create_task(self._watch_transports(), name=f"zenoh-health:{self.name}")
 
     @property
     def session(self) -> zenoh.Session:
@@ -148,20 +135,15 @@ class ZenohLink(Connection):
     async def close(self) -> None:
         session, self._session = self._session, None
         self._state = "down"
-        self._generation += 1
-        self._transports.clear()
+        self._transports = 0
+        if self._watch is not None:
+            self._watch.cancel()
+            await asyncio.gather(self._watch, return_exceptions=True)
+            self._watch = None
         if session is None:
             return
-
-        def closing() -> None:
-            try:
-                self._listener.undeclare()
-            except Exception:  # the session may be closed already
-                pass
-            session.close()
-
         try:
-            await asyncio.to_thread(closing)
+            await asyncio.to_thread(session.close)
         except Exception as exc:  # closing is best effort: the links end with the process anyway
             log.warning("closing the session failed", extra={"connection": self.name, "error": describe(exc)})
 
