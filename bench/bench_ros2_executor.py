@@ -93,6 +93,10 @@ class Meter:
     def dropped(self, count: int = 1) -> None:
         pass
 
+    def inbox(self, overflow: str) -> Any:
+        from engine.endpoints.base import Inbox
+        return Inbox(self.queue_limit, overflow)
+
     async def deliver(self, inbound: Any) -> None:
         now = time.perf_counter()
         if self.count == 0:

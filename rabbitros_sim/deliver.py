@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any, Awaitable, Callable, Sequence
 
-from engine.endpoints.base import Inbound
+from engine.endpoints.base import Inbound, Inbox
 
 
 class FunctionDeliver:
@@ -37,3 +37,7 @@ class FunctionDeliver:
 
     def dropped(self, count: int = 1) -> None:
         self.drops += count
+
+    def inbox(self, overflow: str) -> Inbox[Inbound]:
+        """One FIFO (a route without ``fair:``)."""
+        return Inbox(self.queue_limit, overflow)

@@ -161,13 +161,10 @@ GROUPS = ("engine.common", "engine.endpoints", "engine.language", "engine.runnin
 """The groups of engine/, bottom to top (see the module docstring)."""
 TOP_LEVEL = {"engine": "engine.common", "engine.__main__": "engine.ops"}
 """The package itself (its version) sits with the foundation; ``python -m engine`` with the CLI."""
-UPWARD_ALLOWED = {
-    ("engine.endpoints.mavlink.messages", "engine.running.fairness"),
-    ("engine.endpoints.ros2.source", "engine.running.fairness"),
-}
-"""Known imports against the direction, each to go: two sources build their fair inbox with
-``fairness.route_inbox`` because each source still runs its own read loop; issue 30's "the
-engine owns the read loop" removes them. Nothing may be added; a stale entry fails."""
+UPWARD_ALLOWED: set[tuple[str, str]] = set()
+"""Known imports against the direction, each to go (none left: the two sources that built
+their fair inbox with ``fairness.route_inbox`` ask their route, ``Deliver.inbox``). Nothing
+may be added; a stale entry fails."""
 
 
 def group_of(module: str) -> str | None:
@@ -216,6 +213,20 @@ def test_the_core_reaches_a_protocol_only_through_the_registry():
     found = sorted((importer, target) for importer, targets in graph().items() if group_of(importer) != "engine.endpoints"
                    for target in targets if group_of(target) == "engine.endpoints" and target not in contract)
     assert not found, f"the core imports a protocol package: {found}"
+
+
+ENGINE_POLICIES = ("fairness", "throttle")
+"""Core modules of the route's delivery policy: a route's ``fair:`` and ``throttle:`` are the
+engine's to apply; a source asks its route for its queue (``Deliver.inbox``) and runs the
+engine's read loop (engine/endpoints/pump.py), and never decides them itself."""
+
+
+def test_endpoints_leave_fairness_and_throttle_to_the_engine():
+    edges = graph()
+    found = sorted(f"{name} -> {target}" for name, targets in edges.items() if name.startswith("engine.endpoints.")
+                   for target in targets
+                   if not target.startswith("engine.endpoints.") and target.rpartition(".")[2] in ENGINE_POLICIES)
+    assert not found, "endpoints importing the engine's fairness or throttle:\n" + "\n".join(found)
 
 
 if __name__ == "__main__":  # python -m tests.test_import_graph: print the cycles

@@ -8,20 +8,31 @@ core has about a protocol (does its source redeliver, can it keep dead letters o
 lease, what does its sink do in a dry run, which fields does its source give) is a method or
 class attribute here: the core asks, and never names a protocol.
 
-Delivery contract: a :class:`Source` hands messages to the :class:`Deliver` it was started
-with, in batches (``await deliver.batch(inbounds)``, everything it has ready) or one at a
-time (``await deliver(inbound)``). Either returns once the messages are *settled*: accepted
-by the sink or dead-lettered. Which failures are retried and which are dead-lettered is
-decided by the engine (engine/running/delivery.py), never by a source or a sink: endpoints only
-raise :class:`EndpointError` (transient) or :class:`MessageRejected` (permanent) at the edge.
+Delivery contract: a :class:`Source` is started with a :class:`Deliver` (where its route's
+messages go, and its bounds) and reads its protocol with the engine's read loop
+(engine/endpoints/pump.py): it implements :class:`BatchReader` (read a batch, each item as an
+:class:`Inbound`, settle a batch once the route said which of it was settled) and runs
+``pump(reader, deliver, where)`` as its task; a source that must settle outside that loop (a
+message settled alone in its protocol's callback, a message several routes read at once)
+goes through ``pump.settle_batch``, which answers a failure of the engine itself as the loop does.
+The route settles a batch with ``deliver.batch(inbounds)`` (``await deliver(inbound)`` for
+one), which returns once the messages are *settled*: accepted by the sink or dead-lettered.
+A source that queues messages in the engine (a push protocol: ROS 2 takes, MAVLink frames)
+asks its route for that queue (:meth:`Deliver.inbox`): the route decides whether it is one
+FIFO or, with ``fair:``, one queue per agent; endpoints never import the engine's fairness
+or throttle (tests/test_import_graph.py checks). Which failures are retried and which are
+dead-lettered is decided by the engine (engine/running/delivery.py), never by a source or a
+sink: endpoints only raise :class:`EndpointError` (transient) or :class:`MessageRejected`
+(permanent) at the edge.
 A sink whose destination cannot take messages yet though its connection is up (a ROS 2 topic
 no subscriber has matched) says so with :attr:`Sink.ready`; the engine then holds the route's
 messages as it does while the connection is down: not sent, not acknowledged to the source,
 no delivery attempt spent, the reason (:meth:`Sink.not_ready_reason`) in the status.
-A message ``batch`` reports as not settled (or for which ``deliver`` raised) was not
-delivered - this happens only while the route stops, or when even the dead letters fail -
-and the source must let it be redelivered if it can (AMQP: nack with requeue); a source
-that cannot (ROS 2, MAVLink) counts it as dropped.
+A message ``batch`` reports as not settled was not delivered - this happens only while the
+route stops, when even the dead letters fail, or when the engine itself failed (then the
+whole batch is reported unsettled) - and the source's :meth:`BatchReader.settle` must let it
+be redelivered if it can (AMQP: nack with requeue; MQTT: tried again after a wait); a
+source that cannot (ROS 2, MAVLink) counts it as dropped.
 
 Reply contract (request/reply, issue 19): a source whose protocol can answer its sender (AMQP:
 ``reply_to`` and ``correlation_id``) puts a non-empty ``reply_to`` in ``Inbound.meta`` and
@@ -230,10 +241,11 @@ class Deliver(Protocol):
     def dropped(self, count: int = 1) -> None:
         """Count messages the source dropped (overflow, or not settled and not redeliverable)."""
 
-    def agent_dropped(self, agent: Any, count: int = 1) -> None:
-        """Count, per agent, messages a fair inbox dropped (engine/running/fairness.py; the source
-        counts them in :meth:`dropped` as well). A Deliver with a ``fair`` attribute (the
-        route's ``fair:`` options) gets a fair inbox from ``engine.running.fairness.route_inbox``."""
+    def inbox(self, overflow: str) -> Inbox[Inbound]:
+        """The queue a push source keeps the route's messages in, bounded by
+        :attr:`queue_limit`, dropping by ``overflow`` (the source may narrow the route's
+        :attr:`overflow`: a radio link cannot block). With the route's ``fair:`` it is one
+        queue per agent (engine/running/fairness.py), which counts per agent what it drops."""
 
 
 T = TypeVar("T")
@@ -300,6 +312,26 @@ class Inbox(Generic[T]):
 
     def __len__(self) -> int:
         return len(self.items)
+
+
+class BatchReader(Protocol[T]):
+    """What a source tells the engine's read loop (engine/endpoints/pump.py): ``T`` is what the
+    source reads from its protocol (a delivered frame with its tag, a decoded message)."""
+
+    async def read_batch(self) -> Sequence[T]:
+        """Wait for what is ready and return it (at most the source's bound); an empty batch
+        once the source was closed and holds nothing more: the loop ends."""
+        ...
+
+    def inbounds(self, batch: Sequence[T]) -> Sequence[Inbound]:
+        """The batch as the route takes it, in order (the batch itself where ``T`` is Inbound)."""
+        ...
+
+    async def settle(self, batch: Sequence[T], settled: list[bool]) -> None:
+        """Tell the protocol: ``settled[i]`` says whether ``batch[i]`` was settled. What is not
+        settled the source lets be redelivered if it can (a broker's requeue, tried again
+        later), else counts it with :meth:`Deliver.dropped` (or ends the call it carried)."""
+        ...
 
 
 class Source(ABC):
@@ -653,8 +685,8 @@ class Transport(ABC):
 
     def queues_per_agent(self, options: Any) -> bool:
         """Whether a source with these (typed) options queues its messages in the engine
-        (``engine.running.fairness.route_inbox``), where a route's ``fair:`` gives each agent its own
-        queue; False (the default): a broker holds the backlog, and ``fair`` is a check error."""
+        (:meth:`Deliver.inbox`), where a route's ``fair:`` gives each agent its own queue;
+        False (the default): a broker holds the backlog, and ``fair`` is a check error."""
         return False
 
     supports_ordered: ClassVar[bool] = False

@@ -28,7 +28,7 @@ from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable
 from typing import Any
 
-from engine.endpoints.base import Deliver, Inbound, Inbox
+from engine.endpoints.base import Inbound, Inbox
 from engine.language.stage_options import FairOptions
 
 class FairInbox(Inbox[Inbound]):
@@ -95,10 +95,11 @@ class FairInbox(Inbox[Inbound]):
         return self.count
 
 
-def route_inbox(deliver: Deliver, overflow: str) -> Inbox[Inbound]:
-    """The inbox a push source queues its route's messages in: one FIFO, or with the route's
-    ``fair:`` one queue per agent (a :class:`Deliver` without ``fair`` gets the FIFO)."""
-    fair: FairOptions | None = getattr(deliver, "fair", None)
+def route_inbox(fair: FairOptions | None, queue_limit: int, overflow: str,
+                agent_dropped: Callable[[Any, int], None]) -> Inbox[Inbound]:
+    """The inbox a push source queues its route's messages in (what the route answers
+    ``Deliver.inbox``): one FIFO of ``queue_limit``, or with the route's ``fair:`` one queue per
+    agent, whose drops are also counted per agent (``agent_dropped``)."""
     if fair is None:
-        return Inbox(deliver.queue_limit, overflow)
-    return FairInbox(fair, overflow, deliver.agent_dropped)
+        return Inbox(queue_limit, overflow)
+    return FairInbox(fair, overflow, agent_dropped)

@@ -36,11 +36,11 @@ from typing import TYPE_CHECKING, Any, Protocol, Sequence
 
 from engine.common.backoff import Backoff
 from engine.common.logs import ReportLimiter
-from engine.endpoints.base import Connection, Conflated, EndpointError, Inbound, MessageRejected, NotSent, Outbound, Source
-from engine.language.stage_options import FairOptions
+from engine.endpoints.base import Connection, Conflated, EndpointError, Inbound, Inbox, MessageRejected, NotSent, Outbound, Source
 from engine.running.buffer import Buffers, Held, HoldingBuffer, stats_dict
 from engine.running.dead_letters import DeadLetters, dead_letter_message
 from engine.running.delivery import HEALTH_POLL, Failure, classify, given_up, prior_attempts, retry_delay
+from engine.running.fairness import route_inbox
 from engine.running.observe import Observers
 from engine.running.pipeline import Pipeline
 from engine.running.replies import Replies
@@ -145,15 +145,12 @@ class RouteRunner:
 
     deliver = __call__
 
-    @property
-    def fair(self) -> FairOptions | None:
-        return self.spec.fair
-
     def dropped(self, count: int = 1) -> None:
         self.observer.dropped += count
 
-    def agent_dropped(self, agent: Any, count: int = 1) -> None:
-        self.observer.agent_dropped(agent, count)
+    def inbox(self, overflow: str) -> Inbox[Inbound]:
+        """The route's queue in its source: its ``fair:`` decides which (engine/running/fairness.py)."""
+        return route_inbox(self.spec.fair, self.queue_limit, overflow, self.observer.agent_dropped)
 
     async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
         """Take a batch through the stages; ``result[i]`` is True once ``inbounds[i]`` was
@@ -623,15 +620,11 @@ class StandbyGate:
     def batches_in_flight(self) -> int:
         return self.runner.batches_in_flight
 
-    @property
-    def fair(self) -> FairOptions | None:
-        return self.runner.fair
-
     def dropped(self, count: int = 1) -> None:
         self.runner.dropped(count)
 
-    def agent_dropped(self, agent: Any, count: int = 1) -> None:
-        self.runner.agent_dropped(agent, count)
+    def inbox(self, overflow: str) -> Inbox[Inbound]:
+        return self.runner.inbox(overflow)
 
     async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
         if not self.runner.lease.active:

@@ -23,7 +23,7 @@ from engine.endpoints.mavlink.command import AcknowledgedCommandSink, Encoder
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.mission import MissionUploadSink, Targets, mission_items, mission_target, refuse_unguessed
 from engine.endpoints.mavlink.transaction import TransactionOptions
-from engine.running.fairness import route_inbox
+from engine.endpoints.pump import pump
 
 if TYPE_CHECKING:
     from engine.endpoints.mavlink.options import MavlinkSinkOptions
@@ -45,8 +45,9 @@ log = logging.getLogger(__name__)
 class MessageSource(Source):
     """Decoded messages of one type (or all) as field dicts, filtered by sender.
 
-    The link's reader hands messages to a bounded :class:`~engine.endpoints.base.Inbox`
-    (``Deliver.queue_limit``) and one task settles them in batches. A radio link cannot be
+    The link's reader hands messages to the route's bounded inbox (``Deliver.inbox``: one
+    queue per agent with ``fair:``) and the engine's read loop (engine/endpoints/pump.py)
+    settles them in batches. A radio link cannot be
     paused and telemetry cannot be redelivered, so a full inbox drops: ``drop_newest`` keeps
     what is queued, ``drop_oldest`` keeps the freshest, and ``block`` (the engine's default)
     is treated as ``drop_oldest`` (stalling the reader would stall every route on the link).
@@ -71,11 +72,11 @@ class MessageSource(Source):
         self._drop_logged = 0.0
 
     async def start(self, deliver: Deliver) -> None:
-        overflow = "drop_oldest" if deliver.overflow == "block" else deliver.overflow
-        self._inbox = route_inbox(deliver, overflow)
+        self._inbox = deliver.inbox("drop_oldest" if deliver.overflow == "block" else deliver.overflow)
         self._deliver = deliver
         self.connection.listen(self.msg_id, self.offer, self.system_id)  # only its vehicle's, when it names one
-        self._task = asyncio.create_task(self._run(deliver), name=f"mavlink-source:{self.route}")
+        self._task = asyncio.create_task(pump(self, deliver, f"mavlink route {self.route!r}"),
+                                         name=f"mavlink-source:{self.route}")
 
     async def stop(self) -> None:
         """Stop listening, hand what is queued to the route (for at most :data:`STOP_DRAIN`
@@ -133,21 +134,20 @@ class MessageSource(Source):
             log.warning("mavlink route %r: queue full (%d, overflow %s), dropped %d messages so far",
                         self.route, self._inbox.limit, self._inbox.overflow, self.dropped)
 
-    async def _run(self, deliver: Deliver) -> None:
-        inbox = self._inbox
-        while batch := await inbox.take(BATCH):
-            try:
-                settled = await deliver.batch(batch)
-            except asyncio.CancelledError:
-                raise
-            except Exception as exc:  # a bug in the engine: telemetry cannot be redelivered, count it
-                log.exception("mavlink route %r: settling a batch failed: %s", self.route, exc)
-                settled = [False] * len(batch)
-            lost = settled.count(False)
-            if lost:
-                self._count_dropped(lost)
-            if len(inbox):  # a backlog must not hold the loop from other routes; an empty inbox waits in take()
-                await asyncio.sleep(0)  # (at a robot's pace a yield per message is a loop round trip for nothing)
+    async def read_batch(self) -> list[Inbound]:
+        """What the link's reader queued, up to :data:`BATCH`."""
+        return await self._inbox.take(BATCH)
+
+    def inbounds(self, batch: Sequence[Inbound]) -> Sequence[Inbound]:
+        return batch
+
+    async def settle(self, batch: Sequence[Inbound], settled: list[bool]) -> None:
+        """Telemetry cannot be redelivered: what the route did not settle is counted lost."""
+        lost = settled.count(False)
+        if lost:
+            self._count_dropped(lost)
+        if len(self._inbox):  # a backlog must not hold the loop from other routes; an empty inbox waits in take()
+            await asyncio.sleep(0)  # (at a robot's pace a yield per message is a loop round trip for nothing)
 
 
 class MessageSink(Sink):

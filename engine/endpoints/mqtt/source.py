@@ -2,12 +2,12 @@
 (PUBACK) once settled.
 
 Batch-shaped like the AMQP source: the connection's message callback only appends to this
-source's list; one loop hands everything received (up to half the connection's
-``receive_maximum``) to the route as one batch, then tells the connection which messages
-were settled, which acknowledges each once every route it went to has settled it. A
-message the route did not settle is tried again after a wait (engine/common/backoff.py), or, when
-the source stops, returned to the connection for the route's next source: MQTT has no way
-to hand a message back to the broker on a live connection.
+source's list; the engine's read loop (engine/endpoints/pump.py) hands everything received
+(up to half the connection's ``receive_maximum``) to the route as one batch, then the source
+tells the connection which messages were settled, which acknowledges each once every route it went
+to has settled it. A message the route did not settle is tried again after a wait
+(engine/common/backoff.py), or, when the source stops, returned to the connection for the route's
+next source: MQTT has no way to hand a message back to the broker on a live connection.
 
 QoS 1 messages are bounded by the broker's in-flight window (nothing more is sent until some
 are acknowledged); QoS 0 messages are not, and a QoS 0 source cannot hold the broker back, so
@@ -18,7 +18,7 @@ drop_oldest`` the oldest QoS 0 message) and counted.
 from __future__ import annotations
 
 import asyncio
-import logging
+from collections.abc import Sequence
 from typing import Any
 
 from engine.common.backoff import Backoff
@@ -26,11 +26,13 @@ from engine.endpoints.base import Deliver, Inbound, Inbox, Source
 from engine.endpoints.mqtt.link import MqttLink, Received
 from engine.endpoints.mqtt.options import MqttSourceOptions
 from engine.endpoints.mqtt.topics import matcher, subscription, subscription_id
-
-log = logging.getLogger("engine.mqtt")
+from engine.endpoints.pump import pump
 
 
 class MqttSource(Source):
+    """One subscription of a route; a :class:`~engine.endpoints.base.BatchReader` of what the
+    connection received for it."""
+
     def __init__(self, connection: MqttLink, route: str, options: MqttSourceOptions) -> None:
         self._connection = connection
         self.route = route
@@ -58,7 +60,8 @@ class MqttSource(Source):
         self._deliver = deliver
         self._limit = deliver.queue_limit
         self._drop_oldest = deliver.overflow == "drop_oldest"
-        self._loop = asyncio.create_task(self._run(deliver), name=f"mqtt-source:{self.route}")
+        where = f"route {self.route!r}, mqtt subscription {self.filter!r}"
+        self._loop = asyncio.create_task(pump(self, deliver, where), name=f"mqtt-source:{self.route}")
         try:
             await self._connection.register(self)
         except BaseException:
@@ -80,28 +83,30 @@ class MqttSource(Source):
         inbox.items.append(received)
         inbox.wake()
 
-    async def _run(self, deliver: Deliver) -> None:
+    async def read_batch(self) -> list[Received]:
+        """Everything received, up to half the connection's ``receive_maximum``."""
+        return await self._inbox.take(self._connection.max_batch)
+
+    def inbounds(self, batch: Sequence[Received]) -> list[Inbound]:
+        return [self._inbound(received) for received in batch]
+
+    async def settle(self, batch: Sequence[Received], settled: list[bool]) -> None:
+        """Settled messages are acknowledged through the connection; the rest are tried again
+        after a wait, or, once stopping, kept for :meth:`stop` to return to the connection."""
         connection = self._connection
-        while batch := await self._inbox.take(connection.max_batch):
-            inbounds = [self._inbound(received) for received in batch]
-            try:
-                settled = await deliver.batch(inbounds)
-            except Exception as exc:  # a bug in the engine must not lose messages: try them again
-                log.exception("route %r: settling a batch failed", self.route, exc_info=exc)
-                settled = [False] * len(batch)
-            again = []
-            for received, ok in zip(batch, settled):
-                if ok:
-                    connection.settled(received, self.route)
-                else:
-                    again.append(received)
-            if not again:
-                self._backoff.reset()
-            elif self._stopping:
-                self._returned.extend(again)
+        again = []
+        for received, ok in zip(batch, settled):
+            if ok:
+                connection.settled(received, self.route)
             else:
-                await asyncio.sleep(self._backoff.next())
-                self._inbox.items.extendleft(reversed(again))
+                again.append(received)
+        if not again:
+            self._backoff.reset()
+        elif self._stopping:
+            self._returned.extend(again)
+        else:
+            await asyncio.sleep(self._backoff.next())
+            self._inbox.items.extendleft(reversed(again))
 
     def _inbound(self, received: Received) -> Inbound:
         message = received.message

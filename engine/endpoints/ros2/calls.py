@@ -50,6 +50,7 @@ from rclpy.task import Future as RclpyFuture
 from engine.common.backoff import Backoff
 from engine.endpoints.base import Deliver, EndpointError, Inbound, Inbox, MessageRejected, Outbound, Sink, Source, late_window
 from engine.endpoints.ros2 import rosmsg
+from engine.endpoints.pump import pump
 
 log = logging.getLogger("engine.ros2")
 
@@ -471,7 +472,7 @@ class ServiceSource(Source):
         self.counters = {"calls": 0, "answered": 0, "failed": 0}
 
     async def start(self, deliver: Deliver) -> None:
-        self._inbox = Inbox(deliver.queue_limit, deliver.overflow)
+        self._inbox = deliver.inbox(deliver.overflow)
         running = asyncio.get_running_loop()
 
         async def serve(request: Any, response: Any) -> Any:  # the executor's thread
@@ -488,7 +489,7 @@ class ServiceSource(Source):
                 callback_group=ReentrantCallbackGroup())
         except Exception as exc:
             raise EndpointError(f"{self._where}: cannot offer the service: {exc}") from exc
-        self._loop = asyncio.create_task(self._run(deliver))
+        self._loop = asyncio.create_task(pump(self, deliver, self._where))
 
     def _offer(self, fields: dict[str, Any], answered: Any) -> None:
         self._serial += 1
@@ -498,16 +499,19 @@ class ServiceSource(Source):
         self._inbox.offer(Inbound(fields=fields, meta={"reply_to": token, "correlation_id": token}))
         self._inbox.wake()
 
-    async def _run(self, deliver: Deliver) -> None:
-        while batch := await self._inbox.take(self._max_in_flight):
-            try:
-                settled = await deliver.batch(batch)
-            except Exception as exc:  # a bug in the engine must not leave callers hanging forever
-                log.error("%s: settling a batch failed: %s", self._where, exc)
-                settled = [False] * len(batch)
-            for inbound, done in zip(batch, settled):
-                if not done:
-                    self._end(str(inbound.meta["reply_to"]), None, "not settled (route stopping)")
+    async def read_batch(self) -> list[Inbound]:
+        """Calls waiting for the route, at most ``max_in_flight`` at once."""
+        return await self._inbox.take(self._max_in_flight)
+
+    def inbounds(self, batch: Sequence[Inbound]) -> Sequence[Inbound]:
+        return batch
+
+    async def settle(self, batch: Sequence[Inbound], settled: list[bool]) -> None:
+        """A call the route did not settle is answered with nothing (its client's wait ends
+        it): it must not wait forever, and a service cannot take a request back."""
+        for inbound, done in zip(batch, settled):
+            if not done:
+                self._end(str(inbound.meta["reply_to"]), None, "not settled (route stopping)")
 
     async def reply(self, meta: Mapping[str, Any], kind: str, body: bytes) -> None:
         token = str(meta["reply_to"])

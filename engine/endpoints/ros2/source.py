@@ -22,7 +22,6 @@ from engine.endpoints.ros2.checks import checked_source
 from engine.endpoints.ros2.errors import setup_error
 from engine.endpoints.ros2.node import Reader, Ros2Node
 from engine.endpoints.ros2.options import STRING_TYPE, Ros2SourceOptions, qos_profile, topic_of
-from engine.running.fairness import route_inbox
 
 log = logging.getLogger("engine.ros2")
 
@@ -97,7 +96,7 @@ class Ros2Source(Source):
     async def start(self, deliver: Deliver) -> None:
         self._connection.node  # raises EndpointError when not open
         self._deliver = deliver
-        self._queue = route_inbox(deliver, deliver.overflow)
+        self._queue = deliver.inbox(deliver.overflow)
         if self._discovery is None:
             self._subscribe(self._topic, {})
         self._pump = asyncio.create_task(self._run(deliver), name=f"ros2-source-{self._route}")

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import logging
 import random
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
@@ -20,12 +19,10 @@ from engine.endpoints.mavlink.tunnel.arq import Key, Reassembler, RttEstimator
 from engine.endpoints.mavlink.tunnel.frames import (
     DEFAULT_PAYLOAD_TYPE, MAX_FRAGMENT, SIK_FRAGMENT, Ack, Data, decode,
 )
+from engine.endpoints.pump import settle_batch
 
 DELIVERY_BATCH = 64
 """Most reassembled messages settled together (one ``Deliver.batch`` per route)."""
-
-log = logging.getLogger("engine.endpoints.mavlink.tunnel")
-"""The package's logger, as before the tunnel was split into modules."""
 
 
 class TunnelLink(Protocol):
@@ -242,7 +239,9 @@ class TunnelChannel:
 
     async def _deliveries(self) -> None:
         """Settle every ready message with every route reading it (one ``Deliver.batch`` per
-        route, the routes in parallel); acknowledge DELIVERED each message every route settled."""
+        route, the routes in parallel); acknowledge DELIVERED each message every route settled.
+        Not the engine's read loop (engine/endpoints/pump.py), which serves one route: one
+        reassembly feeds several routes here, each route's batch through ``settle_batch``."""
         ready = self._ready
         while batch := await ready.take(DELIVERY_BATCH):
             await self._settle(batch)
@@ -326,10 +325,7 @@ class TunnelSource(Source):
         self._busy += 1
         self._idle.clear()
         try:
-            return await self._deliver.batch(inbounds)
-        except Exception:
-            log.exception("tunnel route %r: settling a batch failed", self.route)
-            return [False] * len(inbounds)
+            return await settle_batch(self._deliver, inbounds, f"tunnel route {self.route!r}")
         finally:
             self._busy -= 1
             if not self._busy:
