@@ -31,6 +31,7 @@ from typing import Any, Mapping
 import zenoh
 
 from engine.endpoints.base import FINAL_REPLIES, Deliver, EndpointError, Inbound, Source
+from engine.endpoints.pump import pump
 from engine.endpoints.zenoh.errors import mapped
 from engine.endpoints.zenoh.handoff import Handoff
 from engine.endpoints.zenoh.keys import parse_pattern
@@ -73,7 +74,7 @@ class QuerySource(Source):
 
         with mapped(f"{self._where}: declare"):
             self._queryable = self._connection.session.declare_queryable(self.pattern.subscription, on_query)
-        self._loop = asyncio.create_task(self._run(deliver), name=f"zenoh-queryable:{self.route}")
+        self._loop = asyncio.create_task(pump(self, deliver, self._where), name=f"zenoh-queryable:{self.route}")
 
     def _dropped(self, inbound: Inbound) -> None:
         """A query the queue did not take (any thread): answered now, never left to time out."""
@@ -90,16 +91,6 @@ class QuerySource(Source):
             meta["encoding"] = str(query.encoding)
             return Inbound(body=payload.to_bytes(), meta=meta)
         return Inbound(body=json.dumps(dict(iter(parameters))).encode(), meta=meta)
-
-    async def _run(self, deliver: Deliver) -> None:
-        """Read, have the route settle, settle (as the engine's own read loop will call them)."""
-        while batch := await self.read_batch():
-            try:
-                settled = await deliver.batch(self.inbounds(batch))
-            except Exception as exc:  # a bug in the engine must not leave queriers waiting
-                log.exception("%s: settling a batch failed", self._where, exc_info=exc)
-                settled = [False] * len(batch)
-            await self.settle(batch, settled)
 
     async def read_batch(self) -> list[Inbound]:
         handoff = self._handoff

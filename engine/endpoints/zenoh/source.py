@@ -2,8 +2,8 @@
 
 Each sample becomes a message with its payload's bytes untouched, ``meta('key')`` (the key it
 was put on), ``meta('encoding')``, and one ``meta(name)`` per ``{name}`` capture of the key
-(keys.py). Samples come on Zenoh's threads into a bounded queue (handoff.py); one task hands
-everything queued to the route as one batch.
+(keys.py). Samples come on Zenoh's threads into a bounded queue (handoff.py); the engine's
+read loop (engine/endpoints/pump.py) hands everything queued to the route as one batch.
 
 Zenoh's pub/sub keeps no message for a subscriber and has no acknowledgement: a message the
 route did not settle (only while it stops) is gone, and counted as dropped, as a ROS 2 topic's
@@ -21,6 +21,7 @@ from typing import Any
 import zenoh
 
 from engine.endpoints.base import Deliver, EndpointError, Inbound, Source
+from engine.endpoints.pump import pump
 from engine.endpoints.zenoh.errors import mapped
 from engine.endpoints.zenoh.handoff import Handoff
 from engine.endpoints.zenoh.keys import parse_pattern
@@ -68,15 +69,9 @@ class ZenohSource(Source):
         self._loop = asyncio.create_task(self._run(deliver), name=f"zenoh-source:{self.route}")
 
     async def _run(self, deliver: Deliver) -> None:
-        """Read, have the route settle, settle: the read loop's three steps, as the engine's
-        own loop (issue 30) will call them."""
-        while batch := await self.read_batch():
-            try:
-                settled = await deliver.batch(self.inbounds(batch))
-            except Exception as exc:  # a bug in the engine: Zenoh cannot redeliver, count the loss
-                log.exception("%s: settling a batch failed", self._where, exc_info=exc)
-                settled = [False] * len(batch)
-            await self.settle(batch, settled)
+        """The engine's read loop (engine/endpoints/pump.py) over :meth:`read_batch`,
+        :meth:`inbounds` and :meth:`settle`; then the queue's last drops are counted."""
+        await pump(self, deliver, self._where)
         self._report_drops(deliver)
 
     async def read_batch(self) -> list[Inbound]:
