@@ -30,13 +30,13 @@ def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
     queue = f"backlog-{tag}"
     (tmp_path / "backlog.yaml").write_text(amqp_to_ros2_routes("backlog", queue, DOMAIN, tag, 1000))
     sizes: list[int] = []
-    deliver_batch = AmqpSource._deliver_batch
+    inbounds = AmqpSource.inbounds
 
-    async def counted(self, deliver, batch):  # the real method, its batch sizes recorded
+    def counted(self, batch):  # the real method (every batch the route is handed), its batch sizes recorded
         sizes.append(len(batch))
-        return await deliver_batch(self, deliver, batch)
+        return inbounds(self, batch)
 
-    monkeypatch.setattr(AmqpSource, "_deliver_batch", counted)
+    monkeypatch.setattr(AmqpSource, "inbounds", counted)
     bodies = [b'{"seq": %d}' % i for i in range(3000)]
 
     async def scenario() -> tuple[list[bytes], int]:

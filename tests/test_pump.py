@@ -4,12 +4,15 @@ reader that does not overlap keeps one batch at a time whatever the sink allows.
 
 from __future__ import annotations
 
+import ast
 import asyncio
 import logging
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import pytest
 
+import engine.endpoints
 from engine.endpoints.base import Inbound, Inbox
 from engine.endpoints.pump import Pump, pump
 from rabbitros_sim.deliver import FunctionDeliver
@@ -136,3 +139,18 @@ def test_a_reader_that_does_not_overlap_keeps_one_batch_at_a_time() -> None:
         assert deliver.most_inside == 1
 
     asyncio.run(scenario())
+
+
+def test_no_source_hands_batches_to_its_route_itself() -> None:
+    """Every source reads through the engine's loop: nothing under engine/endpoints/ but the
+    loop (pump.py) calls a route's ``batch``, so no source has a delivery loop, nor a
+    "settling a batch failed" handler, of its own."""
+    root = Path(engine.endpoints.__file__).parent
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        if path == root / "pump.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "batch":
+                found.append(f"{path.relative_to(root)}:{node.lineno}")
+    assert not found, f"sources handing batches to their route outside engine/endpoints/pump.py: {found}"

@@ -2,10 +2,10 @@
 
 Batch-shaped, as a plain aiormq pass-through would be: a source's consumer callback only
 appends to a list (unless the message arrives alone while the source is idle: it is then
-settled in the callback, see ``AmqpSource._on_message``); one loop per source hands
-everything received (up to half the prefetch; a backlog arrives about 100 messages at a
-time, as the source's channel buffers :data:`FRAME_BUFFER` frames, not aiormq's 10) to the
-route as one batch, then acknowledges with a single ``basic_ack(multiple=True)`` up to the
+settled in the callback, see ``AmqpSource._on_message``); the engine's read loop
+(engine/endpoints/pump.py) hands everything received (up to half the prefetch; a backlog arrives about
+100 messages at a time, as the source's channel buffers :data:`FRAME_BUFFER` frames, not
+aiormq's 10) to the route as one batch, then acknowledges with a single ``basic_ack(multiple=True)`` up to the
 highest delivery tag whose whole prefix was settled (accepted by the sink or dead-lettered);
 the rest of the batch is acked one by one or nacked with requeue. That ``multiple`` ack is
 held across batches while a burst lasts (acks.py says when it goes out, and why). Batches are
@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Sequence
 from typing import Any, Mapping
 
 import aio_pika
@@ -33,8 +34,12 @@ from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.link import AmqpLink
 from engine.endpoints.amqp.options import AmqpSourceOptions
 from engine.endpoints.base import Deliver, Inbound, Inbox, Source
+from engine.endpoints.pump import Pump, settle_batch
 
 log = logging.getLogger("engine.amqp")
+
+Delivered = tuple[aiormq.abc.DeliveredMessage, int]
+"""A message as the consumer received it, with ``time.monotonic_ns()`` then."""
 
 ALONE_GAP_NS = 1_000_000
 """A message received more than this after the previous one is taken to arrive alone (a
@@ -63,16 +68,16 @@ class AmqpSource(Source):
         self._channel: aio_pika.abc.AbstractChannel | None = None
         self._queue: aio_pika.abc.AbstractQueue | None = None
         self._consumer: tuple[aiormq.abc.AbstractChannel, str] | None = None
-        self._received: Inbox[tuple[aiormq.abc.DeliveredMessage, int]] = Inbox(1 << 30)
+        self._received: Inbox[Delivered] = Inbox(1 << 30)
         """Bounded by the prefetch: the broker sends no more than that unacknowledged."""
         self._stopping = False
         self._loop: asyncio.Task[None] | None = None
         self._max_batch = max(1, options.prefetch // 2)
         """Half the prefetch: the broker keeps streaming the next batch while one is settled."""
-        self._in_flight = 0
-        """Batches handed to the route and not yet acknowledged, beyond the one settled inline."""
-        self._room = asyncio.Event()
         self._deliver: Deliver | None = None
+        self._pump: Pump[Delivered] | None = None
+        """The engine's read loop (engine/endpoints/pump.py), which reads, settles and acknowledges
+        through :meth:`read_batch`, :meth:`inbounds` and :meth:`settle`."""
         self._parked = False
         """The batch loop waits for messages with none in hand (see :meth:`_on_message`)."""
         self._last_received_ns = 0
@@ -105,7 +110,8 @@ class AmqpSource(Source):
                 )
                 await self._queue.bind(exchange, options.binding_key)
             self._deliver = deliver
-            self._loop = asyncio.create_task(self._run(deliver), name=f"amqp-source:{self._route}")
+            self._pump = Pump(self, deliver, f"route {self._route!r}, amqp queue {self.queue_name!r}", overlapping=True)
+            self._loop = asyncio.create_task(self._run(self._pump), name=f"amqp-source:{self._route}")
             await self._consume()
             self._channel.reopen_callbacks.add(self._reconsume)
         except LIBRARY_ERRORS as exc:
@@ -157,65 +163,61 @@ class AmqpSource(Source):
         try:
             # acknowledged at once unless a burst's acknowledgement is held (a pause within a
             # drain on a loaded machine): it joins that one
-            await self._acks.acknowledge([message], await self._deliver_batch(deliver, [(message, received_ns)]),
-                                         hold=self._acks.holding)
+            batch = [(message, received_ns)]
+            assert self._pump is not None
+            settled = await settle_batch(deliver, self.inbounds(batch), self._pump.where)
+            await self._acks.acknowledge([message], settled, hold=self._acks.holding)
         finally:
             self._alone_task = None
             self._alone_idle.set()
 
-    async def _run(self, deliver: Deliver) -> None:
-        """Hand each batch to the route, then acknowledge it. While the route lets more than
-        one batch be in flight (``deliver.batches_in_flight``, asked before each batch: a
-        reload may swap the sink), the next batch is handed over while earlier ones await
-        their sink, and a second task acknowledges them in the order they were taken, so
-        ``basic_ack(multiple=True)`` never covers a message of a batch not yet settled. One
-        at a time (most routes), a batch is settled and acknowledged here, with no task."""
-        taken: asyncio.Queue[tuple[list[tuple[aiormq.abc.DeliveredMessage, int]], asyncio.Task[list[bool]]] | None]
-        taken = asyncio.Queue()
-        settler = asyncio.create_task(self._acknowledge_in_order(taken), name=f"amqp-settle:{self._route}")
-        delivering: set[asyncio.Task[list[bool]]] = set()
+    @property
+    def _in_flight(self) -> int:
+        """Batches in the route's sink beyond the one settled inline (:class:`Pump`)."""
+        return self._pump.in_flight if self._pump is not None else 0
+
+    async def _run(self, loop: Pump[Delivered]) -> None:
+        """The engine's read loop, which may have several batches in flight (``overlapping``):
+        acknowledging cumulatively in the order the batches were taken, a
+        ``basic_ack(multiple=True)`` never covers a message of a batch not yet settled. Then
+        what is held is acknowledged: a stop or reload leaves nothing settled unacknowledged."""
         try:
-            while True:
-                while self._in_flight and self._in_flight >= deliver.batches_in_flight:
-                    self._room.clear()
-                    await self._room.wait()
-                self._parked = True
-                try:
-                    if not self._received.items:
-                        await self._park()
-                    batch = await self._received.take(self._max_batch)
-                finally:
-                    self._parked = False
-                if not self._alone_idle.is_set():  # a message settled alone came before these
-                    await self._alone_idle.wait()
-                if not batch:
-                    break
-                if not self._in_flight and deliver.batches_in_flight <= 1:
-                    await self._acks.acknowledge([message for message, _ in batch], await self._deliver_batch(deliver, batch))
-                    continue
-                self._in_flight += 1
-                task = asyncio.create_task(self._deliver_batch(deliver, batch))
-                delivering.add(task)
-                task.add_done_callback(delivering.discard)
-                taken.put_nowait((batch, task))
+            await loop.run()
         except asyncio.CancelledError:
-            # The engine stopped waiting (its drain timeout and grace are over): the batches
-            # still in their sink are given up unsettled, as the one awaited inline above is,
-            # and the broker redelivers them once the channel closes. Left running, they
-            # would hold the stop until their sink answered (a tunnel with a silent vehicle:
-            # never).
-            for task in delivering:
-                task.cancel()
+            # The engine stopped waiting (its drain timeout and grace are over): the loop gave
+            # up the batches in their sink, and a message being settled alone is given up too;
+            # the broker redelivers them once the channel closes.
             if self._alone_task is not None:
                 self._alone_task.cancel()
             raise
         finally:
             if not self._alone_idle.is_set():  # settled or given up before the channel closes
                 await self._alone_idle.wait()
-            taken.put_nowait(None)
-            await asyncio.gather(settler, return_exceptions=True)
             self._acks.cancel_timer()
-            await self._acks.flush()  # a stop or reload leaves nothing settled unacknowledged
+            await self._acks.flush()
+
+    async def read_batch(self) -> list[Delivered]:
+        """What the consumer received, up to half the prefetch; while waiting for it, the held
+        acknowledgement goes out once the source is idle (:meth:`_park`). Nothing is taken
+        while a message is being settled alone: it came before these."""
+        self._parked = True
+        try:
+            if not self._received.items:
+                await self._park()
+            batch = await self._received.take(self._max_batch)
+        finally:
+            self._parked = False
+        if not self._alone_idle.is_set():
+            await self._alone_idle.wait()
+        return batch
+
+    def inbounds(self, batch: Sequence[Delivered]) -> list[Inbound]:
+        return [_inbound(message, received_ns) for message, received_ns in batch]
+
+    async def settle(self, batch: Sequence[Delivered], settled: list[bool]) -> None:
+        """The settled prefix joins the held ``multiple`` ack; the rest is acked or nacked with
+        requeue one by one (acks.py)."""
+        await self._acks.acknowledge([message for message, _ in batch], settled)
 
     async def _park(self) -> None:
         """Wait for the next message; once the source goes idle (none for acks.py's ``ACK_IDLE_NS``),
@@ -235,22 +237,6 @@ class AmqpSource(Source):
                     continue
                 self._acks.arm_timer()
             await received.arrival()
-
-    async def _deliver_batch(self, deliver: Deliver, batch: list[tuple[aiormq.abc.DeliveredMessage, int]]) -> list[bool]:
-        try:
-            return await deliver.batch([_inbound(message, received_ns) for message, received_ns in batch])
-        except Exception as exc:  # a bug in the engine must not lose messages: requeue them
-            log.exception("route %r: settling a batch failed", self._route, exc_info=exc)
-            return [False] * len(batch)
-
-    async def _acknowledge_in_order(self, taken: asyncio.Queue[Any]) -> None:
-        """Acknowledge the batches in flight in the order they were taken (see :meth:`_run`)."""
-        while (item := await taken.get()) is not None:
-            batch, settling = item
-            settled = await settling
-            await self._acks.acknowledge([message for message, _ in batch], settled)
-            self._in_flight -= 1
-            self._room.set()
 
     async def reply(self, meta: Mapping[str, Any], kind: str, body: bytes) -> None:
         """The AMQP request/reply convention: to the default exchange, routing key = the

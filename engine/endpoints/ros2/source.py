@@ -1,5 +1,6 @@
 """A ROS 2 topic source: subscriptions taken on the loop (node.py, waiter.py) into one bounded
-queue, handed to the route in batches by one task.
+queue (the route's: ``Deliver.inbox``), handed to the route in batches by the engine's read
+loop (engine/endpoints/pump.py).
 
 A source topic with ``{var}`` segments subscribes to every matching topic as it appears in the
 graph (engine/endpoints/ros2/discovery.py): one source, many subscriptions, one queue. A full
@@ -12,11 +13,13 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Sequence
 from typing import Any, Mapping
 
 from rclpy.exceptions import InvalidHandle
 
 from engine.endpoints.base import Deliver, EndpointError, Inbound, Inbox, Source, typed
+from engine.endpoints.pump import pump
 from engine.endpoints.ros2 import discovery, rosmsg
 from engine.endpoints.ros2.checks import checked_source
 from engine.endpoints.ros2.errors import setup_error
@@ -99,7 +102,7 @@ class Ros2Source(Source):
         self._queue = deliver.inbox(deliver.overflow)
         if self._discovery is None:
             self._subscribe(self._topic, {})
-        self._pump = asyncio.create_task(self._run(deliver), name=f"ros2-source-{self._route}")
+        self._pump = asyncio.create_task(pump(self, deliver, self._where), name=f"ros2-source-{self._route}")
         self._connection.source_started(self)
         if self._discovery is None:
             self._watch = asyncio.create_task(self._watch_types(), name=f"ros2-types-{self._route}")
@@ -208,24 +211,27 @@ class Ros2Source(Source):
             self.paused = False
             self._connection.readers_changed()
 
-    async def _run(self, deliver: Deliver) -> None:
+    async def read_batch(self) -> list[Inbound]:
+        """What was taken, up to :data:`BATCH`; a paused source takes again once its queue is
+        down to half."""
         queue = self._queue
-        while batch := await queue.take(BATCH):
-            if self.paused and len(queue) <= queue.limit // 2:
-                self._resume()
-            try:
-                settled = await deliver.batch(batch)
-            except asyncio.CancelledError:
-                raise
-            except Exception as exc:  # a bug in the engine: ROS cannot redeliver, count the loss
-                log.exception("%s: settling a batch failed: %s", self._where, exc)
-                settled = [False] * len(batch)
-            lost = settled.count(False)
-            if lost:
-                self.dropped += lost
-                deliver.dropped(lost)
-            if len(queue):  # a backlog must not hold the loop from other routes; an empty inbox waits in take()
-                await asyncio.sleep(0)  # (at a robot's pace a yield per message is a loop round trip for nothing)
+        batch = await queue.take(BATCH)
+        if self.paused and len(queue) <= queue.limit // 2:
+            self._resume()
+        return batch
+
+    def inbounds(self, batch: Sequence[Inbound]) -> Sequence[Inbound]:
+        return batch
+
+    async def settle(self, batch: Sequence[Inbound], settled: list[bool]) -> None:
+        """ROS cannot redeliver: what the route did not settle is counted lost."""
+        lost = settled.count(False)
+        if lost:
+            self.dropped += lost
+            assert self._deliver is not None
+            self._deliver.dropped(lost)
+        if len(self._queue):  # a backlog must not hold the loop from other routes; an empty inbox waits in take()
+            await asyncio.sleep(0)  # (at a robot's pace a yield per message is a loop round trip for nothing)
 
     async def _watch_types(self) -> None:
         """Publishers of another type on our topic never match: say so (log and status)."""
