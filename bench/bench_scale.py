@@ -30,8 +30,8 @@ import aio_pika
 import aiormq
 
 from engine.endpoints.amqp.broker import LocalCluster
-from tests.engine_process import EngineProcess
-from tests.test_cluster import TimedCollector, publish_seq
+from tests.support.engine_process import EngineProcess
+from tests.faults.test_cluster import TimedCollector, publish_seq
 
 QUORUM = {"x-queue-type": "quorum"}
 RELAY_ROUTE = """connections:

@@ -3,7 +3,7 @@
 # in two pytest runs sharing one 1500 s bound:
 #   1. every test but the `alone` ones, on $RABBITROS_TEST_WORKERS pytest-xdist workers (default 3:
 #      most tests wait on brokers, ROS 2 and sockets, so more workers than cores pay). Each worker
-#      has its own RabbitMQ node, ROS 2 domains and ports (tests/workers.py). A module's tests
+#      has its own RabbitMQ node, ROS 2 domains and ports (tests/support/workers.py). A module's tests
 #      share a worker (--dist loadfile: module-scoped fixtures and the cluster start once), and the
 #      modules with `soak` tests go first (tests/conftest.py; --no-loadscope-reorder keeps that order);
 #   2. the tests marked `alone` (timing-sensitive), one after another, with nothing beside them.

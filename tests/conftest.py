@@ -1,5 +1,5 @@
 """Shared fixtures: a real RabbitMQ node per test session (per xdist worker: see
-tests/workers.py), a private mosquitto per MQTT test (never a mock)."""
+tests/support/workers.py), a private mosquitto per MQTT test (never a mock)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import pytest
 from engine.common.processes import LIFETIME_ENV
 from engine.endpoints.amqp.broker import LocalBroker, LocalCluster
 from engine.endpoints.mqtt.broker import LocalMosquitto
+from tests.support.repo import REPO
 
-REPO = Path(__file__).resolve().parent.parent
 
 BROKER_LIFETIME_S = 900
 """Every private broker a test starts, itself or through an engine (``--local-broker``), is

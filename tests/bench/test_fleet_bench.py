@@ -12,7 +12,7 @@ import asyncio
 import pytest
 
 from bench.fleet import AGENTS_NICE, STREAM_KINDS, run_mode
-from tests.workers import ros_domain
+from tests.support.workers import ros_domain
 
 ROUTES = {"templated": 3 * 3 + 9 * 3,
           "shared": 2 + 3 + 2 * 2 + 9,  # discovery per robot stream, per link and message, a command route per agent

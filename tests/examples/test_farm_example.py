@@ -18,8 +18,8 @@ import pytest
 
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.mavlink.dialect import mavlink2
-from tests.conftest import REPO
-from tests.workers import ros_domain
+from tests.support.repo import REPO
+from tests.support.workers import ros_domain
 
 DURATION = 30
 

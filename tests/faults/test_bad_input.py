@@ -24,10 +24,10 @@ from rclpy.serialization import serialize_message
 from rclpy.signals import SignalHandlerOptions
 
 from engine.endpoints.ros2.rosmsg import resolve_type
-from tests.faults_harness import (
+from tests.support.faults_harness import (
     LoopThread, Recorder, dead_letter_key, outputs_by_route, ros_domain, start_engine, wait_for,
 )
-from tests.udp_vehicle import free_udp_port
+from tests.support.udp_vehicle import free_udp_port
 
 LIMIT = 16384
 """max_message_bytes of every connection here, small so oversized bodies stay cheap."""
@@ -146,7 +146,7 @@ class Harness:
 
 @pytest.fixture(scope="module")
 def harness(amqp_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Harness]:
-    from tests.conftest import REPO
+    from tests.support.repo import REPO
 
     h = Harness(amqp_url, tmp_path_factory.mktemp("faults"), REPO / "schemas")
     yield h

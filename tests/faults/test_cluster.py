@@ -22,8 +22,8 @@ import aio_pika
 import pytest
 
 from engine.endpoints.amqp.broker import LocalCluster
-from tests.engine_process import EngineProcess
-from tests.workers import ros_domain
+from tests.support.engine_process import EngineProcess
+from tests.support.workers import ros_domain
 
 CLIENT_NODE = 2
 """Index of the node the test's own clients use; only node 0 is ever killed."""
@@ -374,8 +374,8 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
 
 
 def test_check_reports_quorum_and_placement_mistakes_without_passwords(tmp_path):
-    from tests.test_cli import cli
-    from tests.conftest import REPO
+    from tests.operator.test_cli import cli
+    from tests.support.repo import REPO
 
     (tmp_path / "bad.yaml").write_text("""
 connections:

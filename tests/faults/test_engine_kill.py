@@ -14,8 +14,8 @@ from pathlib import Path
 import aio_pika
 import pytest
 
-from tests.engine_process import EngineProcess
-from tests.faults_harness import Recorder, wait_for
+from tests.support.engine_process import EngineProcess
+from tests.support.faults_harness import Recorder, wait_for
 
 TOTAL = 10_000
 ROUTES = """

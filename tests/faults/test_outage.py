@@ -18,11 +18,11 @@ from typing import Any
 import pytest
 
 from engine.endpoints.amqp.broker import LocalBroker
-from tests.conftest import REPO
-from tests.engine_process import EngineProcess
-from tests.outage_helpers import Collector, RosPeer, Tally, declare_bound_queue, publish_reliably, robust, wait_for
-from tests.udp_vehicle import free_udp_port
-from tests.workers import ros_domain
+from tests.support.repo import REPO
+from tests.support.engine_process import EngineProcess
+from tests.support.outage_helpers import Collector, RosPeer, Tally, declare_bound_queue, publish_reliably, robust, wait_for
+from tests.support.udp_vehicle import free_udp_port
+from tests.support.workers import ros_domain
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 

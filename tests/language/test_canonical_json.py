@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -17,8 +16,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from engine.common.schemas import SchemaError, SchemaRegistry, canonical_bytes, parse_json
+from tests.support.repo import REPO
 
-SCHEMAS = Path(__file__).resolve().parent.parent / "schemas"
+SCHEMAS = REPO / "schemas"
 HEADER = {"id": "0f4c2a", "type": "x", "stamp": {"sec": 1732320000, "nanosec": 123456789}}
 
 VDA_HEADER = {"headerId": 1763917200123, "timestamp": "2026-11-23T17:00:00.123Z", "version": "2.0.0",

@@ -12,7 +12,7 @@ import yaml
 from engine.common.schemas import SchemaRegistry
 from engine.language.fieldcheck import mapping_reads
 from engine.language.routes import RoutesInvalid, load_routes
-from tests.conftest import REPO
+from tests.support.repo import REPO
 
 ROUTES = """connections:
   ros: {ros2: {domain_id: 3}}

@@ -11,7 +11,6 @@ project ships (routes/, examples/) is compared the same way on generated message
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Any, Iterator
 
 import jmespath
@@ -23,8 +22,8 @@ from jmespath import functions
 
 from engine.language.jmespath_compile import compile_parsed, is_compiled
 from engine.language.mapping import FieldFunctions, compile_mapping
+from tests.support.repo import REPO
 
-REPO = Path(__file__).resolve().parent.parent
 NAMES = ["a", "b", "c", "n", "s"]
 
 

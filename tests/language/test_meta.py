@@ -21,7 +21,7 @@ from engine.language.mapping import compile_mapping, meta_names
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.ops.route_tests import load_checked, run_tests
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector
+from tests.support.amqp_helpers import Collector
 
 
 def test_meta_reads_the_message_metadata_and_folds_variables() -> None:

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from engine.common.schemas import SchemaRegistry
 from engine.language.routes import RoutesInvalid, load_routes
-from tests.conftest import REPO
+from tests.support.repo import REPO
 
 VALID = """connections:
   gcs: {amqp: {url: "amqp://farmer:${RABBITROS_FUZZ_PW:-pw}@localhost:5672/", heartbeat: 30}}

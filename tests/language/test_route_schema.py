@@ -21,6 +21,7 @@ from engine.language import route_schema
 from engine.language.route_keys import anchor
 from engine.language.route_schema import KEYS_PATH, REGENERATE, SCHEMA_PATH, render, render_reference, route_file_schema
 from engine.language.routes import RoutesInvalid, load_routes
+from tests.support.repo import REPO
 
 
 def test_shipped_schema_is_the_generated_one() -> None:
@@ -223,7 +224,7 @@ def test_secrets_pass_only_where_declared() -> None:
 
 
 def test_loader_carries_typed_options_and_fingerprints_follow_them(tmp_path: Path) -> None:
-    schemas = SchemaRegistry(Path(__file__).resolve().parent.parent / "schemas")
+    schemas = SchemaRegistry(REPO / "schemas")
     routes = tmp_path / "routes"
     routes.mkdir()
     text = """

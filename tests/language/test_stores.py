@@ -25,9 +25,9 @@ from engine.language.stores import Stores
 from engine.ops.route_tests import load_checked, run_tests
 from engine.running.pipeline import Pipeline
 from engine.running.runtime import Engine
-from tests.conftest import REPO
-from tests.faults_harness import wait_for
-from tests.test_mqtt import Subscriber, publish
+from tests.support.repo import REPO
+from tests.support.faults_harness import wait_for
+from tests.endpoints.mqtt.test_mqtt import Subscriber, publish
 
 SCHEMAS = SchemaRegistry(REPO / "schemas")
 

@@ -23,7 +23,7 @@ from engine.ops.route_tests import load_checked, run_tests
 from engine.running.plan import plan_reload
 from engine.running.runtime import Engine
 from engine.running.watch import watch_routes
-from tests.amqp_helpers import Collector
+from tests.support.amqp_helpers import Collector
 
 FLEET = """
 connections:

@@ -11,7 +11,7 @@ from engine.common.placeholders import MappingError, compile_template
 from engine.common.schemas import SchemaRegistry
 from engine.language.mapping import compile_mapping
 from engine.language.routes import RoutesInvalid, load_routes
-from tests.conftest import REPO
+from tests.support.repo import REPO
 
 HOSTILE = [
     "{agent.__class__.__mro__}", "{agent.__class__}", "{__class__}", "{a[0]}", "{a!r}", "{0}", "{}",

@@ -23,9 +23,9 @@ import pytest
 
 from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import LocalBroker
-from tests.amqp_helpers import Collector, publish
-from tests.conftest import REPO
-from tests.engine_process import EngineProcess
+from tests.support.amqp_helpers import Collector, publish
+from tests.support.repo import REPO
+from tests.support.engine_process import EngineProcess
 
 ROUTES = """
 routes:

@@ -22,9 +22,9 @@ from pathlib import Path
 import pytest
 
 from engine.common.processes import listening_port
-from tests.conftest import REPO
-from tests.engine_process import EngineProcess
-from tests.tls_helpers import make_pki
+from tests.support.repo import REPO
+from tests.support.engine_process import EngineProcess
+from tests.support.tls_helpers import make_pki
 
 TOKEN = "adm-" + uuid.uuid4().hex
 WRONG = "wrong-" + uuid.uuid4().hex

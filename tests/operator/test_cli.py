@@ -20,8 +20,8 @@ import aio_pika
 from engine import __version__
 from engine.common.processes import listening_port
 from engine.ops.cli import COMMANDS, build_parser
-from tests.amqp_helpers import Collector, publish
-from tests.conftest import REPO
+from tests.support.amqp_helpers import Collector, publish
+from tests.support.repo import REPO
 
 LINE = re.compile(r"^(?P<file>[^:]+):(?P<line>\d+): (?P<message>.+)$")
 

@@ -1,7 +1,7 @@
 """Our servers' ports (private brokers, admin endpoints) come from below the kernel's ephemeral
 range, so that no outgoing connection can hold one while its server is down, and no client
 retrying a connection to it can connect to itself (CI once saw a killed broker fail to listen
-again on its port: the 2026-11-27 run, tests/test_outage.py)."""
+again on its port: the 2026-11-27 run, tests/faults/test_outage.py)."""
 
 from __future__ import annotations
 

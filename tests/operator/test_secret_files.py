@@ -14,8 +14,8 @@ from engine.common.redaction import Secret, reveal
 from engine.common.schemas import SchemaRegistry
 from engine.language.route_yaml import substitute_env
 from engine.language.routes import load_routes
-from tests.conftest import REPO
-from tests.engine_process import EngineProcess
+from tests.support.repo import REPO
+from tests.support.engine_process import EngineProcess
 
 SECRET = "F1le-" + uuid.uuid4().hex[:12]
 

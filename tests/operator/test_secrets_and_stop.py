@@ -19,9 +19,9 @@ import pytest
 from engine.common.logs import JsonFormatter, LogfmtFormatter
 from engine.common.redaction import Secret, redact_urls, reveal
 from engine.endpoints.amqp.broker import LocalBroker
-from tests.conftest import REPO
-from tests.engine_process import EngineProcess
-from tests.outage_helpers import Collector, Tally, publish_reliably, robust, wait_for
+from tests.support.repo import REPO
+from tests.support.engine_process import EngineProcess
+from tests.support.outage_helpers import Collector, Tally, publish_reliably, robust, wait_for
 
 PASSWORD = "S3cret-" + uuid.uuid4().hex[:10]
 TOKEN = "tok-" + uuid.uuid4().hex[:10]

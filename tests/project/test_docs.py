@@ -16,7 +16,7 @@ import pytest
 from engine.common.processes import listening_port
 from engine.common.schemas import SchemaError, SchemaRegistry
 from engine.language.mapping import compile_mapping, known_functions
-from tests.conftest import REPO
+from tests.support.repo import REPO
 
 DOCS = REPO / "docs"
 ROW = re.compile(r"^\| `(?P<name>\w+)` \| `` (?P<expr>.+?) `` \| `(?P<result>.+?)` \| .* \|$")

@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import ast
 from pathlib import Path
+from tests.support.repo import REPO
 
-ENGINE = Path(__file__).resolve().parent.parent / "engine"
+ENGINE = REPO / "engine"
 
 
 def module_name(path: Path) -> str:
@@ -218,6 +219,6 @@ def test_the_core_reaches_a_protocol_only_through_the_registry():
     assert not found, f"the core imports a protocol package: {found}"
 
 
-if __name__ == "__main__":  # python -m tests.test_import_graph: print the cycles
+if __name__ == "__main__":  # python -m tests.project.test_import_graph: print the cycles
     print("\n".join(describe(graph())) or "no cycle")
     print("\n".join(f"{importer} -> {target}" for importer, target in upward(graph())) or "no upward import")

@@ -12,8 +12,8 @@ import ast
 import re
 from collections import Counter
 from pathlib import Path
+from tests.support.repo import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 PROTOCOL_WORDS = {
     "mqtt": r"mqtt",
     "amqp": r"amqp",

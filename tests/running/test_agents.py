@@ -21,8 +21,8 @@ import pytest
 from engine.common.schemas import SchemaRegistry
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector, started_with_client
-from tests.udp_vehicle import FleetVehicle, free_udp_port
+from tests.support.amqp_helpers import Collector, started_with_client
+from tests.support.udp_vehicle import FleetVehicle, free_udp_port
 
 AGENTS = """\
 agents:

@@ -232,7 +232,7 @@ def test_route_files_parse_buffer_options_and_check_the_spill_dir(tmp_path: Path
     from engine.common.schemas import SchemaRegistry
     from engine.language.routes import RoutesInvalid, load_routes
     from engine.language.stage_options import BufferSpec
-    from tests.conftest import REPO
+    from tests.support.repo import REPO
 
     (tmp_path / "not-a-dir").write_text("")
     route = """

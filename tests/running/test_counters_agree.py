@@ -32,9 +32,9 @@ import pytest
 
 from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import LocalBroker
-from tests.engine_process import EngineProcess
-from tests.outage_helpers import Collector, Tally, robust, wait_for
-from tests.workers import ros_domain
+from tests.support.engine_process import EngineProcess
+from tests.support.outage_helpers import Collector, Tally, robust, wait_for
+from tests.support.workers import ros_domain
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 

@@ -23,9 +23,9 @@ from engine.endpoints.ros2.rosmsg import resolve_type
 from engine.running.dead_letters import DeadLetterSpool
 from engine.running.delivery import BACKOFF_FIRST
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector
-from tests.faults_harness import wait_for
-from tests.workers import ros_domain
+from tests.support.amqp_helpers import Collector
+from tests.support.faults_harness import wait_for
+from tests.support.workers import ros_domain
 
 MAX_ATTEMPTS = 3
 

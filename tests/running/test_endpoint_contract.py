@@ -11,8 +11,8 @@ from pathlib import Path
 from engine.common.schemas import SchemaRegistry
 from engine.language.routes import load_routes
 from engine.language.stage_options import BufferSpec
+from tests.support.repo import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 
 ROUTES = """
 connections:

@@ -15,7 +15,7 @@ from engine.endpoints.base import Inbound
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.language.stage_options import FairOptions
 from engine.running.fairness import FairInbox
-from tests.fairness_load import FLOODER, flood
+from tests.support.fairness_load import FLOODER, flood
 
 
 @pytest.mark.alone  # p99 is wall time: it needs the machine to itself (./scripts/test.sh runs it after the parallel run)

@@ -28,10 +28,10 @@ from typing import Any
 
 from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import LocalBroker
-from tests.engine_process import EngineProcess
-from tests.outage_helpers import Collector, Tally, robust, wait_for
-from tests.test_counters_agree import TapReader
-from tests.workers import ros_domain
+from tests.support.engine_process import EngineProcess
+from tests.support.outage_helpers import Collector, Tally, robust, wait_for
+from tests.running.test_counters_agree import TapReader
+from tests.support.workers import ros_domain
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
@@ -120,7 +120,7 @@ async def traffic(flaky: LocalBroker, engine: EngineProcess, tag: str, domain: i
         await Collector(aged).bind(connection, f"aged-{tag}", f"{tag}-out", "aged")
         await Collector(latest).bind(connection, f"latest-{tag}", f"{tag}-out", "latest")
         await wait_for(lambda: publisher.get_subscription_count() >= 2, 30, "the engine's ROS subscriptions")
-        await asyncio.sleep(1.0)  # discovery both ways (as tests/test_counters_agree.py)
+        await asyncio.sleep(1.0)  # discovery both ways (as tests/running/test_counters_agree.py)
         publish(range(BEFORE))
         await wait_for(lambda: aged.delivered == BEFORE and latest.delivered == BEFORE, 30, "the first messages")
         flaky.kill()
@@ -180,7 +180,7 @@ def wait_for_sync(read: Any, want: int, what: str, timeout: float = 15.0) -> Non
 def test_check_warns_when_latest_only_reads_a_field_the_schema_lacks(tmp_path: Path) -> None:
     from engine.common.schemas import SchemaRegistry
     from engine.language.routes import load_routes
-    from tests.conftest import REPO
+    from tests.support.repo import REPO
 
     (tmp_path / "r.yaml").write_text("""
 routes:
@@ -228,7 +228,7 @@ def test_max_age_expires_what_waited_in_a_throttle_slot_or_for_a_retry(tmp_path:
     import aio_pika
 
     from engine.running.runtime import Engine
-    from tests.amqp_helpers import Collector as AmqpCollector
+    from tests.support.amqp_helpers import Collector as AmqpCollector
 
     tag = "ft" + uuid.uuid4().hex[:8]
     (tmp_path / "r.yaml").write_text(THROTTLE_AND_RETRY.format(url=amqp_url, tag=tag))

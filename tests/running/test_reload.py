@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.reload_harness import run_reloads
+from tests.support.reload_harness import run_reloads
 
 
 @pytest.mark.soak
@@ -41,8 +41,8 @@ def test_sighup_reloads_and_status_names_the_live_config(amqp_url: str, tmp_path
     import sys
     import time
 
-    from tests.conftest import REPO
-    from tests.engine_process import EngineProcess
+    from tests.support.repo import REPO
+    from tests.support.engine_process import EngineProcess
 
     routes = tmp_path / "routes"
     routes.mkdir()

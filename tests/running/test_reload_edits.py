@@ -19,9 +19,9 @@ import aio_pika
 import pytest
 
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector, publish, started_with_client
-from tests.engine_process import EngineProcess
-from tests.udp_vehicle import Vehicle, free_udp_port, telemetry_routes
+from tests.support.amqp_helpers import Collector, publish, started_with_client
+from tests.support.engine_process import EngineProcess
+from tests.support.udp_vehicle import Vehicle, free_udp_port, telemetry_routes
 
 PROBE_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "type": "object", "required": ["a"]}
 PROBE_ROUTE = """

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 from typing import Any, Awaitable, Callable, TypeVar
 
-from tests.conftest import REPO
+from tests.support.repo import REPO
 
 T = TypeVar("T")
 

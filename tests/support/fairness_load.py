@@ -22,8 +22,8 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from tests.engine_process import EngineProcess
-from tests.udp_vehicle import free_udp_port
+from tests.support.engine_process import EngineProcess
+from tests.support.udp_vehicle import free_udp_port
 
 QUIET, QUIET_RATE, FLOODER, FLOOD_RATE = range(1, 11), 10.0, 11, 1000.0
 SINK_BYTES_PER_S = 20_000

@@ -14,7 +14,7 @@ from typing import Any, Callable, Coroutine
 import aio_pika
 
 from engine.running.runtime import Engine
-from tests import workers
+from tests.support import workers
 
 
 class LoopThread:

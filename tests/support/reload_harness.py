@@ -17,8 +17,8 @@ from typing import Any, Callable
 
 import aio_pika
 
-from tests.engine_process import EngineProcess
-from tests.workers import ros_domain
+from tests.support.engine_process import EngineProcess
+from tests.support.workers import ros_domain
 
 ROUTE = """
 connections:

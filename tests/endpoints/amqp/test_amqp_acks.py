@@ -23,14 +23,14 @@ import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 import engine.endpoints.amqp.acks as amqp_acks
 from engine.endpoints.amqp.source import AmqpSource
 from engine.running.runtime import Engine
-from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
-from tests.conftest import REPO
+from tests.support.amqp_helpers import amqp_to_ros2_routes, publish_burst
+from tests.support.repo import REPO
 
 PREFETCH = 400
 
 def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_rest_at_stop(
         amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from tests.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     monkeypatch.setattr(amqp_acks, "ACK_IDLE_NS", 60_000_000_000)

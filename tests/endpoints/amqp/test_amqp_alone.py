@@ -19,13 +19,13 @@ import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 
 from engine.endpoints.amqp.source import ALONE_GAP_NS, AmqpSource
 from engine.running.runtime import Engine
-from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
-from tests.conftest import REPO
+from tests.support.amqp_helpers import amqp_to_ros2_routes, publish_burst
+from tests.support.repo import REPO
 
 
 def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_order_once(
         amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from tests.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "a" + uuid.uuid4().hex[:8]

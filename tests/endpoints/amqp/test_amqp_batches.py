@@ -17,13 +17,13 @@ import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 
 from engine.endpoints.amqp.source import FRAME_BUFFER, AmqpSource
 from engine.running.runtime import Engine
-from tests.amqp_helpers import amqp_to_ros2_routes, publish_burst
-from tests.conftest import REPO
+from tests.support.amqp_helpers import amqp_to_ros2_routes, publish_burst
+from tests.support.repo import REPO
 
 
 def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
         amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from tests.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "b" + uuid.uuid4().hex[:8]

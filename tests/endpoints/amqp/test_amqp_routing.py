@@ -12,7 +12,7 @@ import pytest
 
 from engine.common.schemas import canonical_bytes
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector, publish
+from tests.support.amqp_helpers import Collector, publish
 
 ROUTES = """
 connections:

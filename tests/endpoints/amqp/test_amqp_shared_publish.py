@@ -12,7 +12,7 @@ import aio_pika
 
 from engine.endpoints.amqp.transport import TRANSPORT
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound
-from tests.amqp_helpers import Collector
+from tests.support.amqp_helpers import Collector
 
 ROUTES = 20
 PER_ROUTE = 3

@@ -1,6 +1,6 @@
 """AMQP over TLS (issue 21) against a private RabbitMQ node with a TLS listener that asks for
 and insists on a client certificate (``verify_peer``, ``fail_if_no_peer_cert``), with
-certificates made by ``openssl`` for the test (tests/tls_helpers.py)."""
+certificates made by ``openssl`` for the test (tests/support/tls_helpers.py)."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ import pytest
 
 from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import BrokerTls, LocalBroker
-from tests.engine_process import EngineProcess
-from tests.tls_helpers import Pki, make_pki, renew_client
+from tests.support.engine_process import EngineProcess
+from tests.support.tls_helpers import Pki, make_pki, renew_client
 
 CERT_USER = "guest"
 """The client certificate's common name: EXTERNAL logs in as the user of that name, and the

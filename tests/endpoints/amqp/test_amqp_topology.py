@@ -13,7 +13,7 @@ import aiormq.exceptions
 import pytest
 
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector, publish, started_with_client
+from tests.support.amqp_helpers import Collector, publish, started_with_client
 
 ROUTES = """
 connections:

@@ -20,9 +20,9 @@ import aio_pika
 from engine.running.runtime import Engine
 from rabbitros_sim.sik_radio import SikRadioPair
 from rabbitros_sim.vehicle import SimVehicle
-from tests.amqp_helpers import Caller
-from tests.mavsdk_vehicle import MavsdkAutopilot
-from tests.test_mavlink_transactions import WEEDS, canonical_mission, canonical_stamp, free_udp_port, run, until
+from tests.support.amqp_helpers import Caller
+from tests.support.mavsdk_vehicle import MavsdkAutopilot
+from tests.endpoints.mavlink.test_mavlink_transactions import WEEDS, canonical_mission, canonical_stamp, free_udp_port, run, until
 
 
 def _routes(directory: Path, amqp_url: str, link: str, tag: str, extra: str = "") -> Path:

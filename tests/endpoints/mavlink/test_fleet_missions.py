@@ -22,8 +22,8 @@ from engine.endpoints.base import EndpointError, Outbound
 from engine.endpoints.mavlink.connection import MavlinkConnection
 from engine.running.runtime import Engine
 from rabbitros_sim.vehicle import SimVehicle
-from tests.amqp_helpers import Caller
-from tests.test_mavlink_transactions import canonical_mission, free_udp_port, run, until
+from tests.support.amqp_helpers import Caller
+from tests.endpoints.mavlink.test_mavlink_transactions import canonical_mission, free_udp_port, run, until
 
 
 def _points(system_id: int) -> list[tuple[float, float]]:

@@ -142,7 +142,7 @@ def test_the_route_priority_reaches_the_sink_options_and_is_checked(tmp_path: An
 
     from engine.common.schemas import SchemaRegistry
     from engine.language.routes import RoutesInvalid, load_routes
-    from tests.conftest import REPO
+    from tests.support.repo import REPO
 
     route = """
 connections:

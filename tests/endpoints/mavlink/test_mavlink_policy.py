@@ -16,7 +16,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import Inbound, MessageRejected, Outbound  # noqa: E402
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
-from tests.test_mavlink_endpoint import UdpPeer, packer, run, settle  # noqa: E402
+from tests.endpoints.mavlink.test_mavlink_endpoint import UdpPeer, packer, run, settle  # noqa: E402
 
 
 class GatedDeliver(FunctionDeliver):
@@ -131,7 +131,7 @@ class HeldBatches(FunctionDeliver):
 
 
 def test_tunnel_message_is_acknowledged_only_after_the_route_settled_it() -> None:
-    from tests.test_mavlink_tunnel import is_delivered_ack, outbound, udp_pair
+    from tests.endpoints.mavlink.test_mavlink_tunnel import is_delivered_ack, outbound, udp_pair
 
     async def scenario() -> None:
         acks: list[Any] = []
@@ -219,7 +219,7 @@ def test_engine_status_shows_link_rejections_and_source_counters(tmp_path: Path,
     from engine.ops.admin import status_document
     from engine.ops.opsview import status_table
     from engine.running.runtime import Engine
-    from tests.udp_vehicle import free_udp_port
+    from tests.support.udp_vehicle import free_udp_port
 
     async def scenario() -> dict[str, Any]:
         peer = await UdpPeer.bind()

@@ -1,6 +1,6 @@
 """A MAVLink sink field is never guessed: a null, or a path the message lacks, sends nothing.
 
-The engine runs the routes from RabbitMQ to a vehicle on plain pymavlink (tests/udp_vehicle.py
+The engine runs the routes from RabbitMQ to a vehicle on plain pymavlink (tests/support/udp_vehicle.py
 ``CommandVehicle``, which parses with pymavlink alone). An arm command whose ``param1`` is null,
 one without the parameter, and one with a misspelt command name are dead-lettered with the field
 (or the close name) in ``x-rabbitros-error``; a good one after them reaches the vehicle, which
@@ -24,9 +24,9 @@ from typing import Any
 import aio_pika
 
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector
-from tests.conftest import REPO
-from tests.udp_vehicle import CommandVehicle
+from tests.support.amqp_helpers import Collector
+from tests.support.repo import REPO
+from tests.support.udp_vehicle import CommandVehicle
 
 QUIET_S = 1.0
 """After the good command arrived, how long the vehicle must hear nothing more."""

@@ -26,9 +26,9 @@ from bench.roundtrip_mavlink import vehicle_process
 from engine.running.runtime import Engine
 from rabbitros_sim.sik_radio import SikRadioPair
 from rabbitros_sim.vehicle import expected_state
-from tests.amqp_helpers import Collector
+from tests.support.amqp_helpers import Collector
+from tests.support.repo import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "fragments" / "farm_routes_mavlink.yaml"
 
 NED_TO_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])

@@ -34,10 +34,10 @@ from engine.language.mapping import compile_mapping  # noqa: E402
 from engine.running.runtime import Engine  # noqa: E402
 from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 from rabbitros_sim.vehicle import SimVehicle  # noqa: E402
-from tests.amqp_helpers import Collector  # noqa: E402
-from tests.conftest import REPO  # noqa: E402
-from tests.mavsdk_vehicle import MavsdkAutopilot  # noqa: E402
-from tests.udp_vehicle import free_udp_port  # noqa: E402
+from tests.support.amqp_helpers import Collector  # noqa: E402
+from tests.support.repo import REPO  # noqa: E402
+from tests.support.mavsdk_vehicle import MavsdkAutopilot  # noqa: E402
+from tests.support.udp_vehicle import free_udp_port  # noqa: E402
 
 WEEDS = [(-22.0004563, -47.9001234), (-22.0004571, -47.9001301), (-21.99951234, -47.89987651)]
 

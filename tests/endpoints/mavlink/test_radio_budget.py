@@ -37,7 +37,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from engine.endpoints import mavlink  # noqa: E402
 from engine.running.runtime import Engine  # noqa: E402
 from rabbitros_sim import sik_radio  # noqa: E402
-from tests.amqp_helpers import started_with_client  # noqa: E402
+from tests.support.amqp_helpers import started_with_client  # noqa: E402
 
 ROUTES = """
 connections:

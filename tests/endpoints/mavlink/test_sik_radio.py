@@ -26,8 +26,8 @@ from rabbitros_sim.sik_radio import (  # noqa: E402
     sik_packet_length,
 )
 from rabbitros_sim.vehicle import open_serial  # noqa: E402
+from tests.support.repo import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 TUNNEL_TYPE = 0xA900
 SERIAL_BYTES_PER_S = 57600 / 10
 

@@ -22,7 +22,7 @@ from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import Expired, Outbound, typed  # noqa: E402
 from engine.endpoints.mavlink.options import MavlinkSinkOptions  # noqa: E402
 from rabbitros_sim import sik_radio  # noqa: E402
-from tests.test_link_priority import Arrivals  # noqa: E402
+from tests.endpoints.mavlink.test_link_priority import Arrivals  # noqa: E402
 
 MAX_AGE = 1.5
 OUTAGE = 4.0

@@ -20,8 +20,8 @@ import aio_pika
 from pymavlink.dialects.v20 import common as mavlink2
 
 from engine.running.runtime import STOP_GRACE, Engine
-from tests.conftest import REPO
-from tests.udp_vehicle import free_udp_port
+from tests.support.repo import REPO
+from tests.support.udp_vehicle import free_udp_port
 
 DRAIN_TIMEOUT = 1.0
 

@@ -32,9 +32,9 @@ from rabbitros_sim.vehicle import (  # noqa: E402
     open_serial,
 )
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
-from tests.udp_vehicle import free_udp_port  # noqa: E402
+from tests.support.udp_vehicle import free_udp_port  # noqa: E402
+from tests.support.repo import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 TUNNEL_TYPE = 0xA900
 KEY = bytes(range(32))
 GPI_FIELDS = ("lat", "lon", "alt", "relative_alt", "vx", "vy", "vz", "hdg")

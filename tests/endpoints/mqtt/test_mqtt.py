@@ -1,5 +1,5 @@
 """The MQTT endpoint against a private mosquitto 2.0 (tests/conftest.py ``mosquitto``), with
-RabbitMQ, rclpy and engines run as operators run them (tests/engine_process.py).
+RabbitMQ, rclpy and engines run as operators run them (tests/support/engine_process.py).
 
 Peers are plain aiomqtt clients; every wait has a deadline. What each test shows is in its
 docstring; the at-least-once tests print their figures (sent, delivered, duplicates, lost).
@@ -24,12 +24,12 @@ import pytest
 from engine.common.processes import listening_port
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector
-from tests.conftest import REPO
-from tests.engine_process import EngineProcess
-from tests.faults_harness import wait_for
-from tests.test_admin import get
-from tests.test_cli import cli
+from tests.support.amqp_helpers import Collector
+from tests.support.repo import REPO
+from tests.support.engine_process import EngineProcess
+from tests.support.faults_harness import wait_for
+from tests.operator.test_admin import get
+from tests.operator.test_cli import cli
 
 
 def routes_dir(tmp_path: Path, text: str) -> Path:
@@ -251,7 +251,7 @@ def test_a_payload_that_fails_its_schema_is_dead_lettered_and_acknowledged(
 import rclpy  # noqa: E402,F401  (a missing rclpy fails the run, never skips it)
 
 from engine.endpoints.ros2.rosmsg import resolve_type  # noqa: E402
-from tests.test_ros2_endpoint import DOMAIN, Peer  # noqa: E402
+from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer  # noqa: E402
 
 NavSatFix = resolve_type("sensor_msgs/msg/NavSatFix")
 

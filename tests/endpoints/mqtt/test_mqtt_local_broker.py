@@ -18,8 +18,8 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import aiomqtt
+from tests.support.repo import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 ROUTES = """
 routes:
   - {name: relay, source: {mqtt: {topic: "farm/+/weather", qos: 1}}, schema: raw_json, sink: {mqtt: {topic: farm/weather, qos: 1}}}

@@ -12,8 +12,8 @@ import aiomqtt
 
 from engine.common.processes import listening_port
 from engine.endpoints.mqtt.broker import LocalMosquitto
-from tests.engine_process import EngineProcess
-from tests.tls_helpers import make_pki
+from tests.support.engine_process import EngineProcess
+from tests.support.tls_helpers import make_pki
 
 
 def test_mqtts_with_a_client_certificate_carries_and_names_failed_checks(tmp_path: Path):

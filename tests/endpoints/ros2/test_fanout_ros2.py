@@ -1,6 +1,6 @@
 """Fan-out on ROS 2: two routes on one topic each receive every message (real rclpy, real
 RabbitMQ). AMQP keeps its own semantics: one queue is competing consumers, which ``check``
-warns about (tests/test_plan.py)."""
+warns about (tests/language/test_plan.py)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import aio_pika
 import pytest
 
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector, publish
-from tests.workers import ros_domain
+from tests.support.amqp_helpers import Collector, publish
+from tests.support.workers import ros_domain
 
 ROUTES = """
 connections:

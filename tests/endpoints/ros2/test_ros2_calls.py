@@ -21,10 +21,10 @@ from test_msgs.srv import BasicTypes
 
 from engine.endpoints.ros2.calls import service_qos
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Caller
-from tests.conftest import REPO
-from tests.ros_nodes import SpunNode
-from tests.workers import ros_domain
+from tests.support.amqp_helpers import Caller
+from tests.support.repo import REPO
+from tests.support.ros_nodes import SpunNode
+from tests.support.workers import ros_domain
 
 CALLS = 200
 MAX_IN_FLIGHT = 64

@@ -25,10 +25,10 @@ from test_msgs.srv import BasicTypes
 
 from engine.endpoints.ros2.calls import service_qos
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Caller
-from tests.conftest import REPO
-from tests.ros_nodes import SpunNode
-from tests.workers import ros_domain
+from tests.support.amqp_helpers import Caller
+from tests.support.repo import REPO
+from tests.support.ros_nodes import SpunNode
+from tests.support.workers import ros_domain
 
 CLIENTS, CALLS_EACH = 25, 4
 BURST = CLIENTS * CALLS_EACH

@@ -28,9 +28,9 @@ from engine.endpoints.ros2.discovery import compile_pattern
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.ops.route_tests import load_checked, run_tests
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector
-from tests.conftest import REPO
-from tests.test_ros2_endpoint import DOMAIN, NavSatFix, Peer, String, wait_until
+from tests.support.amqp_helpers import Collector
+from tests.support.repo import REPO
+from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, NavSatFix, Peer, String, wait_until
 
 ROBOTS = 20
 MESSAGES = 10

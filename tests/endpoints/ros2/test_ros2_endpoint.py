@@ -28,7 +28,8 @@ from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbo
 from engine.endpoints.ros2 import TRANSPORT  # noqa: E402
 from engine.endpoints.ros2.rosmsg import resolve_type, to_dict  # noqa: E402
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
-from tests.workers import ros_domain
+from tests.support.workers import ros_domain
+from tests.support.repo import REPO
 
 DOMAIN = ros_domain(0)
 String = resolve_type("std_msgs/msg/String")
@@ -511,9 +512,8 @@ def test_nan_survives_typed_sink():
 def test_round_trip_through_robot_echo_example(tmp_path):
     """Engine sink -> examples/robot_echo.py (own process) -> engine source, byte for byte."""
     import sys
-    from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "examples" / "robot_echo.py"
+    script = REPO / "examples" / "robot_echo.py"
     store = tmp_path / "robot.jsonl"
     texts = [json.dumps({"agent_id": "uav1", "seq": i, "note": "ção"}, ensure_ascii=False)
              for i in range(300)]

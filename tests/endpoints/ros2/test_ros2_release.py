@@ -22,7 +22,7 @@ import time
 from engine.endpoints.base import Outbound
 from engine.endpoints.ros2 import TRANSPORT
 from engine.endpoints.ros2.node import RELEASE_ACK_WAIT
-from tests.workers import ros_domain
+from tests.support.workers import ros_domain
 
 DOMAIN = ros_domain(0)
 SUBSCRIBER = """

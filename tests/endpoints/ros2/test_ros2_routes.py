@@ -20,11 +20,11 @@ import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
 from engine.common.schemas import canonical_bytes  # noqa: E402
 from engine.running.runtime import Engine  # noqa: E402
-from tests.amqp_helpers import Collector, publish  # noqa: E402
-from tests.test_cli import cli  # noqa: E402
-from tests.conftest import REPO  # noqa: E402
-from tests.engine_process import EngineProcess  # noqa: E402
-from tests.workers import ros_domain
+from tests.support.amqp_helpers import Collector, publish  # noqa: E402
+from tests.operator.test_cli import cli  # noqa: E402
+from tests.support.repo import REPO  # noqa: E402
+from tests.support.engine_process import EngineProcess  # noqa: E402
+from tests.support.workers import ros_domain
 
 TYPED = """
 connections:
@@ -223,7 +223,7 @@ def test_a_prefilled_queue_reaches_a_subscriber_that_starts_before_or_after_the_
     from rich.console import Console
 
     from engine.ops.opsview import status_table
-    from tests.test_ros2_endpoint import DOMAIN, Peer, String
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String
 
     tag = "b" + uuid.uuid4().hex[:8]
     queue = f"backlog-{tag}"
@@ -311,7 +311,7 @@ def test_a_reload_while_the_sink_waits_for_a_reader_completes_and_loses_nothing(
     """A route holding its messages for a subscriber must not hold a reload that swaps its
     pipeline: the held messages go back to the queue and are delivered, once the subscriber
     matches, by the new generation. Stopping the route while it waits is prompt too."""
-    from tests.test_ros2_endpoint import DOMAIN, Peer, String
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "w" + uuid.uuid4().hex[:8]
@@ -369,7 +369,7 @@ def test_an_engine_stops_at_once_while_a_route_waits_for_a_reader(amqp_url: str,
                                                                    monkeypatch: pytest.MonkeyPatch):
     """Nothing can drain into a sink without a reader: the engine stops at once (measured:
     10.0 s, the drain timeout, before), and the held messages are back in the queue."""
-    from tests.test_ros2_endpoint import DOMAIN
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "s" + uuid.uuid4().hex[:8]
@@ -409,7 +409,7 @@ def test_an_engine_stops_at_once_while_a_route_waits_for_a_reader(amqp_url: str,
 def test_a_subscriber_that_leaves_makes_the_route_hold_again(amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     """A matched subscriber that goes away (its node closes: DDS says so at once) makes the
     route hold again; what is queued meanwhile waits on AMQP and reaches the next subscriber."""
-    from tests.test_ros2_endpoint import DOMAIN, Peer, String
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "l" + uuid.uuid4().hex[:8]
@@ -485,7 +485,7 @@ def test_a_templated_topic_waits_for_its_robot_without_spending_attempts(amqp_ur
     refused; the route then waits for that robot. With max_attempts 1, a refusal counted as an
     attempt would dead-letter it: nothing is, and every message reaches the robot that
     subscribes 2 s later."""
-    from tests.test_ros2_endpoint import DOMAIN, Peer, String
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "t" + uuid.uuid4().hex[:8]

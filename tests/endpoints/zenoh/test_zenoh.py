@@ -1,6 +1,6 @@
 """The Zenoh endpoint against real eclipse-zenoh peers opened by the test in its own process,
 with RabbitMQ (tests/conftest.py ``amqp_url``) and rclpy, the engine run in-process
-(engine.running.runtime.Engine) as tests/test_mqtt.py runs it.
+(engine.running.runtime.Engine) as tests/endpoints/mqtt/test_mqtt.py runs it.
 
 Every peer has multicast scouting off and is connected explicitly on tcp/127.0.0.1:PORT, its
 port drawn by engine.common.processes.listening_port, so parallel workers never meet. No fixed
@@ -23,11 +23,11 @@ import zenoh
 
 from engine.common.processes import listening_port
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector
-from tests.conftest import REPO
-from tests.faults_harness import wait_for
-from tests.test_cli import cli
-from tests.workers import ros_domain
+from tests.support.amqp_helpers import Collector
+from tests.support.repo import REPO
+from tests.support.faults_harness import wait_for
+from tests.operator.test_cli import cli
+from tests.support.workers import ros_domain
 
 
 def peer_config(listen: list[str] | None = None, connect: list[str] | None = None) -> zenoh.Config:
@@ -162,7 +162,7 @@ def test_ros2_to_zenoh_puts_on_a_key_from_the_topics_capture_and_a_formatted_fie
     from the message's ``seq`` with a format spec; the payload is the message's bytes."""
     from std_msgs.msg import String
 
-    from tests.ros_nodes import SpunNode
+    from tests.support.ros_nodes import SpunNode
 
     tag = "z" + uuid.uuid4().hex[:8]
     domain = ros_domain(13)
@@ -384,11 +384,11 @@ def test_captures_are_read_from_their_place_in_the_key() -> None:
 # ------------------------------------------------------------------------------ as an operator runs it
 
 def test_an_engine_process_carries_zenoh_and_stops_cleanly(tmp_path: Path, peer: Peer) -> None:
-    """``rabbitros-engine`` as a child process (tests/engine_process.py): samples put on
+    """``rabbitros-engine`` as a child process (tests/support/engine_process.py): samples put on
     {tag}/in come back on {tag}/out through the engine's own session, its status file shows
     the connection up, and SIGTERM ends it with status 0 (Zenoh's runtime threads do not hold
     the exit)."""
-    from tests.engine_process import EngineProcess
+    from tests.support.engine_process import EngineProcess
 
     tag = "z" + uuid.uuid4().hex[:8]
     routes = tmp_path / "routes"
