@@ -5,7 +5,11 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 from bench.bench_convert import measure
+
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
 
 def test_the_conversion_bench_converts_each_route() -> None:

@@ -25,6 +25,7 @@ DURATION = 30
 
 
 @pytest.mark.soak
+@pytest.mark.timeout(400)  # the demo's own bound is 320 s
 def test_farm_example_end_to_end(tmp_path: Path):
     work = tmp_path / "farm"
     result = subprocess.run(

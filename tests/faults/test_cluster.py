@@ -139,6 +139,7 @@ SHARED_ROUTE = """routes:
 
 
 @pytest.mark.soak
+@pytest.mark.timeout(600)  # its scenario's own bound is 400 s, and the session cluster (three nodes) may start in its setup
 def test_two_engines_on_quorum_queues_lose_nothing_when_a_broker_node_is_killed(amqp_cluster, tmp_path):
     """10,000 messages AMQP -> AMQP through two engines; node 0 (the one both engines use,
     and the queue's leader) is killed with -9 mid-stream and restarted afterwards."""
@@ -202,6 +203,7 @@ ORDERED_ROUTE = """routes:
 
 
 @pytest.mark.soak
+@pytest.mark.timeout(450)  # its scenario's own bound is 300 s, and the session cluster may start in its setup
 def test_ordered_route_fails_over_to_the_other_engine_in_order(amqp_cluster, tmp_path):
     cluster: LocalCluster = amqp_cluster
     tag = uuid.uuid4().hex[:8]

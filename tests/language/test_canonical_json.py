@@ -18,6 +18,8 @@ from hypothesis import strategies as st
 from engine.common.schemas import SchemaError, SchemaRegistry, canonical_bytes, parse_json
 from tests.support.repo import REPO
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 SCHEMAS = REPO / "schemas"
 HEADER = {"id": "0f4c2a", "type": "x", "stamp": {"sec": 1732320000, "nanosec": 123456789}}
 

@@ -14,6 +14,8 @@ from engine.language.fieldcheck import mapping_reads
 from engine.language.routes import RoutesInvalid, load_routes
 from tests.support.repo import REPO
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 ROUTES = """connections:
   ros: {ros2: {domain_id: 3}}
   radio: {mavlink: "udpin:127.0.0.1:14999"}

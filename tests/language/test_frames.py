@@ -10,6 +10,8 @@ import pytest
 
 from engine.common import frames
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 ANGLES = [
     (0.0, 0.0, 0.0),
     (0.1, -0.2, 0.3),

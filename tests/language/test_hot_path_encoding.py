@@ -14,6 +14,8 @@ from aiormq import spec
 from engine.endpoints.amqp import PublishProperties
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, mavlink2, message_fields
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 
 def _reference_fields(msg: mavlink2.MAVLink_message) -> dict:
     fields = {name: msg.format_attr(name) for name in msg.get_fieldnames()}

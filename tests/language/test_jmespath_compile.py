@@ -24,6 +24,8 @@ from engine.language.jmespath_compile import compile_parsed, is_compiled
 from engine.language.mapping import FieldFunctions, compile_mapping
 from tests.support.repo import REPO
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 NAMES = ["a", "b", "c", "n", "s"]
 
 

@@ -24,6 +24,7 @@ from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector
 
 
+@pytest.mark.fast
 def test_meta_reads_the_message_metadata_and_folds_variables() -> None:
     mapping = compile_mapping("{key: meta('routing_key'), agent: meta('agent'), x: x}", {"agent": "robot1"})
     assert mapping({"x": 1}, {"routing_key": "fix.robot1"}) == {"key": "fix.robot1", "agent": "robot1", "x": 1}
@@ -59,6 +60,7 @@ def _write(directory: Path, routes: str, tests: str | None = None) -> Path:
     return directory
 
 
+@pytest.mark.fast
 def test_check_names_meta_a_source_does_not_give(tmp_path: Path, schemas_dir: Path) -> None:
     bad = ROUTES.replace("meta('routing_key')", "meta('routing_kye')").replace("meta('topic')", "meta('routing_key')")
     with pytest.raises(RoutesInvalid) as caught:
@@ -85,6 +87,7 @@ tests:
 """
 
 
+@pytest.mark.fast
 def test_route_tests_give_meta(tmp_path: Path, schemas_dir: Path) -> None:
     schemas = SchemaRegistry(schemas_dir)
     config, cases, problems, _ = load_checked(_write(tmp_path / "r", ROUTES, TESTS), schemas)

@@ -16,6 +16,8 @@ from engine.common.schemas import SchemaRegistry
 from engine.language.routes import RoutesConfig, RoutesInvalid, load_routes
 from engine.running.plan import ReloadPlan, plan_reload
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 BASE = """
 connections:
   gcs: {amqp: "amqp://guest:guest@localhost:5672/"}

@@ -13,6 +13,8 @@ from engine.language.mapping import compile_mapping, top_level_keys, unknown_fun
 from engine.language.route_yaml import substitute_env
 from engine.language.routes import RoutesInvalid, load_routes
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 
 def test_env_substitution_defaults_escapes_and_unset():
     env = {"USER_": "ops", "EMPTY": ""}

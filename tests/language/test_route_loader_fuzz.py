@@ -13,12 +13,15 @@ import re
 import time
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from engine.common.schemas import SchemaRegistry
 from engine.language.routes import RoutesInvalid, load_routes
 from tests.support.repo import REPO
+
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
 VALID = """connections:
   gcs: {amqp: {url: "amqp://farmer:${RABBITROS_FUZZ_PW:-pw}@localhost:5672/", heartbeat: 30}}

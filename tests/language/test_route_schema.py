@@ -23,6 +23,8 @@ from engine.language.route_schema import KEYS_PATH, REGENERATE, SCHEMA_PATH, ren
 from engine.language.routes import RoutesInvalid, load_routes
 from tests.support.repo import REPO
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 
 def test_shipped_schema_is_the_generated_one() -> None:
     shipped = SCHEMA_PATH.read_text(encoding="utf-8")

@@ -12,6 +12,8 @@ from engine.common.placeholders import MappingError
 from engine.common.schemas import SchemaError, SchemaRegistry
 from engine.language.mapping import compile_mapping
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 
 def close_to_now(stamp: dict[str, int]) -> bool:
     return set(stamp) == {"sec", "nanosec"} and abs(stamp["sec"] + stamp["nanosec"] / 1e9 - time.time()) < 5

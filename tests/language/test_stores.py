@@ -32,6 +32,7 @@ from tests.endpoints.mqtt.test_mqtt import Subscriber, publish
 SCHEMAS = SchemaRegistry(REPO / "schemas")
 
 
+@pytest.mark.fast
 def test_recall_reads_the_store_by_key_and_sequence_counts_per_route() -> None:
     stores = Stores()
     stores.store("positions").put("uav1", {"x": 1.0})
@@ -73,6 +74,7 @@ def _write(directory: Path, routes: str, tests: str | None = None) -> Path:
     return directory
 
 
+@pytest.mark.fast
 def test_check_refuses_unknown_stores_a_memory_sink_without_remember_and_two_meanings(tmp_path: Path) -> None:
     bad = (ROUTES.replace("recall('positions', agent)", "recall('position', agent)")
            .replace("    remember: {store: positions, per: agent}\n", "")
@@ -98,6 +100,7 @@ def test_check_refuses_unknown_stores_a_memory_sink_without_remember_and_two_mea
     assert config.routes["positions-in"].remember is not None
 
 
+@pytest.mark.fast
 def test_route_tests_give_what_the_stores_hold(tmp_path: Path) -> None:
     tests = """
 tests:
@@ -158,6 +161,7 @@ def test_a_route_remembers_what_its_sink_accepted_and_a_reload_keeps_stores_and_
     assert second == {"agent": "uav1", "n": 2, "charge": 79, "x": 1.5, "edited": True}
 
 
+@pytest.mark.fast
 def test_a_pipeline_without_stores_recalls_nothing() -> None:
     """``check`` and other callers compile without the engine's stores: a fresh, empty set."""
     assert Pipeline.__dataclass_fields__["remember"].default is None

@@ -57,6 +57,7 @@ def _fleet(directory: Path, agents: list[str], routes: str = FLEET) -> Path:
     return directory
 
 
+@pytest.mark.fast
 def test_for_each_expands_into_ordinary_routes(tmp_path: Path, schemas_dir: Path) -> None:
     config = load_routes(_fleet(tmp_path / "r", ["robot1", "robot2"]), SchemaRegistry(schemas_dir))
     assert sorted(config.routes) == ["robot1-battery", "robot2-battery", "supervisor", "uav1-position", "uav2-position"]
@@ -80,6 +81,7 @@ tests:
 """
 
 
+@pytest.mark.fast
 def test_expanded_routes_are_tested_by_their_names(tmp_path: Path, schemas_dir: Path) -> None:
     directory = _fleet(tmp_path / "r", ["robot1", "robot2"])
     (directory / "fleet.test.yaml").write_text(TESTS)
@@ -93,6 +95,7 @@ def test_expanded_routes_are_tested_by_their_names(tmp_path: Path, schemas_dir: 
         "meta 'agent' is a template variable of route 'robot2-battery' ('robot2'): the route sets it, a test cannot"]
 
 
+@pytest.mark.fast
 def test_check_reports_template_problems_at_their_lines(tmp_path: Path, schemas_dir: Path) -> None:
     bad = (FLEET.replace("for_each: [{n: 1, sys: 1, ex: 7}, {n: 2, sys: 2, ex: 8}]",
                          "for_each: [{n: 1, sys: 1, ex: 7}, oops, {n-x: 3}]")
@@ -125,6 +128,7 @@ def test_check_reports_template_problems_at_their_lines(tmp_path: Path, schemas_
     assert any("cannot read for_each file" in p.message for p in caught.value.problems)
 
 
+@pytest.mark.fast
 def test_variable_shadowing_a_canonical_field_is_warned(tmp_path: Path, schemas_dir: Path) -> None:
     routes = FLEET.replace("schema: raw_json\n    sink: {amqp: {connection: gcs, exchange: fleet, routing_key: \"battery",
                            "schema: battery\n    sink: {amqp: {connection: gcs, exchange: fleet, routing_key: \"battery", 1)
@@ -141,6 +145,7 @@ def test_variable_shadowing_a_canonical_field_is_warned(tmp_path: Path, schemas_
         "field 'agent_id' of battery: the variable wins (rename the variable to read the field at send time)"]
 
 
+@pytest.mark.fast
 def test_editing_the_list_plans_only_the_robots_that_changed(tmp_path: Path, schemas_dir: Path) -> None:
     schemas = SchemaRegistry(schemas_dir)
     directory = _fleet(tmp_path / "r", ["robot1", "robot2", "robot3"])

@@ -13,6 +13,8 @@ from engine.language.mapping import compile_mapping
 from engine.language.routes import RoutesInvalid, load_routes
 from tests.support.repo import REPO
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 HOSTILE = [
     "{agent.__class__.__mro__}", "{agent.__class__}", "{__class__}", "{a[0]}", "{a!r}", "{0}", "{}",
     "{agent:{agent.__class__}}", "{agent.__init__.__globals__}", "x}", "{x", "{a b}",

@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import aio_pika
+import pytest
 
 from engine import __version__
 from engine.common.processes import listening_port
@@ -33,12 +34,14 @@ def cli(*args: str, env: dict[str, str] | None = None, timeout: float = 60) -> s
     )
 
 
+@pytest.mark.fast
 def test_shipped_routes_check_clean():
     result = cli("check", "--routes", "routes/")
     assert result.returncode == 0, result.stderr
     assert "ok" in result.stdout
 
 
+@pytest.mark.fast
 def test_version_and_help():
     assert cli("--version").stdout.strip() == f"rabbitros-engine {__version__}"
     help_text = cli("--help").stdout
@@ -54,6 +57,7 @@ def _options(parser: argparse.ArgumentParser) -> list[str]:
     return [option for action in parser._actions for option in action.option_strings if option not in ("-h", "--help")]
 
 
+@pytest.mark.fast
 def test_top_level_help_shows_how_to_run():
     """``rabbitros-engine --help`` lists every command and every run option (run is the default
     command, so hiding its options hid how to run)."""
@@ -69,6 +73,7 @@ def test_top_level_help_shows_how_to_run():
     assert "--local-broker" in result.stdout.splitlines()[0]  # the usage line
 
 
+@pytest.mark.fast
 def test_operations_documents_every_option_of_every_command():
     """docs/operations.md names every option engine/ops/cli.py accepts: the run options in its
     Running table, the other commands' in its Commands block."""
@@ -114,6 +119,7 @@ connections:
 }
 
 
+@pytest.mark.fast
 def test_check_reports_every_broken_file_with_file_and_line(tmp_path: Path):
     for name, text in BROKEN.items():
         (tmp_path / name).write_text(text)
@@ -133,6 +139,7 @@ def test_check_reports_every_broken_file_with_file_and_line(tmp_path: Path):
     assert by_file["unset_env.yaml"][0] == 3 and "SURELY_UNSET_PASSWORD_VAR" in by_file["unset_env.yaml"][1]
 
 
+@pytest.mark.fast
 def test_duplicate_route_names_and_unknown_connection(tmp_path: Path):
     route = "  - {{name: same, source: {{amqp: {{queue: q, connection: {conn}}}}}, schema: raw_json, sink: {{amqp: {{exchange: e}}}}}}\n"
     (tmp_path / "a.yaml").write_text("connections:\n  gcs: {amqp: 'amqp://localhost/'}\nroutes:\n" + route.format(conn="gcs"))
@@ -154,6 +161,7 @@ routes:
 """
 
 
+@pytest.mark.fast
 def test_check_local_broker_names_connections_that_go_elsewhere(tmp_path: Path):
     (tmp_path / "gcs.yaml").write_text((REPO / "routes" / "gcs.yaml").read_text())
     (tmp_path / "own.yaml").write_text(ELSEWHERE.format(port=5999))
@@ -284,6 +292,7 @@ def test_run_with_local_broker_tls_carries_a_message_over_amqps(tmp_path: Path):
     assert not ca_file.exists(), "the throwaway CA outlived the private node"
 
 
+@pytest.mark.fast
 def test_local_broker_tls_refused_without_local_broker_or_with_a_cluster(tmp_path: Path):
     """Exit 2 and a line saying why, before any node starts."""
     (tmp_path / "tls.yaml").write_text(TLS_ROUTE)

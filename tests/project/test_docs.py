@@ -22,6 +22,7 @@ DOCS = REPO / "docs"
 ROW = re.compile(r"^\| `(?P<name>\w+)` \| `` (?P<expr>.+?) `` \| `(?P<result>.+?)` \| .* \|$")
 
 
+@pytest.mark.fast
 def test_every_function_is_documented_with_an_example_that_holds():
     text = (DOCS / "route-language.md").read_text()
     source = json.loads(text.split("## Functions", 1)[1].split("```json", 1)[1].split("```", 1)[0])
@@ -36,6 +37,7 @@ def test_every_function_is_documented_with_an_example_that_holds():
             assert value == json.loads(result), f"{name}: {expression} gives {value!r}, the docs say {result}"
 
 
+@pytest.mark.fast
 def test_every_schema_is_documented():
     text = (DOCS / "schemas.md").read_text()
     for name in SchemaRegistry(REPO / "schemas").names():
@@ -43,6 +45,7 @@ def test_every_schema_is_documented():
             assert f"({name})" in text, name
 
 
+@pytest.mark.fast
 def test_the_tutorial_route_and_its_test_are_the_files_it_shows():
     tutorial = (DOCS / "tutorial.md").read_text()
     for name in ("tractor.yaml", "tractor.test.yaml", "sprayer.yaml", "sprayer.test.yaml"):
@@ -61,6 +64,7 @@ def _anchors(text: str) -> set[str]:
     return slugs | set(re.findall(r'<a id="([^"]+)"></a>', text))
 
 
+@pytest.mark.fast
 def test_links_between_the_docs_resolve():
     """Every relative link of README.md and docs/*.md names a file that exists and, with a
     #fragment, a heading or anchor it has (route-language.md links into route-keys.md)."""
@@ -74,6 +78,7 @@ def test_links_between_the_docs_resolve():
     assert "(route-keys.md)" in (DOCS / "route-language.md").read_text()
 
 
+@pytest.mark.fast
 def test_the_shared_types_are_defined_and_the_stamp_is_what_the_schemas_accept():
     """schemas.md defines every shared type of envelope.v1.json that the tables name, and what
     it says a stamp is (and is not) is what validation does."""
@@ -131,6 +136,7 @@ def stop_group(pgid: int, timeout: float = 60) -> None:
 
 
 @pytest.mark.soak
+@pytest.mark.timeout(400)  # the tutorial script's own bound is 320 s
 def test_the_tutorial_steps_work_as_written(tmp_path: Path):
     """Steps 2 to 4 run exactly as the tutorial shows them, in order (step 1 is scripts/setup.sh,
     which this machine has run): check and test print what the tutorial says, the engine runs

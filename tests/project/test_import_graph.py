@@ -20,7 +20,12 @@ from __future__ import annotations
 
 import ast
 from pathlib import Path
+
+import pytest
+
 from tests.support.repo import REPO
+
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
 ENGINE = REPO / "engine"
 

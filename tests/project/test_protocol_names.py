@@ -12,7 +12,12 @@ import ast
 import re
 from collections import Counter
 from pathlib import Path
+
+import pytest
+
 from tests.support.repo import REPO
+
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
 PROTOCOL_WORDS = {
     "mqtt": r"mqtt",

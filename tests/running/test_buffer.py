@@ -11,6 +11,8 @@ import pytest
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound
 from engine.running.buffer import SEGMENT_MESSAGES, HoldingBuffer, decode, encode
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 
 def message(index: int) -> Outbound:
     canonical = {"seq": index, "agent_id": "uav1"}

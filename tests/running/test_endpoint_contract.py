@@ -13,6 +13,8 @@ from engine.language.routes import load_routes
 from engine.language.stage_options import BufferSpec
 from tests.support.repo import REPO
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 
 ROUTES = """
 connections:

@@ -8,6 +8,8 @@ import pytest
 
 from engine.running import loop
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 
 def running_loop_module() -> str:
     async def which() -> str:

@@ -6,7 +6,11 @@ import asyncio
 import time
 from pathlib import Path
 
+import pytest
+
 from engine.running.watch import watch_routes
+
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
 
 async def _seen(calls: list[float], after: int, timeout: float = 10.0) -> bool:

@@ -17,6 +17,8 @@ from engine.endpoints.mavlink.settings import load_signing  # noqa: E402
 from engine.endpoints.mavlink.signing import SignatureCheck, signing_now  # noqa: E402
 from engine.endpoints.mavlink import TRANSPORT  # noqa: E402
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 NEW, OLD, OTHER = bytes(range(32)), bytes(range(32, 64)), bytes(range(64, 96))
 DEADLINE = "2026-12-01T00:00:00Z"
 DEADLINE_TS = 1_796_083_200.0

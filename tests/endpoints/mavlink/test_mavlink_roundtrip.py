@@ -64,6 +64,7 @@ def settings(tmp_path: Path, **kwargs: Any) -> Settings:
 
 
 @pytest.mark.soak
+@pytest.mark.timeout(400)  # the experiment's own bound is 300 s
 def test_round_trip_over_a_clean_radio_is_byte_identical(tmp_path: Path, amqp_url: str) -> None:
     config = settings(tmp_path, rate={50: 8.0, 150: 8.0, 250: 5.0})
     summary = run(config, amqp_url)
@@ -84,6 +85,7 @@ def test_round_trip_over_a_clean_radio_is_byte_identical(tmp_path: Path, amqp_ur
 
 
 @pytest.mark.soak
+@pytest.mark.timeout(400)  # the experiment's own bound is 300 s
 def test_round_trip_with_loss_and_an_outage_is_byte_identical(tmp_path: Path, amqp_url: str) -> None:
     config = settings(tmp_path, rate={50: 6.0, 150: 6.0, 250: 4.0}, loss=0.05, outage=(4.0, 3.0))
     summary = run(config, amqp_url)

@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import os
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 os.environ["MAVLINK20"] = "1"
 
 from engine.endpoints.mavlink import tunnel  # noqa: E402
+
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
 bodies = st.lists(st.binary(min_size=1, max_size=600), min_size=1, max_size=6)
 damage = st.sampled_from(["intact", "intact", "flip", "truncate", "drop", "duplicate", "garbage"])

@@ -388,6 +388,7 @@ def kill(engine: EngineProcess) -> None:
 
 
 @pytest.mark.soak
+@pytest.mark.timeout(700)  # its scenario's own bound is 600 s
 @pytest.mark.parametrize("protocol", ["5", "'3.1.1'"])
 def test_qos1_engine_killed_twice_mid_stream_loses_nothing(tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str,
                                                             protocol: str) -> None:

@@ -23,6 +23,8 @@ from engine.endpoints.ros2.rosmsg import (  # noqa: E402
     MessageError, NullValue, field_names, from_dict, null_path, nested_type, resolve_type, to_dict, type_name,
 )
 
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
 String = resolve_type("std_msgs/msg/String")
 NavSatFix = resolve_type("sensor_msgs/msg/NavSatFix")
 PoseArray = resolve_type("geometry_msgs/msg/PoseArray")
