@@ -32,11 +32,12 @@ from engine.endpoints.ros2.rosmsg import resolve_type
 from engine.running.runtime import Engine
 from engine.running.watch import watch_routes
 from tests.support.repo import REPO
-from tests.support.faults_harness import wait_for
+
 from tests.operator.test_cli import cli
 from tests.endpoints.mqtt.test_mqtt import Subscriber, mqtt_client, publish, retained_state
 from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String
 from tests.support.udp_vehicle import free_udp_port
+from tests.support.waiting import wait_for
 
 EXAMPLE = REPO / "examples" / "vda5050"
 Path_ = resolve_type("nav_msgs/msg/Path")

@@ -25,9 +25,10 @@ from rclpy.signals import SignalHandlerOptions
 
 from engine.endpoints.ros2.rosmsg import resolve_type
 from tests.support.faults_harness import (
-    LoopThread, Recorder, dead_letter_key, outputs_by_route, ros_domain, start_engine, wait_for,
+    LoopThread, Recorder, dead_letter_key, outputs_by_route, ros_domain, start_engine,
 )
 from tests.support.udp_vehicle import free_udp_port
+from tests.support.waiting import wait_for
 
 LIMIT = 16384
 """max_message_bytes of every connection here, small so oversized bodies stay cheap."""

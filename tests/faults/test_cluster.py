@@ -16,63 +16,54 @@ import signal
 import time
 import uuid
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import aio_pika
 import pytest
 
 from engine.endpoints.amqp.broker import LocalCluster
+from tests.support.amqp_helpers import Collector
 from tests.support.engine_process import EngineProcess
 from tests.support.workers import ros_domain
+from tests.support.waiting import wait_for
 
 CLIENT_NODE = 2
 """Index of the node the test's own clients use; only node 0 is ever killed."""
 
 
-class TimedCollector:
-    """A quorum queue bound to the engines' output exchange, recording each arrival's time."""
+class TimedCollector(Collector):
+    """The one collector on a quorum queue bound to the engines' output exchange, with each
+    arrival's time and seq (``seq_arrivals``): what a consumer of the output saw of a failover."""
 
-    def __init__(self) -> None:
-        self.arrivals: list[tuple[float, int]] = []
+    def __init__(self, ack: bool = False, tally: Any = None) -> None:
+        super().__init__(ack, tally)
+        self.seq_arrivals: list[tuple[float, int]] = []
 
     @classmethod
-    async def bind(cls, channel: Any, exchange: str) -> TimedCollector:
-        collector = cls()
-        target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
-        queue = await channel.declare_queue(f"collect-{exchange}", durable=True, arguments={"x-queue-type": "quorum"})
-        await queue.bind(target, "#")
-        await queue.consume(collector._on_message, no_ack=True)
-        return collector
+    async def bind_output(cls, channel: Any, exchange: str) -> TimedCollector:
+        return await cls.bind(channel, exchange, queue=f"collect-{exchange}", quorum=True)
 
-    async def _on_message(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
-        self.arrivals.append((time.monotonic(), json.loads(message.body)["seq"]))
+    def received(self, at: float, message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        self.seq_arrivals.append((at, json.loads(message.body)["seq"]))
 
     @property
     def unique(self) -> set[int]:
-        return {seq for _, seq in self.arrivals}
+        return {seq for _, seq in self.seq_arrivals}
 
     async def wait_unique(self, count: int, timeout: float) -> None:
         await wait_for(lambda: len(self.unique) >= count, timeout, f"{count} distinct messages")
 
     def first_after(self, moment: float) -> float | None:
-        return next((at for at, _ in self.arrivals if at > moment), None)
+        return next((at for at, _ in self.seq_arrivals if at > moment), None)
 
     def stall(self, moment: float, window: float = 30.0) -> float:
         """The longest time the stream stood still from shortly before ``moment`` on: what
         a consumer of the output saw of a failover."""
         end = min(time.monotonic(), moment + window)
-        times = [moment - 0.2] + [at for at, _ in self.arrivals if moment - 0.2 <= at <= end]
+        times = [moment - 0.2] + [at for at, _ in self.seq_arrivals if moment - 0.2 <= at <= end]
         if times[-1] <= moment:  # the stream never resumed within the window
             times.append(end)
         return max(b - a for a, b in zip(times, times[1:]))
-
-
-async def wait_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what}")
-        await asyncio.sleep(0.05)
 
 
 async def publish_seq(
@@ -154,9 +145,9 @@ def test_two_engines_on_quorum_queues_lose_nothing_when_a_broker_node_is_killed(
         connection = await aio_pika.connect(cluster.urls[CLIENT_NODE])
         try:
             channel = await connection.channel(publisher_confirms=True)
-            collector = await TimedCollector.bind(await connection.channel(), f"out-{tag}")
+            collector = await TimedCollector.bind_output(await connection.channel(), f"out-{tag}")
             publishing = asyncio.create_task(publish_seq(channel, f"in-{tag}", 0, total, rate=1500))
-            await wait_for(lambda: len(collector.arrivals) >= total // 4, 120, "a quarter of the stream")
+            await wait_for(lambda: len(collector.seq_arrivals) >= total // 4, 120, "a quarter of the stream")
             before = {e.status_file.stem: e.status()["brokers"]["gcs"] for e in engines}
             killed_at = time.monotonic()
             await asyncio.to_thread(cluster.kill, 0)
@@ -167,8 +158,8 @@ def test_two_engines_on_quorum_queues_lose_nothing_when_a_broker_node_is_killed(
             figures.update(
                 sent=total,
                 delivered=len(collector.unique),
-                received=len(collector.arrivals),
-                duplicates=len(collector.arrivals) - len(collector.unique),
+                received=len(collector.seq_arrivals),
+                duplicates=len(collector.seq_arrivals) - len(collector.unique),
                 lost=total - len(collector.unique),
                 first_arrival_after_kill_s=round(resumed - killed_at, 3) if resumed else None,
                 stall_s=round(collector.stall(killed_at), 3),
@@ -217,9 +208,9 @@ def test_ordered_route_fails_over_to_the_other_engine_in_order(amqp_cluster, tmp
         connection = await aio_pika.connect(cluster.urls[CLIENT_NODE])
         try:
             channel = await connection.channel(publisher_confirms=True)
-            collector = await TimedCollector.bind(await connection.channel(), f"out-{tag}")
+            collector = await TimedCollector.bind_output(await connection.channel(), f"out-{tag}")
             publishing = asyncio.create_task(publish_seq(channel, f"in-{tag}", 0, total, rate=500, batch=1))
-            await wait_for(lambda: len(collector.arrivals) >= total // 3, 60, "a third of the stream")
+            await wait_for(lambda: len(collector.seq_arrivals) >= total // 3, 60, "a third of the stream")
             figures["standby_received_before_kill"] = second.status()["routes"][f"ordered-{tag}"]["received"]
             killed_at = kill_engine(first)
             seen_at_kill = collector.unique
@@ -230,19 +221,19 @@ def test_ordered_route_fails_over_to_the_other_engine_in_order(amqp_cluster, tmp
             seen: set[int] = set()
             highest, out_of_order, late = -1, 0, []
             context: list[float] = []
-            for index, (_, seq) in enumerate(collector.arrivals):
+            for index, (_, seq) in enumerate(collector.seq_arrivals):
                 if seq < highest and seq not in seen:
                     out_of_order += 1
                     late.append(seq)
                     if not context:
-                        context = [round(collector.arrivals[index][0] - killed_at, 3)]
-                        context += [s for _, s in collector.arrivals[max(0, index - 40):index + 10]]
+                        context = [round(collector.seq_arrivals[index][0] - killed_at, 3)]
+                        context += [s for _, s in collector.seq_arrivals[max(0, index - 40):index + 10]]
                 seen.add(seq)
                 highest = max(highest, seq)
             figures.update(
                 sent=total,
                 delivered=len(collector.unique),
-                duplicates=len(collector.arrivals) - len(collector.unique),
+                duplicates=len(collector.seq_arrivals) - len(collector.unique),
                 out_of_order=out_of_order,
                 late_outside_in_flight=[seq for seq in late if not in_flight_from <= seq < in_flight_from + prefetch],
                 lost=total - len(collector.unique),
@@ -325,10 +316,10 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
                 await asyncio.sleep(max(ahead, 0))
 
         try:
-            collector = await TimedCollector.bind(await connection.channel(), f"out-{tag}")
+            collector = await TimedCollector.bind_output(await connection.channel(), f"out-{tag}")
             await asyncio.sleep(0.5)
             robot_task = asyncio.create_task(robot())
-            await wait_for(lambda: len(collector.arrivals) >= 400, 30, "the active engine to forward")
+            await wait_for(lambda: len(collector.seq_arrivals) >= 400, 30, "the active engine to forward")
             await wait_for(lambda: standby.status()["routes"][route]["standby_skipped"] > 0, 10, "the standby to see the stream")
             figures["standby_role_before"] = standby.status()["routes"][route]["role"]
             figures["standby_forwarded_before"] = standby.status()["routes"][route]["delivered"]
@@ -348,7 +339,7 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
                 published=len(published),
                 published_at_kill=at_kill,
                 delivered=len(received),
-                duplicates=len(collector.arrivals) - len(received),
+                duplicates=len(collector.seq_arrivals) - len(received),
                 lost_in_gap=len(gap),
                 lost_outside_gap=len(missing) - len(gap),
                 takeover_s=round(resumed - killed_at, 3),
@@ -469,7 +460,7 @@ def test_cli_local_cluster_runs_routes_on_three_nodes(tmp_path):
             connection = await aio_pika.connect(urls[2])
             try:
                 channel = await connection.channel()
-                collector = await TimedCollector.bind(channel, f"out-{tag}")
+                collector = await TimedCollector.bind_output(channel, f"out-{tag}")
                 await publish_seq(await connection.channel(publisher_confirms=True), f"in-{tag}", 0, 10)
                 await collector.wait_unique(10, 60)
                 queue = await channel.declare_queue(f"q-{tag}", passive=True)

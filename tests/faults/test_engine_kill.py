@@ -15,7 +15,8 @@ import aio_pika
 import pytest
 
 from tests.support.engine_process import EngineProcess
-from tests.support.faults_harness import Recorder, wait_for
+from tests.support.faults_harness import Recorder
+from tests.support.waiting import wait_for
 
 TOTAL = 10_000
 ROUTES = """

@@ -20,9 +20,11 @@ import pytest
 from engine.endpoints.amqp.broker import LocalBroker
 from tests.support.repo import REPO
 from tests.support.engine_process import EngineProcess
-from tests.support.outage_helpers import Collector, RosPeer, Tally, declare_bound_queue, publish_reliably, robust, wait_for
+from tests.support.amqp_helpers import Collector
+from tests.support.outage_helpers import RosPeer, Tally, declare_bound_queue, publish_reliably, robust
 from tests.support.udp_vehicle import free_udp_port
 from tests.support.workers import ros_domain
+from tests.support.waiting import wait_for
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
@@ -115,7 +117,7 @@ def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path
         engine = EngineProcess(routes, tmp_path / "status.json", {"RABBITROS_AMQP_URL": broker.url})
         connection = await robust(broker.url)
         try:
-            await Collector(from_ros).bind(connection, f"collect-{names['tag']}", names["outbox"], "up.#")
+            await Collector.bind(await connection.channel(), names["outbox"], "up.#", queue=f"collect-{names['tag']}", ack=True, tally=from_ros, prefetch=500)
             await asyncio.to_thread(engine.wait_started)
             await _warm_up(peer, connection, names, to_ros, from_ros)
 
@@ -178,7 +180,7 @@ def test_spilled_messages_survive_an_engine_restart_during_the_outage(tmp_path: 
         second: EngineProcess | None = None
         connection = await robust(broker.url)
         try:
-            await Collector(arrived).bind(connection, f"collect-{names['tag']}", names["outbox"], "up.#")
+            await Collector.bind(await connection.channel(), names["outbox"], "up.#", queue=f"collect-{names['tag']}", ack=True, tally=arrived, prefetch=500)
             await asyncio.to_thread(first.wait_started)
             await _warm_up(peer, connection, names, ignored, arrived, both=False)
             broker.kill()
@@ -304,7 +306,7 @@ def test_engine_starts_without_the_broker_and_routes_that_do_not_need_it_run_at_
             await asyncio.to_thread(broker.start)
             back = time.monotonic()
             connection = await robust(broker.url)
-            await Collector(up).bind(connection, f"collect-{names['tag']}", names["outbox"], "up.#")
+            await Collector.bind(await connection.channel(), names["outbox"], "up.#", queue=f"collect-{names['tag']}", ack=True, tally=up, prefetch=500)
             await wait_for(lambda: _status(engine)["routes"]["to-ros"]["state"] == "running", 60, "to-ros to start")
             figures["broker_to_routes_started_s"] = time.monotonic() - back
             assert _connection_healthy(engine)
@@ -365,7 +367,7 @@ def test_held_messages_survive_a_reload_that_replaces_the_route(tmp_path: Path, 
             assert replaced is not runner and replaced.buffer is runner.buffer and len(replaced.buffer) == 300
             await asyncio.to_thread(broker.start)
             connection = await robust(broker.url)
-            await Collector(arrived).bind(connection, f"collect-{names['tag']}", names["outbox"], "up.#")
+            await Collector.bind(await connection.channel(), names["outbox"], "up.#", queue=f"collect-{names['tag']}", ack=True, tally=arrived, prefetch=500)
             await wait_for(lambda: not arrived.lost(range(300)), 60, "the held messages")
         finally:
             if connection is not None:

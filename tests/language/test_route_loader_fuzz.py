@@ -5,12 +5,16 @@ problems, never a traceback or a hang.
 Inputs are a valid route file damaged by hypothesis (characters inserted, deleted or
 replaced anywhere) and valid files whose mapping, routing key, topic, ``format()`` template,
 ``${...}`` reference and option values are arbitrary text. Each input runs in-process with a
-per-input time limit (HANG_S). The counts print with ``-s``."""
+per-input time limit (HANG_S). Each fuzz asserts it reached both outcomes (some inputs still
+load, others are refused), so a strategy that stopped producing one would fail instead of passing
+vacuously; the counts print with ``-s``."""
 
 from __future__ import annotations
 
 import re
+import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -48,27 +52,32 @@ HANG_S = 10.0
 """One file taking longer is a hang (a shared 2-core CI machine loads one in ~30 ms; hypothesis'
 own deadline, 2 s at first, failed on a loaded machine's first input)."""
 SCHEMAS = SchemaRegistry(REPO / "schemas")
-COUNTS = {"inputs": 0, "valid": 0, "invalid": 0, "slowest_s": 0.0}
 ALPHABET = st.sampled_from(list("{}[]()'\"`:@,.|&!?*$#-_ \n\tabxyz019") + ["__class__", "${", "${file:", "format(", "\\u0000", "\t- "])
 
 
-def _load(tmp_path: Path, text: str) -> None:
-    directory = tmp_path / f"d{COUNTS['inputs']}"
-    directory.mkdir()
+def _load(tmp_path: Path, text: str, outcomes: Counter[str]) -> None:
+    """Load ``text`` as a route file: it loads, or every problem names ``r.yaml:LINE``; counted
+    in ``outcomes`` (valid, invalid, and the slowest load in ms)."""
+    directory = Path(tempfile.mkdtemp(dir=tmp_path))
     (directory / "r.yaml").write_text(text)
     began = time.monotonic()
-    COUNTS["inputs"] += 1
     try:
         load_routes(directory, SCHEMAS, env={})
-        COUNTS["valid"] += 1
+        outcomes["valid"] += 1
     except RoutesInvalid as invalid:
-        COUNTS["invalid"] += 1
+        outcomes["invalid"] += 1
         assert invalid.problems, text
         for problem in invalid.problems:
             assert PROBLEM.match(str(problem).removeprefix(f"{directory}/")), (str(problem), text)
-    finally:
-        COUNTS["slowest_s"] = max(COUNTS["slowest_s"], time.monotonic() - began)
-    assert time.monotonic() - began < HANG_S, f"{time.monotonic() - began:.1f}s for one file: {text!r}"
+    took = time.monotonic() - began
+    outcomes["slowest_ms"] = max(outcomes["slowest_ms"], round(took * 1000))
+    assert took < HANG_S, f"{took:.1f}s for one file: {text!r}"
+
+
+def _reached_both_outcomes(name: str, outcomes: Counter[str]) -> None:
+    print(f"\n{name}: {outcomes['valid'] + outcomes['invalid']} inputs, {outcomes['valid']} valid, "
+          f"{outcomes['invalid']} invalid (each with file:line problems), 0 tracebacks, slowest {outcomes['slowest_ms']} ms")
+    assert outcomes["valid"] > 0 and outcomes["invalid"] > 0, f"{name}: the fuzz reached one outcome only: {dict(outcomes)}"
 
 
 @st.composite
@@ -94,19 +103,37 @@ def _quoted(value: str) -> str:
 FUZZ = settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 
-@FUZZ
-@given(damaged())
-def test_a_damaged_route_file_gets_file_line_problems(tmp_path: Path, text: str) -> None:
-    _load(tmp_path, text)
+def test_a_damaged_route_file_gets_file_line_problems(tmp_path: Path) -> None:
+    outcomes: Counter[str] = Counter()
+
+    @FUZZ
+    @given(damaged())
+    def load(text: str) -> None:
+        _load(tmp_path, text, outcomes)
+
+    load()
+    _reached_both_outcomes("damaged route files", outcomes)
 
 
-@FUZZ
-@given(st.lists(ALPHABET, max_size=12).map("".join), st.lists(ALPHABET, max_size=12).map("".join),
-       st.lists(ALPHABET, max_size=8).map("".join))
-def test_arbitrary_mappings_and_templates_get_file_line_problems(tmp_path: Path, mapping: str, key: str, topic: str) -> None:
-    _load(tmp_path, TEMPLATE.format(mapping=_quoted(mapping), key=_quoted(key), topic=_quoted("/" + topic)))
+def test_arbitrary_mappings_and_templates_get_file_line_problems(tmp_path: Path) -> None:
+    outcomes: Counter[str] = Counter()
+
+    @FUZZ
+    @given(st.lists(ALPHABET, max_size=12).map("".join), st.lists(ALPHABET, max_size=12).map("".join),
+           st.lists(ALPHABET, max_size=8).map("".join))
+    def load(mapping: str, key: str, topic: str) -> None:
+        _load(tmp_path, TEMPLATE.format(mapping=_quoted(mapping), key=_quoted(key), topic=_quoted("/" + topic)), outcomes)
+
+    load()
+    _reached_both_outcomes("arbitrary mappings and templates", outcomes)
 
 
-def test_print_counts() -> None:
-    print(f"\nroute loader fuzz: {COUNTS['inputs']} inputs, {COUNTS['valid']} valid, {COUNTS['invalid']} invalid "
-          f"(each with file:line problems), 0 tracebacks, slowest {COUNTS['slowest_s'] * 1000:.0f} ms")
+def test_an_amqp_url_that_is_not_a_url_is_a_problem_with_its_password_hidden(tmp_path: Path) -> None:
+    """Found by the damaged-file fuzz: ``amqp://[farmer:...`` (an unbalanced ``[``) made
+    urllib raise while the problem's own text was redacted: a traceback instead of a problem."""
+    (tmp_path / "r.yaml").write_text(VALID.replace("amqp://farmer:${RABBITROS_FUZZ_PW:-pw}@", "amqp://[farmer:secret@"))
+    with pytest.raises(RoutesInvalid) as refused:
+        load_routes(tmp_path, SCHEMAS, env={})
+    problems = [str(problem) for problem in refused.value.problems]
+    assert any("is not a valid URL" in problem and "amqp://[farmer:***@localhost" in problem for problem in problems), problems
+    assert not any("secret" in problem for problem in problems), problems

@@ -26,8 +26,9 @@ from engine.ops.route_tests import load_checked, run_tests
 from engine.running.pipeline import Pipeline
 from engine.running.runtime import Engine
 from tests.support.repo import REPO
-from tests.support.faults_harness import wait_for
+
 from tests.endpoints.mqtt.test_mqtt import Subscriber, publish
+from tests.support.waiting import wait_for
 
 SCHEMAS = SchemaRegistry(REPO / "schemas")
 

@@ -16,7 +16,7 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 import aio_pika
 import pytest
@@ -26,6 +26,7 @@ from engine.endpoints.amqp.broker import LocalBroker
 from tests.support.amqp_helpers import Collector, publish
 from tests.support.repo import REPO
 from tests.support.engine_process import EngineProcess
+from tests.support.waiting import wait_for_sync
 
 ROUTES = """
 routes:
@@ -54,16 +55,6 @@ def get(port: int, path: str) -> tuple[int, str]:
             return response.status, response.read().decode()
     except urllib.error.HTTPError as exc:
         return exc.code, exc.read().decode()
-
-
-def wait_until(check: Callable[[], Any], timeout: float, what: str) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = check()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
 
 
 def metrics(port: int) -> dict[str, float]:
@@ -119,7 +110,7 @@ def test_metrics_count_known_traffic(admin: Admin):
     route = 'route="counted"'
     # received is counted when the route takes a batch, its outcome once settled: wait for the outcomes
     settled = ("delivered", "dead_lettered")
-    wait_until(lambda: sum(metrics(admin.port).get(f'rabbitros_messages_total{{outcome="{outcome}",{route}}}', 0)
+    wait_for_sync(lambda: sum(metrics(admin.port).get(f'rabbitros_messages_total{{outcome="{outcome}",{route}}}', 0)
                            for outcome in settled) == 25, 30, "25 messages settled")
     sample = metrics(admin.port)
     assert sample[f'rabbitros_messages_total{{outcome="received",{route}}}'] == 25
@@ -171,7 +162,7 @@ def _read_tap(sock: socket.socket, count: int, timeout: float) -> list[dict[str,
 def test_tap_gets_every_canonical_message(admin: Admin):
     sock = _open_tap(admin.port, "tapped")
     try:
-        wait_until(lambda: admin.status()["routes"]["tapped"]["taps"] == 1, 10, "the tap to attach")
+        wait_for_sync(lambda: admin.status()["routes"]["tapped"]["taps"] == 1, 10, "the tap to attach")
         bodies = [json.dumps({"agent": "uav1", "seq": i}).encode() for i in range(300)]
         asyncio.run(_publish(admin.url, "tapped.x", bodies))
         lines = _read_tap(sock, 300, 30)
@@ -205,7 +196,7 @@ def test_a_tap_client_that_never_reads_does_not_slow_the_route(admin: Admin):
     baseline = asyncio.run(run(stuck=False))
     sock = _open_tap(admin.port, "tapped", receive_buffer=4096)
     try:
-        wait_until(lambda: admin.status()["routes"]["tapped"]["taps"] == 1, 10, "the stuck tap to attach")
+        wait_for_sync(lambda: admin.status()["routes"]["tapped"]["taps"] == 1, 10, "the stuck tap to attach")
         with_stuck_tap = asyncio.run(run(stuck=True))
         dropped = admin.status()["routes"]["tapped"]["tap_dropped"]
     finally:
@@ -363,12 +354,12 @@ def test_healthz_follows_the_broker(tmp_path: Path):
         code, body = get(port, "/healthz")
         assert code == 200 and json.loads(body)["status"] == "ok", body
         broker.stop(timeout=30)
-        code, body = wait_until(lambda: (r := get(port, "/healthz"))[0] == 503 and r, 30, "/healthz to turn 503")
+        code, body = wait_for_sync(lambda: (r := get(port, "/healthz"))[0] == 503 and r, 30, "/healthz to turn 503")
         document = json.loads(body)
         assert document["down"] == ["farm-broker"] and document["connections"]["farm-broker"]["up"] is False
         assert metrics(port)['rabbitros_connection_up{connection="farm-broker",protocol="amqp"}'] == 0
         broker.start()
-        wait_until(lambda: get(port, "/healthz")[0] == 200, 60, "/healthz to turn 200 again")
+        wait_for_sync(lambda: get(port, "/healthz")[0] == 200, 60, "/healthz to turn 200 again")
         assert metrics(port)['rabbitros_connection_up{connection="farm-broker",protocol="amqp"}'] == 1
     finally:
         engine.stop()
@@ -396,7 +387,7 @@ def test_status_shows_why_the_last_reload_was_rejected_and_the_log_says_when_it_
     try:
         engine.wait_started()
         (routes / "r.yaml").write_text(good.replace("schema: weed_detection", "schema: weed_detektion"))
-        wait_until(lambda: (engine.status() or {}).get("reloads", {}).get("rejected") == 1, 30, "the reload to be rejected")
+        wait_for_sync(lambda: (engine.status() or {}).get("reloads", {}).get("rejected") == 1, 30, "the reload to be rejected")
         table = status_table()
         assert "0 ok / 1 rejected" in table and "last reload rejected (generation 1 keeps running):" in table, table
         problem = next(line.strip() for line in table.splitlines() if "weed_detektion" in line)
@@ -404,8 +395,8 @@ def test_status_shows_why_the_last_reload_was_rejected_and_the_log_says_when_it_
         assert "reload error cleared" not in engine.log()
 
         (routes / "r.yaml").write_text(good.replace("prefetch: 64", "prefetch: 32"))
-        wait_until(lambda: (engine.status() or {}).get("generation") == 2, 30, "the fixed files to be applied")
-        cleared = wait_until(lambda: [json.loads(line) for line in engine.log().splitlines()
+        wait_for_sync(lambda: (engine.status() or {}).get("generation") == 2, 30, "the fixed files to be applied")
+        cleared = wait_for_sync(lambda: [json.loads(line) for line in engine.log().splitlines()
                                       if '"reload error cleared"' in line], 10, "the log to say the error cleared")
         assert cleared[0]["by"] == "a reload applied" and "weed_detektion" in cleared[0]["was"][0]
         table = status_table()

@@ -21,7 +21,9 @@ from engine.common.redaction import Secret, redact_urls, reveal
 from engine.endpoints.amqp.broker import LocalBroker
 from tests.support.repo import REPO
 from tests.support.engine_process import EngineProcess
-from tests.support.outage_helpers import Collector, Tally, publish_reliably, robust, wait_for
+from tests.support.amqp_helpers import Collector
+from tests.support.outage_helpers import Tally, publish_reliably, robust
+from tests.support.waiting import wait_for
 
 PASSWORD = "S3cret-" + uuid.uuid4().hex[:10]
 TOKEN = "tok-" + uuid.uuid4().hex[:10]
@@ -112,7 +114,7 @@ def test_logs_status_and_dead_letters_never_show_the_password_and_sigterm_loses_
         engines = [EngineProcess(routes, tmp_path / "first.json", env, "--log-level", "debug", "--drain-timeout", "5")]
         connection = await robust(url)
         try:
-            await Collector(arrived).bind(connection, f"collect-{tag}", names["outbox"])
+            await Collector.bind(await connection.channel(), names["outbox"], queue=f"collect-{tag}", ack=True, tally=arrived, prefetch=500)
             await asyncio.to_thread(engines[0].wait_started)
             channel = await connection.channel()
             inbox = await channel.declare_exchange(names["inbox"], aio_pika.ExchangeType.TOPIC, durable=True)

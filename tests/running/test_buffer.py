@@ -10,6 +10,7 @@ import pytest
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound
 from engine.running.buffer import SEGMENT_MESSAGES, HoldingBuffer, decode, encode
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
@@ -47,14 +48,6 @@ class SwitchableSink:
         return results
 
 
-async def wait_until(predicate, timeout: float = 10.0) -> None:
-    deadline = asyncio.get_running_loop().time() + timeout
-    while not predicate():
-        if asyncio.get_running_loop().time() > deadline:
-            raise TimeoutError("condition not met")
-        await asyncio.sleep(0.01)
-
-
 def test_encode_decode_round_trip_keeps_bytes_and_fields() -> None:
     original = Outbound(b"\xff\x00raw", {"a": 1}, {"b": [1, 2]}, "id-1", {"route": "r", "topic": "/x"})
     back = decode(encode(original))
@@ -74,7 +67,7 @@ def test_holds_in_order_while_down_and_delivers_after(tmp_path: Path, spill: boo
             await buffer.hold(message(index))
         assert len(buffer) == 2_500 and sink.received == []
         sink.up = True
-        await wait_until(lambda: not buffer.holding)
+        await wait_for(lambda: not buffer.holding)
         assert sink.received == list(range(2_500))
         assert sum(map(len, delivered)) == 2_500 and buffer.stats.delivered == 2_500
         await buffer.close()
@@ -92,7 +85,7 @@ def test_spilled_messages_survive_a_restart_and_nothing_is_replayed_twice(tmp_pa
         for index in range(3 * SEGMENT_MESSAGES + 10):
             await buffer.hold(message(index))
         sink.up = True
-        await wait_until(lambda: len(sink.received) >= 500)
+        await wait_for(lambda: len(sink.received) >= 500)
         sink.up = False
         await buffer.close()
         return sink.received
@@ -103,7 +96,7 @@ def test_spilled_messages_survive_a_restart_and_nothing_is_replayed_twice(tmp_pa
         buffer = HoldingBuffer("r", sink.send_batch, spill_dir=tmp_path)
         buffer.start()
         assert buffer.stats.replayed == 3 * SEGMENT_MESSAGES + 10 - expected_from
-        await wait_until(lambda: not buffer.holding)
+        await wait_for(lambda: not buffer.holding)
         assert sink.received == list(range(expected_from, 3 * SEGMENT_MESSAGES + 10))
         await buffer.close()
         third = HoldingBuffer("r", sink.send_batch, spill_dir=tmp_path)
@@ -130,10 +123,10 @@ def test_a_torn_last_line_is_skipped_and_counted(tmp_path: Path) -> None:
         again = HoldingBuffer("r", sink.send_batch, spill_dir=tmp_path)
         again.start()
         assert (again.stats.replayed, again.stats.corrupt) == (5, 1)
-        await wait_until(lambda: not again.holding)
+        await wait_for(lambda: not again.holding)
         for index in range(6, 9):
             await again.hold(message(index))
-        await wait_until(lambda: not again.holding)
+        await wait_for(lambda: not again.holding)
         assert sink.received == [0, 1, 2, 3, 4, 6, 7, 8]
         await again.close()
 
@@ -152,7 +145,7 @@ def test_full_buffer_makes_hold_wait_and_memory_leftovers_count_as_lost() -> Non
         assert not blocked.done()
         sink.up = True
         await asyncio.wait_for(blocked, 5)
-        await wait_until(lambda: not buffer.holding)
+        await wait_for(lambda: not buffer.holding)
         assert sink.received == list(range(11))
         sink.up = False
         await buffer.hold(message(11))
@@ -176,7 +169,7 @@ def test_rejected_messages_go_to_the_dead_letter_callback_once_and_the_rest_flow
         for index in range(10):
             await buffer.hold(message(index))
         sink.up = True
-        await wait_until(lambda: not buffer.holding)
+        await wait_for(lambda: not buffer.holding)
         assert dead == [3, 7] and sink.received == [0, 1, 2, 4, 5, 6, 8, 9]
         await buffer.close()
 
@@ -200,7 +193,7 @@ def test_no_attempt_while_the_connection_reports_down() -> None:
         await asyncio.sleep(0.3)
         assert attempts == 0
         sink.up = healthy = True
-        await wait_until(lambda: not buffer.holding)
+        await wait_for(lambda: not buffer.holding)
         assert attempts == 1
         await buffer.close()
 
@@ -223,7 +216,7 @@ def test_a_message_the_healthy_sink_keeps_failing_is_given_up_after_max_attempts
         buffer.start()
         for index in range(4):
             await buffer.hold(message(index))
-        await wait_until(lambda: not buffer.holding)
+        await wait_for(lambda: not buffer.holding)
         assert given_up == [(1, 3)] and sink.received == [0, 2, 3]
         await buffer.close()
 
@@ -272,9 +265,9 @@ whether or not the sink was up when their turn came: neither needs the sink)."""
             outbound = message(index)
             outbound.canonical["agent_id"] = f"uav{index % 3}"
             await buffer.hold(outbound)
-        await wait_until(lambda: buffer.stats.retries > 0)  # tried while down: the newest wait
+        await wait_for(lambda: buffer.stats.retries > 0)  # tried while down: the newest wait
         sink.up = True
-        await wait_until(lambda: not buffer.holding)
+        await wait_for(lambda: not buffer.holding)
         assert sink.received == [9, 11]
         assert expired == [10] and sorted(conflated) == list(range(9))
         assert (buffer.stats.delivered, buffer.stats.expired, buffer.stats.conflated) == (2, 1, 9)

@@ -33,8 +33,10 @@ import pytest
 from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import LocalBroker
 from tests.support.engine_process import EngineProcess
-from tests.support.outage_helpers import Collector, Tally, robust, wait_for
+from tests.support.amqp_helpers import Collector
+from tests.support.outage_helpers import Tally, robust
 from tests.support.workers import ros_domain
+from tests.support.waiting import wait_for
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
@@ -258,7 +260,7 @@ async def buffered_traffic(flaky: LocalBroker, engine: EngineProcess, tag: str, 
         return (engine.status() or {}).get("routes", {}).get("buffered", {})
 
     try:
-        await Collector(arrived).bind(connection, f"collect-{tag}", f"{tag}-up", "up.#")
+        await Collector.bind(await connection.channel(), f"{tag}-up", "up.#", queue=f"collect-{tag}", ack=True, tally=arrived, prefetch=500)
         await wait_for(lambda: publisher.get_subscription_count() > 0, 30, "the engine's ROS subscription")
         await asyncio.sleep(1.0)
         publish(0, UP_GOOD, UP_BAD)

@@ -24,8 +24,9 @@ from engine.running.dead_letters import DeadLetterSpool
 from engine.running.delivery import BACKOFF_FIRST
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector
-from tests.support.faults_harness import wait_for
+
 from tests.support.workers import ros_domain
+from tests.support.waiting import wait_for
 
 MAX_ATTEMPTS = 3
 

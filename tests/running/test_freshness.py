@@ -29,9 +29,11 @@ from typing import Any
 from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import LocalBroker
 from tests.support.engine_process import EngineProcess
-from tests.support.outage_helpers import Collector, Tally, robust, wait_for
+from tests.support.amqp_helpers import Collector
+from tests.support.outage_helpers import Tally, robust
 from tests.running.test_counters_agree import TapReader
 from tests.support.workers import ros_domain
+from tests.support.waiting import wait_for, wait_for_sync
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
@@ -88,8 +90,10 @@ def test_max_age_expires_stale_held_messages_and_latest_only_replays_one_per_key
             assert metric(port, route, "expired") == want["expired"]
             assert metric(port, route, "conflated") == want["conflated"]
             assert document["buffer"]["expired"] == want["expired"] and document["buffer"]["conflated"] == want["conflated"]
-            wait_for_sync(lambda route=route: logged(engine.log_file, route), want["expired"], "the log's counter line")
-        wait_for_sync(lambda: sum(line["outcome"] == "expired" for line in tap.lines), DURING, "the tap's expired lines")
+            wait_for_sync(lambda route=route: logged(engine.log_file, route) == want["expired"], 15, "the log's counter line",
+                          detail=lambda route=route: f"{logged(engine.log_file, route)} != {want['expired']}")
+        wait_for_sync(lambda: sum(line["outcome"] == "expired" for line in tap.lines) == DURING, 15, "the tap's expired lines",
+                      detail=lambda: sum(line["outcome"] == "expired" for line in tap.lines))
         expired_lines = [line for line in tap.lines if line["outcome"] == "expired"]
         assert sorted(line["canonical"]["seq"] for line in expired_lines) == list(during)
         print(f"\naged: {want_aged}\nlatest: {want_latest}")
@@ -117,8 +121,8 @@ async def traffic(flaky: LocalBroker, engine: EngineProcess, tag: str, domain: i
         return (engine.status() or {}).get("routes", {}).get(name, {})
 
     try:
-        await Collector(aged).bind(connection, f"aged-{tag}", f"{tag}-out", "aged")
-        await Collector(latest).bind(connection, f"latest-{tag}", f"{tag}-out", "latest")
+        await Collector.bind(await connection.channel(), f"{tag}-out", "aged", queue=f"aged-{tag}", ack=True, tally=aged, prefetch=500)
+        await Collector.bind(await connection.channel(), f"{tag}-out", "latest", queue=f"latest-{tag}", ack=True, tally=latest, prefetch=500)
         await wait_for(lambda: publisher.get_subscription_count() >= 2, 30, "the engine's ROS subscriptions")
         await asyncio.sleep(1.0)  # discovery both ways (as tests/running/test_counters_agree.py)
         publish(range(BEFORE))
@@ -167,14 +171,6 @@ def logged(log_file: Path, route: str) -> int | None:
             if record.get("route") == route:
                 last = record.get("expired")
     return last
-
-
-def wait_for_sync(read: Any, want: int, what: str, timeout: float = 15.0) -> None:
-    deadline = time.monotonic() + timeout
-    while read() != want:
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what}: {read()} != {want}")
-        time.sleep(0.1)
 
 
 def test_check_warns_when_latest_only_reads_a_field_the_schema_lacks(tmp_path: Path) -> None:
@@ -228,7 +224,6 @@ def test_max_age_expires_what_waited_in_a_throttle_slot_or_for_a_retry(tmp_path:
     import aio_pika
 
     from engine.running.runtime import Engine
-    from tests.support.amqp_helpers import Collector as AmqpCollector
 
     tag = "ft" + uuid.uuid4().hex[:8]
     (tmp_path / "r.yaml").write_text(THROTTLE_AND_RETRY.format(url=amqp_url, tag=tag))
@@ -238,8 +233,8 @@ def test_max_age_expires_what_waited_in_a_throttle_slot_or_for_a_retry(tmp_path:
         channel = await connection.channel()
         await channel.declare_queue(f"{tag}-full", arguments={"x-max-length": 0, "x-overflow": "reject-publish"},
                                     auto_delete=True)
-        out = await AmqpCollector.bind(channel, f"{tag}-out", "#")
-        dead = await AmqpCollector.bind(channel, "rabbitros.dead-letter", "retried")
+        out = await Collector.bind(channel, f"{tag}-out", "#")
+        dead = await Collector.bind(channel, "rabbitros.dead-letter", "retried")
         engine = Engine(tmp_path, schemas_dir)
         await engine.start()
         try:

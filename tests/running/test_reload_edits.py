@@ -22,6 +22,7 @@ from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector, publish, started_with_client
 from tests.support.engine_process import EngineProcess
 from tests.support.udp_vehicle import Vehicle, free_udp_port, telemetry_routes
+from tests.support.waiting import wait_for
 
 PROBE_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "type": "object", "required": ["a"]}
 PROBE_ROUTE = """
@@ -51,14 +52,6 @@ def write_atomically(path: Path, text: str) -> None:
     temporary = path.with_name(f".{path.name}.tmp")
     temporary.write_text(text)
     os.replace(temporary, path)
-
-
-async def wait_until(condition: Any, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise TimeoutError(what)
-        await asyncio.sleep(0.02)
 
 
 def test_schema_edit_takes_effect_within_a_second(amqp_url: str, tmp_path: Path, schemas_dir: Path):
@@ -122,7 +115,7 @@ def test_recursive_alias_and_broken_ref_are_rejected_and_the_engine_keeps_runnin
             await delivered_through_probe(channel, out, 1)
 
             (routes / "loop.yaml").write_text("routes: []\nx: &loop [1, *loop]\n")
-            await wait_until(lambda: rejected() == 1, 10, f"recursive alias not rejected: {engine.log()}")
+            await wait_for(lambda: rejected() == 1, 10, f"recursive alias not rejected: {engine.log()}")
             assert any("loop.yaml:2: invalid YAML" in p for p in status()["reloads"]["last_error"]), status()
             (routes / "loop.yaml").unlink()
             await delivered_through_probe(channel, out, 2)
@@ -130,14 +123,14 @@ def test_recursive_alias_and_broken_ref_are_rejected_and_the_engine_keeps_runnin
             position = schemas / "position.v1.json"
             good = position.read_text()
             write_atomically(position, good.replace("envelope.v1.json#", "nowhere.v1.json#"))
-            await wait_until(lambda: rejected() == 2, 10, f"broken $ref not rejected: {engine.log()}")
+            await wait_for(lambda: rejected() == 2, 10, f"broken $ref not rejected: {engine.log()}")
             assert any("position.v1.json:0: $ref 'nowhere.v1.json#/$defs/header' does not resolve" in p
                        for p in status()["reloads"]["last_error"]), status()
             await delivered_through_probe(channel, out, 3)
 
             write_atomically(position, good)
             (routes / "more.yaml").write_text(PROBE_ROUTE.replace("probe\n", "probe2\n", 1).format(**names()))
-            await wait_until(lambda: set(status().get("routes", {})) == {"probe", "probe2"}, 10,
+            await wait_for(lambda: set(status().get("routes", {})) == {"probe", "probe2"}, 10,
                              f"the reloader no longer applies edits: {engine.log()}")
             await delivered_through_probe(channel, out, 4)
         finally:
@@ -295,7 +288,7 @@ def test_a_new_signing_key_written_over_the_key_file_takes_effect(amqp_url: str,
             channel = await connection.channel()
             out = await Collector.bind(channel, n["outbox"], "telemetry")
             vehicle.start()
-            await wait_until(lambda: rejected_signatures() >= 20, 20, f"frames signed with another key not rejected: {engine.log()}")
+            await wait_for(lambda: rejected_signatures() >= 20, 20, f"frames signed with another key not rejected: {engine.log()}")
             assert out.messages == [], "frames signed with a key the engine does not have were delivered"
             write_atomically(key_file, new_key.hex())
             written = time.monotonic()

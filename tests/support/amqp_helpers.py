@@ -4,31 +4,68 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
+import time
 import uuid
-from typing import Any, AsyncIterator
+from typing import Any, AsyncIterator, Protocol, Self
 
 import aio_pika
 
 
-class Collector:
-    """A temporary queue bound to an exchange that records every message it receives."""
+class SeqRecorder(Protocol):
+    def record(self, seq: int) -> None: ...
 
-    def __init__(self) -> None:
+
+class Collector:
+    """A queue bound to a topic exchange that records every message it receives, and when: the
+    one collector of the tests (what a source delivers to an engine-less test is
+    tests/support/collecting_deliver.py).
+
+    By default an exclusive, auto-named queue consumed without acknowledgements: a test's window
+    on a route's output. ``queue=NAME``: a durable queue of that name, which outlives a broker
+    restart (``quorum``: a quorum queue, which outlives the node that dies in a cluster test);
+    ``ack``: each message acknowledged once recorded, so a broker killed mid-delivery redelivers
+    it (a duplicate) instead of losing it; ``tally``: each message's JSON ``seq`` recorded there;
+    ``prefetch``: the channel's prefetch."""
+
+    def __init__(self, ack: bool = False, tally: SeqRecorder | None = None) -> None:
         self.messages: list[aio_pika.abc.AbstractIncomingMessage] = []
+        self.ack = ack
+        self.tally = tally
         self._arrived = asyncio.Event()
 
     @classmethod
-    async def bind(cls, channel: Any, exchange: str, binding_key: str = "#") -> "Collector":
-        collector = cls()
+    async def bind(cls, channel: Any, exchange: str, binding_key: str = "#", *, queue: str | None = None,
+                   quorum: bool = False, ack: bool = False, tally: SeqRecorder | None = None,
+                   prefetch: int | None = None) -> Self:
+        collector = cls(ack, tally)
+        if prefetch is not None:
+            await channel.set_qos(prefetch_count=prefetch)
         target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
-        queue = await channel.declare_queue(f"test-{uuid.uuid4().hex[:8]}", exclusive=True)
-        await queue.bind(target, binding_key)
-        await queue.consume(collector._on_message, no_ack=True)
+        if queue is None:
+            declared = await channel.declare_queue(f"test-{uuid.uuid4().hex[:8]}", exclusive=True)
+        else:
+            declared = await channel.declare_queue(queue, durable=True,
+                                                   arguments={"x-queue-type": "quorum"} if quorum else None)
+        await declared.bind(target, binding_key)
+        await declared.consume(collector._on_message, no_ack=not ack)
         return collector
 
     async def _on_message(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        self.received(time.monotonic(), message)
         self.messages.append(message)
         self._arrived.set()
+        if self.tally is not None:
+            self.tally.record(json.loads(message.body)["seq"])
+        if self.ack:
+            try:
+                await message.ack()
+            except Exception:
+                pass  # the broker is gone: it redelivers what was not acked
+
+    def received(self, at: float, message: aio_pika.abc.AbstractIncomingMessage) -> None:
+        """Called with each message and its arrival (monotonic) before it is recorded: for a
+        subclass that keeps its own view of the stream."""
 
     async def wait_for(self, count: int, timeout: float = 20.0) -> list[aio_pika.abc.AbstractIncomingMessage]:
         """Wait until ``count`` messages arrived, or none arrived for ``timeout`` seconds (ten times

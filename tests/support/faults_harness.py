@@ -6,10 +6,9 @@ from __future__ import annotations
 import asyncio
 import json
 import threading
-import time
 from collections import Counter
 from pathlib import Path
-from typing import Any, Callable, Coroutine
+from typing import Any, Coroutine
 
 import aio_pika
 
@@ -51,14 +50,6 @@ class Recorder:
 
     async def _on_message(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
         self.messages.append(message)
-
-
-async def wait_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        await asyncio.sleep(0.02)
 
 
 def dead_letter_key(message: aio_pika.abc.AbstractIncomingMessage) -> tuple[str, str, bytes]:

@@ -64,26 +64,6 @@ async def declare_bound_queue(channel: Any, queue: str, exchange: str, key: str 
     return declared
 
 
-class Collector:
-    """A durable queue bound to ``exchange``; acks each message after recording it, so a
-    broker killed mid-delivery redelivers (a duplicate) instead of losing it."""
-
-    def __init__(self, tally: Tally) -> None:
-        self.tally = tally
-
-    async def bind(self, connection: Any, queue: str, exchange: str, key: str = "#") -> None:
-        channel = await connection.channel()
-        await channel.set_qos(prefetch_count=500)
-        await (await declare_bound_queue(channel, queue, exchange, key)).consume(self._on_message)
-
-    async def _on_message(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
-        try:
-            self.tally.record(json.loads(message.body)["seq"])
-            await message.ack()
-        except Exception:
-            pass  # the broker is gone: it redelivers what was not acked
-
-
 async def publish_reliably(connection: Any, exchange: str, key: str, seqs: range, rate: float,
                            tally: Tally, extra: Callable[[int], dict[str, Any]] = lambda seq: {},
                            window: int = 64) -> None:
@@ -178,10 +158,3 @@ class RosPeer:
         self.node.destroy_node()
         self.context.try_shutdown()
 
-
-async def wait_for(predicate: Callable[[], bool], timeout: float, what: str, interval: float = 0.1) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"timed out after {timeout:.0f}s waiting for {what}")
-        await asyncio.sleep(interval)

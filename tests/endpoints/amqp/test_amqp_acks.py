@@ -25,12 +25,13 @@ from engine.endpoints.amqp.source import AmqpSource
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for
 
 PREFETCH = 400
 
 def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_rest_at_stop(
         amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     monkeypatch.setattr(amqp_acks, "ACK_IDLE_NS", 60_000_000_000)
@@ -72,17 +73,17 @@ def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_res
             try:
                 runner = engine.runners["acks"]
                 runners.append(runner)
-                await wait_until(lambda: runner.pipeline.sink.ready, 60, "the reader never matched")
+                await wait_for(lambda: runner.pipeline.sink.ready, 60, "the reader never matched")
                 connection = await aio_pika.connect(amqp_url)
                 async with connection:
                     channel = await connection.channel(publisher_confirms=True)
                     await publish_burst(channel, queue, burst)
-                    await wait_until(lambda: runner.observer.delivered == len(burst), 60, "the burst was not all delivered")
+                    await wait_for(lambda: runner.observer.delivered == len(burst), 60, "the burst was not all delivered")
                     # a short burst after a pause (its first one may be settled alone): held with the rest
                     # until the stop, as the source never goes idle for 60 s
                     await publish_burst(channel, queue, tail)
-                    await wait_until(lambda: runner.observer.delivered == len(burst) + len(tail), 60, "the tail was not delivered")
-                    await wait_until(lambda: len(received) == len(burst) + len(tail), 60, "the reader did not get them all")
+                    await wait_for(lambda: runner.observer.delivered == len(burst) + len(tail), 60, "the tail was not delivered")
+                    await wait_for(lambda: len(received) == len(burst) + len(tail), 60, "the reader did not get them all")
                     source = runner.source
                     held = source._acks.held
                     counters = runner.observer.counters()

@@ -21,11 +21,12 @@ from engine.endpoints.amqp.source import ALONE_GAP_NS, AmqpSource
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for
 
 
 def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_order_once(
         amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "a" + uuid.uuid4().hex[:8]
@@ -53,26 +54,26 @@ def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_
                     runner = engine.runners["alone"]
                     # 1: alone, and no reader yet: it waits in its callback for the sink
                     await channel.default_exchange.publish(aio_pika.Message(bodies[0]), queue)
-                    await wait_until(lambda: runner.observer.received == 1, 30, "the first message was not taken")
+                    await wait_for(lambda: runner.observer.received == 1, 30, "the first message was not taken")
                     assert alone == [1]
                     # 2-30: a burst behind it, queued for the batch loop, which must wait for 1
                     await publish_burst(channel, queue, bodies[1:30])
                     source = runner.source
                     # the batch loop has taken (some of) the burst: were it to hand it on, it would have in the same step
-                    await wait_until(lambda: not source._parked, 30, "the batch loop never took any of the burst")
+                    await wait_for(lambda: not source._parked, 30, "the batch loop never took any of the burst")
                     # the route has been handed nothing behind the waiting one: no batch can overtake it
                     # or acknowledge past it (basic_ack multiple=True) before it is settled
                     assert runner.observer.received == 1 and runner.observer.delivered == 0, runner.observer.counters()
                     peer = Peer()
                     received = peer.subscribe(String, f"/{tag}/alone")
                     peer.start()
-                    await wait_until(lambda: len(received) == 30, 30, "the first 30 did not all arrive")
+                    await wait_for(lambda: len(received) == 30, 30, "the first 30 did not all arrive")
                     # 31-60 at a robot's pace: each one alone
                     for body in bodies[30:]:
                         await asyncio.sleep(ALONE_GAP_NS / 1e9 * 5)
                         await channel.default_exchange.publish(aio_pika.Message(body), queue)
-                    await wait_until(lambda: len(received) == 60, 30, "the last 30 did not all arrive")
-                    await wait_until(lambda: runner.observer.delivered == 60, 30, "not counted delivered")
+                    await wait_for(lambda: len(received) == 60, 30, "the last 30 did not all arrive")
+                    await wait_for(lambda: runner.observer.delivered == 60, 30, "not counted delivered")
                     counters = runner.observer.counters()
             finally:
                 await engine.stop()  # its channel closed: a message it did not acknowledge is ready again

@@ -19,11 +19,12 @@ from engine.endpoints.amqp.source import FRAME_BUFFER, AmqpSource
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import amqp_to_ros2_routes, publish_burst
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for
 
 
 def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
         amqp_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String, wait_until
+    from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "b" + uuid.uuid4().hex[:8]
@@ -57,7 +58,7 @@ def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
             try:
                 runner = engine.runners["backlog"]
                 frames = (await runner.source._channel.get_underlay_channel()).frames.maxsize
-                await wait_until(lambda: len(received) == len(bodies), 60, "the reader did not get them all")
+                await wait_for(lambda: len(received) == len(bodies), 60, "the reader did not get them all")
             finally:
                 await engine.stop()
             return [m.data.encode() for m in received], frames

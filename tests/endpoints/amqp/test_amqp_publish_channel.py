@@ -18,7 +18,7 @@ import contextlib
 import json
 import uuid
 from pathlib import Path
-from typing import Any, AsyncIterator, Callable, Iterator
+from typing import Any, AsyncIterator, Iterator
 
 import aio_pika
 import aiormq
@@ -27,6 +27,7 @@ from aiormq import spec
 
 from engine.endpoints.amqp.broker import LocalBroker
 from engine.running.runtime import Engine
+from tests.support.waiting import wait_for
 
 AFTER = 100
 """Messages fed to each route once route a's queue is bound to its exchange again."""
@@ -79,14 +80,6 @@ class Seqs:
         return [s for s in self.seqs if not (s in seen or seen.add(s))]  # type: ignore[func-returns-value]
 
 
-async def until(condition: Callable[[], bool], timeout: float, what: str, detail: Callable[[], Any] = lambda: "") -> None:
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while not condition():
-        assert loop.time() < deadline, f"timed out after {timeout} s waiting for {what}: {detail()}"
-        await asyncio.sleep(0.01)
-
-
 def test_exchange_deleted_behind_the_engine_fails_only_its_route_and_it_recovers(
         node: LocalBroker, tmp_path: Path, schemas_dir: Path) -> None:
     tag = uuid.uuid4().hex[:8]
@@ -135,7 +128,7 @@ def test_exchange_deleted_behind_the_engine_fails_only_its_route_and_it_recovers
                 return seq
 
             feeding = asyncio.create_task(feed())
-            await until(lambda: len(out_a.seqs) >= DELETE_AFTER and len(out_b.seqs) >= DELETE_AFTER, DEADLINE_S,
+            await wait_for(lambda: len(out_a.seqs) >= DELETE_AFTER and len(out_b.seqs) >= DELETE_AFTER, DEADLINE_S,
                         "both routes flowing", lambda: (len(out_a.seqs), len(out_b.seqs)))
             other = await aiormq.connect(node.url)  # another client, not the engine
             try:
@@ -145,20 +138,20 @@ def test_exchange_deleted_behind_the_engine_fails_only_its_route_and_it_recovers
                 await other.close()
             deleted_at = len(out_b.distinct())
             # route b goes on delivering what is fed meanwhile, whatever happens to route a
-            await until(lambda: len(out_b.distinct()) >= deleted_at + 2 * DELETE_AFTER, DEADLINE_S,
+            await wait_for(lambda: len(out_b.distinct()) >= deleted_at + 2 * DELETE_AFTER, DEADLINE_S,
                         "route b to go on delivering", lambda: f"{len(out_b.distinct())}, the connection {connection()}")
-            await until(lambda: names["ex_a"] in (connection()["last_error"] or ""), DEADLINE_S,
+            await wait_for(lambda: names["ex_a"] in (connection()["last_error"] or ""), DEADLINE_S,
                         "the connection's status to name the deleted exchange", connection)
             # route a delivers into the exchange the engine declared again (no binding yet: the
             # alternate exchange keeps what the broker would drop), then into its queue again
-            await until(lambda: bool(unrouted.seqs), DEADLINE_S, "route a to publish again",
+            await wait_for(lambda: bool(unrouted.seqs), DEADLINE_S, "route a to publish again",
                         lambda: (len(out_a.seqs), connection()))
             await queues["ex_a"].bind(names["ex_a"], "#")
             rebound.set()
             n = await feeding
-            await until(lambda: len(out_b.distinct()) >= n, DEADLINE_S, "route b to deliver every message",
+            await wait_for(lambda: len(out_b.distinct()) >= n, DEADLINE_S, "route b to deliver every message",
                         lambda: f"{len(out_b.distinct())} of {n}, the connection {connection()}")
-            await until(lambda: len(set(out_a.seqs) | set(unrouted.seqs)) >= n, DEADLINE_S,
+            await wait_for(lambda: len(set(out_a.seqs) | set(unrouted.seqs)) >= n, DEADLINE_S,
                         "every message of route a", lambda: (len(set(out_a.seqs) | set(unrouted.seqs)), connection()))
             status = engine.status()
             return {"n": n, "a": out_a.seqs, "a_distinct": out_a.distinct(), "unrouted": unrouted.distinct(),

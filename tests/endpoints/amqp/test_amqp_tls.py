@@ -10,7 +10,7 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Iterator
 
 import aio_pika
 import aio_pika.abc
@@ -20,6 +20,7 @@ from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import BrokerTls, LocalBroker
 from tests.support.engine_process import EngineProcess
 from tests.support.tls_helpers import Pki, make_pki, renew_client
+from tests.support.waiting import wait_for_sync
 
 CERT_USER = "guest"
 """The client certificate's common name: EXTERNAL logs in as the user of that name, and the
@@ -35,16 +36,6 @@ def tls_broker(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Local
         yield broker, pki
     finally:
         broker.stop()
-
-
-def wait_for(check: Callable[[], Any], timeout: float, what: str) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = check()
-        if value:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
 
 
 def tls_block(ca: Path, cert: Path | None = None, key: Path | None = None, hostname: str | None = None) -> str:
@@ -157,7 +148,7 @@ def test_each_failed_check_is_named_and_a_renewed_ca_file_reconnects(tls_broker:
             found = {name: str(connections.get(name, {}).get("last_error")) for name in expected}
             return found if all(expected[name] in found[name] for name in expected) else None
 
-        found = wait_for(errors, 60, f"the three TLS failures named in the status: {engine.log()}")
+        found = wait_for_sync(errors, 60, f"the three TLS failures named in the status: {engine.log()}")
         assert all(not engine.status()["connections"][name]["healthy"] for name in expected)
         named_s = time.monotonic() - started
         with pytest.raises(urllib.error.HTTPError) as refused:
@@ -172,7 +163,7 @@ def test_each_failed_check_is_named_and_a_renewed_ca_file_reconnects(tls_broker:
 
         began = time.monotonic()
         ca_file.write_bytes(pki.ca.read_bytes())  # the renewed CA bundle
-        wait_for(lambda: (engine.status() or {}).get("connections", {}).get("bad_ca", {}).get("healthy"), 60,
+        wait_for_sync(lambda: (engine.status() or {}).get("connections", {}).get("bad_ca", {}).get("healthy"), 60,
                  f"bad_ca to come up after its CA file was replaced: {engine.log()}")
         renewed_s = time.monotonic() - began
         assert engine.process.poll() is None

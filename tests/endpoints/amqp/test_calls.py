@@ -22,7 +22,8 @@ from rabbitros_sim.sik_radio import SikRadioPair
 from rabbitros_sim.vehicle import SimVehicle
 from tests.support.amqp_helpers import Caller
 from tests.support.mavsdk_vehicle import MavsdkAutopilot
-from tests.endpoints.mavlink.test_mavlink_transactions import WEEDS, canonical_mission, canonical_stamp, free_udp_port, run, until
+from tests.endpoints.mavlink.test_mavlink_transactions import WEEDS, canonical_mission, canonical_stamp, free_udp_port, run
+from tests.support.waiting import wait_for
 
 
 def _routes(directory: Path, amqp_url: str, link: str, tag: str, extra: str = "") -> Path:
@@ -101,7 +102,7 @@ def test_arm_command_as_a_call_gets_mav_result_accepted_from_mavsdk(tmp_path: Pa
             await caller.wait(lambda r: arm in r and bad in r, 30, "the arm and the bad request's replies")
             await caller.call("", f"arm-{tag}", _command(), reply_to=None)
             route = f"arm-{tag}"
-            await until(lambda: engine.status()["routes"][route]["replies"]["unrequested"] == 1, 20, "the fire-and-forget arm")
+            await wait_for(lambda: engine.status()["routes"][route]["replies"]["unrequested"] == 1, 20, "the fire-and-forget arm")
             status = engine.status()["routes"][route]
             await channel.queue_delete(route)
         finally:
@@ -335,7 +336,7 @@ def test_a_spilled_call_gets_its_reply_and_one_conflated_by_latest_only_an_error
             await caller.wait(lambda r: newer in r, 20, "the spilled call's reply")
             # the reply is published while the held message is being sent; the buffer counts it
             # delivered once the send returned, a moment after the caller may have its reply
-            await until(lambda: engine.status()["routes"][route]["buffer"]["delivered"] == 1, 10, "delivered counted")
+            await wait_for(lambda: engine.status()["routes"][route]["buffer"]["delivered"] == 1, 10, "delivered counted")
             status = engine.status()["routes"][route]
             await channel.queue_delete(route)
         finally:
@@ -414,7 +415,7 @@ def test_a_call_held_in_memory_when_the_engine_stops_gets_an_error_reply(
             channel = await connection.channel()
             caller = await Caller.open(channel)
             held = await caller.call("", route, _command())
-            await until(lambda: (engine.status()["routes"][route]["buffer"] or {}).get("held") == 1, 20, "the call held")
+            await wait_for(lambda: (engine.status()["routes"][route]["buffer"] or {}).get("held") == 1, 20, "the call held")
             await channel.queue_delete(route)
             await engine.stop(drain_timeout=0.5)
             status = engine.status()["routes"][route]

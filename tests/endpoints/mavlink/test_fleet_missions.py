@@ -23,7 +23,8 @@ from engine.endpoints.mavlink.connection import MavlinkConnection
 from engine.running.runtime import Engine
 from rabbitros_sim.vehicle import SimVehicle
 from tests.support.amqp_helpers import Caller
-from tests.endpoints.mavlink.test_mavlink_transactions import canonical_mission, free_udp_port, run, until
+from tests.endpoints.mavlink.test_mavlink_transactions import canonical_mission, free_udp_port, run
+from tests.support.waiting import wait_for
 
 
 def _points(system_id: int) -> list[tuple[float, float]]:
@@ -131,9 +132,9 @@ def test_a_silent_vehicle_does_not_hold_the_others_missions() -> None:
         try:
             async with _fleet(port, silent=(1,)) as vehicles:
                 sink = gcs.sink("missions", {"mission": "upload", "target_system": "{vehicle}", "timeout": 1.0, "retries": 3})
-                await until(lambda: all(gcs.has_heard(s) for s in vehicles), 10, "every vehicle's HEARTBEAT")
+                await wait_for(lambda: all(gcs.has_heard(s) for s in vehicles), 10, "every vehicle's HEARTBEAT")
                 batch = asyncio.create_task(sink.send_batch([_outbound(_mission(s, _points(s))) for s in (1, 2, 3)]))
-                await until(lambda: all(vehicles[s].sim.autopilot.stats["missions_accepted"] == 1 for s in (2, 3)), 3.0,
+                await wait_for(lambda: all(vehicles[s].sim.autopilot.stats["missions_accepted"] == 1 for s in (2, 3)), 3.0,
                             "vehicles 2 and 3 accepting theirs while vehicle 1 is silent")
                 assert not batch.done()
                 return await batch
@@ -160,10 +161,10 @@ def test_a_silent_vehicle_does_not_hold_the_others_commands() -> None:
         try:
             sink = gcs.sink("arm", {"message": "COMMAND_LONG", "acknowledged": True, "target_system": "{vehicle}",
                                     "timeout": 1.0, "retries": 3})
-            await until(lambda: all(gcs.has_heard(s) for s in vehicles), 10, "every vehicle's HEARTBEAT")
+            await wait_for(lambda: all(gcs.has_heard(s) for s in vehicles), 10, "every vehicle's HEARTBEAT")
             batch = asyncio.create_task(sink.send_batch([
                 Outbound(b"", {"vehicle": s}, {"command": 400, "param1": 1}, uuid.uuid4().hex, {}) for s in (1, 2, 3)]))
-            await until(lambda: gcs.stats.get("commands_acknowledged", 0) == 2, 3.0,
+            await wait_for(lambda: gcs.stats.get("commands_acknowledged", 0) == 2, 3.0,
                         "vehicles 2 and 3 acknowledging theirs while vehicle 1 is silent")
             assert not batch.done()
             assert [len(vehicles[s].autopilot.commands) >= 1 for s in (1, 2, 3)] == [True, True, True]

@@ -6,7 +6,7 @@ import asyncio
 import math
 import os
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +17,8 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
-from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
+from tests.support.waiting import wait_for
+from tests.support.collecting_deliver import CollectingDeliver
 
 TRANSPORT = mavlink.TRANSPORT
 KEY = bytes(range(32))
@@ -29,13 +30,6 @@ def run(coro: Awaitable[Any], timeout: float = 30.0) -> Any:
         return await asyncio.wait_for(coro, timeout)
 
     return asyncio.run(bounded())
-
-
-async def until(condition: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        await asyncio.sleep(0.02)
 
 
 def outbound(fields: Any = None, body: bytes = b"{}") -> Outbound:
@@ -103,33 +97,6 @@ def gpi(mav: mavlink2.MAVLink, lat: int = 473977418) -> bytes:
     data = msg.pack(mav)
     mav.seq = (mav.seq + 1) % 256
     return data
-
-
-class Collector(FunctionDeliver):
-    def __init__(self, **deliver: Any) -> None:
-        super().__init__(**deliver)
-        self.items: list[Inbound] = []
-        self.event = asyncio.Event()
-
-    async def __call__(self, inbound: Inbound) -> None:
-        self.items.append(inbound)
-        self.event.set()
-
-    async def wait_for(self, count: int, timeout: float = 3.0) -> None:
-        async def enough() -> None:
-            while len(self.items) < count:
-                self.event.clear()
-                await self.event.wait()
-
-        await asyncio.wait_for(enough(), timeout)
-
-
-async def settle(predicate: Callable[[], bool], timeout: float = 3.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not reached")
-        await asyncio.sleep(0.01)
 
 
 # -- static checks ----------------------------------------------------------------------------
@@ -259,8 +226,8 @@ def test_source_delivers_fields_and_filters_by_system() -> None:
         conn = TRANSPORT.connect("gcs", {"url": "udpin:127.0.0.1:0", "heartbeat": 0})
         await conn.open()
         peer = await UdpPeer.bind()
-        got = Collector()
-        everything = Collector()
+        got = CollectingDeliver()
+        everything = CollectingDeliver()
         source = conn.source("telemetry", {"message": "GLOBAL_POSITION_INT", "system_id": 1})
         raw_source = conn.source("all", {})
         await source.start(got)
@@ -286,7 +253,7 @@ def test_source_delivers_fields_and_filters_by_system() -> None:
             corrupt = bytearray(gpi(vehicle1))
             corrupt[-1] ^= 0xFF
             peer.send(bytes(corrupt), port)
-            await settle(lambda: conn.stats["bad_crc"] == 1)
+            await wait_for(lambda: conn.stats["bad_crc"] == 1)
         finally:
             await source.stop()
             await raw_source.stop()
@@ -304,7 +271,7 @@ def test_sources_of_one_vehicle_each_hear_only_theirs_and_stop_hearing_when_stop
         conn = TRANSPORT.connect("gcs", {"url": "udpin:127.0.0.1:0", "heartbeat": 0})
         await conn.open()
         peer = await UdpPeer.bind()
-        got1, got2, every = Collector(), Collector(), Collector()
+        got1, got2, every = CollectingDeliver(), CollectingDeliver(), CollectingDeliver()
         one = conn.source("uav1", {"message": "GLOBAL_POSITION_INT", "system_id": 1})
         two = conn.source("uav2", {"message": "GLOBAL_POSITION_INT", "system_id": 2})
         both = conn.source("all", {"message": "GLOBAL_POSITION_INT"})
@@ -368,7 +335,7 @@ def test_tcp_server_and_client_share_messages() -> None:
         client = TRANSPORT.connect("cli", {"url": f"tcp:127.0.0.1:{server.address[1]}", "source_system": 1,
                                            "heartbeat": 0})
         await client.open()
-        got = Collector()
+        got = CollectingDeliver()
         source = server.source("r", {"message": "COMMAND_LONG"})
         await source.start(got)
         try:
@@ -397,14 +364,14 @@ def test_tcp_client_reconnects_to_a_restarted_server() -> None:
         sink = client.sink("r", {"message": "COMMAND_LONG", "target_system": 255})
         try:
             await server.close()
-            await until(lambda: client.stats.get("link_lost") == 1, 5, "the client to notice the server left")
+            await wait_for(lambda: client.stats.get("link_lost") == 1, 5, "the client to notice the server left")
             lost_at = time.monotonic()
             server = TRANSPORT.connect("srv", {"url": f"tcpin:127.0.0.1:{port}", "heartbeat": 0})
             await server.open()
-            got = Collector()
+            got = CollectingDeliver()
             source = server.source("r", {"message": "COMMAND_LONG"})
             await source.start(got)
-            await until(lambda: client.port.ready, 5, "the client to reconnect")
+            await wait_for(lambda: client.port.ready, 5, "the client to reconnect")
             reconnected_s = time.monotonic() - lost_at
             await sink.send(outbound({"command": 7}))
             await got.wait_for(1)
@@ -427,7 +394,7 @@ def test_serial_reads_chunks_with_garbage_and_paces_writes() -> None:
         os.set_blocking(master, False)
         conn = TRANSPORT.connect("radio", {"url": os.ttyname(slave), "baud": 57600, "heartbeat": 0})
         await conn.open()
-        got = Collector()
+        got = CollectingDeliver()
         source = conn.source("pos", {"message": "GLOBAL_POSITION_INT"})
         await source.start(got)
         try:
@@ -480,7 +447,7 @@ def test_signing_rejects_unsigned_forged_and_replayed_frames(tmp_path: Path, mon
         await conn.open()
         peer = await UdpPeer.bind()
         port = conn.address[1]
-        positions, radio = Collector(), Collector()
+        positions, radio = CollectingDeliver(), CollectingDeliver()
         source = conn.source("pos", {"message": "GLOBAL_POSITION_INT"})
         radio_source = conn.source("radio", {"message": "RADIO_STATUS"})
         await source.start(positions)
@@ -513,7 +480,7 @@ def test_signing_rejects_unsigned_forged_and_replayed_frames(tmp_path: Path, mon
             stale = packer(9, 1, KEY)
             stale.signing.timestamp = mavlink.signing_now() - 100 * 100_000
             peer.send(gpi(stale), port)
-            await settle(lambda: conn.stats["replayed"] == 2)
+            await wait_for(lambda: conn.stats["replayed"] == 2)
 
             sink = conn.sink("cmd", {"message": "COMMAND_LONG", "target_system": 1})
             await sink.send(outbound({"command": 400}))
@@ -569,14 +536,14 @@ def test_engines_talk_signed_and_a_wrong_key_is_rejected(tmp_path: Path) -> None
         sender = TRANSPORT.connect("gcs", {"url": f"udpout:127.0.0.1:{receiver.address[1]}", "heartbeat": 0,
                                            "signing": {"key_file": str(tmp_path / "a.key")}})
         await sender.open()
-        got = Collector()
+        got = CollectingDeliver()
         source = receiver.source("cmd", {"message": "COMMAND_LONG", "system_id": 255})
         await source.start(got)
         try:
             sink = sender.sink("cmd", {"message": "COMMAND_LONG", "target_system": 1})
             for i in range(5):
                 await sink.send(outbound({"command": i}))
-            await settle(lambda: receiver.stats["frames_received"] == 5)
+            await wait_for(lambda: receiver.stats["frames_received"] == 5)
             await asyncio.sleep(0.05)
             return got.items, dict(receiver.stats)
         finally:

@@ -16,7 +16,8 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import Inbound, MessageRejected, Outbound  # noqa: E402
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
-from tests.endpoints.mavlink.test_mavlink_endpoint import UdpPeer, packer, run, settle  # noqa: E402
+from tests.endpoints.mavlink.test_mavlink_endpoint import UdpPeer, packer, run  # noqa: E402
+from tests.support.waiting import wait_for
 
 
 class GatedDeliver(FunctionDeliver):
@@ -52,7 +53,7 @@ async def flood(overflow: str, *, stop_while_queued: bool = False) -> tuple[Gate
         peer.send(positions(mav, range(1)), conn.address[1])
         await asyncio.wait_for(deliver.entered.wait(), 5)
         peer.send(positions(mav, range(1, 101)), conn.address[1])
-        await settle(lambda: source.status()["received"] == 101, 5)
+        await wait_for(lambda: source.status()["received"] == 101, 5)
         if stop_while_queued:
             stopping = asyncio.create_task(source.stop())
             await asyncio.sleep(0.05)
@@ -60,7 +61,7 @@ async def flood(overflow: str, *, stop_while_queued: bool = False) -> tuple[Gate
             await asyncio.wait_for(stopping, 5)
         else:
             deliver.gate.set()
-            await settle(lambda: len(deliver.stamps) == 11, 5)
+            await wait_for(lambda: len(deliver.stamps) == 11, 5)
         return deliver, source.status()
     finally:
         await source.stop()
@@ -101,7 +102,7 @@ def test_unsettled_messages_are_counted_as_dropped() -> None:
         await source.start(deliver)
         try:
             peer.send(positions(packer(1, 1), range(5)), conn.address[1])
-            await settle(lambda: deliver.drops == 5, 5)
+            await wait_for(lambda: deliver.drops == 5, 5)
             return source.status()
         finally:
             await source.stop()
@@ -236,7 +237,7 @@ def test_engine_status_shows_link_rejections_and_source_counters(tmp_path: Path,
             peer.send(positions(mav, range(3)) + bytes(corrupt), port)
             for _ in range(3):
                 await peer.expect("NAMED_VALUE_INT", 10)
-            await settle(lambda: status_document(engine)["connections"]["radio"]["rejected"]["bad_crc"] == 1, 5)
+            await wait_for(lambda: status_document(engine)["connections"]["radio"]["rejected"]["bad_crc"] == 1, 5)
             return status_document(engine)
         finally:
             await engine.stop(drain_timeout=1.0)

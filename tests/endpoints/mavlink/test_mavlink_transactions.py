@@ -16,7 +16,7 @@ import subprocess
 import sys
 import time
 import uuid
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
@@ -38,6 +38,7 @@ from tests.support.amqp_helpers import Collector  # noqa: E402
 from tests.support.repo import REPO  # noqa: E402
 from tests.support.mavsdk_vehicle import MavsdkAutopilot  # noqa: E402
 from tests.support.udp_vehicle import free_udp_port  # noqa: E402
+from tests.support.waiting import wait_for
 
 WEEDS = [(-22.0004563, -47.9001234), (-22.0004571, -47.9001301), (-21.99951234, -47.89987651)]
 
@@ -60,13 +61,6 @@ def canonical_waypoints(waypoints: list[dict[str, Any]]) -> dict[str, Any]:
 
 def outbound(fields: Any) -> Outbound:
     return Outbound(b"", fields, fields, uuid.uuid4().hex, {})
-
-
-async def until(condition: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        await asyncio.sleep(0.05)
 
 
 def run(coro: Awaitable[Any], timeout: float) -> Any:
@@ -139,10 +133,10 @@ def test_canonical_mission_and_arm_through_rabbitmq_to_mavsdk(tmp_path: Path, am
             channel = await connection.channel()
             farm = await channel.declare_exchange(f"farm-{tag}", aio_pika.ExchangeType.TOPIC, durable=True)
             await farm.publish(aio_pika.Message(json.dumps(mission).encode()), "mission.uav1")
-            await until(lambda: bool(autopilot.missions), 20, "MAVSDK to receive the mission")
+            await wait_for(lambda: bool(autopilot.missions), 20, "MAVSDK to receive the mission")
             await farm.publish(aio_pika.Message(json.dumps(command).encode()), "command.uav1")
-            await until(lambda: engine.status()["routes"][f"arm-{tag}"]["delivered"] == 1, 20, "the arm command acknowledged")
-            await until(lambda: engine.status()["routes"][f"mission-{tag}"]["delivered"] == 1, 20, "the mission acknowledged")
+            await wait_for(lambda: engine.status()["routes"][f"arm-{tag}"]["delivered"] == 1, 20, "the arm command acknowledged")
+            await wait_for(lambda: engine.status()["routes"][f"mission-{tag}"]["delivered"] == 1, 20, "the mission acknowledged")
             status = engine.status()
         finally:
             await engine.stop()
@@ -206,7 +200,7 @@ def test_mission_over_lossy_sik_radio_arrives_complete_and_is_acked_once(tmp_pat
                 acks = await Collector.bind(channel, f"farm-{tag}", "canonical.ack.#")
                 farm = await channel.declare_exchange(f"farm-{tag}", aio_pika.ExchangeType.TOPIC, durable=True)
                 await farm.publish(aio_pika.Message(json.dumps(mission).encode()), "mission.uav1")
-                await until(lambda: engine.status()["routes"][f"mission-{tag}"]["delivered"] == 1, 90, "the upload")
+                await wait_for(lambda: engine.status()["routes"][f"mission-{tag}"]["delivered"] == 1, 90, "the upload")
                 received = await acks.wait_for(1, 10)
                 status = engine.status()
             finally:
@@ -328,7 +322,7 @@ def test_each_waypoint_flies_in_the_frame_of_its_altitude_and_none_is_guessed(tm
             for mission in (*refused.values(), good):
                 await farm.publish(aio_pika.Message(json.dumps(mission).encode()), "mission.uav1")
             route = lambda: engine.status()["routes"][f"mission-{tag}"]  # noqa: E731
-            await until(lambda: route()["delivered"] + route()["failed"] == len(refused) + 1, 30, "every mission settled")
+            await wait_for(lambda: route()["delivered"] + route()["failed"] == len(refused) + 1, 30, "every mission settled")
             letters = await dead.wait_for(len(refused), 10)
             status = route()
         finally:
@@ -389,7 +383,7 @@ def test_silent_vehicle_is_a_transient_failure_for_the_delivery_policy(tmp_path:
             farm = await channel.declare_exchange(f"farm-{tag}", aio_pika.ExchangeType.TOPIC, durable=True)
             await farm.publish(aio_pika.Message(json.dumps(canonical_mission(WEEDS)).encode()), "mission.uav1")
             route = lambda: engine.status()["routes"][f"mission-{tag}"]  # noqa: E731
-            await until(lambda: route()["sink_errors"] >= 2 or bool(dead.messages), 30, "the delivery policy to retry")
+            await wait_for(lambda: route()["sink_errors"] >= 2 or bool(dead.messages), 30, "the delivery policy to retry")
             status = engine.status()
         finally:
             await engine.stop()
@@ -498,7 +492,7 @@ def test_a_transaction_waits_for_a_vehicle_not_heard_yet() -> None:
             sim.port.on_message = lambda msg, inner=sim.port.on_message: (
                 heartbeats.append(msg) if msg.get_type() == "HEARTBEAT" else None, inner(msg))
             await asyncio.wait_for(upload, 10)
-            await until(lambda: bool(heartbeats), 3, "the engine's HEARTBEAT")
+            await wait_for(lambda: bool(heartbeats), 3, "the engine's HEARTBEAT")
             stop.set()
             await running
         finally:

@@ -24,7 +24,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.mavlink import tunnel  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
-from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
+from tests.support.collecting_deliver import CollectingDeliver  # noqa: E402
 
 TRANSPORT = mavlink.TRANSPORT
 
@@ -232,20 +232,6 @@ def test_reassembler_rejects_bad_crc_and_bounds_its_memory() -> None:
 # -- real links ------------------------------------------------------------------------------------
 
 
-class Collector(FunctionDeliver):
-    def __init__(self, fail_first: int = 0) -> None:
-        super().__init__()
-        self.items: list[Inbound] = []
-        self.calls = 0
-        self.fail_first = fail_first
-
-    async def __call__(self, inbound: Inbound) -> None:
-        self.calls += 1
-        if self.calls <= self.fail_first:
-            raise RuntimeError("sink down")
-        self.items.append(inbound)
-
-
 def outbound(body: bytes) -> Outbound:
     return Outbound(body=body, canonical=None, fields=None, message_id="m", meta={})
 
@@ -314,7 +300,7 @@ def is_delivered_ack(direction: str, msg: Any) -> bool:
 def test_udp_five_percent_loss_delivers_byte_identical_messages() -> None:
     async def scenario() -> None:
         gcs, uav, relay = await udp_pair(loss=0.05, seed=11)
-        got = Collector()
+        got = CollectingDeliver()
         source = uav.source("json", {"json_tunnel": True, "system_id": 255})
         await source.start(got)
         sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1, "target_component": 191})
@@ -344,7 +330,7 @@ def test_udp_lost_acknowledgements_and_failed_delivery() -> None:
             return False
 
         gcs, uav, _ = await udp_pair(drop=drop)
-        got = Collector(fail_first=1)
+        got = CollectingDeliver(fail_first=1)
         source = uav.source("json", {"json_tunnel": True})
         await source.start(got)
         sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
@@ -370,7 +356,7 @@ def test_a_new_source_takes_over_without_losing_state() -> None:
 
     async def scenario() -> None:
         gcs, uav, _ = await udp_pair()
-        old, new = Collector(), Collector()
+        old, new = CollectingDeliver(), CollectingDeliver()
         first = uav.source("json", {"json_tunnel": True})
         second = uav.source("json", {"json_tunnel": True})
         assert first.reassembler is second.reassembler
@@ -430,7 +416,7 @@ def test_sik_radio_delivers_250_bytes_and_4_kb(loss: float) -> None:
     async def scenario() -> None:
         async with sik_radio.SikRadioPair(loss=loss, seed=5) as pair:
             gcs, uav = await sik_pair(pair)
-            got = Collector()
+            got = CollectingDeliver()
             source = uav.source("json", {"json_tunnel": True})
             await source.start(got)
             sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1, "target_component": 191})
@@ -459,7 +445,7 @@ def test_sik_radio_three_second_outage() -> None:
     async def scenario() -> None:
         async with sik_radio.SikRadioPair(loss=0.0, seed=6) as pair:
             gcs, uav = await sik_pair(pair)
-            got = Collector()
+            got = CollectingDeliver()
             source = uav.source("json", {"json_tunnel": True})
             await source.start(got)
             sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
@@ -499,7 +485,7 @@ def test_signed_round_trip_through_radio_and_simulated_vehicle(monkeypatch: pyte
             gcs = TRANSPORT.connect("gcs", {"url": pair.link_a, "baud": 57600,
                                             "signing": {"key_env": "RABBITROS_TEST_TUNNEL_KEY"}})
             await gcs.open()
-            positions, echoes = Collector(), Collector()
+            positions, echoes = CollectingDeliver(), CollectingDeliver()
             telemetry = gcs.source("pos", {"message": "GLOBAL_POSITION_INT", "system_id": 1})
             json_in = gcs.source("json-in", {"json_tunnel": True, "system_id": 1})
             await telemetry.start(positions)
@@ -548,7 +534,7 @@ def test_every_route_on_a_tunnel_gets_every_message_and_the_sender_waits_for_all
 
     async def scenario() -> None:
         gcs, uav, _ = await udp_pair()
-        first, flaky = Collector(), Collector(fail_first=1)
+        first, flaky = CollectingDeliver(), CollectingDeliver(fail_first=1)
         a = uav.source("route-a", {"json_tunnel": True})
         b = uav.source("route-b", {"json_tunnel": True, "system_id": 255})
         sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
@@ -567,7 +553,7 @@ def test_every_route_on_a_tunnel_gets_every_message_and_the_sender_waits_for_all
     run(scenario())
 
 
-class FailOnce(Collector):
+class FailOnce(CollectingDeliver):
     """Settles everything but the first attempt at ``body``."""
 
     def __init__(self, body: bytes) -> None:
@@ -592,7 +578,7 @@ def test_a_batch_travels_as_bundles_and_each_message_is_settled_once_per_route()
     async def scenario() -> None:
         gcs, uav, relay = await udp_pair()
         bodies = [b'{"n":%d,"pad":"%s"}' % (n, b"x" * 300) for n in range(10)]
-        steady, flaky = Collector(), FailOnce(bodies[4])
+        steady, flaky = CollectingDeliver(), FailOnce(bodies[4])
         a = uav.source("route-a", {"json_tunnel": True})
         b = uav.source("route-b", {"json_tunnel": True})
         sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
@@ -619,7 +605,7 @@ def test_a_batch_travels_as_bundles_and_each_message_is_settled_once_per_route()
 def test_every_route_on_a_message_type_gets_every_message_with_nan_as_null() -> None:
     async def scenario() -> None:
         gcs, uav, _ = await udp_pair()
-        one, two = Collector(), Collector()
+        one, two = CollectingDeliver(), CollectingDeliver()
         sources = [uav.source("one", {"message": "HIL_GPS"}), uav.source("two", {"message": "HIL_GPS"})]
         try:
             await sources[0].start(one)
@@ -646,7 +632,7 @@ def test_every_route_on_a_message_type_gets_every_message_with_nan_as_null() -> 
 def test_tunnel_sink_mapping_shapes_the_body() -> None:
     async def scenario() -> None:
         gcs, uav, _ = await udp_pair()
-        got = Collector()
+        got = CollectingDeliver()
         source = uav.source("in", {"json_tunnel": True})
         sink = gcs.sink("out", {"json_tunnel": True, "target_system": 1})
         try:

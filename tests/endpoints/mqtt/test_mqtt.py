@@ -27,7 +27,7 @@ from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector
 from tests.support.repo import REPO
 from tests.support.engine_process import EngineProcess
-from tests.support.faults_harness import wait_for
+
 from tests.operator.test_admin import get
 from tests.operator.test_cli import cli
 
@@ -252,6 +252,7 @@ import rclpy  # noqa: E402,F401  (a missing rclpy fails the run, never skips it)
 
 from engine.endpoints.ros2.rosmsg import resolve_type  # noqa: E402
 from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer  # noqa: E402
+from tests.support.waiting import wait_for
 
 NavSatFix = resolve_type("sensor_msgs/msg/NavSatFix")
 

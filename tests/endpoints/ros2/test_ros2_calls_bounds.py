@@ -17,7 +17,7 @@ import json
 import time
 import uuid
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import aio_pika
 import pytest
@@ -29,6 +29,7 @@ from tests.support.amqp_helpers import Caller
 from tests.support.repo import REPO
 from tests.support.ros_nodes import SpunNode
 from tests.support.workers import ros_domain
+from tests.support.waiting import wait_for
 
 CLIENTS, CALLS_EACH = 25, 4
 BURST = CLIENTS * CALLS_EACH
@@ -36,13 +37,6 @@ LATE_TIMEOUT_S = 0.5
 """The sink timeout of the route whose worker answers late (after twice that)."""
 SLOW_S = 1.0
 """How long the slow server takes to answer: twice the route's timeout."""
-
-
-async def _until(condition: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        await asyncio.sleep(0.02)
 
 
 def test_a_burst_of_ros2_clients_up_to_max_in_flight_loses_no_call_and_a_late_answer_is_counted(
@@ -107,7 +101,7 @@ routes:
             started = time.monotonic()
             futures = await asyncio.to_thread(burst)
             try:
-                await _until(lambda: all(f.done() for f in futures), 20, "every call of the burst answered")
+                await wait_for(lambda: all(f.done() for f in futures), 20, "every call of the burst answered")
             except AssertionError:
                 raise AssertionError(f"{sum(f.done() for f in futures)} of {BURST} answered; route: "
                                      f"{engine.status()['routes'][f'offer-{tag}']}") from None
@@ -115,7 +109,7 @@ routes:
             assert await asyncio.to_thread(late_client.wait_for_service, timeout_sec=10)
             late_client.call_async(BasicTypes.Request(int64_value=1, string_value="late"))
             late = f"late-{tag}"
-            await _until(lambda: engine.status()["routes"][late]["replies"]["late"] >= 1, 10, "the late answer counted")
+            await wait_for(lambda: engine.status()["routes"][late]["replies"]["late"] >= 1, 10, "the late answer counted")
             status = engine.status()["routes"][f"offer-{tag}"], engine.status()["routes"][late]
         finally:
             await engine.stop()
@@ -173,9 +167,9 @@ routes:
             asked = await caller.call("", route, b'{"int64_value": 1}')
             await caller.wait(lambda replies: asked in replies, 10, "the error reply")
             elapsed = time.monotonic() - started
-            await _until(lambda: engine.status()["routes"][route]["replies"]["late"] >= 1, 10, "the late response counted")
+            await wait_for(lambda: engine.status()["routes"][route]["replies"]["late"] >= 1, 10, "the late response counted")
             await caller.call("", route, b'{"int64_value": 2}', reply_to=None)
-            await _until(lambda: engine.status()["routes"][route]["replies"]["late"] >= 2, 10,
+            await wait_for(lambda: engine.status()["routes"][route]["replies"]["late"] >= 2, 10,
                          "the fire-and-forget call's late response counted")
             status = engine.status()["routes"][route]
             await channel.queue_delete(route)

@@ -30,7 +30,8 @@ from engine.ops.route_tests import load_checked, run_tests
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector
 from tests.support.repo import REPO
-from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, NavSatFix, Peer, String, wait_until
+from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, NavSatFix, Peer, String
+from tests.support.waiting import wait_for
 
 ROBOTS = 20
 MESSAGES = 10
@@ -86,13 +87,13 @@ def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_messa
             stranger = robots.node.create_publisher(String, topic.format("rover"), 10)
             shy = robots.node.create_publisher(NavSatFix, topic.format("shy"), BEST_EFFORT)  # the route's reader is reliable
             publishers = {f"robot{i}": robots.publisher(NavSatFix, topic.format(f"robot{i}")) for i in range(ROBOTS)}
-            await wait_until(lambda: all(p.get_subscription_count() > 0 for p in publishers.values()), 15,
+            await wait_for(lambda: all(p.get_subscription_count() > 0 for p in publishers.values()), 15,
                              "the engine's subscription on every robot's topic")
             for seq in range(MESSAGES):
                 for robot, publisher in enumerate(publishers.values()):
                     publisher.publish(_fix(robot, seq))
             received = await output.wait_for(ROBOTS * MESSAGES, timeout=15)
-            await wait_until(lambda: topic.format("rover") in source()["mismatched_topics"], 5, "the other type reported")
+            await wait_for(lambda: topic.format("rover") in source()["mismatched_topics"], 5, "the other type reported")
             results: dict[str, Any] = {
                 "messages": [(m.routing_key, json.loads(m.body)) for m in received],
                 "following": {t: v for t, v in source()["following"].items() if t != topic.format("shy")},
@@ -103,15 +104,15 @@ def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_messa
             left = time.monotonic()
             robots.node.destroy_publisher(publishers.pop("robot0"))
             gone = topic.format("robot0")
-            await wait_until(lambda: gone not in source()["following"], 10, "robot0's topic let go")
+            await wait_for(lambda: gone not in source()["following"], 10, "robot0's topic let go")
             results["let_go_after"] = time.monotonic() - left
-            await wait_until(lambda: robots.node.count_subscribers(gone) == 0, 5, "the engine's subscription on robot0 gone")
+            await wait_for(lambda: robots.node.count_subscribers(gone) == 0, 5, "the engine's subscription on robot0 gone")
             results["after_leaving"] = dict(source())
-            await wait_until(lambda: topic.format("shy") in source()["unmatched_topics"], 5, "the unmatched QoS reported")
+            await wait_for(lambda: topic.format("shy") in source()["unmatched_topics"], 5, "the unmatched QoS reported")
             results["shy_subscribers"] = robots.node.count_subscribers(topic.format("shy"))
             # and comes back: followed again
             back = robots.publisher(NavSatFix, gone)
-            await wait_until(lambda: back.get_subscription_count() > 0, 10, "robot0's topic followed again")
+            await wait_for(lambda: back.get_subscription_count() > 0, 10, "robot0's topic followed again")
             back.publish(_fix(0, MESSAGES))
             await output.wait_for(ROBOTS * MESSAGES + 1, timeout=10)
             results["returned"] = [(m.routing_key, json.loads(m.body)) for m in output.messages[ROBOTS * MESSAGES:]]
@@ -165,13 +166,13 @@ def test_a_reloaded_discovering_route_follows_the_same_topics_and_leaves_no_subs
             channel = await connection.channel()
             output = await Collector.bind(channel, outbox, "farm.#")
             publishers = [robots.publisher(NavSatFix, topic.format(f"robot{i}")) for i in range(3)]
-            await wait_until(lambda: all(p.get_subscription_count() > 0 for p in publishers), 15, "every robot followed")
+            await wait_for(lambda: all(p.get_subscription_count() > 0 for p in publishers), 15, "every robot followed")
             routes.write_text(routes.read_text().replace("alt_msl: altitude", "alt_msl: altitude, alt_rel: altitude")
                               .replace("forget_after: 30", "forget_after: 20"))  # a new source, not only a new mapping
             assert await engine.reload(), engine.reloads.last_error
-            await wait_until(lambda: all(robots.node.count_subscribers(topic.format(f"robot{i}")) == 1 for i in range(3)),
+            await wait_for(lambda: all(robots.node.count_subscribers(topic.format(f"robot{i}")) == 1 for i in range(3)),
                              10, "one subscription per topic after the reload")
-            await wait_until(lambda: all(p.get_subscription_count() == 1 for p in publishers), 10, "the new subscriptions matched")
+            await wait_for(lambda: all(p.get_subscription_count() == 1 for p in publishers), 10, "the new subscriptions matched")
             for robot, publisher in enumerate(publishers):
                 publisher.publish(_fix(robot, 0))
             received = await output.wait_for(3, timeout=10)

@@ -30,6 +30,8 @@ from engine.endpoints.ros2.rosmsg import resolve_type, to_dict  # noqa: E402
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 from tests.support.workers import ros_domain
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for
+from tests.support.collecting_deliver import CollectingDeliver
 
 DOMAIN = ros_domain(0)
 String = resolve_type("std_msgs/msg/String")
@@ -79,18 +81,10 @@ def run(body: Callable[[], Awaitable[None]], timeout: float = 30.0) -> None:
     asyncio.run(asyncio.wait_for(body(), timeout))
 
 
-async def wait_until(predicate: Callable[[], bool], timeout: float = 10.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.01)
-
-
 async def subscribed(connection: Any, topic: str) -> None:
     """The engine's node has discovered a subscriber on ``topic`` (then its publisher matches
     at once on creation, and a publisher that exists already matches within moments)."""
-    await wait_until(lambda: connection.node.count_subscribers(topic) > 0, what=f"a subscriber on {topic}")
+    await wait_for(lambda: connection.node.count_subscribers(topic) > 0, what=f"a subscriber on {topic}")
 
 
 async def open_connection(node: str = "engine_test") -> Any:
@@ -105,15 +99,6 @@ def outbound(body: bytes = b"", fields: Any = None, canonical: Any = None) -> Ou
                     message_id="m", meta={})
 
 
-class Collector:
-    def __init__(self) -> None:
-        self.items: list[Inbound] = []
-        self.deliver = FunctionDeliver(self._append)
-
-    async def _append(self, inbound: Inbound) -> None:
-        self.items.append(inbound)
-
-
 # ---------------------------------------------------------------- sources
 
 def test_source_receives_string_bytes_exactly():
@@ -125,13 +110,13 @@ def test_source_receives_string_bytes_exactly():
         publisher = peer.publisher(String, "/t_exact/json_in")
         connection = await open_connection()
         try:
-            got = Collector()
+            got = CollectingDeliver()
             source = connection.source("r-exact", {"topic": "/t_exact/json_in"})
-            await source.start(got.deliver)
-            await wait_until(lambda: publisher.get_subscription_count() > 0, what="discovery")
+            await source.start(got)
+            await wait_for(lambda: publisher.get_subscription_count() > 0, what="discovery")
             for text in texts:
                 publisher.publish(String(data=text))
-            await wait_until(lambda: len(got.items) == len(texts), what="messages")
+            await wait_for(lambda: len(got.items) == len(texts), what="messages")
             assert [i.body for i in got.items] == [t.encode("utf-8") for t in texts]
             assert all(i.fields is None for i in got.items)
             assert got.items[0].meta == {"topic": "/t_exact/json_in", "type": "std_msgs/msg/String"}
@@ -149,14 +134,14 @@ def test_source_typed_message_gives_fields():
         publisher = peer.publisher(NavSatFix, "/t_typed/fix")
         connection = await open_connection()
         try:
-            got = Collector()
+            got = CollectingDeliver()
             source = connection.source("r-typed", {"topic": "/t_typed/fix", "type": "sensor_msgs/NavSatFix",
                                                    "qos": {"reliability": "reliable", "depth": 50}})
-            await source.start(got.deliver)
-            await wait_until(lambda: publisher.get_subscription_count() > 0, what="discovery")
+            await source.start(got)
+            await wait_for(lambda: publisher.get_subscription_count() > 0, what="discovery")
             fix = NavSatFix(latitude=-22.00123456789, longitude=-47.9, altitude=float("nan"))
             publisher.publish(fix)
-            await wait_until(lambda: len(got.items) == 1, what="message")
+            await wait_for(lambda: len(got.items) == 1, what="message")
             fields = got.items[0].fields
             assert got.items[0].body is None
             assert fields["latitude"] == -22.00123456789 and fields["altitude"] is None
@@ -175,13 +160,13 @@ def test_source_2000_messages_full_speed_none_lost_in_order():
         publisher = peer.publisher(String, "/t_flood/in")
         connection = await open_connection()
         try:
-            got = Collector()
+            got = CollectingDeliver()
             source = connection.source("r-flood", {"topic": "/t_flood/in"})
-            await source.start(got.deliver)
-            await wait_until(lambda: publisher.get_subscription_count() > 0, what="discovery")
+            await source.start(got)
+            await wait_for(lambda: publisher.get_subscription_count() > 0, what="discovery")
             for i in range(2000):
                 publisher.publish(String(data=json.dumps({"seq": i})))
-            await wait_until(lambda: len(got.items) == 2000, timeout=20, what="2000 messages")
+            await wait_for(lambda: len(got.items) == 2000, timeout=20, what="2000 messages")
             assert [json.loads(i.body)["seq"] for i in got.items] == list(range(2000))
             assert source.dropped == 0
         finally:
@@ -205,14 +190,14 @@ def test_source_stop_drains_queue_then_unsubscribes():
 
             source = connection.source("r-stop", {"topic": "/t_stop/in"})
             await source.start(FunctionDeliver(slow_deliver))
-            await wait_until(lambda: publisher.get_subscription_count() > 0, what="discovery")
+            await wait_for(lambda: publisher.get_subscription_count() > 0, what="discovery")
             for i in range(200):
                 publisher.publish(String(data=str(i)))
-            await wait_until(lambda: source.received == 200, what="all taken")
+            await wait_for(lambda: source.received == 200, what="all taken")
             assert len(delivered) < 200  # still queued when stop() is called
             await source.stop()
             assert delivered == [str(i).encode() for i in range(200)]
-            await wait_until(lambda: publisher.get_subscription_count() == 0, what="unsubscribe")
+            await wait_for(lambda: publisher.get_subscription_count() == 0, what="unsubscribe")
         finally:
             await connection.close()
             peer.close()
@@ -238,11 +223,11 @@ def test_unsettled_messages_are_counted_as_dropped_never_retried_by_the_source()
             deliver = FunctionDeliver(flaky)
             source = connection.source("r-retry", {"topic": "/t_retry/in"})
             await source.start(deliver)
-            await wait_until(lambda: publisher.get_subscription_count() > 0, what="discovery")
+            await wait_for(lambda: publisher.get_subscription_count() > 0, what="discovery")
             publisher.publish(String(data="a"))
-            await wait_until(lambda: len(attempts) == 1, what="first delivery")
+            await wait_for(lambda: len(attempts) == 1, what="first delivery")
             publisher.publish(String(data="b"))
-            await wait_until(lambda: len(attempts) == 2, what="second delivery")
+            await wait_for(lambda: len(attempts) == 2, what="second delivery")
             assert attempts == [b"a", b"b"] and deliver.drops == 1 and source.dropped == 1
         finally:
             await connection.close()
@@ -271,20 +256,20 @@ def test_overflow_policies_bound_the_queue_and_count_drops():
                 deliver = FunctionDeliver(stalled, overflow=policy, queue_limit=20)
                 source = connection.source(f"r-{policy}", {"topic": topic})
                 await source.start(deliver)
-                await wait_until(lambda: publisher.get_subscription_count() > 0, what="discovery")
+                await wait_for(lambda: publisher.get_subscription_count() > 0, what="discovery")
                 publisher.publish(String(data="first"))
-                await wait_until(lambda: source.received == 1 and not source._queue, what="first taken")
+                await wait_for(lambda: source.received == 1 and not source._queue, what="first taken")
                 for i in range(100):
                     publisher.publish(String(data=str(i)))
                 if policy == "block":
-                    await wait_until(lambda: source.paused, what="paused")
+                    await wait_for(lambda: source.paused, what="paused")
                     assert source.received <= 1 + 20
                 else:
-                    await wait_until(lambda: source.received == 101, what="all taken")
+                    await wait_for(lambda: source.received == 101, what="all taken")
                     assert deliver.drops == 80 and source.dropped == 80
                 gate.set()
                 expected = {"drop_newest": 21, "drop_oldest": 21, "block": 101}[policy]
-                await wait_until(lambda: len(got) == expected, what=f"{policy}: delivered")
+                await wait_for(lambda: len(got) == expected, what=f"{policy}: delivered")
                 if policy == "drop_newest":
                     assert got == [b"first"] + [str(i).encode() for i in range(20)]
                 elif policy == "drop_oldest":
@@ -305,7 +290,7 @@ def test_idle_connection_does_not_burn_cpu():
         connection = await open_connection()
         try:
             source = connection.source("r-idle", {"topic": "/t_idle/in"})
-            await source.start(Collector().deliver)
+            await source.start(CollectingDeliver())
             await asyncio.sleep(0.3)
             cpu, wall = time.process_time(), time.perf_counter()
             await asyncio.sleep(1.5)
@@ -331,7 +316,7 @@ def test_sink_publishes_string_body_exactly():
             await subscribed(connection, "/t_sink/json_out")
             for text in texts:
                 await sink.send(outbound(body=text.encode(), canonical={"parsed": True}))
-            await wait_until(lambda: len(received) == len(texts), what="messages")
+            await wait_for(lambda: len(received) == len(texts), what="messages")
             assert [m.data for m in received] == texts
         finally:
             await connection.close()
@@ -351,7 +336,7 @@ def test_sink_2000_messages_full_speed_none_lost():
             await subscribed(connection, "/t_sinkflood/out")
             for i in range(2000):
                 await sink.send(outbound(body=b'{"seq":%d}' % i, canonical={"seq": i}))
-            await wait_until(lambda: len(received) == 2000, timeout=20, what="2000 messages")
+            await wait_for(lambda: len(received) == 2000, timeout=20, what="2000 messages")
             assert [json.loads(m.data)["seq"] for m in received] == list(range(2000))
         finally:
             await connection.close()
@@ -368,7 +353,7 @@ def test_typed_sink_with_topic_template_created_while_a_source_waits():
         connection = await open_connection()
         try:
             source = connection.source("r-any", {"topic": "/t_tpl/in"})
-            await source.start(Collector().deliver)  # the waiter thread now sits in rcl_wait
+            await source.start(CollectingDeliver())  # the waiter thread now sits in rcl_wait
             sink = connection.sink("r-weeds", {"topic": "/{agent_id}/weeds",
                                                "type": "geometry_msgs/msg/PoseArray"})
             await subscribed(connection, "/uav7/weeds")
@@ -377,7 +362,7 @@ def test_typed_sink_with_topic_template_created_while_a_source_waits():
             # This send creates the publisher for /uav7/weeds from the loop while the waiter thread
             # sits in rcl_wait; its message must still arrive.
             await sink.send(outbound(fields=fields, canonical={"agent_id": "uav7", "weeds": []}))
-            await wait_until(lambda: len(received) == 1, what="PoseArray")
+            await wait_for(lambda: len(received) == 1, what="PoseArray")
             msg = received[0]
             assert msg.header.frame_id == "map" and msg.header.stamp.sec > 0
             assert [(p.position.x, p.position.y) for p in msg.poses] == [(1.5, -2.0), (3.0, 0.0)]
@@ -412,11 +397,11 @@ def test_sink_is_ready_only_once_a_subscriber_has_matched():
             fixed_got = peer.subscribe(String, "/t_ready/fixed")
             templated_got = peer.subscribe(String, "/uav3/t_ready")
             peer.start()
-            await wait_until(lambda: fixed.ready and templated.ready, what="both matched")
+            await wait_for(lambda: fixed.ready and templated.ready, what="both matched")
             assert fixed.not_ready_reason() is None and templated.not_ready_reason() is None
             await fixed.send(outbound(body=b'{"n":1}', canonical={"n": 1}))
             await templated.send(outbound(body=b'{"agent_id":"uav3"}', canonical={"agent_id": "uav3"}))
-            await wait_until(lambda: len(fixed_got) == 1 and len(templated_got) == 1, what="both messages")
+            await wait_for(lambda: len(fixed_got) == 1 and len(templated_got) == 1, what="both messages")
         finally:
             await connection.close()
             if peer is not None:
@@ -498,7 +483,7 @@ def test_nan_survives_typed_sink():
             sink = connection.sink("r-nan", {"topic": "/t_nan/fix", "type": "sensor_msgs/msg/NavSatFix"})
             await subscribed(connection, "/t_nan/fix")
             await sink.send(outbound(fields={"latitude": 0.1, "altitude": None}))
-            await wait_until(lambda: len(received) == 1, what="NavSatFix")
+            await wait_for(lambda: len(received) == 1, what="NavSatFix")
             assert received[0].latitude == 0.1 and math.isnan(received[0].altitude)
         finally:
             await connection.close()
@@ -527,17 +512,17 @@ def test_round_trip_through_robot_echo_example(tmp_path):
         connection = await open_connection()
         try:
             assert (await asyncio.wait_for(robot.stdout.readline(), 15)).strip() == b"ready"
-            got = Collector()
+            got = CollectingDeliver()
             source = connection.source("r-echo-in", {"topic": "/t_robot/json_out"})
-            await source.start(got.deliver)
+            await source.start(got)
             sink = connection.sink("r-echo-out", {"topic": "/t_robot/json_in"})
             await subscribed(connection, "/t_robot/json_in")
-            await wait_until(lambda: connection.node.count_publishers("/t_robot/json_out") > 0,
+            await wait_for(lambda: connection.node.count_publishers("/t_robot/json_out") > 0,
                              what="robot publisher")
             await asyncio.sleep(0.3)
             for text in texts:
                 await sink.send(outbound(body=text.encode(), canonical=json.loads(text)))
-            await wait_until(lambda: len(got.items) == len(texts), timeout=15, what="echoes")
+            await wait_for(lambda: len(got.items) == len(texts), timeout=15, what="echoes")
             assert [i.body for i in got.items] == [t.encode() for t in texts]
             robot.terminate()
             assert await asyncio.wait_for(robot.wait(), 10) == 0

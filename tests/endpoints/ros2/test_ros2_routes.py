@@ -25,6 +25,7 @@ from tests.operator.test_cli import cli  # noqa: E402
 from tests.support.repo import REPO  # noqa: E402
 from tests.support.engine_process import EngineProcess  # noqa: E402
 from tests.support.workers import ros_domain
+from tests.support.waiting import wait_for
 
 TYPED = """
 connections:
@@ -416,12 +417,6 @@ def test_a_subscriber_that_leaves_makes_the_route_hold_again(amqp_url: str, tmp_
     names = {"domain": DOMAIN, "tag": tag, "queue": f"leaving-{tag}"}
     (tmp_path / "waiting.yaml").write_text(WAITING.format(generation=1, **names))
 
-    async def wait_for(predicate: Any, what: str, timeout: float = 20.0) -> None:
-        deadline = time.monotonic() + timeout
-        while not predicate():
-            assert time.monotonic() < deadline, f"timed out waiting for {what}"
-            await asyncio.sleep(0.05)
-
     async def scenario() -> tuple[list[int], list[int], float]:
         engine = Engine(tmp_path, REPO / "schemas")
         await engine.start()
@@ -439,12 +434,12 @@ def test_a_subscriber_that_leaves_makes_the_route_hold_again(amqp_url: str, tmp_
                 got_first = first.subscribe(String, f"/{tag}/waiting")
                 first.start()
                 await send(range(100))
-                await wait_for(lambda: len(got_first) == 100, "the first subscriber's 100")
+                await wait_for(lambda: len(got_first) == 100, 20, "the first subscriber's 100")
                 first.close()
                 first = None
                 sink = engine.runners["waits-for-reader"].pipeline.sink
                 began = time.monotonic()
-                await wait_for(lambda: not sink.ready, "the route to notice the subscriber left")
+                await wait_for(lambda: not sink.ready, 20, "the route to notice the subscriber left")
                 noticed = time.monotonic() - began
                 await send(range(100, 200))
                 await asyncio.sleep(1.0)
@@ -452,7 +447,7 @@ def test_a_subscriber_that_leaves_makes_the_route_hold_again(amqp_url: str, tmp_
                 second = Peer()
                 got_second = second.subscribe(String, f"/{tag}/waiting")
                 second.start()
-                await wait_for(lambda: len(got_second) == 100, "the second subscriber's 100")
+                await wait_for(lambda: len(got_second) == 100, 20, "the second subscriber's 100")
                 await asyncio.sleep(0.3)
                 return ([json.loads(m.data)["seq"] for m in got_first], [json.loads(m.data)["seq"] for m in got_second],
                         noticed)
