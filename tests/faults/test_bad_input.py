@@ -373,5 +373,13 @@ def test_engine_survived_and_counted(harness: Harness) -> None:
 
 
 async def _status(h: Harness) -> dict[str, Any]:
-    await asyncio.sleep(0.5)
+    """The engine's status once its routes' counters account for every example (a counter is
+    updated once its message is settled, a moment after the test saw it arrive)."""
+    dead, out = sum(h.expected_dead.values()), sum(h.expected_out.values())
+
+    def counted() -> bool:
+        routes = h.engine.status()["routes"].values()
+        return sum(r["failed"] for r in routes) == dead and sum(r["delivered"] for r in routes) == out
+
+    await wait_for(counted, 30, f"the routes to count {out} delivered and {dead} failed", detail=lambda: h.engine.status()["routes"])
     return h.engine.status()

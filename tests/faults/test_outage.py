@@ -81,8 +81,8 @@ async def _warm_up(peer: RosPeer, connection: Any, names: dict[str, str], down: 
         if both:
             await inbox.publish(aio_pika.Message(b'{"seq": -1}'), "r.x")
         peer.publish(-1)
-        await asyncio.sleep(0.2)
-    await asyncio.sleep(0.5)
+        await asyncio.sleep(0.2)  # probe pace: a probe each 0.2 s until both flows carry one
+    await asyncio.sleep(0.5)  # the last probes in flight land before the tallies are cleared
     for tally in (down, up):
         with tally.lock:
             tally.copies.clear()
@@ -125,7 +125,7 @@ def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path
                 for threshold in (N_FLOW * 3 // 10, N_FLOW * 65 // 100):
                     await wait_for(lambda: from_ros.sent >= threshold, 300, "the senders")
                     broker.kill()
-                    await asyncio.sleep(1.0)
+                    await asyncio.sleep(1.0)  # the broker stays down 1 s (the outage under test)
                     await asyncio.to_thread(broker.start)
                     restarts.append(time.monotonic())
 
@@ -294,7 +294,7 @@ def test_engine_starts_without_the_broker_and_routes_that_do_not_need_it_run_at_
             for seq in range(100):  # while the broker is down: into from-ros's buffer
                 vehicle.mav.global_position_int_send(10_000 + seq, 0, 0, 0, 0, 0, 0, 0, 0)
             await wait_for(lambda: peer.subscribers(f"/{names['tag']}/up") > 0, 30, "the engine's ROS subscription")
-            await asyncio.sleep(1.0)
+            await asyncio.sleep(1.0)  # our writer sees the engine's reader; the engine's reader matching our writer is not observable from here
             for seq in range(200):
                 peer.publish(seq)
                 up.sent += 1
@@ -356,7 +356,7 @@ def test_held_messages_survive_a_reload_that_replaces_the_route(tmp_path: Path, 
             runner = engine.runners["from-ros"]
             assert runner.state == "running" and engine.runners["to-ros"].state == "waiting"
             await wait_for(lambda: peer.subscribers(f"/{names['tag']}/up") > 0, 30, "the engine's ROS subscription")
-            await asyncio.sleep(1.0)
+            await asyncio.sleep(1.0)  # our writer sees the engine's reader; the engine's reader matching our writer is not observable from here
             for seq in range(300):
                 peer.publish(seq)
                 arrived.sent += 1

@@ -12,7 +12,6 @@ import socket
 import ssl
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import aio_pika
@@ -23,6 +22,7 @@ from engine.common.processes import listening_port
 from engine.ops.cli import COMMANDS, build_parser
 from tests.support.amqp_helpers import Collector, publish
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for_sync
 
 LINE = re.compile(r"^(?P<file>[^:]+):(?P<line>\d+): (?P<message>.+)$")
 
@@ -191,9 +191,7 @@ def test_run_with_local_broker_routes_and_stops_cleanly(tmp_path: Path):
         cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True,
     )
     try:
-        deadline = time.monotonic() + 90
-        while not status_file.exists() and time.monotonic() < deadline and process.poll() is None:
-            time.sleep(0.2)
+        wait_for_sync(lambda: status_file.exists() or process.poll() is not None, 90, "the engine to start or exit")
         assert status_file.exists(), "engine did not start"
         url = url_file.read_text().strip()
 
@@ -250,9 +248,7 @@ def test_run_with_local_broker_tls_carries_a_message_over_amqps(tmp_path: Path):
         cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True,
     )
     try:
-        deadline = time.monotonic() + 90
-        while not status_file.exists() and time.monotonic() < deadline and process.poll() is None:
-            time.sleep(0.2)
+        wait_for_sync(lambda: status_file.exists() or process.poll() is not None, 90, "the engine to start or exit")
         assert status_file.exists(), "engine did not start"
         url = url_file.read_text().strip()
         assert url.startswith("amqps://guest:guest@localhost:"), url

@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 import uuid
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from engine.language.route_yaml import substitute_env
 from engine.language.routes import load_routes
 from tests.support.repo import REPO
 from tests.support.engine_process import EngineProcess
+from tests.support.waiting import wait_for_sync
 
 SECRET = "F1le-" + uuid.uuid4().hex[:12]
 
@@ -81,14 +81,8 @@ def test_logs_and_status_never_show_a_file_secret(tmp_path: Path, amqp_url: str)
         "    sink: {amqp: {exchange: secret-file-out, routing_key: x}}\n")
     engine = EngineProcess(routes, tmp_path / "status.json", {}, "--log-level", "debug")
     try:
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            status = engine.status() or {}
-            if "ACCESS_REFUSED" in str(status) or "ACCESS_REFUSED" in engine.log_file.read_text():
-                break
-            time.sleep(0.2)
-        else:
-            raise AssertionError(f"no refused login reported: {engine.log()}")
+        wait_for_sync(lambda: "ACCESS_REFUSED" in str(engine.status() or {}) or "ACCESS_REFUSED" in engine.log_file.read_text(),
+                      30, "a refused login reported", detail=engine.log)
     finally:
         engine.stop()
     logs, status_text = engine.log_file.read_text(), engine.status_file.read_text() if engine.status_file.exists() else ""

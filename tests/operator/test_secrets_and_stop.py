@@ -221,7 +221,7 @@ def test_sigterm_with_the_sink_down_exits_0_within_the_drain_timeout_and_requeue
                 count = queue.declaration_result.message_count
                 if count == 500 or time.monotonic() > deadline:
                     break
-                await asyncio.sleep(0.2)
+                await asyncio.sleep(0.2)  # poll interval of a deadline loop (an await in each poll: wait_for takes a plain predicate)
             figures["requeued"] = count
             return code
         finally:

@@ -141,7 +141,7 @@ def test_full_buffer_makes_hold_wait_and_memory_leftovers_count_as_lost() -> Non
         for index in range(10):
             await buffer.hold(message(index))
         blocked = asyncio.create_task(buffer.hold(message(10)))
-        await asyncio.sleep(0.2)
+        await asyncio.sleep(0.2)  # quiet window: the hold stays blocked while the buffer is full (the behaviour under test)
         assert not blocked.done()
         sink.up = True
         await asyncio.wait_for(blocked, 5)
@@ -190,7 +190,7 @@ def test_no_attempt_while_the_connection_reports_down() -> None:
         buffer = HoldingBuffer("r", counting, ready=lambda: healthy)
         buffer.start()
         await buffer.hold(message(0))
-        await asyncio.sleep(0.3)
+        await asyncio.sleep(0.3)  # quiet window: no attempt while the sink is not ready (the behaviour under test)
         assert attempts == 0
         sink.up = healthy = True
         await wait_for(lambda: not buffer.holding)

@@ -146,7 +146,7 @@ def agreed(views: dict[str, Callable[[], dict[str, Any]]], timeout: float = 30.0
             return seen["status"]
         if time.monotonic() > deadline:
             raise AssertionError("the views of one route's counters disagree:\n" + json.dumps(seen, indent=1))
-        time.sleep(0.3)
+        time.sleep(0.3)  # poll interval of a deadline loop comparing four views
 
 
 @pytest.mark.soak
@@ -262,7 +262,7 @@ async def buffered_traffic(flaky: LocalBroker, engine: EngineProcess, tag: str, 
     try:
         await Collector.bind(await connection.channel(), f"{tag}-up", "up.#", queue=f"collect-{tag}", ack=True, tally=arrived, prefetch=500)
         await wait_for(lambda: publisher.get_subscription_count() > 0, 30, "the engine's ROS subscription")
-        await asyncio.sleep(1.0)
+        await asyncio.sleep(1.0)  # our writer sees the engine's reader; the engine (a child process) matching our writer is not observable from here
         publish(0, UP_GOOD, UP_BAD)
         await wait_for(lambda: arrived.delivered == UP_GOOD and route().get("failed") == UP_BAD, 30, "the first messages")
         flaky.kill()

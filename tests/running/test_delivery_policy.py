@@ -67,7 +67,7 @@ def test_transient_sink_failure_is_retried_with_backoff_then_dead_lettered(tmp_p
             await exchange.publish(aio_pika.Message(b'{"n": 6}', message_id="tried3", headers={"x-rabbitros-attempts": 3}), "x")
             letters = await dead.wait_for(7, timeout=60)
             elapsed = time.monotonic() - began
-            await asyncio.sleep(0.5)
+            await wait_for(lambda: engine.status()["routes"]["always-nacked"]["failed"] == 7, 10, "the route to count its 7 failures")
             stats = engine.status()["routes"]["always-nacked"]
         finally:
             await engine.stop()

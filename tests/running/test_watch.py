@@ -9,17 +9,9 @@ from pathlib import Path
 import pytest
 
 from engine.running.watch import watch_routes
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
-
-
-async def _seen(calls: list[float], after: int, timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while len(calls) <= after:
-        if time.monotonic() > deadline:
-            return False
-        await asyncio.sleep(0.02)
-    return True
 
 
 def test_key_files_are_watched_and_followed_across_reloads(tmp_path: Path) -> None:
@@ -35,18 +27,18 @@ def test_key_files_are_watched_and_followed_across_reloads(tmp_path: Path) -> No
         stop = asyncio.Event()
         task = asyncio.create_task(watch_routes(routes, lambda: calls.append(time.monotonic()), stop, None, lambda: keys["now"]))
         try:
-            await asyncio.sleep(0.3)  # the watch is set up
+            await asyncio.sleep(0.3)  # the watch is set up: watchfiles says nothing once it watches
             (first / "unrelated.txt").write_text("y")
             (first / "a.key").write_text("new")
-            assert await _seen(calls, 0), "a key file edit was not seen"
+            await wait_for(lambda: len(calls) > 0, 10, "a key file edit to be seen")
             count = len(calls)
             keys["now"] = frozenset({(second / "b.key").resolve()})  # a reload named another key file
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.5)  # the watcher takes the new key set on its next turn; it says nothing then either
             (second / "b.key").write_text("new")
-            assert await _seen(calls, count), "a key file named by a reload was not watched"
+            await wait_for(lambda: len(calls) > count, 10, "an edit of the key file a reload named to be seen")
             count = len(calls)
             (routes / "r.yaml").write_text("routes: []\n")
-            assert await _seen(calls, count), "a route file edit was not seen"
+            await wait_for(lambda: len(calls) > count, 10, "a route file edit to be seen")
         finally:
             stop.set()
             await asyncio.wait_for(task, 10)

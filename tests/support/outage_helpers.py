@@ -81,7 +81,7 @@ async def publish_reliably(connection: Any, exchange: str, key: str, seqs: range
         except Exception:
             if time.monotonic() > deadline:
                 raise
-            await asyncio.sleep(0.2)
+            await asyncio.sleep(0.2)  # retry pace while a robust connection reconnects (deadline above)
     slots = asyncio.Semaphore(window)
 
     async def confirmed(body: bytes) -> None:
@@ -92,7 +92,7 @@ async def publish_reliably(connection: Any, exchange: str, key: str, seqs: range
                         aio_pika.Message(body, delivery_mode=aio_pika.DeliveryMode.PERSISTENT), key), 30)
                     break
                 except Exception:
-                    await asyncio.sleep(0.2)
+                    await asyncio.sleep(0.2)  # retry pace of a publish the dead broker refused
             tally.sent += 1
         finally:
             slots.release()

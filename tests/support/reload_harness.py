@@ -153,7 +153,7 @@ async def _warm_up(inbox: Any, peer: RosPeer, run: ReloadRun) -> None:
         await inbox.publish(aio_pika.Message(b'{"seq": -1}'), "r.x")
         peer.publisher.publish(peer._String(data='{"seq": -1}'))
         await asyncio.sleep(0.1)
-    await asyncio.sleep(0.3)
+    await asyncio.sleep(0.3)  # the last probes in flight land before the tallies are cleared
     down.copies.clear()
     up.copies.clear()
 
@@ -247,12 +247,12 @@ async def run_reloads(
             deadline = time.monotonic() + 10
             while _succeeded(engine) <= applied and time.monotonic() < deadline:
                 await asyncio.sleep(0.05)
-        await asyncio.sleep(1.0)
+        await asyncio.sleep(1.0)  # the stream goes on after the last rewrite (the behaviour under test)
         # The stream outlives the rewrites until every flow carried at least min_sent messages:
         # on a loaded machine the publishers in this process fall behind their nominal rate.
         deadline = time.monotonic() + 60
         while min(f.sent for f in (run.flows["amqp->amqp"], run.flows["ros2->amqp"])) < min_sent and time.monotonic() < deadline:
-            await asyncio.sleep(0.2)
+            await asyncio.sleep(0.2)  # poll interval of a deadline loop
         stop_publishing.set()
         await publishing
         # Wait for the backlog while it still drains (a loaded machine drains slowly): give up
@@ -265,8 +265,8 @@ async def run_reloads(
                 received, last_progress = total, now
             if now - last_progress > 15 or now > overall:
                 break
-            await asyncio.sleep(0.2)
-        await asyncio.sleep(0.5)
+            await asyncio.sleep(0.2)  # poll interval of a loop that ends when the stream stalls 15 s
+        await asyncio.sleep(0.5)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
         run.latencies = [first_seen[g] - written_at[g] for g in written_at if g in first_seen]
         run.status = engine.status() or {}
     finally:

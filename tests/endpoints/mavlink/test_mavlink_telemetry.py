@@ -142,7 +142,7 @@ def test_vehicle_telemetry_arrives_canonical_in_enu_and_si(tmp_path: Path, amqp_
                     if replies.messages and min(kinds.count(f"canonical.{k}.uav1") for k in ("position", "attitude")) >= 12 \
                             and min(kinds.count(f"canonical.{k}.uav1") for k in ("battery", "status")) >= 3:
                         break
-                    await asyncio.sleep(0.2)
+                    await asyncio.sleep(0.2)  # poll interval of a deadline loop
                 status = engine.status()
             finally:
                 await connection.close()

@@ -483,7 +483,7 @@ def test_a_transaction_waits_for_a_vehicle_not_heard_yet() -> None:
                 await sink.send(outbound(canonical_mission(WEEDS)))
             sink = gcs.sink("m", {"mission": "upload", "target_system": 1, "vehicle_timeout": 10})
             upload = asyncio.create_task(sink.send(outbound(canonical_mission(WEEDS))))
-            await asyncio.sleep(0.3)
+            await asyncio.sleep(0.3)  # quiet window: the upload waits for the unheard vehicle (the behaviour under test)
             assert not upload.done()
             sim = SimVehicle(f"udpout:127.0.0.1:{port}")
             stop = asyncio.Event()

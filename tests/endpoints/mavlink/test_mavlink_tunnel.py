@@ -450,7 +450,7 @@ def test_sik_radio_three_second_outage() -> None:
             await source.start(got)
             sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
             try:
-                await asyncio.sleep(0.3)
+                await asyncio.sleep(0.3)  # the radio link settles before its scheduled outage
                 pair.add_outage(pair.elapsed() + 0.8, 3.0)
                 body = body_of(4096, 9)
                 started = time.monotonic()

@@ -318,7 +318,7 @@ def test_json_tunnel_peer_stores_before_acknowledging_and_sends_back(tmp_path: P
             deadline = time.monotonic() + 10
             while len(echoes) < len(bodies) and time.monotonic() < deadline:
                 await asyncio.sleep(0.05)
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.5)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
             return echoes
         finally:
             await source.stop()

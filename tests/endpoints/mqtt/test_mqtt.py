@@ -350,7 +350,7 @@ def test_mqtt_to_ros2_with_wildcards(tmp_path: Path, mosquitto: LocalMosquitto) 
                   for seq in range(10)),
             ])
             await wait_for(lambda: len(received) >= 10, 30, "10 NavSatFix")
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.5)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
         finally:
             await engine.stop()
 
@@ -380,7 +380,7 @@ async def settled(count: Callable[[], int], total: int, quiet: float = 20.0, tim
         if now - moved > quiet or now > deadline:
             return
         await asyncio.sleep(0.05)
-    await asyncio.sleep(1.0)
+    await asyncio.sleep(1.0)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
 
 
 def kill(engine: EngineProcess) -> None:
@@ -669,7 +669,7 @@ async def retained_state(broker: LocalMosquitto, topic: str, state: str, timeout
                 pass
         if last is not None and last.get("connectionState") == state:
             return last
-        await asyncio.sleep(0.2)
+        await asyncio.sleep(0.2)  # poll interval of a deadline loop (each poll reads a retained message)
     raise AssertionError(f"retained {topic} is not {state} within {timeout} s: {last}")
 
 

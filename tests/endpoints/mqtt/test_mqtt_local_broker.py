@@ -12,13 +12,13 @@ import socket
 import ssl
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
 import aiomqtt
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for_sync
 
 ROUTES = """
 routes:
@@ -38,9 +38,7 @@ def start_engine(tmp_path: Path, routes_text: str, env: dict[str, str], *flags: 
          "--log-format", "json"],
         cwd=REPO, stderr=subprocess.PIPE, text=True, start_new_session=True, env={**env, "PYTHONPATH": str(REPO)},
     )
-    deadline = time.monotonic() + 120
-    while not status_file.exists() and time.monotonic() < deadline and process.poll() is None:
-        time.sleep(0.2)
+    wait_for_sync(lambda: status_file.exists() or process.poll() is not None, 120, "the engine to start or exit")
     if not status_file.exists():
         os.killpg(process.pid, signal.SIGKILL)
         raise AssertionError("engine did not start")
@@ -65,7 +63,7 @@ async def weather_through_the_engine(host: str, port: int | None, tls_context: s
             async def publish_until_answered() -> None:
                 while True:
                     await writer.publish("farm/station1/weather", b'{"t": 21.5}', qos=1)
-                    await asyncio.sleep(0.5)
+                    await asyncio.sleep(0.5)  # publisher pace: one message each 0.5 s until the engine answers
             publishing = asyncio.create_task(publish_until_answered())
             try:
                 async with asyncio.timeout(30):

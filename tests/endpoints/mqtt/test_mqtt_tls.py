@@ -55,7 +55,7 @@ def test_mqtts_with_a_client_certificate_carries_and_names_failed_checks(tmp_pat
                 except TimeoutError:
                     pass
         while named() is None and time.monotonic() < deadline + 30:  # a refused attempt ends in paho's connect timeout
-            await asyncio.sleep(0.2)
+            await asyncio.sleep(0.2)  # poll interval of a deadline loop
         return got
 
     try:

@@ -55,7 +55,7 @@ def test_two_routes_on_one_ros_topic_each_get_every_message(amqp_url: str, tmp_p
                 await asyncio.sleep(0.1)
                 if record.messages and echo.messages:
                     break
-            await asyncio.sleep(0.3)
+            await asyncio.sleep(0.3)  # the last probes in flight land before the collectors are cleared
             record.messages.clear()
             echo.messages.clear()
             await publish(channel, n["inbox"], "x", [json.dumps({"seq": i}).encode() for i in range(300)])

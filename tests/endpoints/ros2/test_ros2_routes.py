@@ -57,6 +57,18 @@ def typed_routes(tmp_path: Path, amqp_url: str, monkeypatch: pytest.MonkeyPatch)
     return tmp_path, names
 
 
+async def matched_both_ways(engine: Engine, names: dict[str, str]) -> None:
+    """The engine's NavSatFix publisher (route position-to-ros) and its subscriber (route
+    position-from-ros) have found each other, each on its own side of DDS discovery: the
+    publisher sees a subscription and the subscription a publisher. A message published before
+    the subscriber's side matched is dropped by it (a fixed 1 s sleep hoped it had)."""
+    sink = engine.runners["position-to-ros"].pipeline.sink
+    source = engine.runners["position-from-ros"].source
+    topic = f"/{names['tag']}/fix"
+    await wait_for(lambda: sink.ready and source._matched(topic) > 0, 30, f"the engine's publisher and subscriber on {topic} to match",
+                   detail=lambda: f"publisher matched: {sink.ready}, subscriber matched: {source._matched(topic)}")
+
+
 def test_canonical_position_through_navsatfix_and_back_is_byte_identical(typed_routes, amqp_url):
     directory, names = typed_routes
     positions = [
@@ -72,7 +84,7 @@ def test_canonical_position_through_navsatfix_and_back_is_byte_identical(typed_r
         try:
             channel = await connection.channel()
             output = await Collector.bind(channel, names["outbox"], "canonical.position.#")
-            await asyncio.sleep(1.0)
+            await matched_both_ways(engine, names)
             await publish(channel, names["inbox"], "position", originals)
             received = await output.wait_for(len(originals), timeout=30)
         finally:
@@ -97,7 +109,7 @@ def test_unmappable_ros_message_is_counted_and_the_next_one_flows(typed_routes, 
             channel = await connection.channel()
             output = await Collector.bind(channel, names["outbox"], "canonical.position.#")
             dead = await Collector.bind(channel, "rabbitros.dead-letter", "position-from-ros")
-            await asyncio.sleep(1.0)
+            await matched_both_ways(engine, names)
             sink = engine.runners["position-to-ros"].pipeline.sink
             from engine.endpoints.base import Outbound
 
@@ -139,7 +151,7 @@ def test_a_null_from_the_sink_mapping_is_dead_lettered_naming_the_field_and_test
             await publish(channel, names["inbox"], "position", [canonical_bytes(no_altitude), good])
             received = await output.wait_for(1, timeout=30)
             dead_letters = await dead.wait_for(1, timeout=10)
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.5)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
             return [m.body for m in received], dead_letters
         finally:
             await connection.close()
@@ -336,7 +348,7 @@ def test_a_reload_while_the_sink_waits_for_a_reader_completes_and_loses_nothing(
             while runner.observer.received == 0:  # a batch is in settle, waiting for a reader
                 assert time.monotonic() < deadline, "the route took nothing"
                 await asyncio.sleep(0.05)
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.5)  # quiet window: the held batch stays undelivered (the behaviour under test)
             route = engine.status()["routes"]["waits-for-reader"]
             assert route["delivered"] == 0 and route["sink_not_ready"], route
             (tmp_path / "waiting.yaml").write_text(WAITING.format(generation=2, **names))
@@ -350,7 +362,7 @@ def test_a_reload_while_the_sink_waits_for_a_reader_completes_and_loses_nothing(
             deadline = time.monotonic() + 30
             while len(received) < len(bodies) and time.monotonic() < deadline:
                 await asyncio.sleep(0.05)
-            await asyncio.sleep(0.3)
+            await asyncio.sleep(0.3)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
             return list(received), figures
         finally:
             began = time.monotonic()
@@ -442,13 +454,13 @@ def test_a_subscriber_that_leaves_makes_the_route_hold_again(amqp_url: str, tmp_
                 await wait_for(lambda: not sink.ready, 20, "the route to notice the subscriber left")
                 noticed = time.monotonic() - began
                 await send(range(100, 200))
-                await asyncio.sleep(1.0)
+                await asyncio.sleep(1.0)  # quiet window: held while no subscriber (the behaviour under test)
                 assert engine.status()["routes"]["waits-for-reader"]["delivered"] == 100
                 second = Peer()
                 got_second = second.subscribe(String, f"/{tag}/waiting")
                 second.start()
                 await wait_for(lambda: len(got_second) == 100, 20, "the second subscriber's 100")
-                await asyncio.sleep(0.3)
+                await asyncio.sleep(0.3)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
                 return ([json.loads(m.data)["seq"] for m in got_first], [json.loads(m.data)["seq"] for m in got_second],
                         noticed)
         finally:
@@ -503,14 +515,14 @@ def test_a_templated_topic_waits_for_its_robot_without_spending_attempts(amqp_ur
                 assert time.monotonic() < deadline, engine.status()["routes"]["per-robot"]
                 await asyncio.sleep(0.05)
             assert f"no subscriber has matched /uav1/{tag}" in engine.status()["routes"]["per-robot"]["sink_not_ready"]
-            await asyncio.sleep(2.0)
+            await asyncio.sleep(2.0)  # quiet window: held while no subscriber (the behaviour under test)
             peer = Peer()
             received = peer.subscribe(String, f"/uav1/{tag}")
             peer.start()
             deadline = time.monotonic() + 30
             while len(received) < len(bodies) and time.monotonic() < deadline:
                 await asyncio.sleep(0.05)
-            await asyncio.sleep(0.3)
+            await asyncio.sleep(0.3)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
             return [m.data for m in received], engine.status()["routes"]["per-robot"]
         finally:
             await engine.stop()
