@@ -25,7 +25,7 @@ from engine.common.processes import listening_port
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector
 from tests.support.repo import REPO
-from tests.support.faults_harness import wait_for
+from tests.support.waiting import wait_for
 from tests.operator.test_cli import cli
 from tests.support.workers import ros_domain
 
@@ -320,6 +320,7 @@ def test_health_follows_the_session(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------------ check and test
 
+@pytest.mark.fast
 def test_check_refuses_what_the_run_could_not_do_and_test_renders_the_key(tmp_path: Path) -> None:
     """``{id:03d}`` in a source key is refused by ``check`` (a received key is read, not
     formatted), as a capture inside a chunk, between two ``**``, or over a meta name; in a sink
@@ -371,6 +372,7 @@ tests:
     assert tested.stdout.splitlines()[-1] == "1 passed, 0 failed"
 
 
+@pytest.mark.fast
 def test_captures_are_read_from_their_place_in_the_key() -> None:
     """Before a ``**`` a capture counts from the start, after it from the end."""
     from engine.endpoints.zenoh.keys import parse_pattern
