@@ -116,7 +116,7 @@ def pytest_configure(config: pytest.Config) -> None:
         "parallel run. Still run by CI: `-m 'not soak'` is for a quick local run only")
     config.addinivalue_line(
         "markers", "fast: needs no broker, no network peer and no ROS 2 node, and takes seconds at most; "
-        "./scripts/test.sh runs these first (`--fast only`, about 40 s) and stops there when one fails")
+        "./scripts/test.sh runs these first (`--fast only`: 341 tests, 55 s of CPU on 2 workers) and stops there when one fails")
 
 
 def _keep(config: pytest.Config, items: list[pytest.Item], option: str) -> None:
