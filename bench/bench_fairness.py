@@ -1,5 +1,5 @@
 """Fairness under one agent's flood: the quiet agents' latency and losses with and without
-``fair: {per: system_id}``, in the same run (tests/fairness_load.py describes the load: ten
+``fair: {per: system_id}``, in the same run (tests/support/fairness_load.py describes the load: ten
 vehicles at 10 Hz and one at 1,000 Hz on one UDP link, through one route into a link capped at
 ~500 frames/s; the engine a child process).
 
@@ -14,7 +14,7 @@ import json
 import tempfile
 from pathlib import Path
 
-from tests.fairness_load import flood
+from tests.support.fairness_load import flood
 
 
 def main(argv: list[str] | None = None) -> int:

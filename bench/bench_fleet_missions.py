@@ -21,7 +21,7 @@ from typing import Any
 from engine.endpoints import mavlink
 from engine.endpoints.base import Outbound, Sink
 from rabbitros_sim.vehicle import SimVehicle
-from tests.test_mavlink_transactions import canonical_mission, free_udp_port
+from tests.endpoints.mavlink.test_mavlink_transactions import canonical_mission, free_udp_port
 
 
 def _outbound(system_id: int, waypoints: int) -> Outbound:

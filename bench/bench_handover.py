@@ -25,8 +25,8 @@ import aio_pika
 
 from engine.endpoints.amqp.broker import LocalBroker
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector
-from tests.udp_vehicle import Vehicle, free_udp_port, telemetry_routes
+from tests.support.amqp_helpers import Collector
+from tests.support.udp_vehicle import Vehicle, free_udp_port, telemetry_routes
 
 SCHEMAS = Path(__file__).resolve().parent.parent / "schemas"
 

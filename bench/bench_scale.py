@@ -30,8 +30,8 @@ import aio_pika
 import aiormq
 
 from engine.endpoints.amqp.broker import LocalCluster
-from tests.engine_process import EngineProcess
-from tests.test_cluster import TimedCollector, publish_seq
+from tests.support.engine_process import EngineProcess
+from tests.faults.test_cluster import TimedCollector, publish_seq
 
 QUORUM = {"x-queue-type": "quorum"}
 RELAY_ROUTE = """connections:
@@ -198,7 +198,7 @@ async def node_failovers(cluster: LocalCluster, work: Path, rounds: int) -> list
     stalls = []
     try:
         channel = await connection.channel(publisher_confirms=True)
-        collector = await TimedCollector.bind(await connection.channel(), f"out-{tag}")
+        collector = await TimedCollector.bind_output(await connection.channel(), f"out-{tag}")
         total = 0
         for _ in range(rounds):
             stream = asyncio.create_task(publish_seq(channel, f"in-{tag}", total, total + 6000, rate=1000))
@@ -212,7 +212,7 @@ async def node_failovers(cluster: LocalCluster, work: Path, rounds: int) -> list
             await collector.wait_unique(total, 120)
             stalls.append(collector.stall(killed_at))
             print(f"  node {index + 1} killed: stream stood still {stalls[-1]:.2f} s; "
-                  f"{len(collector.arrivals) - len(collector.unique)} duplicates so far, 0 lost", flush=True)
+                  f"{len(collector.seq_arrivals) - len(collector.unique)} duplicates so far, 0 lost", flush=True)
             await asyncio.to_thread(cluster.restart, index)
             await asyncio.to_thread(cluster.wait_running, 3)
     finally:
@@ -234,7 +234,7 @@ async def ordered_failovers(cluster: LocalCluster, work: Path, rounds: int) -> l
     stalls = []
     try:
         channel = await connection.channel(publisher_confirms=True)
-        collector = await TimedCollector.bind(await connection.channel(), f"out-{tag}")
+        collector = await TimedCollector.bind_output(await connection.channel(), f"out-{tag}")
         total = 0
         for _ in range(rounds):
             stream = asyncio.create_task(publish_seq(channel, f"in-{tag}", total, total + 2000, rate=500, batch=1))
@@ -289,7 +289,7 @@ async def standby_failovers(cluster: LocalCluster, work: Path, rounds: int) -> l
             await asyncio.sleep(max(len(published) / 200 - (time.monotonic() - began), 0))
 
     try:
-        collector = await TimedCollector.bind(await connection.channel(), f"out-{tag}")
+        collector = await TimedCollector.bind_output(await connection.channel(), f"out-{tag}")
         task = asyncio.create_task(robot())
         for _ in range(rounds):
             await asyncio.sleep(2.0)

@@ -2,7 +2,7 @@
 
 For 5, 20, 50 and 200 waypoints, at 0 % and 5 % air-packet loss, to two vehicles behind the
 radio: the simulated vehicle (rabbitros_sim/vehicle.py, its own process) and MAVSDK's own
-vehicle (tests/mavsdk_vehicle.py: the ``mavsdk`` wheel's C++ core as an autopilot with its
+vehicle (tests/support/mavsdk_vehicle.py: the ``mavsdk`` wheel's C++ core as an autopilot with its
 MissionRawServer, opening the radio's vehicle-side pseudo-terminal as ``serial://``). Each is
 sent the same mission, one client after the other on the same radio, by: the engine's mission
 sink (``mission: upload``, 1.5 s answer timeout), a plain pymavlink upload loop (one thread,
@@ -166,7 +166,7 @@ async def vehicle_behind(kind: str, pair: SikRadioPair, work: Path) -> AsyncIter
         async with vehicle_process(pair.link_b, work / "store", 600) as final:
             yield final
         return
-    from tests.mavsdk_vehicle import MavsdkAutopilot
+    from tests.support.mavsdk_vehicle import MavsdkAutopilot
 
     autopilot = MavsdkAutopilot(f"serial://{pair.device_b}:57600")
     final: dict[str, Any] = {}

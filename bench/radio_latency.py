@@ -12,7 +12,7 @@ MAVSDK as the ground station, to two vehicles behind the same radio, in the same
 
 Vehicles: the simulated one (rabbitros_sim/vehicle.py, GLOBAL_POSITION_INT at 4 Hz carrying the
 ``time_boot_ms`` it was built at, so its send time is ``boot + time_boot_ms``) and MAVSDK's own
-(tests/mavsdk_vehicle.py: the ``mavsdk`` wheel as an autopilot on the radio's vehicle-side
+(tests/support/mavsdk_vehicle.py: the ``mavsdk`` wheel as an autopilot on the radio's vehicle-side
 pseudo-terminal, ``serial://``; a thread publishes a position every 0.25 s that carries its
 number in ``lat`` and records when it sent it). Everything runs in this process, so one
 monotonic clock stamps both ends.
@@ -151,7 +151,7 @@ async def simulated_vehicle(link: str, signed: bool) -> AsyncIterator[Vehicle]:
 
 @contextlib.asynccontextmanager
 async def mavsdk_vehicle(device: str) -> AsyncIterator[Vehicle]:
-    from tests.mavsdk_vehicle import MavsdkAutopilot, position_number
+    from tests.support.mavsdk_vehicle import MavsdkAutopilot, position_number
 
     autopilot = MavsdkAutopilot(f"serial://{device}:57600")
     sent: dict[int, float] = {}

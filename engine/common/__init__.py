@@ -2,5 +2,5 @@
 secrets, the backoff, logging, TLS, canonical JSON and schemas, time stamps and frames, the
 ``{name}`` placeholder grammar, canonical field keys and server processes.
 
-Imports nothing else of the engine (tests/test_import_graph.py), so the protocol packages
+Imports nothing else of the engine (tests/project/test_import_graph.py), so the protocol packages
 (engine/endpoints/) can use all of it."""

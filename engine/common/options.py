@@ -10,7 +10,7 @@ value (description, minimum, pattern...). From that one declaration:
   "amqp", "prefetch")``) the loader turns into ``file:line``.
 - :func:`schema` produces the JSON Schema (draft 2020-12) fragment of the class, from which
   ``engine/language/route_schema.py`` builds the whole route-file schema (shipped as
-  ``engine/language/route_file.schema.json``, kept fresh by ``tests/test_route_schema.py``).
+  ``engine/language/route_file.schema.json``, kept fresh by ``tests/language/test_route_schema.py``).
 
 Supported field types: ``bool``, ``int``, ``float`` (an int is accepted), ``str``,
 ``Literal[...]`` (an enum; one value is a ``const``), another option class (nested),
@@ -85,7 +85,7 @@ def option(
     declared value is not what applies: the description then says what does. ``secret``: a
     :class:`Secret` passes as a string. ``internal``: set by the engine, never by a route file
     (not parsed, not in the schema). ``description``: what the key does, shown in editors and
-    in docs/route-keys.md (tests/test_route_schema.py requires one for every key). ``schema``:
+    in docs/route-keys.md (tests/language/test_route_schema.py requires one for every key). ``schema``:
     JSON Schema keywords for the schema only, merged as they are: bounds a check reports in
     its own words (the parser does not read them; the loader validates with the schema)."""
     metadata = {

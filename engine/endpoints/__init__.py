@@ -20,7 +20,7 @@ MAPPING_FUNCTIONS: dict[str, tuple[str, ...]] = {
     "engine.endpoints.mavlink.functions": ("stamp_usec", "stamp_boot_ms", "mav_enum", "mav_enum_value", "mav_flags"),
 }
 """Each module whose ``Functions`` class adds functions to mappings, with their names, so
-engine/language/mapping.py imports it only for a mapping that calls one (tests/test_endpoint_contract.py checks
+engine/language/mapping.py imports it only for a mapping that calls one (tests/running/test_endpoint_contract.py checks
 that the names match the class)."""
 PRIVATE_BROKERS: dict[str, str] = {
     "amqp": "engine.endpoints.amqp.broker",

@@ -20,7 +20,7 @@ one), which returns once the messages are *settled*: accepted by the sink or dea
 A source that queues messages in the engine (a push protocol: ROS 2 takes, MAVLink frames)
 asks its route for that queue (:meth:`Deliver.inbox`): the route decides whether it is one
 FIFO or, with ``fair:``, one queue per agent; endpoints never import the engine's fairness
-or throttle (tests/test_import_graph.py checks). Which failures are retried and which are
+or throttle (tests/project/test_import_graph.py checks). Which failures are retried and which are
 dead-lettered is decided by the engine (engine/running/delivery.py), never by a source or a
 sink: endpoints only raise :class:`EndpointError` (transient) or :class:`MessageRejected`
 (permanent) at the edge.

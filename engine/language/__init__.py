@@ -3,4 +3,4 @@ their templates, agents, mappings, stores and the option declarations of every s
 
 Stands on engine/common/ and the protocol packages (engine/endpoints/, through their
 contract); never imports the running engine or the operator's surface
-(tests/test_import_graph.py): loading and checking routes starts nothing."""
+(tests/project/test_import_graph.py): loading and checking routes starts nothing."""

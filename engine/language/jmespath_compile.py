@@ -9,7 +9,7 @@ its argument type checks, same exceptions). Field paths (``a.b.c``) become one l
 
 Every node type of jmespath 1.x is compiled; a node type this module does not know (a
 future jmespath) makes the whole expression fall back to jmespath's own interpreter, so a
-result is never a guess. tests/test_jmespath_compile.py compares both on generated
+result is never a guess. tests/language/test_jmespath_compile.py compares both on generated
 expressions and documents and on every mapping the project ships.
 """
 

@@ -26,7 +26,7 @@ from typing import Any
 KEYS_HEADER = """# Route file keys
 
 <!-- Generated from the option declarations by `python -m engine.language.route_schema --write`; do not edit.
-     tests/test_route_schema.py fails while this file differs from what the declarations give. -->
+     tests/language/test_route_schema.py fails while this file differs from what the declarations give. -->
 
 Every key a route file accepts, at every level, with its value, default and meaning. This page
 is generated from the same option declarations as the route-file JSON Schema

@@ -8,7 +8,7 @@ protocol's connection, source and sink options (``Transport.connection_options``
 them together into ``engine/language/route_file.schema.json``, which the loader validates with (so
 editors and ``check`` agree) and which ships with the package, and into the key reference
 ``docs/route-keys.md`` (engine/language/route_keys.py renders it from this schema, so the docs list
-exactly the keys the loader accepts); ``tests/test_route_schema.py`` fails when either file is
+exactly the keys the loader accepts); ``tests/language/test_route_schema.py`` fails when either file is
 not what this module generates.
 
     python -m engine.language.route_schema --write     # regenerate the schema and docs/route-keys.md

@@ -4,7 +4,7 @@ A route file's ``buffer:``, ``dead_letters:``, ``fair:``, ``throttle:``, ``reply
 delivery limits are parsed and checked by the route language (engine/language/routes.py) and
 acted on by the running engine (engine/running/). Declaring them here, rather than beside the
 code that acts on them, keeps the import direction one way: the language never imports the
-running engine (tests/test_import_graph.py).
+running engine (tests/project/test_import_graph.py).
 """
 
 from __future__ import annotations

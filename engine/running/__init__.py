@@ -2,4 +2,4 @@
 replies, fairness, throttles, observers, leases, reload plans and the watcher.
 
 Runs what the route language (engine/language/) compiled; imported by the operator's
-surface (engine/ops/) and never the other way round (tests/test_import_graph.py)."""
+surface (engine/ops/) and never the other way round (tests/project/test_import_graph.py)."""

@@ -13,7 +13,7 @@ id, as JSON, is the answer. None within the sink's ``timeout``: the call fails f
 The calls channel is a plain channel (engine/endpoints/amqp/channels.py), opened again at the
 next call once the broker (a request to an exchange deleted meanwhile: 404) or a lost
 connection closed it: on a robust one aio-pika's restore got there first and no reply came on
-it again (tests/test_amqp_publish_channel.py). A direct reply can only come on the channel
+it again (tests/endpoints/amqp/test_amqp_publish_channel.py). A direct reply can only come on the channel
 that published the request, so the calls waiting on a channel that closed fail at once with
 :class:`EndpointError` (retried: the request may never have reached a worker), not at their
 timeout as if the worker had not answered.

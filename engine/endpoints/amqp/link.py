@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 import ssl
 import time
 from typing import Any, Mapping, Sequence
@@ -58,7 +59,10 @@ log = logging.getLogger("engine.amqp")
 def redact(url: Any) -> str:
     """The URL with its password hidden, for logs and errors."""
     url = str(url)  # a Secret is already its redacted text
-    parts = urlsplit(url)
+    try:
+        parts = urlsplit(url)
+    except ValueError:  # not a URL (an unbalanced "[" the route fuzz found): hide what could be a password
+        return re.sub(r":[^:@/]*@", ":***@", url)
     if parts.password is None:
         return url
     netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)

@@ -212,7 +212,7 @@ class SharedPublisher:
         number no more) but marks the channel closed only a few loop turns later, after its
         close task ran; a round written in between reached the broker after the CloseOk,
         which closed the whole CONNECTION (504 CHANNEL_ERROR "expected 'channel.open'",
-        measured in tests/test_amqp_publish_channel.py: every source's channel went with it).
+        measured in tests/endpoints/amqp/test_amqp_publish_channel.py: every source's channel went with it).
         aiormq checks its own private close event for that in ``basic_publish``'s callers; the
         publisher hooks the frame's handler as it hooks the confirms' (:func:`_confirm_in_order`)."""
         on_close_frame = getattr(channel, "_on_close_frame", None)  # aiormq 7.2's (pinned ~=7.2.4)
@@ -496,7 +496,7 @@ def _exchange(exchange: str) -> bytes:
 def _frames(channel: int, frame_max: int, exchange: str, key: str, body: bytes, properties: spec.Basic.Properties) -> bytes:
     """One message's publish, content header and body frames, encoded: byte for byte what
     aiormq's ``basic_publish`` sends through pamqp (bodies split at the negotiated frame size;
-    tests/test_amqp_shared_publish.py compares the two), with the same refusals (an invalid
+    tests/endpoints/amqp/test_amqp_shared_publish.py compares the two), with the same refusals (an invalid
     exchange name, a routing key over 255 bytes).
 
     Written with ``struct`` rather than through pamqp's generic marshalling: pamqp builds a

@@ -21,7 +21,7 @@ value) that is still waiting when a newer frame with the same key comes is repla
 its place in the queue; the older one's future fails with :class:`Conflated`, and its route
 counts it ``conflated``. Frames without a key wait their turn.
 
-Measured on the emulated SiK radio (57,600 baud; tests/test_link_priority.py): a 200-byte
+Measured on the emulated SiK radio (57,600 baud; tests/endpoints/mavlink/test_link_priority.py): a 200-byte
 ``high`` tunnel message under a saturating ``low`` tunnel load of 2 KB bundles took 4.1 s
 when both queued in one bulk lane; with the lanes it waits for the fragment on the wire and
 the bytes already in the radio's buffer, then crosses in its own fragments' time and a TDM

@@ -452,7 +452,7 @@ class ServiceSource(Source):
     Bound: ``max_in_flight`` calls go to the sink at once, and the service's request queue (its
     QoS depth, keep-last) keeps that many: the executor takes one request per turn of its wait
     set, so a burst from many clients at once waits in that queue, and with ROS 2's default 10
-    a burst of more than 10 calls lost some (tests/test_ros2_calls_bounds.py)."""
+    a burst of more than 10 calls lost some (tests/endpoints/ros2/test_ros2_calls_bounds.py)."""
 
     def __init__(self, calls: CallNode, route: str, service: str, type_name: str,
                  max_in_flight: int = DEFAULT_MAX_IN_FLIGHT) -> None:

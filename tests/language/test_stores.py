@@ -1,0 +1,169 @@
+"""Remembered values (engine/language/stores.py): ``remember:`` writes a named latest-value store once the
+sink accepted a message, ``recall('NAME', key)`` reads it, ``sequence()`` counts per route.
+
+Checked at load (a store no route remembers into, a memory sink without remember, two routes
+giving one store different meanings), given by route tests as ``remembered:``, and written on
+acceptance only, through a real route (MQTT -> memory and MQTT -> MQTT on a private mosquitto):
+a message the schema refuses is never remembered, and a reload keeps both the store and the count.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from pathlib import Path
+
+import pytest
+
+from engine.common.placeholders import MappingError
+from engine.common.schemas import SchemaRegistry
+from engine.endpoints.mqtt.broker import LocalMosquitto
+from engine.language.mapping import compile_mapping
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.language.stores import Stores
+from engine.ops.route_tests import load_checked, run_tests
+from engine.running.pipeline import Pipeline
+from engine.running.runtime import Engine
+from tests.support.repo import REPO
+
+from tests.endpoints.mqtt.test_mqtt import Subscriber, publish
+from tests.support.waiting import wait_for
+
+SCHEMAS = SchemaRegistry(REPO / "schemas")
+
+
+@pytest.mark.fast
+def test_recall_reads_the_store_by_key_and_sequence_counts_per_route() -> None:
+    stores = Stores()
+    stores.store("positions").put("uav1", {"x": 1.0})
+    mapping = compile_mapping("{n: sequence(), x: recall('positions', agent).x, other: recall('positions', 'uav2')}",
+                              stores=stores, route="r")
+    assert mapping({"agent": "uav1"}) == {"n": 1, "x": 1.0, "other": None}
+    again = compile_mapping("{n: sequence()}", stores=stores, route="r")  # a reload's new generation
+    assert again({}) == {"n": 2}
+    assert compile_mapping("{n: sequence()}", stores=stores, route="other")({}) == {"n": 1}
+    with pytest.raises(MappingError, match="store name in quotes"):
+        compile_mapping("recall(name, agent)")
+    stores.store("positions").max_age_ns = 1  # a value older than max_age is not given any more
+    time.sleep(0.001)
+    assert mapping({"agent": "uav1"})["x"] is None
+
+
+ROUTES = """
+connections:
+  field: {mqtt: "mqtt://localhost:1"}
+routes:
+  - name: positions-in
+    source: {mqtt: {connection: field, topic: "farm/+/position"}}
+    schema: raw_json
+    remember: {store: positions, per: agent}
+    sink: {memory: {}}
+  - name: status-out
+    source: {mqtt: {connection: field, topic: "farm/+/battery"}}
+    mapping: "{agent: agent, n: sequence(), charge: charge, x: recall('positions', agent).x}"
+    schema: raw_json
+    sink: {mqtt: {connection: field, topic: "farm/{agent}/status"}}
+"""
+
+
+def _write(directory: Path, routes: str, tests: str | None = None) -> Path:
+    directory.mkdir(exist_ok=True)
+    (directory / "routes.yaml").write_text(routes)
+    if tests is not None:
+        (directory / "routes.test.yaml").write_text(tests)
+    return directory
+
+
+@pytest.mark.fast
+def test_check_refuses_unknown_stores_a_memory_sink_without_remember_and_two_meanings(tmp_path: Path) -> None:
+    bad = (ROUTES.replace("recall('positions', agent)", "recall('position', agent)")
+           .replace("    remember: {store: positions, per: agent}\n", "")
+           + """  - name: more-positions
+    source: {mqtt: {connection: field, topic: "farm/+/fix"}}
+    schema: raw_json
+    remember: {store: fixes, per: agent}
+    sink: {memory: {}}
+  - name: fixes-by-id
+    source: {mqtt: {connection: field, topic: "farm/+/fix2"}}
+    schema: raw_json
+    remember: {store: fixes, per: id}
+    sink: {memory: {}}
+""")
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(_write(tmp_path / "bad", bad), SCHEMAS)
+    messages = [problem.message for problem in invalid.value.problems]
+    assert any("route 'positions-in': a memory sink delivers nowhere: the route needs remember: {store: NAME}" in m
+               for m in messages), messages
+    assert any("route 'status-out': recall('position'): no route remembers into store 'position'" in m for m in messages), messages
+    assert any("store 'fixes': per 'id' differs from 'agent'" in m for m in messages), messages
+    config = load_routes(_write(tmp_path / "good", ROUTES), SCHEMAS)
+    assert config.routes["positions-in"].remember is not None
+
+
+@pytest.mark.fast
+def test_route_tests_give_what_the_stores_hold(tmp_path: Path) -> None:
+    tests = """
+tests:
+  - route: status-out
+    input: {agent: uav1, charge: 80}
+    remembered: {positions: {uav1: {agent: uav1, x: 4.5}}}
+    expect: {agent: uav1, n: 1, charge: 80, x: 4.5}
+  - route: status-out
+    input: {agent: uav1, charge: 79}
+    expect: {agent: uav1, n: 1, charge: 79, x: null}
+  - route: status-out
+    input: {agent: uav1, charge: 79}
+    remembered: {positons: {uav1: {}}}
+    expect: {agent: uav1, n: 1, charge: 79, x: null}
+"""
+    config, cases, problems, _ = load_checked(_write(tmp_path, ROUTES, tests), SCHEMAS)
+    assert [p.message for p in problems] == ["remembered: no route remembers into store 'positons'; did you mean 'positions'?"]
+    assert config is not None
+    assert [r.passed for r in run_tests(cases, config, SCHEMAS)] == [True, True]
+
+
+def test_a_route_remembers_what_its_sink_accepted_and_a_reload_keeps_stores_and_counts(
+        tmp_path: Path, mosquitto: LocalMosquitto, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Positions remembered once their sink accepted them: one its sink refuses (its topic
+    needs the agent it lacks) is not, though it converted; a status route reads them, and an
+    edit of it (a reload restarting it) keeps counting and knowing."""
+    monkeypatch.setenv("HOME", str(tmp_path))  # the dead letter's spool
+    routes = ROUTES.replace("mqtt://localhost:1", mosquitto.url).replace(
+        "sink: {memory: {}}", 'sink: {mqtt: {connection: field, topic: "farm/{agent}/seen"}}', 1)
+    directory = _write(tmp_path / "routes", routes)
+    schemas_dir = REPO / "schemas"
+
+    async def scenario() -> list[dict[str, object]]:
+        engine = Engine(directory, schemas_dir)
+        await engine.start()
+        try:
+            async with Subscriber(mosquitto, "farm/+/status") as out:
+                await publish(mosquitto, [("farm/uav1/position", {"agent": "uav1", "x": 1.5}),
+                                          ("farm/uav2/position", {"x": 9})])  # no agent for its topic: a sink dead letter
+
+                def settled() -> bool:
+                    route = engine.status()["routes"]["positions-in"]
+                    return route["delivered"] == 1 and route["failed"] == 1
+                await wait_for(settled, 20, "one position delivered, one dead-lettered")
+                assert engine.status()["stores"] == {"positions": 1}  # remembered at conversion, it would be 2 (key null)
+                await publish(mosquitto, [("farm/uav1/battery", {"agent": "uav1", "charge": 80})])
+                await out.wait_for(1)
+                (directory / "routes.yaml").write_text(routes.replace("charge: charge", "charge: charge, edited: `true`"))
+                await engine.reload()
+                await publish(mosquitto, [("farm/uav1/battery", {"agent": "uav1", "charge": 79})])
+                await out.wait_for(2)
+                return [json.loads(m.payload) for m in out.messages]
+        finally:
+            await engine.stop()
+
+    first, second = asyncio.run(asyncio.wait_for(scenario(), 60))
+    assert first == {"agent": "uav1", "n": 1, "charge": 80, "x": 1.5}
+    assert second == {"agent": "uav1", "n": 2, "charge": 79, "x": 1.5, "edited": True}
+
+
+@pytest.mark.fast
+def test_a_pipeline_without_stores_recalls_nothing() -> None:
+    """``check`` and other callers compile without the engine's stores: a fresh, empty set."""
+    assert Pipeline.__dataclass_fields__["remember"].default is None
+    assert compile_mapping("recall('x', `1`)")({}) is None

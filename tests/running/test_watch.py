@@ -1,0 +1,46 @@
+"""The watcher sees route, schema and key-file edits, and follows the key files a reload names."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+
+import pytest
+
+from engine.running.watch import watch_routes
+from tests.support.waiting import wait_for
+
+pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
+
+
+def test_key_files_are_watched_and_followed_across_reloads(tmp_path: Path) -> None:
+    routes, first, second = tmp_path / "routes", tmp_path / "keys-a", tmp_path / "keys-b"
+    for directory in (routes, first, second):
+        directory.mkdir()
+    (first / "a.key").write_text("old")
+    (first / "unrelated.txt").write_text("x")
+    keys = {"now": frozenset({(first / "a.key").resolve()})}
+
+    async def scenario() -> None:
+        calls: list[float] = []
+        stop = asyncio.Event()
+        task = asyncio.create_task(watch_routes(routes, lambda: calls.append(time.monotonic()), stop, None, lambda: keys["now"]))
+        try:
+            await asyncio.sleep(0.3)  # the watch is set up: watchfiles says nothing once it watches
+            (first / "unrelated.txt").write_text("y")
+            (first / "a.key").write_text("new")
+            await wait_for(lambda: len(calls) > 0, 10, "a key file edit to be seen")
+            count = len(calls)
+            keys["now"] = frozenset({(second / "b.key").resolve()})  # a reload named another key file
+            await asyncio.sleep(0.5)  # the watcher takes the new key set on its next turn; it says nothing then either
+            (second / "b.key").write_text("new")
+            await wait_for(lambda: len(calls) > count, 10, "an edit of the key file a reload named to be seen")
+            count = len(calls)
+            (routes / "r.yaml").write_text("routes: []\n")
+            await wait_for(lambda: len(calls) > count, 10, "a route file edit to be seen")
+        finally:
+            stop.set()
+            await asyncio.wait_for(task, 10)
+
+    asyncio.run(scenario())

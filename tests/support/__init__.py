@@ -1,0 +1,1 @@
+"""What the tests share: brokers and engines as processes, vehicles, waits, collectors."""

@@ -1,0 +1,33 @@
+"""What a source under test delivers, without an engine: the one collector of the endpoint tests
+(what a broker's queue receives is tests/support/amqp_helpers.py ``Collector``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from engine.endpoints.base import Inbound
+from rabbitros_sim.deliver import FunctionDeliver
+from tests.support.waiting import wait_for
+
+
+class CollectingDeliver(FunctionDeliver):
+    """A Deliver that records every message it settles in ``items``; its first ``fail_first``
+    calls raise (a sink that is down), and ``calls`` counts every attempt. ``deliver``: the
+    FunctionDeliver options (``overflow``, ``queue_limit``)."""
+
+    def __init__(self, fail_first: int = 0, **deliver: Any) -> None:
+        super().__init__(**deliver)
+        self.items: list[Inbound] = []
+        self.calls = 0
+        self.fail_first = fail_first
+
+    async def __call__(self, inbound: Inbound) -> None:
+        self.calls += 1
+        if self.calls <= self.fail_first:
+            raise RuntimeError("sink down")
+        self.items.append(inbound)
+
+    async def wait_for(self, count: int, timeout: float = 10.0) -> list[Inbound]:
+        """Until ``count`` messages were delivered; fails naming how many came."""
+        await wait_for(lambda: len(self.items) >= count, timeout, f"{count} deliveries", detail=lambda: f"{len(self.items)} came")
+        return self.items
