@@ -4,8 +4,11 @@ A route with ``for_each:`` (a list of objects, or the name of a YAML file holdin
 the route file) becomes one ordinary route per item: every ``{var}`` naming a key of the item,
 in the route's name and in any string value below it, takes the item's value. A value that is
 exactly ``{var}`` takes the value as it is (``system_id: "{sysid}"`` is the integer 3); inside
-a longer text the value is written in (``/{agent}/fix``). A ``{name}`` that is no variable of
-the item stays as it is, for the sink to fill from the canonical message at send time.
+a longer text the value is written in (``/{agent}/fix``), through a format spec if it has one
+(``/robot_{id:03d}`` with id 7 is ``/robot_007``, as a sink would render it: the braces are read
+by the engine's one template grammar, engine/common/placeholders.py). A ``{name}`` that is no
+variable of the item stays as it is, for the sink to fill from the canonical message at send
+time.
 Mappings (``mapping``, ``sink.mapping``) are JMESPath, where braces are syntax: they read the
 item with ``meta('var')`` instead, a constant folded at compile time (engine/language/mapping.py).
 
@@ -93,7 +96,7 @@ def expand_routes(
             try:
                 copy_ = _substitute(template, item, (), placeholders, substituted_at := {})
             except MappingError as exc:  # a format spec the item's value does not take ({id:03d} with id "seven")
-                problems.append(Problem(file, line, f"{_dotted(where)}: {exc}"))
+                problems.append(Problem(file, line, f"{_dotted(where)} item {item!r}: {exc}"))
                 continue
             moved[index].append(len(expanded))
             origins[len(expanded)] = Expansion(index, dict(item), placeholders, source_file)
@@ -197,7 +200,10 @@ def _substitute(value: Any, item: Mapping[str, Any], path: Path_,
         return copy.deepcopy(found)
     out, last = [], 0
     for found in used:  # a spec is honoured as the sink would (``{id:03d}``: 7 -> 007); MappingError if it cannot be
-        out += [value[last:found.start], found.render(value, item[found.name]) if found.spec else _text(item[found.name])]
+        try:
+            out += [value[last:found.start], found.render(value, item[found.name]) if found.spec else _text(item[found.name])]
+        except MappingError as exc:
+            raise MappingError(f"{_dotted(path)}: {exc}") from None
         last = found.end
     return "".join(out) + value[last:]
 
