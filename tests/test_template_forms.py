@@ -97,8 +97,12 @@ def _problems(directory: Path) -> list[str]:
 def test_check_refuses_a_format_spec_in_a_capture_with_file_and_line(tmp_path: Path) -> None:
     """A ROS 2 source pattern ``/{id:03d}/fix`` and an MQTT source ``farm/{id:03d}/fix``: what
     would each match (``007`` only? ``1234``?) and give as ``meta('id')`` (text or number)? No
-    single answer, so ``check`` refuses both, naming the file, the line and the way out."""
+    single answer, so ``check`` refuses both, naming the file, the line and the way out. A
+    MAVLink target ``"{vehicle:03d}"`` is refused too (a target is the id the field holds, not
+    text), in words rather than the schema's regular expression."""
     (tmp_path / "r.yaml").write_text(
+        "connections:\n"
+        "  link: {mavlink: \"udpin:127.0.0.1:14550\"}\n"
         "routes:\n"
         "  - name: ros\n"
         "    source: {ros2: {topic: \"/{id:03d}/fix\", type: std_msgs/msg/String}}\n"
@@ -107,12 +111,18 @@ def test_check_refuses_a_format_spec_in_a_capture_with_file_and_line(tmp_path: P
         "  - name: mqtt\n"
         "    source: {mqtt: {topic: \"farm/{id:03d}/fix\"}}\n"
         "    schema: raw_json\n"
-        "    sink: {amqp: {exchange: e, routing_key: k}}\n")
+        "    sink: {amqp: {exchange: e, routing_key: k}}\n"
+        "  - name: mav\n"
+        "    source: {amqp: {queue: q}}\n"
+        "    schema: raw_json\n"
+        "    sink: {mavlink: {connection: link, message: COMMAND_LONG, target_system: \"{vehicle:03d}\"}}\n")
     problems = _problems(tmp_path)
-    for line, route in ((3, "ros"), (7, "mqtt")):
+    for line, route in ((5, "ros"), (9, "mqtt")):
         assert any(p.startswith(f"r.yaml:{line}: route {route!r}") and "{id:03d} has a format spec, which a source "
                    "cannot match" in p for p in problems), (route, problems)
-    assert len(problems) == 2, problems
+    assert any(p.startswith("r.yaml:15: route 'mav'") and "a format spec makes text" in p and 'write "{vehicle}"' in p
+               for p in problems), problems
+    assert len(problems) == 3, problems
 
 
 FOR_EACH = """

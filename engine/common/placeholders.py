@@ -244,3 +244,20 @@ def capture_levels(pattern: str, separator: str = "/", keep: Collection[str] = (
                                 "(one name, as in {station})")
         out.append(field)
     return out
+
+
+def whole_field(text: str, what: str = "value") -> tuple[str, ...]:
+    """The field path of a value that is exactly one placeholder (``"{vehicle}"``,
+    ``"{target.system}"``): a MAVLink sink's target, read from each message as it is.
+
+    Raises :class:`TemplateError` for anything else: text around the placeholder, or a format
+    spec (a spec makes text, and a target is the number or agent's name the field holds).
+    """
+    parsed = parse_template(text)
+    if len(parsed.placeholders) != 1 or any(parsed.literals):
+        raise TemplateError(f"{text!r}: a {what} read from the message is one whole {{field}}, as \"{{vehicle}}\"")
+    field = parsed.placeholders[0]
+    if field.spec:
+        raise TemplateError(f"{text!r}: a format spec makes text, and a {what} is the id or agent's name the field holds "
+                            f"as it is (write \"{{{field.name}}}\")")
+    return field.path
