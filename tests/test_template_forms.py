@@ -13,6 +13,7 @@ and the ``check`` command as operators run it.
 from __future__ import annotations
 
 import asyncio
+import re
 import json
 import uuid
 from pathlib import Path
@@ -150,3 +151,37 @@ def test_for_each_honours_a_format_spec_and_check_names_a_value_it_cannot_take(t
     problems = _problems(tmp_path)
     assert len(problems) == 1 and problems[0].startswith("r.yaml:4: ") and "'seven'" in problems[0] \
         and "source.amqp.queue: template 'q{id:02d}'" in problems[0] and "Unknown format code 'd'" in problems[0], problems
+
+
+@pytest.mark.parametrize("pattern, levels", [
+    ("farm/{station}/weather", ["farm", "{station}", "weather"]),
+    ("/{agent}/fix", ["", "{agent}", "fix"]),
+    ("{a}/+/{b}/#", ["{a}", "+", "{b}", "#"]),
+    ("/{node}/{agent}/cmd", ["", "{node}", "{agent}", "cmd"]),  # {node}: rcl's, kept as text
+    ("farm/{{x}}/y", ["farm", "{x}", "y"]),  # an escaped brace is literal text
+])
+def test_capture_levels_read_each_level_as_text_or_one_capture(pattern: str, levels: list[str]) -> None:
+    from engine.common.placeholders import Placeholder, capture_levels
+    read = capture_levels(pattern, keep={"node"})
+    assert ["{" + level.name + "}" if isinstance(level, Placeholder) else level for level in read] == levels
+
+
+@pytest.mark.parametrize("pattern, refusal", [
+    ("farm/s{n}/w", "must be a whole level"), ("farm/{a}{b}/w", "must be a whole level"),
+    ("farm/{n:03d}/w", "has a format spec"), ("farm/{a.b}/w", "names one meta() key"),
+    ("farm/{a!r}/w", "is not a field path"), ("farm/{a/w", "never closed"),
+])
+def test_capture_levels_refuse_what_a_capture_cannot_honour(pattern: str, refusal: str) -> None:
+    from engine.common.placeholders import TemplateError, capture_levels
+    with pytest.raises(TemplateError, match=re.escape(refusal)):
+        capture_levels(pattern)
+
+
+def test_one_tokenizer_strict_for_templates_lenient_for_for_each_text() -> None:
+    """``for_each`` variables may sit in any text (JSON included): the same tokenizer skips what
+    is no placeholder there, where a template refuses it."""
+    from engine.common.placeholders import TemplateError, parse_template, scan_placeholders
+    text = '{"a": 1} {x} {{y}} {z:03d} }'
+    assert [(found.name, found.spec) for found in scan_placeholders(text)] == [("x", ""), ("z", "03d")]
+    with pytest.raises(TemplateError):
+        parse_template(text)
