@@ -208,14 +208,16 @@ def template_fields(template: str, keep: Collection[str] = ()) -> list[str]:
         return []
 
 
-def capture_levels(pattern: str, separator: str = "/", keep: Collection[str] = ()) -> list[str | Placeholder]:
+def capture_levels(pattern: str, separator: str = "/", keep: Collection[str] = (), level: str = "level",
+                   example: str = "farm/{name}/weather") -> list[str | Placeholder]:
     """A source topic's levels, each literal text or a capture (``farm/{station}/weather``:
     ``["farm", {station}, "weather"]``), for the protocols whose sources follow many topics.
 
     Raises :class:`TemplateError` for a brace a capture cannot honour: a placeholder that is
     not a whole level (``robot{n}``: a level is the unit a wildcard matches), one with a format
     spec (no single inverse: see the module), or a dotted path (a capture names one
-    ``meta()`` key, not a field of a message).
+    ``meta()`` key, not a field of a message). ``level`` and ``example`` word the refusal in the
+    protocol's terms (a ROS 2 topic's "name segment", ``/{name}/fix``).
     """
     parsed = parse_template(pattern, keep)
     levels: list[list[str | Placeholder]] = [[]]
@@ -234,11 +236,11 @@ def capture_levels(pattern: str, separator: str = "/", keep: Collection[str] = (
         field = fields[0]
         written = pattern[field.start:field.end]
         if len(fields) > 1 or any(part for part in parts if isinstance(part, str)):
-            raise TemplateError(f"topic {pattern!r}: {written} must be a whole level, as in "
-                                f"farm{separator}{{{field.name}}}{separator}weather (a capture matches exactly one level)")
+            raise TemplateError(f"topic {pattern!r}: {written} must be a whole {level}, as in "
+                                f"{example.replace('{name}', written)} (a capture matches exactly one {level})")
         if field.spec:
             raise TemplateError(f"topic {pattern!r}: {written} has a format spec, which a source cannot match: a capture "
-                                f"takes one whole level as it is (write {{{field.name}}}, and format it where it is written)")
+                                f"takes one whole {level} as it is (write {{{field.name}}}, and format it where it is written)")
         if len(field.path) > 1:
             raise TemplateError(f"topic {pattern!r}: {written}: a capture names one meta() key, not a field path "
                                 "(one name, as in {station})")

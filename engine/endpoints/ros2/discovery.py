@@ -74,7 +74,7 @@ def pattern_problem(topic: str) -> str | None:
     with a format spec or a dotted path (placeholders.capture_levels), or one whose name the
     message's metadata already uses."""
     try:
-        levels = capture_levels(topic, keep=RCL_SUBSTITUTIONS)
+        levels = capture_levels(topic, keep=RCL_SUBSTITUTIONS, level="name segment", example="/{name}/fix")
     except TemplateError as exc:
         return str(exc)
     for level in levels:
