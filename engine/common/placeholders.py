@@ -126,7 +126,7 @@ def _tokens(template: str, strict: bool) -> Iterator[str | Placeholder]:
             close = template.find("}", index)
             if close < 0:
                 if strict:
-                    raise TemplateError(f"template {template!r}: '{{' at {index} is never closed")
+                    raise TemplateError(f"template {template!r}: '{{' at {index} is never closed (write '{{{{' for a brace)")
                 yield template[index:]
                 return
             try:
