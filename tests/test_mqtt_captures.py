@@ -25,6 +25,7 @@ from engine.language.routes import RoutesInvalid, load_routes
 from engine.running.runtime import Engine
 from tests.amqp_helpers import Collector
 from tests.conftest import REPO
+from tests.test_cli import cli
 from tests.test_mqtt import publish, routes_dir
 
 STATIONS = ("north", "south", "east")
@@ -133,3 +134,26 @@ def test_check_takes_captures_beside_wildcards_and_meta_reads_them(tmp_path: Pat
     problems = [str(p).removeprefix(f"{tmp_path}/") for p in invalid.value.problems]
     assert len(problems) == 1 and "route 'typo'" in problems[0] and "meta('statoin')" in problems[0] \
         and "station" in problems[0], problems
+
+
+def test_route_test_gives_the_capture_as_meta_and_to_the_sink_template(tmp_path: Path) -> None:
+    """``rabbitros-engine test`` takes a capture as ``meta: {station: ...}``, and the mapping and
+    the sink's routing key read it as the run does."""
+    (tmp_path / "r.yaml").write_text("""
+routes:
+  - name: weather-in
+    source: {mqtt: {topic: "farm/{station}/weather"}}
+    mapping: "{temp_c: temp_c, station: meta('station')}"
+    schema: raw_json
+    sink: {amqp: {exchange: fleet, routing_key: "weather.{station}"}}
+""")
+    (tmp_path / "r.test.yaml").write_text("""
+tests:
+  - route: weather-in
+    input: {temp_c: 21}
+    meta: {station: north, topic: farm/north/weather}
+    expect: {temp_c: 21, station: north}
+    expect_routing_key: weather.north
+""")
+    result = cli("test", "--routes", str(tmp_path), "--schemas", str(REPO / "schemas"))
+    assert result.returncode == 0, result.stdout + result.stderr
