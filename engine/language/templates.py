@@ -4,8 +4,11 @@ A route with ``for_each:`` (a list of objects, or the name of a YAML file holdin
 the route file) becomes one ordinary route per item: every ``{var}`` naming a key of the item,
 in the route's name and in any string value below it, takes the item's value. A value that is
 exactly ``{var}`` takes the value as it is (``system_id: "{sysid}"`` is the integer 3); inside
-a longer text the value is written in (``/{agent}/fix``). A ``{name}`` that is no variable of
-the item stays as it is, for the sink to fill from the canonical message at send time.
+a longer text the value is written in (``/{agent}/fix``), through a format spec if it has one
+(``/robot_{id:03d}`` with id 7 is ``/robot_007``, as a sink would render it: the braces are read
+by the engine's one template grammar, engine/common/placeholders.py). A ``{name}`` that is no
+variable of the item stays as it is, for the sink to fill from the canonical message at send
+time.
 Mappings (``mapping``, ``sink.mapping``) are JMESPath, where braces are syntax: they read the
 item with ``meta('var')`` instead, a constant folded at compile time (engine/language/mapping.py).
 
@@ -22,13 +25,13 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
+from engine.common.placeholders import MappingError, scan_placeholders
 from engine.common.suggest import did_you_mean
 from engine.language.agents import AGENTS
 from engine.language.route_yaml import Path_, Problem
 
 FOR_EACH = "for_each"
 _VARIABLE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
-_PLACEHOLDER = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*)\}")
 _JMESPATH_KEYS = frozenset({"mapping"})
 """Keys whose values are JMESPath, never substituted (they read variables with meta())."""
 
@@ -90,7 +93,11 @@ def expand_routes(
         items = _complete_items(file, line, where, template, items, problems, source_file)
         for item in items:
             placeholders: dict[Path_, tuple[str, ...]] = {}
-            copy_ = _substitute(template, item, (), placeholders, substituted_at := {})
+            try:
+                copy_ = _substitute(template, item, (), placeholders, substituted_at := {})
+            except MappingError as exc:  # a format spec the item's value does not take ({id:03d} with id "seven")
+                problems.append(Problem(file, line, f"{_dotted(where)} item {item!r}: {exc}"))
+                continue
             moved[index].append(len(expanded))
             origins[len(expanded)] = Expansion(index, dict(item), placeholders, source_file)
             typed_texts.update({("routes", len(expanded)) + path: text for path, text in substituted_at.items()})
@@ -157,14 +164,20 @@ def _placeholders(value: Any) -> set[str]:
         return {name for key, child in value.items() if key not in _JMESPATH_KEYS for name in _placeholders(child)}
     if isinstance(value, list):
         return {name for child in value for name in _placeholders(child)}
-    return set(_PLACEHOLDER.findall(value)) if isinstance(value, str) else set()
+    return set(_variables(value)) if isinstance(value, str) else set()
+
+
+def _variables(text: str) -> list[str]:
+    """The one-word placeholders of a text, read by the engine's one grammar
+    (engine/common/placeholders.py): a variable is a name, never a dotted path."""
+    return [found.name for found in scan_placeholders(text) if len(found.path) == 1]
 
 
 def _name_problems(file: str, line: int, name: str, item: Mapping[str, Any]) -> list[Problem]:
     """A route's name is fixed at load, so each ``{...}`` in it must be a variable."""
     return [Problem(file, line, f"route name {name!r}: {{{placeholder}}} is not a for_each variable (variables: "
                                 f"{', '.join(item)}){did_you_mean(placeholder, item)}")
-            for placeholder in dict.fromkeys(_PLACEHOLDER.findall(name)) if placeholder not in item]
+            for placeholder in dict.fromkeys(found.name for found in scan_placeholders(name)) if placeholder not in item]
 
 
 def _substitute(value: Any, item: Mapping[str, Any], path: Path_,
@@ -176,17 +189,23 @@ def _substitute(value: Any, item: Mapping[str, Any], path: Path_,
         return [_substitute(element, item, path + (number,), placeholders, substituted) for number, element in enumerate(value)]
     if not isinstance(value, str) or "{" not in value:
         return value
-    used = tuple(name for name in _PLACEHOLDER.findall(value) if name in item)
+    used = [found for found in scan_placeholders(value) if len(found.path) == 1 and found.name in item]
     if not used:
         return value
-    placeholders[path] = used
-    whole = _PLACEHOLDER.fullmatch(value)
-    if whole is not None:
-        found = item[whole.group(1)]
+    placeholders[path] = tuple(found.name for found in used)
+    if len(used) == 1 and (used[0].start, used[0].end) == (0, len(value)) and not used[0].spec:
+        found = item[used[0].name]
         if isinstance(found, (int, float, bool)):
             substituted[path] = _text(found)  # the text, should the key want a string (engine/language/route_yaml.py fits it)
         return copy.deepcopy(found)
-    return _PLACEHOLDER.sub(lambda match: _text(item[match.group(1)]) if match.group(1) in item else match.group(0), value)
+    out, last = [], 0
+    for found in used:  # a spec is honoured as the sink would (``{id:03d}``: 7 -> 007); MappingError if it cannot be
+        try:
+            out += [value[last:found.start], found.render(value, item[found.name]) if found.spec else _text(item[found.name])]
+        except MappingError as exc:
+            raise MappingError(f"{_dotted(path)}: {exc}") from None
+        last = found.end
+    return "".join(out) + value[last:]
 
 
 def _text(value: Any) -> str:

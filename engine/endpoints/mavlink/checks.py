@@ -10,6 +10,7 @@ import jmespath
 from jmespath import exceptions as jmespath_errors
 
 from engine.common.options import given
+from engine.common.placeholders import TemplateError, whole_field
 from engine.common.suggest import did_you_mean
 from engine.endpoints.base import EndpointError, typed_or_problem
 from engine.endpoints.mavlink.codec import MESSAGES, NEVER_GUESSED
@@ -86,8 +87,22 @@ def source_problems(options: MavlinkSourceOptions) -> list[tuple[str | None, str
     return list(_common_problems(options, _MESSAGE_SOURCE, "message source")) + _agent_problems(options, ("system_id",))
 
 
+def _target_field_problems(options: MavlinkSinkOptions) -> list[tuple[str | None, str]]:
+    """A ``"{field}"`` target the engine's one template grammar does not read as one whole field
+    (a format spec, text around it, a bad path): what messages.target_fields would refuse."""
+    problems: list[tuple[str | None, str]] = []
+    for key in ("target_system", "target_component"):
+        value = getattr(options, key)
+        if isinstance(value, str) and value.startswith("{"):
+            try:
+                whole_field(value, key)
+            except TemplateError as exc:
+                problems.append((key, f"{key}: {exc}"))
+    return problems
+
+
 def sink_problems(options: MavlinkSinkOptions, mapping: str | None) -> list[tuple[str | None, str]]:
-    unresolved = _agent_problems(options, ("target_system", "target_component"))
+    unresolved = _target_field_problems(options) or _agent_problems(options, ("target_system", "target_component"))
     if unresolved:
         return unresolved
     templated = [key for key in ("target_system", "target_component") if isinstance(getattr(options, key), str)]

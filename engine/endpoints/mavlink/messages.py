@@ -16,6 +16,7 @@ from collections.abc import Callable, Collection, Hashable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from engine.common.field_keys import slot_key
+from engine.common.placeholders import TemplateError, whole_field
 from engine.common.suggest import did_you_mean
 from engine.endpoints.base import Deliver, Inbound, Inbox, MessageRejected, Outbound, Sink, Source
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, message_fields, mavlink2, refuse_nulls
@@ -212,9 +213,17 @@ def sink_for(connection: SharedLink, route: str, options: MavlinkSinkOptions) ->
 
 def target_fields(options: MavlinkSinkOptions) -> list[tuple[str, str]]:
     """``(target key, canonical field path)`` of each target a sink reads from the message
-    (``target_system: "{vehicle}"``)."""
-    return [(key, value[1:-1]) for key in ("target_system", "target_component")
-            if isinstance(value := getattr(options, key), str) and value.startswith("{")]
+    (``target_system: "{vehicle}"``), read by the engine's one template grammar; a value it
+    refuses is left out here and reported by ``check`` (checks.py)."""
+    fields = []
+    for key in ("target_system", "target_component"):
+        value = getattr(options, key)
+        if isinstance(value, str) and value.startswith("{"):
+            try:
+                fields.append((key, ".".join(whole_field(value, key))))
+            except TemplateError:
+                continue
+    return fields
 
 
 def message_targets(options: MavlinkSinkOptions) -> Targets | None:

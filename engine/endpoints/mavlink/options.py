@@ -15,9 +15,11 @@ from engine.endpoints.mavlink.codec import mavlink2
 from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelSettings
 
 _BYTE = {"minimum": 0, "maximum": 255}
-TARGET_FIELD = r"^(\{[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*\}|[A-Za-z_][A-Za-z0-9_.-]*)$"
+TARGET_FIELD = r"^(\{.*\}|[A-Za-z_][A-Za-z0-9_.-]*)$"
 """A sink target read from the canonical message (``"{vehicle}"``, ``"{target.system}"``), or
-an agent's name (``uav2``: engine/language/agents.py, resolved by the route loader)."""
+an agent's name (``uav2``: engine/language/agents.py, resolved by the route loader). What is
+inside the braces is checked by the engine's one template grammar (checks.py, through
+engine/common/placeholders.py ``whole_field``), which says what is wrong in words."""
 AGENT_NAME = r"^[A-Za-z_][A-Za-z0-9_.-]*$"
 """An agent's name where a number is wanted (``system_id: uav2``)."""
 _SERIAL = TunnelSettings.from_settings(None, serial=True)

@@ -62,7 +62,9 @@ class MqttSourceOptions(EndpointOptions):
     __schema_description__ = ("subscribe to a topic filter; a QoS 1 message is acknowledged (PUBACK) only once settled "
                               "(route-language.md, MQTT source and sink)")
 
-    topic: str = option(description="topic filter, wildcards + (one level) and # (the rest); meta.topic is the message's topic")
+    topic: str = option(description="topic filter, wildcards + (one level) and # (the rest); a {name} level is one level "
+                                    "captured as meta('name') and for the sink's templates (farm/{station}/weather); "
+                                    "meta.topic is the message's topic")
     qos: Literal[0, 1, 2] = option(1, description="1: at-least-once, acknowledged (PUBACK) once the route settled the message; "
                                    "0: at most once; 2 is refused (a QoS 2 message is acknowledged on receipt)")
     shared: str | None = option(None, pattern=r"^[^/+#]+$", description="shared subscription group ($share/GROUP/topic): "

@@ -25,7 +25,7 @@ from engine.common.backoff import Backoff
 from engine.endpoints.base import Deliver, Inbound, Inbox, Source
 from engine.endpoints.mqtt.link import MqttLink, Received
 from engine.endpoints.mqtt.options import MqttSourceOptions
-from engine.endpoints.mqtt.topics import matcher, subscription, subscription_id
+from engine.endpoints.mqtt.topics import capture_reader, matcher, subscription, subscription_id
 from engine.endpoints.pump import pump
 
 
@@ -40,6 +40,8 @@ class MqttSource(Source):
         self.filter = subscription(options.topic, options.shared)
         self.subscription_id = subscription_id(self.filter)
         self.matches = matcher(self.filter)
+        self._captures = capture_reader(options.topic)
+        """``farm/{station}/weather``: each message's level there, as ``meta('station')`` (topics.py)."""
         self._v5 = connection.v5
         self._inbox: Inbox[Received] = Inbox(1 << 30)
         self._limit = 1 << 30
@@ -112,6 +114,8 @@ class MqttSource(Source):
         message = received.message
         meta: dict[str, Any] = {"topic": received.topic, "qos": message.qos, "retain": bool(message.retain),
                                 "redelivered": bool(message.dup)}
+        if self._captures is not None:
+            meta.update(self._captures(received.topic))
         if self._v5 and message.properties is not None:
             properties = message.properties
             content_type = getattr(properties, "ContentType", None)

@@ -14,7 +14,7 @@ from engine.endpoints.base import CheckResult, Connection, Outbound, Transport, 
 from engine.endpoints.mqtt.connection import MqttConnection
 from engine.endpoints.mqtt.link import Endpoint
 from engine.endpoints.mqtt.options import MqttConnectionOptions, MqttSinkOptions, MqttSourceOptions
-from engine.endpoints.mqtt.topics import filter_problems, subscription, template_problems, topic_renderer
+from engine.endpoints.mqtt.topics import capture_names, filter_problems, subscription, template_problems, topic_renderer
 
 QOS2_SOURCE = ("qos 2 is not offered on a source: paho acknowledges a QoS 2 message (PUBREC) as it arrives, "
                "before the route settled it, so an engine stopped meanwhile would lose it; qos 1 is at-least-once "
@@ -31,6 +31,14 @@ class MqttTransport(Transport):
     sink_options = MqttSinkOptions
     connection_shorthand = "url"
     source_meta = ("topic", "qos", "retain")
+
+    def source_variables(self, options: MqttSourceOptions) -> tuple[str, ...]:
+        """The topic's ``{name}`` levels (``farm/{station}/weather``), captured from each
+        message's topic (topics.py): ``meta('station')`` and the sink's templates read them."""
+        return capture_names(options.topic)
+
+    def meta_names(self, options: MqttSourceOptions) -> tuple[str, ...]:
+        return (*self.source_meta, *self.source_variables(options))
 
     def connection_problems(self, options: MqttConnectionOptions) -> CheckResult:
         written = given(options)

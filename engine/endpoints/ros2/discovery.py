@@ -42,6 +42,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from rclpy.expand_topic_name import expand_topic_name
 
+from engine.common.placeholders import Placeholder, TemplateError, capture_levels, scan_placeholders
+
 log = logging.getLogger("engine.ros2")
 
 DISCOVERY_INTERVAL = 0.25
@@ -50,8 +52,6 @@ DEFAULT_FORGET_AFTER = 30.0
 """Seconds a followed topic may go without a publisher before it is let go: a robot that
 restarts (tens of seconds) keeps its subscription, one that left the farm does not hold it."""
 
-_PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
-_VARIABLE = re.compile(r"^\{([A-Za-z_][A-Za-z0-9_]*)\}$")
 RCL_SUBSTITUTIONS = frozenset({"node", "ns", "namespace"})
 """``{node}``, ``{ns}``, ``{namespace}``: rcl fills them from the node; never variables."""
 RESERVED = frozenset({"topic", "type", "route", "generation", "test"})
@@ -62,39 +62,35 @@ _MARKER = "rabbitrosvar{}x"
 
 
 def topic_variables(topic: str | None) -> tuple[str, ...]:
-    """The discovery variables of a source topic, in order, each once (rcl's own substitutions aside)."""
+    """The discovery variables of a source topic, in order, each once (rcl's own substitutions
+    aside), read by the engine's one placeholder grammar (engine/common/placeholders.py)."""
     if not topic:
         return ()
-    return tuple(dict.fromkeys(name for name in _PLACEHOLDER.findall(topic) if name not in RCL_SUBSTITUTIONS))
+    return tuple(dict.fromkeys(found.name for found in scan_placeholders(topic) if found.name not in RCL_SUBSTITUTIONS))
 
 
 def pattern_problem(topic: str) -> str | None:
-    """Why ``topic`` is no valid pattern: a variable inside a segment (``/robot{n}/fix``), a bad
-    variable name, or one whose name the message's metadata already uses."""
-    for segment in topic.split("/"):
-        names = [name for name in _PLACEHOLDER.findall(segment) if name not in RCL_SUBSTITUTIONS]
-        if not names:
-            continue
-        whole = _VARIABLE.match(segment)
-        if whole is None:
-            return (f"topic {topic!r}: {{{names[0]}}} must be a whole name segment, as in /{{{names[0]}}}/fix "
-                    "(a variable matches exactly one segment of each topic)")
-        if whole.group(1) in RESERVED:
-            return (f"topic {topic!r}: variable {{{whole.group(1)}}} would hide the message's own meta({whole.group(1)!r}); "
+    """Why ``topic`` is no valid pattern: a variable inside a segment (``/robot{n}/fix``), one
+    with a format spec or a dotted path (placeholders.capture_levels), or one whose name the
+    message's metadata already uses."""
+    try:
+        levels = capture_levels(topic, keep=RCL_SUBSTITUTIONS, level="name segment", example="/{name}/fix")
+    except TemplateError as exc:
+        return str(exc)
+    for level in levels:
+        if isinstance(level, Placeholder) and level.name in RESERVED:
+            return (f"topic {topic!r}: variable {{{level.name}}} would hide the message's own meta({level.name!r}); "
                     f"name it otherwise (reserved: {', '.join(sorted(RESERVED))})")
     return None
 
 
 def _replace_variables(topic: str) -> tuple[str, dict[str, str]]:
+    """The topic with each variable's level replaced by a marker rcl accepts as a name."""
     markers: dict[str, str] = {}
-
-    def marker(match: re.Match[str]) -> str:
-        name = match.group(1)
-        if name in RCL_SUBSTITUTIONS:
-            return match.group(0)
-        return markers.setdefault(name, _MARKER.format(len(markers)))
-
-    return _PLACEHOLDER.sub(marker, topic), markers
+    levels = capture_levels(topic, keep=RCL_SUBSTITUTIONS)
+    sample = "/".join(markers.setdefault(level.name, _MARKER.format(len(markers))) if isinstance(level, Placeholder)
+                      else level for level in levels)
+    return sample, markers
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,9 @@ from typing import Any, Callable, Iterator
 
 import zenoh
 
-from engine.common.placeholders import MappingError, TemplateError, compile_template, parse_template, template_fields
+from engine.common.placeholders import (
+    MappingError, Placeholder, TemplateError, capture_levels, compile_template, parse_template, template_fields,
+)
 from engine.endpoints.base import MessageRejected
 from engine.endpoints.zenoh.errors import describe, rejected
 
@@ -46,42 +48,37 @@ class Pattern:
 
 
 def parse_pattern(key: str) -> Pattern:
-    """The source pattern of ``key``; ValueError says why it is none (check reports it)."""
+    """The source pattern of ``key``; ValueError says why it is none (check reports it). The
+    captures are read by placeholders.capture_levels, as MQTT's and ROS 2's are."""
     try:
-        literals, fields = parse_template(key)
+        levels = capture_levels(key, level="chunk")
     except TemplateError as exc:
-        raise ValueError(f"key {exc}") from None
+        raise ValueError(f"key {str(exc).removeprefix('topic ')}") from None
     names: list[str] = []
-    for index, (path, spec) in enumerate(fields):
-        name = ".".join(path)
-        before, after = literals[index], literals[index + 1]
-        if len(path) != 1:
-            raise ValueError(f"key {key!r}: {{{name}}} captures one chunk under one name (no dots)")
-        if spec:
-            raise ValueError(f"key {key!r}: {{{name}:{spec}}}: a captured chunk takes no format spec (it is read from the key)")
-        if not (before == "" and index == 0 or before.endswith("/")) or not (after == "" and index == len(fields) - 1
-                                                                               or after.startswith("/")):
-            raise ValueError(f"key {key!r}: {{{name}}} must be a whole chunk, as in farm/{{{name}}}/weather")
-        if name in RESERVED:
-            raise ValueError(f"key {key!r}: {{{name}}} would overwrite the message's meta({name!r}); name it otherwise")
-        if name in names:
-            raise ValueError(f"key {key!r}: {{{name}}} is captured twice")
-        names.append(name)
-    written = "*".join(literals)
+    for level in levels:
+        if not isinstance(level, Placeholder):
+            continue
+        if level.name in RESERVED:
+            raise ValueError(f"key {key!r}: {{{level.name}}} would overwrite the message's meta({level.name!r}); name it otherwise")
+        if level.name in names:
+            raise ValueError(f"key {key!r}: {{{level.name}}} is captured twice")
+        names.append(level.name)
+    chunks = ["*" if isinstance(level, Placeholder) else level for level in levels]
+    written = "/".join(chunks)
     try:
         subscription = str(zenoh.KeyExpr.autocanonize(written))  # **/* is written */** in canon form
     except zenoh.ZError as exc:
         raise ValueError(f"key {key!r} is no Zenoh key expression: {describe(exc)}") from None
-    chunks = written.split("/")
     captures = []
-    for number, name in enumerate(names):
-        place = sum(literal.count("/") for literal in literals[:number + 1])  # captures hold no /
+    for place, level in enumerate(levels):
+        if not isinstance(level, Placeholder):
+            continue
         if "**" not in chunks[:place]:
-            captures.append((name, place))
+            captures.append((level.name, place))
         elif "**" not in chunks[place + 1:]:
-            captures.append((name, place - len(chunks)))
+            captures.append((level.name, place - len(chunks)))
         else:
-            raise ValueError(f"key {key!r}: {{{name}}} sits between two **, so its place in a key is unknown")
+            raise ValueError(f"key {key!r}: {{{level.name}}} sits between two **, so its place in a key is unknown")
     return Pattern(subscription, tuple(captures))
 
 
@@ -103,7 +100,7 @@ def key_variables(key: str) -> tuple[str, ...]:
 def template_problems(template: str) -> Iterator[str]:
     """Why a sink's key template can never give a key one may put on."""
     try:
-        literals, fields = parse_template(template)
+        literals = parse_template(template).literals
     except TemplateError as exc:
         yield f"key {exc}"
         return
@@ -120,7 +117,7 @@ def key_renderer(template: str, where: str) -> Callable[[Any], str]:
     render = compile_template(template)
     if not template_fields(template):
         return render
-    literals = "".join(parse_template(template)[0])
+    literals = "".join(parse_template(template).literals)
     shape = tuple((mark, literals.count(mark)) for mark in _SHAPE)
 
     def key(data: Any) -> str:

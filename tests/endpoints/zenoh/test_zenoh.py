@@ -339,7 +339,7 @@ routes:
     result = cli("check", "--routes", str(bad), "--schemas", str(REPO / "schemas"))
     assert result.returncode != 0
     out = result.stdout + result.stderr
-    for expected in ("{id:03d}: a captured chunk takes no format spec", "{id} must be a whole chunk",
+    for expected in ("{id:03d} has a format spec, which a source cannot match", "{id} must be a whole chunk",
                      "{b} sits between two **", "{key} would overwrite the message's meta('key')",
                      "'out//d' is no Zenoh key expression", "'bogus:1' is not a Zenoh endpoint"):
         assert expected in out, (expected, out)
