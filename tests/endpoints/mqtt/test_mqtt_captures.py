@@ -23,10 +23,10 @@ from engine.common.schemas import SchemaRegistry
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector
-from tests.conftest import REPO
-from tests.test_cli import cli
-from tests.test_mqtt import publish, routes_dir
+from tests.support.amqp_helpers import Collector
+from tests.support.repo import REPO
+from tests.operator.test_cli import cli
+from tests.endpoints.mqtt.test_mqtt import publish, routes_dir
 
 STATIONS = ("north", "south", "east")
 PER_STATION = 40
