@@ -28,7 +28,7 @@ from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.running.runtime import Engine
 from tests.support.repo import REPO
-from tests.support.faults_harness import wait_for
+from tests.support.waiting import wait_for
 from tests.operator.test_cli import cli
 from tests.endpoints.mqtt.test_mqtt import Subscriber, publish, routes_dir
 from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String
