@@ -223,7 +223,7 @@ routes:
         load_routes(tmp_path, SchemaRegistry(schemas_dir), env={})
     problems = [str(p).removeprefix(f"{tmp_path}/") for p in invalid.value.problems]
     assert ("a.yaml:6: route 'from-ros': reply: this ros2 source cannot answer its sender (protocols whose sources can: "
-            "amqp, ros2; see Calls in route-language.md)") in problems
+            "amqp, ros2, zenoh; see Calls in route-language.md)") in problems
     assert any(p.startswith("a.yaml:11: route 'from-amqp': reply: bad JMESPath '{ok: '") for p in problems), problems
     assert "a.yaml:11: route 'from-amqp': reply: unknown schema 'comand'; did you mean 'command'?" in problems, problems
 
