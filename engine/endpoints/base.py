@@ -347,6 +347,13 @@ class Source(ABC):
         """What the source wants operators to see in the status (counters, problems)."""
         return {}
 
+    def degraded_reason(self) -> str | None:
+        """Why the source receives nothing though its connection is up (the broker cancelled
+        its subscription: a queue deleted, a revoked subscription) while it takes it up again;
+        None while it receives. The route's status (``source_degraded``) and ``/healthz`` show
+        it: a route that silently stopped receiving looked healthy."""
+        return None
+
     async def reply(self, meta: Mapping[str, Any], kind: str, body: bytes) -> None:
         """Deliver one reply (kind of :data:`REPLY_KINDS`, JSON ``body``) to the sender of the
         request whose ``Inbound.meta`` was ``meta`` (it holds ``reply_to``); raise

@@ -6,7 +6,9 @@ Served by aiohttp on the engine's own event loop:
   reads the routes' counters (engine/running/observe.py: the same fields the status and the log's
   counter line show) and the engine at scrape time, so the hot path only increments plain
   integers (no prometheus_client lock per message);
-* ``GET /healthz``: 200 when every connection is up, 503 naming those that are down;
+* ``GET /healthz``: 200 when every connection is up and every route's source receives; 503
+  naming the connections that are down, or the routes whose source is degraded (the broker
+  cancelled its subscription) and why, until it is taken up again;
 * ``GET /status``: the status document (generation, config hash, reloads, each route's
   counters, rates, state and last error, the connections);
 * ``GET /tap/{route}``: JSON lines, one per message through the route, from now on.
@@ -19,7 +21,8 @@ refuses to start without ``--admin-token-file``, and every path but ``/healthz``
 failed attempt is counted (``rabbitros_admin_auth_failures_total``) and logged with the
 peer's address and the path, never the token. ``--admin-tls-cert/--admin-tls-key`` serve
 HTTPS. ``/healthz`` stays open: a load balancer's or systemd's probe carries no token, and it
-shows only connection names and their state (no message content, no URL, no counter).
+shows only connection names and their state, and the routes whose source is degraded with the
+source's reason (a queue name; no message content, no URL, no counter).
 """
 
 from __future__ import annotations
@@ -129,6 +132,13 @@ def connection_health(engine: Engine) -> dict[str, dict[str, Any]]:
     for health in connections.values():
         health["up"] = bool(health.get("healthy", True))
     return connections
+
+
+def degraded_sources(engine: Engine) -> dict[str, str]:
+    """Route -> why its source receives nothing though its connection is up (the broker
+    cancelled its subscription), while it takes it up again."""
+    reasons = ((name, runner.source.degraded_reason()) for name, runner in sorted(engine.runners.items()))
+    return {name: reason for name, reason in reasons if reason}
 
 
 def status_document(engine: Engine) -> dict[str, Any]:
@@ -256,9 +266,10 @@ class AdminServer:
     async def healthz(self, request: web.Request) -> web.Response:
         connections = connection_health(self.engine)
         down = sorted(name for name, health in connections.items() if not health["up"])
-        document = {"status": "down" if down else "ok", "down": down, "connections": connections,
-                    "generation": self.engine.generation}
-        return web.json_response(document, status=503 if down else 200)
+        degraded = degraded_sources(self.engine)
+        document = {"status": "down" if down else "degraded" if degraded else "ok", "down": down,
+                    "degraded": degraded, "connections": connections, "generation": self.engine.generation}
+        return web.json_response(document, status=503 if down or degraded else 200)
 
     async def status(self, request: web.Request) -> web.Response:
         return web.json_response(status_document(self.engine), dumps=lambda d: json.dumps(d, default=str))

@@ -117,6 +117,9 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
         holding = route.get("sink_not_ready")
         if holding and state == "running":  # the sink cannot take messages yet: say why
             state, error = "holding", error or holding
+        degraded = route.get("source_degraded")
+        if degraded and state == "running":  # the source receives nothing (the broker cancelled it): say why
+            state, error = "degraded", degraded
         row = [name, Text(state, "green" if state == "running" else "yellow"),
                _rate(route.get("received_per_s")), _rate(route.get("delivered_per_s")),
                _count(messages.get("received")), _count(messages.get("delivered")),

@@ -595,6 +595,7 @@ class RouteRunner:
             "state": self.state,
             "waiting_for": self.missing_connections() if self.state == "waiting" else [],
             "sink_not_ready": self.pipeline.sink.not_ready_reason(),
+            "source_degraded": self.source.degraded_reason(),
             "buffer": stats_dict(self.buffer) if self.buffer is not None else None,
             "replies": self.replies.counters(),
         }

@@ -23,16 +23,15 @@ import time
 from collections.abc import Sequence
 from typing import Any, Mapping
 
-import aio_pika
 import aio_pika.abc
 import aiormq.abc
 from aiormq import spec
 
-import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.endpoints.amqp.acks import HeldAcks
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.link import AmqpLink
 from engine.endpoints.amqp.options import AmqpSourceOptions
+from engine.endpoints.amqp.resume import Resumption, declare
 from engine.endpoints.base import Deliver, Inbound, Inbox, Source
 from engine.endpoints.pump import Pump, settle_batch
 
@@ -87,6 +86,9 @@ class AmqpSource(Source):
         self._alone_task: asyncio.Task[Any] | None = None
         self._acks = HeldAcks(options.prefetch, lambda: self._last_received_ns, lambda: self._received.wake())
         """The acknowledgement held across batches (acks.py)."""
+        self._resumption = Resumption(route, self.queue_name, options, connection.queue_type,
+                                      connection.channel_factory, self._consume)
+        """Takes the subscription up again when the broker cancels it (resume.py)."""
 
     @property
     def queue_name(self) -> str:
@@ -97,18 +99,7 @@ class AmqpSource(Source):
         try:
             self._channel = await self._connection.channel_factory().channel()
             await self._channel.set_qos(prefetch_count=options.prefetch)
-            self._queue = await self._channel.declare_queue(
-                self.queue_name,
-                durable=options.durable,
-                arguments=amqp_cluster.queue_arguments(options, self._connection.queue_type, options.ordered),
-            )
-            if options.exchange:
-                exchange = await self._channel.declare_exchange(
-                    options.exchange,
-                    aio_pika.ExchangeType(options.exchange_type),
-                    durable=options.durable,
-                )
-                await self._queue.bind(exchange, options.binding_key)
+            self._queue = await declare(self._channel, self.queue_name, options, self._connection.queue_type)
             self._deliver = deliver
             self._pump = Pump(self, deliver, f"route {self._route!r}, amqp queue {self.queue_name!r}", overlapping=True)
             self._loop = asyncio.create_task(self._run(self._pump), name=f"amqp-source:{self._route}")
@@ -128,14 +119,17 @@ class AmqpSource(Source):
         _widen_frame_buffer(channel, min(FRAME_BUFFER, 3 * self._options.prefetch))
         result = await channel.basic_consume(self.queue_name, self._on_message, no_ack=False)
         self._consumer = (channel, result.consumer_tag)
+        self._resumption.watch(channel, result.consumer_tag)
 
     async def _reconsume(self, _channel: Any) -> None:
-        if self._stopping:
-            return
-        try:
-            await self._consume()
-        except LIBRARY_ERRORS as exc:
-            log.error("route %r: cannot consume %r again after reconnecting: %s", self._route, self.queue_name, exc)
+        if not self._stopping:
+            await self._resumption.reopened()
+
+    def degraded_reason(self) -> str | None:
+        return self._resumption.reason
+
+    def status(self) -> dict[str, Any]:
+        return self._resumption.status()
 
     async def _on_message(self, message: aiormq.abc.DeliveredMessage) -> None:
         """A message arriving alone (at a robot's pace: more than :data:`ALONE_GAP_NS` after
@@ -255,6 +249,7 @@ class AmqpSource(Source):
         """Cancel the consumer, settle what was received, then close the channel so anything
         the broker sent but we did not take is requeued."""
         self._stopping = True
+        await self._resumption.close()
         if self._consumer is not None:
             channel, tag = self._consumer
             try:
