@@ -80,6 +80,18 @@ class MessageRejected(EndpointError):
         self.stage = stage
 
 
+class Unroutable(EndpointError):
+    """The destination took the message and routed it to nobody (an AMQP exchange with no
+    queue bound for its routing key, published ``mandatory``): not delivered. Transient (the
+    sink holds the route's messages until something is bound); the route counts it
+    ``unroutable``. A sink that dead-letters such messages instead raises
+    :class:`UnroutableRejected`."""
+
+
+class UnroutableRejected(MessageRejected, Unroutable):
+    """An unroutable message the sink refuses for good: dead-lettered, counted ``unroutable``."""
+
+
 @dataclass(frozen=True)
 class ExceptionTable:
     """One protocol's library exceptions -> the two edge errors, first match wins (as httpx's

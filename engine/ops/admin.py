@@ -166,6 +166,8 @@ class EngineCollector:
         latency = HistogramMetricFamily("rabbitros_route_latency_seconds", "Reception to sink acceptance", labels=["route"])
         dropped = CounterMetricFamily("rabbitros_tap_dropped", "Tap lines dropped for slow clients", labels=["route"])
         sink_errors = CounterMetricFamily("rabbitros_sink_errors", "Transient sink failures per route", labels=["route"])
+        unroutable = CounterMetricFamily("rabbitros_unroutable", "Sends routed to nobody (returned by the broker), each attempt",
+                                         labels=["route"])
         agent_dropped = CounterMetricFamily("rabbitros_agent_dropped", "Messages a fair route dropped from one agent's queue",
                                             labels=["route", "agent"])
         for name in sorted(engine.runners):
@@ -175,6 +177,7 @@ class EngineCollector:
             for stage, count in sorted(observer.dead_lettered.items()):
                 dead.add_metric([name, stage], count)
             sink_errors.add_metric([name], observer.sink_errors)
+            unroutable.add_metric([name], observer.unroutable)
             for agent, count in sorted(observer.dropped_by_agent.items()):
                 agent_dropped.add_metric([name, agent], count)
             cumulative, buckets = 0, []
@@ -183,7 +186,7 @@ class EngineCollector:
                 buckets.append(("+Inf" if bound == float("inf") else repr(bound), cumulative))
             latency.add_metric([name], buckets, observer.latency_ns_total / 1e9)
             dropped.add_metric([name], observer.tap_dropped + sum(t.dropped for t in observer.taps))
-        yield from (messages, dead, latency, dropped, sink_errors, agent_dropped)
+        yield from (messages, dead, latency, dropped, sink_errors, unroutable, agent_dropped)
         failures = CounterMetricFamily("rabbitros_admin_auth_failures", "Admin requests refused for a missing or wrong token")
         failures.add_metric([], self.auth_failures)
         yield failures

@@ -10,7 +10,8 @@ in the buffer under ``latest_only``), ``expired`` (older than the route's ``max_
 would have been sent: never delivered), unless it is still in flight (parked, held in the buffer, being retried). Beside those:
 ``retries`` (a message tried again after a transient sink failure: the tap's and
 Prometheus' ``redelivered`` outcome), ``sink_errors`` (transient sink failures, including
-the last one before a message is dead-lettered), ``dropped`` (by a source: overflow, or
+the last one before a message is dead-lettered), ``unroutable`` (sends the destination routed
+to nobody, each attempt: an AMQP sink's returned messages), ``dropped`` (by a source: overflow, or
 unsettled at stop), ``dropped_by_agent`` (the part of ``dropped`` a ``fair:`` route's
 per-agent queues dropped, by agent: engine/running/fairness.py), ``standby_skipped`` and
 ``dead_letter_errors``.
@@ -42,7 +43,7 @@ RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED = (
     "received", "delivered", "dead_lettered", "redelivered", "conflated", "expired", "dropped")
 OUTCOMES = (RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED)
 """The ``outcome`` label of ``rabbitros_messages_total`` and the keys of the status' ``messages``."""
-COUNTERS = ("received", "delivered", "failed", "conflated", "expired", "retries", "sink_errors", "dropped",
+COUNTERS = ("received", "delivered", "failed", "conflated", "expired", "retries", "sink_errors", "unroutable", "dropped",
             "standby_skipped", "dead_letter_errors")
 """The integer counters, as the status and the log's ``route counters`` line name them."""
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
@@ -83,6 +84,9 @@ class RouteObserver:
         self.expired = 0
         self.retries = 0
         self.sink_errors = 0
+        self.unroutable = 0
+        """Sends the destination routed to nobody (an AMQP exchange without a queue bound for the
+        routing key, published mandatory), each attempt: held or dead-lettered, never delivered."""
         self.dropped = 0
         self.standby_skipped = 0
         self.dead_letter_errors = 0

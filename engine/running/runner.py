@@ -36,7 +36,8 @@ from typing import TYPE_CHECKING, Any, Protocol, Sequence
 
 from engine.common.backoff import Backoff
 from engine.common.logs import ReportLimiter
-from engine.endpoints.base import Connection, Conflated, EndpointError, Inbound, Inbox, MessageRejected, NotSent, Outbound, Source
+from engine.endpoints.base import (Connection, Conflated, EndpointError, Inbound, Inbox, MessageRejected, NotSent, Outbound, Source,
+                                   Unroutable)
 from engine.running.buffer import Buffers, Held, HoldingBuffer, stats_dict
 from engine.running.dead_letters import DeadLetters, dead_letter_message
 from engine.running.delivery import HEALTH_POLL, Failure, classify, given_up, prior_attempts, retry_delay
@@ -332,6 +333,8 @@ class RouteRunner:
                 self._not_sent(error, message.inbound, message.outbound)  # type: ignore[arg-type]
                 continue
             failure = classify(error, "sink")
+            if isinstance(error, Unroutable):
+                self.observer.unroutable += 1
             if not failure.permanent:
                 self.observer.sink_errors += 1
             if failure.permanent or message.attempts >= max_attempts:
@@ -392,9 +395,12 @@ class RouteRunner:
         pipeline = self.pipeline
         pipeline.enter()
         try:
-            return await pipeline.sink.send_batch(messages)
+            results = await pipeline.sink.send_batch(messages)
         finally:
             pipeline.leave()
+        if results.count(None) != len(results):
+            self.observer.unroutable += sum(isinstance(result, Unroutable) for result in results)
+        return results
 
     def held_delivered(self, held: list[Held]) -> None:
         now_ns = time.time_ns()

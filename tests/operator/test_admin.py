@@ -85,6 +85,7 @@ def admin(amqp_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[A
     (work / "routes").mkdir()
     (work / "routes" / "admin.yaml").write_text(ROUTES)
     port = listening_port()
+    asyncio.run(_output_queue(amqp_url, delete=False))  # the sinks publish mandatory: something reads what they send
     engine = EngineProcess(work / "routes", work / "status.json", {"RABBITROS_AMQP_URL": amqp_url},
                            "--admin", str(port))
     try:
@@ -92,6 +93,20 @@ def admin(amqp_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[A
         yield Admin(engine, port, amqp_url)
     finally:
         engine.stop()
+        asyncio.run(_output_queue(amqp_url, delete=True))
+
+
+async def _output_queue(url: str, delete: bool) -> None:
+    """The queue the routes' output goes to (``out.#``), bounded; deleted after the module."""
+    connection = await aio_pika.connect(url)
+    channel = await connection.channel()
+    exchange = await channel.declare_exchange("admin-test", aio_pika.ExchangeType.TOPIC, durable=True)
+    queue = await channel.declare_queue("admin-test-out", durable=False, arguments={"x-max-length": 10000})
+    if delete:
+        await queue.delete(if_unused=False, if_empty=False)
+    else:
+        await queue.bind(exchange, "out.#")
+    await connection.close()
 
 
 async def _publish(url: str, routing_key: str, bodies: list[bytes]) -> None:

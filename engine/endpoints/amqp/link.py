@@ -145,6 +145,7 @@ class AmqpLink(Connection):
         publisher = self._publisher
         return {"state": self._state, "last_error": self._last_error,
                 "published": publisher.messages if publisher else 0, "publish_rounds": publisher.rounds if publisher else 0,
+                "returned": publisher.returned if publisher else 0,
                 "publish_channel_reopens": self.publish_channel_reopens}
 
     def _failed(self, error: BaseException | None) -> None:
@@ -313,10 +314,12 @@ class AmqpLink(Connection):
         messages: Sequence[tuple[str, bytes, spec.Basic.Properties]],
         kind: str = "topic",
         durable: bool = True,
+        mandatory: bool = False,
     ) -> list[BaseException | None]:
         """Publish ``(routing_key, body, properties)`` on the confirm channel; ``result[i]`` is
-        None once the broker took message i. Every route's messages of one loop turn go out
-        together, one write and one confirm wait (engine/endpoints/amqp/publisher.py)."""
+        None once the broker took message i (``mandatory``: and routed it to a queue, else
+        :class:`~engine.endpoints.base.Unroutable`). Every route's messages of one loop turn go
+        out together, one write and one confirm wait (engine/endpoints/amqp/publisher.py)."""
         if self._state != "up":  # a robust channel would wait for the broker; the engine buffers instead
             error = EndpointError(f"amqp connection {self.name!r} is {self._state}: {self._last_error}")
             return [error] * len(messages)
@@ -326,7 +329,7 @@ class AmqpLink(Connection):
             error = edge_error(exc, f"amqp publish to {exchange_name!r} on {self.name!r}")
             return [error] * len(messages)
         assert self._publisher is not None
-        return await self._publisher.publish(exchange_name, messages)
+        return await self._publisher.publish(exchange_name, messages, mandatory)
 
     async def prepare_dead_letters(self, max_length: int | None) -> None:
         """The durable exchange and queue ``rabbitros.dead-letter`` (bounded by ``x-max-length``),

@@ -68,6 +68,13 @@ class AmqpSinkOptions(EndpointOptions):
     routing_key: str = option("", description="may interpolate canonical fields: canonical.weeds.{agent_id}; a message lacking one is dead-lettered")
     content_type: str = option("application/json", description="content_type property of every message")
     persistent: bool = option(True, description="delivery mode 2: the broker writes the message to disk in durable queues")
+    mandatory: bool = option(True, description="publish mandatory: a message the exchange routes to no queue is returned by the broker, "
+                                               "never counted delivered nor acknowledged at the source, and counted unroutable (see unroutable); "
+                                               "false: fire and forget, the broker drops what no queue is bound for (needs publisher_confirms to refuse)")
+    unroutable: Literal["hold", "dead_letter"] = option(
+        "hold", description="what a returned (unroutable) message does: hold (the route's messages wait, as for a ROS 2 sink's "
+                            "require_subscriber, and are published again with the engine's backoff until a queue is bound) or "
+                            "dead_letter (at once, naming the exchange and routing key)")
     timeout: float | None = option(None, exclusive_minimum=0,
                                    description="for a message that asks for a reply (a call to a ROS 2 service the engine offers): "
                                                "publish it as a request (direct reply-to) and wait this many seconds for the "

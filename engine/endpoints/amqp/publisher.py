@@ -52,7 +52,7 @@ from aiormq import spec
 from pamqp import encode
 
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
-from engine.endpoints.base import EndpointError
+from engine.endpoints.base import EndpointError, Unroutable
 
 log = logging.getLogger("engine.amqp")
 
@@ -63,12 +63,28 @@ Message = tuple[str, bytes, spec.Basic.Properties]
 class _Part:
     """One caller's messages in a round, and the future that answers it."""
 
-    __slots__ = ("exchange", "messages", "answer")
+    __slots__ = ("exchange", "messages", "answer", "mandatory")
 
-    def __init__(self, exchange: str, messages: Sequence[Message], answer: asyncio.Future[list[BaseException | None]]) -> None:
+    def __init__(self, exchange: str, messages: Sequence[Message], answer: asyncio.Future[list[BaseException | None]],
+                 mandatory: bool = False) -> None:
         self.exchange = exchange
         self.messages = messages
         self.answer = answer
+        self.mandatory = mandatory
+
+
+class _Awaiting:
+    """A written round with ``mandatory`` messages, until its confirms arrived: where the
+    broker's ``basic.return`` of one of them is matched (:meth:`SharedPublisher._returned`).
+    ``returned``: payload index -> the broker's reply text (``NO_ROUTE``)."""
+
+    __slots__ = ("parts", "slots", "confirmations", "returned")
+
+    def __init__(self, parts: list[_Part], slots: list[tuple[int, int]]) -> None:
+        self.parts = parts
+        self.slots = slots
+        self.confirmations: list[asyncio.Future[Any]] = []
+        self.returned: dict[int, str] = {}
 
 
 class SharedPublisher:
@@ -94,6 +110,11 @@ class SharedPublisher:
         """Rounds written so far (each one socket write and one confirm wait)."""
         self.messages = 0
         """Messages written so far: ``messages / rounds`` is the mean round."""
+        self._awaiting: dict[int, _Awaiting] = {}
+        """Rounds with mandatory messages whose confirms have not all arrived, in the order
+        written (id -> round): a round without one is never entered."""
+        self.returned = 0
+        """Mandatory messages the broker returned (unroutable)."""
 
     def replace(self, channel: aio_pika.abc.AbstractChannel | None) -> None:
         """Publish on ``channel`` from the next round on (the connection reopened its publish
@@ -102,13 +123,15 @@ class SharedPublisher:
         self._channel = channel
         self._underlay = None
 
-    async def publish(self, exchange: str, messages: Sequence[Message]) -> list[BaseException | None]:
-        """``result[i]`` is None once the broker took ``messages[i]``, else why not."""
+    async def publish(self, exchange: str, messages: Sequence[Message], mandatory: bool = False) -> list[BaseException | None]:
+        """``result[i]`` is None once the broker took ``messages[i]``, else why not;
+        ``mandatory``: a message the broker routes to no queue is returned, and its result is
+        :class:`Unroutable` (needs publisher confirms: the return arrives before the confirm)."""
         loop = asyncio.get_running_loop()
         answer: asyncio.Future[list[BaseException | None]] = loop.create_future()
         if not self._queued:
             loop.call_soon(self._start_round)
-        self._queued.append(_Part(exchange, messages, answer))
+        self._queued.append(_Part(exchange, messages, answer, mandatory))
         return await answer
 
     def _start_round(self) -> None:
@@ -166,8 +189,47 @@ class SharedPublisher:
             payload=b"".join(payloads), should_close=False, drain_future=None))
         self.rounds += 1
         self.messages += len(payloads)
-        _Confirming(self, parts, results, slots, channel, confirmations)
+        _Confirming(self, parts, results, slots, channel, confirmations, self._await_returns(parts, slots, confirmations))
         return True
+
+    def _await_returns(self, parts: list[_Part], slots: list[tuple[int, int]],
+                       confirmations: list[asyncio.Future[Any]] | None = None) -> _Awaiting | None:
+        """The round entered where returns are matched, when it has a mandatory message."""
+        for part in parts:
+            if part.mandatory:
+                awaiting = _Awaiting(parts, slots)
+                if confirmations is not None:
+                    awaiting.confirmations = confirmations
+                self._awaiting[id(awaiting)] = awaiting
+                return awaiting
+        return None
+
+    def _returned(self, exchange: str, routing_key: str, body: bytes, message_id: str | None, reply_text: str) -> None:
+        """The broker returned a mandatory message: mark it in its round, the first one written
+        still unconfirmed and not returned yet with the same exchange, routing key, message id
+        and body (returns come in the order published, each before its message's confirm; two
+        messages alike in all four route alike, so which of them is marked changes nothing)."""
+        self.returned += 1
+        for awaiting in self._awaiting.values():
+            confirmations, returned = awaiting.confirmations, awaiting.returned
+            for index, (p, m) in enumerate(awaiting.slots):
+                part = awaiting.parts[p]
+                if not part.mandatory or part.exchange != exchange or index in returned \
+                        or index >= len(confirmations) or confirmations[index].done():
+                    continue
+                key, sent, properties = part.messages[m]
+                if key == routing_key and (properties.message_id or None) == message_id and sent == body:
+                    returned[index] = reply_text
+                    return
+        log.warning("the broker returned a message no publish in flight matches",
+                    extra={"connection": self._connection, "exchange": exchange, "routing_key": routing_key})
+
+    def _done(self, awaiting: _Awaiting | None) -> dict[int, str]:
+        """The round's returns, the round out of the table."""
+        if awaiting is None:
+            return {}
+        self._awaiting.pop(id(awaiting), None)
+        return awaiting.returned
 
     async def _round(self, parts: list[_Part]) -> None:
         try:
@@ -200,10 +262,16 @@ class SharedPublisher:
                 return self._answer(parts, results)  # type: ignore[arg-type]
             _confirm_in_order(channel)
             self._watch_close(channel)
+            self._watch_returns(channel)
             self._underlay = channel
         results, payloads, slots = self._encode(parts, channel)
         if payloads:
-            self._settle(parts, results, slots, await self._write(channel, payloads))
+            awaiting = self._await_returns(parts, slots)
+            try:
+                outcomes = await self._write(channel, payloads, awaiting)
+            finally:
+                returned = self._done(awaiting)
+            self._settle(parts, results, slots, outcomes, returned)
         self._answer(parts, results)
 
     def _watch_close(self, channel: aiormq.abc.AbstractChannel) -> None:
@@ -228,6 +296,26 @@ class SharedPublisher:
 
         channel._on_close_frame = close_frame  # type: ignore[attr-defined,method-assign]
 
+    def _watch_returns(self, channel: aiormq.abc.AbstractChannel) -> None:
+        """The broker's ``basic.return`` of a mandatory message, matched to its round
+        (:meth:`_returned`). aiormq's own handler finds the message by a ``message_id`` ->
+        delivery tag table that only its ``basic_publish`` fills (and drops a message without
+        an id), so it would never find this publisher's; it reads the returned content with
+        aiormq 7.2's own ``_get_frame`` and ``_read_content`` (pinned ~=7.2.4). An aiormq without
+        them keeps its handler: mandatory messages it cannot match are then accepted as before."""
+        get_frame = getattr(channel, "_get_frame", None)
+        read_content = getattr(channel, "_read_content", None)
+        if get_frame is None or read_content is None or not hasattr(channel, "_on_return_frame"):
+            return
+
+        async def on_return_frame(frame: Any) -> None:
+            header = await get_frame()
+            message = await read_content(frame, header)
+            self._returned(frame.exchange or "", frame.routing_key or "", message.body,
+                           message.header.properties.message_id, frame.reply_text or "NO_ROUTE")
+
+        channel._on_return_frame = on_return_frame  # type: ignore[attr-defined,method-assign]
+
     def _encode(self, parts: list[_Part], channel: aiormq.abc.AbstractChannel) -> tuple[
             list[list[BaseException | None]], list[bytes], list[tuple[int, int]]]:
         """Every message's frames; a message that cannot be framed (e.g. a routing key over 255
@@ -237,10 +325,10 @@ class SharedPublisher:
         payloads: list[bytes] = []
         slots: list[tuple[int, int]] = []
         for p, part in enumerate(parts):
-            exchange = part.exchange
+            exchange, mandatory = part.exchange, part.mandatory
             for m, (key, body, properties) in enumerate(part.messages):
                 try:
-                    payloads.append(_frames(number, frame_max, exchange, key, body, properties))
+                    payloads.append(_frames(number, frame_max, exchange, key, body, properties, mandatory))
                 except Exception as exc:
                     results[p][m] = EndpointError(f"{self._describe(exchange, key)}: {exc}")
                     continue
@@ -248,16 +336,25 @@ class SharedPublisher:
         return results, payloads, slots
 
     def _settle(self, parts: list[_Part], results: list[list[BaseException | None]], slots: list[tuple[int, int]],
-                outcomes: list[Any]) -> None:
-        """Each written message's outcome (the broker's Ack, Nack, or a failure) into its result."""
+                outcomes: list[Any], returned: dict[int, str]) -> None:
+        """Each written message's outcome (the broker's Ack, Nack, or a failure) into its result;
+        a message the broker returned (``returned``: by payload index) is :class:`Unroutable`."""
         for (p, m), outcome in zip(slots, outcomes):
             if isinstance(outcome, BaseException) or isinstance(outcome, (spec.Basic.Nack, spec.Basic.Reject)):
                 reason = outcome if isinstance(outcome, BaseException) else "the broker nacked it"
                 key = parts[p].messages[m][0]
                 results[p][m] = EndpointError(f"{self._describe(parts[p].exchange, key)}: {reason}")
+        for index, reply_text in returned.items():
+            p, m = slots[index]
+            if results[p][m] is None:
+                key = parts[p].messages[m][0]
+                results[p][m] = Unroutable(f"exchange {parts[p].exchange!r}, routing key {key!r}: the broker returned it "
+                                           f"({reply_text}: no queue is bound for it)")
 
-    async def _write(self, channel: aiormq.abc.AbstractChannel, payloads: list[bytes]) -> list[Any]:
-        """Write the round's messages as one frame sequence; their outcomes, in order."""
+    async def _write(self, channel: aiormq.abc.AbstractChannel, payloads: list[bytes],
+                     awaiting: _Awaiting | None = None) -> list[Any]:
+        """Write the round's messages as one frame sequence; their outcomes, in order
+        (``awaiting``: the round where its returns are matched, given its confirmations)."""
         confirms = channel.publisher_confirms
         loop = asyncio.get_running_loop()
         confirmations: list[asyncio.Future[Any]] = []
@@ -275,6 +372,8 @@ class SharedPublisher:
                         future = loop.create_future()
                         table[tag] = future
                         confirmations.append(future)
+                    if awaiting is not None:
+                        awaiting.confirmations = confirmations
                 channel.delivery_tag += len(payloads)
                 try:
                     await _put_frame(channel, aiormq.abc.ChannelFrame(
@@ -398,8 +497,9 @@ def _confirm_in_order(channel: aiormq.abc.AbstractChannel) -> None:
     unconfirmed publishes, each newer tag included, and scheduling one callback per settled
     one: O(unconfirmed) per confirm. When the broker falls behind, thousands are unconfirmed
     and each confirm walks them all, so the engine slows down exactly when the broker does. This
-    publisher is the only one on its channel and enters tags in increasing order (it never
-    publishes ``mandatory``, the only way aiormq puts one back out of order), so the settled
+    publisher is the only one on its channel and enters tags in increasing order (its own
+    return handler, :meth:`SharedPublisher._watch_returns`, leaves the table alone; aiormq's
+    puts a returned tag back out of order), so the settled
     tags are the table's prefix: they are taken from its front and settled at once, each with
     aiormq's own ``_confirm_delivery`` (an Ack's result, a Nack's ``DeliveryError``).
     Measured (see the commit) in-process at 300 routes and in bench/fleet.py's profile, where
@@ -436,12 +536,13 @@ class _Confirming:
     last confirmation arrives, or when the channel closes first (its own future, which aiormq
     rejects then: the rest fail with that), exactly as :func:`_confirmed` decides."""
 
-    __slots__ = ("publisher", "parts", "results", "slots", "confirmations", "remaining", "closed")
+    __slots__ = ("publisher", "parts", "results", "slots", "confirmations", "remaining", "closed", "awaiting")
 
     def __init__(self, publisher: SharedPublisher, parts: list[_Part], results: list[list[BaseException | None]],
                  slots: list[tuple[int, int]], channel: aiormq.abc.AbstractChannel,
-                 confirmations: list[asyncio.Future[Any]]) -> None:
+                 confirmations: list[asyncio.Future[Any]], awaiting: _Awaiting | None) -> None:
         self.publisher, self.parts, self.results, self.slots = publisher, parts, results, slots
+        self.awaiting = awaiting
         self.confirmations = confirmations
         self.remaining = len(confirmations)
         self.closed: asyncio.Future[Any] | None = channel.create_future()
@@ -464,7 +565,8 @@ class _Confirming:
 
     def _finish(self, closed: asyncio.Future[Any] | None) -> None:
         try:
-            self.publisher._settle(self.parts, self.results, self.slots, _outcomes(self.confirmations, closed))
+            returned = self.publisher._done(self.awaiting)
+            self.publisher._settle(self.parts, self.results, self.slots, _outcomes(self.confirmations, closed), returned)
             self.publisher._answer(self.parts, self.results)
         except Exception as exc:  # a bug: every caller still hears of it
             self.publisher._fail(self.parts, exc)
@@ -493,7 +595,8 @@ def _exchange(exchange: str) -> bytes:
     return encoded
 
 
-def _frames(channel: int, frame_max: int, exchange: str, key: str, body: bytes, properties: spec.Basic.Properties) -> bytes:
+def _frames(channel: int, frame_max: int, exchange: str, key: str, body: bytes, properties: spec.Basic.Properties,
+            mandatory: bool = False) -> bytes:
     """One message's publish, content header and body frames, encoded: byte for byte what
     aiormq's ``basic_publish`` sends through pamqp (bodies split at the negotiated frame size;
     tests/endpoints/amqp/test_amqp_shared_publish.py compares the two), with the same refusals (an invalid
@@ -507,7 +610,7 @@ def _frames(channel: int, frame_max: int, exchange: str, key: str, body: bytes, 
     if len(key) > 255:
         raise ValueError("Routing key too long (max 255 bytes)")
     encoded_key = encode.short_string(key)  # its TypeError beyond 255 bytes, as pamqp's
-    method = b"".join((_PUBLISH_METHOD, _exchange(exchange), encoded_key, b"\x00"))  # mandatory, immediate: off
+    method = b"".join((_PUBLISH_METHOD, _exchange(exchange), encoded_key, b"\x01" if mandatory else b"\x00"))  # bits: mandatory, immediate
     props = properties.marshal()
     size = len(body)
     parts = [_METHOD_FRAME.pack(1, channel, len(method)), method, _FRAME_END,

@@ -8,6 +8,8 @@ broker took responsibility. A message that asks for a reply is a call (calls.py)
 from __future__ import annotations
 
 import asyncio
+import logging
+import time
 from typing import Any, Sequence
 
 from aiormq import spec
@@ -17,7 +19,10 @@ from engine.common.schemas import SchemaError, canonical_bytes
 from engine.endpoints.amqp.calls import AmqpCaller
 from engine.endpoints.amqp.link import AmqpLink
 from engine.endpoints.amqp.options import AmqpSinkOptions
-from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
+from engine.common.backoff import Backoff
+from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink, Unroutable, UnroutableRejected
+
+log = logging.getLogger("engine.amqp")
 
 MAX_ROUTING_KEY = 255
 """Bytes in a routing key (an AMQP short string): a longer one can never be published."""
@@ -55,11 +60,45 @@ class PublishProperties(spec.Basic.Properties):
 
 
 class AmqpSink(Sink):
-    """Publishes without the mandatory flag: as in AMQP itself, an exchange with no matching
-    binding drops the message (RabbitMQ's alternate exchanges are the way to keep those)."""
+    """Publishes ``mandatory`` (unless ``mandatory: false``): nothing is delivered to nobody.
+
+    An exchange with no queue bound for a message's routing key drops it unless it was
+    published mandatory: a sink on such an exchange counted 10 messages delivered, the source
+    acknowledged them, and all 10 were gone. Published mandatory, the broker returns it
+    (``basic.return``, before its confirm: publisher.py matches the two) and it is the sink's
+    refusal (:class:`~engine.endpoints.base.Unroutable`): never counted delivered, never
+    acknowledged at the source, counted ``unroutable``. Then, by ``unroutable``:
+
+    * ``hold`` (the default): the sink is not :attr:`ready` and the route holds its messages
+      as a ROS 2 sink does until a subscriber matched (``require_subscriber``): nothing
+      acknowledged (AMQP keeps them queued; a buffered route's buffer holds them), no delivery
+      attempt spent, the reason in the status (``sink_not_ready``); they are published again
+      after the engine's backoff (0.05-0.1 s doubling to 2.5-5 s), so a queue bound meanwhile
+      gets them within 5 s, in order. The default because a missing queue is most often one
+      not declared *yet* (its consumer starts after the engine, or is being re-declared: the
+      source's own queue is, resume.py) and the messages are wanted once it is; dead-lettering
+      them would ask the operator to replay them by hand. Like a ROS 2 templated topic, one
+      routing key nobody is bound for holds the route's other messages too;
+    * ``dead_letter``: each returned message is dead-lettered at once, naming the exchange and
+      routing key, for exchanges where nobody listening is a fault to look at later.
+
+    ``mandatory: false`` is for fire-and-forget exchanges (telemetry nobody may be listening
+    to): the broker drops what no queue is bound for. Mandatory costs nothing while messages
+    route: the flag is one bit of the publish frame, and only a returned message is matched.
+    It needs publisher confirms (the return is matched to its confirm): without them the flag
+    is not set. Calls (a sink's request/reply) are not published mandatory: their timeout
+    answers a missing worker."""
 
     def __init__(self, connection: AmqpLink, route: str, options: AmqpSinkOptions) -> None:
         self._connection = connection
+        self._where = f"route {route!r}: amqp sink"
+        self._mandatory = options.mandatory and connection.settings.publisher_confirms
+        self._dead_letter_unroutable = options.unroutable == "dead_letter"
+        self._holding: str | None = None
+        """Why the route's messages are held (an unroutable message, ``unroutable: hold``)."""
+        self._retry_at = 0.0
+        """Monotonic time from which the held messages are published again (0: not holding)."""
+        self._backoff = Backoff(0.05, 5.0)
         self._exchange = options.exchange
         self._kind = options.exchange_type
         self._durable = options.durable
@@ -70,6 +109,15 @@ class AmqpSink(Sink):
         self._caller = None if options.timeout is None else AmqpCaller(
             connection, f"route {route!r}: amqp sink", options.timeout)
         """Calls: messages that ask for a reply are requests (engine/endpoints/amqp/calls.py)."""
+
+    @property
+    def ready(self) -> bool:
+        retry_at = self._retry_at
+        return not retry_at or time.monotonic() >= retry_at
+
+    def not_ready_reason(self) -> str | None:
+        """While it holds unroutable messages, between attempts and during them."""
+        return self._holding
 
     async def send(self, message: Outbound) -> None:
         error = (await self.send_batch((message,)))[0]
@@ -131,6 +179,30 @@ class AmqpSink(Sink):
             publishable.append(index)
             batch.append((routing_key, body, PublishProperties(fixed, message.message_id)))
         if batch:
-            for index, error in zip(publishable, await self._connection.publish_batch(self._exchange, batch, self._kind, self._durable)):
+            outcomes = await self._connection.publish_batch(self._exchange, batch, self._kind, self._durable, self._mandatory)
+            unroutable = None
+            for index, error in zip(publishable, outcomes):
+                if error is not None and isinstance(error, Unroutable):
+                    unroutable = error
+                    if self._dead_letter_unroutable:
+                        error = UnroutableRejected(f"{error} (mandatory; unroutable: dead_letter)")
                 results[index] = error
+            if unroutable is not None and not self._dead_letter_unroutable:
+                self._hold(unroutable)
+            elif self._holding is not None:
+                self._routed(outcomes)
         return results
+
+    def _hold(self, error: Unroutable) -> None:
+        """Hold the route's messages (not :attr:`ready`) for the backoff's next wait."""
+        self._retry_at = time.monotonic() + self._backoff.next()
+        if self._holding is None:
+            log.warning("%s: %s; holding the route's messages until a queue is bound", self._where, error)
+        self._holding = f"{error} (mandatory; unroutable: hold)"
+
+    def _routed(self, outcomes: list[BaseException | None]) -> None:
+        if None in outcomes:
+            log.info("%s: messages route again; publishing", self._where)
+            self._holding = None
+            self._retry_at = 0.0
+            self._backoff.reset()
