@@ -86,7 +86,7 @@ class Resumption:
     def resuming(self) -> bool:
         return self._task is not None and not self._task.done()
 
-    def watch(self, channel: aiormq.abc.AbstractChannel, consumer_tag: str) -> None:
+    def watch(self, channel: aiormq.abc.AbstractChannel, consumer_tag: str | None) -> None:
         """Hear of the broker's cancel of ``consumer_tag`` on ``channel`` (once per channel: a
         set of callbacks, the same bound method)."""
         self._consumer_tag = consumer_tag
