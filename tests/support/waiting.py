@@ -9,8 +9,9 @@ polls), ``wait_for_sync`` for plain code (engines as processes, threads)."""
 from __future__ import annotations
 
 import asyncio
+import inspect
 import time
-from typing import Callable, TypeVar
+from typing import Awaitable, Callable, TypeVar
 
 T = TypeVar("T")
 
@@ -25,17 +26,22 @@ def _timed_out(timeout: float, what: str, detail: Callable[[], object] | None) -
     return AssertionError(f"timed out after {timeout:g} s waiting for {what}{seen}")
 
 
-async def wait_for(predicate: Callable[[], T], timeout: float = 10.0, what: str = "the condition",
+async def wait_for(predicate: Callable[[], T | Awaitable[T]], timeout: float = 10.0, what: str = "the condition",
                    detail: Callable[[], object] | None = None) -> T:
     """Until ``predicate()`` is truthy; returns that value. After ``timeout`` seconds, fails
-    (AssertionError) naming ``what`` and ``detail()``."""
+    (AssertionError) naming ``what`` and ``detail()``. A predicate that returns an awaitable
+    (a question to a broker or an HTTP endpoint) is awaited at each poll."""
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
-    while not (value := predicate()):
+    while True:
+        value = predicate()
+        if inspect.isawaitable(value):
+            value = await value
+        if value:
+            return value  # type: ignore[return-value]
         if loop.time() > deadline:
             raise _timed_out(timeout, what, detail)
         await asyncio.sleep(ASYNC_POLL_S)
-    return value
 
 
 def wait_for_sync(predicate: Callable[[], T], timeout: float = 10.0, what: str = "the condition",

@@ -20,10 +20,12 @@ from typing import Any, Awaitable, Callable
 
 import aio_pika
 import aiormq
+import pytest
 
 from engine.common.processes import listening_port
-from tests.amqp_helpers import Collector
-from tests.engine_process import EngineProcess
+from tests.support.amqp_helpers import Collector
+from tests.support.engine_process import EngineProcess
+from tests.support.waiting import wait_for
 
 AFTER = 30
 """Messages published once the route consumes again: every one must arrive."""
@@ -46,18 +48,7 @@ def get(port: int, path: str) -> tuple[int, Any]:
         return exc.code, json.loads(exc.read())
 
 
-async def until(check: Callable[[], Awaitable[Any]], what: str, timeout: float = DEADLINE_S) -> Any:
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    last = None
-    while loop.time() < deadline:
-        last = await check()
-        if last:
-            return last
-        await asyncio.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last})")
-
-
+@pytest.mark.soak
 def test_a_queue_deleted_while_consumed_is_declared_and_consumed_again(tmp_path: Path, amqp_url: str) -> None:
     tag = uuid.uuid4().hex[:8]
     inbox, outbox, queue = f"cancel-in-{tag}", f"cancel-out-{tag}", f"cancel-q-{tag}"
@@ -84,7 +75,7 @@ def test_a_queue_deleted_while_consumed_is_declared_and_consumed_again(tmp_path:
             async def carried(first: int, count: int) -> None:
                 for seq in range(first, first + count):
                     await source.publish(aio_pika.Message(json.dumps({"seq": seq}).encode()), "in.x")
-                await until(lambda: _true(len(out.messages) >= first + count), f"{first + count} messages carried",)
+                await wait_for(lambda: len(out.messages) >= first + count, DEADLINE_S, f"{first + count} messages carried")
 
             async def consumers() -> int:
                 """The queue's consumers (0 while it does not exist)."""
@@ -104,7 +95,7 @@ def test_a_queue_deleted_while_consumed_is_declared_and_consumed_again(tmp_path:
             # 1. deleted: the route declares the queue and its binding again and consumes it at once
             deleting = await other.channel()
             await deleting.queue_delete(queue)
-            await until(lambda: _when(consumers(), lambda n: n == 1), "the queue declared again, with its consumer")
+            await wait_for(lambda: _when(consumers(), lambda n: n == 1), DEADLINE_S, "the queue declared again, with its consumer")
             await carried(5, AFTER)
             first = await route()
 
@@ -114,11 +105,11 @@ def test_a_queue_deleted_while_consumed_is_declared_and_consumed_again(tmp_path:
             await deleting.exchange_delete(inbox)
             await deleting.exchange_declare(inbox, exchange_type="fanout", durable=True)
             await deleting.queue_delete(queue)
-            code, health = await until(lambda: _when(admin("/healthz"), lambda h: "PRECONDITION_FAILED" in str(h[1])),
-                                       "/healthz to say degraded, and why")
+            code, health = await wait_for(lambda: _when(admin("/healthz"), lambda h: "PRECONDITION_FAILED" in str(h[1])),
+                                          DEADLINE_S, "/healthz to say degraded, and why")
             degraded = await route()
             await deleting.exchange_delete(inbox)
-            await until(lambda: _when(admin("/healthz"), lambda h: h[0] == 200), "/healthz to say ok again")
+            await wait_for(lambda: _when(admin("/healthz"), lambda h: h[0] == 200), DEADLINE_S, "/healthz to say ok again")
             back = await route()
             source = await channel.declare_exchange(inbox, aio_pika.ExchangeType.TOPIC, durable=True, passive=True)
             assert await consumers() == 1
@@ -142,10 +133,6 @@ def test_a_queue_deleted_while_consumed_is_declared_and_consumed_again(tmp_path:
     assert back["source"]["cancelled_by_broker"] == 2 and back["source"]["taken_up_again"] == 2, back["source"]
     assert f"queue {queue!r}" in back["source"]["last_cancel"]
     assert sorted(set(result["carried"])) == list(range(5 + 2 * AFTER)), result["carried"]
-
-
-async def _true(value: bool) -> bool:
-    return value
 
 
 async def _when(value: Awaitable[Any], condition: Callable[[Any], bool]) -> Any:

@@ -12,13 +12,15 @@ import asyncio
 import json
 import uuid
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import aio_pika
+import pytest
 
 from engine.ops.admin import EngineCollector
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Collector, started_with_client
+from tests.support.amqp_helpers import Collector, started_with_client
+from tests.support.waiting import wait_for
 
 N = 10
 DEADLINE_S = 30.0
@@ -43,15 +45,7 @@ routes:
 """
 
 
-async def until(condition: Callable[[], Any], what: str, timeout: float = DEADLINE_S) -> Any:
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + timeout
-    while not (value := condition()):
-        assert loop.time() < deadline, f"timed out after {timeout} s waiting for {what}"
-        await asyncio.sleep(0.02)
-    return value
-
-
+@pytest.mark.soak
 def test_an_unroutable_message_is_held_until_a_queue_is_bound_or_dead_lettered(
         tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
     tag = f"unroutable-{uuid.uuid4().hex[:8]}"
@@ -65,7 +59,11 @@ def test_an_unroutable_message_is_held_until_a_queue_is_bound_or_dead_lettered(
             letters = await channel.declare_queue(f"{tag}-letters", exclusive=True)
             await letters.bind("rabbitros.dead-letter", "refused")
             dead: list[aio_pika.abc.AbstractIncomingMessage] = []
-            await letters.consume(lambda message: _append(dead, message), no_ack=True)
+
+            async def dead_letter(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+                dead.append(message)
+
+            await letters.consume(dead_letter, no_ack=True)
 
             def route(name: str) -> dict[str, Any]:
                 return engine.status()["routes"][name]
@@ -76,17 +74,17 @@ def test_an_unroutable_message_is_held_until_a_queue_is_bound_or_dead_lettered(
                         aio_pika.Message(json.dumps({"seq": seq}).encode()), f"{tag}-in-{name}")
 
             # held: returned, counted, never delivered nor acknowledged; the status says why
-            await until(lambda: route("held")["unroutable"] >= N and route("held")["sink_not_ready"], "held unroutable")
+            await wait_for(lambda: route("held")["unroutable"] >= N and route("held")["sink_not_ready"], DEADLINE_S, "held unroutable")
             held = route("held")
-            await until(lambda: len(dead) >= N, "the refused route's dead letters")
-            await until(lambda: route("forgotten")["delivered"] >= N, "the fire-and-forget route")
+            await wait_for(lambda: len(dead) >= N, DEADLINE_S, "the refused route's dead letters")
+            await wait_for(lambda: route("forgotten")["delivered"] >= N, DEADLINE_S, "the fire-and-forget route")
             metrics = {(sample.name, sample.labels.get("route")): sample.value
                        for family in EngineCollector(engine).collect() for sample in family.samples}
 
             # a queue bound: every held message arrives, none lost
             out = await Collector.bind(channel, f"{tag}-out-held", "robot.#")
             await out.wait_for(N, timeout=DEADLINE_S)
-            await until(lambda: route("held")["delivered"] == N and not route("held")["sink_not_ready"], "held delivered")
+            await wait_for(lambda: route("held")["delivered"] == N and not route("held")["sink_not_ready"], DEADLINE_S, "held delivered")
             return {"held": held, "after": route("held"), "refused": route("refused"),
                     "forgotten": route("forgotten"), "dead": [dict(m.headers) for m in dead], "metrics": metrics,
                     "arrived": sorted(json.loads(m.body)["seq"] for m in out.messages),
@@ -108,6 +106,3 @@ def test_an_unroutable_message_is_held_until_a_queue_is_bound_or_dead_lettered(
     forgotten = result["forgotten"]
     assert forgotten["delivered"] == N and forgotten["unroutable"] == 0, forgotten
 
-
-async def _append(messages: list[Any], message: Any) -> None:
-    messages.append(message)
