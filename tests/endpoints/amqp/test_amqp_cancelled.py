@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 import urllib.error
 import urllib.request
 import uuid
@@ -94,8 +95,10 @@ def test_a_queue_deleted_while_consumed_is_declared_and_consumed_again(tmp_path:
 
             # 1. deleted: the route declares the queue and its binding again and consumes it at once
             deleting = await other.channel()
+            deleted_at = time.monotonic()
             await deleting.queue_delete(queue)
             await wait_for(lambda: _when(consumers(), lambda n: n == 1), DEADLINE_S, "the queue declared again, with its consumer")
+            consuming_after = time.monotonic() - deleted_at
             await carried(5, AFTER)
             first = await route()
 
@@ -108,20 +111,22 @@ def test_a_queue_deleted_while_consumed_is_declared_and_consumed_again(tmp_path:
             code, health = await wait_for(lambda: _when(admin("/healthz"), lambda h: "PRECONDITION_FAILED" in str(h[1])),
                                           DEADLINE_S, "/healthz to say degraded, and why")
             degraded = await route()
+            fixed_at = time.monotonic()
             await deleting.exchange_delete(inbox)
             await wait_for(lambda: _when(admin("/healthz"), lambda h: h[0] == 200), DEADLINE_S, "/healthz to say ok again")
             back = await route()
+            healthy_after = time.monotonic() - fixed_at
             source = await channel.declare_exchange(inbox, aio_pika.ExchangeType.TOPIC, durable=True, passive=True)
             assert await consumers() == 1
             await carried(5 + AFTER, AFTER)
-            return {"first": first, "health": health, "code": code, "degraded": degraded, "back": back,
+            return {"consuming_after_s": round(consuming_after, 3), "healthy_after_s": round(healthy_after, 3), "first": first, "health": health, "code": code, "degraded": degraded, "back": back,
                     "carried": [json.loads(m.body)["seq"] for m in out.messages]}
         finally:
             await other.close()
             await client.close()
 
     result, _ = engine.run(scenario)
-    print({k: v for k, v in result.items() if k != "carried"})
+    print({k: v for k, v in result.items() if k.endswith("_s")}, {k: v for k, v in result.items() if k != "carried"})
     assert result["first"]["source"]["cancelled_by_broker"] == 1 and result["first"]["source_degraded"] is None
     assert result["code"] == 503 and result["health"]["status"] == "degraded", result["health"]
     reason = result["health"]["degraded"]["kept"]
