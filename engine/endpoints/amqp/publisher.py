@@ -34,7 +34,9 @@ Publishing goes below aiormq's ``basic_publish`` to its channel's delivery-tag c
 confirmation table and write queue (what ``basic_publish`` itself does, once per round
 instead of once per message); each round also holds one future of the channel's own, which
 aiormq rejects when the channel or connection closes (``FutureStore``), so every route in
-flight then sees a failure, never a silent loss.
+flight then sees a failure, never a silent loss. A sink's ``mandatory`` message the broker
+returns (no queue bound for it) is answered :class:`~engine.endpoints.base.Unroutable`:
+returns.py matches the return, which comes before the message's confirm, to its round.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ from aiormq import spec
 from pamqp import encode
 
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
+from engine.endpoints.amqp.returns import Awaiting, Returns
 from engine.endpoints.base import EndpointError, Unroutable
 
 log = logging.getLogger("engine.amqp")
@@ -71,20 +74,6 @@ class _Part:
         self.messages = messages
         self.answer = answer
         self.mandatory = mandatory
-
-
-class _Awaiting:
-    """A written round with ``mandatory`` messages, until its confirms arrived: where the
-    broker's ``basic.return`` of one of them is matched (:meth:`SharedPublisher._returned`).
-    ``returned``: payload index -> the broker's reply text (``NO_ROUTE``)."""
-
-    __slots__ = ("parts", "slots", "confirmations", "returned")
-
-    def __init__(self, parts: list[_Part], slots: list[tuple[int, int]]) -> None:
-        self.parts = parts
-        self.slots = slots
-        self.confirmations: list[asyncio.Future[Any]] = []
-        self.returned: dict[int, str] = {}
 
 
 class SharedPublisher:
@@ -110,11 +99,13 @@ class SharedPublisher:
         """Rounds written so far (each one socket write and one confirm wait)."""
         self.messages = 0
         """Messages written so far: ``messages / rounds`` is the mean round."""
-        self._awaiting: dict[int, _Awaiting] = {}
-        """Rounds with mandatory messages whose confirms have not all arrived, in the order
-        written (id -> round): a round without one is never entered."""
-        self.returned = 0
+        self._returns = Returns(connection)
+        """The broker's returns of mandatory messages, matched to their rounds (returns.py)."""
+
+    @property
+    def returned(self) -> int:
         """Mandatory messages the broker returned (unroutable)."""
+        return self._returns.count
 
     def replace(self, channel: aio_pika.abc.AbstractChannel | None) -> None:
         """Publish on ``channel`` from the next round on (the connection reopened its publish
@@ -189,47 +180,8 @@ class SharedPublisher:
             payload=b"".join(payloads), should_close=False, drain_future=None))
         self.rounds += 1
         self.messages += len(payloads)
-        _Confirming(self, parts, results, slots, channel, confirmations, self._await_returns(parts, slots, confirmations))
+        _Confirming(self, parts, results, slots, channel, confirmations, self._returns.enter(parts, slots, confirmations))
         return True
-
-    def _await_returns(self, parts: list[_Part], slots: list[tuple[int, int]],
-                       confirmations: list[asyncio.Future[Any]] | None = None) -> _Awaiting | None:
-        """The round entered where returns are matched, when it has a mandatory message."""
-        for part in parts:
-            if part.mandatory:
-                awaiting = _Awaiting(parts, slots)
-                if confirmations is not None:
-                    awaiting.confirmations = confirmations
-                self._awaiting[id(awaiting)] = awaiting
-                return awaiting
-        return None
-
-    def _returned(self, exchange: str, routing_key: str, body: bytes, message_id: str | None, reply_text: str) -> None:
-        """The broker returned a mandatory message: mark it in its round, the first one written
-        still unconfirmed and not returned yet with the same exchange, routing key, message id
-        and body (returns come in the order published, each before its message's confirm; two
-        messages alike in all four route alike, so which of them is marked changes nothing)."""
-        self.returned += 1
-        for awaiting in self._awaiting.values():
-            confirmations, returned = awaiting.confirmations, awaiting.returned
-            for index, (p, m) in enumerate(awaiting.slots):
-                part = awaiting.parts[p]
-                if not part.mandatory or part.exchange != exchange or index in returned \
-                        or index >= len(confirmations) or confirmations[index].done():
-                    continue
-                key, sent, properties = part.messages[m]
-                if key == routing_key and (properties.message_id or None) == message_id and sent == body:
-                    returned[index] = reply_text
-                    return
-        log.warning("the broker returned a message no publish in flight matches",
-                    extra={"connection": self._connection, "exchange": exchange, "routing_key": routing_key})
-
-    def _done(self, awaiting: _Awaiting | None) -> dict[int, str]:
-        """The round's returns, the round out of the table."""
-        if awaiting is None:
-            return {}
-        self._awaiting.pop(id(awaiting), None)
-        return awaiting.returned
 
     async def _round(self, parts: list[_Part]) -> None:
         try:
@@ -262,15 +214,15 @@ class SharedPublisher:
                 return self._answer(parts, results)  # type: ignore[arg-type]
             _confirm_in_order(channel)
             self._watch_close(channel)
-            self._watch_returns(channel)
+            self._returns.watch(channel)
             self._underlay = channel
         results, payloads, slots = self._encode(parts, channel)
         if payloads:
-            awaiting = self._await_returns(parts, slots)
+            awaiting = self._returns.enter(parts, slots)
             try:
                 outcomes = await self._write(channel, payloads, awaiting)
             finally:
-                returned = self._done(awaiting)
+                returned = self._returns.done(awaiting)
             self._settle(parts, results, slots, outcomes, returned)
         self._answer(parts, results)
 
@@ -295,26 +247,6 @@ class SharedPublisher:
             await on_close_frame(frame)
 
         channel._on_close_frame = close_frame  # type: ignore[attr-defined,method-assign]
-
-    def _watch_returns(self, channel: aiormq.abc.AbstractChannel) -> None:
-        """The broker's ``basic.return`` of a mandatory message, matched to its round
-        (:meth:`_returned`). aiormq's own handler finds the message by a ``message_id`` ->
-        delivery tag table that only its ``basic_publish`` fills (and drops a message without
-        an id), so it would never find this publisher's; it reads the returned content with
-        aiormq 7.2's own ``_get_frame`` and ``_read_content`` (pinned ~=7.2.4). An aiormq without
-        them keeps its handler: mandatory messages it cannot match are then accepted as before."""
-        get_frame = getattr(channel, "_get_frame", None)
-        read_content = getattr(channel, "_read_content", None)
-        if get_frame is None or read_content is None or not hasattr(channel, "_on_return_frame"):
-            return
-
-        async def on_return_frame(frame: Any) -> None:
-            header = await get_frame()
-            message = await read_content(frame, header)
-            self._returned(frame.exchange or "", frame.routing_key or "", message.body,
-                           message.header.properties.message_id, frame.reply_text or "NO_ROUTE")
-
-        channel._on_return_frame = on_return_frame  # type: ignore[attr-defined,method-assign]
 
     def _encode(self, parts: list[_Part], channel: aiormq.abc.AbstractChannel) -> tuple[
             list[list[BaseException | None]], list[bytes], list[tuple[int, int]]]:
@@ -352,7 +284,7 @@ class SharedPublisher:
                                            f"({reply_text}: no queue is bound for it)")
 
     async def _write(self, channel: aiormq.abc.AbstractChannel, payloads: list[bytes],
-                     awaiting: _Awaiting | None = None) -> list[Any]:
+                     awaiting: Awaiting | None = None) -> list[Any]:
         """Write the round's messages as one frame sequence; their outcomes, in order
         (``awaiting``: the round where its returns are matched, given its confirmations)."""
         confirms = channel.publisher_confirms
@@ -498,7 +430,7 @@ def _confirm_in_order(channel: aiormq.abc.AbstractChannel) -> None:
     one: O(unconfirmed) per confirm. When the broker falls behind, thousands are unconfirmed
     and each confirm walks them all, so the engine slows down exactly when the broker does. This
     publisher is the only one on its channel and enters tags in increasing order (its own
-    return handler, :meth:`SharedPublisher._watch_returns`, leaves the table alone; aiormq's
+    return handler, :meth:`.returns.Returns.watch`, leaves the table alone; aiormq's
     puts a returned tag back out of order), so the settled
     tags are the table's prefix: they are taken from its front and settled at once, each with
     aiormq's own ``_confirm_delivery`` (an Ack's result, a Nack's ``DeliveryError``).
@@ -540,7 +472,7 @@ class _Confirming:
 
     def __init__(self, publisher: SharedPublisher, parts: list[_Part], results: list[list[BaseException | None]],
                  slots: list[tuple[int, int]], channel: aiormq.abc.AbstractChannel,
-                 confirmations: list[asyncio.Future[Any]], awaiting: _Awaiting | None) -> None:
+                 confirmations: list[asyncio.Future[Any]], awaiting: Awaiting | None) -> None:
         self.publisher, self.parts, self.results, self.slots = publisher, parts, results, slots
         self.awaiting = awaiting
         self.confirmations = confirmations
@@ -565,7 +497,7 @@ class _Confirming:
 
     def _finish(self, closed: asyncio.Future[Any] | None) -> None:
         try:
-            returned = self.publisher._done(self.awaiting)
+            returned = self.publisher._returns.done(self.awaiting)
             self.publisher._settle(self.parts, self.results, self.slots, _outcomes(self.confirmations, closed), returned)
             self.publisher._answer(self.parts, self.results)
         except Exception as exc:  # a bug: every caller still hears of it

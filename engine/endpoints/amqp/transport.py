@@ -4,7 +4,9 @@ defaults, dry runs); the parts are one module per concern: options.py (typed opt
 errors.py (the libraries' failures as the two edge errors), link.py (the connection to the
 broker: publish and declare channels, dead letters, health), connection.py (the connection
 that makes sources and sinks), source.py (a queue consumed in batches), acks.py (its held
-acknowledgements), sink.py (publishing), publisher.py (every route's publishes in one round),
+acknowledgements), resume.py (a consumer the broker cancelled, taken up again), sink.py
+(publishing, mandatory), publisher.py (every route's publishes in one round), returns.py (the
+broker's returns of mandatory messages),
 calls.py (a sink's request/reply), channels.py, cluster.py (cluster URLs, failover, leases),
 topology.py (what a retired source leaves behind), tls.py and broker.py (a private broker).
 """
