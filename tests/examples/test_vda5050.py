@@ -107,11 +107,12 @@ def test_the_example_checks_clean_and_every_route_has_passing_route_tests() -> N
     found as schemas/ of the working directory); every route has at least one case."""
     checked = cli("check", "--routes", "examples/vda5050", timeout=120)
     assert checked.returncode == 0 and checked.stderr == "", checked.stderr
-    assert checked.stdout.endswith(": ok\n") and "14 routes, 6 connections" in checked.stdout, checked.stdout
+    assert checked.stdout.endswith(": ok\n") and "16 routes, 6 connections" in checked.stdout, checked.stdout
     tested = cli("test", "--routes", "examples/vda5050", timeout=120)
     assert tested.returncode == 0, tested.stdout[-3000:] + tested.stderr
     cases = yaml.safe_load((EXAMPLE / "vda5050.test.yaml").read_text())["tests"]
-    routes = [route["name"] for route in yaml.safe_load((EXAMPLE / "vda5050.yaml").read_text())["routes"]]
+    routes = [route["name"].format(**item) for route in yaml.safe_load((EXAMPLE / "vda5050.yaml").read_text())["routes"]
+              for item in route.get("for_each", [{}])]
     assert f"{len(cases)} passed, 0 failed" in tested.stdout
     assert sorted({case["route"] for case in cases}) == sorted(routes)
 
@@ -279,7 +280,7 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
                     by_topic.setdefault(str(m.topic), []).append(json.loads(m.payload))
                 status = engine.status()
                 assert all(route["failed"] == 0 for route in status["routes"].values()), status["routes"]
-                assert status["stores"] == {"orders": 2, "positions": 2, "progress": 2}, status["stores"]
+                assert status["stores"] == {"instant_actions": 2, "order_checks": 2, "orders": 2, "positions": 2, "progress": 2}, status["stores"]
         finally:
             await engine.stop()
         for agent in ("uav1", "robot1"):  # on_stop, before the clean disconnection that drops the will
