@@ -40,7 +40,7 @@ from vda5050.model.state import State
 
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.endpoints.ros2.rosmsg import resolve_type
-from engine.runtime import Engine
+from engine.running.runtime import Engine
 from tests.conftest import REPO
 from tests.faults_harness import wait_for
 from tests.test_mqtt import Subscriber, publish

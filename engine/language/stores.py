@@ -194,7 +194,7 @@ class Remembers:
     @classmethod
     def compile(cls, options: RememberOptions | tuple[RememberOptions, ...] | None, stores: Stores,
                 compile_value: Callable[[str], Callable[..., Any] | None]) -> Remembers | None:
-        """``compile_value``: how a ``value`` expression becomes a mapper (engine/mapping.py's
+        """``compile_value``: how a ``value`` expression becomes a mapper (engine/language/mapping.py's
         compile_mapping with the route's variables and the engine's stores, passed in so this
         module stays below the mapping language)."""
         entries = remember_entries(options)
