@@ -243,6 +243,15 @@ def example_env(tmp_path: Path, mosquitto: LocalMosquitto, monkeypatch: pytest.M
     yield port
 
 
+async def until(predicate: Callable[[], bool], what: str, heard: Heard) -> None:
+    """Wait for ``predicate``; on timeout, say what the master control refused meanwhile."""
+    try:
+        await wait_for(predicate, WAIT, what)
+    except AssertionError as timeout:
+        refused = [(event.key.serial_number, str(event.error)[:300]) for event in heard.errors]
+        raise AssertionError(f"{timeout}; the master control refused: {refused}") from None
+
+
 async def timed(what: str, predicate: Callable[[], bool], figures: dict[str, float], since: float | None = None) -> None:
     started = time.monotonic() if since is None else since
     await wait_for(predicate, WAIT, what)
@@ -272,8 +281,8 @@ def test_an_independent_master_control_runs_orders_pauses_resumes_and_cancels_bo
         try:
             await master.connect()
             started = time.monotonic()
-            await wait_for(lambda: set(heard.factsheets) == {UAV, ROBOT}, WAIT, f"both factsheets accepted: {heard.errors}")
-            await wait_for(lambda: all(latest(master, key) for key in (UAV, ROBOT)), WAIT, f"both states accepted: {heard.errors}")
+            await until(lambda: set(heard.factsheets) == {UAV, ROBOT}, "both factsheets accepted", heard)
+            await until(lambda: all(latest(master, key) for key in (UAV, ROBOT)), "both states accepted", heard)
             figures["start_to_both_states_s"] = time.monotonic() - started
 
             # an order to each vehicle runs to its end
@@ -392,7 +401,8 @@ def test_orders_the_vehicles_must_not_take_are_answered_with_errors_and_every_to
                 await master.connect()
                 await wait_for(lambda: all(latest(master, key) for key in (UAV, ROBOT)), WAIT, "both states")
                 row = robot_order("row-1", driver.position, 2)
-                assert (await master.dispatch(row, ROBOT)).accepted
+                result = await master.dispatch(row, ROBOT)
+                assert result.accepted, result
                 await wait_for(lambda: finished(latest(master, ROBOT), row), WAIT, "row-1 to its end")
                 # an update of row-1 that fits (it starts at its last node): taken
                 last = row.to_wire()["nodes"][-1]
