@@ -53,10 +53,11 @@ def test_the_vda_schemas_load_as_a_family_and_only_one_level_deep(tmp_path: Path
     registry = SchemaRegistry(REPO / "schemas")
     assert not registry.problems
     vda = [name for name in registry.names() if name.startswith("vda5050/")]
-    assert vda == ["vda5050/connection", "vda5050/connection.v2", "vda5050/factsheet", "vda5050/factsheet.v2",
-                   "vda5050/instant_actions", "vda5050/instant_actions.v2", "vda5050/order", "vda5050/order.v2", "vda5050/state",
-                   "vda5050/state.v2", "vda5050/visualization", "vda5050/visualization.v2"]
-    state = registry.get("vda5050/state")
+    assert vda == [f"vda5050/{name}{version}" for name in ("connection", "factsheet", "instant_actions", "order", "state", "visualization")
+                   for version in ("", ".v2", ".v3")]
+    newest = registry.get("vda5050/state")  # unpinned: the newest, 3.0; the 2.0 routes pin .v2
+    assert newest is not None and newest.path == REPO / "schemas" / "vda5050" / "state.v3.json"
+    state = registry.get("vda5050/state.v2")
     assert state is not None and state.path == REPO / "schemas" / "vda5050" / "state.v2.json"
     with pytest.raises(ValueError, match=r"schema vda5050/state.v2: \$: \"batteryState\" is a required property"):
         state.validate({"headerId": 1, "timestamp": "2026-11-23T17:00:00Z", "version": "2.0.0", "manufacturer": "m",
@@ -302,7 +303,7 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
         kind = topic.rsplit("/", 1)[1] if "/" in topic else topic.rsplit(" ", 1)[1]
         if kind in ("state", "visualization", "connection", "factsheet"):
             for body in bodies:
-                schemas.get(f"vda5050/{kind}").validate(body)  # type: ignore[union-attr]
+                schemas.get(f"vda5050/{kind}.v2").validate(body)  # type: ignore[union-attr]
                 validated[kind] = validated.get(kind, 0) + 1
             ids = [body["headerId"] for body in bodies]
             if kind != "connection" and "/" in topic:  # headerId +1 each
