@@ -65,10 +65,10 @@ WAIT = 30.0
 # ------------------------------------------------------------------ the vehicles
 
 
-def start_uav(port: int) -> subprocess.Popen[str]:
+def start_uav(port: int, *options: str) -> subprocess.Popen[str]:
     proc = subprocess.Popen(
         ["timeout", "-s", "KILL", "170", sys.executable, "-m", "rabbitros_sim.vehicle",
-         "--device", f"udpin:127.0.0.1:{port}", "--duration", "160", "--mission-item-seconds", str(ITEM_SECONDS)],
+         "--device", f"udpin:127.0.0.1:{port}", "--duration", "160", "--mission-item-seconds", str(ITEM_SECONDS), *options],
         cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE, text=True,
         start_new_session=True)
     assert proc.stdout is not None
@@ -451,3 +451,43 @@ def test_orders_the_vehicles_must_not_take_are_answered_with_errors_and_every_to
     for topic, headers in ids.items():
         if topic.rsplit("/", 1)[1] in ("state", "visualization", "connection", "factsheet"):
             assert headers == list(range(headers[0], headers[0] + len(headers))), (topic, headers)
+
+
+def test_an_instant_action_the_vehicle_refuses_is_failed_with_the_reason(example_env: int, mosquitto: LocalMosquitto) -> None:
+    """The UAV's autopilot answers every command DENIED: the startPause the master control sends
+    is RUNNING, then FAILED with the refusal as its resultDescription (the command became a dead
+    letter), so the master's wait for it ends; the vehicle is not reported paused."""
+    peer = Peer()
+    driver = RobotDriver(peer)
+    peer.start()
+    uav = start_uav(example_env, "--command-result", "MAV_RESULT_DENIED")
+
+    async def scenario() -> State:
+        engine = Engine(EXAMPLE, REPO / "schemas")
+        await engine.start()
+        master, heard = master_control(mosquitto)
+        try:
+            await master.connect()
+            await until(lambda: latest(master, UAV) is not None and UAV in heard.factsheets, "the UAV's state and factsheet", heard)
+            spray = uav_order("spray-1", 3)
+            result = await master.dispatch(spray, UAV)
+            assert result.accepted, result
+            await until(lambda: (s := latest(master, UAV)) is not None and s.driving, "the UAV flying spray-1", heard)
+            await master.pause(UAV, action_id="refused-pause")
+            assert await master.wait_for_action(UAV, "refused-pause", timeout=WAIT), latest(master, UAV)
+            state = latest(master, UAV)
+            assert state is not None
+            assert heard.errors == [], [(event.key, str(event.error)) for event in heard.errors]
+            return state
+        finally:
+            await master.disconnect()
+            await engine.stop()
+
+    try:
+        state = asyncio.run(asyncio.wait_for(scenario(), 120))
+    finally:
+        peer.close()
+        stop_uav(uav)
+    [refused] = [action for action in state.action_states if action.action_id == "refused-pause"]
+    assert refused.action_status is ActionStatus.FAILED and "DENIED" in (refused.result_description or ""), refused
+    assert state.paused is not True and state.driving
