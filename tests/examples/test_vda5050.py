@@ -103,16 +103,18 @@ def test_an_edit_of_a_family_schema_is_seen_by_the_watcher(tmp_path: Path) -> No
 # ------------------------------------------------------------------ the example, offline
 
 
-def test_the_example_checks_clean_and_every_route_has_passing_route_tests() -> None:
+@pytest.mark.parametrize("example", ["examples/vda5050", "examples/vda5050/v3"])
+def test_the_example_checks_clean_and_every_route_has_passing_route_tests(example: str) -> None:
     """``check`` without a warning and ``test`` green, as the README says to run them (the schemas
-    found as schemas/ of the working directory); every route has at least one case."""
-    checked = cli("check", "--routes", "examples/vda5050", timeout=120)
+    found as schemas/ of the working directory); every route has at least one case. VDA 5050 2.0
+    and, in v3/, 3.0."""
+    checked = cli("check", "--routes", example, timeout=120)
     assert checked.returncode == 0 and checked.stderr == "", checked.stderr
     assert checked.stdout.endswith(": ok\n") and "16 routes, 6 connections" in checked.stdout, checked.stdout
-    tested = cli("test", "--routes", "examples/vda5050", timeout=120)
+    tested = cli("test", "--routes", example, timeout=120)
     assert tested.returncode == 0, tested.stdout[-3000:] + tested.stderr
-    cases = yaml.safe_load((EXAMPLE / "vda5050.test.yaml").read_text())["tests"]
-    routes = [route["name"].format(**item) for route in yaml.safe_load((EXAMPLE / "vda5050.yaml").read_text())["routes"]
+    cases = yaml.safe_load((REPO / example / "vda5050.test.yaml").read_text())["tests"]
+    routes = [route["name"].format(**item) for route in yaml.safe_load((REPO / example / "vda5050.yaml").read_text())["routes"]
               for item in route.get("for_each", [{}])]
     assert f"{len(cases)} passed, 0 failed" in tested.stdout
     assert sorted({case["route"] for case in cases}) == sorted(routes)
