@@ -172,6 +172,7 @@ def test_a_pipeline_without_stores_recalls_nothing() -> None:
 
 # ------------------------------------------------------------------ keyed state several routes update
 
+@pytest.mark.fast
 def test_remember_entries_apply_when_converted_accepted_or_failed_with_a_computed_value() -> None:
     """A list of entries, each at its moment, each with a ``value`` that may read the store's
     value so far: an action state RUNNING when converted, FINISHED when accepted, FAILED with
@@ -198,6 +199,7 @@ def test_remember_entries_apply_when_converted_accepted_or_failed_with_a_compute
     assert stores.store("last").get("uav1") is None and stores.status() == {"actions": 1, "last": 0}
 
 
+@pytest.mark.fast
 def test_check_names_a_bad_remember_value_and_route_tests_expect_what_is_remembered(tmp_path: Path) -> None:
     routes = ROUTES.replace("    remember: {store: positions, per: agent}\n", """    remember:
       - {store: positions, per: agent}

@@ -25,12 +25,12 @@ import pytest
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.running.runtime import Engine
-from tests.conftest import REPO
-from tests.faults_harness import wait_for
-from tests.test_mqtt import Subscriber, publish
-from tests.test_ros2_endpoint import DOMAIN, Peer
-from tests.test_vda5050_master import WAIT, RobotDriver, start_uav, stop_uav
-from tests.udp_vehicle import free_udp_port
+from tests.endpoints.mqtt.test_mqtt import Subscriber, publish
+from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer
+from tests.examples.test_vda5050_master import WAIT, RobotDriver, start_uav, stop_uav
+from tests.support.repo import REPO
+from tests.support.udp_vehicle import free_udp_port
+from tests.support.waiting import wait_for
 
 EXAMPLE = REPO / "examples" / "vda5050" / "v3"
 SCHEMAS = SchemaRegistry(REPO / "schemas")

@@ -41,11 +41,11 @@ from vda5050.model.state import State
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.endpoints.ros2.rosmsg import resolve_type
 from engine.running.runtime import Engine
-from tests.conftest import REPO
-from tests.faults_harness import wait_for
-from tests.test_mqtt import Subscriber, publish
-from tests.test_ros2_endpoint import DOMAIN, Peer, String
-from tests.udp_vehicle import free_udp_port
+from tests.endpoints.mqtt.test_mqtt import Subscriber, publish
+from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer, String
+from tests.support.repo import REPO
+from tests.support.udp_vehicle import free_udp_port
+from tests.support.waiting import wait_for
 
 EXAMPLE = REPO / "examples" / "vda5050"
 Path_ = resolve_type("nav_msgs/msg/Path")
