@@ -103,6 +103,16 @@ class FieldFunctions(functions.Functions):
         enables but does not report healthy (JMESPath's filters cannot read a second array)."""
         return [item for item in items if item not in removed]
 
+    @functions.signature({"types": ["array"]}, {"types": ["array"]}, {"types": ["string"]})
+    def _func_upsert(self, items: list[Any], updates: list[Any], key: str) -> list[Any]:
+        """``items`` with each record whose field ``key`` an update has replaced by that update
+        (in its place), the other updates appended in order: a list of records kept by id, as a
+        remembered value updated by several routes (VDA 5050 action states by ``actionId``;
+        JMESPath's filters cannot compare with a second array)."""
+        by_key = {update.get(key): update for update in updates if isinstance(update, dict)}  # the last update of a key wins
+        kept = [by_key.pop(item.get(key), item) if isinstance(item, dict) else item for item in items]
+        return kept + list(by_key.values())
+
     @functions.signature()
     def _func_uuid(self) -> str:
         return uuid.uuid4().hex

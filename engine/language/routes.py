@@ -36,7 +36,7 @@ from engine.language.mapping import compile_mapping, known_functions, literal_fo
 from engine.language.route_yaml import Document, Path_, Problem, parse_document
 from engine.language.stage_options import (DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, BufferOptions, BufferSpec, DeadLetterSpec,
                                            DeadLettersOptions, FairOptions, ReplyOptions, RouteDelivery, ThrottleOptions)
-from engine.language.stores import RememberOptions
+from engine.language.stores import FAILURE_META, RememberOptions, remember_entries
 from engine.language.templates import Expansion, expand_routes, is_items_text
 
 ROUTE_FILE_SCHEMA: dict[str, Any] = json.loads(
@@ -98,7 +98,7 @@ class RouteOptions:
                                                   "version) or NAME.vN (pinned), from schemas/; raw_json passes any object")
     throttle: ThrottleOptions | None = option(None)
     fair: FairOptions | None = option(None)
-    remember: RememberOptions | None = option(None)
+    remember: RememberOptions | tuple[RememberOptions, ...] | None = option(None)
     priority: Literal["high", "normal", "low"] = option(
         "normal", description="on a link several routes share (a telemetry radio), the order of what is sent next: high before "
                               "normal before low, tunnel routes included; commands and missions always go first")
@@ -178,8 +178,8 @@ class RouteSpec:
     variables: Mapping[str, Any] = field(default_factory=dict, compare=False)
     """The route's template variables (its ``for_each`` item; the fingerprint covers them):
     ``meta(name)`` gives them as constants folded into the compiled mapping."""
-    remember: RememberOptions | None = None
-    """The store its accepted canonical messages are kept in (engine/language/stores.py)."""
+    remember: RememberOptions | tuple[RememberOptions, ...] | None = None
+    """The stores its canonical messages are kept in, and when (engine/language/stores.py)."""
 
 
 @dataclass(frozen=True)
@@ -608,9 +608,11 @@ def _compile_routes(
                 template = " (a for_each route's name must hold a variable that differs by item)" if expansion is not None else ""
                 problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first_file}:{first_line}{_together(document, first_file)}{template}"))
             defined.setdefault(name, (document.file, document.line(where)))
-            if route.remember is not None:
-                remembers.append((document, where, route.remember))
-            for key_path, expression in ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping"))):
+            entries = remember_entries(route.remember)
+            remembers.extend((document, _remember_path(where, route, index), entry) for index, entry in enumerate(entries))
+            for key_path, expression in ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping")),
+                                         *((_remember_path(where, route, index) + ("value",), entry.value)
+                                           for index, entry in enumerate(entries))):
                 recalls.extend((document, key_path, name, store) for store in dict.fromkeys(recall_names(expression)))
             agents_used: dict[str, Any] = {}
             """The agents table's entries the route uses (by name; ``@connection`` its connection's table)."""
@@ -618,7 +620,7 @@ def _compile_routes(
                                                 table, agents_used)
             sink, sink_complete = _endpoint(document, where + ("sink",), name, route.sink, connections, problems, table, agents_used)
             source, sink = _hand_agents(source, sink, route, variables, table, agents_used)
-            if route.remember is None and sink is not None and not endpoints.transport(sink.protocol).delivers:
+            if not entries and sink is not None and not endpoints.transport(sink.protocol).delivers:
                 problems.append(document.problem(where + ("sink",), (
                     f"route {name!r}: a {sink.protocol} sink delivers nowhere: the route needs remember: {{store: NAME}} "
                     "(what it remembers is all it does)")))
@@ -678,9 +680,9 @@ def _store_problems(recalls: list[tuple[Document, Path_, str, str | None]],
         first = stores.setdefault(remember.store, (document, where, remember))
         for key in ("max_age", "per"):
             if getattr(first[2], key) != getattr(remember, key):
-                yield document.problem(where + ("remember", key), (
+                yield document.problem(where + (key,), (
                     f"store {remember.store!r}: {key} {getattr(remember, key)!r} differs from {getattr(first[2], key)!r} "
-                    f"given at {first[0].file}:{first[0].line(first[1] + ('remember',))} (one store, one meaning)"))
+                    f"given at {first[0].file}:{first[0].line(first[1])} (one store, one meaning)"))
     for document, where, route, name in recalls:
         if name is None:
             yield document.problem(where, f"route {route!r}: recall() takes a store name in quotes, as recall('position', serialNumber)")
@@ -719,7 +721,9 @@ def _route_checks(
     type, but its transport's checks wait for the option to be fixed (they would only
     repeat the fault in other words)."""
     name, mapping, sink_mapping = route.name, route.mapping, route.sink.get("mapping")
-    for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
+    values = [(_remember_path(where, route, index) + ("value",), entry.value)
+              for index, entry in enumerate(remember_entries(route.remember)) if entry.value is not None]
+    for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping), *values):
         for message in _mapping_problems(expression):
             problems.append(document.problem(key_path, f"route {name!r}: {message}"))
     schema_name = route.schema
@@ -738,8 +742,17 @@ def _route_checks(
         for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
             for message in _meta_problems(source, expression, variables, has_agents):
                 problems.append(document.problem(key_path, f"route {name!r}: {message}"))
+        for index, entry in enumerate(remember_entries(route.remember)):  # a failed entry's value also reads meta('failure')
+            given = {**variables, FAILURE_META: None} if entry.when == "failed" else variables
+            for message in _meta_problems(source, entry.value, given, has_agents):
+                problems.append(document.problem(_remember_path(where, route, index) + ("value",), f"route {name!r}: {message}"))
         problems.extend(document.problem(where + ("fair",) + key, f"route {name!r}: fair: {message}")
                         for key, message in _fair_problems(source, route.fair, variables))
+
+
+def _remember_path(where: Path_, route: RouteOptions, index: int) -> Path_:
+    """Where a route's ``remember`` entry is written: the mapping itself, or an item of the list."""
+    return where + (("remember", index) if isinstance(route.remember, tuple) else ("remember",))
 
 
 def source_variables(source: EndpointSpec | None) -> tuple[str, ...]:
@@ -880,8 +893,9 @@ def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink
     reads: list[tuple[Path_, str, str]] = []
     if route.throttle is not None and route.throttle.per:
         reads.append((where + ("throttle", "per"), "throttle per", route.throttle.per))
-    if route.remember is not None and route.remember.per:
-        reads.append((where + ("remember", "per"), "remember per", route.remember.per))
+    for index, entry in enumerate(remember_entries(route.remember)):
+        if entry.per:
+            reads.append((_remember_path(where, route, index) + ("per",), "remember per", entry.per))
     latest_only = route.buffer.latest_only if route.buffer else None
     if latest_only is not None and latest_only.per:
         reads.append((where + ("buffer", "latest_only", "per"), "buffer latest_only per", latest_only.per))

@@ -30,7 +30,7 @@ from engine.common.suggest import did_you_mean
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound, Sink
 from engine.language.route_yaml import Problem, parse_document
 from engine.language.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes, source_meta_names
-from engine.language.stores import Stores
+from engine.language.stores import Stores, remember_entries
 from engine.running.pipeline import ConversionError, Pipeline
 from engine.running.replies import ReplyFailed
 
@@ -60,6 +60,10 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
                     "remembered": {"type": "object", "description": "what the stores hold for this case, read by recall(): "
                                                                     "{STORE: {KEY: value}}, or {STORE: value} for a store without per"},
                     "expect": {"description": "the canonical message"},
+                    "expect_remembered": {"type": "object", "description": "what the stores hold after the case, the route's "
+                                                                           "remember: applied as if the sink accepted: "
+                                                                           "{STORE: {KEY: value}} (null: nothing), or {STORE: "
+                                                                           "value} for a store without per"},
                     "ignore": {"type": "array", "items": {"type": "string"}, "description": "keys (a.b) left out"},
                     "expect_sink": {"description": "the sink mapping's output"},
                     "expect_routing_key": {"type": "string", "description": "the rendered routing key or topic"},
@@ -73,7 +77,7 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
     },
 }
 _VALIDATOR = jsonschema.Draft202012Validator(TEST_FILE_SCHEMA)
-_EXPECTATIONS = ("expect", "expect_sink", "expect_routing_key", "expect_reply")
+_EXPECTATIONS = ("expect", "expect_sink", "expect_routing_key", "expect_reply", "expect_remembered")
 
 
 def test_files(routes: Path) -> list[Path]:
@@ -149,6 +153,11 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
                 problems.extend(document.problem(where + ("remembered", name), f"remembered: no route remembers into store "
                                                  f"{name!r}{did_you_mean(name, known) or ' (stores: ' + (', '.join(known) or 'none') + ')'}")
                                 for name in body.get("remembered") or {} if name not in known)
+                problems.extend(document.problem(where + ("expect_remembered", name), f"expect_remembered: route {route!r} "
+                                                 f"remembers into no store {name!r} (it does into: "
+                                                 f"{', '.join(e.store for e in remember_entries(config.routes[route].remember)) or 'none'})")
+                                for name in body.get("expect_remembered") or {}
+                                if name not in {e.store for e in remember_entries(config.routes[route].remember)})
             if len(problems) == before:
                 cases.append(Case(str(path), line, route, body.get("name", ""), body))
     return cases, problems
@@ -188,8 +197,8 @@ class DrySink(Sink):
 
 def store_keys(config: RoutesConfig) -> dict[str, bool]:
     """Each store some route remembers into, and whether it is keyed (``per``)."""
-    return {route.remember.store: route.remember.per is not None
-            for route in config.routes.values() if route.remember is not None}
+    return {entry.store: entry.per is not None
+            for route in config.routes.values() for entry in remember_entries(route.remember)}
 
 
 def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mapping[str, bool] | None = None) -> Result:
@@ -234,6 +243,15 @@ def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mappin
         want, got = _without(body["expect_reply"], ignore), _without(reply, ignore)
         if not same(want, got):
             failures.append(("reply differs", _diff(want, got)))
+    if "expect_remembered" in body:
+        if pipeline.remember is not None:  # as the engine does: converted, then the sink accepted
+            pipeline.remember.on_converted(outbound.canonical, outbound.meta)
+            pipeline.remember.on_accepted(outbound.canonical, outbound.meta)
+        for store, wanted in body["expect_remembered"].items():
+            by_key = (keyed or {}).get(store, True) and isinstance(wanted, Mapping)
+            got = {key: stores.store(store).get(key) for key in wanted} if by_key else stores.store(store).get(None)
+            if not same(_without(wanted, ignore), _without(_plain(got), ignore)):
+                failures.append((f"store {store!r} holds other values", _diff(wanted, _plain(got))))
     if "expect_routing_key" in body and body["expect_routing_key"] != destination:
         failures.append((f"routing key/topic is {destination!r}, expected {body['expect_routing_key']!r}", []))
     if failures:

@@ -23,7 +23,7 @@ from engine.common.schemas import CanonicalSchema, SchemaError, canonical_bytes,
 from engine.endpoints import transport
 from engine.endpoints.base import Inbound, MessageRejected, Outbound, Sink
 from engine.language.mapping import Mapper, compile_mapping
-from engine.language.stores import Remember, Stores
+from engine.language.stores import Remembers, Stores
 from engine.running.delivery import ConversionError
 from engine.running.replies import ReplyShape
 from engine.running.throttle import Throttle
@@ -51,8 +51,8 @@ class Pipeline:
     """The route's ``reply:`` mapping and schema (engine/running/replies.py), compiled with the rest."""
     captured: tuple[str, ...] = ()
     """The names the source captures (``Transport.source_variables``), handed to the sink's templates."""
-    remember: Remember | None = None
-    """Where the route keeps its accepted canonical messages (``remember:``, engine/language/stores.py)."""
+    remember: Remembers | None = None
+    """Where the route keeps its canonical messages, and when (``remember:``, engine/language/stores.py)."""
     in_flight: int = 0
     _drained: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -74,7 +74,8 @@ class Pipeline:
             throttle=Throttle.from_options(spec.throttle),
             reply_shape=ReplyShape(spec.reply, reply_schema),
             captured=transport(spec.source.protocol).source_variables(spec.source.options),
-            remember=Remember.compile(spec.remember, stores),
+            remember=Remembers.compile(spec.remember, stores,
+                                       lambda value: compile_mapping(value, spec.variables, stores, spec.name)),
         )
 
     def convert(self, inbound: Inbound) -> Outbound:

@@ -179,8 +179,11 @@ class RouteRunner:
         parks is settled; the rest is returned, in order."""
         pending: list[_Message] = []
         throttle = pipeline.throttle
+        remember = pipeline.remember
         for index, inbound in enumerate(inbounds):
             message = self._converted(pipeline, index, inbound)
+            if remember is not None and message.outbound is not None and message.outbound.canonical is not None:
+                remember.on_converted(message.outbound.canonical, message.outbound.meta)
             if message.failure is not None:
                 dead.append(message)
             elif throttle is not None and not throttle.admit(message, message.outbound.canonical, self):  # type: ignore[union-attr]
@@ -326,7 +329,7 @@ class RouteRunner:
                 settled[message.index] = True
                 self._accepted(message.inbound, message.outbound)  # type: ignore[arg-type]
                 if message.pipeline.remember is not None:
-                    message.pipeline.remember(message.outbound.canonical)  # type: ignore[union-attr]
+                    message.pipeline.remember.on_accepted(message.outbound.canonical, message.outbound.meta)  # type: ignore[union-attr]
                 continue
             if isinstance(error, NotSent):  # the sink settled it unsent: conflated, or expired while it tried
                 settled[message.index] = True
@@ -408,7 +411,7 @@ class RouteRunner:
         for outbound, received_at_ns in held:
             self.observer.accepted(None, outbound, None if received_at_ns is None else now_ns - received_at_ns)
             if remember is not None:
-                remember(outbound.canonical)
+                remember.on_accepted(outbound.canonical, outbound.meta)
 
     def held_stale(self, held: Held) -> bool:
         received_at_ns = held[1]
@@ -480,6 +483,9 @@ class RouteRunner:
             settled[message.index] = True
             failure = message.failure
             self.observer.dead_letter(message.inbound, message.outbound, failure.stage, failure.error)  # type: ignore[union-attr]
+            remember = message.pipeline.remember
+            if remember is not None and message.outbound is not None:
+                remember.on_failed(message.outbound.canonical, message.outbound.meta, f"{failure.stage}: {failure.error}")  # type: ignore[union-attr]
         self._report_failure(dead[-1].failure, len(dead))  # type: ignore[arg-type]
         calls = [m for m in dead if m.inbound.meta.get("reply_to")]
         if calls:  # each request that failed for good: its caller gets one error reply, published together

@@ -16,12 +16,13 @@ from pathlib import Path
 
 import pytest
 
+from engine.common.options import parse
 from engine.common.placeholders import MappingError
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.language.mapping import compile_mapping
 from engine.language.routes import RoutesInvalid, load_routes
-from engine.language.stores import Stores
+from engine.language.stores import RememberOptions, Remembers, Stores
 from engine.ops.route_tests import load_checked, run_tests
 from engine.running.pipeline import Pipeline
 from engine.running.runtime import Engine
@@ -167,3 +168,66 @@ def test_a_pipeline_without_stores_recalls_nothing() -> None:
     """``check`` and other callers compile without the engine's stores: a fresh, empty set."""
     assert Pipeline.__dataclass_fields__["remember"].default is None
     assert compile_mapping("recall('x', `1`)")({}) is None
+
+
+# ------------------------------------------------------------------ keyed state several routes update
+
+@pytest.mark.fast
+def test_remember_entries_apply_when_converted_accepted_or_failed_with_a_computed_value() -> None:
+    """A list of entries, each at its moment, each with a ``value`` that may read the store's
+    value so far: an action state RUNNING when converted, FINISHED when accepted, FAILED with
+    meta('failure') when dead-lettered; a null value forgets the key."""
+    stores = Stores()
+    entries = tuple(parse(RememberOptions, entry) for entry in [
+        {"store": "actions", "per": "agent", "when": "converted",
+         "value": "upsert(recall('actions', agent) || `[]`, [{id: id, status: 'RUNNING'}], 'id')"},
+        {"store": "actions", "per": "agent", "value": "upsert(recall('actions', agent) || `[]`, [{id: id, status: 'FINISHED'}], 'id')"},
+        {"store": "actions", "per": "agent", "when": "failed",
+         "value": "upsert(recall('actions', agent) || `[]`, [{id: id, status: 'FAILED', why: meta('failure')}], 'id')"},
+        {"store": "last", "per": "agent", "when": "converted", "value": "forget != `true` && id || null"}])
+    remembers = Remembers.compile(entries, stores, lambda value: compile_mapping(value, None, stores, "r"))
+    assert remembers is not None and (len(remembers.converted), len(remembers.accepted), len(remembers.failed)) == (2, 1, 1)
+    actions = stores.store("actions")
+    remembers.on_converted({"agent": "uav1", "id": "a"}, {})
+    remembers.on_converted({"agent": "uav1", "id": "b"}, {})
+    assert actions.get("uav1") == [{"id": "a", "status": "RUNNING"}, {"id": "b", "status": "RUNNING"}]
+    remembers.on_accepted({"agent": "uav1", "id": "a"}, {})
+    remembers.on_failed({"agent": "uav1", "id": "b"}, {"topic": "t"}, "sink: refused")
+    assert actions.get("uav1") == [{"id": "a", "status": "FINISHED"}, {"id": "b", "status": "FAILED", "why": "sink: refused"}]
+    assert stores.store("last").get("uav1") == "b"
+    remembers.on_converted({"agent": "uav1", "id": "c", "forget": True}, {})
+    assert stores.store("last").get("uav1") is None and stores.status() == {"actions": 1, "last": 0}
+
+
+@pytest.mark.fast
+def test_check_names_a_bad_remember_value_and_route_tests_expect_what_is_remembered(tmp_path: Path) -> None:
+    routes = ROUTES.replace("    remember: {store: positions, per: agent}\n", """    remember:
+      - {store: positions, per: agent}
+      - {store: trail, per: agent, when: converted, value: "upsert(recall('trail', agent) || `[]`, [{t: t, x: x}], 't')"}
+""")
+    bad = (routes.replace("recall('trail', agent) || `[]`", "recall('trial', agent) || `[]`").replace("[{t: t, x: x}]", "[{t: t, x: x}")
+           .replace("      - {store: positions, per: agent}\n", "      - {store: positions, per: agent, value: \"meta('failure')\"}\n"))
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(_write(tmp_path / "bad", bad), SCHEMAS)
+    messages = [f"{problem.file.rsplit('/', 1)[-1]}:{problem.line}: {problem.message}" for problem in invalid.value.problems]
+    assert any(m.startswith("routes.yaml:10: route 'positions-in': bad JMESPath") for m in messages), messages
+    assert any("routes.yaml:9: route 'positions-in': meta('failure'): the mqtt source gives no 'failure'" in m for m in messages), messages
+    tests = """
+tests:
+  - route: positions-in
+    input: {agent: uav1, t: 1, x: 4.5}
+    remembered: {trail: {uav1: [{t: 0, x: 4.0}]}}
+    expect_remembered: {trail: {uav1: [{t: 0, x: 4.0}, {t: 1, x: 4.5}], uav2: null}, positions: {uav1: {agent: uav1, t: 1, x: 4.5}}}
+  - route: positions-in
+    input: {agent: uav1, t: 1, x: 4.5}
+    expect_remembered: {trail: {uav1: []}}
+  - route: status-out
+    input: {agent: uav1, charge: 80}
+    expect_remembered: {trail: {uav1: []}}
+"""
+    config, cases, problems, _ = load_checked(_write(tmp_path / "good", routes, tests), SCHEMAS)
+    assert [p.message for p in problems] == ["expect_remembered: route 'status-out' remembers into no store 'trail' (it does into: none)"]
+    assert config is not None
+    results = list(run_tests(cases, config, SCHEMAS))
+    assert [r.passed for r in results] == [True, False]
+    assert "store 'trail' holds other values" in results[1].reason

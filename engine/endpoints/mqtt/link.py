@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import os
 import ssl
@@ -54,7 +53,8 @@ from engine.common.tls import LastTlsError, TlsOptions, tls_context, tls_failure
 from engine.endpoints.base import Connection, EndpointError, typed
 from engine.endpoints.mqtt.broker import CA_ENV, URL_ENV
 from engine.endpoints.mqtt.errors import describe, edge_error, from_code, mapped
-from engine.endpoints.mqtt.options import DEFAULT_URL, MqttConnectionOptions, MqttMessageOptions
+from engine.endpoints.mqtt.options import DEFAULT_URL, MqttConnectionOptions
+from engine.endpoints.mqtt.presence import PublishedCounts, rendered
 from engine.endpoints.mqtt.topics import subscription_id
 
 log = logging.getLogger("engine.mqtt")
@@ -153,31 +153,6 @@ class Subscriber(Protocol):
     def offer(self, received: Received) -> None: ...
 
 
-def rendered(message: MqttMessageOptions, now_ns: int | None = None) -> bytes:
-    """``message``'s payload with ``{now}`` and ``{now_ms}`` filled with the time now (see
-    MqttMessageOptions): a will is fixed when the client connects, so its timestamp and a
-    headerId taken from the clock can only be the time of connecting; a mapping is sent as
-    JSON, where a string that is exactly ``{now_ms}`` becomes a number (VDA 5050's headerId
-    is an integer)."""
-    now_ns = time.time_ns() if now_ns is None else now_ns
-    millis = now_ns // 1_000_000
-    iso = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(millis // 1000)) + f".{millis % 1000:03d}Z"
-
-    def fill(value: Any) -> Any:
-        if isinstance(value, str):
-            return millis if value == "{now_ms}" else value.replace("{now_ms}", str(millis)).replace("{now}", iso)
-        if isinstance(value, Mapping):
-            return {key: fill(item) for key, item in value.items()}
-        if isinstance(value, list | tuple):
-            return [fill(item) for item in value]
-        return value
-
-    payload = message.payload
-    if isinstance(payload, str):
-        return payload.replace("{now_ms}", str(millis)).replace("{now}", iso).encode()
-    return json.dumps(fill(payload), separators=(",", ":")).encode()
-
-
 def _paho(client: aiomqtt.Client) -> paho_mqtt.Client:
     """The paho client under aiomqtt's (see the module docstring for why)."""
     return client._client  # noqa: SLF001
@@ -212,6 +187,8 @@ class MqttLink(Connection):
         self._last_registration = time.monotonic()
         self._unrouted = 0
         self._warned: set[str] = set()
+        self._published = PublishedCounts((self.settings.will, self.settings.on_stop))
+        """For the will's and on_stop's ``{next}`` (presence.py)."""
 
     # -- health
 
@@ -275,7 +252,7 @@ class MqttLink(Connection):
             arguments.update(clean_session=not self.persistent)
         will = settings.will
         if will is not None:  # filled now: the broker keeps the will as it was at CONNECT
-            arguments["will"] = aiomqtt.Will(will.topic, rendered(will), will.qos, will.retain)
+            arguments["will"] = aiomqtt.Will(will.topic, rendered(will, self._published.next(will.topic)), will.qos, will.retain)
         return aiomqtt.Client(
             endpoint.host, endpoint.port,
             identifier=settings.client_id,
@@ -398,7 +375,8 @@ class MqttLink(Connection):
         where = f"{self.where}: on_stop"
         try:
             [error] = await asyncio.wait_for(
-                self.publish_batch([(message.topic, rendered(message))], message.qos, message.retain, where), REQUEST_TIMEOUT)
+                self.publish_batch([(message.topic, rendered(message, self._published.next(message.topic)))], message.qos,
+                                   message.retain, where), REQUEST_TIMEOUT)
         except TimeoutError:
             error = EndpointError(f"{where}: no acknowledgement within {REQUEST_TIMEOUT:.0f} s")
         if error is not None:
@@ -597,4 +575,5 @@ class MqttLink(Connection):
                     results[index] = future.exception()
                 else:
                     results[index] = from_code(future.result(), f"{where}: publish on {messages[index][0]!r}")
+        self._published.count(messages, results)
         return results

@@ -21,9 +21,10 @@ DEFAULT_URL = "mqtt://localhost:1883"
 class MqttMessageOptions:
     """One message the connection itself publishes: its last will, or what it says on a clean stop."""
 
-    __schema_description__ = ("a message the connection publishes by itself; in payload, the strings {now} (ISO 8601 UTC, ms) "
-                              "and {now_ms} (ms since 1970, a number when it is the whole value) are filled when it is set: "
-                              "a will at each connection (the time of connecting), on_stop at the stop")
+    __schema_description__ = ("a message the connection publishes by itself; in payload, the strings {now} (ISO 8601 UTC, ms), "
+                              "{now_ms} (ms since 1970) and {next} (one more than the messages the connection published on "
+                              "the topic; both a number when they are the whole value) are filled when it is set: a will "
+                              "at each connection (the time and count of connecting), on_stop at the stop")
 
     topic: str = option(pattern=r"^[^+#]+$", description="topic to publish on (no wildcards)")
     payload: str | dict[str, Any] = option(description="the message: a string, or a mapping sent as JSON")

@@ -684,7 +684,7 @@ def test_connection_topic_is_online_then_connectionbroken_or_offline(tmp_path: P
 
     topic = f"uagv/v2/rabbitros/robot1-{uuid.uuid4().hex[:6]}/connection"
     routes = routes_dir(tmp_path, PRESENCE.format(mqtt=mosquitto.url, topic=topic))
-    connection_schema = SchemaRegistry(schemas_dir).get("vda5050/connection")
+    connection_schema = SchemaRegistry(schemas_dir).get("vda5050/connection.v2")
     assert connection_schema is not None
     engine = EngineProcess(routes, tmp_path / "status.json", {})
 
