@@ -419,7 +419,7 @@ class Sink(ABC):
                 results.append(None)
         return results
 
-    async def close(self) -> None:
+    async def close(self) -> None:  # noqa: B027  # a hook: most sinks hold nothing of their own
         """Release what the sink holds (the connection itself stays open)."""
 
 
@@ -654,7 +654,7 @@ class Transport(ABC):
         reopens the connection when their contents change."""
         return ()
 
-    async def source_retired(
+    async def source_retired(  # noqa: B027  # a hook: only AMQP undoes anything
         self, connection: Connection, route: str, options: Any,
         remaining: Iterable[tuple[str, Any]],
     ) -> None:

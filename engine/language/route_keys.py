@@ -122,7 +122,7 @@ class _Renderer:
         extra = node.get("additionalProperties")
         if isinstance(extra, dict):
             names = (node.get("propertyNames") or {}).get("pattern")
-            key = f"`<name>`" + (f" (matching `{names}`)" if names else "")
+            key = "`<name>`" + (f" (matching `{names}`)" if names else "")
             value = self.value(extra, f"{path}.<name>")
             section.rows.append((key, value, "", _description(extra)))
 

@@ -585,7 +585,7 @@ def _compile_routes(
     schemas: SchemaRegistry,
     problems: list[Problem],
     warnings: list[Problem],
-    table: agents_table.Table = {},
+    table: agents_table.Table,
 ) -> dict[str, RouteSpec]:
     routes: dict[str, RouteSpec] = {}
     defined: dict[str, tuple[str, int]] = {}
@@ -1057,7 +1057,7 @@ def _endpoint(
     body: Mapping[str, Any],
     connections: dict[str, ConnectionSpec],
     problems: list[Problem],
-    table: agents_table.Table = {},
+    table: agents_table.Table,
     used: dict[str, Any] | None = None,
 ) -> tuple[EndpointSpec | None, bool]:
     """``(spec, complete)`` of a route's source or sink; an incomplete spec (an option at

@@ -118,7 +118,7 @@ class Ros2Node(Connection):
     def calls(self) -> ros2_calls.CallNode:
         """The node of this connection's service calls, made on first use (engine.endpoints.ros2.calls.py)."""
         if self._calls is None:
-            self.node  # raises EndpointError when not open
+            self.node  # noqa: B018  # raises EndpointError when not open
             self._calls = ros2_calls.CallNode(self._context, self.settings.node, self.settings.namespace)
         return self._calls
 
