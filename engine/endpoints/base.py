@@ -234,15 +234,20 @@ class Outbound:
 class Deliver(Protocol):
     """What a route gives its source: where messages go, and the source's bounds."""
 
-    overflow: str
-    """One of :data:`OVERFLOW_POLICIES`, for sources that queue messages in memory."""
-    queue_limit: int
-    """The most messages a source may hold between its protocol and ``batch``."""
-    batches_in_flight: int
-    """How many ``batch`` calls a source that settles in batches (AMQP) may have running at
-    once: 1 unless the route's sink declares more (:attr:`Sink.batches_in_flight`) and the
-    route neither keeps order (``ordered``) nor holds messages in a buffer. The source still
-    settles its batches in the order it took them, each message only once ``batch`` said so."""
+    @property
+    def overflow(self) -> str:
+        """One of :data:`OVERFLOW_POLICIES`, for sources that queue messages in memory."""
+
+    @property
+    def queue_limit(self) -> int:
+        """The most messages a source may hold between its protocol and ``batch``."""
+
+    @property
+    def batches_in_flight(self) -> int:
+        """How many ``batch`` calls a source that settles in batches (AMQP) may have running at
+        once: 1 unless the route's sink declares more (:attr:`Sink.batches_in_flight`) and the
+        route neither keeps order (``ordered``) nor holds messages in a buffer. The source still
+        settles its batches in the order it took them, each message only once ``batch`` said so."""
 
     async def __call__(self, inbound: Inbound) -> None:
         """Settle one message; raises :class:`EndpointError` if it could not be settled."""
