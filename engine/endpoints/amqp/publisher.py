@@ -246,7 +246,7 @@ class SharedPublisher:
                 self._underlay = None  # the fast path: not this channel any more
             await on_close_frame(frame)
 
-        channel._on_close_frame = close_frame  # type: ignore[attr-defined,method-assign]
+        channel._on_close_frame = close_frame  # type: ignore[attr-defined]
 
     def _encode(self, parts: list[_Part], channel: aiormq.abc.AbstractChannel) -> tuple[
             list[list[BaseException | None]], list[bytes], list[tuple[int, int]]]:
@@ -460,7 +460,7 @@ def _confirm_in_order(channel: aiormq.abc.AbstractChannel) -> None:
                 break
             settle(first, frame)
 
-    channel._on_confirm_frame = on_confirm_frame  # type: ignore[attr-defined,method-assign]
+    channel._on_confirm_frame = on_confirm_frame
 
 
 class _Confirming:

@@ -187,7 +187,7 @@ def _enum_name_problems(node: dict[str, Any], enum: str | None) -> list[str]:
     else:
         return []
     try:
-        mav_enum_value(name, enum)  # type: ignore[arg-type]
+        mav_enum_value(name, enum)
     except ValueError as exc:
         return [str(exc)]
     return []

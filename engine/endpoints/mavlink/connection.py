@@ -171,8 +171,8 @@ class MavlinkConnection(Connection):
                 listener(msg)
         if self._from_system:
             system = msg.get_header().srcSystem
-            for key in ((msg_id, system), (None, system)):  # type: ignore[assignment]
-                for listener in self._from_system.get(key, ()):  # type: ignore[call-overload]
+            for key in ((msg_id, system), (None, system)):
+                for listener in self._from_system.get(key, ()):
                     listener(msg)
 
     def listen(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None:
