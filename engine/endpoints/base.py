@@ -56,10 +56,13 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar, Generic, Iterable, Iterator, Mapping, Protocol, Sequence, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Generic, Iterable, Iterator, Mapping, Protocol, Sequence, TypeVar
 
 from engine.common.options import OptionError, describe, dotted, option, parse
 from engine.common.suggest import closest
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 
 class EndpointError(Exception):
@@ -536,7 +539,8 @@ class EndpointOptions:
     :class:`Expired` once it is older than that."""
 
 
-O = TypeVar("O")
+O = TypeVar("O", bound="DataclassInstance")
+"""An option class (a dataclass, engine/common/options.py)."""
 
 
 def typed(cls: type[O], value: Any, where: str) -> O:
@@ -565,7 +569,7 @@ class Transport(ABC):
     """What the engine knows about a protocol before connecting: defaults and static checks."""
 
     name: ClassVar[str]
-    connection_type: ClassVar[type[Connection]] = Connection
+    connection_type: ClassVar[type[Connection]] = Connection  # type: ignore[type-abstract]  # read for its capabilities, never instantiated
     """The class :meth:`connect` returns: the core reads its capabilities (``keeps_dead_letters``,
     ``holds_leases``) at load, before anything connects."""
     default_settings: ClassVar[Mapping[str, Any]]
