@@ -573,7 +573,7 @@ class Transport(ABC):
     """The class :meth:`connect` returns: the core reads its capabilities (``keeps_dead_letters``,
     ``holds_leases``) at load, before anything connects."""
     default_settings: ClassVar[Mapping[str, Any]]
-    connection_options: ClassVar[type]
+    connection_options: ClassVar[type[DataclassInstance]]
     """The option class of ``connections.<name>.<protocol>`` (engine/common/options.py)."""
     source_options: ClassVar[type[EndpointOptions]]
     sink_options: ClassVar[type[EndpointOptions]]

@@ -432,7 +432,7 @@ def _together(document: Document, other_file: str) -> str:
     return " (every file of a routes directory is loaded together: keep alternative files in separate directories)"
 
 
-def _items(document: Document, key: str, kind: type) -> Iterator[Any]:
+def _items(document: Document, key: str, kind: type[Any]) -> Iterator[Any]:
     """``connections`` (a mapping's items) or ``routes`` (a list's items, numbered) of a
     document; nothing when the value is of another shape (the schema reported it)."""
     value = document.data.get(key)
@@ -873,7 +873,7 @@ def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink
     declares a field of that name too, the captured value wins, which is said."""
     name, schema_name = route.name, route.schema
     declared = schemas.declared(schema_name) if schema_name else None
-    if declared is None:
+    if declared is None or schema_name is None:
         return
     for message in undeclared_keys(mapping_writes(route.mapping), declared, schema_name):
         yield document.problem(where + ("mapping",), f"route {name!r}: {message}")
@@ -934,8 +934,9 @@ def _compile_dead_letters(
     found = [(document, document.data["dead_letters"]) for document in documents if document.data.get("dead_letters")]
     if len(found) > 1:
         first = found[0][0]
-        for document, _ in found[1:]:
-            problems.append(document.problem(("dead_letters",), f"dead_letters is already defined at {first.file}:{first.line(('dead_letters',))}"))
+        for other, _ in found[1:]:
+            problems.append(other.problem(("dead_letters",), f"dead_letters is already defined at {first.file}:{first.line(('dead_letters',))}"))
+    document: Document | None
     document, body = found[0] if found else (None, {})
     try:
         options = parse(DeadLettersOptions, body, ("dead_letters",))
