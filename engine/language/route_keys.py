@@ -101,6 +101,7 @@ class _Renderer:
             types = node.get("type", "any")
             types = types if isinstance(types, list) else [types]
             words = []
+            kind: str
             for kind in types:
                 if kind == "array":
                     item = node.get("items") or {}
