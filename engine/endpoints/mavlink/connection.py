@@ -113,18 +113,21 @@ class MavlinkConnection(Connection):
 
     def source(self, route: str, options: MavlinkSourceOptions | Mapping[str, Any]) -> Source:
         options = source_options(route, options)
+        system_id = options.system_id
+        assert not isinstance(system_id, str)  # source_options refused an agent's name the loader did not resolve
         if options.json_tunnel:
             return TunnelSource(self.hub, route=route, payload_type=options.payload_type,
-                                system_id=options.system_id, component_id=options.component_id)
+                                system_id=system_id, component_id=options.component_id)
         name = options.message
-        return MessageSource(self, route, MESSAGES[name].id if name else None, options.system_id,  # type: ignore[arg-type]
+        return MessageSource(self, route, MESSAGES[name].id if name else None, system_id,
                              options.component_id, options.agents)
 
     def sink(self, route: str, options: MavlinkSinkOptions | Mapping[str, Any]) -> Sink:
         options = sink_options(route, options)
         if options.json_tunnel:
-            target = (options.target_system or 0, options.target_component or 0)
-            return TunnelSink(self.hub, payload_type=options.payload_type, target=target, priority=options.priority,
+            target_system, target_component = options.target_system or 0, options.target_component or 0
+            assert isinstance(target_system, int) and isinstance(target_component, int)  # sink_options refused a name or {field}
+            return TunnelSink(self.hub, payload_type=options.payload_type, target=(target_system, target_component), priority=options.priority,
                               max_age=options.max_age)
         return sink_for(self, route, options)
 
