@@ -365,15 +365,17 @@ def _agents_table(texts: list[tuple[Path, str]], env: Mapping[str, str], problem
         if not _AGENTS_KEY.search(text):
             continue
         document = parse_document(str(path), text, env, [], _ROUTE_FILE_VALIDATOR, keep_invalid=True)
-        body = document.data.get(agents_table.AGENTS) if document is not None else None
+        if document is None:
+            continue
+        body = document.data.get(agents_table.AGENTS)
         if not isinstance(body, dict):
             continue
         for name, entry in body.items():
-            line = document.line((agents_table.AGENTS, name))  # type: ignore[union-attr]
+            line = document.line((agents_table.AGENTS, name))
             if name in where_defined:
                 first_file, first_line = where_defined[name]
                 problems.append(Problem(str(path), line, f"agent {name!r} is already defined at {first_file}:{first_line}"
-                                                         f"{_together(document, first_file)}"))  # type: ignore[arg-type]
+                                                         f"{_together(document, first_file)}"))
                 continue
             where_defined[name] = (str(path), line)
             if not isinstance(entry, dict) or any(not isinstance(key, str) or not _VARIABLE.match(key) for key in entry):

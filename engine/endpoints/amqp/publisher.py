@@ -332,8 +332,9 @@ class SharedPublisher:
         self.messages += len(payloads)
         if confirms:
             return await _confirmed(channel, confirmations)
+        assert drained is not None  # made above for a channel without confirms
         try:
-            await drained  # type: ignore[misc]
+            await drained
         except LIBRARY_ERRORS as exc:
             return [exc] * len(payloads)
         return [None] * len(payloads)

@@ -191,12 +191,14 @@ class MavlinkConnection(Connection):
             self._from_system.setdefault((msg_id, system_id), []).append(listener)
 
     def unlisten(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None:
-        listeners = self._listeners if system_id is None else self._from_system
-        key = msg_id if system_id is None else (msg_id, system_id)
         with contextlib.suppress(KeyError, ValueError):
-            listeners[key].remove(listener)  # type: ignore[index]
-            if not listeners[key] and system_id is not None:  # type: ignore[index]
-                del listeners[key]  # type: ignore[arg-type]
+            if system_id is None:
+                self._listeners[msg_id].remove(listener)
+                return
+            key = (msg_id, system_id)
+            self._from_system[key].remove(listener)
+            if not self._from_system[key]:
+                del self._from_system[key]
 
     # presence
 
