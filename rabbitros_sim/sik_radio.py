@@ -433,7 +433,7 @@ def _parse_outage(text: str) -> tuple[float, float]:
     try:
         start, duration = (float(part) for part in text.split(":"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected START:DURATION in seconds, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected START:DURATION in seconds, got {text!r}") from None
     if start < 0 or duration <= 0:
         raise argparse.ArgumentTypeError(f"outage needs START >= 0 and DURATION > 0: {text!r}")
     return start, duration

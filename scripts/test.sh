@@ -15,9 +15,15 @@
 # Every test has its own timeout (pyproject.toml, pytest-timeout): a hung test fails by name.
 # Arguments go to every run (test files, -k, -x, --durations=N ...); a run that selects no test
 # is not a failure unless none selects any. RABBITROS_TEST_WORKERS=0: no workers (one process).
+# Before the tests, the static checks (configured in pyproject.toml; seconds with their caches):
+# ruff's lint over engine/, tests/, bench/, rabbitros_sim/ and mypy over engine/. A finding fails
+# the run before any broker starts.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
+
+.venv/bin/ruff check
+.venv/bin/mypy
 
 workers=${RABBITROS_TEST_WORKERS:-3}
 deadline=$((SECONDS + 1500))

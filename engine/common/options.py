@@ -35,13 +35,17 @@ import types
 import typing
 from collections.abc import Mapping
 from functools import cache
-from typing import Any, Literal, TypeVar, Union
+from typing import TYPE_CHECKING, Any, Literal, TypeVar, Union
 
 from engine.common.redaction import Secret
 from engine.common.suggest import did_you_mean
 
 KeyPath = tuple[str | int, ...]
-T = TypeVar("T")
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+T = TypeVar("T", bound="DataclassInstance")
+"""An option class: a dataclass."""
 
 _GIVEN = "_given_keys"
 
@@ -101,7 +105,7 @@ def option(
 
 def evolve(value: T, **changes: Any) -> T:
     """``dataclasses.replace`` that keeps what :func:`given` says (the keys written)."""
-    out = dataclasses.replace(value, **changes)  # type: ignore[type-var]
+    out = dataclasses.replace(value, **changes)
     object.__setattr__(out, _GIVEN, given(value))
     return out
 
@@ -205,7 +209,7 @@ def _typed(hint: Any, meta: Mapping[str, Any], value: Any, path: KeyPath) -> Any
         if not isinstance(value, Mapping):
             raise OptionError(path, f"{_shown(value)} is not of type 'object'")
         return dict(value)
-    if dataclasses.is_dataclass(hint):
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
         return parse(hint, value, path)
     if hint is Any:
         return value
@@ -313,7 +317,7 @@ def _type_schema(hint: Any) -> dict[str, Any]:
         return {"type": "array", "items": _type_schema(typing.get_args(hint)[0])}
     if origin is dict or hint is dict:
         return {"type": "object"}
-    if dataclasses.is_dataclass(hint):
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
         return schema(hint)
     if hint in _SIMPLE:
         return {"type": _SIMPLE[hint]}

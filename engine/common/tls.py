@@ -104,7 +104,7 @@ class _ServerNameContext(ssl.SSLContext):
     expected_name: str | None = None
 
     def wrap_bio(self, incoming: Any, outgoing: Any, server_side: bool = False,
-                 server_hostname: str | None = None, session: Any = None) -> ssl.SSLObject:
+                 server_hostname: str | bytes | None = None, session: Any = None) -> ssl.SSLObject:
         return super().wrap_bio(incoming, outgoing, server_side=server_side,
                                 server_hostname=self.expected_name or server_hostname, session=session)
 

@@ -56,10 +56,13 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar, Generic, Iterable, Iterator, Mapping, Protocol, Sequence, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Generic, Iterable, Iterator, Mapping, Protocol, Sequence, TypeVar
 
 from engine.common.options import OptionError, describe, dotted, option, parse
 from engine.common.suggest import closest
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 
 class EndpointError(Exception):
@@ -234,15 +237,20 @@ class Outbound:
 class Deliver(Protocol):
     """What a route gives its source: where messages go, and the source's bounds."""
 
-    overflow: str
-    """One of :data:`OVERFLOW_POLICIES`, for sources that queue messages in memory."""
-    queue_limit: int
-    """The most messages a source may hold between its protocol and ``batch``."""
-    batches_in_flight: int
-    """How many ``batch`` calls a source that settles in batches (AMQP) may have running at
-    once: 1 unless the route's sink declares more (:attr:`Sink.batches_in_flight`) and the
-    route neither keeps order (``ordered``) nor holds messages in a buffer. The source still
-    settles its batches in the order it took them, each message only once ``batch`` said so."""
+    @property
+    def overflow(self) -> str:
+        """One of :data:`OVERFLOW_POLICIES`, for sources that queue messages in memory."""
+
+    @property
+    def queue_limit(self) -> int:
+        """The most messages a source may hold between its protocol and ``batch``."""
+
+    @property
+    def batches_in_flight(self) -> int:
+        """How many ``batch`` calls a source that settles in batches (AMQP) may have running at
+        once: 1 unless the route's sink declares more (:attr:`Sink.batches_in_flight`) and the
+        route neither keeps order (``ordered``) nor holds messages in a buffer. The source still
+        settles its batches in the order it took them, each message only once ``batch`` said so."""
 
     async def __call__(self, inbound: Inbound) -> None:
         """Settle one message; raises :class:`EndpointError` if it could not be settled."""
@@ -419,7 +427,7 @@ class Sink(ABC):
                 results.append(None)
         return results
 
-    async def close(self) -> None:
+    async def close(self) -> None:  # noqa: B027  # a hook: most sinks hold nothing of their own
         """Release what the sink holds (the connection itself stays open)."""
 
 
@@ -531,7 +539,8 @@ class EndpointOptions:
     :class:`Expired` once it is older than that."""
 
 
-O = TypeVar("O")
+O = TypeVar("O", bound="DataclassInstance")
+"""An option class (a dataclass, engine/common/options.py)."""
 
 
 def typed(cls: type[O], value: Any, where: str) -> O:
@@ -560,11 +569,11 @@ class Transport(ABC):
     """What the engine knows about a protocol before connecting: defaults and static checks."""
 
     name: ClassVar[str]
-    connection_type: ClassVar[type[Connection]] = Connection
+    connection_type: ClassVar[type[Connection]] = Connection  # type: ignore[type-abstract]  # read for its capabilities, never instantiated
     """The class :meth:`connect` returns: the core reads its capabilities (``keeps_dead_letters``,
     ``holds_leases``) at load, before anything connects."""
     default_settings: ClassVar[Mapping[str, Any]]
-    connection_options: ClassVar[type]
+    connection_options: ClassVar[type[DataclassInstance]]
     """The option class of ``connections.<name>.<protocol>`` (engine/common/options.py)."""
     source_options: ClassVar[type[EndpointOptions]]
     sink_options: ClassVar[type[EndpointOptions]]
@@ -654,7 +663,7 @@ class Transport(ABC):
         reopens the connection when their contents change."""
         return ()
 
-    async def source_retired(
+    async def source_retired(  # noqa: B027  # a hook: only AMQP undoes anything
         self, connection: Connection, route: str, options: Any,
         remaining: Iterable[tuple[str, Any]],
     ) -> None:

@@ -33,7 +33,7 @@ reloads only the routes that use it.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, TypeGuard
 
 from engine.common.suggest import did_you_mean
 
@@ -69,7 +69,7 @@ def resolve(table: Table, name: str, key: str) -> tuple[Any, str | None, str | N
     return entry[key], entry.get(CONNECTION), None
 
 
-def is_name(value: Any) -> bool:
+def is_name(value: Any) -> TypeGuard[str]:
     """Whether an option's value is an agent's name: text that is neither a number nor a
     ``{field}`` read from the message."""
     return isinstance(value, str) and not value.startswith("{") and not value.lstrip("-").isdigit()

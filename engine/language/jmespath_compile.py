@@ -209,7 +209,7 @@ class _Compiler:
         def multi_select_custom(value: Any) -> Any:
             if value is None:
                 return None
-            collected = dict_cls()
+            collected: dict[Any, Any] = dict_cls()
             for key, item in pairs:
                 collected[key] = item(value)
             return collected

@@ -101,6 +101,7 @@ class _Renderer:
             types = node.get("type", "any")
             types = types if isinstance(types, list) else [types]
             words = []
+            kind: str
             for kind in types:
                 if kind == "array":
                     item = node.get("items") or {}
@@ -122,7 +123,7 @@ class _Renderer:
         extra = node.get("additionalProperties")
         if isinstance(extra, dict):
             names = (node.get("propertyNames") or {}).get("pattern")
-            key = f"`<name>`" + (f" (matching `{names}`)" if names else "")
+            key = "`<name>`" + (f" (matching `{names}`)" if names else "")
             value = self.value(extra, f"{path}.<name>")
             section.rows.append((key, value, "", _description(extra)))
 

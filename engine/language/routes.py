@@ -365,15 +365,17 @@ def _agents_table(texts: list[tuple[Path, str]], env: Mapping[str, str], problem
         if not _AGENTS_KEY.search(text):
             continue
         document = parse_document(str(path), text, env, [], _ROUTE_FILE_VALIDATOR, keep_invalid=True)
-        body = document.data.get(agents_table.AGENTS) if document is not None else None
+        if document is None:
+            continue
+        body = document.data.get(agents_table.AGENTS)
         if not isinstance(body, dict):
             continue
         for name, entry in body.items():
-            line = document.line((agents_table.AGENTS, name))  # type: ignore[union-attr]
+            line = document.line((agents_table.AGENTS, name))
             if name in where_defined:
                 first_file, first_line = where_defined[name]
                 problems.append(Problem(str(path), line, f"agent {name!r} is already defined at {first_file}:{first_line}"
-                                                         f"{_together(document, first_file)}"))  # type: ignore[arg-type]
+                                                         f"{_together(document, first_file)}"))
                 continue
             where_defined[name] = (str(path), line)
             if not isinstance(entry, dict) or any(not isinstance(key, str) or not _VARIABLE.match(key) for key in entry):
@@ -432,7 +434,7 @@ def _together(document: Document, other_file: str) -> str:
     return " (every file of a routes directory is loaded together: keep alternative files in separate directories)"
 
 
-def _items(document: Document, key: str, kind: type) -> Iterator[Any]:
+def _items(document: Document, key: str, kind: type[Any]) -> Iterator[Any]:
     """``connections`` (a mapping's items) or ``routes`` (a list's items, numbered) of a
     document; nothing when the value is of another shape (the schema reported it)."""
     value = document.data.get(key)
@@ -585,7 +587,7 @@ def _compile_routes(
     schemas: SchemaRegistry,
     problems: list[Problem],
     warnings: list[Problem],
-    table: agents_table.Table = {},
+    table: agents_table.Table,
 ) -> dict[str, RouteSpec]:
     routes: dict[str, RouteSpec] = {}
     defined: dict[str, tuple[str, int]] = {}
@@ -886,7 +888,7 @@ def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink
     declares a field of that name too, the captured value wins, which is said."""
     name, schema_name = route.name, route.schema
     declared = schemas.declared(schema_name) if schema_name else None
-    if declared is None:
+    if declared is None or schema_name is None:
         return
     for message in undeclared_keys(mapping_writes(route.mapping), declared, schema_name):
         yield document.problem(where + ("mapping",), f"route {name!r}: {message}")
@@ -948,8 +950,9 @@ def _compile_dead_letters(
     found = [(document, document.data["dead_letters"]) for document in documents if document.data.get("dead_letters")]
     if len(found) > 1:
         first = found[0][0]
-        for document, _ in found[1:]:
-            problems.append(document.problem(("dead_letters",), f"dead_letters is already defined at {first.file}:{first.line(('dead_letters',))}"))
+        for other, _ in found[1:]:
+            problems.append(other.problem(("dead_letters",), f"dead_letters is already defined at {first.file}:{first.line(('dead_letters',))}"))
+    document: Document | None
     document, body = found[0] if found else (None, {})
     try:
         options = parse(DeadLettersOptions, body, ("dead_letters",))
@@ -1071,7 +1074,7 @@ def _endpoint(
     body: Mapping[str, Any],
     connections: dict[str, ConnectionSpec],
     problems: list[Problem],
-    table: agents_table.Table = {},
+    table: agents_table.Table,
     used: dict[str, Any] | None = None,
 ) -> tuple[EndpointSpec | None, bool]:
     """``(spec, complete)`` of a route's source or sink; an incomplete spec (an option at

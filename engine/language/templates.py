@@ -93,8 +93,9 @@ def expand_routes(
         items = _complete_items(file, line, where, template, items, problems, source_file)
         for item in items:
             placeholders: dict[Path_, tuple[str, ...]] = {}
+            substituted_at: dict[Path_, str] = {}
             try:
-                copy_ = _substitute(template, item, (), placeholders, substituted_at := {})
+                copy_ = _substitute(template, item, (), placeholders, substituted_at)
             except MappingError as exc:  # a format spec the item's value does not take ({id:03d} with id "seven")
                 problems.append(Problem(file, line, f"{_dotted(where)} item {item!r}: {exc}"))
                 continue
@@ -220,7 +221,9 @@ def _move(paths: dict[Path_, Any], moved: Mapping[int, list[int]]) -> None:
     for path in old_entries:
         del paths[path]
     for path, value in old_entries.items():
-        for new in moved.get(path[1], ()):
+        old = path[1]
+        assert isinstance(old, int)  # old_entries holds route indices only (above)
+        for new in moved.get(old, ()):
             paths[("routes", new) + path[2:]] = value
 
 

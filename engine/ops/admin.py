@@ -211,7 +211,7 @@ class AdminServer:
         self.access = access or AdminAccess()
         self.registry = CollectorRegistry(auto_describe=False)
         self.collector = EngineCollector(engine)
-        self.registry.register(self.collector)  # type: ignore[arg-type]
+        self.registry.register(self.collector)
         app = web.Application(middlewares=[self._authenticate] if self.access.token is not None else [])
         app.router.add_get("/metrics", self.metrics)
         app.router.add_get("/healthz", self.healthz)

@@ -275,7 +275,7 @@ def _protocols_used(args: argparse.Namespace) -> set[str] | None:
 async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> int:
     engine = Engine(args.routes, args.schemas or default_schemas(args.routes), require_connections=args.require_connections,
                     instance=args.instance)
-    admin = AdminServer(engine, *args.admin, access) if args.admin else None
+    admin = AdminServer(engine, args.admin[0], args.admin[1], access) if args.admin else None
     if admin is not None:
         try:
             await admin.start()

@@ -42,7 +42,7 @@ def stand_in_for_check() -> None:
     """Set the environment ``check --local-broker`` loads the routes with: each broker's
     stand-in URL (never a host), so the loader warns as ``run --local-broker`` would."""
     for module in _modules():
-        for key, value in module.CHECK_ENV.items():  # type: ignore[attr-defined]
+        for key, value in module.CHECK_ENV.items():
             if value is None:
                 os.environ.pop(key, None)
             else:

@@ -14,12 +14,13 @@ import ssl
 import sys
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rich.console import Console, Group
+from rich.console import Console, Group, JustifyMethod
 from rich.table import Table
 from rich.text import Text
 
@@ -100,10 +101,12 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
     if rejected:
         header.append(Text.assemble(("\nlink rejections ", "dim"), ("; ".join(rejected), "yellow")))
     table = Table(expand=False, header_style="bold")
-    for column, justify in (("route", "left"), ("state", "left"), ("recv/s", "right"), ("sent/s", "right"),
-                            ("received", "right"), ("delivered", "right"), ("dead", "right"),
-                            ("redelivered", "right"), ("conflated", "right"), ("expired", "right"), ("dropped", "right"),
-                            ("last error", "left")):
+    columns: tuple[tuple[str, JustifyMethod], ...] = (
+        ("route", "left"), ("state", "left"), ("recv/s", "right"), ("sent/s", "right"),
+        ("received", "right"), ("delivered", "right"), ("dead", "right"),
+        ("redelivered", "right"), ("conflated", "right"), ("expired", "right"), ("dropped", "right"),
+        ("last error", "left"))
+    for column, justify in columns:
         table.add_column(column, justify=justify, no_wrap=True, overflow="ellipsis",
                          max_width=width if column == "last error" else None)
     if last_canonical:
@@ -176,7 +179,7 @@ def print_tap(address: tuple[str, int], route: str, count: int, client: AdminCli
     so: a script can wait for ``listening`` and then publish, without losing the first
     messages. The stream ends only when the engine stops (or its admin endpoint does), so an
     end before ``count`` lines, or a connection lost, is an error (exit 1) that says so."""
-    path = f"/tap/{urllib.request.quote(route, safe='')}"
+    path = f"/tap/{urllib.parse.quote(route, safe='')}"
     url = admin_url(address, path, client)
     seen = 0
     try:

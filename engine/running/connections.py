@@ -48,7 +48,7 @@ class ConnectionPool:
     def items(self) -> list[tuple[ConnectionKey, Connection]]:
         return list(self._connections.items())
 
-    def __iter__(self) -> Iterable[Connection]:  # type: ignore[override]
+    def __iter__(self) -> Iterable[Connection]:
         return iter(list(self._connections.values()))
 
     async def get(self, spec: ConnectionSpec, retry_in_background: bool = True) -> Connection:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import os
-from typing import Any, Awaitable, Callable, TypeVar
+from typing import Any, Callable, Coroutine, TypeVar
 
 T = TypeVar("T")
 
@@ -30,7 +30,7 @@ def loop_name() -> str:
     return "uvloop" if loop_factory() is not None else "asyncio"
 
 
-def run(main: Awaitable[T], **kwargs: Any) -> T:
+def run(main: Coroutine[Any, Any, T], **kwargs: Any) -> T:
     """``asyncio.run`` on the engine's loop."""
     with asyncio.Runner(loop_factory=loop_factory(), **kwargs) as runner:
-        return runner.run(main)  # type: ignore[arg-type]
+        return runner.run(main)

@@ -73,11 +73,11 @@ class RouteHost(Protocol):
 
 
 class _Message:
-    """A message between its conversion and its settling."""
+    """A message between its conversion and its settling: converted, so it has an outbound."""
 
     __slots__ = ("index", "inbound", "outbound", "attempts", "failure", "pipeline")
 
-    def __init__(self, index: int, inbound: Inbound, outbound: Outbound | None, attempts: int,
+    def __init__(self, index: int, inbound: Inbound, outbound: Outbound, attempts: int,
                  pipeline: Pipeline, failure: Failure | None = None) -> None:
         self.index = index
         self.inbound = inbound
@@ -85,6 +85,23 @@ class _Message:
         self.attempts = attempts
         self.pipeline = pipeline
         """The pipeline (generation) that converted it, whose sink sends it."""
+        self.failure = failure
+        """The sink's last transient failure while it is retried."""
+
+
+class _Dead:
+    """A message that failed for good, to be stored as a dead letter: its ``failure`` is
+    known, its ``outbound`` is None when it failed before or in its conversion."""
+
+    __slots__ = ("index", "inbound", "outbound", "attempts", "failure", "pipeline")
+
+    def __init__(self, index: int, inbound: Inbound, outbound: Outbound | None, attempts: int,
+                 pipeline: Pipeline, failure: Failure) -> None:
+        self.index = index
+        self.inbound = inbound
+        self.outbound = outbound
+        self.attempts = attempts
+        self.pipeline = pipeline
         self.failure = failure
 
 
@@ -161,7 +178,7 @@ class RouteRunner:
         pipeline.enter()
         try:
             self.observer.took(len(inbounds))
-            dead: list[_Message] = []
+            dead: list[_Dead] = []
             pending = self._convert(pipeline, inbounds, settled, dead)
             if pending:
                 await self._send(pipeline, pending, settled, dead)
@@ -174,7 +191,7 @@ class RouteRunner:
     # -- stages 2 and 3: conversion, checks, the throttle
 
     def _convert(self, pipeline: Pipeline, inbounds: Sequence[Inbound], settled: list[bool],
-                 dead: list[_Message]) -> list[_Message]:
+                 dead: list[_Dead]) -> list[_Message]:
         """Convert every message; what cannot be sent goes to ``dead``, what the throttle
         parks is settled; the rest is returned, in order."""
         pending: list[_Message] = []
@@ -184,40 +201,40 @@ class RouteRunner:
             message = self._converted(pipeline, index, inbound)
             if remember is not None and message.outbound is not None and message.outbound.canonical is not None:
                 remember.on_converted(message.outbound.canonical, message.outbound.meta)
-            if message.failure is not None:
+            if isinstance(message, _Dead):
                 dead.append(message)
-            elif throttle is not None and not throttle.admit(message, message.outbound.canonical, self):  # type: ignore[union-attr]
+            elif throttle is not None and not throttle.admit(message, message.outbound.canonical, self):
                 settled[index] = True  # parked: sent when its slot opens, or conflated by a newer one
             else:
                 pending.append(message)
         return pending
 
-    def _converted(self, pipeline: Pipeline, index: int, inbound: Inbound) -> _Message:
+    def _converted(self, pipeline: Pipeline, index: int, inbound: Inbound) -> _Message | _Dead:
         """The message converted, or with the failure that makes it a dead letter."""
         delivery = pipeline.spec.delivery
         prior = prior_attempts(inbound.meta)
         body = inbound.body
         if inbound.undecodable is not None:
-            return _Message(index, inbound, None, prior + 1, pipeline, Failure("decode", inbound.undecodable, True))
+            return _Dead(index, inbound, None, prior + 1, pipeline, Failure("decode", inbound.undecodable, True))
         if body is not None and len(body) > delivery.max_message_bytes:
             failure = Failure("size", f"{len(body)} bytes exceed max_message_bytes {delivery.max_message_bytes}", True)
-            return _Message(index, inbound, None, prior + 1, pipeline, failure)
+            return _Dead(index, inbound, None, prior + 1, pipeline, failure)
         try:
             if pipeline.sink.cancels and inbound.meta.get("cancel") is not None:
                 outbound = pipeline.cancel_request(inbound)
             else:
                 outbound = pipeline.convert(inbound)
         except Exception as error:  # ConversionError, or anything the pipeline did not foresee
-            return _Message(index, inbound, None, prior + 1, pipeline, classify(error, "convert"))
+            return _Dead(index, inbound, None, prior + 1, pipeline, classify(error, "convert"))
         if len(outbound.body) > delivery.sink_max_message_bytes:
             failure = Failure("size", f"canonical message of {len(outbound.body)} bytes exceeds the sink "
                               f"connection's max_message_bytes {delivery.sink_max_message_bytes}", True)
-            return _Message(index, inbound, outbound, prior + 1, pipeline, failure)
+            return _Dead(index, inbound, outbound, prior + 1, pipeline, failure)
         outbound.reply = self.replies.bind(pipeline.reply_shape, inbound.meta)
         outbound.received_ns = inbound.received_ns
         if prior >= delivery.max_attempts:
             failure = Failure("sink", f"already attempted {prior} times (max_attempts {delivery.max_attempts})", False)
-            return _Message(index, inbound, outbound, prior, pipeline, failure)
+            return _Dead(index, inbound, outbound, prior, pipeline, failure)
         return _Message(index, inbound, outbound, prior, pipeline)
 
     def released(self, message: _Message) -> None:
@@ -231,12 +248,12 @@ class RouteRunner:
         task.add_done_callback(self._released_done)
 
     def conflated(self, message: _Message) -> None:
-        self.observer.conflate(message.inbound, message.outbound)  # type: ignore[arg-type]
-        self._ended_call(message.outbound, "throttle", "conflated: a newer message took its throttle slot before it was sent")  # type: ignore[arg-type]
+        self.observer.conflate(message.inbound, message.outbound)
+        self._ended_call(message.outbound, "throttle", "conflated: a newer message took its throttle slot before it was sent")
 
     async def _send_released(self, pipeline: Pipeline, message: _Message) -> None:
         try:
-            dead: list[_Message] = []
+            dead: list[_Dead] = []
             settled = [False]
             await self._send(pipeline, [message], settled, dead)
             if dead:
@@ -263,7 +280,7 @@ class RouteRunner:
         return connection.healthy and self.host.is_open(connection) and (pipeline or self.pipeline).sink.ready
 
     async def _send(self, pipeline: Pipeline, pending: list[_Message], settled: list[bool],
-                    dead: list[_Message]) -> None:
+                    dead: list[_Dead]) -> None:
         """Send, retry while transient (or hand to the buffer), until each is settled, dead
         (appended to ``dead``) or the route stops (left unsettled)."""
         buffer = self.buffer
@@ -278,7 +295,7 @@ class RouteRunner:
             pending = self._fresh(pending, settled)
             if not pending:
                 return
-            results = await pipeline.sink.send_batch([message.outbound for message in pending])  # type: ignore[misc]
+            results = await pipeline.sink.send_batch([message.outbound for message in pending])
             # whether the sink can take messages now matters only for a failure (see _sent): a
             # batch that all went out does not ask again (a ROS 2 sink's readiness is an rcl
             # call, 2.8 us, and a drain's batches are 3 messages long: measured 3,960 batches
@@ -289,7 +306,9 @@ class RouteRunner:
                 await self._hold(pending, settled)
                 return
             if pending:
-                self._report_retry(pending[0].failure, len(pending))  # type: ignore[arg-type]
+                failure = pending[0].failure
+                assert failure is not None  # _sent returns only messages it set a failure on
+                self._report_retry(failure, len(pending))
                 if not await self.pause(retry_delay(min(message.attempts for message in pending))):
                     return
 
@@ -308,14 +327,14 @@ class RouteRunner:
         for message in pending:
             if self.too_old(now_ns - message.inbound.received_ns):
                 settled[message.index] = True
-                self.observer.expire(message.inbound, message.outbound)  # type: ignore[arg-type]
-                self._expired_call(message.outbound)  # type: ignore[arg-type]
+                self.observer.expire(message.inbound, message.outbound)
+                self._expired_call(message.outbound)
             else:
                 fresh.append(message)
         return fresh
 
     def _sent(self, pending: list[_Message], results: list[BaseException | None], settled: list[bool],
-              dead: list[_Message], waiting: bool = False) -> list[_Message]:
+              dead: list[_Dead], waiting: bool = False) -> list[_Message]:
         """Settle what the sink accepted, move what failed for good to ``dead``; return what
         is to be tried again. ``waiting``: the sink says now that it cannot take messages (a
         ROS 2 topic a message named has no subscriber yet), so a transient failure is the
@@ -327,13 +346,13 @@ class RouteRunner:
                 message.attempts += 1
             if error is None:
                 settled[message.index] = True
-                self._accepted(message.inbound, message.outbound)  # type: ignore[arg-type]
+                self._accepted(message.inbound, message.outbound)
                 if message.pipeline.remember is not None:
-                    message.pipeline.remember.on_accepted(message.outbound.canonical, message.outbound.meta)  # type: ignore[union-attr]
+                    message.pipeline.remember.on_accepted(message.outbound.canonical, message.outbound.meta)
                 continue
             if isinstance(error, NotSent):  # the sink settled it unsent: conflated, or expired while it tried
                 settled[message.index] = True
-                self._not_sent(error, message.inbound, message.outbound)  # type: ignore[arg-type]
+                self._not_sent(error, message.inbound, message.outbound)
                 continue
             failure = classify(error, "sink")
             if isinstance(error, Unroutable):
@@ -341,12 +360,12 @@ class RouteRunner:
             if not failure.permanent:
                 self.observer.sink_errors += 1
             if failure.permanent or message.attempts >= max_attempts:
-                message.failure = failure if failure.permanent else given_up(failure, message.attempts)
-                dead.append(message)
+                dead.append(_Dead(message.index, message.inbound, message.outbound, message.attempts, message.pipeline,
+                                  failure if failure.permanent else given_up(failure, message.attempts)))
             else:
                 message.failure = failure
                 retry.append(message)
-                self.observer.retrying(message.inbound, message.outbound, error)  # type: ignore[arg-type]
+                self.observer.retrying(message.inbound, message.outbound, error)
         return retry
 
     def _not_sent(self, outcome: NotSent, inbound: Inbound | None, outbound: Outbound) -> None:
@@ -389,7 +408,7 @@ class RouteRunner:
         assert self.buffer is not None
         now_ns, wall_ns = time.monotonic_ns(), time.time_ns()
         for message in pending:
-            await self.buffer.hold(message.outbound, wall_ns - (now_ns - message.inbound.received_ns))  # type: ignore[arg-type]
+            await self.buffer.hold(message.outbound, wall_ns - (now_ns - message.inbound.received_ns))
             settled[message.index] = True
 
     async def send_held(self, messages: list[Outbound]) -> list[BaseException | None]:
@@ -423,7 +442,9 @@ class RouteRunner:
             self._expired_call(outbound)
 
     def _expired_call(self, outbound: Outbound) -> None:
-        age = f"older than the route's max_age ({self.spec.delivery.max_age_ns / 1e9:g} s) before it could be sent"  # type: ignore[operator]
+        max_age_ns = self.spec.delivery.max_age_ns
+        assert max_age_ns is not None  # only a route with a max_age expires messages (too_old)
+        age = f"older than the route's max_age ({max_age_ns / 1e9:g} s) before it could be sent"
         self._ended_call(outbound, "max_age", age)
 
     def _ended_call(self, outbound: Outbound, stage: str, error: str) -> None:
@@ -461,16 +482,16 @@ class RouteRunner:
         """A held message the sink rejected, or kept failing while it could take messages."""
         self._reply_of(message)
         inbound = Inbound(body=message.body, meta=dict(message.meta))
-        await self._dead_letter([_Message(0, inbound, message, attempts, self.pipeline, classify(error, "sink"))], [False])
+        await self._dead_letter([_Dead(0, inbound, message, attempts, self.pipeline, classify(error, "sink"))], [False])
 
     # -- stage 5: the dead letters
 
-    async def _dead_letter(self, dead: list[_Message], settled: list[bool]) -> None:
+    async def _dead_letter(self, dead: list[_Dead], settled: list[bool]) -> None:
         """Store the batch's dead letters together; each is settled once stored."""
         dead.sort(key=lambda message: message.index)
         spec, host = self.spec, self.host
         limit = spec.delivery.max_message_bytes
-        letters = [dead_letter_message(spec.name, f"{spec.file}:{spec.line}", m.inbound, m.failure, m.attempts, limit)  # type: ignore[arg-type]
+        letters = [dead_letter_message(spec.name, f"{spec.file}:{spec.line}", m.inbound, m.failure, m.attempts, limit)
                    for m in dead]
         try:
             assert host.dead_letters is not None
@@ -482,15 +503,15 @@ class RouteRunner:
         for message in dead:
             settled[message.index] = True
             failure = message.failure
-            self.observer.dead_letter(message.inbound, message.outbound, failure.stage, failure.error)  # type: ignore[union-attr]
+            self.observer.dead_letter(message.inbound, message.outbound, failure.stage, failure.error)
             remember = message.pipeline.remember
             if remember is not None and message.outbound is not None:
-                remember.on_failed(message.outbound.canonical, message.outbound.meta, f"{failure.stage}: {failure.error}")  # type: ignore[union-attr]
-        self._report_failure(dead[-1].failure, len(dead))  # type: ignore[arg-type]
+                remember.on_failed(message.outbound.canonical, message.outbound.meta, f"{failure.stage}: {failure.error}")
+        self._report_failure(dead[-1].failure, len(dead))
         calls = [m for m in dead if m.inbound.meta.get("reply_to")]
         if calls:  # each request that failed for good: its caller gets one error reply, published together
             await asyncio.gather(*(self.replies.failed(m.outbound.reply if m.outbound is not None else None,
-                                                       m.inbound.meta, m.failure.stage, m.failure.error)  # type: ignore[union-attr]
+                                                       m.inbound.meta, m.failure.stage, m.failure.error)
                                    for m in calls))
 
     def _report_retry(self, failure: Failure, count: int) -> None:

@@ -423,7 +423,7 @@ class Engine:
 
     async def _restore(self, runners: list[RouteRunner], connections: list[str]) -> None:
         """Start again, on the running configuration, routes a failed handover had stopped."""
-        assert self.config is not None
+        assert self.config is not None and self._schemas is not None  # set together, by the first load
         for name in connections:
             try:
                 await self.connections.open_exclusive(self.config.connections[name])
@@ -431,7 +431,7 @@ class Engine:
                 log.error("connection could not be reopened after a failed reload", extra={"connection": name, "error": str(error)})
         for runner in runners:
             try:
-                again = await self._runner(self.config, self._schemas, runner.spec, runner.pipeline.generation)  # type: ignore[arg-type]
+                again = await self._runner(self.config, self._schemas, runner.spec, runner.pipeline.generation)
                 await again.start()
             except Exception as error:
                 log.error("route could not be restored after a failed reload", extra={"route": runner.spec.name, "error": str(error)})
@@ -538,7 +538,7 @@ class Engine:
             "dead_letters": None if self.dead_letters is None else self.dead_letters.status(),
             "instance": self.instance,
             "brokers": {
-                key[0]: connection.endpoint  # type: ignore[attr-defined]
+                key[0]: connection.endpoint  # type: ignore[attr-defined]  # a broker's connection has one (the getattr below)
                 for key, connection in self.connections.items()
                 if getattr(connection, "endpoint", None)
             },

@@ -86,7 +86,7 @@ async def watch_routes(
         until = _StopOrRewatch(stop, current_key_files, keys)
         try:
             async for _changes in watchfiles.awatch(
-                *sorted(directories), watch_filter=wanted, stop_event=until, recursive=False  # type: ignore[arg-type]
+                *sorted(directories), watch_filter=wanted, stop_event=until, recursive=False
             ):
                 changed()
         except Exception as error:  # a watched directory removed, inotify limits: keep trying

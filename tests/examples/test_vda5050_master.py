@@ -458,7 +458,7 @@ def test_an_instant_action_the_vehicle_refuses_is_failed_with_the_reason(example
     is RUNNING, then FAILED with the refusal as its resultDescription (the command became a dead
     letter), so the master's wait for it ends; the vehicle is not reported paused."""
     peer = Peer()
-    driver = RobotDriver(peer)
+    _driver = RobotDriver(peer)  # kept referenced: it drives the robot for the whole test
     peer.start()
     uav = start_uav(example_env, "--command-result", "MAV_RESULT_DENIED")
 

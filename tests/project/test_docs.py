@@ -165,7 +165,7 @@ def test_the_tutorial_steps_work_as_written(tmp_path: Path):
     taps = [json.loads(line) for line in out.splitlines() if line.startswith('{"ts"')]
     assert [tap["outcome"] for tap in taps] == ["delivered", "dead_lettered"], out
     assert taps[0]["canonical"]["alt_msl"] == 612.5 and taps[1]["error"].startswith("mapping:")
-    assert "generation 2" in out and f'rabbitros_messages_total{{outcome="delivered",route="tractor-position"}} 1.0' in out
+    assert "generation 2" in out and 'rabbitros_messages_total{outcome="delivered",route="tractor-position"} 1.0' in out
     assert "listening" in (work / "tap.log").read_text()
     assert "stopped" in log.splitlines()[-2] + log.splitlines()[-1], log[-2000:]
 

@@ -38,7 +38,7 @@ class HeldAcks:
     def __init__(self, prefetch: int, last_received_ns: Callable[[], int], wake: Callable[[], None]) -> None:
         self._last_received_ns = last_received_ns
         self._wake = wake
-        self._acks: dict[int, tuple[aiormq.abc.AbstractChannel, int]] = {}
+        self._acks: dict[int, tuple[aiormq.abc.AbstractChannel, int | None]] = {}
         """Per channel, the highest delivery tag whose whole prefix was settled and not
         acknowledged yet (see :meth:`acknowledge`)."""
         self.held = 0

@@ -330,9 +330,9 @@ class PrivateRabbitMQ:
         if tls:
             directory = Path(tempfile.mkdtemp(prefix="rabbitros-broker-"))
             self.tls_directory = directory / "tls"
-            files = [self.tls_directory / name for name in ("ca.pem", "server.pem", "server.key")]
+            ca_file, cert_file, key_file = (self.tls_directory / name for name in ("ca.pem", "server.pem", "server.key"))
             # the client needs no certificate: the throwaway CA signs only the node's
-            node_tls = BrokerTls(*files, verify_peer=False, fail_if_no_peer_cert=False)
+            node_tls = BrokerTls(ca_file, cert_file, key_file, verify_peer=False, fail_if_no_peer_cert=False)
             self.broker: LocalBroker | LocalCluster = LocalBroker(directory=directory, tls=node_tls)
         else:
             self.broker = LocalCluster(cluster) if cluster > 1 else LocalBroker()

@@ -26,7 +26,7 @@ async def open_plain_channel(connection: aio_pika.abc.AbstractConnection, *, pub
                              timeout: float = OPEN_TIMEOUT) -> aio_pika.Channel:
     """An open channel of ``connection``; on any failure (``asyncio.TimeoutError`` after
     ``timeout``) the half-open channel is closed (bounded too) and the failure raised."""
-    channel = aio_pika.Channel(connection, publisher_confirms=publisher_confirms)  # type: ignore[arg-type]
+    channel = aio_pika.Channel(connection, publisher_confirms=publisher_confirms)
     try:
         await asyncio.wait_for(channel.initialize(), timeout)
     except BaseException:

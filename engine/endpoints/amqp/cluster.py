@@ -55,7 +55,7 @@ class FailoverConnection(RobustConnection):
         self._attempts = 0
         super().__init__(self._urls[self._index], **kwargs)
 
-    @property  # type: ignore[override]
+    @property
     def transport(self) -> Any:
         return self.__dict__.get("_transport")
 

@@ -84,15 +84,15 @@ class SharedPublisher:
         self._connection = connection
         self._queued: list[_Part] = []
         self._rounds: set[asyncio.Task[None]] = set()
-        self._writing: dict[aiormq.abc.AbstractChannel, int] = {}
+        self._writing: dict[aiormq.Channel, int] = {}
         """Per aiormq channel: rounds of :meth:`_write` between asking for its lock and queuing
         their frames. Per channel, so a round stuck on a channel that closed can never keep the
         fast path off on the next one (and :func:`_put_frame` does not stay stuck: it gives up
         when its channel closes)."""
-        self._underlay: aiormq.abc.AbstractChannel | None = None
+        self._underlay: aiormq.Channel | None = None
         """The confirm channel's aiormq channel as last fetched (a reconnect replaces it, and
         the closed one sends rounds back the way that fetches it again)."""
-        self._refused: weakref.WeakSet[aiormq.abc.AbstractChannel] = weakref.WeakSet()
+        self._refused: weakref.WeakSet[aiormq.Channel] = weakref.WeakSet()
         """Channels the broker closed (:meth:`_watch_close`), from its ``Channel.Close`` on:
         nothing more may be written on them."""
         self.rounds = 0
@@ -202,16 +202,19 @@ class SharedPublisher:
             if self._channel is None:
                 raise aiormq.exceptions.ChannelInvalidStateError("the publish channel is being reopened")
             channel = await self._channel.get_underlay_channel()
+            assert isinstance(channel, aiormq.Channel)  # aio_pika's underlay: the publisher uses its internals
             if channel.is_closed:  # nothing would ever write (or confirm) this round's frames
                 raise aiormq.exceptions.ChannelInvalidStateError("the publish channel is closed")
         except LIBRARY_ERRORS as exc:
-            results = [[edge_error(exc, self._describe(part.exchange, ""))] * len(part.messages) for part in parts]
-            return self._answer(parts, results)  # type: ignore[arg-type]
+            failed: list[list[BaseException | None]] = [[edge_error(exc, self._describe(part.exchange, ""))] * len(part.messages)
+                                                        for part in parts]
+            return self._answer(parts, failed)
         if channel is not self._underlay:  # (the hook below unsets a channel the broker closed)
             if channel in self._refused:
-                results = [[EndpointError(f"{self._describe(part.exchange, '')}: the broker closed the publish channel")]
-                           * len(part.messages) for part in parts]
-                return self._answer(parts, results)  # type: ignore[arg-type]
+                refused: list[list[BaseException | None]] = [
+                    [EndpointError(f"{self._describe(part.exchange, '')}: the broker closed the publish channel")] * len(part.messages)
+                    for part in parts]
+                return self._answer(parts, refused)
             _confirm_in_order(channel)
             self._watch_close(channel)
             self._returns.watch(channel)
@@ -226,7 +229,7 @@ class SharedPublisher:
             self._settle(parts, results, slots, outcomes, returned)
         self._answer(parts, results)
 
-    def _watch_close(self, channel: aiormq.abc.AbstractChannel) -> None:
+    def _watch_close(self, channel: aiormq.Channel) -> None:
         """Stop writing on ``channel`` the moment the broker's ``Channel.Close`` arrives.
         aiormq answers it with ``Channel.CloseOk`` at once (the broker then knows the channel
         number no more) but marks the channel closed only a few loop turns later, after its
@@ -246,9 +249,9 @@ class SharedPublisher:
                 self._underlay = None  # the fast path: not this channel any more
             await on_close_frame(frame)
 
-        channel._on_close_frame = close_frame  # type: ignore[attr-defined,method-assign]
+        channel._on_close_frame = close_frame  # type: ignore[method-assign]  # the hook above: aiormq has no public one
 
-    def _encode(self, parts: list[_Part], channel: aiormq.abc.AbstractChannel) -> tuple[
+    def _encode(self, parts: list[_Part], channel: aiormq.Channel) -> tuple[
             list[list[BaseException | None]], list[bytes], list[tuple[int, int]]]:
         """Every message's frames; a message that cannot be framed (e.g. a routing key over 255
         bytes) fails alone. Returns (results so far, payloads, (part, message) of each payload)."""
@@ -283,7 +286,7 @@ class SharedPublisher:
                 results[p][m] = Unroutable(f"exchange {parts[p].exchange!r}, routing key {key!r}: the broker returned it "
                                            f"({reply_text}: no queue is bound for it)")
 
-    async def _write(self, channel: aiormq.abc.AbstractChannel, payloads: list[bytes],
+    async def _write(self, channel: aiormq.Channel, payloads: list[bytes],
                      awaiting: Awaiting | None = None) -> list[Any]:
         """Write the round's messages as one frame sequence; their outcomes, in order
         (``awaiting``: the round where its returns are matched, given its confirmations)."""
@@ -313,9 +316,9 @@ class SharedPublisher:
                 except BaseException:  # not written: the broker never saw these tags
                     channel.delivery_tag = first - 1
                     for tag in range(first, first + len(confirmations)):
-                        future = channel.confirmations.pop(tag, None)
-                        if future is not None:
-                            future.cancel()
+                        unsent = channel.confirmations.pop(tag, None)
+                        if unsent is not None:
+                            unsent.cancel()
                     raise
         except LIBRARY_ERRORS as exc:
             return [exc] * len(payloads)
@@ -329,8 +332,9 @@ class SharedPublisher:
         self.messages += len(payloads)
         if confirms:
             return await _confirmed(channel, confirmations)
+        assert drained is not None  # made above for a channel without confirms
         try:
-            await drained  # type: ignore[misc]
+            await drained
         except LIBRARY_ERRORS as exc:
             return [exc] * len(payloads)
         return [None] * len(payloads)
@@ -345,7 +349,7 @@ class SharedPublisher:
                 part.answer.set_result(part_results)
 
 
-async def _put_frame(channel: aiormq.abc.AbstractChannel, frame: aiormq.abc.ChannelFrame) -> None:
+async def _put_frame(channel: aiormq.Channel, frame: aiormq.abc.ChannelFrame) -> None:
     """Queue ``frame`` for the connection's writer; when the queue is full, wait for room or
     for the channel to close, whichever comes first (then raise the channel's failure). aiormq
     drains the write queue only while its connection lives and wakes no ``put`` waiting on it
@@ -377,7 +381,7 @@ async def _put_frame(channel: aiormq.abc.AbstractChannel, frame: aiormq.abc.Chan
     put.result()
 
 
-async def _confirmed(channel: aiormq.abc.AbstractChannel, confirmations: list[asyncio.Future[Any]]) -> list[Any]:
+async def _confirmed(channel: aiormq.Channel, confirmations: list[asyncio.Future[Any]]) -> list[Any]:
     """Each confirmation's outcome (the broker's Ack or Nack) once all arrived, or the channel's
     failure for those still open when it closes. The confirmations are plain futures and the
     round holds one of the channel's own (which aiormq rejects when the channel or connection
@@ -422,7 +426,7 @@ def _outcomes(confirmations: list[asyncio.Future[Any]], closed: asyncio.Future[A
     return outcomes
 
 
-def _confirm_in_order(channel: aiormq.abc.AbstractChannel) -> None:
+def _confirm_in_order(channel: aiormq.Channel) -> None:
     """The broker's confirms on this publisher's channel settled from the front of its table.
 
     aiormq answers a confirm for several messages (``multiple``) by walking its whole table of
@@ -460,7 +464,7 @@ def _confirm_in_order(channel: aiormq.abc.AbstractChannel) -> None:
                 break
             settle(first, frame)
 
-    channel._on_confirm_frame = on_confirm_frame  # type: ignore[attr-defined,method-assign]
+    channel._on_confirm_frame = on_confirm_frame  # type: ignore[method-assign]  # the hook above: aiormq has no public one
 
 
 class _Confirming:
@@ -471,7 +475,7 @@ class _Confirming:
     __slots__ = ("publisher", "parts", "results", "slots", "confirmations", "remaining", "closed", "awaiting")
 
     def __init__(self, publisher: SharedPublisher, parts: list[_Part], results: list[list[BaseException | None]],
-                 slots: list[tuple[int, int]], channel: aiormq.abc.AbstractChannel,
+                 slots: list[tuple[int, int]], channel: aiormq.Channel,
                  confirmations: list[asyncio.Future[Any]], awaiting: Awaiting | None) -> None:
         self.publisher, self.parts, self.results, self.slots = publisher, parts, results, slots
         self.awaiting = awaiting

@@ -103,4 +103,4 @@ class Returns:
             self.returned(frame.exchange or "", frame.routing_key or "", message.body,
                           message.header.properties.message_id, frame.reply_text or "NO_ROUTE")
 
-        channel._on_return_frame = on_return_frame  # type: ignore[attr-defined,method-assign]
+        channel._on_return_frame = on_return_frame

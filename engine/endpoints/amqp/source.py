@@ -21,7 +21,7 @@ import asyncio
 import logging
 import time
 from collections.abc import Sequence
-from typing import Any, Mapping
+from typing import Any, Mapping, cast
 
 import aio_pika.abc
 import aiormq.abc
@@ -118,8 +118,10 @@ class AmqpSource(Source):
         channel = await self._channel.get_underlay_channel()
         _widen_frame_buffer(channel, min(FRAME_BUFFER, 3 * self._options.prefetch))
         result = await channel.basic_consume(self.queue_name, self._on_message, no_ack=False)
-        self._consumer = (channel, result.consumer_tag)
-        self._resumption.watch(channel, result.consumer_tag)
+        tag = result.consumer_tag
+        assert tag is not None  # the broker names the consumer it made (Basic.ConsumeOk)
+        self._consumer = (channel, tag)
+        self._resumption.watch(channel, tag)
 
     async def _reconsume(self, _channel: Any) -> None:
         if not self._stopping:
@@ -282,7 +284,7 @@ def _inbound(message: aiormq.abc.DeliveredMessage, received_ns: int) -> Inbound:
     consumer is only ever given deliveries, and aiormq's ``routing_key``/``exchange``/
     ``redelivered`` properties check the frame's class on every read."""
     properties = message.header.properties
-    delivery = message.delivery
+    delivery = cast(spec.Basic.Deliver, message.delivery)  # no check: see above
     headers = properties.headers
     return Inbound(
         body=message.body,

@@ -77,8 +77,8 @@ class AmqpTransport(Transport):
                 yield key, f"{key} is not used: the default exchange is never declared (name an exchange)"
 
     async def source_retired(
-        self, connection: Connection, route: str, options: Mapping[str, Any],
-        remaining: Iterable[tuple[str, Mapping[str, Any]]],
+        self, connection: Connection, route: str, options: AmqpSourceOptions,
+        remaining: Iterable[tuple[str, AmqpSourceOptions]],
     ) -> None:
         from engine.endpoints.amqp.topology import retire_source
 

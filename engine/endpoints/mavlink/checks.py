@@ -187,7 +187,7 @@ def _enum_name_problems(node: dict[str, Any], enum: str | None) -> list[str]:
     else:
         return []
     try:
-        mav_enum_value(name, enum)  # type: ignore[arg-type]
+        mav_enum_value(name, enum)
     except ValueError as exc:
         return [str(exc)]
     return []
@@ -201,7 +201,7 @@ def _is_null_literal(node: dict[str, Any]) -> bool:
 def source_options(route: str, options: MavlinkSourceOptions | Mapping[str, Any]) -> MavlinkSourceOptions:
     """The typed options of a source about to be built; EndpointError lists every problem."""
     parsed, problems = typed_or_problem(MavlinkSourceOptions, options)
-    raise_problems(route, "source", problems or source_problems(parsed))  # type: ignore[arg-type]
+    raise_problems(route, "source", problems if parsed is None else problems or source_problems(parsed))
     assert parsed is not None
     return parsed
 
@@ -209,7 +209,7 @@ def source_options(route: str, options: MavlinkSourceOptions | Mapping[str, Any]
 def sink_options(route: str, options: MavlinkSinkOptions | Mapping[str, Any]) -> MavlinkSinkOptions:
     """The typed options of a sink about to be built; EndpointError lists every problem."""
     parsed, problems = typed_or_problem(MavlinkSinkOptions, options)
-    raise_problems(route, "sink", problems or sink_problems(parsed, None))  # type: ignore[arg-type]
+    raise_problems(route, "sink", problems if parsed is None else problems or sink_problems(parsed, None))
     assert parsed is not None
     return parsed
 

@@ -113,18 +113,21 @@ class MavlinkConnection(Connection):
 
     def source(self, route: str, options: MavlinkSourceOptions | Mapping[str, Any]) -> Source:
         options = source_options(route, options)
+        system_id = options.system_id
+        assert not isinstance(system_id, str)  # source_options refused an agent's name the loader did not resolve
         if options.json_tunnel:
             return TunnelSource(self.hub, route=route, payload_type=options.payload_type,
-                                system_id=options.system_id, component_id=options.component_id)
+                                system_id=system_id, component_id=options.component_id)
         name = options.message
-        return MessageSource(self, route, MESSAGES[name].id if name else None, options.system_id,  # type: ignore[arg-type]
+        return MessageSource(self, route, MESSAGES[name].id if name else None, system_id,
                              options.component_id, options.agents)
 
     def sink(self, route: str, options: MavlinkSinkOptions | Mapping[str, Any]) -> Sink:
         options = sink_options(route, options)
         if options.json_tunnel:
-            target = (options.target_system or 0, options.target_component or 0)
-            return TunnelSink(self.hub, payload_type=options.payload_type, target=target, priority=options.priority,
+            target_system, target_component = options.target_system or 0, options.target_component or 0
+            assert isinstance(target_system, int) and isinstance(target_component, int)  # sink_options refused a name or {field}
+            return TunnelSink(self.hub, payload_type=options.payload_type, target=(target_system, target_component), priority=options.priority,
                               max_age=options.max_age)
         return sink_for(self, route, options)
 
@@ -171,8 +174,8 @@ class MavlinkConnection(Connection):
                 listener(msg)
         if self._from_system:
             system = msg.get_header().srcSystem
-            for key in ((msg_id, system), (None, system)):  # type: ignore[assignment]
-                for listener in self._from_system.get(key, ()):  # type: ignore[call-overload]
+            for key in ((msg_id, system), (None, system)):
+                for listener in self._from_system.get(key, ()):
                     listener(msg)
 
     def listen(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None:
@@ -188,12 +191,14 @@ class MavlinkConnection(Connection):
             self._from_system.setdefault((msg_id, system_id), []).append(listener)
 
     def unlisten(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None:
-        listeners = self._listeners if system_id is None else self._from_system
-        key = msg_id if system_id is None else (msg_id, system_id)
         with contextlib.suppress(KeyError, ValueError):
-            listeners[key].remove(listener)  # type: ignore[index]
-            if not listeners[key] and system_id is not None:  # type: ignore[index]
-                del listeners[key]  # type: ignore[arg-type]
+            if system_id is None:
+                self._listeners[msg_id].remove(listener)
+                return
+            key = (msg_id, system_id)
+            self._from_system[key].remove(listener)
+            if not self._from_system[key]:
+                del self._from_system[key]
 
     # presence
 

@@ -8,12 +8,13 @@ hand-kept lists: a dialect upgrade brings its new names with it.
 from __future__ import annotations
 
 from functools import cache
+from typing import Any
 
 from engine.common.suggest import closest, did_you_mean
 from engine.endpoints.mavlink.dialect import mavlink2
 
 
-def _table(enum: str) -> dict[int, object]:
+def _table(enum: str) -> dict[int, Any]:  # pymavlink's EnumEntry (untyped)
     table = mavlink2.enums.get(enum)
     if table is None:
         raise ValueError(f"unknown MAVLink enum {enum!r} (dialect: common){did_you_mean(enum, mavlink2.enums)}")
@@ -28,7 +29,7 @@ def _by_name(enum: str) -> dict[str, int]:
 def mav_enum(value: int, enum: str) -> str | None:
     """The name of ``value`` in ``enum``; None for a value the dialect does not define."""
     entry = _table(enum).get(int(value))
-    return None if entry is None or entry.name.endswith("_ENUM_END") else entry.name  # type: ignore[attr-defined]
+    return None if entry is None or entry.name.endswith("_ENUM_END") else entry.name
 
 
 def mav_enum_value(name: str, enum: str) -> int:

@@ -268,6 +268,7 @@ class UdpLink(Link):
             return
         now = time.monotonic()
         if peer is not None and now - self.peers.get(peer, -PEER_TTL) < PEER_TTL:
+            assert isinstance(peer, tuple)  # a key of self.peers: a (host, port) address
             self._transport.sendto(data, peer)  # a targeted message: only where its vehicle was heard
             return
         peers = [addr for addr, seen in self.peers.items() if now - seen < PEER_TTL]

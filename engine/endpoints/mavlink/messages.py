@@ -299,7 +299,9 @@ def message_encoder(options: MavlinkSinkOptions) -> Encoder:
         defaults = {"target_system": transaction.target_system, "target_component": transaction.target_component}
     else:
         defaults = message_defaults(options)
-    return functools.partial(build_message, MESSAGES[options.message], defaults=defaults)
+    name = options.message
+    assert name is not None  # a message sink names its message (checks.sink_problems)
+    return functools.partial(build_message, MESSAGES[name], defaults=defaults)
 
 
 def message_defaults(options: MavlinkSinkOptions) -> dict[str, int]:
@@ -317,7 +319,9 @@ def field_check(options: MavlinkSinkOptions) -> Callable[[Any], None] | None:
         return None
     if options.mission is not None:
         return refuse_unguessed
-    return functools.partial(refuse_nulls, options.message)
+    name = options.message
+    assert name is not None  # a message sink names its message (checks.sink_problems)
+    return functools.partial(refuse_nulls, name)
 
 
 def dry_run(options: MavlinkSinkOptions) -> Callable[[Outbound], object]:

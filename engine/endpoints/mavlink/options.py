@@ -8,13 +8,14 @@ schema-only keywords here; the check (settings.py, checks.py, transaction.py) en
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from engine.common.options import option
 from engine.endpoints.base import EndpointOptions
 from engine.endpoints.mavlink.codec import mavlink2
 from engine.endpoints.mavlink.tunnel import DEFAULT_PAYLOAD_TYPE, TunnelSettings
 
-_BYTE = {"minimum": 0, "maximum": 255}
+_BYTE: dict[str, Any] = {"minimum": 0, "maximum": 255}
 TARGET_FIELD = r"^(\{.*\}|[A-Za-z_][A-Za-z0-9_.-]*)$"
 """A sink target read from the canonical message (``"{vehicle}"``, ``"{target.system}"``), or
 an agent's name (``uav2``: engine/language/agents.py, resolved by the route loader). What is

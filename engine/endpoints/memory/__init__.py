@@ -11,7 +11,7 @@ connection, ``default-memory``, is always up.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Sequence
 
 from engine.endpoints.base import CheckResult, Connection, EndpointError, EndpointOptions, Outbound, Sink, Source, Transport
 
@@ -59,7 +59,7 @@ class MemoryConnection(Connection):
 class MemoryTransport(Transport):
     name = "memory"
     connection_type = MemoryConnection
-    default_settings: Mapping[str, Any] = {}
+    default_settings = {}
     connection_options = MemoryConnectionOptions
     source_options = MemorySourceOptions
     sink_options = MemorySinkOptions

@@ -144,9 +144,11 @@ class Subscriber(Protocol):
 
     route: str
     filter: str
-    qos: int
     subscription_id: int
     matches: Callable[[str], bool]
+
+    @property
+    def qos(self) -> int: ...
 
     def claims(self, received: Received) -> bool: ...
 
@@ -292,7 +294,11 @@ class MqttLink(Connection):
     def _wire(self, session: Session) -> None:
         paho = session.paho
         paho.manual_ack_set(True)
-        on_connect, on_disconnect, on_publish = paho.on_connect, paho.on_disconnect, paho.on_publish
+        # aiomqtt set them, with paho's version 2 signatures (paho types them as either version's)
+        on_connect: Callable[..., None] | None = paho.on_connect
+        on_disconnect: Callable[..., None] | None = paho.on_disconnect
+        on_publish: Callable[..., None] | None = paho.on_publish
+        assert on_connect is not None and on_disconnect is not None and on_publish is not None
 
         def connected(client: Any, userdata: Any, flags: Any, reason: Any, properties: Any = None) -> None:
             session.present = bool(flags.session_present)
@@ -505,8 +511,9 @@ class MqttLink(Connection):
         if self.v5:
             options: SubscribeOptions | None = SubscribeOptions(
                 qos=qos, retainHandling=SubscribeOptions.RETAIN_SEND_IF_NEW_SUB)
-            properties: Properties | None = Properties(PacketTypes.SUBSCRIBE)
-            properties.SubscriptionIdentifier = subscription_id(filter_)
+            identified = Properties(PacketTypes.SUBSCRIBE)
+            identified.SubscriptionIdentifier = subscription_id(filter_)
+            properties: Properties | None = identified
             request_qos = 0  # paho takes the QoS from the options then
         else:
             options, properties, request_qos = None, None, qos

@@ -124,7 +124,8 @@ class MqttSource(Source):
             user = getattr(properties, "UserProperty", None)
             if user:
                 meta["headers"] = dict(user)
-        return Inbound(body=message.payload, meta=meta, received_ns=received.received_ns)
+        payload = message.payload  # bytes from paho (aiomqtt's type allows a bytearray)
+        return Inbound(body=payload if isinstance(payload, bytes) else bytes(payload), meta=meta, received_ns=received.received_ns)
 
     async def stop(self) -> None:
         """Take no more messages, settle those received, and return what was not settled to

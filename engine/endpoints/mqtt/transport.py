@@ -24,7 +24,7 @@ QOS2_SOURCE = ("qos 2 is not offered on a source: paho acknowledges a QoS 2 mess
 class MqttTransport(Transport):
     name = "mqtt"
     connection_type = MqttConnection
-    default_settings: Mapping[str, Any] = {}
+    default_settings = {}
     accepts_secrets = True
     connection_options = MqttConnectionOptions
     source_options = MqttSourceOptions

@@ -65,12 +65,12 @@ _AVAILABLE_FIRST, _AVAILABLE_MAX = 0.01, 0.25
 """Backoff between looks for a server that is not there yet (a look costs microseconds)."""
 
 
-def resolve_service(name: Any) -> type:
+def resolve_service(name: Any) -> rosmsg.RosClass:
     """The service class of ``pkg/srv/Type``; MessageError if it is not installed."""
     return _resolve_interface(name, "srv", "Request")
 
 
-def _resolve_interface(name: Any, kind: str, part: str) -> type:
+def _resolve_interface(name: Any, kind: str, part: str) -> rosmsg.RosClass:
     """The ``pkg/<kind>/Type`` interface class (it has ``part``: Request, Goal); MessageError
     naming it when the name is malformed or the package is not installed."""
     pattern = _SERVICE_TYPE if kind == "srv" else _ACTION_TYPE
@@ -94,7 +94,7 @@ def service_qos(max_in_flight: int) -> QoSProfile:
                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
 
-def resolve_action(name: Any) -> type:
+def resolve_action(name: Any) -> rosmsg.RosClass:
     """The action class of ``pkg/action/Type``; MessageError if it is not installed."""
     return _resolve_interface(name, "action", "Goal")
 

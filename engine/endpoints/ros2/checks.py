@@ -120,7 +120,7 @@ def _check_service(options: Ros2SinkOptions) -> Iterator[tuple[str | None, str]]
         yield "type", str(exc)
 
 
-def sink_class(options: Ros2SinkOptions) -> type:
+def sink_class(options: Ros2SinkOptions) -> rosmsg.RosClass:
     """What a sink's mapping builds: the message of its topic, its service's request, its action's goal."""
     if options.service is not None:
         return ros2_calls.resolve_service(options.type).Request
@@ -129,7 +129,7 @@ def sink_class(options: Ros2SinkOptions) -> type:
     return rosmsg.resolve_type(options.type)
 
 
-def _check_mapping_keys(node: Mapping[str, Any], cls: type, prefix: str) -> Iterator[str]:
+def _check_mapping_keys(node: Mapping[str, Any], cls: rosmsg.RosClass, prefix: str) -> Iterator[str]:
     """Keys of a JMESPath multiselect hash (``{a: x, b: {c: y}}``) against message fields,
     descending into nested hashes for nested message fields."""
     fields = rosmsg.field_names(cls)

@@ -19,7 +19,7 @@ class Ros2Connection(Ros2Node):
         if typed_options.service is not None:
             return ros2_calls.ServiceSource(self.calls(), route, typed_options.service, typed_options.type,
                                             typed_options.max_in_flight)
-        return Ros2Source(self, route, options)
+        return Ros2Source(self, route, typed_options)
 
     def sink(self, route: str, options: Ros2SinkOptions | Mapping[str, Any]) -> Sink:
         typed_options = typed(Ros2SinkOptions, options, f"route {route!r}: ros2 sink")

@@ -58,7 +58,7 @@ def field_problem(type_name: str) -> FieldProblem | None:
     return message_field_problem(cls)
 
 
-def message_field_problem(cls: type) -> FieldProblem:
+def message_field_problem(cls: rosmsg.RosClass) -> FieldProblem:
     """The paths a mapping may read from a message of ``cls`` (a topic's message, a service's
     request or response)."""
     return lambda path: _resolve(cls, path)
@@ -69,7 +69,7 @@ ACTION_ANSWER = ("kind", "status", "feedback", "result")
 feedback?, result?}``; ``feedback`` and ``result`` hold the action's Feedback and Result."""
 
 
-def action_answer_problem(action: type) -> FieldProblem:
+def action_answer_problem(action: rosmsg.RosClass) -> FieldProblem:
     """The paths a reply mapping may read from an action sink's answers: the keys of
     :data:`ACTION_ANSWER`, and below ``feedback.``/``result.`` the action's Feedback/Result."""
     parts = {"feedback": action.Feedback, "result": action.Result}
@@ -91,7 +91,7 @@ def _dotted(path: FieldPath) -> str:
     return ".".join(path).replace(f".{ELEMENT}", ELEMENT)
 
 
-def _resolve(cls: type, path: FieldPath, start: int = 0) -> str | None:
+def _resolve(cls: rosmsg.RosClass, path: FieldPath, start: int = 0) -> str | None:
     """What is wrong with ``path[start:]`` read from a ``cls`` (messages name the whole ``path``)."""
     current: type | None = cls
     in_list = False
@@ -118,7 +118,7 @@ NESTED_SEARCH_DEPTH = 3
 ``pose.pose.orientation`` is two below ``pose``; deeper guesses would be guesses."""
 
 
-def _hint(cls: type, path: FieldPath, depth: int) -> str:
+def _hint(cls: rosmsg.RosClass, path: FieldPath, depth: int) -> str:
     """Where the field ``path[depth]`` is: in a message nested below ``cls`` (a level left
     out: ``pose.orientation`` of a nav_msgs/Odometry is ``pose.pose.orientation``), else a
     field of ``cls`` spelt alike, else the list of its fields."""
@@ -132,7 +132,7 @@ def _hint(cls: type, path: FieldPath, depth: int) -> str:
     return f"; did you mean {_dotted(path[:depth] + (guess,))!r}?" if guess else f" (fields: {', '.join(fields)})"
 
 
-def _nested_paths(cls: type, step: str, rest: FieldPath) -> list[FieldPath]:
+def _nested_paths(cls: rosmsg.RosClass, step: str, rest: FieldPath) -> list[FieldPath]:
     """The shortest field paths ``p`` below ``cls`` (through nested messages, not sequences)
     such that ``p + (step,) + rest`` is a path of ``cls``."""
     level: list[tuple[FieldPath, type]] = [((), cls)]
@@ -147,7 +147,7 @@ def _nested_paths(cls: type, step: str, rest: FieldPath) -> list[FieldPath]:
 
 
 @lru_cache(maxsize=None)
-def _fields(cls: type) -> dict[str, tuple[type | None, bool]]:
+def _fields(cls: rosmsg.RosClass) -> dict[str, tuple[type | None, bool]]:
     """field -> (message class of the field or of its elements, is a sequence of messages)."""
     from rosidl_parser import definition as idl
 

@@ -72,9 +72,10 @@ class Ros2Node(Connection):
     def __init__(self, name: str, settings: Ros2ConnectionOptions | Mapping[str, Any]) -> None:
         super().__init__(name, typed(Ros2ConnectionOptions, settings, f"ros2 connection {name!r}"))
         self.domain_id = self.settings.domain_id if self.settings.domain_id is not None else env_domain_id()
-        self._context: Context | None = None
+        self._context: Context
+        self._guard: GuardCondition
+        """Both set by :meth:`open` (with the node) and kept after :meth:`close`: nothing reads them before."""
         self._node: Node | None = None
-        self._guard: GuardCondition | None = None
         self._waiter: Waiter | None = None
         self._closing = False
         self._readers: dict[int, Reader] = {}
@@ -118,11 +119,11 @@ class Ros2Node(Connection):
     def calls(self) -> ros2_calls.CallNode:
         """The node of this connection's service calls, made on first use (engine.endpoints.ros2.calls.py)."""
         if self._calls is None:
-            self.node  # raises EndpointError when not open
+            self.node  # noqa: B018  # raises EndpointError when not open
             self._calls = ros2_calls.CallNode(self._context, self.settings.node, self.settings.namespace)
         return self._calls
 
-    def acquire_publisher(self, cls: type, topic: str, qos: QoSProfile) -> Any:
+    def acquire_publisher(self, cls: rosmsg.RosClass, topic: str, qos: QoSProfile) -> Any:
         """Publishers are shared by every sink of the connection with the same topic, type and
         QoS, so a reload that swaps a route's sink keeps the DDS writer the subscribers have
         already matched: a new writer would drop what it publishes before matching."""
@@ -169,9 +170,11 @@ class Ros2Node(Connection):
         await asyncio.to_thread(self._close_node)
 
     def _close_node(self) -> None:
+        node = self._node
+        assert node is not None  # close() returns early without one
         try:
             self._guard.destroy()
-            self._node.destroy_node()
+            node.destroy_node()
         finally:
             self._context.try_shutdown()
             self._node = None

@@ -39,7 +39,7 @@ import re
 import time
 from functools import lru_cache
 from collections.abc import Mapping
-from typing import Any, Callable
+from typing import Any, Callable, TypeAlias
 
 import numpy
 from rosidl_parser import definition as idl
@@ -75,11 +75,16 @@ class NullValue(MessageError):
                          "lacks); leave the field out to keep its default, or give nan() for a float meant as NaN", path)
 
 
+RosClass: TypeAlias = Any
+"""A class rosidl generated: a message, or a service or action (with its ``Request``, ``Goal``
+...). Typed Any: its fields are read at run time (``get_fields_and_field_types``,
+``SLOT_TYPES``), and mypy 2.x takes no ``type[...]`` as Hashable for the caches below."""
+
 _TYPE_NAME = re.compile(r"^([a-z][a-z0-9_]*)/(?:msg/)?([A-Z][A-Za-z0-9]*)$")
 
 
 @lru_cache(maxsize=None)
-def resolve_type(name: str) -> type:
+def resolve_type(name: str) -> RosClass:
     """The message class for ``pkg/msg/Type`` or ``pkg/Type``; MessageError if not installed."""
     match = _TYPE_NAME.match(name.strip()) if isinstance(name, str) else None
     if match is None:
@@ -96,18 +101,18 @@ def resolve_type(name: str) -> type:
     return cls
 
 
-def type_name(cls: type) -> str:
+def type_name(cls: RosClass) -> str:
     """``pkg/msg/Type`` of a message class (the form ROS tools print); a service's or an
     action's parts are ``pkg/srv/Type_Response``, ``pkg/action/Type_Feedback``."""
     package, kind = (cls.__module__.split(".") + ["msg"])[:2]
     return f"{package}/{kind}/{cls.__name__}"
 
 
-def field_names(cls: type) -> tuple[str, ...]:
+def field_names(cls: RosClass) -> tuple[str, ...]:
     return tuple(cls.get_fields_and_field_types())
 
 
-def nested_type(cls: type, field: str) -> type | None:
+def nested_type(cls: RosClass, field: str) -> RosClass | None:
     """The message class of ``field`` when it holds one nested message, else None."""
     for name, slot_type in zip(cls.get_fields_and_field_types(), cls.SLOT_TYPES):
         if name == field and isinstance(slot_type, idl.NamespacedType):
@@ -138,20 +143,21 @@ def null_path(data: Any) -> list[str | int] | None:
 
 
 def to_dict(msg: Any) -> dict[str, Any]:
-    return _to_dict_fn(type(msg))(msg)
+    cls: RosClass = type(msg)
+    return _to_dict_fn(cls)(msg)
 
 
-def from_dict(cls: type, data: Mapping[str, Any], null_as_nan: bool = True) -> Any:
+def from_dict(cls: RosClass, data: Mapping[str, Any], null_as_nan: bool = True) -> Any:
     """The message of ``data``. ``null_as_nan=False`` refuses every null (:class:`NullValue`),
     for data a sink mapping made; otherwise a null float reads as NaN (see the module)."""
     return _from_dict_fn(cls, not null_as_nan)(data)
 
 
-def _class_of(t: idl.NamespacedType) -> type:
+def _class_of(t: idl.NamespacedType) -> RosClass:
     return resolve_type(f"{t.namespaces[0]}/{t.name}")
 
 
-def _slots(cls: type) -> list[tuple[str, str, Any]]:
+def _slots(cls: RosClass) -> list[tuple[str, str, Any]]:
     return [(name, f"_{name}", t) for name, t in zip(cls.get_fields_and_field_types(), cls.SLOT_TYPES)]
 
 
@@ -187,7 +193,7 @@ def _is_base64(t: idl.AbstractNestedType) -> bool:
 # ---------------------------------------------------------------- message -> dict
 
 @lru_cache(maxsize=None)
-def _to_dict_fn(cls: type) -> Callable[[Any], dict[str, Any]]:
+def _to_dict_fn(cls: RosClass) -> Callable[[Any], dict[str, Any]]:
     fields = tuple((name, slot, _out(t)) for name, slot, t in _slots(cls))
 
     def convert(msg: Any) -> dict[str, Any]:
@@ -255,13 +261,13 @@ def _mismatch(expected: str, value: Any) -> MessageError:
     return MessageError(f"expected {expected}, got {_describe(value)}")
 
 
-def _now_stamp(stamp_cls: type) -> Any:
+def _now_stamp(stamp_cls: RosClass) -> Any:
     ns = time.time_ns()
     return stamp_cls(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
 @lru_cache(maxsize=None)
-def _from_dict_fn(cls: type, strict: bool = False) -> Callable[[Any], Any]:
+def _from_dict_fn(cls: RosClass, strict: bool = False) -> Callable[[Any], Any]:
     """Build messages with ``__new__`` and fill every slot once: the generated ``__init__``
     would first build default sub-messages that the input then replaces. ``strict``: every
     null is a :class:`NullValue`."""

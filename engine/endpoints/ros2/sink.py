@@ -160,7 +160,7 @@ class Ros2Sink(Sink):
         self._connection.sink_closed(self)
 
 
-def typed_message(cls: type, message: Outbound, where: str) -> Any:
+def typed_message(cls: rosmsg.RosClass, message: Outbound, where: str) -> Any:
     """The message of a typed sink, as the sink publishes it and ``rabbitros-engine test``
     builds it. Fields the data does not name keep the message's defaults (a Header without a
     stamp is stamped now). From a sink mapping a null is refused wherever it is (a

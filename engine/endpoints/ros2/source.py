@@ -97,7 +97,7 @@ class Ros2Source(Source):
         return self._where
 
     async def start(self, deliver: Deliver) -> None:
-        self._connection.node  # raises EndpointError when not open
+        self._connection.node  # noqa: B018  # raises EndpointError when not open
         self._deliver = deliver
         self._queue = deliver.inbox(deliver.overflow)
         if self._discovery is None:

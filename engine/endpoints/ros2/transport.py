@@ -88,7 +88,9 @@ class Ros2Transport(Transport):
             cls, kind = checks.sink_class(options), "service" if options.service else "action"
             where = f"route {route!r}, ros2 {kind} {name!r}"
             return lambda outbound: (typed_message(cls, outbound, where), name)[1]
-        return ros2_contract.sink_dry_run(route, options.topic, options.type, topic_template(options.topic), typed_message)
+        topic = options.topic
+        assert topic is not None  # a sink names a topic, a service or an action (checked at load)
+        return ros2_contract.sink_dry_run(route, topic, options.type, topic_template(topic), typed_message)
 
     def test_input(self, options: Ros2EndpointOptions) -> Callable[[Any], dict[str, Any]] | None:
         if options.service is not None:

@@ -107,7 +107,9 @@ class Waiter:
                                 continue
                             handles.append(sub.handle)
                         held.enter_context(guard.handle)
-                        held.enter_context(context.handle)
+                        context_handle = context.handle
+                        assert context_handle is not None  # rclpy.init ran before the waiter started
+                        held.enter_context(context_handle)
                         wait_set = _rclpy.WaitSet(len(handles), 1, 0, 0, 0, 0, context.handle)
                     wait_set.clear_entities()
                     for handle in handles:

@@ -26,7 +26,7 @@ import asyncio
 import itertools
 import json
 import logging
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import zenoh
 
@@ -90,7 +90,8 @@ class QuerySource(Source):
         if payload is not None:
             meta["encoding"] = str(query.encoding)
             return Inbound(body=payload.to_bytes(), meta=meta)
-        return Inbound(body=json.dumps(dict(iter(parameters))).encode(), meta=meta)
+        pairs = iter(parameters)  # type: ignore[type-var]  # eclipse-zenoh's stub says __iter__ returns a list; it returns an iterator
+        return Inbound(body=json.dumps(dict(pairs)).encode(), meta=meta)
 
     async def read_batch(self) -> list[Inbound]:
         handoff = self._handoff
@@ -100,10 +101,10 @@ class QuerySource(Source):
         return batch
 
     @staticmethod
-    def inbounds(batch: list[Inbound]) -> list[Inbound]:
+    def inbounds(batch: Sequence[Inbound]) -> Sequence[Inbound]:
         return batch
 
-    async def settle(self, batch: list[Inbound], settled: list[bool]) -> None:
+    async def settle(self, batch: Sequence[Inbound], settled: list[bool]) -> None:
         """A query the route did not settle (it is stopping) is answered with an error now."""
         for inbound, done in zip(batch, settled):
             if not done:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import Any
+from typing import Any, Sequence
 
 import zenoh
 
@@ -84,10 +84,10 @@ class ZenohSource(Source):
         return batch
 
     @staticmethod
-    def inbounds(batch: list[Inbound]) -> list[Inbound]:
+    def inbounds(batch: Sequence[Inbound]) -> Sequence[Inbound]:
         return batch
 
-    async def settle(self, batch: list[Inbound], settled: list[bool]) -> None:
+    async def settle(self, batch: Sequence[Inbound], settled: list[bool]) -> None:
         """A message not settled is lost (Zenoh keeps nothing to redeliver): counted."""
         deliver, handoff = self._deliver, self._handoff
         assert deliver is not None and handoff is not None

@@ -22,7 +22,7 @@ ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe|serial|vs
 class ZenohTransport(Transport):
     name = "zenoh"
     connection_type = ZenohConnection
-    default_settings: Mapping[str, Any] = {}
+    default_settings = {}
     """A peer that scouts the local network by multicast (Zenoh's own default)."""
     connection_options = ZenohConnectionOptions
     source_options = ZenohSourceOptions

@@ -114,10 +114,10 @@ def test_canonical_mission_and_arm_through_rabbitmq_to_mavsdk(tmp_path: Path, am
     routes = write_routes(tmp_path / "routes", amqp_url, f"udpout:127.0.0.1:{port}", amqp_route(
         "mission", tag, "mission.uav1", "mission") + """\
     sink: {mavlink: {connection: uav, mission: upload, target_system: 1, target_component: 1}}
-""" + amqp_route("arm", tag, "command.uav1", "command") + f"""\
+""" + amqp_route("arm", tag, "command.uav1", "command") + """\
     sink:
-      mavlink: {{connection: uav, message: COMMAND_LONG, target_system: 1, target_component: 1, acknowledged: true}}
-      mapping: "{{command: mav_enum_value('MAV_CMD_COMPONENT_ARM_DISARM', 'MAV_CMD'), param1: `1`}}"
+      mavlink: {connection: uav, message: COMMAND_LONG, target_system: 1, target_component: 1, acknowledged: true}
+      mapping: "{command: mav_enum_value('MAV_CMD_COMPONENT_ARM_DISARM', 'MAV_CMD'), param1: `1`}"
 """)
     mission = canonical_mission(WEEDS)
     first = mission["waypoints"][0]
@@ -236,10 +236,10 @@ def test_refused_mission_and_command_are_dead_lettered_with_the_result_name(tmp_
     routes = write_routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", amqp_route(
         "mission", tag, "mission.uav1", "mission") + """\
     sink: {mavlink: {connection: uav, mission: upload}}
-""" + amqp_route("arm", tag, "command.uav1", "command") + f"""\
+""" + amqp_route("arm", tag, "command.uav1", "command") + """\
     sink:
-      mavlink: {{connection: uav, message: COMMAND_INT, target_system: 1, acknowledged: true}}
-      mapping: "{{command: 'MAV_CMD_DO_REPOSITION', frame: `6`, x: deg_to_deg_e7(params.lat), y: deg_to_deg_e7(params.lon)}}"
+      mavlink: {connection: uav, message: COMMAND_INT, target_system: 1, acknowledged: true}
+      mapping: "{command: 'MAV_CMD_DO_REPOSITION', frame: `6`, x: deg_to_deg_e7(params.lat), y: deg_to_deg_e7(params.lon)}"
 """)
     command = {"type": "command", "agent_id": "uav1", "id": "c1", "stamp": canonical_stamp(), "command": "goto",
                "params": {"lat": -22.0001, "lon": -47.9002}}

@@ -295,4 +295,5 @@ class TunnelSink(Sink):
 def _newest(expiries: Sequence[int | None]) -> int | None:
     """When a transfer of messages with these ``expiries`` is worthless: once its newest
     message is (None: one of them never expires)."""
-    return None if any(value is None for value in expiries) else max(expiries)  # type: ignore[type-var]
+    expiring = [value for value in expiries if value is not None]
+    return None if len(expiring) < len(expiries) else max(expiring)
