@@ -1,0 +1,1 @@
+"""One module per protocol of the registry, named after it, each exposing ``HARNESS``."""
