@@ -77,6 +77,10 @@ class Harness:
         """The route's mapping: the body with ``origin`` from the source's metadata and ``edition``."""
         return f"merge(@, {{origin: {self.origin_expression()}, edition: `{edition}`}})"
 
+    def sink_mapping(self) -> str | None:
+        """The sink's own mapping (the fields a MAVLink message sink sends), or None."""
+        return None
+
     def origin_expression(self) -> str:
         """What the mapping reads the robot's origin from (JMESPath over ``meta()``)."""
         raise NotImplementedError

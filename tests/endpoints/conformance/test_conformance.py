@@ -51,8 +51,9 @@ routes:
     source: {{{protocol}: {{connection: {connection}, {source}}}}}
     mapping: "{mapping}"
     schema: raw_json
-    sink: {{{protocol}: {{connection: {connection}, {sink}}}}}
-"""
+    sink:
+      {protocol}: {{connection: {connection}, {sink}}}
+{sink_mapping}"""
 
 
 def taking_part(case: str) -> list[str]:
@@ -72,8 +73,14 @@ def write_routes(harness: Harness, case: str, edition: int = 1) -> Path:
     (routes / "r.yaml").write_text(ROUTES.format(
         connection=CONNECTION, connection_yaml=harness.connection(case), route=route_name(harness),
         protocol=harness.PROTOCOL, source=harness.source(), sink=harness.sink(),
-        mapping=harness.mapping(edition).replace('"', '\\"')))
+        mapping=quoted(harness.mapping(edition)),
+        sink_mapping=f'      mapping: "{quoted(sink_mapping)}"\n' if (sink_mapping := harness.sink_mapping()) else ""))
     return routes
+
+
+def quoted(expression: str) -> str:
+    """``expression`` inside a YAML double-quoted string."""
+    return expression.replace("\\", "\\\\").replace('"', '\\"')
 
 
 def make_harness(protocol: str, tmp_path: Path) -> Harness:

@@ -10,10 +10,7 @@ import asyncio
 import json
 from typing import Any
 
-import aio_pika
-
 from tests.endpoints.conformance.harness import Harness, Seen
-from tests.support.amqp_helpers import Collector
 from tests.support.waiting import wait_for
 
 
@@ -35,11 +32,15 @@ class AmqpHarness(Harness):
             self.private = LocalBroker(lifetime=900)
             await asyncio.to_thread(self.private.start)
             self.url = self.private.url
-        self.client: aio_pika.abc.AbstractConnection | None = None
-        self.collectors: list[Collector] = []
+        self.client: Any = None
+        self.collectors: list[Any] = []
         await self._connect()
 
     async def _connect(self) -> None:
+        import aio_pika  # here, not at the top: the fast tier imports this module without the protocols' libraries
+
+        from tests.support.amqp_helpers import Collector
+
         self.client = await aio_pika.connect(self.url)
         self.channel = await self.client.channel()
         self.collectors.append(await Collector.bind(self.channel, f"out-{self.tag}", "#"))
@@ -73,13 +74,15 @@ class AmqpHarness(Harness):
     async def ready(self) -> None:
         """Until the route consumes its queue (the engine declares and binds it at start)."""
 
+        from aio_pika.exceptions import ChannelClosed
+
         async def consumers() -> int:
             assert self.client is not None
             channel = await self.client.channel()
             try:
                 queue = await channel.declare_queue(f"in-{self.tag}-q", passive=True)
                 return queue.declaration_result.consumer_count or 0
-            except aio_pika.exceptions.ChannelClosed:
+            except ChannelClosed:
                 return 0
             finally:
                 if not channel.is_closed:
@@ -97,6 +100,8 @@ class AmqpHarness(Harness):
         await wait_for(lambda: counts[0] > 0, 1, "a consumer on the route's queue")
 
     async def _publish(self, robot: int, body: bytes) -> None:
+        import aio_pika
+
         await self.inbox.publish(aio_pika.Message(body, content_type="application/json", delivery_mode=2), f"in.r{robot}")
 
     async def inject(self, robot: int, seq: int) -> None:

@@ -8,8 +8,6 @@ import asyncio
 import json
 from typing import Any
 
-import aiomqtt
-
 from tests.endpoints.conformance.harness import Harness, Seen
 
 
@@ -21,12 +19,14 @@ class MqttHarness(Harness):
     async def open(self, fixtures: dict[str, Any], case: str) -> None:
         self.broker = fixtures["mosquitto"]
         self.messages: list[Seen] = []
-        self.injector: aiomqtt.Client | None = None
-        self.observer: aiomqtt.Client | None = None
+        self.injector: Any = None
+        self.observer: Any = None
         self.collecting: asyncio.Task[None] | None = None
         await self._connect()
 
-    def _client(self) -> aiomqtt.Client:
+    def _client(self) -> Any:
+        import aiomqtt  # here, not at the top: the fast tier imports this module without the protocols' libraries
+
         return aiomqtt.Client("127.0.0.1", self.broker.port, protocol=aiomqtt.ProtocolVersion.V5, timeout=30)
 
     async def _connect(self) -> None:
@@ -37,9 +37,9 @@ class MqttHarness(Harness):
         self.injector = self._client()
         await self.injector.__aenter__()
 
-    async def _collect(self, client: aiomqtt.Client) -> None:
+    async def _collect(self, client: Any) -> None:
         async for message in client.messages:
-            body = json.loads(bytes(message.payload))  # type: ignore[arg-type]  # aiomqtt types the payload loosely
+            body = json.loads(bytes(message.payload))
             robot = int(str(message.topic).rsplit("/r", 1)[1])
             self.messages.append(Seen(robot, body["seq"], body["origin"], body["edition"]))
 
@@ -51,7 +51,7 @@ class MqttHarness(Harness):
             if client is not None:
                 try:
                     await client.__aexit__(None, None, None)
-                except aiomqtt.MqttError:
+                except Exception:
                     pass  # the broker went first
         self.observer = self.injector = self.collecting = None
 
