@@ -11,8 +11,8 @@ protocol that does not promise a case is left out of it by its harness, with the
 skipped); a protocol without a harness fails every case, naming itself.
 
 The engine runs in the test's process (engine.running.runtime.Engine), except under ``kill -9``
-(a child, tests/support/engine_process.py). ``/healthz`` is read through the function the admin
-endpoint serves it from (engine/ops/admin.py ``connection_health``).
+(a child, tests/support/engine_process.py); the health case serves the engine's admin endpoint
+(engine/ops/admin.py ``AdminServer``) on a loopback port and reads ``/healthz`` over HTTP.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from typing import Any, Awaitable, Callable
 import pytest
 
 from engine.endpoints import PROTOCOLS
-from engine.ops.admin import connection_health
+from engine.ops.admin import AdminServer
 from engine.running.runtime import Engine
 from tests.endpoints.conformance.harness import CASES, Harness, Seen, harness_class
 from tests.support.engine_process import EngineProcess
@@ -116,12 +116,29 @@ def peer_health(engine: Engine) -> dict[str, Any]:
     return engine.status()["connections"].get(CONNECTION, {})
 
 
-async def until_healthy(engine: Engine, healthy: bool, timeout: float = 30.0) -> dict[str, Any]:
-    """Until the connection's health in the status and in /healthz's document is ``healthy``."""
-    await wait_for(lambda: peer_health(engine).get("healthy") is healthy
-                   and connection_health(engine).get(CONNECTION, {}).get("up") is healthy,
-                   timeout, f"connection {CONNECTION} healthy={healthy}", lambda: peer_health(engine))
-    return peer_health(engine)
+async def healthz(admin: AdminServer) -> tuple[int, dict[str, Any]]:
+    """``GET /healthz``: its status code and document."""
+    import aiohttp
+
+    async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=10)) as client:
+        async with client.get(f"http://127.0.0.1:{admin.port}/healthz") as response:
+            return response.status, await response.json()
+
+
+async def until_healthy(engine: Engine, healthy: bool, admin: AdminServer | None = None,
+                        timeout: float = 30.0) -> dict[str, Any]:
+    """Until the connection's health in the status (and in ``/healthz``, given the admin
+    endpoint: 200 or 503 naming it) is ``healthy``; returns the status's health."""
+    deadline = time.monotonic() + timeout
+    while True:
+        health = peer_health(engine)
+        code, document = await healthz(admin) if admin is not None else (None, {})
+        served = admin is None or ((code == 200) is healthy and (CONNECTION in document["down"]) is not healthy)
+        if health.get("healthy") is healthy and served:
+            return health
+        assert time.monotonic() < deadline, (f"timed out after {timeout:g} s waiting for connection {CONNECTION} "
+                                             f"healthy={healthy}: status {health}, /healthz {code} {document}")
+        await asyncio.sleep(0.05)
 
 
 async def until_seen(harness: Harness, condition: Callable[[list[Seen]], bool], what: str, timeout: float = 30.0) -> list[Seen]:
@@ -249,14 +266,17 @@ def test_health_follows_the_broker_or_peer(protocol: str, tmp_path: Path, reques
 
     async def scenario(harness: Harness) -> None:
         engine = await started(harness, "health")
+        admin = AdminServer(engine, "127.0.0.1", 0)
+        await admin.start()
         try:
-            await until_healthy(engine, True)
+            await until_healthy(engine, True, admin)
             await harness.peer_down()
-            down = await until_healthy(engine, False)
+            down = await until_healthy(engine, False, admin)
             await harness.peer_back()
-            await until_healthy(engine, True, timeout=45)
+            await until_healthy(engine, True, admin, timeout=45)
             await carried(harness, 1, 0, 1)
         finally:
+            await admin.stop()
             await engine.stop()
         assert down.get("state") != "up" and (down.get("last_error") or down.get("state")), down
 
