@@ -18,7 +18,6 @@ The engine runs in the test's process (engine.running.runtime.Engine), except un
 from __future__ import annotations
 
 import asyncio
-import json
 import os
 import signal
 import time
