@@ -361,19 +361,25 @@ def test_at_least_once_under_an_engine_kill_9(protocol: str, tmp_path: Path, req
 def test_a_subscription_the_broker_drops_is_taken_up_again(protocol: str, tmp_path: Path,
                                                            request: pytest.FixtureRequest) -> None:
     """The broker drops the source's subscription (a restarted broker that forgot the session, a
-    deleted queue); the route subscribes again and carries again, healthy, without a restart."""
+    deleted queue); the route subscribes again (declaring again what it declares) and carries
+    again, healthy in the status and /healthz, without a restart or a reload. (How the status
+    says why meanwhile is protocol-specific: tests/endpoints/amqp/test_amqp_cancelled.py.)"""
 
     async def scenario(harness: Harness) -> None:
         engine = await started(harness, "cancel")
+        admin = AdminServer(engine, "127.0.0.1", 0)
+        await admin.start()
         try:
             await harness.ready()
             await carried(harness, 1, 0, 1)
             await harness.cancel_subscription()
             await carried(harness, 1, 1, 1, timeout=45)
-            await until_healthy(engine, True)
+            await until_healthy(engine, True, admin)
             route = engine.status()["routes"][route_name(harness)]
         finally:
+            await admin.stop()
             await engine.stop()
         assert route["generation"] == 1, "taken up again by the running route, not by a reload"
+        assert route.get("source_degraded") is None, f"the route still says it is degraded: {route}"
 
     run_case(protocol, "cancel", tmp_path, request, scenario)

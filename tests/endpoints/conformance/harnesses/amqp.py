@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-from typing import Any
+from typing import Any, ClassVar
 
 from tests.endpoints.conformance.harness import Harness, Seen
 from tests.support.waiting import wait_for
@@ -17,11 +17,7 @@ from tests.support.waiting import wait_for
 class AmqpHarness(Harness):
     PROTOCOL = "amqp"
     FIXTURES = ("amqp_url",)
-    EXCLUDED = {
-        "cancel": "left out until branch amqpfix lands (issue 30: a source the broker cancels stays dead on main, "
-                  "0 consumers after the queue is deleted); then delete this line: cancel_subscription below "
-                  "deletes the route's queue",
-    }
+    EXCLUDED: ClassVar[dict[str, str]] = {}  # every case: AMQP acknowledges after the sink, and a broker can cancel a consumer
 
     async def open(self, fixtures: dict[str, Any], case: str) -> None:
         self.private = None
