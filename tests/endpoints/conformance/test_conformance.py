@@ -36,6 +36,10 @@ from tests.support.engine_process import EngineProcess
 from tests.support.repo import REPO
 from tests.support.waiting import wait_for
 
+pytestmark = pytest.mark.timeout(180)
+"""A case's scenario has SCENARIO_S; with its peer's start (a private RabbitMQ node: up to 90 s on
+a loaded machine) it ends well within this, and a hang is named sooner than the default 300 s."""
+
 CONNECTION = "peer"
 SCENARIO_S = 90.0
 """Each case's own deadline (the per-test timeout, 300 s, is the backstop)."""
