@@ -18,7 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, cast
 
 import watchfiles
 
@@ -83,7 +83,9 @@ async def watch_routes(
         if not directories:  # all gone: wait for one to come back
             await asyncio.sleep(RETRY_S)
             continue
-        until = _StopOrRewatch(stop, current_key_files, keys)
+        # watchfiles types stop_event as an anyio/asyncio/trio Event but only calls is_set() and
+        # set(), which _StopOrRewatch has (duck-typed, as watchfiles' own thread uses it)
+        until = cast(asyncio.Event, _StopOrRewatch(stop, current_key_files, keys))
         try:
             async for _changes in watchfiles.awatch(
                 *sorted(directories), watch_filter=wanted, stop_event=until, recursive=False
