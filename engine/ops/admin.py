@@ -199,6 +199,22 @@ class EngineCollector:
         for name, health in sorted(connection_health(engine).items()):
             up.add_metric([name, health["protocol"]], 1 if health["up"] else 0)
         yield up
+        yield from connection_metrics(engine)
+
+
+def connection_metrics(engine: Engine) -> Iterator[Metric]:
+    """The connections' own samples (``Connection.metrics``), one family per name."""
+    families: dict[str, Metric] = {}
+    for _, connection in sorted(engine.open_connections(), key=lambda held: held[1].name):
+        name = connection.name
+        for sample in connection.metrics():
+            family = families.get(sample.name)
+            if family is None:
+                kind = CounterMetricFamily if sample.kind == "counter" else GaugeMetricFamily
+                family = families[sample.name] = kind(f"rabbitros_{sample.name}", sample.help,
+                                                      labels=["connection", *(key for key, _ in sample.labels)])
+            family.add_metric([name, *(value for _, value in sample.labels)], sample.value)
+    yield from families.values()
 
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]

@@ -15,11 +15,12 @@ from collections.abc import Hashable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from engine.endpoints.base import Connection, EndpointError, Sink, Source, typed
+from engine.endpoints.base import Connection, ConnectionMetric, EndpointError, Sink, Source, typed
 from engine.endpoints.mavlink.checks import sink_options, source_options
 from engine.endpoints.mavlink.codec import MESSAGES, TUNNEL, mavlink2
 from engine.endpoints.mavlink.contract import Listener
 from engine.endpoints.mavlink.enums import enum_name
+from engine.endpoints.mavlink.framing import BAD_FRAME_REASONS
 from engine.endpoints.mavlink.messages import MessageSource, sink_for
 from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
@@ -34,7 +35,7 @@ counts the systems/components whose HEARTBEAT came in. Tunnel counters (``tunnel
 ``tunnel_retransmissions``, ``tunnel_delivered``, ``tunnel_deliver_failed``,
 ``tunnel_malformed``), mission and command counters appear once used."""
 
-REJECTION_STATS = ("bad_crc", "bad_data", "unsigned_rejected", "bad_signature", "replayed", "not_for_us")
+REJECTION_STATS = (*BAD_FRAME_REASONS, "unsigned_rejected", "bad_signature", "replayed", "not_for_us")
 """What the link received and threw away, shown together in the status."""
 
 @dataclass(slots=True)
@@ -98,6 +99,19 @@ class MavlinkConnection(Connection):
             "vehicles": [{"system_id": seen.system_id, "component_id": seen.component_id, "type": seen.type,
                           "heard_s_ago": round(time.monotonic() - seen.last_heard, 1)} for seen in self.seen.values()],
         }
+
+    def metrics(self) -> list[ConnectionMetric]:
+        """The link's frames for /metrics: accepted, bad (by reason, see framing.py) and lost
+        (sequence gaps), from the counters the reading path keeps."""
+        stats = self.stats
+        samples = [ConnectionMetric("link_bad_frames", "Received bytes thrown away as a bad frame, per reason",
+                                    "counter", stats[reason], (("reason", reason),))
+                   for reason in BAD_FRAME_REASONS]
+        samples.append(ConnectionMetric("link_frames_accepted", "Frames received whole and accepted (CRC, signing)",
+                                        "counter", stats["frames_accepted"]))
+        samples.append(ConnectionMetric("link_frames_lost", "Frames missing from the senders' sequence numbers",
+                                        "counter", stats["frames_lost"]))
+        return samples
 
     async def open(self) -> None:
         await self.port.open()
