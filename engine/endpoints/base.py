@@ -481,6 +481,12 @@ class Connection(ABC):
         known, ``last_error`` (never a secret)."""
         return {"state": "up" if self.healthy else "down"}
 
+    def unavailable(self) -> list[str]:
+        """Parts of an up connection that routes need and that are down (a vehicle silent for
+        its timeout), each named with why: /healthz answers 503 with them. The connection
+        itself stays usable for the rest (unlike :attr:`healthy`)."""
+        return []
+
     def metrics(self) -> Iterable[ConnectionMetric]:
         """The connection's own samples for ``/metrics`` (a link's bad frames, a vehicle's
         liveness), read at scrape time from counters the connection keeps as plain integers."""

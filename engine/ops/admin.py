@@ -7,8 +7,9 @@ Served by aiohttp on the engine's own event loop:
   counter line show) and the engine at scrape time, so the hot path only increments plain
   integers (no prometheus_client lock per message);
 * ``GET /healthz``: 200 when every connection is up and every route's source receives; 503
-  naming the connections that are down, or the routes whose source is degraded (the broker
-  cancelled its subscription) and why, until it is taken up again;
+  naming the connections that are down, the routes whose source is degraded (the broker
+  cancelled its subscription) and why, until it is taken up again, and the ``unavailable``
+  parts of up connections (``Connection.unavailable``: a MAVLink vehicle not heard);
 * ``GET /status``: the status document (generation, config hash, reloads, each route's
   counters, rates, state and last error, the connections);
 * ``GET /tap/{route}``: JSON lines, one per message through the route, from now on.
@@ -286,9 +287,12 @@ class AdminServer:
         connections = connection_health(self.engine)
         down = sorted(name for name, health in connections.items() if not health["up"])
         degraded = degraded_sources(self.engine)
-        document = {"status": "down" if down else "degraded" if degraded else "ok", "down": down,
-                    "degraded": degraded, "connections": connections, "generation": self.engine.generation}
-        return web.json_response(document, status=503 if down or degraded else 200)
+        unavailable = {connection.name: parts for _, connection in self.engine.open_connections()
+                       if connection.name not in down and (parts := connection.unavailable())}
+        status = "down" if down else "degraded" if degraded or unavailable else "ok"
+        document = {"status": status, "down": down, "degraded": degraded, "unavailable": unavailable,
+                    "connections": connections, "generation": self.engine.generation}
+        return web.json_response(document, status=503 if down or degraded or unavailable else 200)
 
     async def status(self, request: web.Request) -> web.Response:
         return web.json_response(status_document(self.engine), dumps=lambda d: json.dumps(d, default=str))
