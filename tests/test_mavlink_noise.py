@@ -237,3 +237,51 @@ def test_sik_radio_delivers_good_frames_with_noise_bytes_between_them(tmp_path: 
     bad = bad_frames(metrics, "radio")
     print(f"bad frames {bad}")
     assert sum(bad.values()) >= sum(vehicle.made.values()) * 0.5, (bad, vehicle.made)
+
+
+def test_a_false_start_byte_on_a_quiet_serial_link_holds_the_frame_behind_it_briefly(
+        tmp_path: Path, schemas_dir: Path, amqp_url: str) -> None:
+    """``FD FF 00`` claims a 267-byte frame: on a link that carries a frame a second, a stream
+    parser that waits for those bytes holds the good frames behind them for seconds (pymavlink
+    does, for as long as it takes). The engine gives the waiting frame up after
+    ``STALE_FRAME_S`` and finds the good frame inside it."""
+    from engine.endpoints.mavlink.port import STALE_FRAME_S
+
+    exchange = f"quiet-{os.getpid()}-{time.monotonic_ns()}"
+    vehicle = Vehicle(seed=3)
+    master, slave = os.openpty()
+    found: dict[str, Any] = {}
+
+    async def scenario() -> None:
+        directory = tmp_path / "routes"
+        directory.mkdir()
+        (directory / "quiet.yaml").write_text(
+            SERIAL_ROUTES.format(amqp=amqp_url, device=os.ttyname(slave), exchange=exchange))
+        engine = Engine(directory, schemas_dir)
+        client = await aio_pika.connect(amqp_url)
+        try:
+            collector = await Collector.bind(await client.channel(), exchange, "telemetry")
+            await engine.start()
+            try:
+                radio = next(c for _, c in engine.connections.items() if c.name == "radio")
+                for index in range(3):
+                    written = time.monotonic()
+                    os.write(master, b"\xfd\xff\x00" + vehicle.frame(index))
+                    await until(lambda: len(collector.messages) > index, STALE_FRAME_S + 5, f"frame {index}")
+                    found.setdefault("held", []).append(time.monotonic() - written)
+                found["truncated"] = radio.stats["truncated"]
+                found["seqs"] = delivered(collector)
+            finally:
+                await engine.stop(drain_timeout=1.0)
+        finally:
+            await client.close()
+
+    try:
+        asyncio.run(asyncio.wait_for(scenario(), 60))
+    finally:
+        os.close(master)
+        os.close(slave)
+    print(f"held behind a false start byte: {[round(h, 2) for h in found['held']]} s")
+    assert found["seqs"] == [0, 1, 2]
+    assert all(held < STALE_FRAME_S + 1 for held in found["held"]), found["held"]
+    assert found["truncated"] == 3

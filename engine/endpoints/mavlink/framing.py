@@ -17,7 +17,9 @@ Here framing is done by the engine and decoding (CRC, fields) by pymavlink's ``d
   MAVLink implementation sends whole frames per datagram: ArduPilot, PX4, mavlink-router,
   mavutil);
 * a **stream** (serial, TCP: :meth:`FrameReader.stream`) keeps a partial frame for the next
-  chunk;
+  chunk, for a while: a frame that has not completed after :data:`.port.STALE_FRAME_S` is given
+  up (:meth:`FrameReader.give_up_waiting`), so a false start byte cannot hold the frames
+  behind it on a quiet link;
 * in both, a candidate frame that is rejected (bad CRC, impossible header, unknown message id)
   costs only itself: parsing resumes at the next start byte *inside* the rejected bytes, so a
   good frame that a false start byte's length covered is still found. (The C library also
@@ -63,7 +65,7 @@ class FrameReader:
     """Frames of one link (or one peer of a TCP server) as pymavlink messages; rejected bytes
     counted into ``stats`` (see the module docstring)."""
 
-    __slots__ = ("stats", "_decoder", "_pending", "_counted")
+    __slots__ = ("stats", "_decoder", "_pending", "_counted", "_consumed")
 
     def __init__(self, stats: dict[str, int]) -> None:
         self.stats = stats
@@ -75,6 +77,14 @@ class FrameReader:
         """A stream's bytes from the start of a frame that has not all arrived yet."""
         self._counted = 0
         """How many of ``_pending``'s bytes lie in a bad region already counted."""
+        self._consumed = 0
+        """Stream bytes before ``_pending``: :attr:`waiting_at` names the waiting frame by it."""
+
+    @property
+    def waiting_at(self) -> int | None:
+        """Where in the stream the frame still arriving starts (None: nothing waits), so a
+        caller can tell whether the frame that waits now is the one that waited before."""
+        return self._consumed if self._pending else None
 
     def datagram(self, data: bytes) -> list[mavlink2.MAVLink_message]:
         """The frames of one datagram; a frame cut off at its end is ``truncated``."""
@@ -84,18 +94,36 @@ class FrameReader:
     def stream(self, data: bytes) -> list[mavlink2.MAVLink_message]:
         """The frames completed by ``data``; a frame still arriving waits for the next chunk."""
         buf = self._pending + data if self._pending else data
-        frames, rest, counted_to = self._scan(buf, self._counted, final=False)
+        return self._continue(buf, 0, self._counted)
+
+    def give_up_waiting(self) -> list[mavlink2.MAVLink_message]:
+        """The frame still arriving is given up (counted ``truncated``) and its bytes are
+        searched for frames, as a rejected frame's are. For a start byte in noise whose length
+        claims up to 280 bytes: on a quiet link (a heartbeat a second) the frames behind it
+        would wait for those bytes for many seconds (the port calls this once a frame waited
+        :data:`.port.STALE_FRAME_S`)."""
+        buf = self._pending
+        if not buf:
+            return []
+        if self._counted == 0:
+            self.stats["truncated"] += 1
+        return self._continue(buf, 1, len(buf))
+
+    def _continue(self, buf: bytes, at: int, counted_to: int) -> list[mavlink2.MAVLink_message]:
+        frames, rest, counted_to = self._scan(buf, counted_to, final=False, at=at)
         self._pending = buf[rest:]
         self._counted = max(0, counted_to - rest)
+        self._consumed += rest
         return frames
 
-    def _scan(self, buf: bytes, counted_to: int, final: bool) -> tuple[list[mavlink2.MAVLink_message], int, int]:
-        """Frames in ``buf``, where the unparsed rest starts (``len(buf)`` when ``final``) and
-        ``counted_to``: rejected bytes before it are counted already (one count per bad region)."""
+    def _scan(self, buf: bytes, counted_to: int, final: bool,
+              at: int = 0) -> tuple[list[mavlink2.MAVLink_message], int, int]:
+        """Frames in ``buf`` from ``at``, where the unparsed rest starts (``len(buf)`` when
+        ``final``) and ``counted_to``: rejected bytes before it are counted already (one count
+        per bad region)."""
         frames: list[mavlink2.MAVLink_message] = []
         stats = self.stats
         end = len(buf)
-        at = 0
         while at < end:
             found = _START.search(buf, at)
             start = found.start() if found is not None else end

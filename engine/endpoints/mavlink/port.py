@@ -50,6 +50,12 @@ from engine.endpoints.mavlink.signing import SignatureCheck, SigningClock
 from engine.endpoints.mavlink.tunnel import TUNNEL_PAYLOAD, ignore_result
 
 MAX_PARSERS = 32
+STALE_FRAME_S = 0.5
+"""A stream frame not complete this long after it started to arrive is given up
+(framing.py): a false start byte in noise claims up to 280 bytes, many seconds of a quiet link
+(a 21-byte HEARTBEAT a second: 13 s, long past a vehicle's heartbeat_timeout). A real frame
+takes 49 ms at 57,600 baud; a SiK radio sends whole frames per air packet, a TDM round (~236 ms)
+apart at worst."""
 
 PORT_STATS = (
     "bytes_received", "frames_received", "frames_accepted", "frames_lost", *BAD_FRAME_REASONS,
@@ -102,6 +108,8 @@ class MavlinkPort:
         """A stream's frame reader per peer (a ``tcpin`` server's clients are separate streams)."""
         self._datagram_reader = FrameReader(self.stats)
         self._datagrams = False
+        self._stale_timers: dict[Hashable, tuple[int, asyncio.TimerHandle]] = {}
+        """Per stream peer: where its waiting frame starts, and the timer that gives it up."""
         self._last_seq: dict[tuple[int, int], int] = {}
         self._heard_at: dict[int, Hashable] = {}
         """System id -> the peer its last accepted frame came from (a udpin link with several
@@ -162,6 +170,9 @@ class MavlinkPort:
             await asyncio.gather(self._task, return_exceptions=True)
             self._task = None
         self._waiting.clear()
+        for _, timer in self._stale_timers.values():
+            timer.cancel()
+        self._stale_timers.clear()
         for queue, _ in self._lanes:
             while queue:
                 future = queue.popleft().future
@@ -309,7 +320,34 @@ class MavlinkPort:
         if self._datagrams:
             messages = self._datagram_reader.datagram(data)
         else:
-            messages = self._reader(peer).stream(data)
+            reader = self._reader(peer)
+            messages = reader.stream(data)
+            self._watch_waiting(peer, reader)
+        self._peer = peer
+        for msg in messages:
+            self._on_frame(msg)
+
+    def _watch_waiting(self, peer: Hashable, reader: FrameReader) -> None:
+        """Give up the stream's waiting frame if it is still waiting in :data:`STALE_FRAME_S`;
+        one timer per waiting frame, not per chunk."""
+        waiting_at = reader.waiting_at
+        timer = self._stale_timers.get(peer)
+        if timer is not None and timer[0] == waiting_at:
+            return
+        if timer is not None:
+            timer[1].cancel()
+            del self._stale_timers[peer]
+        if waiting_at is not None and not self._closed:
+            handle = asyncio.get_running_loop().call_later(STALE_FRAME_S, self._stale, peer, waiting_at)
+            self._stale_timers[peer] = (waiting_at, handle)
+
+    def _stale(self, peer: Hashable, waiting_at: int) -> None:
+        self._stale_timers.pop(peer, None)
+        reader = self._readers.get(peer)
+        if reader is None or reader.waiting_at != waiting_at:
+            return
+        messages = reader.give_up_waiting()
+        self._watch_waiting(peer, reader)
         self._peer = peer
         for msg in messages:
             self._on_frame(msg)
