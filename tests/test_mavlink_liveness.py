@@ -22,8 +22,8 @@ import aiohttp
 import aio_pika
 from prometheus_client.parser import text_string_to_metric_families
 
-from engine.admin import AdminServer, status_document
-from engine.runtime import Engine
+from engine.ops.admin import AdminServer, status_document
+from engine.running.runtime import Engine
 from tests.amqp_helpers import Caller
 from tests.udp_vehicle import FleetVehicle, free_udp_port
 

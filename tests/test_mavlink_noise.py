@@ -33,8 +33,8 @@ from prometheus_client.parser import text_string_to_metric_families
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
-from engine.admin import AdminServer  # noqa: E402
-from engine.runtime import Engine  # noqa: E402
+from engine.ops.admin import AdminServer  # noqa: E402
+from engine.running.runtime import Engine  # noqa: E402
 from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 from rabbitros_sim.vehicle import open_serial  # noqa: E402
 from tests.amqp_helpers import Collector  # noqa: E402

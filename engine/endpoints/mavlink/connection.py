@@ -23,8 +23,8 @@ from engine.endpoints.mavlink.enums import enum_name
 from engine.endpoints.mavlink.framing import BAD_FRAME_REASONS
 from engine.endpoints.mavlink.liveness import VehicleLiveness, last_heard, vehicles
 from engine.endpoints.mavlink.messages import MessageSource, sink_for
-from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
+from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
 from engine.endpoints.mavlink.settings import settings_problems
 from engine.endpoints.mavlink.tunnel import TunnelHub, TunnelSink, TunnelSource
 
@@ -66,7 +66,7 @@ class MavlinkConnection(Connection):
         self.hub = TunnelHub(self.port, config.tunnel)
         self.seen: dict[tuple[int, int], VehicleSeen] = {}
         self.agent_names: dict[int, str] = {}
-        """System id -> the agent's name (engine/agents.py), from the routes' endpoints, for
+        """System id -> the agent's name (engine/language/agents.py), from the routes' endpoints, for
         naming a vehicle in /healthz, the status and /metrics."""
         self.mission_refs: dict[tuple[int, int], str] = {}
         """Per vehicle, the id of the message whose mission was uploaded last: a MISSION_ACK
