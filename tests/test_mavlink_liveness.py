@@ -20,6 +20,7 @@ from typing import Any
 
 import aiohttp
 import aio_pika
+import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from engine.ops.admin import AdminServer, status_document
@@ -27,11 +28,11 @@ from engine.running.runtime import Engine
 from tests.amqp_helpers import Caller
 from tests.udp_vehicle import FleetVehicle, free_udp_port
 
-TIMEOUT = 2.0
+DEFAULT_TIMEOUT = 3.0
 ROUTES = """\
 connections:
   bus: {{amqp: "{amqp}"}}
-  uav: {{mavlink: "udpin:127.0.0.1:{port}", heartbeat_timeout: {timeout}}}
+  uav: {{mavlink: "udpin:127.0.0.1:{port}"{timeout}}}
 agents:
   uav1: {{connection: uav, system_id: 1}}
 routes:
@@ -68,13 +69,17 @@ def vehicle_samples(text: str) -> dict[str, tuple[dict[str, str], float]]:
             for sample in family.samples if sample.name.startswith("rabbitros_vehicle_")}
 
 
-def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(tmp_path: Path, amqp_url: str,
-                                                                                schemas_dir: Path) -> None:
+@pytest.mark.parametrize("timeout", [None, 1.5], ids=["default", "heartbeat_timeout-1.5"])
+def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(
+        timeout: float | None, tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """With the default (3 s) and with ``heartbeat_timeout`` given."""
+    limit = DEFAULT_TIMEOUT if timeout is None else timeout
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
     routes = tmp_path / "routes"
     routes.mkdir()
-    (routes / "uav.yaml").write_text(ROUTES.format(amqp=amqp_url, port=port, timeout=TIMEOUT, tag=tag))
+    given = "" if timeout is None else f", heartbeat_timeout: {timeout}"
+    (routes / "uav.yaml").write_text(ROUTES.format(amqp=amqp_url, port=port, timeout=given, tag=tag))
     found: dict[str, Any] = {}
 
     async def scenario() -> None:
@@ -91,7 +96,7 @@ def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(
 
             async def healthy() -> bool:
                 status, body = await get(session, admin, "/healthz")
-                return status == 200 and bool(json.loads(body)["connections"]["uav"].get("liveness"))
+                return status == 200 and bool(json.loads(body)["connections"]["uav"].get("vehicles"))
 
             await until(healthy, 10, "/healthz 200 with the vehicle heard")
             up = await caller.call("", f"arm-{tag}", command())
@@ -109,7 +114,7 @@ def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(
                 status, body = await get(session, admin, "/healthz")
                 return json.loads(body) if status == 503 else None
 
-            found["healthz"] = await until(unhealthy, TIMEOUT + 3, "/healthz 503")
+            found["healthz"] = await until(unhealthy, limit + 3, "/healthz 503")
             found["named_after"] = time.monotonic() - silent_from
             found["down_metrics"] = vehicle_samples((await get(session, admin, "/metrics"))[1])
             found["status"] = status_document(engine)["connections"]["uav"]
@@ -143,16 +148,16 @@ def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(
     labels, value = found["up_metrics"]["rabbitros_vehicle_up"]
     assert labels == {"connection": "uav", "agent": "uav1", "system_id": "1"} and value == 1
 
-    assert found["named_after"] <= TIMEOUT + 1, found["named_after"]
+    assert found["named_after"] <= limit + 1, found["named_after"]
     health = found["healthz"]
     assert health["status"] == "degraded" and health["down"] == [], health
     [reason] = health["unavailable"]["uav"]
-    assert reason.startswith("vehicle 1 (uav1): not heard for ") and f"(heartbeat_timeout {TIMEOUT:g} s)" in reason, reason
+    assert reason.startswith("vehicle 1 (uav1): not heard for ") and f"(heartbeat_timeout {limit:g} s)" in reason, reason
 
     labels, value = found["down_metrics"]["rabbitros_vehicle_up"]
     assert labels["agent"] == "uav1" and value == 0
     _, silent_for = found["down_metrics"]["rabbitros_vehicle_heard_seconds_ago"]
-    assert silent_for > TIMEOUT
+    assert silent_for > limit
     assert [(v["system_id"], v["agent"], v["up"]) for v in found["status"]["liveness"]] == [(1, "uav1", False)]
 
     kind, error = found["down_reply"]
