@@ -147,6 +147,8 @@ def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(
     assert found["up_reply"]["result"] == "MAV_RESULT_ACCEPTED", found["up_reply"]
     labels, value = found["up_metrics"]["rabbitros_vehicle_up"]
     assert labels == {"connection": "uav", "agent": "uav1", "system_id": "1"} and value == 1
+    labels, _ = found["up_metrics"]["rabbitros_vehicle_frames_lost_total"]
+    assert labels == {"connection": "uav", "agent": "uav1", "system_id": "1"}
 
     assert found["named_after"] <= limit + 1, found["named_after"]
     health = found["healthz"]

@@ -121,8 +121,9 @@ class MavlinkConnection(Connection):
         return [vehicle.down_reason(timeout) for vehicle in self.liveness() if not vehicle.up]
 
     def metrics(self) -> list[ConnectionMetric]:
-        """The link's frames for /metrics: accepted, bad (by reason, see framing.py) and lost
-        (sequence gaps), from the counters the reading path keeps."""
+        """For /metrics, from the counters the reading path keeps: the link's frames (accepted,
+        bad by reason (framing.py), lost from sequence gaps), what its radio's last RADIO_STATUS
+        counted, and per vehicle its liveness and its lost frames."""
         stats = self.stats
         samples = [ConnectionMetric("link_bad_frames", "Received bytes thrown away as a bad frame, per reason",
                                     "counter", stats[reason], (("reason", reason),))
@@ -131,8 +132,17 @@ class MavlinkConnection(Connection):
                                         "counter", stats["frames_accepted"]))
         samples.append(ConnectionMetric("link_frames_lost", "Frames missing from the senders' sequence numbers",
                                         "counter", stats["frames_lost"]))
+        radio = self.port.budget.last
+        if radio is not None:
+            samples.append(ConnectionMetric("link_radio_rxerrors", "The SiK radio's RADIO_STATUS rxerrors (its own count, "
+                                            "16 bits)", "gauge", radio.rxerrors))
+            samples.append(ConnectionMetric("link_radio_fixed", "The SiK radio's RADIO_STATUS fixed: packets its error "
+                                            "correction repaired", "gauge", radio.fixed))
+        lost = self.port.lost_by_system
         for vehicle in self.liveness():
             labels = (("agent", vehicle.agent or str(vehicle.system_id)), ("system_id", str(vehicle.system_id)))
+            samples.append(ConnectionMetric("vehicle_frames_lost", "Frames missing from the vehicle's sequence numbers",
+                                            "counter", lost.get(vehicle.system_id, 0), labels))
             samples.append(ConnectionMetric("vehicle_up", "1 while the vehicle's HEARTBEATs come within heartbeat_timeout",
                                             "gauge", 1 if vehicle.up else 0, labels))
             samples.append(ConnectionMetric("vehicle_heard_seconds_ago", "Seconds since the vehicle's last HEARTBEAT",

@@ -111,6 +111,8 @@ class MavlinkPort:
         self._stale_timers: dict[Hashable, tuple[int, asyncio.TimerHandle]] = {}
         """Per stream peer: where its waiting frame starts, and the timer that gives it up."""
         self._last_seq: dict[tuple[int, int], int] = {}
+        self.lost_by_system: dict[int, int] = {}
+        """Frames missing from each system's sequence numbers (its components' streams summed)."""
         self._heard_at: dict[int, Hashable] = {}
         """System id -> the peer its last accepted frame came from (a udpin link with several
         vehicles writes a message targeted at one of them to that peer only)."""
@@ -368,8 +370,9 @@ class MavlinkPort:
         self._heard_at[header.srcSystem] = self._peer
         stream = (header.srcSystem, header.srcComponent)
         last = self._last_seq.get(stream)
-        if last is not None:
-            self.stats["frames_lost"] += (header.seq - last - 1) % 256
+        if last is not None and (gap := (header.seq - last - 1) % 256):
+            self.stats["frames_lost"] += gap
+            self.lost_by_system[header.srcSystem] = self.lost_by_system.get(header.srcSystem, 0) + gap
         self._last_seq[stream] = header.seq
         if msg_id == RADIO_STATUS:
             self.budget.report(msg, asyncio.get_running_loop().time())
