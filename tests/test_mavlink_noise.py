@@ -112,7 +112,7 @@ def delivered(collector: Collector) -> list[int]:
 
 
 async def run_engine(routes: str, tmp_path: Path, schemas_dir: Path, amqp_url: str, exchange: str,
-                     traffic: Callable[[Engine], Any]) -> tuple[list[int], dict[Any, float], Engine]:
+                     traffic: Callable[[Engine], Any]) -> tuple[list[int], dict[Any, float]]:
     """Start the engine on ``routes`` with its admin endpoint, run ``traffic(engine)``, wait for
     the telemetry on ``exchange``; the sequence numbers delivered and /metrics after."""
     directory = tmp_path / "routes"
@@ -128,7 +128,7 @@ async def run_engine(routes: str, tmp_path: Path, schemas_dir: Path, amqp_url: s
         try:
             await traffic(engine)
             await collector.wait_for(GOOD, timeout=5)
-            return delivered(collector), await scrape(admin), engine
+            return delivered(collector), await scrape(admin)
         finally:
             await admin.stop()
             await engine.stop(drain_timeout=2.0)
@@ -158,7 +158,7 @@ def test_udpin_delivers_every_good_frame_among_20000_noise_datagrams(tmp_path: P
             await until(lambda: radio.stats["bytes_received"] == sent["bytes"], 30, "every datagram read")
 
     routes = telemetry_routes(amqp_url, exchange, port, heartbeat=0)
-    seqs, metrics, engine = asyncio.run(asyncio.wait_for(
+    seqs, metrics = asyncio.run(asyncio.wait_for(
         run_engine(routes, tmp_path, schemas_dir, amqp_url, exchange, traffic), 240))
 
     assert len(seqs) == GOOD and seqs == list(range(GOOD)), \
@@ -230,14 +230,14 @@ def test_sik_radio_delivers_good_frames_with_noise_bytes_between_them(tmp_path: 
             os.close(fd)
         radio_stats.update(pair.stats()["b"].__dict__)
 
-    async def scenario() -> tuple[list[int], dict[Any, float], Engine]:
+    async def scenario() -> tuple[list[int], dict[Any, float]]:
         async with SikRadioPair(str(tmp_path / "gcs"), str(tmp_path / "uav"), loss=0.0, seed=5,
                                 radio_status_interval=None) as pair:
             routes = SERIAL_ROUTES.format(amqp=amqp_url, device=pair.link_a, exchange=exchange)
             return await run_engine(routes, tmp_path, schemas_dir, amqp_url, exchange,
                                     lambda engine: traffic(engine, pair))
 
-    seqs, metrics, _ = asyncio.run(asyncio.wait_for(scenario(), 240))
+    seqs, metrics = asyncio.run(asyncio.wait_for(scenario(), 240))
     print(f"SiK radio with noise: {len(seqs)}/{GOOD} delivered; radio: {radio_stats}; noise made {vehicle.made}")
     assert radio_stats["serial_rx_dropped"] == 0 and radio_stats["air_packets_lost"] == 0, radio_stats
     assert len(seqs) == GOOD and seqs == list(range(GOOD)), \
@@ -273,7 +273,8 @@ def test_a_false_start_byte_on_a_quiet_serial_link_holds_the_frame_behind_it_bri
                 for index in range(3):
                     written = time.monotonic()
                     os.write(master, b"\xfd\xff\x00" + vehicle.frame(index))
-                    await until(lambda: len(collector.messages) > index, 5, f"frame {index} behind a false start byte")
+                    arrived = lambda count=index + 1: len(collector.messages) >= count  # noqa: E731
+                    await until(arrived, 5, f"frame {index} behind a false start byte")
                     found.setdefault("held", []).append(time.monotonic() - written)
                 found["truncated"] = radio.stats["truncated"]
                 status = vehicle.mav.radio_status_encode(190, 180, 80, 40, 42, 17, 3)  # rxerrors 17, fixed 3

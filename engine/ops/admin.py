@@ -205,7 +205,7 @@ class EngineCollector:
 
 def connection_metrics(engine: Engine) -> Iterator[Metric]:
     """The connections' own samples (``Connection.metrics``), one family per name."""
-    families: dict[str, Metric] = {}
+    families: dict[str, CounterMetricFamily | GaugeMetricFamily] = {}
     for _, connection in sorted(engine.open_connections(), key=lambda held: held[1].name):
         name = connection.name
         for sample in connection.metrics():

@@ -283,12 +283,12 @@ class MavlinkConnection(Connection):
         A vehicle heard before but silent for ``heartbeat_timeout`` is down: MessageRejected at
         once, naming it and when it was last heard, so nothing is sent into the silence and a
         vehicle coming back later never acts on a stale command."""
-        heard = last_heard(self.seen.values(), system, component, self.config.source_system)
-        if heard is not None and time.monotonic() - heard > self.config.heartbeat_timeout:
+        heard_at = last_heard(self.seen.values(), system, component, self.config.source_system)
+        if heard_at is not None and time.monotonic() - heard_at > self.config.heartbeat_timeout:
             agent = self.agent_names.get(system)
             raise MessageRejected(
                 f"mavlink connection {self.name!r}: vehicle {system}/{component}{f' ({agent})' if agent else ''} "
-                f"is down: last heard {time.monotonic() - heard:.1f} s ago "
+                f"is down: last heard {time.monotonic() - heard_at:.1f} s ago "
                 f"(heartbeat_timeout {self.config.heartbeat_timeout:g} s)")
         loop = asyncio.get_running_loop()
         while not self.has_heard(system, component):

@@ -28,17 +28,18 @@ Here framing is done by the engine and decoding (CRC, fields) by pymavlink's ``d
 Counting (keys of the connection's stats, see :data:`.port.PORT_STATS`): one count per region
 of rejected bytes, whatever the resync tried inside it, so a damaged frame counts once:
 ``bad_crc`` (a whole frame whose CRC fails), ``bad_data`` (bytes that are no frame: no start
-byte, or an impossible header), ``truncated`` (a datagram ending inside a frame),
+byte, or an impossible header), ``truncated`` (a datagram ending inside a frame, or a stream frame given up),
 ``unknown_message`` (a well-formed frame of an id the dialect does not have; its bytes are
 searched for frames too, as they could not be checked). :data:`BAD_FRAME_REASONS` are the
 bad frames ``/metrics`` exports per link.
 
 Cost: a good frame is one regex search, a few header reads and pymavlink's ``decode`` (what
-``parse_buffer`` ends in too). Measured on this machine with 20,000 GLOBAL_POSITION_INT frames:
-151,000 frames/s one per datagram (``parse_buffer``: 101,000), 176,000 frames/s from 4 KB
-stream chunks (``parse_buffer``: 148,000). On a stream of 500 frames with 1-40 random bytes
-after each (and a lone ``FD 1E`` after every seventh) fed in 97-byte chunks, all 500 come out;
-``parse_buffer`` gives 280.
+``parse_buffer`` ends in too), so it is no slower: 20,000 GLOBAL_POSITION_INT frames, one per
+datagram, 151,000 frames/s against ``parse_buffer``'s 101,000 (93,000 against 73,000 with the
+2-core machine loaded by other tests); from 4 KB stream chunks 176,000 against 148,000 (91,000
+against 81,000). On a stream of 500 frames with 1-40 random bytes after each (and a lone
+``FD 1E`` after every seventh) fed in 97-byte chunks, all 500 come out; ``parse_buffer``
+gives 280.
 """
 
 from __future__ import annotations
