@@ -42,8 +42,9 @@ from engine.ops.admin import AdminServer  # noqa: E402
 from engine.running.runtime import Engine  # noqa: E402
 from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 from rabbitros_sim.vehicle import open_serial  # noqa: E402
-from tests.amqp_helpers import Collector  # noqa: E402
-from tests.udp_vehicle import free_udp_port, telemetry_routes  # noqa: E402
+from tests.support.amqp_helpers import Collector  # noqa: E402
+from tests.support.udp_vehicle import free_udp_port, telemetry_routes  # noqa: E402
+from tests.support.waiting import wait_for  # noqa: E402
 
 GOOD = 500
 NOISE_PER_FRAME = 40
@@ -81,14 +82,6 @@ class Vehicle:
         at = rng.randrange(10, len(frame))  # a payload or checksum byte: the CRC must fail
         frame[at] ^= rng.randrange(1, 256)
         return bytes(frame)
-
-
-async def until(condition: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what}: not within {timeout} s")
-        await asyncio.sleep(0.005)
 
 
 async def scrape(admin: AdminServer) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
@@ -154,8 +147,8 @@ def test_udpin_delivers_every_good_frame_among_20000_noise_datagrams(tmp_path: P
                     sent["bytes"] += len(datagram)
                     sent["datagrams"] += 1
                 # flow control instead of a rate: what the kernel dropped would not be noise's doing
-                await until(lambda: sent["bytes"] - radio.stats["bytes_received"] < 32_768, 30, "the engine reading")
-            await until(lambda: radio.stats["bytes_received"] == sent["bytes"], 30, "every datagram read")
+                await wait_for(lambda: sent["bytes"] - radio.stats["bytes_received"] < 32_768, 30, "the engine reading")
+            await wait_for(lambda: radio.stats["bytes_received"] == sent["bytes"], 30, "every datagram read")
 
     routes = telemetry_routes(amqp_url, exchange, port, heartbeat=0)
     seqs, metrics = asyncio.run(asyncio.wait_for(
@@ -207,7 +200,7 @@ def test_sik_radio_delivers_good_frames_with_noise_bytes_between_them(tmp_path: 
             view = memoryview(data)
             while view:
                 with_room = lambda: written["bytes"] - pair.stats()["b"].air_bytes < RADIO_BACKLOG  # noqa: E731
-                await until(with_room, 30, "the radio sending")
+                await wait_for(with_room, 30, "the radio sending")
                 try:
                     count = os.write(fd, view)
                 except BlockingIOError:
@@ -225,7 +218,7 @@ def test_sik_radio_delivers_good_frames_with_noise_bytes_between_them(tmp_path: 
                 await write(vehicle.frame(index) + gap + vehicle.noise(partial=True))
             # a start byte in the last noise claims up to 280 bytes: a stream parser waits for them
             await write(bytes(300))
-            await until(lambda: pair.stats()["b"].air_bytes >= written["bytes"], 30, "everything on the air")
+            await wait_for(lambda: pair.stats()["b"].air_bytes >= written["bytes"], 30, "everything on the air")
         finally:
             os.close(fd)
         radio_stats.update(pair.stats()["b"].__dict__)
@@ -274,13 +267,13 @@ def test_a_false_start_byte_on_a_quiet_serial_link_holds_the_frame_behind_it_bri
                     written = time.monotonic()
                     os.write(master, b"\xfd\xff\x00" + vehicle.frame(index))
                     arrived = lambda count=index + 1: len(collector.messages) >= count  # noqa: E731
-                    await until(arrived, 5, f"frame {index} behind a false start byte")
+                    await wait_for(arrived, 5, f"frame {index} behind a false start byte")
                     found.setdefault("held", []).append(time.monotonic() - written)
                 found["truncated"] = radio.stats["truncated"]
                 status = vehicle.mav.radio_status_encode(190, 180, 80, 40, 42, 17, 3)  # rxerrors 17, fixed 3
                 os.write(master, status.pack(vehicle.mav))
                 samples = lambda: {m.name: m.value for m in radio.metrics() if m.name.startswith("link_radio")}  # noqa: E731
-                await until(lambda: bool(samples()), 5, "the radio's RADIO_STATUS")
+                await wait_for(lambda: bool(samples()), 5, "the radio's RADIO_STATUS")
                 found["radio"] = samples()
                 found["seqs"] = delivered(collector)
             finally:

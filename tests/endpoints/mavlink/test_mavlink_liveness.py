@@ -4,7 +4,7 @@ show it down, and a command to it fails at once with a reason naming it and when
 heard; once it is heard again, all is well again.
 
 Real parts: the engine in process with its admin endpoint, a private RabbitMQ node, a vehicle on
-plain pymavlink behind a UDP socket (tests/udp_vehicle.py ``FleetVehicle``: HEARTBEAT and
+plain pymavlink behind a UDP socket (tests/support/udp_vehicle.py ``FleetVehicle``: HEARTBEAT and
 GLOBAL_POSITION_INT at 5 Hz, COMMAND_LONG acknowledged). On main ``/healthz`` stayed 200 with
 the vehicle silent, and the command was sent again and again into the silence.
 """
@@ -25,8 +25,9 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from engine.ops.admin import AdminServer, status_document
 from engine.running.runtime import Engine
-from tests.amqp_helpers import Caller
-from tests.udp_vehicle import FleetVehicle, free_udp_port
+from tests.support.amqp_helpers import Caller
+from tests.support.udp_vehicle import FleetVehicle, free_udp_port
+from tests.support.waiting import wait_for
 
 DEFAULT_TIMEOUT = 3.0
 ROUTES = """\
@@ -54,14 +55,6 @@ def command() -> bytes:
 async def get(session: aiohttp.ClientSession, admin: AdminServer, path: str) -> tuple[int, str]:
     async with session.get(f"http://127.0.0.1:{admin.port}{path}") as response:
         return response.status, await response.text()
-
-
-async def until(check: Any, timeout: float, what: str) -> Any:
-    deadline = time.monotonic() + timeout
-    while not (result := await check()):
-        assert time.monotonic() < deadline, f"{what}: not within {timeout} s"
-        await asyncio.sleep(0.02)
-    return result
 
 
 def vehicle_samples(text: str) -> dict[str, tuple[dict[str, str], float]]:
@@ -93,12 +86,21 @@ def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(
         try:
             session = aiohttp.ClientSession()
             caller = await Caller.open(await client.channel())
+            probe: dict[str, Any] = {}
 
-            async def healthy() -> bool:
-                status, body = await get(session, admin, "/healthz")
-                return status == 200 and bool(json.loads(body)["connections"]["uav"].get("vehicles"))
+            async def probing() -> None:
+                """/healthz every 20 ms, as a load balancer would ask it (the waits read the last)."""
+                while True:
+                    status, body = await get(session, admin, "/healthz")
+                    probe.update(status=status, document=json.loads(body))
+                    await asyncio.sleep(0.02)
 
-            await until(healthy, 10, "/healthz 200 with the vehicle heard")
+            prober = asyncio.create_task(probing())
+
+            def healthy() -> bool:
+                return probe.get("status") == 200 and bool(probe["document"]["connections"]["uav"].get("vehicles"))
+
+            await wait_for(healthy, 10, "/healthz 200 with the vehicle heard", lambda: probe)
             up = await caller.call("", f"arm-{tag}", command())
             await caller.wait(lambda r: up in r, 20, "the arm's reply while the vehicle is up")
             found["up_reply"] = json.loads(caller.replies[up][0].body)
@@ -110,11 +112,8 @@ def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(
             link = next(c for _, c in engine.connections.items() if c.name == "uav")
             resends_before = link.stats.get("command_resends", 0)
 
-            async def unhealthy() -> dict[str, Any] | None:
-                status, body = await get(session, admin, "/healthz")
-                return json.loads(body) if status == 503 else None
-
-            found["healthz"] = await until(unhealthy, limit + 3, "/healthz 503")
+            found["healthz"] = await wait_for(lambda: probe["status"] == 503 and probe["document"], limit + 3,
+                                              "/healthz 503", lambda: probe)
             found["named_after"] = time.monotonic() - silent_from
             found["down_metrics"] = vehicle_samples((await get(session, admin, "/metrics"))[1])
             found["status"] = status_document(engine)["connections"]["uav"]
@@ -130,10 +129,12 @@ def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(
             back = FleetVehicle(1, port, rate=5)
             back.start()
             try:
-                await until(healthy, 10, "/healthz 200 once the vehicle is heard again")
+                await wait_for(healthy, 10, "/healthz 200 once the vehicle is heard again", lambda: probe)
             finally:
                 back.stop.set()
                 back.join(5)
+            prober.cancel()
+            await asyncio.gather(prober, return_exceptions=True)
             await session.close()
         finally:
             vehicle.stop.set()
