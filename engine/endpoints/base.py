@@ -431,6 +431,20 @@ class Sink(ABC):
         """Release what the sink holds (the connection itself stays open)."""
 
 
+@dataclass(frozen=True, slots=True)
+class ConnectionMetric:
+    """One sample a connection gives ``/metrics``: exported as ``rabbitros_<name>`` (a counter
+    gets ``_total``) with the label ``connection`` and ``labels``; samples with the same name
+    must have the same label keys."""
+
+    name: str
+    help: str
+    kind: str
+    """``counter`` or ``gauge``"""
+    value: float
+    labels: tuple[tuple[str, str], ...] = ()
+
+
 class Connection(ABC):
     """One named connection (a broker, a ROS 2 node, a MAVLink link) shared by routes."""
 
@@ -466,6 +480,17 @@ class Connection(ABC):
         """What the status shows: ``state`` (up, connecting, reconnecting, degraded, down) and, when
         known, ``last_error`` (never a secret)."""
         return {"state": "up" if self.healthy else "down"}
+
+    def unavailable(self) -> list[str]:
+        """Parts of an up connection that routes need and that are down (a vehicle silent for
+        its timeout), each named with why: /healthz answers 503 with them. The connection
+        itself stays usable for the rest (unlike :attr:`healthy`)."""
+        return []
+
+    def metrics(self) -> Iterable[ConnectionMetric]:
+        """The connection's own samples for ``/metrics`` (a link's bad frames, a vehicle's
+        liveness), read at scrape time from counters the connection keeps as plain integers."""
+        return ()
 
     async def prepare_dead_letters(self, max_length: int | None) -> None:
         """Declare what :meth:`dead_letter` needs (only where ``keeps_dead_letters``)."""

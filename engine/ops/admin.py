@@ -7,8 +7,9 @@ Served by aiohttp on the engine's own event loop:
   counter line show) and the engine at scrape time, so the hot path only increments plain
   integers (no prometheus_client lock per message);
 * ``GET /healthz``: 200 when every connection is up and every route's source receives; 503
-  naming the connections that are down, or the routes whose source is degraded (the broker
-  cancelled its subscription) and why, until it is taken up again;
+  naming the connections that are down, the routes whose source is degraded (the broker
+  cancelled its subscription) and why, until it is taken up again, and the ``unavailable``
+  parts of up connections (``Connection.unavailable``: a MAVLink vehicle not heard);
 * ``GET /status``: the status document (generation, config hash, reloads, each route's
   counters, rates, state and last error, the connections);
 * ``GET /tap/{route}``: JSON lines, one per message through the route, from now on.
@@ -199,6 +200,22 @@ class EngineCollector:
         for name, health in sorted(connection_health(engine).items()):
             up.add_metric([name, health["protocol"]], 1 if health["up"] else 0)
         yield up
+        yield from connection_metrics(engine)
+
+
+def connection_metrics(engine: Engine) -> Iterator[Metric]:
+    """The connections' own samples (``Connection.metrics``), one family per name."""
+    families: dict[str, CounterMetricFamily | GaugeMetricFamily] = {}
+    for _, connection in sorted(engine.open_connections(), key=lambda held: held[1].name):
+        name = connection.name
+        for sample in connection.metrics():
+            family = families.get(sample.name)
+            if family is None:
+                kind = CounterMetricFamily if sample.kind == "counter" else GaugeMetricFamily
+                family = families[sample.name] = kind(f"rabbitros_{sample.name}", sample.help,
+                                                      labels=["connection", *(key for key, _ in sample.labels)])
+            family.add_metric([name, *(value for _, value in sample.labels)], sample.value)
+    yield from families.values()
 
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
@@ -270,9 +287,12 @@ class AdminServer:
         connections = connection_health(self.engine)
         down = sorted(name for name, health in connections.items() if not health["up"])
         degraded = degraded_sources(self.engine)
-        document = {"status": "down" if down else "degraded" if degraded else "ok", "down": down,
-                    "degraded": degraded, "connections": connections, "generation": self.engine.generation}
-        return web.json_response(document, status=503 if down or degraded else 200)
+        unavailable = {connection.name: parts for _, connection in self.engine.open_connections()
+                       if connection.name not in down and (parts := connection.unavailable())}
+        status = "down" if down else "degraded" if degraded or unavailable else "ok"
+        document = {"status": status, "down": down, "degraded": degraded, "unavailable": unavailable,
+                    "connections": connections, "generation": self.engine.generation}
+        return web.json_response(document, status=503 if down or degraded or unavailable else 200)
 
     async def status(self, request: web.Request) -> web.Response:
         return web.json_response(status_document(self.engine), dumps=lambda d: json.dumps(d, default=str))

@@ -88,10 +88,15 @@ class RadioReport:
     noise: int
     remrssi: int
     remnoise: int
+    rxerrors: int = 0
+    """The radio's count of packets received with errors (SiK: CRC failures and lost air packets)."""
+    fixed: int = 0
+    """The radio's count of packets its error correction repaired."""
 
     @classmethod
     def from_message(cls, msg: Any, at: float) -> RadioReport:
-        return cls(at, int(msg.txbuf), int(msg.rssi), int(msg.noise), int(msg.remrssi), int(msg.remnoise))
+        return cls(at, int(msg.txbuf), int(msg.rssi), int(msg.noise), int(msg.remrssi), int(msg.remnoise),
+                   int(msg.rxerrors), int(msg.fixed))
 
     @property
     def fade_margin_db(self) -> float | None:

@@ -15,14 +15,16 @@ from collections.abc import Hashable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from engine.endpoints.base import Connection, EndpointError, Sink, Source, typed
+from engine.endpoints.base import Connection, ConnectionMetric, EndpointError, MessageRejected, Sink, Source, typed
 from engine.endpoints.mavlink.checks import sink_options, source_options
 from engine.endpoints.mavlink.codec import MESSAGES, TUNNEL, mavlink2
 from engine.endpoints.mavlink.contract import Listener
 from engine.endpoints.mavlink.enums import enum_name
+from engine.endpoints.mavlink.framing import BAD_FRAME_REASONS
+from engine.endpoints.mavlink.liveness import VehicleLiveness, last_heard, vehicles
 from engine.endpoints.mavlink.messages import MessageSource, sink_for
-from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
+from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
 from engine.endpoints.mavlink.settings import settings_problems
 from engine.endpoints.mavlink.tunnel import TunnelHub, TunnelSink, TunnelSource
 
@@ -34,7 +36,7 @@ counts the systems/components whose HEARTBEAT came in. Tunnel counters (``tunnel
 ``tunnel_retransmissions``, ``tunnel_delivered``, ``tunnel_deliver_failed``,
 ``tunnel_malformed``), mission and command counters appear once used."""
 
-REJECTION_STATS = ("bad_crc", "bad_data", "unsigned_rejected", "bad_signature", "replayed", "not_for_us")
+REJECTION_STATS = (*BAD_FRAME_REASONS, "unsigned_rejected", "bad_signature", "replayed", "not_for_us")
 """What the link received and threw away, shown together in the status."""
 
 @dataclass(slots=True)
@@ -63,6 +65,9 @@ class MavlinkConnection(Connection):
         self.port = MavlinkPort(name, config, self._on_message, self.stats)
         self.hub = TunnelHub(self.port, config.tunnel)
         self.seen: dict[tuple[int, int], VehicleSeen] = {}
+        self.agent_names: dict[int, str] = {}
+        """System id -> the agent's name (engine/language/agents.py), from the routes' endpoints, for
+        naming a vehicle in /healthz, the status and /metrics."""
         self.mission_refs: dict[tuple[int, int], str] = {}
         """Per vehicle, the id of the message whose mission was uploaded last: a MISSION_ACK
         source gives it as ``ref_id`` (MISSION_ACK itself carries no reference)."""
@@ -89,15 +94,60 @@ class MavlinkConnection(Connection):
 
     def health(self) -> dict[str, Any]:
         """For the status: the link's state, its counters (bad CRC, bad data and signature
-        rejections among them; see :data:`.port.PORT_STATS`) and the vehicles heard."""
+        rejections among them; see :data:`.port.PORT_STATS`), the components heard and the
+        vehicles' liveness (liveness.py)."""
+        now = time.monotonic()
         return {
             "state": "up" if self.port.ready else "waiting for a peer",
             "rejected": {key: self.stats[key] for key in REJECTION_STATS},
             "counters": dict(self.stats),
             "budget": self.port.budget.status(self.port.clock()),
+            "heartbeat_timeout": self.config.heartbeat_timeout,
             "vehicles": [{"system_id": seen.system_id, "component_id": seen.component_id, "type": seen.type,
-                          "heard_s_ago": round(time.monotonic() - seen.last_heard, 1)} for seen in self.seen.values()],
+                          "agent": self.agent_names.get(seen.system_id),
+                          "heard_s_ago": round(now - seen.last_heard, 1)} for seen in self.seen.values()],
+            "liveness": [{"system_id": vehicle.system_id, "agent": vehicle.agent, "up": vehicle.up,
+                          "heard_s_ago": round(vehicle.heard_s_ago, 1)} for vehicle in self.liveness(now)],
         }
+
+    def liveness(self, now: float | None = None) -> list[VehicleLiveness]:
+        """Each vehicle heard on the link, up or down (liveness.py)."""
+        return vehicles(self.seen.values(), self.agent_names, self.config.heartbeat_timeout,
+                        self.config.source_system, now)
+
+    def unavailable(self) -> list[str]:
+        """The vehicles that are down, each named with how long it has been silent."""
+        timeout = self.config.heartbeat_timeout
+        return [vehicle.down_reason(timeout) for vehicle in self.liveness() if not vehicle.up]
+
+    def metrics(self) -> list[ConnectionMetric]:
+        """For /metrics, from the counters the reading path keeps: the link's frames (accepted,
+        bad by reason (framing.py), lost from sequence gaps), what its radio's last RADIO_STATUS
+        counted, and per vehicle its liveness and its lost frames."""
+        stats = self.stats
+        samples = [ConnectionMetric("link_bad_frames", "Received bytes thrown away as a bad frame, per reason",
+                                    "counter", stats[reason], (("reason", reason),))
+                   for reason in BAD_FRAME_REASONS]
+        samples.append(ConnectionMetric("link_frames_accepted", "Frames received whole and accepted (CRC, signing)",
+                                        "counter", stats["frames_accepted"]))
+        samples.append(ConnectionMetric("link_frames_lost", "Frames missing from the senders' sequence numbers",
+                                        "counter", stats["frames_lost"]))
+        radio = self.port.budget.last
+        if radio is not None:
+            samples.append(ConnectionMetric("link_radio_rxerrors", "The SiK radio's RADIO_STATUS rxerrors (its own count, "
+                                            "16 bits)", "gauge", radio.rxerrors))
+            samples.append(ConnectionMetric("link_radio_fixed", "The SiK radio's RADIO_STATUS fixed: packets its error "
+                                            "correction repaired", "gauge", radio.fixed))
+        lost = self.port.lost_by_system
+        for vehicle in self.liveness():
+            labels = (("agent", vehicle.agent or str(vehicle.system_id)), ("system_id", str(vehicle.system_id)))
+            samples.append(ConnectionMetric("vehicle_frames_lost", "Frames missing from the vehicle's sequence numbers",
+                                            "counter", lost.get(vehicle.system_id, 0), labels))
+            samples.append(ConnectionMetric("vehicle_up", "1 while the vehicle's HEARTBEATs come within heartbeat_timeout",
+                                            "gauge", 1 if vehicle.up else 0, labels))
+            samples.append(ConnectionMetric("vehicle_heard_seconds_ago", "Seconds since the vehicle's last HEARTBEAT",
+                                            "gauge", vehicle.heard_s_ago, labels))
+        return samples
 
     async def open(self) -> None:
         await self.port.open()
@@ -111,8 +161,14 @@ class MavlinkConnection(Connection):
         self._tasks = []
         await self.port.close()
 
+    def _learn_agents(self, agents: Mapping[str, Mapping[str, Any]] | None) -> None:
+        for name, entry in (agents or {}).items():
+            if isinstance(entry.get("system_id"), int):
+                self.agent_names[entry["system_id"]] = name
+
     def source(self, route: str, options: MavlinkSourceOptions | Mapping[str, Any]) -> Source:
         options = source_options(route, options)
+        self._learn_agents(options.agents)
         system_id = options.system_id
         assert not isinstance(system_id, str)  # source_options refused an agent's name the loader did not resolve
         if options.json_tunnel:
@@ -124,6 +180,7 @@ class MavlinkConnection(Connection):
 
     def sink(self, route: str, options: MavlinkSinkOptions | Mapping[str, Any]) -> Sink:
         options = sink_options(route, options)
+        self._learn_agents(options.agents)
         if options.json_tunnel:
             target_system, target_component = options.target_system or 0, options.target_component or 0
             assert isinstance(target_system, int) and isinstance(target_component, int)  # sink_options refused a name or {field}
@@ -222,7 +279,17 @@ class MavlinkConnection(Connection):
 
     async def wait_for_vehicle(self, system: int, component: int, deadline: float) -> None:
         """Return once (system, component) sent a HEARTBEAT (component 0: any of the system);
-        EndpointError at ``deadline`` (loop time): a vehicle that is not there is transient."""
+        EndpointError at ``deadline`` (loop time): a vehicle that is not there yet is transient.
+        A vehicle heard before but silent for ``heartbeat_timeout`` is down: MessageRejected at
+        once, naming it and when it was last heard, so nothing is sent into the silence and a
+        vehicle coming back later never acts on a stale command."""
+        heard_at = last_heard(self.seen.values(), system, component, self.config.source_system)
+        if heard_at is not None and time.monotonic() - heard_at > self.config.heartbeat_timeout:
+            agent = self.agent_names.get(system)
+            raise MessageRejected(
+                f"mavlink connection {self.name!r}: vehicle {system}/{component}{f' ({agent})' if agent else ''} "
+                f"is down: last heard {time.monotonic() - heard_at:.1f} s ago "
+                f"(heartbeat_timeout {self.config.heartbeat_timeout:g} s)")
         loop = asyncio.get_running_loop()
         while not self.has_heard(system, component):
             left = deadline - loop.time()

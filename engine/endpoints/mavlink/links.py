@@ -57,6 +57,9 @@ class Link:
     (to ``peer`` alone where the link can tell peers apart and has heard it lately: a ``udpin``
     link shared by several vehicles; everywhere else to every peer)."""
 
+    datagrams = False
+    """True where each chunk is a datagram, parsed on its own (framing.py); else a byte stream."""
+
     def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> None:
         self.address = address
         self.on_bytes = on_bytes
@@ -221,6 +224,8 @@ class _Datagrams(asyncio.DatagramProtocol):
 
 class UdpLink(Link):
     """``udpout`` sends to its remote; ``udpin`` answers every peer heard in the last 30 s."""
+
+    datagrams = True
 
     _transport: asyncio.DatagramTransport | None = None
     _protocol: _Datagrams | None = None

@@ -101,6 +101,10 @@ class MavlinkConnectionOptions:
                                               "are not paced. Commands, missions, acknowledgements and heartbeats are outside it")
     heartbeat: float = option(1.0, minimum=0,
                               description="Hz of our HEARTBEAT, 0 = none (a SiK radio injects RADIO_STATUS only after one)")
+    heartbeat_timeout: float = option(3.0, exclusive_minimum=0,
+                                      description="seconds without a HEARTBEAT after which a vehicle heard on the link is "
+                                                  "down: /healthz answers 503 naming it, rabbitros_vehicle_up is 0, and "
+                                                  "commands and missions to it fail at once (three missed 1 Hz heartbeats)")
     mav_type: int = option(mavlink2.MAV_TYPE_GCS, **_BYTE,
                            description="MAV_TYPE of our HEARTBEAT: 6 ground station, 18 onboard controller")
     tunnel: MavlinkTunnel | None = option(None)

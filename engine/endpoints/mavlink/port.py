@@ -25,9 +25,9 @@ Measured on the emulated SiK radio (57,600 baud; tests/endpoints/mavlink/test_li
 ``high`` tunnel message under a saturating ``low`` tunnel load of 2 KB bundles took 4.1 s
 when both queued in one bulk lane; with the lanes it waits for the fragment on the wire and
 the bytes already in the radio's buffer, then crosses in its own fragments' time and a TDM
-round (see the test for the figure). Received chunks go to pymavlink's
-``parse_buffer`` (byte-at-a-time parsing costs ~10x more), one parser per peer; signatures are
-checked and every accepted message is handed to ``on_message``. The engine's connection and the
+round (see the test for the figure). Received bytes are cut into frames by framing.py (a
+datagram on its own, a stream per peer; a rejected frame costs only itself) and decoded by
+pymavlink; signatures are checked and every accepted message is handed to ``on_message``. The engine's connection and the
 simulated vehicle both run on it.
 """
 
@@ -43,20 +43,28 @@ from engine.endpoints.base import Conflated, EndpointError
 from engine.endpoints.mavlink.budget import RadioBudget
 from engine.endpoints.mavlink.codec import RADIO_STATUS, mavlink2
 from engine.endpoints.mavlink.errors import edge_error
+from engine.endpoints.mavlink.framing import BAD_FRAME_REASONS, FrameReader
 from engine.endpoints.mavlink.links import Link, make_link
 from engine.endpoints.mavlink.settings import LinkConfig
 from engine.endpoints.mavlink.signing import SignatureCheck, SigningClock
 from engine.endpoints.mavlink.tunnel import TUNNEL_PAYLOAD, ignore_result
 
 MAX_PARSERS = 32
+STALE_FRAME_S = 0.5
+"""A stream frame not complete this long after it started to arrive is given up
+(framing.py): a false start byte in noise claims up to 280 bytes, many seconds of a quiet link
+(a 21-byte HEARTBEAT a second: 13 s, long past a vehicle's heartbeat_timeout). A real frame
+takes 49 ms at 57,600 baud; a SiK radio sends whole frames per air packet, a TDM round (~236 ms)
+apart at worst."""
 
 PORT_STATS = (
-    "bytes_received", "frames_received", "frames_accepted", "frames_lost", "bad_crc", "bad_data",
+    "bytes_received", "frames_received", "frames_accepted", "frames_lost", *BAD_FRAME_REASONS,
     "unknown_message", "unsigned_rejected", "unsigned_accepted", "bad_signature", "replayed",
     "frames_sent", "bytes_sent", "send_errors", "budget_queued", "budget_conflated",
 )
 """``frames_received`` counts frames with a good CRC, ``frames_accepted`` those that also passed
-signing; ``frames_lost`` sums sequence gaps per sender; rejections: ``unsigned_rejected``,
+signing; bad frames (``bad_crc``, ``bad_data``, ``truncated``) and ``unknown_message`` are
+counted by the framing (framing.py); ``frames_lost`` sums sequence gaps per sender; rejections: ``unsigned_rejected``,
 ``bad_signature`` (wrong key or altered), ``replayed`` (timestamp not newer than the stream's
 last, or a new stream over 60 s old); ``budget_queued``: route frames that had to wait for the
 radio's budget, ``budget_conflated``: those of them a newer one with the same key replaced."""
@@ -96,8 +104,15 @@ class MavlinkPort:
         self._clock: SigningClock | None = None
         self._check: SignatureCheck | None = None
         self._link: Link | None = None
-        self._parsers: OrderedDict[Hashable, mavlink2.MAVLink] = OrderedDict()
+        self._readers: OrderedDict[Hashable, FrameReader] = OrderedDict()
+        """A stream's frame reader per peer (a ``tcpin`` server's clients are separate streams)."""
+        self._datagram_reader = FrameReader(self.stats)
+        self._datagrams = False
+        self._stale_timers: dict[Hashable, tuple[int, asyncio.TimerHandle]] = {}
+        """Per stream peer: where its waiting frame starts, and the timer that gives it up."""
         self._last_seq: dict[tuple[int, int], int] = {}
+        self.lost_by_system: dict[int, int] = {}
+        """Frames missing from each system's sequence numbers (its components' streams summed)."""
         self._heard_at: dict[int, Hashable] = {}
         """System id -> the peer its last accepted frame came from (a udpin link with several
         vehicles writes a message targeted at one of them to that peer only)."""
@@ -146,6 +161,7 @@ class MavlinkPort:
             self._check = SignatureCheck(signing, lambda: self.mav.signing.timestamp)
         self._link = make_link(self.config.address, self._on_bytes, self.stats)
         self._link.on_lost = self._lost
+        self._datagrams = self._link.datagrams
         await self._link.open()
         self._task = asyncio.create_task(self._writer(), name=f"mavlink-writer:{self.name}")
 
@@ -156,6 +172,9 @@ class MavlinkPort:
             await asyncio.gather(self._task, return_exceptions=True)
             self._task = None
         self._waiting.clear()
+        for _, timer in self._stale_timers.values():
+            timer.cancel()
+        self._stale_timers.clear()
         for queue, _ in self._lanes:
             while queue:
                 future = queue.popleft().future
@@ -288,33 +307,55 @@ class MavlinkPort:
 
     # reading
 
-    def _parser(self, peer: Hashable) -> mavlink2.MAVLink:
-        parser = self._parsers.get(peer)
-        if parser is None:
-            parser = self._parsers[peer] = mavlink2.MAVLink(None)
-            parser.robust_parsing = True
-            while len(self._parsers) > MAX_PARSERS:
-                self._parsers.popitem(last=False)
-        return parser
+    def _reader(self, peer: Hashable) -> FrameReader:
+        reader = self._readers.get(peer)
+        if reader is None:
+            reader = self._readers[peer] = FrameReader(self.stats)
+            while len(self._readers) > MAX_PARSERS:
+                self._readers.popitem(last=False)
+        return reader
 
     def _on_bytes(self, data: bytes, peer: Hashable) -> None:
+        """A datagram is parsed on its own; a stream's chunk continues its peer's stream
+        (framing.py says why)."""
         self.stats["bytes_received"] += len(data)
-        parser = self._parser(peer)
-        try:
-            messages = parser.parse_buffer(data) or ()
-        except Exception:
-            self.stats["bad_data"] += 1
-            self._parsers.pop(peer, None)
+        if self._datagrams:
+            messages = self._datagram_reader.datagram(data)
+        else:
+            reader = self._reader(peer)
+            messages = reader.stream(data)
+            self._watch_waiting(peer, reader)
+        self._peer = peer
+        for msg in messages:
+            self._on_frame(msg)
+
+    def _watch_waiting(self, peer: Hashable, reader: FrameReader) -> None:
+        """Give up the stream's waiting frame if it is still waiting in :data:`STALE_FRAME_S`;
+        one timer per waiting frame, not per chunk."""
+        waiting_at = reader.waiting_at
+        timer = self._stale_timers.get(peer)
+        if timer is not None and timer[0] == waiting_at:
             return
+        if timer is not None:
+            timer[1].cancel()
+            del self._stale_timers[peer]
+        if waiting_at is not None and not self._closed:
+            handle = asyncio.get_running_loop().call_later(STALE_FRAME_S, self._stale, peer, waiting_at)
+            self._stale_timers[peer] = (waiting_at, handle)
+
+    def _stale(self, peer: Hashable, waiting_at: int) -> None:
+        self._stale_timers.pop(peer, None)
+        reader = self._readers.get(peer)
+        if reader is None or reader.waiting_at != waiting_at:
+            return
+        messages = reader.give_up_waiting()
+        self._watch_waiting(peer, reader)
         self._peer = peer
         for msg in messages:
             self._on_frame(msg)
 
     def _on_frame(self, msg: mavlink2.MAVLink_message) -> None:
         msg_id = msg.get_msgId()
-        if msg_id == mavlink2.MAVLINK_MSG_ID_BAD_DATA:
-            self.stats["bad_crc" if "CRC" in getattr(msg, "reason", "") else "bad_data"] += 1
-            return
         self.stats["frames_received"] += 1
         if self._check is not None:
             buf = msg.get_msgbuf()
@@ -324,16 +365,14 @@ class MavlinkPort:
                 return
             if buf[0] != mavlink2.PROTOCOL_MARKER_V2 or not buf[2] & mavlink2.MAVLINK_IFLAG_SIGNED:
                 self.stats["unsigned_accepted"] += 1
-        if msg_id == mavlink2.MAVLINK_MSG_ID_UNKNOWN:
-            self.stats["unknown_message"] += 1
-            return
         self.stats["frames_accepted"] += 1
         header = msg.get_header()
         self._heard_at[header.srcSystem] = self._peer
         stream = (header.srcSystem, header.srcComponent)
         last = self._last_seq.get(stream)
-        if last is not None:
-            self.stats["frames_lost"] += (header.seq - last - 1) % 256
+        if last is not None and (gap := (header.seq - last - 1) % 256):
+            self.stats["frames_lost"] += gap
+            self.lost_by_system[header.srcSystem] = self.lost_by_system.get(header.srcSystem, 0) + gap
         self._last_seq[stream] = header.seq
         if msg_id == RADIO_STATUS:
             self.budget.report(msg, asyncio.get_running_loop().time())

@@ -167,6 +167,8 @@ class LinkConfig:
     mav_type: int = mavlink2.MAV_TYPE_GCS
     tunnel: TunnelSettings = field(default_factory=TunnelSettings)
     budget: float | None = None
+    heartbeat_timeout: float = 3.0
+    """Seconds without a HEARTBEAT after which a vehicle is down (connection.py)."""
 
     @property
     def bulk_rate(self) -> float:
@@ -207,4 +209,5 @@ def settings_problems(
         return None, problems
     rate = options.rate if options.rate is not None else (address.baud / 10 if address.kind == "serial" else 0.0)
     return LinkConfig(address, options.source_system, options.source_component, signing, float(rate),
-                      float(options.heartbeat), options.mav_type, tunnel, options.budget), problems
+                      float(options.heartbeat), options.mav_type, tunnel, options.budget,
+                      float(options.heartbeat_timeout)), problems

@@ -1,9 +1,9 @@
 """MAVLink 2 endpoint: telemetry in, commands, missions and JSON (TUNNEL) out, on one shared link.
 
 A connection owns one link (serial device, ``udpin:``, ``udpout:``, ``tcp:``, ``tcpin:``)
-driven by asyncio, not by pymavlink's blocking ``mavutil``: a reader hands chunks to
-``MAVLink.parse_buffer`` (byte-at-a-time parsing costs ~10x more) and one writer packs and
-writes every frame. Packing at write time keeps sequence numbers and signing timestamps in
+driven by asyncio, not by pymavlink's blocking ``mavutil``: a reader cuts frames itself
+(framing.py: a datagram on its own, a rejected frame costs only itself) and decodes them with
+pymavlink, and one writer packs and writes every frame. Packing at write time keeps sequence numbers and signing timestamps in
 wire order, which a receiver requires. The writer paces to the link rate (a SiK radio's
 serial buffer is a few hundred bytes to 2 KB and overflows silently), sends control frames
 (commands, missions, acknowledgements) first and the routes' frames by their ``priority``
@@ -26,6 +26,7 @@ Settings (YAML ``connections.<name>.mavlink``)::
               allow_unsigned: [RADIO_STATUS]}
     rate: BYTES_PER_S            # default baud/10 on serial, unpaced on networks
     heartbeat: 1.0               # Hz, 0 = none (a SiK radio injects RADIO_STATUS only after one)
+    heartbeat_timeout: 3.0       # s without a vehicle's HEARTBEAT: down (liveness.py)
     mav_type: 6                  # MAV_TYPE of our HEARTBEAT (6 GCS, 18 onboard controller)
     tunnel: {fragment_size, rto_min, rto_max, retries, sack_delay, window, bundle, rate, ...}
 
