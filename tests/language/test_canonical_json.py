@@ -96,7 +96,9 @@ def test_every_schema_has_examples_that_validate_and_serialise_identically() -> 
     missing = sorted(names - EXAMPLES.keys())
     assert not missing, f"schemas without canonical-JSON examples in this test: {missing}"
     for name in sorted(names):
-        schema = registry.get(name)
+        # VDA 5050's families hold two major versions side by side, the unpinned name meaning the
+        # newest (3.0); these examples are 2.0's (3.0 traffic: tests/examples/test_vda5050_v3.py)
+        schema = registry.get(f"{name}.v2" if name.startswith("vda5050/") else name)
         examples = json.loads(schema.path.read_text()).get("examples", []) + EXAMPLES[name]
         for example in examples:
             if name != "envelope":  # the envelope is a library of $defs, not a message type
