@@ -34,6 +34,7 @@ from engine.language.fieldcheck import mapping_field_problems, mapping_writes, o
 from engine.language.identity import connection_fingerprint, connection_key_files, exclusive_resource
 from engine.language.mapping import compile_mapping, known_functions, literal_format_problems, meta_names, recall_names, unknown_functions
 from engine.language.route_yaml import Document, Path_, Problem, parse_document
+from engine.language.yaml_bounds import FileTooLarge, read_bounded
 from engine.language.stage_options import (DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, BufferOptions, BufferSpec, DeadLetterSpec,
                                            DeadLettersOptions, FairOptions, ReplyOptions, RouteDelivery, ThrottleOptions)
 from engine.language.stores import FAILURE_META, RememberOptions, remember_entries
@@ -264,7 +265,10 @@ def load_routes(
     item_files = ItemFiles(env, problems)
     for path in route_files(directory):
         try:
-            text = path.read_text(encoding="utf-8")
+            text = read_bounded(path)
+        except FileTooLarge as exc:
+            problems.append(Problem(str(path), 1, str(exc)))
+            continue
         except (OSError, UnicodeDecodeError) as exc:
             problems.append(Problem(str(path), 0, f"cannot read: {exc}"))
             continue
@@ -334,7 +338,10 @@ class ItemFiles:
         text = self.texts.get(path)
         if text is None:
             try:
-                text = path.read_text(encoding="utf-8")
+                text = read_bounded(path)
+            except FileTooLarge as exc:
+                self.problems.append(Problem(str(path), 1, str(exc)))
+                return None
             except (OSError, UnicodeDecodeError) as exc:
                 self.problems.append(Problem(str(path), 0, f"cannot read for_each file: {exc}"))
                 return None

@@ -29,6 +29,7 @@ from engine.common.schemas import SchemaRegistry
 from engine.common.suggest import did_you_mean
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound, Sink
 from engine.language.route_yaml import Problem, parse_document
+from engine.language.yaml_bounds import FileTooLarge, read_bounded
 from engine.language.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes, source_meta_names
 from engine.language.stores import Stores, remember_entries
 from engine.running.pipeline import ConversionError, Pipeline
@@ -120,7 +121,10 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
     problems: list[Problem] = []
     for path in test_files(routes):
         try:
-            text = path.read_text(encoding="utf-8")
+            text = read_bounded(path)
+        except FileTooLarge as exc:
+            problems.append(Problem(str(path), 1, str(exc)))
+            continue
         except (OSError, UnicodeDecodeError) as exc:
             problems.append(Problem(str(path), 0, f"cannot read: {exc}"))
             continue
