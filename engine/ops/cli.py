@@ -42,6 +42,11 @@ def default_schemas(routes: Path) -> Path:
     return Path("schemas")
 
 
+def schema_directories(args: argparse.Namespace) -> list[Path]:
+    """Every ``--schemas`` given, in order (a later one over the earlier), else the default."""
+    return list(args.schemas) if args.schemas else [default_schemas(args.routes)]
+
+
 class _TopLevelParser(argparse.ArgumentParser):
     """``rabbitros-engine --help`` shows how to run, not only the commands: ``run`` is the
     default command, so its options follow the command list."""
@@ -73,7 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(sub: argparse.ArgumentParser) -> None:
         sub.add_argument("--routes", type=Path, default=Path("routes"), metavar="DIR", help="routes directory (or one file); default ./routes")
-        sub.add_argument("--schemas", type=Path, metavar="DIR", help="canonical schemas directory; default: schemas/ beside the routes")
+        sub.add_argument("--schemas", type=Path, action="append", metavar="DIR",
+                         help="canonical schemas directory; default: schemas/ beside the routes. May repeat: a later "
+                              "directory over the earlier (a file of the same name replaces the earlier's), e.g. the "
+                              "bundled schemas, then your own")
 
     run = commands.add_parser("run", help="run the routes (the default command)")
     common(run)
@@ -156,9 +164,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "check":
         if args.local_broker:  # the private brokers' URLs are not known before they start: stand-ins no route file names
             stand_in_for_check()
-        return check(args.routes, args.schemas or default_schemas(args.routes))
+        return check(args.routes, schema_directories(args))
     if args.command == "test":
-        return run_route_tests(args.routes, args.schemas or default_schemas(args.routes))
+        return run_route_tests(args.routes, schema_directories(args))
     if args.command == "status":
         if args.admin:
             client = _client(args)
@@ -179,9 +187,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         listener.stop()
 
 
-def check(routes: Path, schemas: Path) -> int:
+def check(routes: Path, schema_dirs: Path | Sequence[Path]) -> int:
+    schema_dirs = [schema_dirs] if isinstance(schema_dirs, Path) else list(schema_dirs)
     try:
-        config, cases, problems, warnings = load_checked(routes, SchemaRegistry(schemas))
+        registry = SchemaRegistry(schema_dirs)
+        config, cases, problems, warnings = load_checked(routes, registry)
     except Exception as error:  # what the loader did not foresee still gets one line, not a traceback
         print(f"{routes}: cannot load: {type(error).__name__}: {error}", file=sys.stderr)
         return 1
@@ -192,12 +202,16 @@ def check(routes: Path, schemas: Path) -> int:
         return 1
     tests = f", {len(cases)} tests" if cases else ""
     print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections{tests}, config {config.content_hash}: ok")
+    if len(schema_dirs) > 1:  # several directories: which file each schema the routes use came from
+        for schema_file in registry.files_used(sorted({route.schema for route in config.routes.values()})):
+            over = f" (over {', '.join(map(str, schema_file.replaces))})" if schema_file.replaces else ""
+            print(f"  schema {schema_file.relative}: {schema_file.path}{over}")
     return 0
 
 
-def run_route_tests(routes: Path, schemas_dir: Path) -> int:
+def run_route_tests(routes: Path, schema_dirs: Path | Sequence[Path]) -> int:
     """``rabbitros-engine test``: one line per case, a diff per failure; 0 pass, 1 fail, 2 invalid."""
-    schemas = SchemaRegistry(schemas_dir)
+    schemas = SchemaRegistry(schema_dirs)
     config, cases, problems, _ = load_checked(routes, schemas)
     for problem in problems:
         print(problem, file=sys.stderr)
@@ -263,7 +277,7 @@ def _protocols_used(args: argparse.Namespace) -> set[str] | None:
     saved = dict(os.environ)
     try:
         stand_in_for_check()
-        config = load_routes(args.routes, SchemaRegistry(args.schemas or default_schemas(args.routes)))
+        config = load_routes(args.routes, SchemaRegistry(schema_directories(args)))
     except (RoutesInvalid, OSError, EndpointError):
         return None
     finally:
@@ -273,7 +287,7 @@ def _protocols_used(args: argparse.Namespace) -> set[str] | None:
 
 
 async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> int:
-    engine = Engine(args.routes, args.schemas or default_schemas(args.routes), require_connections=args.require_connections,
+    engine = Engine(args.routes, schema_directories(args), require_connections=args.require_connections,
                     instance=args.instance)
     admin = AdminServer(engine, args.admin[0], args.admin[1], access) if args.admin else None
     if admin is not None:
@@ -332,7 +346,7 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
 
     tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
     if not args.no_watch:
-        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dir, engine.key_files)))
+        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dirs, engine.key_files)))
     log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__, "instance": engine.instance})
     await stopping.wait()
     log.info("stopping: draining in-flight messages", extra={"drain_timeout": args.drain_timeout})

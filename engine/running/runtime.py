@@ -95,10 +95,12 @@ class _Reload:
 
 class Engine:
     def __init__(
-        self, routes_dir: Path, schemas_dir: Path, require_connections: bool = False, instance: str | None = None
+        self, routes_dir: Path, schemas_dirs: Path | Sequence[Path], require_connections: bool = False,
+        instance: str | None = None,
     ) -> None:
         self.routes_dir = routes_dir
-        self.schemas_dir = schemas_dir
+        self.schemas_dirs: tuple[Path, ...] = (schemas_dirs,) if isinstance(schemas_dirs, Path) else tuple(schemas_dirs)
+        """The schema directories, a later one over the earlier (engine/common/schema_files.py)."""
         self.instance = instance or socket.gethostname()
         """This engine's name among the instances sharing the routes (``--instance``)."""
         self.elsewhere: list[str] = []
@@ -144,7 +146,7 @@ class Engine:
 
     def compile(self) -> tuple[RoutesConfig, SchemaRegistry]:
         """Load both directories; blocking (files, imports): called in a worker thread."""
-        schemas = SchemaRegistry(self.schemas_dir)
+        schemas = SchemaRegistry(self.schemas_dirs)
         return load_routes(self.routes_dir, schemas), schemas
 
     async def start(self) -> None:
