@@ -314,6 +314,10 @@ class Declared:
     in any branch counting as declared; ``items`` for the elements of arrays. A schema is
     *open* (any key goes, nothing to warn about) when it declares no property at all, or
     allows more on purpose (``additionalProperties`` other than false, ``patternProperties``).
+    It is *closed* when it allows no key but those it declares: ``additionalProperties: false``
+    (or ``unevaluatedProperties: false``) at the node, through ``$ref``, in an ``allOf`` branch,
+    or in every branch of an ``anyOf``/``oneOf`` (a field read there that it does not declare
+    is always null: an error for ``check``, where elsewhere it is a warning).
     """
 
     def __init__(self, nodes: list[tuple[Any, str]], by_id: dict[str, Any]) -> None:
@@ -328,6 +332,7 @@ class Declared:
             self._collect(node, base, seen)
         self.open = self._open or not self._properties
         self.keys = sorted(self._properties)
+        self.closed = not self.open and all(self._closed(node, base, 0) for node, base in nodes)
 
     def child(self, key: str) -> Declared:
         """What the schema declares inside ``key``'s value (built once, then kept)."""
@@ -370,6 +375,22 @@ class Declared:
         if isinstance(items, (dict, bool)):
             self._items.append((items, base))
         self._items.extend((item, base) for item in node.get("prefixItems") or ())
+
+    def _closed(self, node: Any, base: str, depth: int) -> bool:
+        """Whether ``node`` allows no object key but those declared (see the class docstring)."""
+        if not isinstance(node, dict) or depth > 32:
+            return node is False
+        if node.get("additionalProperties") is False or node.get("unevaluatedProperties") is False:
+            return True
+        base = urljoin(base, node["$id"]) if isinstance(node.get("$id"), str) else base
+        if isinstance(node.get("$ref"), str):
+            target, target_base = self._resolve(urljoin(base, node["$ref"]))
+            if target is not None and self._closed(target, target_base, depth + 1):
+                return True
+        if any(self._closed(branch, base, depth + 1) for branch in node.get("allOf") or ()):
+            return True
+        return any(node.get(keyword) and all(self._closed(branch, base, depth + 1) for branch in node[keyword])
+                   for keyword in ("anyOf", "oneOf"))
 
     def _resolve(self, uri: str) -> tuple[Any, str]:
         document_uri, fragment = urldefrag(uri)

@@ -244,15 +244,19 @@ routes:
     schema: mission
     sink: {ros2: {topic: "/{agent}/mission"}}
 """)
-    config = load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
-    assert [str(w).removeprefix(f"{tmp_path}/") for w in config.warnings] == [
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
+    # the stamp allows no other keys (additionalProperties: false): a read of one is always null
+    assert [str(p).removeprefix(f"{tmp_path}/") for p in invalid.value.problems] == [
+        "r.yaml:28: route 'templates': sink routing_key reads 'stamp.secs', which schema 'position' does not declare and "
+        "allows no other key there (always null); did you mean 'stamp.sec'?"]
+    assert [str(w).removeprefix(f"{tmp_path}/") for w in invalid.value.warnings] == [
         "r.yaml:7: route 'pos': mapping sets 'heding', which schema 'position' does not declare; did you mean 'heading'?",
         "r.yaml:7: route 'pos': mapping sets 'stamp.nanosecs', which schema 'position' does not declare; did you mean 'stamp.nanosec'?",
         "r.yaml:12: route 'weeds': mapping sets 'agnt_id', which schema 'weed_detection' does not declare; did you mean 'agent_id'?",
         "r.yaml:12: route 'weeds': mapping sets 'points[].specis', which schema 'weed_detection' does not declare; did you mean 'points[].species'?",
         "r.yaml:22: route 'cmd': mapping sets 'targte', which schema 'command' does not declare; did you mean 'target'?",
         "r.yaml:27: route 'templates': throttle per reads 'agentid', which schema 'position' does not declare; did you mean 'agent_id'?",
-        "r.yaml:28: route 'templates': sink routing_key reads 'stamp.secs', which schema 'position' does not declare; did you mean 'stamp.sec'?",
         "r.yaml:32: route 'topic': sink topic reads 'agent', which schema 'mission' does not declare; did you mean 'agent_id'?",
     ]
 
