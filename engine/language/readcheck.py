@@ -9,8 +9,9 @@ VDA 5050 example read ``nodePosition.allowedDeviationXy`` (the standard: ``allow
 unnoticed. A read path is walked down the schema (:class:`engine.common.schemas.Declared`:
 properties through ``$ref``, ``allOf``/``anyOf``/``oneOf``, list elements): a field the schema
 does not declare where it allows no other keys (``additionalProperties: false``) is always
-null, an error; where it allows others (most canonical schemas), a warning. Both name the file
-and line and the field meant. The reads of typed inputs (a ROS 2 or MAVLink source's message,
+null, an error; where it allows others (most canonical schemas), a warning. Where the route's
+mapping says exactly what it makes (``{a: x, b: y}``: those keys, whatever the schema), a read of
+another key is always null too: an error. Both name the file and line and the field meant. The reads of typed inputs (a ROS 2 or MAVLink source's message,
 a call's answer) are the transports' (engine/language/fieldcheck.py): errors, as a typed
 message has no other fields.
 """
@@ -24,6 +25,7 @@ from engine.common.schemas import SchemaRegistry
 from engine.common.suggest import closest
 from engine.endpoints.base import ELEMENT, FieldPath
 from engine.language.fieldcheck import mapping_reads, mapping_writes, undeclared_keys
+from engine.language.mapping import parsed
 from engine.language.route_yaml import Document, Path_, Problem
 
 
@@ -77,10 +79,62 @@ def schema_checks(document: Document, where: Path_, route: Any, sink: Any, schem
                     f"route {name!r}: {{{field_path}}} in sink {key} is the value the source captures from each topic, not the "
                     f"canonical field {field_path!r} of {schema_name}: the captured value wins (rename the topic's variable "
                     "to read the field at send time)")), False
+    produced = mapping_output(route.mapping)
     for key_path, what, path in reads:
         found = read_problem(path, declared, schema_name)
+        if found is None and produced is not None:
+            found = unproduced(path, produced)
         if found is not None:
             yield document.problem(key_path, f"route {name!r}: {what} reads {found[0]}"), found[1]
+
+
+Shape = dict[str, Any]
+"""The keys a mapping's result has, exactly: key -> the shape of its value (None: unknown);
+:data:`ELEMENT` -> the shape of each element of a list result."""
+
+
+def mapping_output(expression: str | None) -> Shape | None:
+    """The exact shape of what a mapping makes, where its JMESPath says it: a multi-select hash
+    ``{a: x, b: {c: y}}`` has exactly those keys (null where ``x`` is missing), a projection
+    ``l[].{e: f}`` a list of such, a JSON literal its own; None when not known exactly (a
+    field, ``merge()``, ``||``, no mapping: the source's message as it came)."""
+    return _exact(parsed(expression)) if expression else None
+
+
+def _exact(node: dict[str, Any]) -> Shape | None:
+    kind = node.get("type")
+    children = node.get("children", [])
+    if kind == "multi_select_dict":
+        return {child["value"]: _exact(child["children"][0]) for child in children}
+    if kind == "literal":
+        return _literal_shape(node.get("value"))
+    if kind in ("projection", "filter_projection"):
+        element = _exact(children[1])
+        return None if element is None else {ELEMENT: element}
+    return None
+
+
+def _literal_shape(value: Any) -> Shape | None:
+    if isinstance(value, dict):
+        return {str(key): _literal_shape(item) for key, item in value.items()}
+    return None
+
+
+def unproduced(path: FieldPath, shape: Shape) -> tuple[str, bool] | None:
+    """``('temp', which the route's mapping never sets (it sets: ...); did you mean ...?',
+    True)`` for a read of a key the route's mapping does not make: always null, an error."""
+    for depth, step in enumerate(path):
+        if step not in shape:
+            if step == ELEMENT:
+                return None  # a list read of a value not known to be one: left to the schema
+            keys = sorted(key for key in shape if key != ELEMENT)
+            guess = closest(step, keys)
+            hint = f"; did you mean {_dotted(path[:depth] + (guess,))!r}?" if guess else f" (it sets: {', '.join(keys)})"
+            return f"{_dotted(path[:depth + 1])!r}, which the route's mapping never sets (always null){hint}", True
+        shape = shape[step]
+        if shape is None:
+            return None
+    return None
 
 
 def _per_keys(route: Any) -> Iterator[tuple[Path_, str, str]]:

@@ -207,3 +207,32 @@ def test_check_finds_the_vda5050_examples_misspelt_read(tmp_path: Path):
     assert (f"{routes}:{mapping_line}: warning: route 'uav1-order': sink mapping reads 'nodes[].nodePosition.allowedDeviationXy', "
             "which schema 'vda5050/order' does not declare; did you mean 'nodes[].nodePosition.allowedDeviationXY'?") \
         in result.stderr.splitlines(), result.stderr
+
+
+def test_a_read_of_a_key_the_routes_mapping_never_sets_is_an_error(tmp_path: Path, schemas: SchemaRegistry):
+    """``raw_json`` allows anything, but the mapping ``{seq: ..., agent_id: ..., pos: {...}}``
+    makes exactly those keys: a read of another one is always null."""
+    problems, warnings = checked(tmp_path, schemas, """routes:
+  - name: exact
+    source: {amqp: {queue: a}}
+    mapping: "{seq: seq, agent_id: agent, pos: {lat: la, lon: lo}, points: pts[].{p: p}, extra: x}"
+    schema: raw_json
+    throttle: {max_rate: 1, per: agentid}
+    sink:
+      amqp: {exchange: out, routing_key: "out.{agent_id}.{pos.lt}"}
+      mapping: "{s: sq, a: agent_id, lat: pos.lat, p: points[].pp, deeper: extra.anything}"
+  - name: merged
+    source: {amqp: {queue: b}}
+    mapping: "merge(@, {seq: seq})"
+    schema: raw_json
+    sink:
+      amqp: {exchange: out, routing_key: "out.{agent_id}"}
+      mapping: "{s: sq}"
+""")
+    never = "which the route's mapping never sets (always null)"
+    assert problems == [
+        f"r.yaml:6: route 'exact': throttle per reads 'agentid', {never}; did you mean 'agent_id'?",
+        f"r.yaml:8: route 'exact': sink routing_key reads 'pos.lt', {never}; did you mean 'pos.lat'?",
+        f"r.yaml:9: route 'exact': sink mapping reads 'points[].pp', {never}; did you mean 'points[].p'?",
+        f"r.yaml:9: route 'exact': sink mapping reads 'sq', {never}; did you mean 'seq'?",
+    ] and warnings == []
