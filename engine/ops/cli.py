@@ -23,7 +23,7 @@ from engine.language.routes import RoutesInvalid, load_routes
 from engine.ops.admin import AdminAccess, AdminConfigError, AdminServer, admin_access, parse_address, status_document
 from engine.ops.local_broker import private_brokers, stand_in_for_check
 from engine.ops.opsview import AdminClient, print_status, print_tap
-from engine.ops.route_tests import format_result, load_checked, run_tests
+from engine.ops.route_tests import failing_tests, format_result, load_checked, run_tests
 from engine.running.loop import run as run_loop
 from engine.running.observe import COUNTERS
 from engine.running.runtime import Engine
@@ -100,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--admin-tls-key", type=Path, metavar="FILE", help="the private key of --admin-tls-cert (PEM)")
     run.add_argument("--instance", metavar="NAME", help="this engine's name among instances sharing the routes (routes' instances:); default the host name")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
+    run.add_argument("--test-on-reload", action="store_true",
+                     help="run the directory's route tests (*.test.yaml) on every load and reload first, and refuse a "
+                          "generation whose tests fail as a syntax error is refused: the running routes keep running")
     run.add_argument("--stats-interval", type=float, default=10.0, metavar="SECONDS",
                      help="seconds between status-file updates and the log's route counter lines; default 10")
     run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"], help="default info")
@@ -288,7 +291,7 @@ def _protocols_used(args: argparse.Namespace) -> set[str] | None:
 
 async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> int:
     engine = Engine(args.routes, schema_directories(args), require_connections=args.require_connections,
-                    instance=args.instance)
+                    instance=args.instance, vet=failing_tests if args.test_on_reload else None)
     admin = AdminServer(engine, args.admin[0], args.admin[1], access) if args.admin else None
     if admin is not None:
         try:

@@ -305,6 +305,20 @@ def run_tests(cases: list[Case], config: RoutesConfig, schemas: SchemaRegistry) 
         yield run_case(case, config.routes[case.route], schemas, keyed)
 
 
+def failing_tests(config: RoutesConfig, schemas: SchemaRegistry) -> list[Problem]:
+    """What ``run --test-on-reload`` refuses a generation for, as a syntax error is refused:
+    the problems of the directory's route test files, and each failing case at its
+    ``file:line``, with why (the first line of what ``test`` prints; the diff is there)."""
+    cases, problems = load_tests(config.directory, config)
+    for result in run_tests(cases, config, schemas):
+        if not result.passed:
+            case = result.case
+            label = case.route + (f": {case.name}" if case.name else "")
+            problems.append(Problem(case.file, case.line, f"route test {label!r} fails: {result.reason}"
+                                                          " (--test-on-reload refuses a generation whose route tests fail)"))
+    return sorted(problems)
+
+
 def format_result(result: Result, base: Path | None = None) -> list[str]:
     case = result.case
     label = f"{case.route}" + (f": {case.name}" if case.name else "")
