@@ -33,7 +33,6 @@ import orjson
 from engine.common.schema_files import FILE_NAME, Resolver, SchemaFile, layered, rewrite
 
 
-
 class SchemaError(ValueError):
     """A message does not satisfy its canonical schema; the text names the field."""
 
