@@ -185,7 +185,7 @@ def test_check_reports_every_problem_of_a_file_in_one_run(tmp_path: Path):
     assert problems == [
         "r.yaml:5: dead_letters: unknown connection 'gsc'; did you mean 'gcs'?",
         "r.yaml:11: unknown key 'prefetchh' at routes[0].sink.amqp "
-        "(allowed: connection, content_type, durable, exchange, exchange_type, persistent, routing_key, timeout)",
+        "(allowed: connection, content_type, durable, exchange, exchange_type, mandatory, persistent, routing_key, timeout, unroutable)",
         "r.yaml:12: route 'fix': mapping reads 'longitud', which sensor_msgs/msg/NavSatFix does not have; did you mean 'longitude'?",
         "r.yaml:15: routes[1].source.ros2.qos.depth: '5' is not of type 'integer'",
         "r.yaml:17: routes[1].overflow: 'drop_olest' is not one of ['block', 'drop_oldest', 'drop_newest']; did you mean 'drop_oldest'?",
