@@ -1,6 +1,7 @@
-"""``check`` reads every read of the canonical message: what the sink mapping, the throttle's,
-``remember``'s and ``latest_only``'s ``per`` and the sink's templates (routing key, topic,
-MAVLink target) read, against what the route's canonical schema can hold.
+"""``check`` reads every read of the canonical message: what the sink mapping, ``remember``'s
+``value`` mappings, the throttle's, ``remember``'s and ``latest_only``'s ``per`` and the sink's
+templates (routing key, topic, MAVLink target) read, against what the route's canonical schema
+can hold.
 
 Before, ``check`` warned about keys a mapping *sets* that the schema lacks, never about fields
 a mapping *reads* that its input cannot have: a sink mapping ``{temperature: temperatur_c}``
@@ -27,6 +28,7 @@ from engine.endpoints.base import ELEMENT, FieldPath
 from engine.language.fieldcheck import mapping_reads, mapping_writes, undeclared_keys
 from engine.language.mapping import parsed
 from engine.language.route_yaml import Document, Path_, Problem
+from engine.language.stores import remember_entries
 
 
 def read_problem(path: FieldPath, declared: Any, label: str) -> tuple[str, bool] | None:
@@ -66,6 +68,10 @@ def schema_checks(document: Document, where: Path_, route: Any, sink: Any, schem
     sink_mapping = route.sink.get("mapping")
     if isinstance(sink_mapping, str):
         reads += [(where + ("sink", "mapping"), "sink mapping", path) for path in _leaves(mapping_reads(sink_mapping))]
+    for index, entry in enumerate(remember_entries(route.remember)):
+        if isinstance(entry.value, str):
+            reads += [(where + _remembered_at(route, index) + ("value",), "remember value", path)
+                      for path in _leaves(mapping_reads(entry.value))]
     for key_path, what, per in _per_keys(route):
         reads.append((where + key_path, what, tuple(per.split("."))))
     if sink is not None:
@@ -141,13 +147,17 @@ def _per_keys(route: Any) -> Iterator[tuple[Path_, str, str]]:
     """The canonical field paths that key a route's state: throttle, remember, latest_only."""
     if route.throttle is not None and route.throttle.per:
         yield ("throttle", "per"), "throttle per", route.throttle.per
-    remember = route.remember  # one entry, or a list of them (each at its index)
-    for index, entry in enumerate(remember if isinstance(remember, (tuple, list)) else (remember,) if remember else ()):
+    for index, entry in enumerate(remember_entries(route.remember)):
         if entry.per:
-            yield ("remember",) + ((index,) if isinstance(remember, (tuple, list)) else ()) + ("per",), "remember per", entry.per
+            yield _remembered_at(route, index) + ("per",), "remember per", entry.per
     latest_only = route.buffer.latest_only if route.buffer else None
     if latest_only is not None and latest_only.per:
         yield ("buffer", "latest_only", "per"), "buffer latest_only per", latest_only.per
+
+
+def _remembered_at(route: Any, index: int) -> Path_:
+    """Where a ``remember`` entry is written: the mapping itself, or an item of the list."""
+    return ("remember", index) if isinstance(route.remember, tuple) else ("remember",)
 
 
 def _leaves(paths: list[FieldPath]) -> list[FieldPath]:

@@ -238,3 +238,29 @@ def test_a_read_of_a_key_the_routes_mapping_never_sets_is_an_error(tmp_path: Pat
         f"r.yaml:9: route 'exact': sink mapping reads 'points[].pp', {never}; did you mean 'points[].p'?",
         f"r.yaml:9: route 'exact': sink mapping reads 'sq', {never}; did you mean 'seq'?",
     ] and warnings == []
+
+
+def test_a_remember_value_reads_the_canonical_message(tmp_path: Path, schemas: SchemaRegistry):
+    """``remember``'s ``value`` mapping (one entry, or each of a list) and ``per``."""
+    problems, warnings = checked(tmp_path, schemas, """routes:
+  - name: kept
+    source: {amqp: {queue: a}}
+    schema: sensor
+    remember:
+      - {store: temperatures, per: agent_id, value: "{t: temperatur_c, at: stamp.sec}"}
+      - {store: readings, per: agnt_id, value: "readings[].valeu"}
+    sink: {amqp: {exchange: out}}
+  - name: one
+    source: {amqp: {queue: b}}
+    schema: sensor_loose
+    remember: {store: last, value: "{t: temperatur_c}"}
+    sink: {amqp: {exchange: out}}
+""")
+    always_null = "does not declare and allows no other key there (always null)"
+    assert problems == [
+        f"r.yaml:6: route 'kept': remember value reads 'temperatur_c', which schema 'sensor' {always_null}; did you mean 'temperature_c'?",
+        f"r.yaml:7: route 'kept': remember per reads 'agnt_id', which schema 'sensor' {always_null}; did you mean 'agent_id'?",
+        f"r.yaml:7: route 'kept': remember value reads 'readings[].valeu', which schema 'sensor' {always_null}; did you mean 'readings[].value'?",
+    ]
+    assert warnings == [
+        "r.yaml:12: route 'one': remember value reads 'temperatur_c', which schema 'sensor_loose' does not declare; did you mean 'temperature_c'?"]
