@@ -3,9 +3,11 @@
 Schemas are files ``schemas/<name>.v<N>.json``. A route names ``weed_detection`` (the
 newest version) or ``weed_detection.v1`` (pinned). A standard's own schemas keep their family
 in one subdirectory level: ``schemas/vda5050/order.v2.json`` is ``vda5050/order`` (its licence
-and provenance beside it, apart from the project's vocabulary); deeper levels are not read. Validators are built once per schema
+and provenance beside it, apart from the project's vocabulary); deeper levels are not read.
+Several directories may be given, a later one over the earlier, and ``$ref`` names a schema
+file whatever the ``$id`` (engine/common/schema_files.py). Validators are built once per schema
 and shared by every route that uses it; ``$ref`` between schema files resolves through a
-registry of the directory, offline, so the envelope is written once.
+registry of the directories, offline, so the envelope is written once.
 
 Messages are validated with jsonschema-rs (a compiled, complete Draft 2020-12
 implementation: about 1 us per message here against 200 us for the pure-Python
@@ -21,16 +23,14 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Sequence
 from urllib.parse import urldefrag, urljoin
 
 import jsonschema
 import jsonschema_rs
 import orjson
 
-_FILE_NAME = re.compile(r"^(?P<name>[a-z][a-z0-9_]*)\.v(?P<version>\d+)\.json$")
-_FAMILY = re.compile(r"^[a-z][a-z0-9_]*$")
-"""A subdirectory of schemas: one standard's family (``vda5050``), named as schema files are."""
+from engine.common.schema_files import FILE_NAME, Resolver, SchemaFile, layered, rewrite
 
 
 class SchemaError(ValueError):
@@ -180,101 +180,112 @@ class CanonicalSchema:
 
 
 class SchemaRegistry:
-    """All schemas of one directory, loaded and compiled together."""
+    """All schemas of one or more directories (a later one over the earlier: see
+    engine/common/schema_files.py), loaded and compiled together."""
 
-    def __init__(self, directory: Path) -> None:
-        self.directory = directory
+    def __init__(self, directories: Path | Sequence[Path]) -> None:
+        self.directories: tuple[Path, ...] = (directories,) if isinstance(directories, Path) else tuple(directories)
         self._schemas: dict[str, CanonicalSchema] = {}
         self.problems: list[tuple[Path, str]] = []
+        self.files: dict[str, SchemaFile] = {}
+        """Every schema file by its name in the layered tree, with the files it replaces."""
         self._documents: dict[Path, dict[str, Any]] = {}
         self._by_id: dict[str, Any] = {}
         self._declared: dict[Path, Declared] = {}
+        self._reached: dict[str, set[str]] = {}
+        """``name.vN`` -> the files (relative names) it reaches through ``$ref``, its own included."""
         self._load()
-        self._by_id.update((urldefrag(doc["$id"])[0], doc) for doc in self._documents.values())
+        self._by_id.update((doc["$id"], doc) for doc in self._documents.values())
 
     def _load(self) -> None:
-        documents = self._documents
-        if not self.directory.is_dir():
-            self.problems.append((self.directory, "schema directory does not exist"))
-            return
-        for path in sorted(self.directory.glob("*.json")) + sorted(self.directory.glob("*/*.json")):
-            if not _FILE_NAME.match(path.name) or (path.parent != self.directory and not _FAMILY.match(path.parent.name)):
-                self.problems.append((path, "schema file names must look like name.v1.json"))
-                continue
+        self.files, problems = layered(self.directories)
+        self.problems += problems
+        read: dict[str, Any] = {}
+        for relative, schema_file in self.files.items():
             try:
-                text = path.read_text(encoding="utf-8")
+                text = schema_file.path.read_text(encoding="utf-8")
                 document = json.loads(text)
                 _check_schema(text)
             except (OSError, ValueError) as exc:
-                self.problems.append((path, f"invalid JSON: {exc}"))
+                self.problems.append((schema_file.path, f"invalid JSON: {exc}"))
                 continue
             except jsonschema.SchemaError as exc:
-                self.problems.append((path, f"invalid JSON Schema: {exc.message}"))
+                self.problems.append((schema_file.path, f"invalid JSON Schema: {exc.message}"))
                 continue
-            documents[path] = document
-        for path, document in documents.items():
-            document.setdefault("$id", path.resolve().as_uri())
-        closures = self._closures(documents)
-        documents = {path: doc for path, doc in documents.items() if path in closures}
-        self._documents = documents
+            read[relative] = document
+        closures = self._closures(read)
+        documents = {self.files[relative].path: doc for relative, doc in closures.items()}
+        self._documents = {path: doc for path, (doc, _) in documents.items()}
         try:
-            registry = jsonschema_rs.Registry([(doc["$id"], doc) for doc in documents.values()])
+            registry = jsonschema_rs.Registry([(doc["$id"], doc) for doc, _ in documents.values()])
         except (jsonschema_rs.ReferencingError, ValueError) as exc:  # a reference form we do not follow
-            self.problems.append((self.directory, f"cannot resolve the schemas' $refs: {exc}"))
+            self.problems.append((self.directories[-1], f"cannot resolve the schemas' $refs: {exc}"))
             return
-        for path, document in documents.items():
-            match = _FILE_NAME.match(path.name)
+        for relative, (document, reached) in closures.items():
+            path = self.files[relative].path
+            match = FILE_NAME.match(path.name)
             assert match
             name, version = match["name"], int(match["version"])
-            if path.parent != self.directory:
-                name = f"{path.parent.name}/{name}"
+            if "/" in relative:
+                name = f"{relative.split('/')[0]}/{name}"
             try:
                 validator = jsonschema_rs.validator_for(document, registry=registry, offline=True)
             except (jsonschema_rs.ReferencingError, ValueError) as exc:
                 self.problems.append((path, f"cannot compile: {exc}"))
                 continue
             digest = hashlib.sha256(
-                json.dumps([documents[p] for p in sorted(closures[path])], sort_keys=True).encode()
+                json.dumps([closures[r][0] for r in sorted(reached)], sort_keys=True).encode()
             ).hexdigest()[:16]
             entry = CanonicalSchema(name, version, path, _validating(f"{name}.v{version}", validator), digest)
+            self._reached[f"{name}.v{version}"] = reached
             self._schemas[f"{name}.v{version}"] = entry
             newest = self._schemas.get(name)
             if newest is None or newest.version < version:
                 self._schemas[name] = entry
 
-    def _closures(self, documents: dict[Path, dict[str, Any]]) -> dict[Path, set[Path]]:
-        """Each schema file with the files its ``$ref``s reach, transitively. A ``$ref`` to a
-        file that is not in the directory (or not valid) is a problem of the referring file
-        and of every file that refers to it, so none of them is half-loaded."""
-        by_id = {urldefrag(doc["$id"])[0]: path for path, doc in documents.items()}
-        direct: dict[Path, set[Path]] = {}
-        broken: dict[Path, str] = {}
-        for path, document in documents.items():
-            base = urldefrag(document["$id"])[0]
-            direct[path] = {path}
-            for ref in _references(document):
-                target = by_id.get(urldefrag(urljoin(base, ref))[0])
-                if target is None:
-                    broken.setdefault(path, f"$ref {ref!r} does not resolve to a schema file of {self.directory}")
-                else:
-                    direct[path].add(target)
-        closures: dict[Path, set[Path]] = {}
-        for path in documents:
-            reached: set[Path] = set()
-            frontier = [path]
+    def _closures(self, read: dict[str, Any]) -> dict[str, tuple[dict[str, Any], set[str]]]:
+        """Each schema file rewritten (engine/common/schema_files.py: its ``$ref``s absolute,
+        by file name), with the files its ``$ref``s reach, transitively. A ``$ref`` to no file
+        of the directories (or to one not valid) is a problem of the referring file and of
+        every file that refers to it, so none of them is half-loaded."""
+        resolver = Resolver(read)
+        direct: dict[str, set[str]] = {}
+        rewritten: dict[str, dict[str, Any]] = {}
+        broken: dict[str, str] = {}
+        where = ", ".join(map(str, self.directories))
+        for relative, document in read.items():
+            rewritten[relative], reached, unresolved = rewrite(relative, document, resolver)
+            direct[relative] = {relative} | reached
+            if unresolved is not None:
+                broken[relative] = f"$ref {unresolved!r} does not resolve to a schema file of {where}"
+        closures: dict[str, tuple[dict[str, Any], set[str]]] = {}
+        for relative in read:
+            reached_all: set[str] = set()
+            frontier = [relative]
             while frontier:
                 current = frontier.pop()
-                if current not in reached:
-                    reached.add(current)
-                    frontier.extend(direct[current])
-            bad = sorted(p for p in reached if p in broken)
-            if path in broken:
-                self.problems.append((path, broken[path]))
+                if current not in reached_all:
+                    reached_all.add(current)
+                    frontier.extend(direct.get(current, ()))
+            bad = sorted(r for r in reached_all if r in broken or r not in read)
+            path = self.files[relative].path
+            if relative in broken:
+                self.problems.append((path, broken[relative]))
             elif bad:
-                self.problems.append((path, f"refers to {bad[0].name}, which does not load"))
+                self.problems.append((path, f"refers to {bad[0]}, which does not load"))
             else:
-                closures[path] = reached
+                closures[relative] = (rewritten[relative], reached_all)
         return closures
+
+    def files_used(self, names: Sequence[str]) -> list[SchemaFile]:
+        """The files schemas ``names`` (``position``, ``position.v1``) were read from, with
+        every file they reach through ``$ref``, by name in the layered tree."""
+        used: set[str] = set()
+        for name in names:
+            entry = self._schemas.get(name)
+            if entry is not None:
+                used |= self._reached[f"{entry.name}.v{entry.version}"]
+        return [self.files[relative] for relative in sorted(used)]
 
     def names(self) -> list[str]:
         return sorted(self._schemas)
@@ -302,6 +313,10 @@ class Declared:
     in any branch counting as declared; ``items`` for the elements of arrays. A schema is
     *open* (any key goes, nothing to warn about) when it declares no property at all, or
     allows more on purpose (``additionalProperties`` other than false, ``patternProperties``).
+    It is *closed* when it allows no key but those it declares: ``additionalProperties: false``
+    (or ``unevaluatedProperties: false``) at the node, through ``$ref``, in an ``allOf`` branch,
+    or in every branch of an ``anyOf``/``oneOf`` (a field read there that it does not declare
+    is always null: an error for ``check``, where elsewhere it is a warning).
     """
 
     def __init__(self, nodes: list[tuple[Any, str]], by_id: dict[str, Any]) -> None:
@@ -316,6 +331,7 @@ class Declared:
             self._collect(node, base, seen)
         self.open = self._open or not self._properties
         self.keys = sorted(self._properties)
+        self.closed = not self.open and all(self._closed(node, base, 0) for node, base in nodes)
 
     def child(self, key: str) -> Declared:
         """What the schema declares inside ``key``'s value (built once, then kept)."""
@@ -359,6 +375,22 @@ class Declared:
             self._items.append((items, base))
         self._items.extend((item, base) for item in node.get("prefixItems") or ())
 
+    def _closed(self, node: Any, base: str, depth: int) -> bool:
+        """Whether ``node`` allows no object key but those declared (see the class docstring)."""
+        if not isinstance(node, dict) or depth > 32:
+            return node is False
+        if node.get("additionalProperties") is False or node.get("unevaluatedProperties") is False:
+            return True
+        base = urljoin(base, node["$id"]) if isinstance(node.get("$id"), str) else base
+        if isinstance(node.get("$ref"), str):
+            target, target_base = self._resolve(urljoin(base, node["$ref"]))
+            if target is not None and self._closed(target, target_base, depth + 1):
+                return True
+        if any(self._closed(branch, base, depth + 1) for branch in node.get("allOf") or ()):
+            return True
+        return any(node.get(keyword) and all(self._closed(branch, base, depth + 1) for branch in node[keyword])
+                   for keyword in ("anyOf", "oneOf"))
+
     def _resolve(self, uri: str) -> tuple[Any, str]:
         document_uri, fragment = urldefrag(uri)
         node = self._by_id.get(document_uri)
@@ -374,18 +406,6 @@ def _check_schema(text: str) -> None:
     most of a reload's compile time, and a reload usually leaves every schema as it was."""
     document = json.loads(text)
     jsonschema.validators.validator_for(document).check_schema(document)
-
-
-def _references(node: Any) -> Iterator[str]:
-    if isinstance(node, dict):
-        for key, value in node.items():
-            if key in ("$ref", "$dynamicRef") and isinstance(value, str):
-                yield value
-            else:
-                yield from _references(value)
-    elif isinstance(node, list):
-        for item in node:
-            yield from _references(item)
 
 
 def _validating(label: str, validator: Any) -> Callable[[Any], None]:

@@ -13,7 +13,8 @@ The other direction, for every route: the keys a mapping *sets* (:func:`mapping_
 read from the same tree: multi-select hashes, projections, ``merge``) against the properties
 its canonical schema declares (:class:`engine.common.schemas.Declared`); ``check`` warns about the
 ones the schema does not name, since the schemas allow extra keys and a misspelt optional
-field would otherwise pass every message unnoticed.
+field would otherwise pass every message unnoticed. What the sink mapping, ``per`` keys and
+templates read of the canonical message is checked in engine/language/readcheck.py.
 
 Also here: did-you-mean hints for a misspelt type or message name (``Transport.suggest``).
 """
@@ -154,21 +155,6 @@ def _undeclared(written: Written | None, declared: Any, label: str, path: FieldP
             yield f"mapping sets {_dotted(path + (key,))!r}, which schema {label!r} does not declare{hint}"
         else:
             yield from _undeclared(value, declared.child(key), label, path + (key,))
-
-
-def undeclared_path(path: str, declared: Any, label: str) -> str | None:
-    """``'agent_idd', which schema position does not declare; did you mean 'agent_id'?`` for
-    a dotted canonical field path (a template placeholder, throttle's ``per``), or None."""
-    steps = tuple(path.split("."))
-    for depth, step in enumerate(steps):
-        if declared.open:
-            return None
-        if step not in declared.keys:
-            guess = closest(step, declared.keys)
-            hint = f"; did you mean {_dotted(steps[:depth] + (guess,))!r}?" if guess else f" (it declares: {', '.join(declared.keys)})"
-            return f"{_dotted(steps[:depth + 1])!r}, which schema {label!r} does not declare{hint}"
-        declared = declared.child(step)
-    return None
 
 
 def mapping_field_problems(protocol: str, options: Any, mapping: str | None) -> Iterator[str]:

@@ -30,6 +30,7 @@ import yaml
 from engine.common.options import dotted, unknown_key
 from engine.common.redaction import MASK, Secret, has_url_password, is_secret_name, redact_urls, shown
 from engine.common.suggest import did_you_mean
+from engine.language.yaml_bounds import bound_problem
 
 Path_ = tuple[str | int, ...]
 _ENV_REFERENCE = re.compile(r"\$\$|\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}|\$\{file:([^}]+)\}")
@@ -86,7 +87,13 @@ def parse_document(
 ) -> Document | None:
     """``text`` as a :class:`Document`, its problems appended to ``problems``; None when it is
     not YAML, or when the schema rejects it and ``keep_invalid`` is false. ``expand`` rewrites
-    the data as read, before it is validated (route templates), moving key lines with it."""
+    the data as read, before it is validated (route templates), moving key lines with it.
+    A file past the bounds of engine/language/yaml_bounds.py (size, nodes, alias copies,
+    depth) is refused before it is composed."""
+    bound = bound_problem(text)
+    if bound is not None:
+        problems.append(Problem(file, *bound))
+        return None
     loader = _Loader(text)
     try:
         root = loader.get_single_node()
@@ -103,11 +110,7 @@ def parse_document(
     if root is None:
         return Document(file, {}, {})
     reader = _Reader(loader, env, file, problems)
-    try:
-        data = reader.value(root, ())
-    except RecursionError:
-        problems.append(Problem(file, _recursive_alias_line(text), "invalid YAML: an alias inside its own anchor (recursive alias), or nesting too deep"))
-        return None
+    data = reader.value(root, ())  # no recursion past MAX_DEPTH, no recursive alias: bound_problem refused those
     data = data if data is not None else {}
     expansions = expand(data, reader.lines, reader.substituted, problems) if expand is not None else {}
     errors = list(validator.iter_errors(shown(data)))
@@ -250,14 +253,6 @@ def _flow_hint(text: str, exc: yaml.MarkedYAMLError) -> str:
     where = "flow mapping ({...})" if "mapping" in str(exc.context) else "flow list ([...])"
     return (f"; inside a {where} an unquoted ${{VAR}} is read as a nested mapping: quote the value, "
             f"\"{value}\" (a quoted ${{VAR}} still becomes a number or boolean where the key expects one)")
-
-
-def _recursive_alias_line(text: str) -> int:
-    """Where the recursive structure starts: the first anchor, as YAML's own marks are lost."""
-    for number, line in enumerate(text.splitlines(), 1):
-        if re.search(r"(^|[\s\[{,:-])&[^\s]", line):
-            return number
-    return 1
 
 
 def substitute_env(text: str, env: Mapping[str, str]) -> str:

@@ -30,10 +30,12 @@ from engine.common.schemas import SchemaRegistry
 from engine.common.suggest import did_you_mean
 from engine.endpoints.base import EndpointError, Transport
 from engine.language import agents as agents_table
-from engine.language.fieldcheck import mapping_field_problems, mapping_writes, option_hint, reply_field_problems, undeclared_keys, undeclared_path
+from engine.language.fieldcheck import mapping_field_problems, option_hint, reply_field_problems
+from engine.language.readcheck import schema_checks
 from engine.language.identity import connection_fingerprint, connection_key_files, exclusive_resource
 from engine.language.mapping import compile_mapping, known_functions, literal_format_problems, meta_names, recall_names, unknown_functions
 from engine.language.route_yaml import Document, Path_, Problem, parse_document
+from engine.language.yaml_bounds import FileTooLarge, read_bounded
 from engine.language.stage_options import (DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, BufferOptions, BufferSpec, DeadLetterSpec,
                                            DeadLettersOptions, FairOptions, ReplyOptions, RouteDelivery, ThrottleOptions)
 from engine.language.stores import FAILURE_META, RememberOptions, remember_entries
@@ -264,7 +266,10 @@ def load_routes(
     item_files = ItemFiles(env, problems)
     for path in route_files(directory):
         try:
-            text = path.read_text(encoding="utf-8")
+            text = read_bounded(path)
+        except FileTooLarge as exc:
+            problems.append(Problem(str(path), 1, str(exc)))
+            continue
         except (OSError, UnicodeDecodeError) as exc:
             problems.append(Problem(str(path), 0, f"cannot read: {exc}"))
             continue
@@ -334,7 +339,10 @@ class ItemFiles:
         text = self.texts.get(path)
         if text is None:
             try:
-                text = path.read_text(encoding="utf-8")
+                text = read_bounded(path)
+            except FileTooLarge as exc:
+                self.problems.append(Problem(str(path), 1, str(exc)))
+                return None
             except (OSError, UnicodeDecodeError) as exc:
                 self.problems.append(Problem(str(path), 0, f"cannot read for_each file: {exc}"))
                 return None
@@ -734,7 +742,8 @@ def _route_checks(
     elif schemas.get(schema_name) is None:
         problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"))
     else:
-        warnings.extend(_schema_warnings(document, where, route, sink, schemas, source_variables(source)))
+        for problem, error in schema_checks(document, where, route, sink, schemas, source_variables(source)):
+            (problems if error else warnings).append(problem)
     _endpoint_checks(document, where, name, source if complete[0] else None, sink if complete[1] else None,
                      mapping, sink_mapping, problems)
     _reply_checks(document, where, route, source, sink, schemas, problems)
@@ -878,44 +887,6 @@ def _replies(protocol: str) -> bool:
         return endpoints.transport(protocol).replies
     except EndpointError:
         return False
-
-
-def _schema_warnings(document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None,
-                     schemas: SchemaRegistry, captured: tuple[str, ...] = ()) -> Iterator[Problem]:
-    """Canonical field names the schema does not declare: keys the mapping sets, and fields the
-    throttle and the sink's templates read (their messages would be dead-lettered). A sink
-    template's ``{name}`` that the source captures (``captured``) is no field; where the schema
-    declares a field of that name too, the captured value wins, which is said."""
-    name, schema_name = route.name, route.schema
-    declared = schemas.declared(schema_name) if schema_name else None
-    if declared is None or schema_name is None:
-        return
-    for message in undeclared_keys(mapping_writes(route.mapping), declared, schema_name):
-        yield document.problem(where + ("mapping",), f"route {name!r}: {message}")
-    reads: list[tuple[Path_, str, str]] = []
-    if route.throttle is not None and route.throttle.per:
-        reads.append((where + ("throttle", "per"), "throttle per", route.throttle.per))
-    for index, entry in enumerate(remember_entries(route.remember)):
-        if entry.per:
-            reads.append((_remember_path(where, route, index) + ("per",), "remember per", entry.per))
-    latest_only = route.buffer.latest_only if route.buffer else None
-    if latest_only is not None and latest_only.per:
-        reads.append((where + ("buffer", "latest_only", "per"), "buffer latest_only per", latest_only.per))
-    if sink is not None:
-        transport = endpoints.transport(sink.protocol)
-        for key, field_path in transport.canonical_fields(sink.options):
-            key_path = where + ("sink", sink.protocol, key)
-            if field_path not in captured:
-                reads.append((key_path, f"sink {key}", field_path))
-            elif undeclared_path(field_path, declared, schema_name) is None and not declared.open:
-                yield document.problem(key_path, (
-                    f"route {name!r}: {{{field_path}}} in sink {key} is the value the source captures from each topic, not the "
-                    f"canonical field {field_path!r} of {schema_name}: the captured value wins (rename the topic's variable "
-                    "to read the field at send time)"))
-    for key_path, what, field_path in reads:
-        problem = undeclared_path(field_path, declared, schema_name)
-        if problem is not None:
-            yield document.problem(key_path, f"route {name!r}: {what} reads {problem}")
 
 
 def _parse_leniently(

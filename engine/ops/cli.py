@@ -23,7 +23,7 @@ from engine.language.routes import RoutesInvalid, load_routes
 from engine.ops.admin import AdminAccess, AdminConfigError, AdminServer, admin_access, parse_address, status_document
 from engine.ops.local_broker import private_brokers, stand_in_for_check
 from engine.ops.opsview import AdminClient, print_status, print_tap
-from engine.ops.route_tests import format_result, load_checked, run_tests
+from engine.ops.route_tests import failing_tests, format_result, load_checked, run_tests
 from engine.running.loop import run as run_loop
 from engine.running.observe import COUNTERS
 from engine.running.runtime import Engine
@@ -40,6 +40,11 @@ def default_schemas(routes: Path) -> Path:
         if candidate.is_dir():
             return candidate
     return Path("schemas")
+
+
+def schema_directories(args: argparse.Namespace) -> list[Path]:
+    """Every ``--schemas`` given, in order (a later one over the earlier), else the default."""
+    return list(args.schemas) if args.schemas else [default_schemas(args.routes)]
 
 
 class _TopLevelParser(argparse.ArgumentParser):
@@ -73,7 +78,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(sub: argparse.ArgumentParser) -> None:
         sub.add_argument("--routes", type=Path, default=Path("routes"), metavar="DIR", help="routes directory (or one file); default ./routes")
-        sub.add_argument("--schemas", type=Path, metavar="DIR", help="canonical schemas directory; default: schemas/ beside the routes")
+        sub.add_argument("--schemas", type=Path, action="append", metavar="DIR",
+                         help="canonical schemas directory; default: schemas/ beside the routes. May repeat: a later "
+                              "directory over the earlier (a file of the same name replaces the earlier's), e.g. the "
+                              "bundled schemas, then your own")
 
     run = commands.add_parser("run", help="run the routes (the default command)")
     common(run)
@@ -92,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--admin-tls-key", type=Path, metavar="FILE", help="the private key of --admin-tls-cert (PEM)")
     run.add_argument("--instance", metavar="NAME", help="this engine's name among instances sharing the routes (routes' instances:); default the host name")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
+    run.add_argument("--test-on-reload", action="store_true",
+                     help="run the directory's route tests (*.test.yaml) on every load and reload first, and refuse a "
+                          "generation whose tests fail as a syntax error is refused: the running routes keep running")
     run.add_argument("--stats-interval", type=float, default=10.0, metavar="SECONDS",
                      help="seconds between status-file updates and the log's route counter lines; default 10")
     run.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"], help="default info")
@@ -156,9 +167,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "check":
         if args.local_broker:  # the private brokers' URLs are not known before they start: stand-ins no route file names
             stand_in_for_check()
-        return check(args.routes, args.schemas or default_schemas(args.routes))
+        return check(args.routes, schema_directories(args))
     if args.command == "test":
-        return run_route_tests(args.routes, args.schemas or default_schemas(args.routes))
+        return run_route_tests(args.routes, schema_directories(args))
     if args.command == "status":
         if args.admin:
             client = _client(args)
@@ -179,9 +190,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         listener.stop()
 
 
-def check(routes: Path, schemas: Path) -> int:
+def check(routes: Path, schema_dirs: Path | Sequence[Path]) -> int:
+    schema_dirs = [schema_dirs] if isinstance(schema_dirs, Path) else list(schema_dirs)
     try:
-        config, cases, problems, warnings = load_checked(routes, SchemaRegistry(schemas))
+        registry = SchemaRegistry(schema_dirs)
+        config, cases, problems, warnings = load_checked(routes, registry)
     except Exception as error:  # what the loader did not foresee still gets one line, not a traceback
         print(f"{routes}: cannot load: {type(error).__name__}: {error}", file=sys.stderr)
         return 1
@@ -192,12 +205,16 @@ def check(routes: Path, schemas: Path) -> int:
         return 1
     tests = f", {len(cases)} tests" if cases else ""
     print(f"{routes}: {len(config.routes)} routes, {len(config.connections)} connections{tests}, config {config.content_hash}: ok")
+    if len(schema_dirs) > 1:  # several directories: which file each schema the routes use came from
+        for schema_file in registry.files_used(sorted({route.schema for route in config.routes.values()})):
+            over = f" (over {', '.join(map(str, schema_file.replaces))})" if schema_file.replaces else ""
+            print(f"  schema {schema_file.relative}: {schema_file.path}{over}")
     return 0
 
 
-def run_route_tests(routes: Path, schemas_dir: Path) -> int:
+def run_route_tests(routes: Path, schema_dirs: Path | Sequence[Path]) -> int:
     """``rabbitros-engine test``: one line per case, a diff per failure; 0 pass, 1 fail, 2 invalid."""
-    schemas = SchemaRegistry(schemas_dir)
+    schemas = SchemaRegistry(schema_dirs)
     config, cases, problems, _ = load_checked(routes, schemas)
     for problem in problems:
         print(problem, file=sys.stderr)
@@ -263,7 +280,7 @@ def _protocols_used(args: argparse.Namespace) -> set[str] | None:
     saved = dict(os.environ)
     try:
         stand_in_for_check()
-        config = load_routes(args.routes, SchemaRegistry(args.schemas or default_schemas(args.routes)))
+        config = load_routes(args.routes, SchemaRegistry(schema_directories(args)))
     except (RoutesInvalid, OSError, EndpointError):
         return None
     finally:
@@ -273,8 +290,8 @@ def _protocols_used(args: argparse.Namespace) -> set[str] | None:
 
 
 async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> int:
-    engine = Engine(args.routes, args.schemas or default_schemas(args.routes), require_connections=args.require_connections,
-                    instance=args.instance)
+    engine = Engine(args.routes, schema_directories(args), require_connections=args.require_connections,
+                    instance=args.instance, vet=failing_tests if args.test_on_reload else None)
     admin = AdminServer(engine, args.admin[0], args.admin[1], access) if args.admin else None
     if admin is not None:
         try:
@@ -332,7 +349,7 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
 
     tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
     if not args.no_watch:
-        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dir, engine.key_files)))
+        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dirs, engine.key_files)))
     log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__, "instance": engine.instance})
     await stopping.wait()
     log.info("stopping: draining in-flight messages", extra={"drain_timeout": args.drain_timeout})

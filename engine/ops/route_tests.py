@@ -29,6 +29,7 @@ from engine.common.schemas import SchemaRegistry
 from engine.common.suggest import did_you_mean
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound, Sink
 from engine.language.route_yaml import Problem, parse_document
+from engine.language.yaml_bounds import FileTooLarge, read_bounded
 from engine.language.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes, source_meta_names
 from engine.language.stores import Stores, remember_entries
 from engine.running.pipeline import ConversionError, Pipeline
@@ -120,7 +121,10 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
     problems: list[Problem] = []
     for path in test_files(routes):
         try:
-            text = path.read_text(encoding="utf-8")
+            text = read_bounded(path)
+        except FileTooLarge as exc:
+            problems.append(Problem(str(path), 1, str(exc)))
+            continue
         except (OSError, UnicodeDecodeError) as exc:
             problems.append(Problem(str(path), 0, f"cannot read: {exc}"))
             continue
@@ -299,6 +303,20 @@ def run_tests(cases: list[Case], config: RoutesConfig, schemas: SchemaRegistry) 
     keyed = store_keys(config)
     for case in cases:
         yield run_case(case, config.routes[case.route], schemas, keyed)
+
+
+def failing_tests(config: RoutesConfig, schemas: SchemaRegistry) -> list[Problem]:
+    """What ``run --test-on-reload`` refuses a generation for, as a syntax error is refused:
+    the problems of the directory's route test files, and each failing case at its
+    ``file:line``, with why (the first line of what ``test`` prints; the diff is there)."""
+    cases, problems = load_tests(config.directory, config)
+    for result in run_tests(cases, config, schemas):
+        if not result.passed:
+            case = result.case
+            label = case.route + (f": {case.name}" if case.name else "")
+            problems.append(Problem(case.file, case.line, f"route test {label!r} fails: {result.reason}"
+                                                          " (--test-on-reload refuses a generation whose route tests fail)"))
+    return sorted(problems)
 
 
 def format_result(result: Result, base: Path | None = None) -> list[str]:

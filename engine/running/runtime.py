@@ -30,11 +30,12 @@ import socket
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 from engine import endpoints
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Connection, EndpointError
+from engine.language.route_yaml import Problem
 from engine.language.routes import RoutesConfig, RouteSpec, RoutesInvalid, load_routes
 from engine.language.stores import Stores
 from engine.running.buffer import Buffers
@@ -95,10 +96,16 @@ class _Reload:
 
 class Engine:
     def __init__(
-        self, routes_dir: Path, schemas_dir: Path, require_connections: bool = False, instance: str | None = None
+        self, routes_dir: Path, schemas_dirs: Path | Sequence[Path], require_connections: bool = False,
+        instance: str | None = None, vet: Callable[[RoutesConfig, SchemaRegistry], list[Problem]] | None = None,
     ) -> None:
         self.routes_dir = routes_dir
-        self.schemas_dir = schemas_dir
+        self.vet = vet
+        """Asked of every compiled generation before it runs, at start and at each reload: its
+        problems refuse the generation as the loader's do (``run --test-on-reload``: the
+        directory's route tests, engine/ops/route_tests.py; the engine itself names no test)."""
+        self.schemas_dirs: tuple[Path, ...] = (schemas_dirs,) if isinstance(schemas_dirs, Path) else tuple(schemas_dirs)
+        """The schema directories, a later one over the earlier (engine/common/schema_files.py)."""
         self.instance = instance or socket.gethostname()
         """This engine's name among the instances sharing the routes (``--instance``)."""
         self.elsewhere: list[str] = []
@@ -144,8 +151,13 @@ class Engine:
 
     def compile(self) -> tuple[RoutesConfig, SchemaRegistry]:
         """Load both directories; blocking (files, imports): called in a worker thread."""
-        schemas = SchemaRegistry(self.schemas_dir)
-        return load_routes(self.routes_dir, schemas), schemas
+        schemas = SchemaRegistry(self.schemas_dirs)
+        config = load_routes(self.routes_dir, schemas)
+        if self.vet is not None:
+            problems = self.vet(config, schemas)
+            if problems:
+                raise RoutesInvalid(problems, list(config.warnings))
+        return config, schemas
 
     async def start(self) -> None:
         """Load and start every route; raises RoutesInvalid or EndpointError.

@@ -18,7 +18,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from pathlib import Path
-from typing import Callable, Iterable, cast
+from typing import Callable, Iterable, Sequence, cast
 
 import watchfiles
 
@@ -51,16 +51,16 @@ class _StopOrRewatch:
 
 
 async def watch_routes(
-    routes: Path, changed: Callable[[], None], stop: asyncio.Event, schemas: Path | None = None,
+    routes: Path, changed: Callable[[], None], stop: asyncio.Event, schemas: Path | Sequence[Path] | None = None,
     key_files: Callable[[], Iterable[Path]] | None = None,
 ) -> None:
     """Call ``changed`` after every change of a route file (or of the one file ``routes``
-    names), of a schema file, or of one of the files ``key_files()`` names now (absolute
+    names), of a schema file (of any of the ``schemas`` directories), or of one of the files ``key_files()`` names now (absolute
     paths); runs until ``stop`` is set, outliving watcher errors."""
     target = routes.resolve()
     single = target if target.is_file() else None
     routes_dir = target.parent if single else target
-    schemas_dir = schemas.resolve() if schemas is not None else None
+    schemas_dirs = [d.resolve() for d in ((schemas,) if isinstance(schemas, Path) else schemas or ())]
 
     def current_key_files() -> frozenset[Path]:
         return frozenset(key_files()) if key_files is not None else frozenset()
@@ -72,14 +72,14 @@ async def watch_routes(
             path = Path(name)
             if path in keys:
                 return True
-            if schemas_dir is not None and schemas_dir in (path.parent, path.parent.parent) and _is_schema_file(path):
+            if (path.parent in schemas_dirs or path.parent.parent in schemas_dirs) and _is_schema_file(path):
                 return True  # a schema, or one of a family's (schemas/vda5050/order.v2.json)
             if path.parent == routes_dir:
                 return path == single if single else _is_route_file(path)
             return False
 
-        families = [d for d in schemas_dir.iterdir() if d.is_dir()] if schemas_dir is not None and schemas_dir.is_dir() else []
-        directories = {d for d in {routes_dir, schemas_dir, *families, *(k.parent for k in keys)} if d is not None and d.is_dir()}
+        families = [d for schemas_dir in schemas_dirs if schemas_dir.is_dir() for d in schemas_dir.iterdir() if d.is_dir()]
+        directories = {d for d in {routes_dir, *schemas_dirs, *families, *(k.parent for k in keys)} if d.is_dir()}
         if not directories:  # all gone: wait for one to come back
             await asyncio.sleep(RETRY_S)
             continue

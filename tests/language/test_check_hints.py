@@ -185,7 +185,7 @@ def test_check_reports_every_problem_of_a_file_in_one_run(tmp_path: Path):
     assert problems == [
         "r.yaml:5: dead_letters: unknown connection 'gsc'; did you mean 'gcs'?",
         "r.yaml:11: unknown key 'prefetchh' at routes[0].sink.amqp "
-        "(allowed: connection, content_type, durable, exchange, exchange_type, persistent, routing_key, timeout)",
+        "(allowed: connection, content_type, durable, exchange, exchange_type, mandatory, persistent, routing_key, timeout, unroutable)",
         "r.yaml:12: route 'fix': mapping reads 'longitud', which sensor_msgs/msg/NavSatFix does not have; did you mean 'longitude'?",
         "r.yaml:15: routes[1].source.ros2.qos.depth: '5' is not of type 'integer'",
         "r.yaml:17: routes[1].overflow: 'drop_olest' is not one of ['block', 'drop_oldest', 'drop_newest']; did you mean 'drop_oldest'?",
@@ -244,15 +244,19 @@ routes:
     schema: mission
     sink: {ros2: {topic: "/{agent}/mission"}}
 """)
-    config = load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
-    assert [str(w).removeprefix(f"{tmp_path}/") for w in config.warnings] == [
+    with pytest.raises(RoutesInvalid) as invalid:
+        load_routes(tmp_path, SchemaRegistry(REPO / "schemas"))
+    # the stamp allows no other keys (additionalProperties: false): a read of one is always null
+    assert [str(p).removeprefix(f"{tmp_path}/") for p in invalid.value.problems] == [
+        "r.yaml:28: route 'templates': sink routing_key reads 'stamp.secs', which schema 'position' does not declare and "
+        "allows no other key there (always null); did you mean 'stamp.sec'?"]
+    assert [str(w).removeprefix(f"{tmp_path}/") for w in invalid.value.warnings] == [
         "r.yaml:7: route 'pos': mapping sets 'heding', which schema 'position' does not declare; did you mean 'heading'?",
         "r.yaml:7: route 'pos': mapping sets 'stamp.nanosecs', which schema 'position' does not declare; did you mean 'stamp.nanosec'?",
         "r.yaml:12: route 'weeds': mapping sets 'agnt_id', which schema 'weed_detection' does not declare; did you mean 'agent_id'?",
         "r.yaml:12: route 'weeds': mapping sets 'points[].specis', which schema 'weed_detection' does not declare; did you mean 'points[].species'?",
         "r.yaml:22: route 'cmd': mapping sets 'targte', which schema 'command' does not declare; did you mean 'target'?",
         "r.yaml:27: route 'templates': throttle per reads 'agentid', which schema 'position' does not declare; did you mean 'agent_id'?",
-        "r.yaml:28: route 'templates': sink routing_key reads 'stamp.secs', which schema 'position' does not declare; did you mean 'stamp.sec'?",
         "r.yaml:32: route 'topic': sink topic reads 'agent', which schema 'mission' does not declare; did you mean 'agent_id'?",
     ]
 

@@ -90,7 +90,18 @@ def test_schema_edit_takes_effect_within_a_second(amqp_url: str, tmp_path: Path,
     assert live_s < 1.0, f"schema edit took {live_s:.2f} s to go live"
 
 
-def test_recursive_alias_and_broken_ref_are_rejected_and_the_engine_keeps_running(
+BILLION_LAUGHS = "routes: []\n" + "".join(
+    f"x{level}: &l{level} [" + ",".join([f"*l{level - 1}" if level else '"lol"'] * 10) + "]\n" for level in range(9))
+"""Nine lines, each a list of ten aliases of the one before: 10^9 nodes (5.3 GB before the bounds)."""
+
+
+def peak_rss_kib(pid: int) -> int:
+    """The process's peak resident set (VmHWM), in KiB."""
+    line = next(line for line in Path(f"/proc/{pid}/status").read_text().splitlines() if line.startswith("VmHWM:"))
+    return int(line.split()[1])
+
+
+def test_recursive_alias_alias_bomb_and_broken_ref_are_rejected_and_the_engine_keeps_running(
     amqp_url: str, tmp_path: Path, schemas_dir: Path
 ):
     n = names()
@@ -120,19 +131,31 @@ def test_recursive_alias_and_broken_ref_are_rejected_and_the_engine_keeps_runnin
             (routes / "loop.yaml").unlink()
             await delivered_through_probe(channel, out, 2)
 
+            peak_before = peak_rss_kib(status()["pid"])
+            write_atomically(routes / "bomb.yaml", BILLION_LAUGHS)
+            written = time.monotonic()
+            await wait_for(lambda: rejected() == 2, 10, f"billion laughs not rejected: {engine.log()}")
+            refused_s = time.monotonic() - written
+            grown_kib = peak_rss_kib(status()["pid"]) - peak_before
+            print(f"billion laughs: refused {refused_s * 1e3:.0f} ms after the write, engine peak RSS +{grown_kib} KiB")
+            assert any("bomb.yaml:6: alias *l3 copies 11,111 nodes" in p for p in status()["reloads"]["last_error"]), status()
+            assert grown_kib < 8 * 1024 and refused_s < 2.0  # the watcher's debounce and a status write included
+            (routes / "bomb.yaml").unlink()
+            await delivered_through_probe(channel, out, 3)
+
             position = schemas / "position.v1.json"
             good = position.read_text()
             write_atomically(position, good.replace("envelope.v1.json#", "nowhere.v1.json#"))
-            await wait_for(lambda: rejected() == 2, 10, f"broken $ref not rejected: {engine.log()}")
+            await wait_for(lambda: rejected() == 3, 10, f"broken $ref not rejected: {engine.log()}")
             assert any("position.v1.json:0: $ref 'nowhere.v1.json#/$defs/header' does not resolve" in p
                        for p in status()["reloads"]["last_error"]), status()
-            await delivered_through_probe(channel, out, 3)
+            await delivered_through_probe(channel, out, 4)
 
             write_atomically(position, good)
             (routes / "more.yaml").write_text(PROBE_ROUTE.replace("probe\n", "probe2\n", 1).format(**names()))
             await wait_for(lambda: set(status().get("routes", {})) == {"probe", "probe2"}, 10,
                              f"the reloader no longer applies edits: {engine.log()}")
-            await delivered_through_probe(channel, out, 4)
+            await delivered_through_probe(channel, out, 5)
         finally:
             await connection.close()
 
@@ -143,7 +166,7 @@ def test_recursive_alias_and_broken_ref_are_rejected_and_the_engine_keeps_runnin
         final = status()
     finally:
         assert engine.stop() == 0
-    assert final["reloads"]["rejected"] == 2 and final["generation"] == 2
+    assert final["reloads"]["rejected"] == 3 and final["generation"] == 2
     assert final["routes"]["probe"]["generation"] == 1, "rejected loads touched the running route"
 
 
