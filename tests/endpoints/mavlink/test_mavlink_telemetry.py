@@ -128,12 +128,14 @@ def test_vehicle_telemetry_arrives_canonical_in_enu_and_si(tmp_path: Path, amqp_
             monkeypatch.setenv("RABBITROS_RADIO", pair.link_a)
             monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
             engine = Engine(routes, schemas_dir)
-            await engine.start()
             connection = await aio_pika.connect(amqp_url)
             try:
                 channel = await connection.channel()
+                # bound before the engine starts: a message to "farm" with no queue bound is held
+                # (a mandatory publish returned), which would count as the route's sink_errors
                 canonical = await Collector.bind(channel, "farm", "canonical.#")
                 replies = await Collector.bind(channel, "farm", "uav.json.#")
+                await engine.start()
                 farm = await channel.declare_exchange("farm", aio_pika.ExchangeType.TOPIC, durable=True)
                 await farm.publish(aio_pika.Message(command, content_type="application/json"), "command.uav1")
                 deadline = time.monotonic() + 20
