@@ -94,14 +94,19 @@ def letter_id(letter: StoredLetter) -> str:
     return digest.hexdigest()[:12]
 
 
-async def readers(config: RoutesConfig, pool: ConnectionPool) -> list[DeadLetterReader]:
+async def readers(config: RoutesConfig, pool: ConnectionPool, unreachable: list[str]) -> list[DeadLetterReader]:
     """Every store the routes' dead letters can be in: the broker's queue (``dead_letters.connection``)
-    and the local spool (where they go without a broker, or while it is down)."""
+    and the local spool (where they go without a broker, or while it is down); a broker that
+    cannot be reached is said on stderr and appended to ``unreachable``."""
     spec = config.dead_letters
     found: list[DeadLetterReader] = []
     if spec.connection is not None:
-        connection = await pool.get(config.connections[spec.connection], retry_in_background=False)
-        found.append(await connection.dead_letter_reader())
+        try:
+            connection = await pool.get(config.connections[spec.connection], retry_in_background=False)
+            found.append(await connection.dead_letter_reader())
+        except EndpointError as error:  # the spool is read all the same; the exit status says what was missed
+            print(f"dead letters: {error} (its dead letters are not read; the local spool is)", file=sys.stderr)
+            unreachable.append(str(error))
     spool = DeadLetterSpool(Path(spec.spool_dir) if spec.spool_dir else default_spool_dir(), spec.spool_max_bytes)
     found.append(SpoolReader(spool))
     return found
@@ -135,8 +140,9 @@ async def show(config: RoutesConfig, selection: Selection, full: bool, limit: in
     """``list`` (one line a letter) and ``show`` (a JSON document a line, body included)."""
     pool = ConnectionPool(require_connections=True)
     count = 0
+    unreachable: list[str] = []
     try:
-        for reader in await readers(config, pool):
+        for reader in await readers(config, pool, unreachable):
             try:
                 for letter in filter(selection, await reader.read(limit)):
                     count += 1
@@ -146,7 +152,7 @@ async def show(config: RoutesConfig, selection: Selection, full: bool, limit: in
     finally:
         await pool.close_all()
     print(f"{count} dead letters", file=sys.stderr)
-    return 0
+    return 1 if unreachable else 0
 
 
 @dataclass
@@ -157,6 +163,8 @@ class Replayed:
     filtered: int = 0
     kept: list[tuple[str, str]] = field(default_factory=list)
     """(letter id, reason) of each letter left in its store."""
+    unreachable: list[str] = field(default_factory=list)
+    """Stores that could not be read (a broker down)."""
 
 
 async def replay(config: RoutesConfig, schemas: SchemaRegistry, selection: Selection, limit: int = DEFAULT_LIMIT,
@@ -165,7 +173,7 @@ async def replay(config: RoutesConfig, schemas: SchemaRegistry, selection: Selec
     pool = ConnectionPool(require_connections=True)
     done = Replayed()
     try:
-        for reader in await readers(config, pool):
+        for reader in await readers(config, pool, done.unreachable):
             try:
                 letters = [letter for letter in await reader.read(limit) if selection(letter)]
                 by_route: dict[str, list[StoredLetter]] = {}
@@ -281,5 +289,6 @@ def run_command(command: str, routes: Path, schemas_dir: Path, selection: Select
         return 1
     for identity, reason in done.kept:
         print(f"kept  {identity}  {reason}")
-    print(f"{done.sent} sent, {done.filtered} filtered, {len(done.kept)} kept")
-    return 1 if done.kept else 0
+    print(f"{done.sent} sent, {done.filtered} filtered, {len(done.kept)} kept"
+          + (f", {len(done.unreachable)} store not read" if done.unreachable else ""))
+    return 1 if done.kept or done.unreachable else 0

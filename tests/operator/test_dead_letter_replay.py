@@ -18,6 +18,7 @@ import pytest
 
 from engine.ops.cli import main
 from engine.ops.dead_letter_tool import parse_time
+from engine.running.dead_letters import DeadLetterSpool, default_spool_dir
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector
 from tests.support.repo import REPO
@@ -117,3 +118,21 @@ def test_a_dead_letter_replayed_after_the_route_was_fixed_reaches_the_sink_once(
     assert main(["dead-letters", "list", *cli, "--route", f"weeds-{tag}", "--route", f"other-{tag}"]) == 0  # what is left
     left = capsys.readouterr().out.splitlines()
     assert sorted(line.split("  ")[2] for line in left) == sorted([f"weeds-{tag}", f"other-{tag}"]), left
+
+
+@pytest.mark.fast
+def test_the_spool_is_listed_while_the_broker_is_unreachable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """Dead letters spooled while the broker was down are listed while it still is: the broker's
+    queue is said not read (exit 1), the spool's letters are printed."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text(ROUTES.format(url="amqp://127.0.0.1:1", tag="t", dead_letters="dead_letters: {connection: broker}",
+                                                 agent_field="agnt"))
+    DeadLetterSpool(default_spool_dir()).write("weeds-t", [(_body(5), {"x-rabbitros-route": "weeds-t", "x-rabbitros-stage": "schema",
+                                                                       "x-rabbitros-error": "agent_id: None is not of type 'string'"})])
+    assert main(["dead-letters", "list", "--routes", str(routes), "--schemas", str(REPO / "schemas")]) == 1
+    captured = capsys.readouterr()
+    assert "weeds-t  schema  agent_id: None is not of type 'string'" in captured.out
+    assert "its dead letters are not read; the local spool is" in captured.err
