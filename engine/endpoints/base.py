@@ -445,6 +445,37 @@ class ConnectionMetric:
     labels: tuple[tuple[str, str], ...] = ()
 
 
+@dataclass(eq=False)
+class StoredLetter:
+    """A dead letter as its store holds it: the body and headers :meth:`Connection.dead_letter`
+    (or the engine's spool) was given, when it was stored (seconds since the epoch, None when the
+    store does not say), and the store's handle for removing it."""
+
+    body: bytes
+    headers: Mapping[str, Any]
+    at: float | None = None
+    handle: Any = None
+    where: str = ""
+    """The store it is in, for operators (``amqp connection 'gcs'``, ``spool DIR``)."""
+
+
+class DeadLetterReader(ABC):
+    """Dead letters of one store, read and then removed only once they were sent again; what is
+    not removed stays where it was when the reader closes."""
+
+    @abstractmethod
+    async def read(self, limit: int) -> list[StoredLetter]:
+        """At most ``limit`` dead letters, oldest first, none removed."""
+
+    @abstractmethod
+    async def remove(self, letters: Sequence[StoredLetter]) -> None:
+        """Remove ``letters`` (read by this reader) from the store; raise EndpointError if not."""
+
+    @abstractmethod
+    async def close(self) -> None:
+        """Give back what was read and not removed."""
+
+
 class Connection(ABC):
     """One named connection (a broker, a ROS 2 node, a MAVLink link) shared by routes."""
 
@@ -503,6 +534,11 @@ class Connection(ABC):
     def dead_letter_destination(self) -> str:
         """Where :meth:`dead_letter` stores, for the status (only where ``keeps_dead_letters``)."""
         return f"connection {self.name!r}"
+
+    async def dead_letter_reader(self) -> DeadLetterReader:
+        """The dead letters :meth:`dead_letter` stored, to be read and removed one by one
+        (``rabbitros-engine dead-letters``; only where ``keeps_dead_letters``)."""
+        raise NotImplementedError
 
     holds_leases: ClassVar[bool] = False
     """True where :meth:`lease` gives a lease other instances see (a broker queue), so an

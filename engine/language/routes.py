@@ -37,7 +37,8 @@ from engine.language.mapping import compile_mapping, known_functions, literal_fo
 from engine.language.route_yaml import Document, Path_, Problem, parse_document
 from engine.language.yaml_bounds import FileTooLarge, read_bounded
 from engine.language.stage_options import (DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, BufferOptions, BufferSpec, DeadLetterSpec,
-                                           DeadLettersOptions, FairOptions, ReplyOptions, RouteDelivery, ThrottleOptions)
+                                           DeadLettersOptions, DedupeOptions, DedupeSpec, FairOptions, ReplyOptions, RouteDelivery,
+                                           ThrottleOptions)
 from engine.language.stores import FAILURE_META, RememberOptions, remember_entries
 from engine.language.templates import Expansion, expand_routes, is_items_text
 
@@ -98,6 +99,10 @@ class RouteOptions:
                                                                   "absent or null: identity (the original bytes are forwarded)")
     schema: str | None = option(None, description="required: the canonical schema the mapping's result must satisfy, NAME (newest "
                                                   "version) or NAME.vN (pinned), from schemas/; raw_json passes any object")
+    when: str | None = option(None, description=(
+        "condition: JMESPath on the canonical message (meta(name) reads the source's metadata); a message for which it "
+        "gives false, null or an empty string, list or object is settled unsent and counted filtered, never dead-lettered"))
+    dedupe: DedupeOptions | None = option(None)
     throttle: ThrottleOptions | None = option(None)
     fair: FairOptions | None = option(None)
     remember: RememberOptions | tuple[RememberOptions, ...] | None = option(None)
@@ -182,6 +187,10 @@ class RouteSpec:
     ``meta(name)`` gives them as constants folded into the compiled mapping."""
     remember: RememberOptions | tuple[RememberOptions, ...] | None = None
     """The stores its canonical messages are kept in, and when (engine/language/stores.py)."""
+    when: str | None = None
+    """The route's condition (``when:``): messages it rejects are settled unsent, counted ``filtered``."""
+    dedupe: DedupeSpec | None = field(default=None, compare=False)
+    """The route's ``dedupe:`` (engine/running/dedupe.py), its key file resolved; the fingerprint covers it."""
 
 
 @dataclass(frozen=True)
@@ -621,6 +630,8 @@ def _compile_routes(
             entries = remember_entries(route.remember)
             remembers.extend((document, _remember_path(where, route, index), entry) for index, entry in enumerate(entries))
             for key_path, expression in ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping")),
+                                         (where + ("when",), route.when),
+                                         (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None),
                                          *((_remember_path(where, route, index) + ("value",), entry.value)
                                            for index, entry in enumerate(entries))):
                 recalls.extend((document, key_path, name, store) for store in dict.fromkeys(recall_names(expression)))
@@ -675,6 +686,7 @@ def _compile_routes(
                 name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
                 document.file, document.line(where), throttle=route.throttle, delivery=delivery, buffer=buffer,
                 placement=placement, reply=route.reply, variables=variables, fair=route.fair, remember=route.remember,
+                when=route.when, dedupe=DedupeSpec.parse(route.dedupe, name, _base_dir(document.file)),
             )
     problems.extend(_store_problems(recalls, remembers))
     return routes
@@ -733,7 +745,9 @@ def _route_checks(
     name, mapping, sink_mapping = route.name, route.mapping, route.sink.get("mapping")
     values = [(_remember_path(where, route, index) + ("value",), entry.value)
               for index, entry in enumerate(remember_entries(route.remember)) if entry.value is not None]
-    for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping), *values):
+    expressions = ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping), (where + ("when",), route.when),
+                   (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None))
+    for key_path, expression in (*expressions, *values):
         for message in _mapping_problems(expression):
             problems.append(document.problem(key_path, f"route {name!r}: {message}"))
     schema_name = route.schema
@@ -750,7 +764,7 @@ def _route_checks(
     if source:  # fields a typed source does not have
         for message in mapping_field_problems(source.protocol, source.options, mapping):
             problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
-        for key_path, expression in ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping)):
+        for key_path, expression in expressions:
             for message in _meta_problems(source, expression, variables, has_agents):
                 problems.append(document.problem(key_path, f"route {name!r}: {message}"))
         for index, entry in enumerate(remember_entries(route.remember)):  # a failed entry's value also reads meta('failure')

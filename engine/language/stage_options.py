@@ -11,9 +11,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from engine.common.field_keys import FIELD_PATH
 from engine.common.options import option
+from engine.common.state import state_dir
 from engine.endpoints.base import OVERFLOW_POLICIES
 
 DEFAULT_MAX_ATTEMPTS = 5
@@ -159,3 +161,45 @@ class ReplyOptions:
                                                                   "answer itself")
     schema: str | None = option(None, description="canonical schema the reply body must satisfy (NAME or NAME.vN); a reply that "
                                                   "fails it becomes an error reply (stage reply schema)")
+
+
+DEFAULT_DEDUPE_MAX_KEYS = 100_000
+
+
+@dataclass(frozen=True, kw_only=True)
+class DedupeOptions:
+    """A route's ``dedupe:`` as written (engine/running/dedupe.py acts on it)."""
+
+    __schema_description__ = ("a message whose key the sink accepted within ttl seconds is settled unsent and counted "
+                              "duplicates (a mission redelivered after a crash is uploaded once); the keys survive a "
+                              "restart, kept in the engine's state directory")
+
+    key: str = option(description="JMESPath on the canonical message (meta(name) reads the source's metadata) giving the "
+                                  "message's identity (a mission id); a message whose key is null is always sent")
+    ttl: float = option(exclusive_minimum=0, description="seconds an accepted key keeps later messages with it from being sent")
+    max_keys: int = option(DEFAULT_DEDUPE_MAX_KEYS, minimum=1, description=(
+        "keys kept at most (memory and the state file); beyond it the oldest is forgotten before its ttl, counted evicted"))
+    in_doubt: Literal["send", "skip"] = option("send", description=(
+        "a key whose message was being sent when the engine died (no answer heard): send sends it again (at least once: "
+        "nothing lost, a second copy possible), skip takes it as accepted (at most once for that batch: commands)"))
+    state_dir: str | None = option(None, description=(
+        "directory of the route's key file (relative to the routes directory); default "
+        "~/.local/state/rabbitros-engine/dedupe ($XDG_STATE_HOME)"))
+
+
+@dataclass(frozen=True)
+class DedupeSpec:
+    """A route's ``dedupe:``, resolved: the key file's absolute path chosen at load."""
+
+    key: str
+    ttl: float
+    max_keys: int
+    path: Path
+    in_doubt: str = "send"
+
+    @classmethod
+    def parse(cls, options: DedupeOptions | None, route: str, base: Path) -> DedupeSpec | None:
+        if options is None:
+            return None
+        directory = (base / options.state_dir).resolve() if options.state_dir else state_dir() / "dedupe"
+        return cls(options.key, float(options.ttl), options.max_keys, directory / f"{route}.keys", options.in_doubt)

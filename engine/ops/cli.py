@@ -21,6 +21,8 @@ from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import EndpointError
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.ops.admin import AdminAccess, AdminConfigError, AdminServer, admin_access, parse_address, status_document
+from engine.ops.dead_letter_tool import run_command as run_dead_letters
+from engine.ops.dead_letter_tool import selection_of
 from engine.ops.local_broker import private_brokers, stand_in_for_check
 from engine.ops.opsview import AdminClient, print_status, print_tap
 from engine.ops.route_tests import failing_tests, format_result, load_checked, run_tests
@@ -30,7 +32,7 @@ from engine.running.runtime import Engine
 from engine.running.watch import watch_routes
 
 log = logging.getLogger("engine.ops.cli")
-COMMANDS = ("run", "check", "test", "status", "tap")
+COMMANDS = ("run", "check", "test", "status", "tap", "dead-letters")
 
 
 def default_schemas(routes: Path) -> Path:
@@ -70,11 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _TopLevelParser(
         prog="rabbitros-engine",
         usage="%(prog)s [run] [--routes DIR] [--local-broker] [--admin [HOST:]PORT] [OPTIONS]\n"
-              "       %(prog)s {check,test,status,tap} ...",
+              "       %(prog)s {check,test,status,tap,dead-letters} ...",
         description="Routes messages between " + ", ".join(endpoints.PROTOCOLS) + " endpoints as declared in YAML route files.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    commands = parser.add_subparsers(dest="command", metavar="{run,check,test,status,tap}", title="commands")
+    commands = parser.add_subparsers(dest="command", metavar="{run,check,test,status,tap,dead-letters}", title="commands")
 
     def common(sub: argparse.ArgumentParser) -> None:
         sub.add_argument("--routes", type=Path, default=Path("routes"), metavar="DIR", help="routes directory (or one file); default ./routes")
@@ -135,6 +137,26 @@ def build_parser() -> argparse.ArgumentParser:
     tap.add_argument("--admin", type=_admin_address, metavar="[HOST:]PORT", required=True, help="the engine's --admin address")
     tap.add_argument("--count", type=int, default=0, help="stop after this many messages (default: until interrupted)")
     _client_access_options(tap)
+
+    dead = commands.add_parser("dead-letters", help="list, show or replay the dead letters the routes' engine stored (its "
+                               "dead-letter queue and local spool); replay sends them into their routes as they are now")
+    actions = dead.add_subparsers(dest="action", metavar="{list,show,replay}", required=True)
+    for action, text in (("list", "one line a dead letter: id, when stored, route, stage, error"),
+                         ("show", "each dead letter as a JSON line: headers and body"),
+                         ("replay", "send each through its route's conversion and sink as the route files say now; removed "
+                                    "from its store only once the sink accepted it; exit 1 when some are kept")):
+        sub = actions.add_parser(action, help=text)
+        common(sub)
+        sub.add_argument("--route", action="append", metavar="NAME", help="only this route's (repeat for several)")
+        sub.add_argument("--stage", action="append", metavar="STAGE", help="only those of this stage: decode, mapping, schema, "
+                                                                           "when, sink mapping, sink, size... (repeat for several)")
+        sub.add_argument("--id", action="append", metavar="ID", help="only this letter (the id list prints; repeat for several)")
+        sub.add_argument("--since", metavar="TIME", help="stored at or after TIME: 2026-11-27T14:00:00 (UTC unless it says), or ago: 30m, 2h, 1d")
+        sub.add_argument("--until", metavar="TIME", help="stored at or before TIME (as --since)")
+        sub.add_argument("--limit", type=int, default=10_000, metavar="N", help="read at most N from each store (default 10000)")
+        if action == "replay":
+            sub.add_argument("--ready-timeout", type=float, default=10.0, metavar="SECONDS",
+                             help="how long to wait for a sink that cannot take messages yet (a topic no reader matched yet); default 10")
     return parser
 
 
@@ -180,6 +202,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{args.status_file}: {exc.strerror}", file=sys.stderr)
             return 1
         return 0
+    if args.command == "dead-letters":
+        try:
+            selection = selection_of(args.route, args.stage, args.id, args.since, args.until)
+        except ValueError as exc:
+            print(exc, file=sys.stderr)
+            return 2
+        logging.basicConfig(level=logging.WARNING, format="%(message)s")
+        return run_dead_letters(args.action, args.routes, args.schemas or default_schemas(args.routes), selection,
+                                args.limit, getattr(args, "ready_timeout", 10.0))
     if args.command == "tap":
         client = _client(args)
         return client if isinstance(client, int) else print_tap(args.admin, args.route, args.count, client)

@@ -104,7 +104,8 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
     columns: tuple[tuple[str, JustifyMethod], ...] = (
         ("route", "left"), ("state", "left"), ("recv/s", "right"), ("sent/s", "right"),
         ("received", "right"), ("delivered", "right"), ("dead", "right"),
-        ("redelivered", "right"), ("conflated", "right"), ("expired", "right"), ("dropped", "right"),
+        ("redelivered", "right"), ("conflated", "right"), ("expired", "right"), ("filtered", "right"),
+        ("dup", "right"), ("dropped", "right"),
         ("last error", "left"))
     for column, justify in columns:
         table.add_column(column, justify=justify, no_wrap=True, overflow="ellipsis",
@@ -127,7 +128,8 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
                _rate(route.get("received_per_s")), _rate(route.get("delivered_per_s")),
                _count(messages.get("received")), _count(messages.get("delivered")),
                _count(messages.get("dead_lettered")), _count(messages.get("redelivered")),
-               _count(messages.get("conflated")), _count(messages.get("expired")), _count(route.get("dropped")), Text(error, "red")]
+               _count(messages.get("conflated")), _count(messages.get("expired")), _count(messages.get("filtered")),
+               _count(messages.get("duplicates")), _count(route.get("dropped")), Text(error, "red")]
         if last_canonical:
             last = route.get("last_canonical")
             row.append("" if last is None else json.dumps(last, separators=(",", ":"), default=str))

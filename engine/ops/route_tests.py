@@ -32,10 +32,11 @@ from engine.language.route_yaml import Problem, parse_document
 from engine.language.yaml_bounds import FileTooLarge, read_bounded
 from engine.language.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes, source_meta_names
 from engine.language.stores import Stores, remember_entries
-from engine.running.pipeline import ConversionError, Pipeline
+from engine.running.dedupe import SeenKeys, key_text
+from engine.running.pipeline import ConversionError, Filtered, Pipeline
 from engine.running.replies import ReplyFailed
 
-STAGES = ("input", "decode", "mapping", "schema", "sink mapping", "sink", "reply mapping", "reply schema")
+STAGES = ("input", "decode", "mapping", "schema", "when", "sink mapping", "sink", "reply mapping", "reply schema")
 """Where a message can be rejected, in pipeline order; ``expect_error`` names one."""
 
 TEST_FILE_SCHEMA: dict[str, Any] = {
@@ -69,6 +70,12 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
                     "expect_sink": {"description": "the sink mapping's output"},
                     "expect_routing_key": {"type": "string", "description": "the rendered routing key or topic"},
                     "expect_error": {"enum": list(STAGES)},
+                    "expect_filtered": {"const": True, "description": "the route's when: rejects the message: nothing is sent "
+                                                                      "(counted filtered)"},
+                    "accepted": {"type": "array", "description": "dedupe: keys the route's sink accepted within the ttl, "
+                                                                 "before this case's message"},
+                    "expect_duplicate": {"type": "boolean", "description": "dedupe: true, the message's key is among accepted "
+                                                                           "(nothing is sent, counted duplicates); false, it is sent"},
                     "response": {"description": "the sink's answer to the request, which the route's reply: mapping reads "
                                                 "(what each sink answers: route-language.md, Calls)"},
                     "expect_reply": {"description": "the reply body the route makes of response"},
@@ -78,7 +85,8 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
     },
 }
 _VALIDATOR = jsonschema.Draft202012Validator(TEST_FILE_SCHEMA)
-_EXPECTATIONS = ("expect", "expect_sink", "expect_routing_key", "expect_reply", "expect_remembered")
+_EXPECTATIONS = ("expect", "expect_sink", "expect_routing_key", "expect_reply", "expect_remembered", "expect_filtered",
+                 "expect_duplicate")
 
 
 def test_files(routes: Path) -> list[Path]:
@@ -144,13 +152,20 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
             if "expect_error" in body and expectations:
                 problems.append(document.problem(where + (expectations[0],), f"{expectations[0]!r} and 'expect_error' exclude each other"))
             elif "expect_error" not in body and not expectations:
-                problems.append(document.problem(where, f"test of route {route!r} expects nothing (expect, expect_sink, expect_routing_key or expect_error)"))
+                problems.append(document.problem(where, f"test of route {route!r} expects nothing (expect, expect_sink, "
+                                                        "expect_routing_key, expect_filtered, expect_duplicate or expect_error)"))
+            elif "expect_filtered" in body and len(expectations) > 1:
+                problems.append(document.problem(where + ("expect_filtered",), f"a filtered message is sent nowhere: "
+                                                 f"{[key for key in expectations if key != 'expect_filtered'][0]!r} cannot hold"))
             if ("response" in body) != ("expect_reply" in body or body.get("expect_error", "").startswith("reply")):
                 problems.append(document.problem(where, f"test of route {route!r}: 'response' and 'expect_reply' (or a reply "
                                                         "expect_error) go together"))
             if config is not None and route not in config.routes:
                 problems.append(document.problem(where + ("route",), f"unknown route {route!r}{did_you_mean(route, config.routes)}"))
             elif config is not None:
+                if ("accepted" in body or "expect_duplicate" in body) and config.routes[route].dedupe is None:
+                    key = "accepted" if "accepted" in body else "expect_duplicate"
+                    problems.append(document.problem(where + (key,), f"{key}: route {route!r} has no dedupe:"))
                 problems.extend(document.problem(where + ("meta", key), message)
                                 for key, message in _meta_key_problems(config.routes[route], body.get("meta") or {}))
                 known = store_keys(config)
@@ -212,13 +227,35 @@ def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mappin
     assert schema is not None  # the route compiled
     reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
     stores = Stores.given(case.body.get("remembered") or {}, keyed or {})
-    pipeline = Pipeline.compile(spec, 0, schema, DrySink(), reply_schema, stores)
+    seen = None
+    if spec.dedupe is not None:  # in memory only: a route test writes no state
+        seen = SeenKeys(spec.dedupe.path, spec.dedupe.ttl, spec.dedupe.max_keys)
+        seen.accepted(text for text in map(key_text, case.body.get("accepted") or ()) if text is not None)
+    pipeline = Pipeline.compile(spec, 0, schema, DrySink(), reply_schema, stores, seen)
     body = case.body
     expected_error = body.get("expect_error")
     reply: Any = None
     try:
         inbound = source_message(spec, body)
-        outbound = pipeline.convert(inbound)
+        try:
+            outbound = pipeline.convert(inbound)
+        except Filtered:
+            if body.get("expect_filtered"):
+                return Result(case, True)
+            return Result(case, False, "the route's when: rejected the message (filtered: nothing sent)"
+                                       + ("" if expected_error else "; add expect_filtered: true if that is right"))
+        if body.get("expect_filtered"):
+            return Result(case, False, "expected the route's when: to reject the message, but it passed",
+                          _diff({"filtered": True}, {"canonical": _plain(outbound.canonical)}))
+        if pipeline.dedupe is not None:
+            key = pipeline.dedupe.key(outbound.canonical, outbound.meta)
+            duplicate = key is not None and pipeline.dedupe.keys.seen(key)
+            if duplicate != bool(body.get("expect_duplicate", False)):
+                said = f"its dedupe key {key!r} is among accepted (a duplicate: nothing sent)" if duplicate else \
+                    f"its dedupe key {key!r} is not among accepted: it is sent"
+                return Result(case, False, said)
+            if duplicate:
+                return Result(case, True)
         destination = dry_run_sink(spec)(outbound)
         if "response" in body:
             try:

@@ -11,15 +11,19 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
+import fcntl
 import json
 import logging
 import os
 import time
+from collections import Counter
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 from engine.common.logs import ReportLimiter
-from engine.endpoints.base import Connection, EndpointError, Inbound
+from engine.common.state import state_dir
+from engine.endpoints.base import Connection, DeadLetterReader, EndpointError, Inbound, StoredLetter
 from engine.language.stage_options import DEFAULT_SPOOL_MAX_BYTES, DeadLetterSpec
 from engine.running.delivery import ATTEMPTS_HEADER, Failure
 
@@ -35,8 +39,7 @@ Letter = tuple[bytes, Mapping[str, Any]]
 
 
 def default_spool_dir() -> Path:
-    state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
-    return Path(state) / "rabbitros-engine" / "dead-letters"
+    return state_dir() / "dead-letters"
 
 
 def dead_letter_message(route: str, route_file: str, inbound: Inbound, failure: Failure, attempts: int,
@@ -80,19 +83,34 @@ class DeadLetterSpool:
     def write(self, route: str, messages: Sequence[Letter]) -> None:
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-            size = self.path.stat().st_size if self.path.exists() else 0
-            chunk: list[bytes] = []
-            for body, headers in messages:
-                line = self._line(route, body, headers)
-                if size and size + len(line) > self.file_limit:
-                    self._append(chunk)
-                    self._rotate()
-                    chunk, size = [], 0
-                chunk.append(line)
-                size += len(line)
-            self._append(chunk)
+            with self._locked():
+                self._write(route, messages)
         except OSError as exc:
             raise EndpointError(f"dead-letter spool {self.directory}: {exc.strerror or exc}") from exc
+
+    @contextlib.contextmanager
+    def _locked(self) -> Iterator[None]:
+        """The spool's lock (``flock`` on ``.lock`` in its directory): an engine appending and
+        ``dead-letters replay`` removing what it sent never interleave."""
+        with open(self.directory / ".lock", "a") as lock:
+            fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(lock.fileno(), fcntl.LOCK_UN)
+
+    def _write(self, route: str, messages: Sequence[Letter]) -> None:
+        size = self.path.stat().st_size if self.path.exists() else 0
+        chunk: list[bytes] = []
+        for body, headers in messages:
+            line = self._line(route, body, headers)
+            if size and size + len(line) > self.file_limit:
+                self._append(chunk)
+                self._rotate()
+                chunk, size = [], 0
+            chunk.append(line)
+            size += len(line)
+        self._append(chunk)
 
     def _append(self, lines: list[bytes]) -> None:
         if lines:
@@ -117,14 +135,79 @@ class DeadLetterSpool:
             record["body_base64"] = base64.b64encode(body).decode("ascii")
         return json.dumps(record, ensure_ascii=False, default=str).encode("utf-8") + b"\n"
 
+    def _files(self) -> list[Path]:
+        """The spool's files, oldest first."""
+        return [self.path if index == 0 else self.path.with_name(f"{self.path.name}.{index}")
+                for index in range(SPOOL_FILES - 1, -1, -1)]
+
     def read(self) -> list[dict[str, Any]]:
         """Every spooled record, oldest first (for operators and tests)."""
-        records = []
-        for index in range(SPOOL_FILES - 1, -1, -1):
-            path = self.path if index == 0 else self.path.with_name(f"{self.path.name}.{index}")
-            if path.exists():
-                records += [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line]
-        return records
+        return [json.loads(line) for line in self._lines()]
+
+    def _lines(self) -> list[bytes]:
+        lines: list[bytes] = []
+        for path in self._files():
+            try:
+                lines += [line for line in path.read_bytes().splitlines() if line.strip()]
+            except FileNotFoundError:
+                continue
+        return lines
+
+    def letters(self) -> list[StoredLetter]:
+        """Every spooled record as a :class:`StoredLetter` (its handle: the line, which
+        :meth:`remove` looks for), oldest first; a line that is not a record is left alone."""
+        letters = []
+        where = f"spool {self.directory}"
+        for line in self._lines():
+            try:
+                record = json.loads(line)
+                body = base64.b64decode(record["body_base64"]) if "body_base64" in record else record["body"].encode("utf-8")
+                headers = dict(record.get("headers") or {})
+                headers.setdefault("x-rabbitros-route", record.get("route"))
+            except (ValueError, KeyError, TypeError, AttributeError):
+                continue
+            letters.append(StoredLetter(body, headers, record.get("ts"), line, where))
+        return letters
+
+    def remove(self, lines: Sequence[bytes]) -> None:
+        """Rewrite the spool without ``lines`` (each once), under the spool's lock."""
+        unwanted = Counter(lines)
+        try:
+            with self._locked():
+                for path in self._files():
+                    try:
+                        kept = path.read_bytes().splitlines(keepends=True)
+                    except FileNotFoundError:
+                        continue
+                    left = []
+                    for line in kept:
+                        if unwanted[line.rstrip(b"\n")] > 0:
+                            unwanted[line.rstrip(b"\n")] -= 1
+                        else:
+                            left.append(line)
+                    if len(left) != len(kept):
+                        temporary = path.with_name(f".{path.name}.new")
+                        temporary.write_bytes(b"".join(left))
+                        os.replace(temporary, path)
+        except OSError as exc:
+            raise EndpointError(f"dead-letter spool {self.directory}: {exc.strerror or exc}") from exc
+
+
+class SpoolReader(DeadLetterReader):
+    """The spool as a :class:`~engine.endpoints.base.DeadLetterReader`: a letter is removed by
+    rewriting its file without its line, under the lock the engine's writes take too."""
+
+    def __init__(self, spool: DeadLetterSpool) -> None:
+        self.spool = spool
+
+    async def read(self, limit: int) -> list[StoredLetter]:
+        return (await asyncio.to_thread(self.spool.letters))[:limit]
+
+    async def remove(self, letters: Sequence[StoredLetter]) -> None:
+        await asyncio.to_thread(self.spool.remove, [letter.handle for letter in letters])
+
+    async def close(self) -> None:
+        return None
 
 
 class DeadLetters:

@@ -7,7 +7,8 @@ a message ``received`` once, when its source hands it over, and then exactly one
 ``delivered`` (the sink took it, at once, after a throttle slot opened or from the buffer),
 ``dead_lettered`` (per stage), ``conflated`` (a newer one replaced it under ``throttle``, or
 in the buffer under ``latest_only``), ``expired`` (older than the route's ``max_age`` when it
-would have been sent: never delivered), unless it is still in flight (parked, held in the buffer, being retried). Beside those:
+would have been sent: never delivered), ``filtered`` (the route's ``when:`` said no),
+``duplicates`` (its ``dedupe:`` key was accepted within the ttl), unless it is still in flight (parked, held in the buffer, being retried). Beside those:
 ``retries`` (a message tried again after a transient sink failure: the tap's and
 Prometheus' ``redelivered`` outcome), ``sink_errors`` (transient sink failures, including
 the last one before a message is dead-lettered), ``unroutable`` (sends the destination routed
@@ -39,12 +40,12 @@ import orjson
 
 from engine.endpoints.base import Inbound, Outbound
 
-RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED = (
-    "received", "delivered", "dead_lettered", "redelivered", "conflated", "expired", "dropped")
-OUTCOMES = (RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED)
+RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES = (
+    "received", "delivered", "dead_lettered", "redelivered", "conflated", "expired", "dropped", "filtered", "duplicates")
+OUTCOMES = (RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES)
 """The ``outcome`` label of ``rabbitros_messages_total`` and the keys of the status' ``messages``."""
-COUNTERS = ("received", "delivered", "failed", "conflated", "expired", "retries", "sink_errors", "unroutable", "dropped",
-            "standby_skipped", "dead_letter_errors")
+COUNTERS = ("received", "delivered", "failed", "conflated", "expired", "filtered", "duplicates", "retries", "sink_errors",
+            "unroutable", "dropped", "standby_skipped", "dead_letter_errors")
 """The integer counters, as the status and the log's ``route counters`` line name them."""
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 """Seconds from reception to the sink's acceptance: sub-millisecond conversion on a LAN up to
@@ -82,6 +83,10 @@ class RouteObserver:
         self.delivered = 0
         self.conflated = 0
         self.expired = 0
+        self.filtered = 0
+        """Settled unsent because the route's ``when:`` said no."""
+        self.duplicates = 0
+        """Settled unsent because the route's ``dedupe:`` key was accepted within its ttl."""
         self.retries = 0
         self.sink_errors = 0
         self.unroutable = 0
@@ -152,6 +157,18 @@ class RouteObserver:
         if self.taps:
             self._tap(inbound, outbound, EXPIRED, None)
 
+    def filter(self, inbound: Inbound, canonical: Any = None) -> None:
+        """The route's ``when:`` rejected ``inbound`` (``canonical``, what it read): settled unsent."""
+        self.filtered += 1
+        if self.taps:
+            self._tap(inbound, None, FILTERED, None, canonical)
+
+    def duplicate(self, inbound: Inbound | None, outbound: Outbound) -> None:
+        """``outbound``'s ``dedupe:`` key was accepted within the ttl: settled unsent."""
+        self.duplicates += 1
+        if self.taps:
+            self._tap(inbound, outbound, DUPLICATES, None)
+
     def dead_letter(self, inbound: Inbound | None, outbound: Outbound | None, stage: str, error: str) -> None:
         self.dead_lettered[stage] = self.dead_lettered.get(stage, 0) + 1
         self.last_error = f"{stage}: {error}"
@@ -173,12 +190,17 @@ class RouteObserver:
             self.conflate(inbound, outbound)
         elif outcome == EXPIRED and outbound is not None:
             self.expire(inbound, outbound)
+        elif outcome == FILTERED:
+            self.filter(inbound)
+        elif outcome == DUPLICATES and outbound is not None:
+            self.duplicate(inbound, outbound)
         elif outcome == DEAD_LETTERED:
             self.dead_letter(inbound, outbound, getattr(error, "stage", "sink"), getattr(error, "detail", str(error)))
         else:
             raise ValueError(f"not an outcome of a message: {outcome!r}")
 
-    def _tap(self, inbound: Inbound | None, outbound: Outbound | None, outcome: str, error: BaseException | str | None) -> None:
+    def _tap(self, inbound: Inbound | None, outbound: Outbound | None, outcome: str, error: BaseException | str | None,
+             canonical: Any = None) -> None:
         taps = self.taps
         if all(tap.full for tap in taps):  # nobody can take it: count, do not serialise
             for tap in taps:
@@ -189,7 +211,7 @@ class RouteObserver:
             "route": self.route,
             "generation": outbound.meta.get("generation") if outbound is not None else self.generation(),
             "source": source_view(inbound) if inbound is not None else None,
-            "canonical": outbound.canonical if outbound is not None else None,
+            "canonical": outbound.canonical if outbound is not None else canonical,
             "outcome": outcome,
             "error": None if error is None else str(error),
         }
@@ -216,7 +238,7 @@ class RouteObserver:
         """The counters by outcome (``rabbitros_messages_total``, the status' ``messages``)."""
         return {RECEIVED: self.received, DELIVERED: self.delivered, DEAD_LETTERED: self.failed,
                 REDELIVERED: self.retries, CONFLATED: self.conflated, EXPIRED: self.expired,
-                DROPPED: self.dropped}
+                DROPPED: self.dropped, FILTERED: self.filtered, DUPLICATES: self.duplicates}
 
     def snapshot(self) -> dict[str, Any]:
         """What ``/status`` shows beside the counters."""

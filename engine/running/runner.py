@@ -7,7 +7,8 @@ in order, and is settled for its source once it leaves them:
 1. **received**: counted once (engine/running/observe.py keeps the route's one set of counters);
 2. **converted** by the route's pipeline (engine/running/pipeline.py); a message that cannot be
    decoded, converted, or that is too large, or that already used its attempts, is a dead
-   letter;
+   letter; one the route's ``when:`` rejects is settled unsent (``filtered``), and one whose
+   ``dedupe:`` key the sink accepted within its ttl too (``duplicates``, engine/running/dedupe.py);
 3. **throttled** (``throttle:``, engine/running/throttle.py): parked and settled; the slot releases
    the converted message to step 4, or a newer one conflates it;
 4. **sent**: while the sink cannot take messages the route waits (or, with a buffer, holds
@@ -43,7 +44,7 @@ from engine.running.dead_letters import DeadLetters, dead_letter_message
 from engine.running.delivery import HEALTH_POLL, Failure, classify, given_up, prior_attempts, retry_delay
 from engine.running.fairness import route_inbox
 from engine.running.observe import Observers
-from engine.running.pipeline import Pipeline
+from engine.running.pipeline import Filtered, Pipeline
 from engine.running.replies import Replies
 
 if TYPE_CHECKING:
@@ -75,7 +76,7 @@ class RouteHost(Protocol):
 class _Message:
     """A message between its conversion and its settling: converted, so it has an outbound."""
 
-    __slots__ = ("index", "inbound", "outbound", "attempts", "failure", "pipeline")
+    __slots__ = ("index", "inbound", "outbound", "attempts", "failure", "pipeline", "dedupe_key")
 
     def __init__(self, index: int, inbound: Inbound, outbound: Outbound, attempts: int,
                  pipeline: Pipeline, failure: Failure | None = None) -> None:
@@ -87,6 +88,8 @@ class _Message:
         """The pipeline (generation) that converted it, whose sink sends it."""
         self.failure = failure
         """The sink's last transient failure while it is retried."""
+        self.dedupe_key: str | None = None
+        """Its ``dedupe:`` key, recorded once the sink accepted it."""
 
 
 class _Dead:
@@ -195,22 +198,49 @@ class RouteRunner:
         """Convert every message; what cannot be sent goes to ``dead``, what the throttle
         parks is settled; the rest is returned, in order."""
         pending: list[_Message] = []
-        throttle = pipeline.throttle
-        remember = pipeline.remember
+        throttle, dedupe, remember = pipeline.throttle, pipeline.dedupe, pipeline.remember
         for index, inbound in enumerate(inbounds):
             message = self._converted(pipeline, index, inbound)
+            if isinstance(message, Filtered):  # the route's when: said no
+                settled[index] = True
+                self.observer.filter(inbound, message.canonical)
+                self._filtered_call(inbound)
+                continue
             if remember is not None and message.outbound is not None and message.outbound.canonical is not None:
                 remember.on_converted(message.outbound.canonical, message.outbound.meta)
             if isinstance(message, _Dead):
                 dead.append(message)
+            elif dedupe is not None and self._duplicate(dedupe, message):
+                settled[index] = True
             elif throttle is not None and not throttle.admit(message, message.outbound.canonical, self):
                 settled[index] = True  # parked: sent when its slot opens, or conflated by a newer one
             else:
                 pending.append(message)
         return pending
 
-    def _converted(self, pipeline: Pipeline, index: int, inbound: Inbound) -> _Message | _Dead:
-        """The message converted, or with the failure that makes it a dead letter."""
+    def _duplicate(self, dedupe: Any, message: _Message) -> bool:
+        """Whether ``message``'s key was accepted within the ttl (then it is counted, and a call
+        told); else its key is kept on it, to be recorded once the sink accepts it."""
+        outbound = message.outbound
+        assert outbound is not None
+        key = dedupe.key(outbound.canonical, outbound.meta)
+        if key is not None and dedupe.keys.seen(key):
+            self.observer.duplicate(message.inbound, outbound)
+            self._ended_call(outbound, "dedupe", "duplicate: a message with its key was accepted within the route's dedupe ttl")
+            return True
+        message.dedupe_key = key
+        return False
+
+    def _filtered_call(self, inbound: Inbound) -> None:
+        """A request the route's ``when:`` rejected: its caller hears one ``error`` reply."""
+        if inbound.meta.get("reply_to"):
+            task = asyncio.create_task(self.replies.failed(None, inbound.meta, "when", "filtered: the route's when: condition is false"))
+            self._replying.add(task)
+            task.add_done_callback(self._replying.discard)
+
+    def _converted(self, pipeline: Pipeline, index: int, inbound: Inbound) -> _Message | _Dead | Filtered:
+        """The message converted, or with the failure that makes it a dead letter; the
+        :class:`Filtered` raised when the route's ``when:`` rejected it."""
         delivery = pipeline.spec.delivery
         prior = prior_attempts(inbound.meta)
         body = inbound.body
@@ -224,6 +254,8 @@ class RouteRunner:
                 outbound = pipeline.cancel_request(inbound)
             else:
                 outbound = pipeline.convert(inbound)
+        except Filtered as filtered:
+            return filtered
         except Exception as error:  # ConversionError, or anything the pipeline did not foresee
             return _Dead(index, inbound, None, prior + 1, pipeline, classify(error, "convert"))
         if len(outbound.body) > delivery.sink_max_message_bytes:
@@ -295,6 +327,8 @@ class RouteRunner:
             pending = self._fresh(pending, settled)
             if not pending:
                 return
+            if pipeline.dedupe is not None:  # in doubt until the sink answers (engine/running/dedupe.py)
+                pipeline.dedupe.keys.send([m.dedupe_key for m in pending if m.dedupe_key is not None])
             results = await pipeline.sink.send_batch([message.outbound for message in pending])
             # whether the sink can take messages now matters only for a failure (see _sent): a
             # batch that all went out does not ask again (a ROS 2 sink's readiness is an rcl
@@ -341,6 +375,8 @@ class RouteRunner:
         route waiting, not an attempt (as the buffer counts it)."""
         retry: list[_Message] = []
         max_attempts = self.spec.delivery.max_attempts
+        keys: list[str] = []
+        unsent: list[str] = []
         for message, error in zip(pending, results):
             if not (waiting and isinstance(error, EndpointError) and not isinstance(error, MessageRejected)):
                 message.attempts += 1
@@ -349,7 +385,11 @@ class RouteRunner:
                 self._accepted(message.inbound, message.outbound)
                 if message.pipeline.remember is not None:
                     message.pipeline.remember.on_accepted(message.outbound.canonical, message.outbound.meta)
+                if message.dedupe_key is not None:
+                    keys.append(message.dedupe_key)
                 continue
+            if message.dedupe_key is not None:
+                unsent.append(message.dedupe_key)
             if isinstance(error, NotSent):  # the sink settled it unsent: conflated, or expired while it tried
                 settled[message.index] = True
                 self._not_sent(error, message.inbound, message.outbound)
@@ -366,6 +406,10 @@ class RouteRunner:
                 message.failure = failure
                 retry.append(message)
                 self.observer.retrying(message.inbound, message.outbound, error)
+        if keys or unsent:  # one write for the batch, before its source is acknowledged (engine/running/dedupe.py)
+            dedupe = pending[0].pipeline.dedupe
+            assert dedupe is not None  # only a dedupe: route's messages have keys
+            dedupe.keys.answered(keys, unsent)
         return retry
 
     def _not_sent(self, outcome: NotSent, inbound: Inbound | None, outbound: Outbound) -> None:
@@ -426,11 +470,16 @@ class RouteRunner:
 
     def held_delivered(self, held: list[Held]) -> None:
         now_ns = time.time_ns()
-        remember = self.pipeline.remember
+        remember, dedupe = self.pipeline.remember, self.pipeline.dedupe
+        keys = []
         for outbound, received_at_ns in held:
             self.observer.accepted(None, outbound, None if received_at_ns is None else now_ns - received_at_ns)
             if remember is not None:
                 remember.on_accepted(outbound.canonical, outbound.meta)
+            if dedupe is not None and (key := dedupe.key(outbound.canonical, outbound.meta)) is not None:
+                keys.append(key)
+        if keys and dedupe is not None:
+            dedupe.keys.answered(keys)
 
     def held_stale(self, held: Held) -> bool:
         received_at_ns = held[1]

@@ -41,6 +41,7 @@ from engine.language.stores import Stores
 from engine.running.buffer import Buffers
 from engine.running.connections import ConnectionPool
 from engine.running.dead_letters import DeadLetters
+from engine.running.dedupe import DedupeKeys
 from engine.running.leases import Leases
 from engine.running.observe import Observers
 from engine.running.pipeline import Pipeline
@@ -122,6 +123,8 @@ class Engine:
         """Per-route counters for the log, status, metrics and taps, kept across reloads."""
         self.stores = Stores()
         """The latest-value stores and sequences mappings read (engine/language/stores.py), kept across reloads."""
+        self.dedupe = DedupeKeys()
+        """Each ``dedupe:`` route's accepted keys (engine/running/dedupe.py), kept across reloads."""
         self.dead_letters: DeadLetters | None = None
         self.retire_after_s = RETIRE_AFTER_S
         self._schemas: SchemaRegistry | None = None
@@ -256,8 +259,9 @@ class Engine:
         schema = schemas.get(spec.schema)
         assert schema is not None
         reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
+        seen_keys = await self.dedupe.get(spec.name, spec.dedupe)
         sink = connection.sink(spec.name, spec.sink.options)
-        return Pipeline.compile(spec, generation, schema, sink, reply_schema, self.stores), connection
+        return Pipeline.compile(spec, generation, schema, sink, reply_schema, self.stores, seen_keys), connection
 
     async def _runner(self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int) -> RouteRunner:
         """A route's pipeline and source, not started yet."""
@@ -520,6 +524,7 @@ class Engine:
                 await asyncio.gather(pipelines, return_exceptions=True)
             await self.leases.release_unused(())
             await self.connections.close_all()
+            await self.dedupe.close()
 
     @staticmethod
     async def _stop_sources(runners: list[RouteRunner], deadline: float) -> None:
@@ -556,6 +561,7 @@ class Engine:
             },
             "elsewhere": self.elsewhere,
             "stores": self.stores.status(),
+            "dedupe": self.dedupe.status(),
             "routes": {name: runner.status() for name, runner in sorted(self.runners.items())},
             "connections": self._connections_status(),
         }

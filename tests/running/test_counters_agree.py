@@ -117,7 +117,8 @@ def status(port: int, route: str) -> dict[str, Any]:
     assert by_outcome == {"received": document["received"], "delivered": document["delivered"],
                           "dead_lettered": document["failed"], "redelivered": document["retries"],
                           "conflated": document["conflated"], "expired": document["expired"],
-                          "dropped": document["dropped"]}, document
+                          "dropped": document["dropped"], "filtered": document["filtered"],
+                          "duplicates": document["duplicates"]}, document
     assert document["dead_letters"] == document["dead_lettered"], document
     return {key: document[key] for key in ("received", "delivered", "failed", "conflated", "retries", "dropped", "dead_lettered")}
 

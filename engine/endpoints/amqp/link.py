@@ -33,6 +33,7 @@ import logging
 import re
 import ssl
 import time
+from datetime import datetime, timezone
 from typing import Any, Mapping, Sequence
 from urllib.parse import urlsplit
 
@@ -42,15 +43,15 @@ import aiormq.exceptions
 from aiormq import spec
 from yarl import URL
 
+import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.common import tls as tls_common
 from engine.common.backoff import Backoff
 from engine.common.redaction import redact_urls
 from engine.endpoints.amqp.channels import open_plain_channel
-import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS, edge_error
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSourceOptions
 from engine.endpoints.amqp.publisher import SharedPublisher
-from engine.endpoints.base import Connection, EndpointError, typed
+from engine.endpoints.base import Connection, DeadLetterReader, EndpointError, StoredLetter, typed
 
 DEAD_LETTER_EXCHANGE = "rabbitros.dead-letter"
 log = logging.getLogger("engine.amqp")
@@ -357,8 +358,9 @@ class AmqpLink(Connection):
 
     async def dead_letter(self, route: str, messages: Sequence[tuple[bytes, Mapping[str, Any]]]) -> None:
         """One confirmed batch to ``rabbitros.dead-letter``, routing key = route name."""
+        now = datetime.now(timezone.utc)
         batch = [
-            (route, body, spec.Basic.Properties(headers=dict(headers), delivery_mode=2))
+            (route, body, spec.Basic.Properties(headers=dict(headers), delivery_mode=2, timestamp=now))
             for body, headers in messages
         ]
         for error in await self.publish_batch(DEAD_LETTER_EXCHANGE, batch):
@@ -372,6 +374,9 @@ class AmqpLink(Connection):
     def dead_letter_destination(self) -> str:
         return f"amqp connection {self.name!r}, queue rabbitros.dead-letter"
 
+    async def dead_letter_reader(self) -> DeadLetterReader:
+        return AmqpDeadLetterReader(self)
+
     async def close(self) -> None:
         self._state = "down"
         reopening, self._reopening = self._reopening, None
@@ -384,3 +389,46 @@ class AmqpLink(Connection):
             except LIBRARY_ERRORS:
                 pass
             self._connection = None
+
+
+class AmqpDeadLetterReader(DeadLetterReader):
+    """The queue ``rabbitros.dead-letter`` read with ``basic.get`` and no acknowledgement, on a
+    channel of its own: a letter read is acknowledged (removed) only by :meth:`remove`; closing
+    the channel hands every other one back to the queue, where it was (RabbitMQ requeues an
+    unacknowledged message in its place in a classic queue; a quorum queue counts a delivery)."""
+
+    def __init__(self, link: AmqpLink) -> None:
+        self.link = link
+        self._channel: Any = None
+
+    async def read(self, limit: int) -> list[StoredLetter]:
+        where = self.link.dead_letter_destination()
+        try:
+            self._channel = await open_plain_channel(self.link.channel_factory(), publisher_confirms=False)
+            queue = await self._channel.declare_queue(DEAD_LETTER_EXCHANGE, passive=True)
+            letters: list[StoredLetter] = []
+            while len(letters) < limit:
+                message = await queue.get(no_ack=False, fail=False)
+                if message is None:
+                    break
+                at = message.timestamp.timestamp() if message.timestamp is not None else None
+                letters.append(StoredLetter(message.body, dict(message.headers or {}), at, message, where))
+            return letters
+        except aiormq.exceptions.ChannelNotFoundEntity:
+            return []  # no dead letter was ever stored here
+        except LIBRARY_ERRORS as exc:
+            raise edge_error(exc, f"{where}: cannot read the dead letters") from exc
+
+    async def remove(self, letters: Sequence[StoredLetter]) -> None:
+        try:
+            for letter in letters:
+                await letter.handle.ack()
+        except LIBRARY_ERRORS as exc:
+            raise edge_error(exc, f"{self.link.dead_letter_destination()}: cannot remove the dead letters") from exc
+
+    async def close(self) -> None:
+        if self._channel is not None and not self._channel.is_closed:
+            try:
+                await self._channel.close()
+            except LIBRARY_ERRORS:
+                pass  # the connection closes next: the broker requeues them all the same
