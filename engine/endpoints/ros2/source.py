@@ -49,6 +49,11 @@ _TYPE_CHECK_INTERVAL = 2.0
 MATCH_INTERVAL = discovery.DISCOVERY_INTERVAL
 """Seconds between two looks at whether an adapting source's publishers changed (two counts
 per topic: about 10 us)."""
+NAME_WAIT = 5.0
+"""Most seconds a topic's publishers are read again while one's node is not known yet (DDS
+finds a writer before the ROS node it belongs to): then it is reported as unknown, as a
+plain DDS program without a node stays."""
+_UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
 SWITCH_WAIT = 2.0
 """Most seconds a re-created subscription is given to match every publisher before the old
 one is let go anyway (DDS matching takes milliseconds between live participants)."""
@@ -155,6 +160,7 @@ class Ros2Source(Source):
         self._looked: dict[str, tuple[int, float]] = {}
         """Topic -> its publisher count at the last full read of its publishers, and when."""
         self._unmatched: dict[str, list[str]] = {}
+        self._unnamed_since: dict[str, float] = {}
         """Topic -> its publishers the subscription cannot match (another type, or QoS)."""
         self._drop_logged = 0.0
 
@@ -219,6 +225,7 @@ class Ros2Source(Source):
         self._cancel_switch(topic)
         self._looked.pop(topic, None)
         self._unmatched.pop(topic, None)
+        self._unnamed_since.pop(topic, None)
         reader = self._readers.pop(topic, None)
         if reader is None:
             return
@@ -345,7 +352,7 @@ class Ros2Source(Source):
             for publisher in set(unmatched) - reported:
                 log.error("%s: publisher %s; its messages are not received", self._where, publisher)
             reported = set(unmatched)
-            await asyncio.sleep(interval)
+            await asyncio.sleep(MATCH_INTERVAL if self._switches or self._unnamed_since else interval)
 
     def _look_at_publishers(self, now: float) -> None:
         """One look at every followed topic. Counting (rcl_count_publishers, and the matched
@@ -364,16 +371,20 @@ class Ros2Source(Source):
             if last is not None and last[0] == count and (
                     reader.subscription.get_publisher_count() >= count or now - last[1] < _TYPE_CHECK_INTERVAL):
                 continue
-            self._looked[topic] = (count, now)
             infos = node.get_publishers_info_by_topic(topic)
             offered = self._offers(topic, infos)
             current = reader.subscription.qos_profile
             wanted = offers.adapted(current, self._stated, offered) if self._adapting else current
+            refused = offers.refusals(wanted, offered)
             if not offers.same_policies(wanted, current):
-                self._begin_switch(topic, reader, wanted, len(offered), now)
+                self._begin_switch(topic, reader, wanted, len(offered) - len(refused), now)
+            if any(info.node_name == _UNKNOWN_NODE for info in infos) and now - self._unnamed_since.setdefault(topic, now) < NAME_WAIT:
+                continue  # a publisher's node is not known yet: read again next time, to name it
+            self._unnamed_since.pop(topic, None)
+            self._looked[topic] = (count, now)
             wrong = [f"{info.node_namespace.rstrip('/')}/{info.node_name} ({info.topic_type}) on {topic} does not match "
                      f"the route's type {self._type_name}" for info in infos if info.topic_type != self._type_name]
-            self._unmatched[topic] = wrong + offers.refusals(wanted, offered)
+            self._unmatched[topic] = wrong + refused
 
     def _begin_switch(self, topic: str, reader: _Reader, qos: Any, expected: int, now: float) -> None:
         """Re-create ``topic``'s subscription with ``qos``, make before break: the new one

@@ -63,6 +63,11 @@ routes:
     source: {{ros2: {{topic: /map2_{tag}}}}}
     schema: raw_json
     sink: {{amqp: {{exchange: {outbox}, routing_key: map-late}}}}
+  - name: fix-fleet
+    source: {{ros2: {{topic: "/{{agent}}/gps_{tag}", type: sensor_msgs/msg/NavSatFix}}}}
+    mapping: "{{seq: altitude, agent: meta('agent')}}"
+    schema: raw_json
+    sink: {{amqp: {{exchange: {outbox}, routing_key: fix-fleet}}}}
   - name: fix-stated
     source: {{ros2: {{topic: /robot8/fix_{tag}, type: sensor_msgs/msg/NavSatFix, qos: {{reliability: reliable}}}}}}
     mapping: "{{seq: altitude}}"
@@ -103,9 +108,9 @@ def routes(tmp_path: Path, amqp_url: str, monkeypatch: pytest.MonkeyPatch) -> di
 
 def test_best_effort_and_transient_local_publishers_reach_routes_without_qos(
         tmp_path: Path, amqp_url: str, routes: dict[str, str]) -> None:
-    """Four routes without ``qos``. A best-effort robot publishing before the engine starts,
-    another appearing after it (the subscription is re-created to match it), each 50 fixes
-    once they matched: 50/50 each, in order. A transient_local publisher that published its
+    """Five routes without ``qos``. A best-effort robot publishing before the engine starts,
+    another appearing after it (the subscription is re-created to match it), a third on a
+    discovering route's pattern, each 50 fixes once they matched: 50/50 each, in order. A transient_local publisher that published its
     50 before the engine started: all 50 kept messages received; one appearing after the
     engine (first matched by the default volatile reader, then re-matched as
     transient_local, whose kept history arrives again): 50, none twice."""
@@ -131,6 +136,11 @@ def test_best_effort_and_transient_local_publishers_reach_routes_without_qos(
                            "the route's subscription re-matched to the best-effort robot that came later")
             for seq in range(MESSAGES):
                 late_fix.publish(_fix(seq))
+            fleet_fix = robot.node.create_publisher(NavSatFix, f"/robot5/gps_{tag}", qos_profile_sensor_data)
+            await wait_for(lambda: fleet_fix.get_subscription_count() > 0, 15,
+                           "the discovering route's subscription matching the best-effort robot")
+            for seq in range(MESSAGES):
+                fleet_fix.publish(_fix(seq))
             late_map = robot.node.create_publisher(String, f"/map2_{tag}", LATCHED)
             await wait_for(lambda: late_map.get_subscription_count() > 0, 15, "the late map's first match")
             for seq in range(MESSAGES):
@@ -141,10 +151,10 @@ def test_best_effort_and_transient_local_publishers_reach_routes_without_qos(
 
             await wait_for(late_map_transient, 15, "the late map's route re-matched as transient_local",
                            detail=lambda: engine.status()["routes"]["map-late"]["source"])
-            await output.wait_for(4 * MESSAGES, timeout=15)
+            await output.wait_for(5 * MESSAGES, timeout=15)
             # the re-created subscription has taken the kept history again by now (it arrives on
             # matching, before the switch): a duplicate would be counted as received
-            sources = {name: engine.status()["routes"][name]["source"] for name in ("fix-early", "fix-late", "map-early", "map-late")}
+            sources = {name: engine.status()["routes"][name]["source"] for name in ("fix-early", "fix-late", "fix-fleet", "map-early", "map-late")}
             return {"messages": list(output.messages), "sources": sources}
         finally:
             await engine.stop()
@@ -158,6 +168,9 @@ def test_best_effort_and_transient_local_publishers_reach_routes_without_qos(
     messages = result["messages"]
     assert _seqs(messages, "fix-early") == expected
     assert _seqs(messages, "fix-late") == expected
+    assert _seqs(messages, "fix-fleet") == expected
+    assert {json.loads(m.body)["agent"] for m in messages if m.routing_key == "fix-fleet"} == {"robot5"}
+    assert result["sources"]["fix-fleet"]["following"][f"/robot5/gps_{tag}"]["qos"] == "best_effort volatile"
     assert _seqs(messages, "map-early") == expected
     assert _seqs(messages, "map-late") == expected
     assert result["sources"]["fix-early"]["qos"] == "best_effort volatile"
