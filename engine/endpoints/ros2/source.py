@@ -13,12 +13,12 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Mapping
 
 from rclpy.exceptions import InvalidHandle
+from rclpy.qos import DurabilityPolicy
 
 from engine.common.options import given
 from engine.endpoints.base import Deliver, EndpointError, Inbound, Inbox, Source, typed
@@ -58,10 +58,14 @@ SWITCH_WAIT = 2.0
 """Most seconds a re-created subscription is given to match every publisher before the old
 one is let go anyway (DDS matching takes milliseconds between live participants)."""
 RECENT_KEYS = 4096
-"""Messages an adapting source's subscription remembers (publisher's timestamp and sequence
-number) so that the subscription that replaces it skips what it already took: what it is
-given again is at most the publishers' kept history (transient_local) and what both took
-while they overlapped."""
+"""Messages (at least; at most twice as many) a subscription remembers (publisher timestamp
+and sequence number) so that the one replacing it skips what it took already: what a
+replacement is given again is at most the publishers' kept history (a volatile subscription
+replaced by a transient_local one) and what both received while they overlapped. Only a
+subscription that may be replaced by a transient_local one (durability left out, volatile
+now) remembers all along, the others from the moment a replacement is made: about 0.6 us a
+message on the shared 2-core machine under a load average of 11-15, where taking a message
+costs 5-10 us; a route that states ``qos.durability`` does not pay it."""
 
 
 class _Reader(Reader):
@@ -70,12 +74,14 @@ class _Reader(Reader):
     among what it had received before it took over (``skip_before``, system-clock ns, as
     DDS's reception timestamps)."""
 
-    __slots__ = ("recent", "recent_order", "skip", "skip_before")
+    __slots__ = ("recent", "older", "skip", "skip_before")
 
     def __init__(self, source: "Ros2Source", subscription: Any, meta: dict[str, Any], remember: bool) -> None:
         super().__init__(source, subscription, meta)
         self.recent: set[tuple[Any, Any]] | None = set() if remember else None
-        self.recent_order: deque[tuple[Any, Any]] = deque()
+        self.older: set[tuple[Any, Any]] = set()
+        """The generation before ``recent``: between RECENT_KEYS and twice that remembered, for
+        one set insertion per message (0.2 us here, against 0.65 us for an exact ring)."""
         self.skip: set[tuple[Any, Any]] | None = None
         self.skip_before = 0
 
@@ -83,9 +89,12 @@ class _Reader(Reader):
         recent = self.recent
         assert recent is not None
         recent.add(key)
-        self.recent_order.append(key)
-        if len(self.recent_order) > RECENT_KEYS:
-            recent.discard(self.recent_order.popleft())
+        if len(recent) >= RECENT_KEYS:
+            self.older, self.recent = recent, set()
+
+    def remembered(self) -> set[tuple[Any, Any]] | None:
+        """What this subscription took lately, for the one that replaces it to skip."""
+        return None if self.recent is None else self.recent | self.older
 
     def taken_before(self, info: Mapping[str, Any]) -> bool:
         """Whether the subscription this one replaced took this message already."""
@@ -197,7 +206,8 @@ class Ros2Source(Source):
             subscription = self._connection.node.create_subscription(self._cls, topic, _unused_callback, qos)
         except Exception as exc:
             raise setup_error(exc, f"{self._where}: cannot subscribe to {topic!r}") from exc
-        return _Reader(self, subscription, {**meta, "topic": subscription.topic_name}, self._adapting)
+        may_gain_history = "durability" not in self._stated and qos.durability == DurabilityPolicy.VOLATILE
+        return _Reader(self, subscription, {**meta, "topic": subscription.topic_name}, may_gain_history)
 
     def _offers(self, topic: str, infos: Sequence[Any]) -> list[offers.Offer]:
         return offers.offers_of(topic, infos, self._type_name)
@@ -395,6 +405,8 @@ class Ros2Source(Source):
         except EndpointError as exc:
             log.error("%s", exc)
             return
+        if reader.recent is None:
+            reader.recent = set()  # from now on: what both subscriptions receive is taken once
         self._switches[topic] = _Switch(new, expected, now)
         log.info("%s: the publishers of %s offer %s: subscribing with it (was %s)", self._where, topic,
                  offers.describe(qos), offers.describe(reader.subscription.qos_profile))
@@ -411,7 +423,7 @@ class Ros2Source(Source):
         while self._take(old) and not self.paused:
             pass
         new.received = old.received
-        new.skip, new.skip_before = old.recent, time.time_ns()
+        new.skip, new.skip_before = old.remembered(), time.time_ns()
         self._readers[topic] = new
         self._connection.add_reader(new)
         self._connection.destroy_subscription(old.subscription)

@@ -220,3 +220,30 @@ def test_a_stated_qos_that_cannot_match_names_the_publisher_in_status_and_once_i
     assert status["received"] == 0
     logged = [r.getMessage() for r in caplog.records if f"/gps_{tag} on {topic}" in r.getMessage()]
     assert len(logged) == 1 and "offers best_effort volatile" in logged[0], logged
+
+
+def test_the_request_follows_rosbag2s_rules_for_mixed_offers() -> None:
+    """rosbag2's adapt_request_to_offers: reliable only if every publisher offers it,
+    transient_local only if every publisher offers it; a policy the route states is kept; no
+    publisher, the route's default. (The profiles are rclpy's, as get_publishers_info_by_topic
+    gives them.)"""
+    from engine.endpoints.ros2 import offers
+
+    default = QoSProfile(depth=10)
+    reliable_latched = offers.Offer("/map", "/map_server", LATCHED)
+    sensor = offers.Offer("/fix", "/gps", qos_profile_sensor_data)
+    reliable = offers.Offer("/fix", "/fusion", QoSProfile(depth=5))
+
+    def request(stated: set[str], *offered: offers.Offer) -> str:
+        return offers.describe(offers.adapted(default, frozenset(stated), offered))
+
+    assert request(set()) == "reliable volatile"
+    assert request(set(), sensor) == "best_effort volatile"
+    assert request(set(), reliable, sensor) == "best_effort volatile"
+    assert request(set(), reliable_latched) == "reliable transient_local"
+    assert request(set(), reliable_latched, reliable) == "reliable volatile"
+    assert request({"reliability"}, sensor) == "reliable volatile"
+    assert request({"reliability", "durability"}, reliable_latched) == "reliable volatile"
+    assert offers.refusals(offers.adapted(default, frozenset({"reliability"}), [sensor, reliable]), [sensor, reliable]) == [
+        "/gps on /fix offers best_effort volatile, the route requests reliable volatile "
+        "(Best effort publisher and reliable subscription)"]
