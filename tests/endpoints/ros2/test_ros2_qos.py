@@ -27,6 +27,7 @@ import rclpy
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.signals import SignalHandlerOptions
 
+from engine.endpoints.ros2 import offers
 from engine.endpoints.ros2.rosmsg import resolve_type
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector
@@ -227,8 +228,6 @@ def test_the_request_follows_rosbag2s_rules_for_mixed_offers() -> None:
     transient_local only if every publisher offers it; a policy the route states is kept; no
     publisher, the route's default. (The profiles are rclpy's, as get_publishers_info_by_topic
     gives them.)"""
-    from engine.endpoints.ros2 import offers
-
     default = QoSProfile(depth=10)
     reliable_latched = offers.Offer("/map", "/map_server", LATCHED)
     sensor = offers.Offer("/fix", "/gps", qos_profile_sensor_data)
