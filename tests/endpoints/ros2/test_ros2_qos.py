@@ -69,6 +69,11 @@ routes:
     mapping: "{{seq: altitude, agent: meta('agent')}}"
     schema: raw_json
     sink: {{amqp: {{exchange: {outbox}, routing_key: fix-fleet}}}}
+  - name: fix-mixed
+    source: {{ros2: {{topic: /robot6/fix_{tag}, type: sensor_msgs/msg/NavSatFix}}}}
+    mapping: "{{seq: altitude, who: latitude}}"
+    schema: raw_json
+    sink: {{amqp: {{exchange: {outbox}, routing_key: fix-mixed}}}}
   - name: fix-stated
     source: {{ros2: {{topic: /robot8/fix_{tag}, type: sensor_msgs/msg/NavSatFix, qos: {{reliability: reliable}}}}}}
     mapping: "{{seq: altitude}}"
@@ -179,6 +184,58 @@ def test_best_effort_and_transient_local_publishers_reach_routes_without_qos(
     assert result["sources"]["map-early"]["qos"] == "reliable transient_local"
     assert all(source["mismatched_publishers"] == [] for source in result["sources"].values())
     assert {name: source["received"] for name, source in result["sources"].items()} == dict.fromkeys(result["sources"], MESSAGES)
+
+
+def test_a_best_effort_robot_joining_a_reliable_one_mid_stream_loses_and_repeats_nothing(
+        tmp_path: Path, amqp_url: str, routes: dict[str, str]) -> None:
+    """A reliable publisher streams 400 fixes at about 200 Hz; midway a best-effort one
+    appears on the same topic: the route's subscription is re-created best-effort (make before
+    break) while the stream flows. The reliable stream arrives whole and once (400/400, in
+    order), the best-effort robot's 50 too."""
+    tag = routes["tag"]
+    topic = f"/robot6/fix_{tag}"
+    robot = Robot(f"mixed_{tag}")
+    steady = robot.node.create_publisher(NavSatFix, topic, QoSProfile(depth=1000))
+    stream = 400
+
+    async def scenario() -> dict[str, Any]:
+        engine = Engine(tmp_path, REPO / "schemas")
+        connection = await aio_pika.connect(amqp_url)
+        output = await Collector.bind(await connection.channel(), routes["outbox"], "fix-mixed")
+        await engine.start()
+        try:
+            await wait_for(lambda: steady.get_subscription_count() > 0, 15, "the reliable publisher matched")
+
+            async def publish_stream() -> None:
+                for seq in range(stream):
+                    steady.publish(NavSatFix(latitude=1.0, altitude=float(seq)))
+                    await asyncio.sleep(0.005)
+
+            streaming = asyncio.create_task(publish_stream())
+            await wait_for(lambda: len(output.messages) >= 50, 15, "the stream under way")
+            joiner = robot.node.create_publisher(NavSatFix, topic, qos_profile_sensor_data)
+            await wait_for(lambda: joiner.get_subscription_count() > 0, 15, "the best-effort robot matched")
+            still_streaming = not streaming.done()
+            for seq in range(MESSAGES):
+                joiner.publish(NavSatFix(latitude=2.0, altitude=float(seq)))
+            await streaming
+            await output.wait_for(stream + MESSAGES, timeout=15)
+            return {"messages": list(output.messages), "source": engine.status()["routes"]["fix-mixed"]["source"],
+                    "still_streaming": still_streaming}
+        finally:
+            await engine.stop()
+            await connection.close()
+
+    try:
+        result = asyncio.run(asyncio.wait_for(scenario(), 90))
+    finally:
+        robot.close()
+    bodies = [json.loads(m.body) for m in result["messages"]]
+    assert [int(b["seq"]) for b in bodies if b["who"] == 1.0] == list(range(stream))
+    assert [int(b["seq"]) for b in bodies if b["who"] == 2.0] == list(range(MESSAGES))
+    assert result["still_streaming"], "the subscription was re-created while the reliable stream flowed"
+    assert result["source"]["qos"] == "best_effort volatile"
+    assert result["source"]["received"] == stream + MESSAGES
 
 
 def test_a_stated_qos_that_cannot_match_names_the_publisher_in_status_and_once_in_the_log(
