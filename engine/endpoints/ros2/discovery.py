@@ -3,7 +3,7 @@
 ``/{agent}/fix`` is a pattern: each ``{var}`` stands for exactly one name segment (``/robot3/fix``
 matches with ``agent = robot3``; ``/farm/robot3/fix`` does not match). The source subscribes to
 every topic of the graph that matches and has a publisher of the route's type, as it appears,
-with the route's QoS; each message carries the captured values as metadata (``meta('agent')``),
+with the route's QoS (policies it leaves out: what the publishers offer, source.py); each message carries the captured values as metadata (``meta('agent')``),
 which sink templates read too (``farm.{agent}.fix``). A followed topic that has had no
 publisher of that type for ``forget_after`` seconds is let go (its subscription destroyed); if a
 publisher comes back it is followed again. A matching topic of another type is reported once
@@ -30,7 +30,7 @@ publisher, up to one scan interval, then DDS matching of the new subscription (t
 side must discover it too): bench/bench_discovery.py measures it. What a publisher sends before
 the subscription has matched is not received (a volatile DDS writer keeps nothing for readers
 that join later); a publisher that must lose nothing waits for ``get_subscription_count() > 0``
-or publishes transient_local to a route whose ``qos.durability`` is transient_local.
+or publishes transient_local to a route whose ``qos.durability`` is transient_local or left out.
 """
 
 from __future__ import annotations

@@ -51,12 +51,17 @@ class Ros2ConnectionOptions:
 
 @dataclass(frozen=True, kw_only=True)
 class Ros2Qos:
-    __schema_description__ = "the topic's quality of service; a reader and a writer match only when theirs are compatible"
+    __schema_description__ = ("the topic's quality of service; a reader and a writer match only when theirs are compatible. "
+                              "A source that leaves reliability or durability out takes it from its publishers' offers "
+                              "(rosbag2's adaptive QoS), re-matched when they change")
 
     reliability: Literal["reliable", "best_effort"] = option(
-        "reliable", description="reliable: lost samples are resent to matched readers; best_effort: never resent")
+        "reliable", description="reliable: lost samples are resent to matched readers; best_effort: never resent. A source "
+                                "without it: reliable if every publisher offers it, else best_effort (no publisher yet: reliable)")
     durability: Literal["volatile", "transient_local"] = option(
-        "volatile", description="transient_local: a sink keeps its last depth messages for readers that join later")
+        "volatile", description="transient_local: a sink keeps its last depth messages for readers that join later. A "
+                                "source without it: transient_local if every publisher offers it (their kept messages "
+                                "arrive on matching), else volatile")
     depth: int = option(DEFAULT_DEPTH, minimum=1, description="keep-last history of the reader or writer (a transient_local sink resends up to this many to late joiners)")
 
 

@@ -14,13 +14,16 @@ import asyncio
 import logging
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 from rclpy.exceptions import InvalidHandle
+from rclpy.qos import DurabilityPolicy
 
+from engine.common.options import given
 from engine.endpoints.base import Deliver, EndpointError, Inbound, Inbox, Source, typed
 from engine.endpoints.pump import pump
-from engine.endpoints.ros2 import discovery, rosmsg
+from engine.endpoints.ros2 import discovery, offers, rosmsg
 from engine.endpoints.ros2.checks import checked_source
 from engine.endpoints.ros2.errors import setup_error
 from engine.endpoints.ros2.node import Reader, Ros2Node
@@ -40,6 +43,76 @@ at most BATCH per confirm round trip, which reaches tens of ms on a loaded machi
 MAVLink source's batch of 1,024 (engine/endpoints/mavlink/messages.py) for the same reason;
 the reference (bench/systems.py) publishes all it has taken at once."""
 _TYPE_CHECK_INTERVAL = 2.0
+"""Seconds between two full reads of a topic's publishers while some of them stay unmatched
+(another type, or a QoS that cannot match): the full read builds an object per endpoint
+(about 115 us here), the counts checked in between about 10 us."""
+MATCH_INTERVAL = discovery.DISCOVERY_INTERVAL
+"""Seconds between two looks at whether an adapting source's publishers changed (two counts
+per topic: about 10 us)."""
+NAME_WAIT = 5.0
+"""Most seconds a topic's publishers are read again while one's node is not known yet (DDS
+finds a writer before the ROS node it belongs to): then it is reported as unknown, as a
+plain DDS program without a node stays."""
+_UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
+SWITCH_WAIT = 2.0
+"""Most seconds a re-created subscription is given to match every publisher before the old
+one is let go anyway (DDS matching takes milliseconds between live participants)."""
+RECENT_KEYS = 4096
+"""Messages (at least; at most twice as many) a subscription remembers (publisher timestamp
+and sequence number) so that the one replacing it skips what it took already: what a
+replacement is given again is at most the publishers' kept history (a volatile subscription
+replaced by a transient_local one) and what both received while they overlapped. Only a
+subscription that may be replaced by a transient_local one (durability left out, volatile
+now) remembers all along, the others from the moment a replacement is made: about 0.6 us a
+message on the shared 2-core machine under a load average of 11-15, where taking a message
+costs 5-10 us; a route that states ``qos.durability`` does not pay it."""
+
+
+class _Reader(Reader):
+    """A subscription of a source that may be re-created with another QoS: it remembers the
+    keys of what it took recently (``recent``), and a replacement skips those (``skip``)
+    among what it had received before it took over (``skip_before``, system-clock ns, as
+    DDS's reception timestamps)."""
+
+    __slots__ = ("recent", "older", "skip", "skip_before")
+
+    def __init__(self, source: "Ros2Source", subscription: Any, meta: dict[str, Any], remember: bool) -> None:
+        super().__init__(source, subscription, meta)
+        self.recent: set[tuple[Any, Any]] | None = set() if remember else None
+        self.older: set[tuple[Any, Any]] = set()
+        """The generation before ``recent``: between RECENT_KEYS and twice that remembered, for
+        one set insertion per message (0.2 us here, against 0.65 us for an exact ring)."""
+        self.skip: set[tuple[Any, Any]] | None = None
+        self.skip_before = 0
+
+    def remember(self, key: tuple[Any, Any]) -> None:
+        recent = self.recent
+        assert recent is not None
+        recent.add(key)
+        if len(recent) >= RECENT_KEYS:
+            self.older, self.recent = recent, set()
+
+    def remembered(self) -> set[tuple[Any, Any]] | None:
+        """What this subscription took lately, for the one that replaces it to skip."""
+        return None if self.recent is None else self.recent | self.older
+
+    def taken_before(self, info: Mapping[str, Any]) -> bool:
+        """Whether the subscription this one replaced took this message already."""
+        if info["received_timestamp"] > self.skip_before:
+            self.skip = None  # received after the switch: the old one never saw it, nor the rest
+            return False
+        assert self.skip is not None
+        return _key(info) in self.skip
+
+
+@dataclass
+class _Switch:
+    """A topic's subscription being re-created: the new one (not waited on yet: what it
+    receives stays in its DDS history) until it has matched ``expected`` publishers."""
+
+    reader: _Reader
+    expected: int
+    began: float
 
 
 class Ros2Source(Source):
@@ -72,10 +145,13 @@ class Ros2Source(Source):
         self._type_name = rosmsg.type_name(self._cls)
         self._is_string = self._type_name == STRING_TYPE
         self._qos = qos_profile(options)
+        self._stated = given(options.qos) & offers.POLICIES if "qos" in given(options) else frozenset()
+        """The QoS policies the route states (kept); the others are taken from the publishers."""
+        self._adapting = self._stated != offers.POLICIES
         self._queue: Inbox[Inbound] = Inbox(SOURCE_QUEUE)
         self._deliver: Deliver | None = None
         self.paused = False
-        self._readers: dict[str, Reader] = {}
+        self._readers: dict[str, _Reader] = {}
         """Topic -> its reader: the one topic, or each discovered topic being followed."""
         self._discovery: discovery.Discovery | None = None
         if discovery.topic_variables(self._topic):
@@ -89,6 +165,12 @@ class Ros2Source(Source):
         self.received = 0
         self.dropped = 0
         self.mismatched_publishers: list[str] = []
+        self._switches: dict[str, _Switch] = {}
+        self._looked: dict[str, tuple[int, float]] = {}
+        """Topic -> its publisher count at the last full read of its publishers, and when."""
+        self._unmatched: dict[str, list[str]] = {}
+        self._unnamed_since: dict[str, float] = {}
+        """Topic -> its publishers the subscription cannot match (another type, or QoS)."""
         self._drop_logged = 0.0
 
     @property
@@ -104,20 +186,31 @@ class Ros2Source(Source):
             self._subscribe(self._topic, {})
         self._pump = asyncio.create_task(pump(self, deliver, self._where), name=f"ros2-source-{self._route}")
         self._connection.source_started(self)
-        if self._discovery is None:
-            self._watch = asyncio.create_task(self._watch_types(), name=f"ros2-types-{self._route}")
-        else:
+        self._watch = asyncio.create_task(self._watch_publishers(), name=f"ros2-publishers-{self._route}")
+        if self._discovery is not None:
             self._connection.discover(self)
 
     def _subscribe(self, topic: str, captured: Mapping[str, str]) -> Reader:
-        try:
-            subscription = self._connection.node.create_subscription(self._cls, topic, _unused_callback, self._qos)
-        except Exception as exc:
-            raise setup_error(exc, f"{self._where}: cannot subscribe to {topic!r}") from exc
-        reader = Reader(self, subscription, {"topic": subscription.topic_name, "type": self._type_name, **captured})
-        self._readers[subscription.topic_name] = reader
+        qos = self._qos
+        if self._adapting:
+            node = self._connection.node
+            expanded = node.resolve_topic_name(topic)
+            qos = offers.adapted(qos, self._stated, self._offers(expanded, node.get_publishers_info_by_topic(expanded)))
+        reader = self._new_reader(topic, {"type": self._type_name, **captured}, qos)
+        self._readers[reader.meta["topic"]] = reader
         self._connection.add_reader(reader)
         return reader
+
+    def _new_reader(self, topic: str, meta: Mapping[str, Any], qos: Any) -> _Reader:
+        try:
+            subscription = self._connection.node.create_subscription(self._cls, topic, _unused_callback, qos)
+        except Exception as exc:
+            raise setup_error(exc, f"{self._where}: cannot subscribe to {topic!r}") from exc
+        may_gain_history = "durability" not in self._stated and qos.durability == DurabilityPolicy.VOLATILE
+        return _Reader(self, subscription, {**meta, "topic": subscription.topic_name}, may_gain_history)
+
+    def _offers(self, topic: str, infos: Sequence[Any]) -> list[offers.Offer]:
+        return offers.offers_of(topic, infos, self._type_name)
 
     def scan(self, topics: Any, now: float) -> None:
         """One read of the graph (called by the connection): follow and let go (discovery only)."""
@@ -139,6 +232,10 @@ class Ros2Source(Source):
             return 0
 
     def _let_go(self, topic: str) -> None:
+        self._cancel_switch(topic)
+        self._looked.pop(topic, None)
+        self._unmatched.pop(topic, None)
+        self._unnamed_since.pop(topic, None)
         reader = self._readers.pop(topic, None)
         if reader is None:
             return
@@ -147,9 +244,16 @@ class Ros2Source(Source):
 
     def take(self, reader: Reader) -> None:
         """Runs on the loop: take what is ready (bounded by the queue), never waits."""
+        assert isinstance(reader, _Reader)  # made by this source
+        self._take(reader)
+
+    def _take(self, reader: _Reader) -> bool:
+        """:meth:`take`; True when the budget ran out (more may be ready)."""
         sub, cls, queue, meta = reader.subscription, self._cls, self._queue, reader.meta
         block = queue.overflow == "block"
+        remember = reader.recent is not None
         taken = 0
+        more = False
         try:
             with sub.handle:
                 for _ in range(TAKE_BUDGET):
@@ -166,15 +270,22 @@ class Ros2Source(Source):
                         continue
                     if message is None:
                         break
+                    if reader.skip is not None and reader.taken_before(message[1]):
+                        continue
+                    if remember:
+                        reader.remember(_key(message[1]))
                     taken += 1
                     self._put(self._inbound(message[0], meta))
+                else:
+                    more = True
         except InvalidHandle:
-            return
+            return False
         finally:
             if taken:
                 self.received += taken
                 reader.received += taken
                 queue.wake()
+        return more
 
     def _put(self, inbound: Inbound) -> None:
         if self._queue.offer(inbound):
@@ -233,42 +344,107 @@ class Ros2Source(Source):
         if len(self._queue):  # a backlog must not hold the loop from other routes; an empty inbox waits in take()
             await asyncio.sleep(0)  # (at a robot's pace a yield per message is a loop round trip for nothing)
 
-    async def _watch_types(self) -> None:
-        """Publishers of another type on our topic never match: say so (log and status)."""
+    async def _watch_publishers(self) -> None:
+        """Keep each subscription matched to its publishers (an adapting source) and report
+        those it cannot match: of another type (never matched), or whose QoS the route's
+        stated ``qos`` cannot match (log and status)."""
+        interval = MATCH_INTERVAL if self._adapting else _TYPE_CHECK_INTERVAL
         reported: set[str] = set()
-        topic = next(iter(self._readers))
         while not self._stopping:
             try:
-                infos = self._publishers_unless_all_matched(topic)
-            except Exception:
-                infos = []
-            wrong = sorted({f"{info.node_namespace.rstrip('/')}/{info.node_name} ({info.topic_type})"
-                            for info in infos if info.topic_type != self._type_name})
-            self.mismatched_publishers = wrong
-            for publisher in set(wrong) - reported:
-                log.error("%s: publisher %s does not match the route's type %s; its messages are not received",
-                          self._where, publisher, self._type_name)
-            reported = set(wrong)
-            await asyncio.sleep(_TYPE_CHECK_INTERVAL)
+                self._look_at_publishers(time.monotonic())
+            except EndpointError:  # the connection is closing
+                pass
+            except Exception:  # a bug: say it, keep watching
+                log.exception("%s: cannot read the topic's publishers", self._where)
+            unmatched = sorted({entry for entries in self._unmatched.values() for entry in entries})
+            self.mismatched_publishers = unmatched
+            for publisher in set(unmatched) - reported:
+                log.error("%s: publisher %s; its messages are not received", self._where, publisher)
+            reported = set(unmatched)
+            await asyncio.sleep(MATCH_INTERVAL if self._switches or self._unnamed_since else interval)
 
-    def _publishers_unless_all_matched(self, topic: str) -> list[Any]:
-        """The topic's publishers, or none when every one of them matched our subscription
-        (then none is of another type). Counting (rcl_count_publishers, and the matched count)
-        builds no endpoint objects: a fleet's engine with 100 ROS 2 sources spent 11 % of its
-        loop in this check with the full query every time (bench/fleet.py, py-spy)."""
-        reader = self._readers.get(topic)
+    def _look_at_publishers(self, now: float) -> None:
+        """One look at every followed topic. Counting (rcl_count_publishers, and the matched
+        count) builds no endpoint objects, so the full read of a topic's publishers happens
+        only when their number changed, or every :data:`_TYPE_CHECK_INTERVAL` while some stay
+        unmatched: a fleet's engine with 100 ROS 2 sources spent 11 % of its loop in this check
+        with the full read every time (bench/fleet.py, py-spy)."""
         node = self._connection.node
-        if reader is not None and node.count_publishers(topic) <= reader.subscription.get_publisher_count():
-            return []
-        return node.get_publishers_info_by_topic(topic)
+        for topic, reader in list(self._readers.items()):
+            switch = self._switches.get(topic)
+            if switch is not None:
+                self._advance(topic, reader, switch, now)
+                continue
+            count = node.count_publishers(topic)
+            last = self._looked.get(topic)
+            if last is not None and last[0] == count and (
+                    reader.subscription.get_publisher_count() >= count or now - last[1] < _TYPE_CHECK_INTERVAL):
+                continue
+            infos = node.get_publishers_info_by_topic(topic)
+            offered = self._offers(topic, infos)
+            current = reader.subscription.qos_profile
+            wanted = offers.adapted(current, self._stated, offered) if self._adapting else current
+            refused = offers.refusals(wanted, offered)
+            if not offers.same_policies(wanted, current):
+                self._begin_switch(topic, reader, wanted, len(offered) - len(refused), now)
+            if any(info.node_name == _UNKNOWN_NODE for info in infos) and now - self._unnamed_since.setdefault(topic, now) < NAME_WAIT:
+                continue  # a publisher's node is not known yet: read again next time, to name it
+            self._unnamed_since.pop(topic, None)
+            self._looked[topic] = (count, now)
+            wrong = [f"{info.node_namespace.rstrip('/')}/{info.node_name} ({info.topic_type}) on {topic} does not match "
+                     f"the route's type {self._type_name}" for info in infos if info.topic_type != self._type_name]
+            self._unmatched[topic] = wrong + refused
+
+    def _begin_switch(self, topic: str, reader: _Reader, qos: Any, expected: int, now: float) -> None:
+        """Re-create ``topic``'s subscription with ``qos``, make before break: the new one
+        receives (into its DDS history, not taken yet) while the old one is still taken from,
+        until the new one has matched every publisher (:meth:`_advance`)."""
+        try:
+            new = self._new_reader(topic, reader.meta, qos)
+        except EndpointError as exc:
+            log.error("%s", exc)
+            return
+        if reader.recent is None:
+            reader.recent = set()  # from now on: what both subscriptions receive is taken once
+        self._switches[topic] = _Switch(new, expected, now)
+        log.info("%s: the publishers of %s offer %s: subscribing with it (was %s)", self._where, topic,
+                 offers.describe(qos), offers.describe(reader.subscription.qos_profile))
+
+    def _advance(self, topic: str, old: _Reader, switch: _Switch, now: float) -> None:
+        """Hand ``topic`` over to the new subscription once it has matched its publishers (or
+        :data:`SWITCH_WAIT` passed): the old one is left out of the wait set, what it has left
+        taken, then destroyed; the new one skips what the old one took (its ``recent`` keys)."""
+        new = switch.reader
+        if self.paused or (new.subscription.get_publisher_count() < switch.expected and now - switch.began < SWITCH_WAIT):
+            return  # a paused source could not take the old one's rest: it waits
+        del self._switches[topic]
+        self._connection.drop_readers([old])
+        while self._take(old) and not self.paused:
+            pass
+        new.received = old.received
+        new.skip, new.skip_before = old.remembered(), time.time_ns()
+        self._readers[topic] = new
+        self._connection.add_reader(new)
+        self._connection.destroy_subscription(old.subscription)
+        self._looked.pop(topic, None)  # read the publishers again: the new one's view of them
+
+    def _cancel_switch(self, topic: str) -> None:
+        switch = self._switches.pop(topic, None)
+        if switch is not None:
+            self._connection.destroy_subscription(switch.reader.subscription)
 
     def status(self) -> dict[str, Any]:
-        status: dict[str, Any] = {"received": self.received, "dropped": self.dropped, "queued": len(self._queue)}
+        status: dict[str, Any] = {"received": self.received, "dropped": self.dropped, "queued": len(self._queue),
+                                  "mismatched_publishers": self.mismatched_publishers}
         if self._discovery is None:
-            status["mismatched_publishers"] = self.mismatched_publishers
+            reader = self._readers.get(next(iter(self._readers), ""))
+            if reader is not None:
+                status["qos"] = offers.describe(reader.subscription.qos_profile)
             return status
         variables = self._discovery.pattern.variables
-        status["following"] = {topic: {**{name: reader.meta[name] for name in variables}, "received": reader.received}
+        status["following"] = {topic: {**{name: reader.meta[name] for name in variables}, "received": reader.received,
+                                       "qos": offers.describe(reader.subscription.qos_profile)}
                                for topic, reader in sorted(self._readers.items())}
         status.update(self._discovery.status())
         return status
@@ -287,6 +463,8 @@ class Ros2Source(Source):
             self._watch.cancel()
             await asyncio.gather(self._watch, return_exceptions=True)
         connection.source_stopped(self)
+        for topic in list(self._switches):
+            self._cancel_switch(topic)
         readers, self._readers = list(self._readers.values()), {}
         for reader in readers:
             connection.destroy_subscription(reader.subscription)
@@ -301,6 +479,13 @@ def _cdr_string(raw: bytes) -> bytes:
     if size < 1 or 8 + size > len(raw):
         raise ValueError(f"serialized String claims {size} bytes, has {len(raw) - 8}")
     return bytes(raw[8:8 + size - 1])
+
+
+def _key(info: Mapping[str, Any]) -> tuple[Any, Any]:
+    """A taken message's identity across two subscriptions of the same publisher: the
+    publisher's timestamp (ns) and its sequence number (two publishers colliding on both is
+    not expected)."""
+    return info["source_timestamp"], info.get("publication_sequence_number")
 
 
 def _unused_callback(msg: Any) -> None:

@@ -45,7 +45,8 @@ connections:
 routes:
   - name: fleet-fix
     source:
-      ros2: {{topic: "/{{agent}}/fix_{tag}", type: sensor_msgs/msg/NavSatFix, forget_after: {forget_after}}}
+      ros2: {{topic: "/{{agent}}/fix_{tag}", type: sensor_msgs/msg/NavSatFix, forget_after: {forget_after},
+             qos: {{reliability: reliable}}}}
     mapping: "{{agent_id: meta('agent'), lat: latitude, lon: longitude, alt_msl: altitude}}"
     schema: position
     sink:
@@ -60,7 +61,7 @@ def _fix(robot: int, seq: int) -> Any:
 def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_message_with_its_agent(
         tmp_path: Path, amqp_url: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """The engine starts first; then 20 robots' topics appear (and one of another type, and one
-    whose QoS the route's reader cannot match). Every
+    whose QoS the route's stated reliable reader cannot match). Every
     robot's topic is followed, every message reaches RabbitMQ under its robot's routing key with
     its agent, in order; a robot that leaves is let go after forget_after (not before), and
     followed again when it comes back. The topics carry the test's tag (``/robot3/fix_<tag>``)
@@ -134,13 +135,17 @@ def test_twenty_robots_appearing_after_the_engine_starts_are_followed_each_messa
     for agent, bodies in by_agent.items():  # every message, in its topic's order, none of another robot's
         robot = int(agent.removeprefix("robot"))
         assert [(b["lat"], b["alt_msl"]) for b in bodies] == [(robot, seq) for seq in range(MESSAGES)], agent
-    assert results["following"] == {topic.format(f"robot{i}"): {"agent": f"robot{i}", "received": MESSAGES} for i in range(ROBOTS)}
+    assert results["following"] == {topic.format(f"robot{i}"): {"agent": f"robot{i}", "received": MESSAGES, "qos": "reliable volatile"}
+                                    for i in range(ROBOTS)}
     assert results["mismatched"] == {topic.format("rover"): ["std_msgs/msg/String"]}
     assert results["rover_subscribers"] == 0  # reported, never subscribed
     assert FORGET_AFTER <= results["let_go_after"] < FORGET_AFTER + 8
     leaving = results["after_leaving"]
     assert (leaving["forgotten"], leaving["discovered"], len(leaving["following"])) == (1, ROBOTS + 1, ROBOTS)
     assert results["shy_subscribers"] == 1  # published yet never matched (QoS): reported, kept, not let go
+    assert [entry for entry in leaving["mismatched_publishers"] if "shy" in entry] == [
+        f"/peer on {topic.format('shy')} offers best_effort volatile, the route requests reliable volatile "
+        "(Best effort publisher and reliable subscription)"]
     assert results["returned"] == [("farm.robot0.fix", {"agent_id": "robot0", "lat": 0.0, "lon": MESSAGES / 100,
                                                           "alt_msl": float(MESSAGES)})]
     assert results["final"]["discovered"] == ROBOTS + 2
