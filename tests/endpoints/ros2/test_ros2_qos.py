@@ -35,7 +35,7 @@ from tests.support.repo import REPO
 from tests.support.waiting import wait_for
 from tests.support.workers import ros_domain
 
-DOMAIN = ros_domain(14)
+DOMAIN = ros_domain(15)
 MESSAGES = 50
 String = resolve_type("std_msgs/msg/String")
 NavSatFix = resolve_type("sensor_msgs/msg/NavSatFix")
