@@ -12,13 +12,16 @@ Served by aiohttp on the engine's own event loop:
   parts of up connections (``Connection.unavailable``: a MAVLink vehicle not heard);
 * ``GET /status``: the status document (generation, config hash, reloads, each route's
   counters, rates, state and last error, the connections);
-* ``GET /tap/{route}``: JSON lines, one per message through the route, from now on.
+* ``GET /tap/{route}``: JSON lines, one per message through the route, from now on;
+* ``GET /``: the web console (engine/ops/console.py) and its stream ``/console/events``.
 
 A bare port binds 127.0.0.1: the admin endpoint exposes message contents (taps), so it is
 reachable from elsewhere only when an address is given on purpose, and then only with an
 identity (:class:`AdminAccess`): on any address outside 127.0.0.0/8 and ::1 the engine
 refuses to start without ``--admin-token-file``, and every path but ``/healthz`` asks for
-``Authorization: Bearer <token>``, compared in constant time (``hmac.compare_digest``). A
+``Authorization: Bearer <token>``, compared in constant time (``hmac.compare_digest``); the
+same token is taken as the password of HTTP Basic (any user name), which is how a browser
+sends it to the console (it cannot add a bearer header to a page load or an EventSource). A
 failed attempt is counted (``rabbitros_admin_auth_failures_total``) and logged with the
 peer's address and the path, never the token. ``--admin-tls-cert/--admin-tls-key`` serve
 HTTPS. ``/healthz`` stays open: a load balancer's or systemd's probe carries no token, and it
@@ -29,6 +32,8 @@ source's reason (a queue name; no message content, no URL, no counter).
 from __future__ import annotations
 
 import asyncio
+import base64
+import binascii
 import contextlib
 import hmac
 import ipaddress
@@ -41,10 +46,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Awaitable, Callable, Iterator
 
 from aiohttp import web
+from multidict import MultiDict
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
+from engine.ops.console import Console
 from engine.running.observe import LATENCY_BUCKETS, Tap
 
 if TYPE_CHECKING:
@@ -221,6 +228,14 @@ def connection_metrics(engine: Engine) -> Iterator[Metric]:
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 
+def basic_password(credentials: bytes) -> bytes:
+    """The password of HTTP Basic credentials (base64 of ``user:password``); b"" when they do not decode."""
+    try:
+        return base64.b64decode(credentials, validate=True).partition(b":")[2]
+    except (binascii.Error, ValueError):
+        return b""
+
+
 class AdminServer:
     def __init__(self, engine: Engine, host: str, port: int, access: AdminAccess | None = None) -> None:
         self.engine = engine
@@ -237,6 +252,7 @@ class AdminServer:
         self._runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0)
         self._sampler: asyncio.Task[None] | None = None
         self._taps: set[asyncio.Task[Any]] = set()
+        Console(engine, status_document, self._taps).add_to(app)
 
     async def start(self) -> None:
         await self._runner.setup()
@@ -257,13 +273,18 @@ class AdminServer:
         scheme, _, given = request.headers.get("Authorization", "").partition(" ")
         assert self.access.token is not None
         # surrogateescape: aiohttp keeps a header's undecodable bytes as surrogates (a 500 before, found by the fuzz test)
-        if scheme.lower() == "bearer" and hmac.compare_digest(given.strip().encode("utf-8", "surrogateescape"), self.access.token):
+        presented = given.strip().encode("utf-8", "surrogateescape")
+        if scheme.lower() == "basic":
+            presented = basic_password(presented)
+        if scheme.lower() in ("bearer", "basic") and hmac.compare_digest(presented, self.access.token):
             return await handler(request)
         self.collector.auth_failures += 1
         log.warning("admin request refused", extra={"peer": request.remote, "path": request.path[:200],
                                                     "reason": "wrong token" if given else "no bearer token"})
+        # two challenges: a program sends the bearer token, a browser (the console) asks its user for it
+        headers = MultiDict([("WWW-Authenticate", 'Bearer realm="rabbitros"'), ("WWW-Authenticate", 'Basic realm="rabbitros"')])
         return web.json_response({"error": "a bearer token is required (Authorization: Bearer <token>)"}, status=401,
-                                 headers={"WWW-Authenticate": 'Bearer realm="rabbitros"'})
+                                 headers=headers)
 
     async def stop(self) -> None:
         for task in list(self._taps):  # a tap streams until its client leaves: end it

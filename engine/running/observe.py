@@ -26,6 +26,12 @@ client cannot take is dropped and counted, never waited for.
 
 Observers are kept per route name across reloads, so counters stay monotonic for Prometheus
 while a route's pipeline or source is swapped.
+
+For the web console (engine/ops/console.py) the observers also keep, for every route together,
+two small bounded views (engine/running/recent.py): the most recent dead letters (:class:`RecentDeadLetters`: route, stage,
+reason, time; one deque append per dead letter) and the fleet (:class:`Fleet`: the last canonical
+position of each ``agent_id`` from the routes whose schema is ``position``; one dict store per
+delivered position, nothing on other routes). Neither logs nor formats anything per message.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ from typing import Any, Callable
 import orjson
 
 from engine.endpoints.base import Inbound, Outbound
+from engine.running.recent import Fleet, RecentDeadLetters, is_position_schema
 
 RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES = (
     "received", "delivered", "dead_lettered", "redelivered", "conflated", "expired", "dropped", "filtered", "duplicates")
@@ -77,8 +84,13 @@ class Tap:
 class RouteObserver:
     """The counters of one route (see the module docstring) and its taps."""
 
-    def __init__(self, route: str) -> None:
+    def __init__(self, route: str, recent: RecentDeadLetters | None = None, fleet: Fleet | None = None) -> None:
         self.route = route
+        self.recent_dead_letters = recent
+        """Shared by every route (:class:`Observers`); None: not kept."""
+        self.fleet: Fleet | None = None
+        """The shared :class:`Fleet`, once :meth:`carries` is told this route's schema is a position's."""
+        self._fleet = fleet
         self.received = 0
         self.delivered = 0
         self.conflated = 0
@@ -137,6 +149,8 @@ class RouteObserver:
             self.latency_buckets[bisect_left(LATENCY_BUCKETS, latency_ns / 1e9)] += 1
         self.last_canonical = outbound.canonical
         self.last_at = time.time()
+        if self.fleet is not None:
+            self.fleet.heard(outbound.canonical, self.route, self.last_at)
         if self.taps:
             self._tap(inbound, outbound, DELIVERED, None)
 
@@ -173,8 +187,15 @@ class RouteObserver:
         self.dead_lettered[stage] = self.dead_lettered.get(stage, 0) + 1
         self.last_error = f"{stage}: {error}"
         self.last_error_at = time.time()
+        if self.recent_dead_letters is not None:
+            self.recent_dead_letters.add(self.route, stage, str(error))
         if self.taps:
             self._tap(inbound, outbound, DEAD_LETTERED, self.last_error)
+
+    def carries(self, schema: str | None) -> None:
+        """The route's canonical schema (set by the runner, again on a reload): a position's
+        draws the fleet."""
+        self.fleet = self._fleet if is_position_schema(schema) else None
 
     def _error(self, error: BaseException) -> None:
         self.last_error = str(error)
@@ -272,12 +293,14 @@ class Observers:
 
     def __init__(self) -> None:
         self.routes: dict[str, RouteObserver] = {}
+        self.recent_dead_letters = RecentDeadLetters()
+        self.fleet = Fleet()
         self._samples: dict[str, deque[tuple[float, int, int]]] = {}
 
     def get(self, route: str) -> RouteObserver:
         observer = self.routes.get(route)
         if observer is None:
-            observer = self.routes[route] = RouteObserver(route)
+            observer = self.routes[route] = RouteObserver(route, self.recent_dead_letters, self.fleet)
         return observer
 
     def sample(self, now: float | None = None, window: int = 5) -> None:

@@ -125,6 +125,7 @@ class RouteRunner:
         self.observer = host.observers.get(spec.name)
         """The route's one set of counters, and its taps (engine/running/observe.py)."""
         self.observer.generation = lambda: self.pipeline.generation
+        self.observer.carries(spec.schema)
         self.buffer: HoldingBuffer | None = None if spec.buffer is None else host.buffers.acquire(
             spec.name, spec.buffer, spec.delivery.max_attempts, self)
         """Holds the route's messages while its sink is down (``buffer:``; engine/running/buffer.py)."""

@@ -367,6 +367,7 @@ class Engine:
         for runner, pipeline, sink_connection in change.swaps:
             retired.append(runner.retire_pipeline(runner.pipeline))
             runner.spec, runner.pipeline = pipeline.spec, pipeline
+            runner.observer.carries(pipeline.spec.schema)
             runner.connections = [*runner.connections[:-1], sink_connection]
             keep[runner.spec.name] = runner
         for runner in change.fresh + change.handed:
