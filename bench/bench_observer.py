@@ -2,7 +2,9 @@
 
 Prints microseconds per message with no tap (the normal case), with a tap attached and read,
 and with a tap whose client is stuck (buffer full), for a small and a 4 KB message, and the
-ratio against the bare pipeline conversion of the same message.
+ratio against the bare pipeline conversion of the same message; then the same observer on a
+``position`` route, which also keeps each agent's last position for the web console's map
+(engine/running/recent.py), over 100 agents.
 
     .venv/bin/python -m bench.bench_observer
 """
@@ -17,7 +19,8 @@ from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Inbound
 from engine.language.routes import EndpointSpec, RouteSpec
 from engine.ops.route_tests import DrySink
-from engine.running.observe import DELIVERED, RouteObserver, Tap
+from engine.endpoints.base import Outbound
+from engine.running.observe import DELIVERED, Observers, RouteObserver, Tap
 from engine.running.pipeline import Pipeline
 
 N = 20_000
@@ -56,6 +59,13 @@ async def main() -> None:
         full = per_message(lambda: observer(inbound, outbound, DELIVERED, None))
         print(f"{label:6} message: conversion {convert:6.2f} us; observer: no tap {bare:5.2f} us "
               f"({bare / convert:.1%} of conversion), tap {tapped:5.2f} us, stuck tap {full:5.2f} us")
+    positions = [Outbound(b"{}", {"agent_id": f"uav{n}", "lat": 48.15, "lon": 11.58}, None, "m", {}) for n in range(100)]
+    plain, position = Observers().get("plain"), Observers().get("position")
+    position.carries("position")
+    for label, observer in (("route of another schema", plain), ("position route", position)):
+        turn = iter(range(1 << 62))
+        cost = per_message(lambda observer=observer: observer.accepted(None, positions[next(turn) % 100], 1000), 200_000)
+        print(f"a position message delivered, {label:23}: observer {cost:5.2f} us")
 
 
 if __name__ == "__main__":

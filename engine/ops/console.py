@@ -36,6 +36,9 @@ CONSOLE_PERIOD_S = 1.0
 PAGE_FILES = {"/": ("index.html", "text/html"), "/console.js": ("console.js", "text/javascript"),
               "/console.css": ("console.css", "text/css")}
 """Path -> the page's file and its content type."""
+PAGE_HEADERS = {"Cache-Control": "no-cache", "X-Frame-Options": "DENY", "X-Content-Type-Options": "nosniff",
+                "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; frame-ancestors 'none'"}
+"""The page loads nothing but itself (no CDN, no inline script) and is not framed by another site."""
 
 
 def page_file(name: str) -> bytes:
@@ -69,7 +72,7 @@ class Console:
 
     async def page(self, request: web.Request) -> web.Response:
         body, content_type = self.pages[request.path]
-        return web.Response(body=body, content_type=content_type, headers={"Cache-Control": "no-cache"})
+        return web.Response(body=body, content_type=content_type, headers=PAGE_HEADERS)
 
     async def events(self, request: web.Request) -> web.StreamResponse:
         response = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-cache"})

@@ -192,5 +192,11 @@ def test_the_console_shows_routes_counters_dead_letters_and_the_fleet(console: t
         assert driver.save_screenshot(str(shot))
         if os.environ.get("CONSOLE_SCREENSHOT"):  # docs/console.png is made this way (docs/operations.md)
             shutil.copyfile(shot, REPO / os.environ["CONSOLE_SCREENSHOT"])
+        errors = [entry for entry in driver.get_log("browser") if entry["level"] == "SEVERE"]
+        assert not errors, errors  # no script error, nothing the page's content security policy refused
+
+        # the engine stops at once with the event stream and the tap open; the page says it is offline
+        assert engine.stop(30) == 0, engine.log()
+        wait_for_sync(lambda: driver.find_element(By.ID, "live").text == "reconnecting", 10, "the page to notice")
     finally:
         driver.quit()
