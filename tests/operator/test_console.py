@@ -62,6 +62,23 @@ routes:
     schema: weed_detection
     sink: {mqtt: {topic: "canonical/{agent_id}/weeds"}}
 """
+PAGE_SNAPSHOT = """
+const all = (selector) => [...document.querySelectorAll(selector)];
+return {
+  live: document.getElementById("live").textContent,
+  routes: Object.fromEntries(all("#routes tbody tr").map((row) => [row.getAttribute("data-route"),
+    Object.fromEntries([...row.cells].map((cell) => [cell.className.split(" ").pop(), cell.textContent]))])),
+  dead: all("#dead-letters tbody tr").map((row) => ({route: row.getAttribute("data-route"),
+    stage: row.querySelector(".stage").textContent, reason: row.querySelector(".reason").textContent})),
+  agents: Object.fromEntries(all("#map circle").map((dot) => [dot.getAttribute("data-agent"),
+    [Number(dot.getAttribute("cx")), Number(dot.getAttribute("cy"))]])),
+  labels: all("#map text.agent-label").map((text) => text.textContent),
+  scale: (document.querySelector("#map text.scale-label") || {textContent: ""}).textContent,
+  tap: all("#tap-lines li").map((item) => item.textContent),
+};
+"""
+"""What the page shows, read in one script (the page redraws every second: elements found one
+by one could be replaced between two reads)."""
 FIELD = (48.1500, 11.5800)
 """A field near Munich: the UAV and the robot are about 180 m apart."""
 
@@ -134,16 +151,16 @@ def test_the_console_shows_routes_counters_dead_letters_and_the_fleet(console: t
     try:
         driver.get(base.replace("https://", f"https://console:{TOKEN}@") + "/")
 
+        def seen() -> dict[str, Any]:
+            return dict(driver.execute_script(PAGE_SNAPSHOT))
+
         def cell(route: str, column: str) -> str:
-            return driver.find_element(By.CSS_SELECTOR, f'#routes tr[data-route="{route}"] td.{column}').text
+            return str(seen()["routes"].get(route, {}).get(column))
 
-        def routes() -> list[str]:
-            return [row.get_attribute("data-route") or "" for row in driver.find_elements(By.CSS_SELECTOR, "#routes tbody tr")]
-
-        wait_for_sync(lambda: routes() == ["robot-position", "uav-position", "weeds"], 30, "the console to list every route",
-                      lambda: (routes(), driver.find_element(By.ID, "live").text, engine.log()[-1500:]))
+        wait_for_sync(lambda: list(seen()["routes"]) == ["robot-position", "uav-position", "weeds"], 30,
+                      "the console to list every route", lambda: (seen(), engine.log()[-1500:]))
         assert cell("weeds", "received") == "0" and cell("weeds", "state") == "running"
-        wait_for_sync(lambda: driver.find_element(By.ID, "live").text == "live", 10, "the event stream")
+        wait_for_sync(lambda: seen()["live"] == "live", 10, "the event stream", seen)
 
         # a live tap of the weeds route, opened before anything is sent
         driver.find_element(By.ID, "tap-route").send_keys("weeds")
@@ -160,32 +177,19 @@ def test_the_console_shows_routes_counters_dead_letters_and_the_fleet(console: t
         asyncio.run(mqtt_publish(mosquitto, [("fleet/uav1/position", {"agent": "uav1", "lat": lat - 0.0005, "lon": lon - 0.0005,
                                                                        "alt": 30.0})]))
 
-        wait_for_sync(lambda: cell("weeds", "received") == "4" and cell("weeds", "delivered") == "3"
-                      and cell("weeds", "dead-lettered") == "1", 30, "the weeds route's counters to move",
-                      lambda: (cell("weeds", "received"), cell("weeds", "delivered")))
+        wait_for_sync(lambda: (cell("weeds", "received"), cell("weeds", "delivered"), cell("weeds", "dead-lettered")) == ("4", "3", "1"),
+                      30, "the weeds route's counters to move", lambda: seen()["routes"])
         assert "schema" in cell("weeds", "error")
-        dead = wait_for_sync(lambda: driver.find_elements(By.CSS_SELECTOR, '#dead-letters tr[data-route="weeds"]'), 10,
-                             "the dead letter in the console")
-        stage = dead[0].find_element(By.CSS_SELECTOR, "td.stage").text
-        reason = dead[0].find_element(By.CSS_SELECTOR, "td.reason").text
-        assert stage == "schema" and "7" in reason, (stage, reason)
+        dead = wait_for_sync(lambda: seen()["dead"], 10, "the dead letter in the console", seen)
+        assert [(d["route"], d["stage"]) for d in dead] == [("weeds", "schema")] and "7" in dead[0]["reason"], dead
 
-        def agents() -> dict[str, tuple[float, float]]:
-            return {dot.get_attribute("data-agent") or "": (float(dot.get_attribute("cx") or 0), float(dot.get_attribute("cy") or 0))
-                    for dot in driver.find_elements(By.CSS_SELECTOR, "#map circle")}
-
-        drawn = wait_for_sync(lambda: len(agents()) == 2 and agents(), 30, "the UAV and the robot on the map", agents)
-        assert set(drawn) == {"uav1", "robot1"}
-        (ux, uy), (rx, ry) = drawn["uav1"], drawn["robot1"]
-        assert rx > ux and ry < uy, drawn  # the robot is north-east of the UAV: right and up
-        labels = [text.text for text in driver.find_elements(By.CSS_SELECTOR, "#map text.agent-label")]
-        assert sorted(labels) == ["robot1", "uav1"]
-        assert driver.find_element(By.CSS_SELECTOR, "#map text.scale-label").text.endswith("m")
+        page = wait_for_sync(lambda: (view := seen()) and len(view["agents"]) == 2 and view, 30, "the UAV and the robot on the map", seen)
+        (ux, uy), (rx, ry) = page["agents"]["uav1"], page["agents"]["robot1"]
+        assert rx > ux and ry < uy, page["agents"]  # the robot is north-east of the UAV: right and up
+        assert sorted(page["labels"]) == ["robot1", "uav1"] and page["scale"].endswith("m"), page
         assert cell("uav-position", "delivered") == "1" and cell("robot-position", "delivered") == "1"
 
-        lines = wait_for_sync(lambda: len(driver.find_elements(By.CSS_SELECTOR, "#tap-lines li")) == 4
-                              and [li.text for li in driver.find_elements(By.CSS_SELECTOR, "#tap-lines li")],
-                              20, "the tapped messages")
+        lines = wait_for_sync(lambda: len(tapped := seen()["tap"]) == 4 and tapped, 20, "the tapped messages", seen)
         assert sum("delivered" in line for line in lines) == 3 and sum("dead_lettered" in line for line in lines) == 1, lines
 
         shot = tmp_path / "console.png"
@@ -197,6 +201,6 @@ def test_the_console_shows_routes_counters_dead_letters_and_the_fleet(console: t
 
         # the engine stops at once with the event stream and the tap open; the page says it is offline
         assert engine.stop(30) == 0, engine.log()
-        wait_for_sync(lambda: driver.find_element(By.ID, "live").text == "reconnecting", 10, "the page to notice")
+        wait_for_sync(lambda: seen()["live"] == "reconnecting", 10, "the page to notice", seen)
     finally:
         driver.quit()
