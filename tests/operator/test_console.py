@@ -103,7 +103,7 @@ def fetch(url: str, authorization: str | None = None) -> tuple[int, dict[str, An
     context.check_hostname, context.verify_mode = False, ssl.CERT_NONE  # the throwaway certificate
     try:
         with urllib.request.urlopen(request, timeout=10, context=context) as response:
-            return response.status, dict(response.headers), response.read(4096).decode()
+            return response.status, dict(response.headers), response.read().decode()
     except urllib.error.HTTPError as exc:
         return exc.code, {"WWW-Authenticate": exc.headers.get_all("WWW-Authenticate")}, exc.read().decode()
 
