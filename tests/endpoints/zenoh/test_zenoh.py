@@ -121,6 +121,12 @@ def test_zenoh_to_amqp_captures_the_robot_and_dead_letters_a_bad_payload_once(tm
                 peer.session.put(key, json.dumps(body).encode())
             received = await out.wait_for(len(sent), 30)
             dead_letters = await dead.wait_for(1, 10)
+            # the route counts a message once the broker's confirmation is back, which may come
+            # after our queue already has it
+            route = f"weather-{tag}"
+            await wait_for(lambda: engine.status()["routes"][route]["delivered"] == len(sent)
+                           and engine.status()["routes"][route]["dead_lettered"], 10,
+                           "the route counting what the broker confirmed", lambda: engine.status()["routes"][route])
             return list(received), list(dead_letters), engine.status()
         finally:
             publisher.undeclare()
