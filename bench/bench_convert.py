@@ -17,7 +17,8 @@ from typing import Any
 
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Inbound, Outbound, Sink
-from engine.language.routes import RouteSpec, load_routes
+from engine.language.routes import load_routes
+from engine.language.specs import RouteSpec
 from engine.running.pipeline import Pipeline
 
 REPO = Path(__file__).resolve().parent.parent

@@ -17,7 +17,7 @@ import time
 
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Inbound
-from engine.language.routes import EndpointSpec, RouteSpec
+from engine.language.specs import EndpointSpec, RouteSpec
 from engine.ops.route_tests import DrySink
 from engine.endpoints.base import Outbound
 from engine.running.observe import DELIVERED, Observers, RouteObserver, Tap

@@ -2,7 +2,7 @@
 
 Every key a route file may hold is declared once, as a field of an option class: each
 protocol's connection, source and sink options (``Transport.connection_options``,
-``source_options``, ``sink_options``), and the route file's own keys (engine/language/routes.py
+``source_options``, ``sink_options``), and the route file's own keys (engine/language/route_options.py
 ``RouteOptions``, ``ConnectionLimits``, ``LeaseOptions``; ``BufferOptions``,
 ``ThrottleOptions``, ``DeadLettersOptions`` in the modules that use them). This module puts
 them together into ``engine/language/route_file.schema.json``, which the loader validates with (so
@@ -27,7 +27,7 @@ from engine import endpoints
 from engine.common.options import property_schema, schema
 from engine.endpoints.base import Transport
 from engine.language.route_keys import render_keys
-from engine.language.routes import ENDPOINT_DESCRIPTION, NAME_PATTERN, ConnectionLimits, RouteOptions
+from engine.language.route_options import ENDPOINT_DESCRIPTION, NAME_PATTERN, ConnectionLimits, RouteOptions
 from engine.language.stage_options import DeadLettersOptions
 
 SCHEMA_PATH = Path(__file__).with_name("route_file.schema.json")

@@ -1,7 +1,7 @@
 """The options of the running engine's stages, declared where the route language reads them.
 
 A route file's ``buffer:``, ``dead_letters:``, ``fair:``, ``throttle:``, ``reply:`` and the
-delivery limits are parsed and checked by the route language (engine/language/routes.py) and
+delivery limits are parsed and checked by the route language (engine/language/routes.py and the modules it composes) and
 acted on by the running engine (engine/running/). Declaring them here, rather than beside the
 code that acts on them, keeps the import direction one way: the language never imports the
 running engine (tests/project/test_import_graph.py).

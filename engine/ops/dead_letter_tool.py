@@ -38,7 +38,8 @@ from typing import Any, Iterable, Sequence
 from engine import endpoints
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import DeadLetterReader, EndpointError, Inbound, NotSent, Outbound, StoredLetter
-from engine.language.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.language.specs import RoutesConfig, RouteSpec
 from engine.language.stores import Stores
 from engine.running.connections import ConnectionPool
 from engine.running.dead_letters import DeadLetterSpool, SpoolReader, default_spool_dir

@@ -28,10 +28,12 @@ from engine import endpoints
 from engine.common.schemas import SchemaRegistry
 from engine.common.suggest import did_you_mean
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound, Sink
+from engine.language.route_checks import source_meta_names
 from engine.language.route_yaml import Problem, parse_document
-from engine.language.yaml_bounds import FileTooLarge, read_bounded
-from engine.language.routes import RoutesConfig, RoutesInvalid, RouteSpec, load_routes, source_meta_names
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.language.specs import RoutesConfig, RouteSpec
 from engine.language.stores import Stores, remember_entries
+from engine.language.yaml_bounds import FileTooLarge, read_bounded
 from engine.running.dedupe import SeenKeys, key_text
 from engine.running.pipeline import ConversionError, Filtered, Pipeline
 from engine.running.replies import ReplyFailed

@@ -16,7 +16,7 @@ from typing import Awaitable, Callable, Iterable, Sequence
 from engine import endpoints
 from engine.common.backoff import Backoff
 from engine.endpoints.base import Connection, EndpointError
-from engine.language.routes import ConnectionSpec
+from engine.language.specs import ConnectionSpec
 from engine.running.plan import ConnectionKey, connection_key
 
 log = logging.getLogger("engine.running.runtime")

@@ -30,7 +30,7 @@ from engine.running.replies import ReplyShape
 from engine.running.throttle import Throttle
 
 if TYPE_CHECKING:
-    from engine.language.routes import RouteSpec
+    from engine.language.specs import RouteSpec
 
 __all__ = ["ConversionError", "Filtered", "Pipeline", "passes"]
 

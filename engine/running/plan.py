@@ -2,7 +2,7 @@
 
 :func:`plan_reload` compares the running configuration with a newly loaded one and says, for
 every route and every connection, what a reload must do. It is a pure function of two
-:class:`~engine.language.routes.RoutesConfig` values (fingerprints already cover the schema contents,
+:class:`~engine.language.specs.RoutesConfig` values (fingerprints already cover the schema contents,
 the key files and the connection settings), so it is tested on its own, as Vector's
 ``ConfigDiff`` is; :meth:`engine.running.runtime.Engine._apply` carries it out.
 
@@ -28,7 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Mapping
 
-from engine.language.routes import ConnectionSpec, RoutesConfig, RouteSpec
+from engine.language.specs import ConnectionSpec, RoutesConfig, RouteSpec
 
 ConnectionKey = tuple[str, str]
 """``(connection name, fingerprint)``: a connection whose settings change is another one."""

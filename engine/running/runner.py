@@ -48,7 +48,7 @@ from engine.running.pipeline import Filtered, Pipeline
 from engine.running.replies import Replies
 
 if TYPE_CHECKING:
-    from engine.language.routes import RouteSpec
+    from engine.language.specs import RouteSpec
 
 log = logging.getLogger("engine.running.runtime")
 

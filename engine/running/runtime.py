@@ -36,7 +36,8 @@ from engine import endpoints
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Connection, EndpointError
 from engine.language.route_yaml import Problem
-from engine.language.routes import RoutesConfig, RouteSpec, RoutesInvalid, load_routes
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.language.specs import RoutesConfig, RouteSpec
 from engine.language.stores import Stores
 from engine.running.buffer import Buffers
 from engine.running.connections import ConnectionPool

@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 from engine.common.schemas import SchemaRegistry
-from engine.language.routes import RoutesConfig, RoutesInvalid, load_routes
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.language.specs import RoutesConfig
 from engine.running.plan import ReloadPlan, plan_reload
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier

@@ -84,7 +84,7 @@ class _Queued:
 
 
 PRIORITIES = ("high", "normal", "low")
-"""A route's ``priority`` (engine/language/routes.py declares it); control frames go before all."""
+"""A route's ``priority`` (engine/language/route_options.py declares it); control frames go before all."""
 
 
 class MavlinkPort:
