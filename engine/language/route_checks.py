@@ -5,7 +5,8 @@ warnings (competing consumers, shadowed fields, captured variables). Composed in
 
 from __future__ import annotations
 
-from typing import Any, Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterator, Mapping
 
 from engine import endpoints
 from engine.common.placeholders import MappingError
@@ -67,57 +68,97 @@ def store_problems(recalls: list[tuple[Document, Path_, str, str | None]],
             yield document.problem(where, f"route {route!r}: recall({name!r}): no route remembers into store {name!r}{hint}")
 
 
-def route_checks(
-    document: Document,
-    where: Path_,
-    route: RouteOptions,
-    source: EndpointSpec | None,
-    sink: EndpointSpec | None,
-    complete: tuple[bool, bool],
-    schemas: SchemaRegistry,
-    problems: list[Problem],
-    warnings: list[Problem],
-    variables: Mapping[str, Any] = {},
-    has_agents: bool = False,
-) -> None:
+@dataclass(frozen=True)
+class CheckedRoute:
+    """One route as its checks see it: where it is written, its options, its two ends as far
+    as they parsed (``complete`` false for an end with an option at fault), its template."""
+
+    document: Document
+    where: Path_
+    route: RouteOptions
+    source: EndpointSpec | None
+    sink: EndpointSpec | None
+    complete: tuple[bool, bool]
+    schemas: SchemaRegistry
+    variables: Mapping[str, Any] = field(default_factory=dict)
+    """The route's template variables (its ``for_each`` item)."""
+    has_agents: bool = False
+    """Whether the directory has an agents table."""
+    expansion: Expansion | None = None
+    """How the route was expanded from a ``for_each`` template, if it was."""
+
+    def problem(self, key_path: Path_, message: str) -> Problem:
+        return self.document.problem(key_path, f"route {self.route.name!r}: {message}")
+
+
+Finding = tuple[Problem, bool]
+"""``(problem, is_error)``: an error stops the directory loading, a warning is shown by ``check``."""
+
+
+def route_checks(checked: CheckedRoute) -> Iterator[Finding]:
     """What can be known of a route before anything flows: its mappings compile and call
     known functions, its schema exists, its endpoints accept their options, a typed source
-    has the fields the mapping reads; and (warnings) the schema declares the keys it sets.
+    has the fields the mapping reads; and (warnings) the schema declares the keys it sets, a
+    template's variables shadow no field, a source's captures are meant.
     Each part is checked even when another failed, so one run shows every problem; an
     endpoint with an option at fault (``complete`` false) still tells the mapping check its
     type, but its transport's checks wait for the option to be fixed (they would only
     repeat the fault in other words)."""
-    name, mapping, sink_mapping = route.name, route.mapping, route.sink.get("mapping")
+    for check in _ERROR_CHECKS:
+        yield from ((problem, True) for problem in check(checked))
+    yield from _schema_checks(checked)
+    if checked.expansion is not None:
+        yield from ((problem, False) for problem in shadowing_warnings(
+            checked.document, checked.where, checked.route, checked.expansion, checked.schemas))
+        yield from ((problem, False) for problem in captured_warnings(
+            checked.document, checked.where, checked.route, checked.source, checked.expansion))
+
+
+def _mapping_checks(checked: CheckedRoute) -> Iterator[Problem]:
+    """The route's mappings (its own, the sink's, each ``remember`` value) compile."""
+    where, route = checked.where, checked.route
     values = [(remember_path(where, route, index) + ("value",), entry.value)
               for index, entry in enumerate(remember_entries(route.remember)) if entry.value is not None]
-    expressions = ((where + ("mapping",), mapping), (where + ("sink", "mapping"), sink_mapping), (where + ("when",), route.when),
-                   (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None))
-    for key_path, expression in (*expressions, *values):
+    for key_path, expression in (*_expressions(checked), *values):
         for message in _mapping_problems(expression):
-            problems.append(document.problem(key_path, f"route {name!r}: {message}"))
-    schema_name = route.schema
+            yield checked.problem(key_path, message)
+
+
+def _expressions(checked: CheckedRoute) -> tuple[tuple[Path_, str | None], ...]:
+    """The route's JMESPath expressions on its messages, each where it is written: its mapping,
+    its sink's, its ``when:`` and its ``dedupe:`` key."""
+    where, route = checked.where, checked.route
+    return ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping")),
+            (where + ("when",), route.when), (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None))
+
+
+def _schema_checks(checked: CheckedRoute) -> Iterator[Finding]:
+    """The schema is named and exists; what the mapping makes against what it declares."""
+    where, schemas, schema_name = checked.where, checked.schemas, checked.route.schema
     if schema_name is None:
-        problems.append(document.problem(where, f"route {name!r}: 'schema' is required (use raw_json to pass any object)"))
+        yield checked.problem(where, "'schema' is required (use raw_json to pass any object)"), True
     elif schemas.get(schema_name) is None:
-        problems.append(document.problem(where + ("schema",), f"route {name!r}: unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"))
+        yield checked.problem(where + ("schema",), f"unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"), True
     else:
-        for problem, error in schema_checks(document, where, route, sink, schemas, source_variables(source)):
-            (problems if error else warnings).append(problem)
-    _endpoint_checks(document, where, name, source if complete[0] else None, sink if complete[1] else None,
-                     mapping, sink_mapping, problems)
-    _reply_checks(document, where, route, source, sink, schemas, problems)
-    if source:  # fields a typed source does not have
-        for message in mapping_field_problems(source.protocol, source.options, mapping):
-            problems.append(document.problem(where + ("mapping",), f"route {name!r}: {message}"))
-        for key_path, expression in expressions:
-            for message in _meta_problems(source, expression, variables, has_agents):
-                problems.append(document.problem(key_path, f"route {name!r}: {message}"))
-        for index, entry in enumerate(remember_entries(route.remember)):  # a failed entry's value also reads meta('failure')
-            given = {**variables, FAILURE_META: None} if entry.when == "failed" else variables
-            for message in _meta_problems(source, entry.value, given, has_agents):
-                problems.append(document.problem(remember_path(where, route, index) + ("value",), f"route {name!r}: {message}"))
-        problems.extend(document.problem(where + ("fair",) + key, f"route {name!r}: fair: {message}")
-                        for key, message in _fair_problems(source, route.fair, variables))
+        yield from schema_checks(checked.document, where, checked.route, checked.sink, schemas, source_variables(checked.source))
+
+
+def _source_checks(checked: CheckedRoute) -> Iterator[Problem]:
+    """Fields a typed source does not have, ``meta(name)`` it never gives, ``fair:`` it cannot serve."""
+    source, where, route, variables, has_agents = checked.source, checked.where, checked.route, checked.variables, checked.has_agents
+    if source is None:
+        return
+    for message in mapping_field_problems(source.protocol, source.options, route.mapping):
+        yield checked.problem(where + ("mapping",), message)
+    for key_path, expression in _expressions(checked):
+        for message in _meta_problems(source, expression, variables, has_agents):
+            yield checked.problem(key_path, message)
+    for index, entry in enumerate(remember_entries(route.remember)):  # a failed entry's value also reads meta('failure')
+        given = {**variables, FAILURE_META: None} if entry.when == "failed" else variables
+        for message in _meta_problems(source, entry.value, given, has_agents):
+            yield checked.problem(remember_path(where, route, index) + ("value",), message)
+    for key, message in _fair_problems(source, route.fair, variables):
+        yield checked.problem(where + ("fair",) + key, f"fair: {message}")
 
 
 def remember_path(where: Path_, route: RouteOptions, index: int) -> Path_:
@@ -219,26 +260,25 @@ def shadowing_warnings(document: Document, where: Path_, route: RouteOptions, ex
                     f"(rename the variable to read the field at send time)"))
 
 
-def _reply_checks(document: Document, where: Path_, route: RouteOptions, source: EndpointSpec | None,
-                  sink: EndpointSpec | None, schemas: SchemaRegistry, problems: list[Problem]) -> None:
+def _reply_checks(checked: CheckedRoute) -> Iterator[Problem]:
     """``reply:`` needs a source that can answer its sender; its mapping compiles and reads only
     fields the sink's answer has (when the sink's transport knows them); its schema exists."""
-    reply, name = route.reply, route.name
+    reply, where, source, sink = checked.route.reply, checked.where, checked.source, checked.sink
     if reply is None:
         return
     if source is not None and not endpoints.transport(source.protocol).source_answers(source.options):
         able = [p for p in endpoints.PROTOCOLS if _replies(p)]
-        problems.append(document.problem(where + ("reply",), f"route {name!r}: reply: this {source.protocol} source cannot "
-                                                             f"answer its sender (protocols whose sources can: {', '.join(able)}; "
-                                                             "see Calls in route-language.md)"))
+        yield checked.problem(where + ("reply",), f"reply: this {source.protocol} source cannot "
+                                                  f"answer its sender (protocols whose sources can: {', '.join(able)}; "
+                                                  "see Calls in route-language.md)")
     for message in _mapping_problems(reply.mapping):
-        problems.append(document.problem(where + ("reply", "mapping"), f"route {name!r}: reply: {message}"))
+        yield checked.problem(where + ("reply", "mapping"), f"reply: {message}")
     if sink is not None:
         for message in reply_field_problems(sink.protocol, sink.options, reply.mapping):
-            problems.append(document.problem(where + ("reply", "mapping"), f"route {name!r}: reply: {message}"))
-    if reply.schema is not None and schemas.get(reply.schema) is None:
-        problems.append(document.problem(where + ("reply", "schema"), f"route {name!r}: reply: unknown schema {reply.schema!r}"
-                                                                      f"{did_you_mean(reply.schema, schemas.names())}"))
+            yield checked.problem(where + ("reply", "mapping"), f"reply: {message}")
+    if reply.schema is not None and checked.schemas.get(reply.schema) is None:
+        yield checked.problem(where + ("reply", "schema"), f"reply: unknown schema {reply.schema!r}"
+                                                           f"{did_you_mean(reply.schema, checked.schemas.names())}")
 
 
 def _replies(protocol: str) -> bool:
@@ -261,21 +301,15 @@ def _mapping_problems(expression: str | None) -> Iterator[str]:
     yield from literal_format_problems(expression)
 
 
-def _endpoint_checks(
-    document: Document,
-    where: Path_,
-    route: str,
-    source: EndpointSpec | None,
-    sink: EndpointSpec | None,
-    mapping: str | None,
-    sink_mapping: str | None,
-    problems: list[Problem],
-) -> None:
-    """The transport's own checks of each endpoint that parsed (the other may not have)."""
-    for side, spec, expression in (("source", source, mapping), ("sink", sink, sink_mapping)):
+def _endpoint_checks(checked: CheckedRoute) -> Iterator[Problem]:
+    """The transport's own checks of each endpoint that parsed completely (the other may not have)."""
+    route = checked.route
+    ends = (("source", checked.source if checked.complete[0] else None, route.mapping),
+            ("sink", checked.sink if checked.complete[1] else None, route.sink.get("mapping")))
+    for side, spec, expression in ends:
         if spec is None:
             continue
-        base = where + (side, spec.protocol)
+        base = checked.where + (side, spec.protocol)
         try:
             transport = endpoints.transport(spec.protocol)
             check = transport.check_source if side == "source" else transport.check_sink
@@ -284,4 +318,9 @@ def _endpoint_checks(
             results = [(None, str(exc))]
         for key, message in results:
             message += "" if "did you mean" in message else option_hint(spec.protocol, key, spec.options)
-            problems.append(document.problem(base + ((key,) if key else ()), f"route {route!r}: {side}: {message}"))
+            yield checked.problem(base + ((key,) if key else ()), f"{side}: {message}")
+
+
+_ERROR_CHECKS: tuple[Callable[[CheckedRoute], Iterator[Problem]], ...] = (_mapping_checks, _endpoint_checks, _reply_checks, _source_checks)
+"""Every check whose findings are all errors (the schema's checks, which also warn, are composed
+beside them in :func:`route_checks`). Problems are sorted when reported: the order is for reading."""

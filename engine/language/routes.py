@@ -5,6 +5,11 @@ line numbers, environment variables are substituted, the result is validated aga
 the route-file JSON Schema shipped with the package, and every route is checked
 (connections, JMESPath, schemas, endpoint options). All problems are collected, each
 as ``file:line: message``, so ``check`` and a reload report the same errors the same way.
+
+This module composes the steps; each concern has its own module: reading.py (the directory,
+``for_each`` files, the agents table), connection_loading.py (``connections:``, dead letters),
+endpoint_specs.py (a route's two ends, its placement), route_checks.py (the checks, as
+generators of problems), route_options.py (the keys declared) and specs.py (the values made).
 """
 
 from __future__ import annotations
@@ -14,7 +19,8 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import Any, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal, Mapping
 
 from engine import endpoints
 from engine.common.redaction import json_default, revealed
@@ -24,10 +30,10 @@ from engine.language.connection_loading import compile_connections, compile_dead
 from engine.language.endpoint_specs import endpoint_spec, hand_agents, parse_leniently, placement_of, route_to_sink
 from engine.language.mapping import recall_names
 from engine.language.reading import ROUTE_FILE_VALIDATOR, ItemFiles, document_items, read_agents_table, route_files, together_hint
-from engine.language.route_checks import captured_warnings, competing_consumers, remember_path, route_checks, shadowing_warnings, store_problems
+from engine.language.route_checks import CheckedRoute, competing_consumers, remember_path, route_checks, store_problems
 from engine.language.route_options import RouteOptions
 from engine.language.route_yaml import Document, Path_, Problem, parse_document
-from engine.language.specs import ConnectionSpec, EndpointSpec, RoutesConfig, RouteSpec
+from engine.language.specs import ConnectionSpec, EndpointSpec, Placement, RoutesConfig, RouteSpec
 from engine.language.stage_options import BufferSpec, DedupeSpec, RouteDelivery
 from engine.language.stores import RememberOptions, remember_entries
 from engine.language.templates import Expansion, expand_routes, is_items_text
@@ -104,90 +110,151 @@ def _compile_routes(
     warnings: list[Problem],
     table: agents_table.Table,
 ) -> dict[str, RouteSpec]:
+    """Every ``routes:`` item of every document compiled (:class:`_RouteCompiler`); then what
+    only the whole directory can tell: every store recalled is remembered into."""
+    compiler = _RouteCompiler(connections, schemas, problems, warnings, table)
     routes: dict[str, RouteSpec] = {}
-    defined: dict[str, tuple[str, int]] = {}
-    """Where each route name was first defined, whether or not that route compiled."""
-    recalls: list[tuple[Document, Path_, str, str | None]] = []
-    remembers: list[tuple[Document, Path_, RememberOptions]] = []
     for document in documents:
         for index, body in document_items(document, "routes", list):
-            where: Path_ = ("routes", index)
-            body = revealed(body)  # secrets belong to connections; route options are plain text
-            before = len(problems)
-            route, complete = parse_leniently(document, RouteOptions, body, where, problems)
-            if route is None:
-                continue
-            name = route.name
-            expansion: Expansion | None = document.expansions.get(index)
-            variables = dict(expansion.variables) if expansion is not None else {}
-            if name in defined:
-                first_file, first_line = defined[name]
-                template = " (a for_each route's name must hold a variable that differs by item)" if expansion is not None else ""
-                problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first_file}:{first_line}{together_hint(document, first_file)}{template}"))
-            defined.setdefault(name, (document.file, document.line(where)))
-            entries = remember_entries(route.remember)
-            remembers.extend((document, remember_path(where, route, index), entry) for index, entry in enumerate(entries))
-            for key_path, expression in ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping")),
-                                         (where + ("when",), route.when),
-                                         (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None),
-                                         *((remember_path(where, route, index) + ("value",), entry.value)
-                                           for index, entry in enumerate(entries))):
-                recalls.extend((document, key_path, name, store) for store in dict.fromkeys(recall_names(expression)))
-            agents_used: dict[str, Any] = {}
-            """The agents table's entries the route uses (by name; ``@connection`` its connection's table)."""
-            source, source_complete = endpoint_spec(document, where + ("source",), name, route.source, connections, problems,
-                                                table, agents_used)
-            sink, sink_complete = endpoint_spec(document, where + ("sink",), name, route.sink, connections, problems, table, agents_used)
-            source, sink = hand_agents(source, sink, route, variables, table, agents_used)
-            if not entries and sink is not None and not endpoints.transport(sink.protocol).delivers:
-                problems.append(document.problem(where + ("sink",), (
-                    f"route {name!r}: a {sink.protocol} sink delivers nowhere: the route needs remember: {{store: NAME}} "
-                    "(what it remembers is all it does)")))
-            mapping, schema_name, sink_mapping = route.mapping, route.schema, route.sink.get("mapping")
-            route_checks(document, where, route, source, sink, (source_complete, sink_complete), schemas, problems, warnings,
-                          variables, bool(table))
-            if expansion is not None:
-                warnings.extend(shadowing_warnings(document, where, route, expansion, schemas))
-                warnings.extend(captured_warnings(document, where, route, source, expansion))
-            if not (complete and source_complete and sink_complete):
-                continue
-            placement = placement_of(document, where, route, source, sink, connections, problems) if source and sink else None
-            if len(problems) > before or not (source and sink and placement):
-                continue
-            if placement.ordered:
-                source = EndpointSpec(source.protocol, source.connection, endpoints.transport(source.protocol).ordered_source(source.options))
-            sink = EndpointSpec(sink.protocol, sink.connection, route_to_sink(sink.options, route))
-            used = {source.connection: connections.get(source.connection), sink.connection: connections.get(sink.connection)}
-            schema = schemas.get(schema_name)
-            fingerprint = hashlib.sha256(
-                json.dumps(
-                    [body, {k: (v.fingerprint, v.max_message_bytes) if v else None for k, v in used.items()},
-                     schema.digest if schema else None,
-                     _reply_schema_digest(route, schemas)] + ([variables] if variables else [])
-                    + ([agents_used] if agents_used else []),
-                    sort_keys=True,
-                    default=json_default,
-                ).encode()
-            ).hexdigest()[:16]
-            delivery = RouteDelivery(
-                max_attempts=route.max_attempts,
-                overflow=route.overflow,
-                max_message_bytes=connections[source.connection].max_message_bytes,
-                sink_max_message_bytes=connections[sink.connection].max_message_bytes,
-                max_age_ns=None if route.max_age is None else int(route.max_age * 1e9),
-            )
-            buffer = BufferSpec.parse(route.buffer, endpoints.transport(source.protocol).redelivers(source.options), _base_dir(document.file))
-            if buffer is not None and buffer.spill_dir is not None and buffer.spill_dir.exists() and not buffer.spill_dir.is_dir():
-                problems.append(document.problem(where + ("buffer", "spill_dir"), f"route {name!r}: spill_dir {str(buffer.spill_dir)!r} is not a directory"))
-                continue
-            routes[name] = RouteSpec(
-                name, source, mapping, schema_name, sink, sink_mapping, fingerprint,
-                document.file, document.line(where), throttle=route.throttle, delivery=delivery, buffer=buffer,
-                placement=placement, reply=route.reply, variables=variables, fair=route.fair, remember=route.remember,
-                when=route.when, dedupe=DedupeSpec.parse(route.dedupe, name, _base_dir(document.file)),
-            )
-    problems.extend(store_problems(recalls, remembers))
+            spec = compiler.route(document, index, body)
+            if spec is not None:
+                routes[spec.name] = spec
+    problems.extend(store_problems(compiler.recalls, compiler.remembers))
     return routes
+
+
+@dataclass
+class _RouteCompiler:
+    """Compiles one ``routes:`` item at a time, in named steps (:meth:`route`), reporting into
+    the loader's ``problems`` and ``warnings``; it remembers across items what the directory
+    checks as a whole (names defined, stores remembered into and recalled)."""
+
+    connections: dict[str, ConnectionSpec]
+    schemas: SchemaRegistry
+    problems: list[Problem]
+    warnings: list[Problem]
+    table: agents_table.Table
+    defined: dict[str, tuple[str, int]] = field(default_factory=dict)
+    """Where each route name was first defined, whether or not that route compiled."""
+    recalls: list[tuple[Document, Path_, str, str | None]] = field(default_factory=list)
+    remembers: list[tuple[Document, Path_, RememberOptions]] = field(default_factory=list)
+
+    def route(self, document: Document, index: int, body: Any) -> RouteSpec | None:
+        """The route of item ``index``, or None after reporting why it cannot run. Every step
+        runs even after another reported a problem, so one load shows them all."""
+        where: Path_ = ("routes", index)
+        body = revealed(body)  # secrets belong to connections; route options are plain text
+        before = len(self.problems)
+        route, complete = parse_leniently(document, RouteOptions, body, where, self.problems)
+        if route is None:
+            return None
+        expansion: Expansion | None = document.expansions.get(index)
+        variables = dict(expansion.variables) if expansion is not None else {}
+        self._claim_name(document, where, route.name, expansion)
+        self._note_stores(document, where, route)
+        agents_used: dict[str, Any] = {}
+        """The agents table's entries the route uses (by name; ``@connection`` its connection's table)."""
+        source, sink, ends_complete = self._ends(document, where, route, variables, agents_used)
+        self._check_delivers(document, where, route, sink)
+        checked = CheckedRoute(document, where, route, source, sink, ends_complete, self.schemas, variables, bool(self.table), expansion)
+        for problem, error in route_checks(checked):
+            (self.problems if error else self.warnings).append(problem)
+        if not (complete and all(ends_complete)) or source is None or sink is None:
+            return None
+        placement = placement_of(document, where, route, source, sink, self.connections, self.problems)
+        if len(self.problems) > before or placement is None:
+            return None
+        source, sink = self._with_route_keys(route, source, sink, placement)
+        buffer = self._buffer(document, where, route, source)
+        if buffer is False:
+            return None
+        return RouteSpec(
+            route.name, source, route.mapping, route.schema, sink, route.sink.get("mapping"),
+            self._fingerprint(body, route, source, sink, variables, agents_used),
+            document.file, document.line(where), throttle=route.throttle, delivery=self._delivery(route, source, sink), buffer=buffer,
+            placement=placement, reply=route.reply, variables=variables, fair=route.fair, remember=route.remember,
+            when=route.when, dedupe=DedupeSpec.parse(route.dedupe, route.name, _base_dir(document.file)),
+        )
+
+    def _claim_name(self, document: Document, where: Path_, name: str, expansion: Expansion | None) -> None:
+        """A route name is unique across the directory."""
+        if name in self.defined:
+            first_file, first_line = self.defined[name]
+            template = " (a for_each route's name must hold a variable that differs by item)" if expansion is not None else ""
+            self.problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first_file}:{first_line}{together_hint(document, first_file)}{template}"))
+        self.defined.setdefault(name, (document.file, document.line(where)))
+
+    def _note_stores(self, document: Document, where: Path_, route: RouteOptions) -> None:
+        """The stores the route remembers into and those its mappings ``recall()`` (checked
+        against each other once every route is read: :func:`store_problems`)."""
+        entries = remember_entries(route.remember)
+        self.remembers.extend((document, remember_path(where, route, index), entry) for index, entry in enumerate(entries))
+        for key_path, expression in ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping")),
+                                     (where + ("when",), route.when),
+                                     (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None),
+                                     *((remember_path(where, route, index) + ("value",), entry.value)
+                                       for index, entry in enumerate(entries))):
+            self.recalls.extend((document, key_path, route.name, store) for store in dict.fromkeys(recall_names(expression)))
+
+    def _ends(self, document: Document, where: Path_, route: RouteOptions, variables: Mapping[str, Any],
+              agents_used: dict[str, Any]) -> tuple[EndpointSpec | None, EndpointSpec | None, tuple[bool, bool]]:
+        """``(source, sink, (source complete, sink complete))``, the agents they look up handed to them."""
+        source, source_complete = endpoint_spec(document, where + ("source",), route.name, route.source, self.connections,
+                                                self.problems, self.table, agents_used)
+        sink, sink_complete = endpoint_spec(document, where + ("sink",), route.name, route.sink, self.connections,
+                                            self.problems, self.table, agents_used)
+        source, sink = hand_agents(source, sink, route, variables, self.table, agents_used)
+        return source, sink, (source_complete, sink_complete)
+
+    def _check_delivers(self, document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None) -> None:
+        """A sink that delivers nowhere (a store's) makes sense only on a route that remembers."""
+        if not remember_entries(route.remember) and sink is not None and not endpoints.transport(sink.protocol).delivers:
+            self.problems.append(document.problem(where + ("sink",), (
+                f"route {route.name!r}: a {sink.protocol} sink delivers nowhere: the route needs remember: {{store: NAME}} "
+                "(what it remembers is all it does)")))
+
+    def _with_route_keys(self, route: RouteOptions, source: EndpointSpec, sink: EndpointSpec,
+                         placement: Placement) -> tuple[EndpointSpec, EndpointSpec]:
+        """The ends with what the route says that they act on: an ordered source (one consumer at
+        a time), the sink's priority, latest-only and max_age (:func:`route_to_sink`)."""
+        if placement.ordered:
+            source = EndpointSpec(source.protocol, source.connection, endpoints.transport(source.protocol).ordered_source(source.options))
+        return source, EndpointSpec(sink.protocol, sink.connection, route_to_sink(sink.options, route))
+
+    def _fingerprint(self, body: Any, route: RouteOptions, source: EndpointSpec, sink: EndpointSpec,
+                     variables: Mapping[str, Any], agents_used: Mapping[str, Any]) -> str:
+        """What identifies the route's running form: its item as written, its connections'
+        fingerprints and size limits, its schemas' contents, its template item and the agents
+        it uses; a reload restarts the routes whose fingerprint changed."""
+        used = {source.connection: self.connections.get(source.connection), sink.connection: self.connections.get(sink.connection)}
+        schema = self.schemas.get(route.schema) if route.schema is not None else None
+        return hashlib.sha256(
+            json.dumps(
+                [body, {k: (v.fingerprint, v.max_message_bytes) if v else None for k, v in used.items()},
+                 schema.digest if schema else None,
+                 _reply_schema_digest(route, self.schemas)] + ([variables] if variables else [])
+                + ([agents_used] if agents_used else []),
+                sort_keys=True,
+                default=json_default,
+            ).encode()
+        ).hexdigest()[:16]
+
+    def _delivery(self, route: RouteOptions, source: EndpointSpec, sink: EndpointSpec) -> RouteDelivery:
+        return RouteDelivery(
+            max_attempts=route.max_attempts,
+            overflow=route.overflow,
+            max_message_bytes=self.connections[source.connection].max_message_bytes,
+            sink_max_message_bytes=self.connections[sink.connection].max_message_bytes,
+            max_age_ns=None if route.max_age is None else int(route.max_age * 1e9),
+        )
+
+    def _buffer(self, document: Document, where: Path_, route: RouteOptions, source: EndpointSpec) -> BufferSpec | None | Literal[False]:
+        """Where messages wait while the sink is down (None: nowhere); False after a problem."""
+        buffer = BufferSpec.parse(route.buffer, endpoints.transport(source.protocol).redelivers(source.options), _base_dir(document.file))
+        if buffer is not None and buffer.spill_dir is not None and buffer.spill_dir.exists() and not buffer.spill_dir.is_dir():
+            self.problems.append(document.problem(where + ("buffer", "spill_dir"), f"route {route.name!r}: spill_dir {str(buffer.spill_dir)!r} is not a directory"))
+            return False
+        return buffer
 
 
 def _reply_schema_digest(route: RouteOptions, schemas: SchemaRegistry) -> str | None:
