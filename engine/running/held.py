@@ -1,0 +1,85 @@
+"""The route's face to its buffer (engine/running/buffer.py's ``BufferOwner``): sending what the
+buffer holds through the route's current pipeline, and counting (and answering the callers of)
+what it delivered, expired, conflated, lost or had rejected.
+
+A collaborator of the runner, not the runner itself, so the buffer sees only these calls; it
+reads the runner through :class:`~engine.running.route_state.RunningRoute` (the current
+pipeline: the buffer outlives a reload's runner).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+from engine.endpoints.base import Inbound, Outbound, Unroutable
+from engine.running.buffer import Held
+from engine.running.dead_lettering import DeadLettering
+from engine.running.delivery import classify
+from engine.running.route_state import Dead, RunningRoute
+
+
+class HeldMessages:
+    """What a route's buffer calls back: see the module docstring."""
+
+    def __init__(self, route: RunningRoute, dead_lettering: DeadLettering) -> None:
+        self.route = route
+        self.dead_lettering = dead_lettering
+
+    def sink_can_take(self) -> bool:
+        return self.route.sink_can_take()
+
+    async def send_held(self, messages: list[Outbound]) -> list[BaseException | None]:
+        for message in messages:
+            self.dead_lettering.reply_of(message)
+        pipeline = self.route.pipeline
+        pipeline.enter()
+        try:
+            results = await pipeline.sink.send_batch(messages)
+        finally:
+            pipeline.leave()
+        if results.count(None) != len(results):
+            self.route.observer.unroutable += sum(isinstance(result, Unroutable) for result in results)
+        return results
+
+    def held_delivered(self, held: list[Held]) -> None:
+        now_ns = time.time_ns()
+        observer, remember, dedupe = self.route.observer, self.route.pipeline.remember, self.route.pipeline.dedupe
+        keys = []
+        for outbound, received_at_ns in held:
+            observer.accepted(None, outbound, None if received_at_ns is None else now_ns - received_at_ns)
+            if remember is not None:
+                remember.on_accepted(outbound.canonical, outbound.meta)
+            if dedupe is not None and (key := dedupe.key(outbound.canonical, outbound.meta)) is not None:
+                keys.append(key)
+        if keys and dedupe is not None:
+            dedupe.keys.answered(keys)
+
+    def held_stale(self, held: Held) -> bool:
+        received_at_ns = held[1]
+        return received_at_ns is not None and self.route.too_old(time.time_ns() - received_at_ns)
+
+    def held_expired(self, held: list[Held]) -> None:
+        for outbound, _ in held:
+            self.route.observer.expire(None, outbound)
+            self.dead_lettering.expired_call(outbound)
+
+    def held_conflated(self, held: list[Held]) -> None:
+        for outbound, _ in held:
+            self.route.observer.conflate(None, outbound)
+            self.dead_lettering.ended_call(outbound, "latest_only", "conflated: a newer message with the same key was held "
+                                                                    "while the sink was down (buffer.latest_only)")
+
+    async def held_lost(self, held: list[Held]) -> None:
+        """The buffer closed (the route or the engine stopped) with calls held in memory only:
+        they can no longer be delivered, so each caller gets its one ``error`` reply now."""
+        error = "the route stopped before its sink could take it (held in memory, not spilled)"
+        replies, reply_of = self.route.replies, self.dead_lettering.reply_of
+        await asyncio.gather(*(replies.failed(reply_of(outbound), outbound.meta, "buffer", error)
+                               for outbound, _ in held if outbound.meta.get("reply_to")))
+
+    async def held_rejected(self, message: Outbound, error: BaseException, attempts: int) -> None:
+        """A held message the sink rejected, or kept failing while it could take messages."""
+        self.dead_lettering.reply_of(message)
+        inbound = Inbound(body=message.body, meta=dict(message.meta))
+        await self.dead_lettering.store([Dead(0, inbound, message, attempts, self.route.pipeline, classify(error, "sink"))], [False])
