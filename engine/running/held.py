@@ -13,7 +13,7 @@ import asyncio
 import time
 
 from engine.endpoints.base import Inbound, Outbound, Unroutable
-from engine.running.buffer import Held
+from engine.running.buffer_stores import Held
 from engine.running.dead_lettering import DeadLettering
 from engine.running.delivery import classify
 from engine.running.route_state import Dead, RunningRoute

@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound
-from engine.running.buffer import SEGMENT_MESSAGES, HoldingBuffer, decode, encode
+from engine.running.buffer import HoldingBuffer
+from engine.running.buffer_stores import SEGMENT_MESSAGES, decode, encode
 from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier

@@ -305,7 +305,7 @@ def test_a_sink_template_reads_the_captured_value_before_a_canonical_field() -> 
 def test_a_held_message_keeps_its_captured_values_on_disk() -> None:
     """A route's buffer spills held messages to disk: the captured values go with them, so the
     routing key rendered when the sink is back is the robot's."""
-    from engine.running.buffer import decode, encode
+    from engine.running.buffer_stores import decode, encode
 
     canonical = {"agent_id": "robot3", "lat": 1}
     held = decode(encode(Outbound(b'{"lat":1}', canonical, canonical, "id", {"topic": "/robot3/fix"}, captured={"agent": "robot3"})))
