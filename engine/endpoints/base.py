@@ -62,7 +62,7 @@ from engine.common.options import OptionError, describe, dotted, option, parse
 from engine.common.suggest import closest
 from engine.endpoints.errors import (Conflated, EndpointError, ExceptionTable, Expired, MessageRejected, NotSent, Unroutable,
                                      UnroutableRejected)
-from engine.endpoints.messages import FINAL_REPLIES, OVERFLOW_POLICIES, REPLY_KINDS, Inbound, Inbox, Outbound, Reply, late_window
+from engine.endpoints.messages import FINAL_REPLIES, OVERFLOW_POLICIES, REPLY_KINDS, Inbound, Inbox, Outbound, Reply, StoredLetter, late_window
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
@@ -70,7 +70,8 @@ if TYPE_CHECKING:
 __all__ = [  # the contract's errors (engine/endpoints/errors.py) and values (engine/endpoints/messages.py), named here too:
     # engine/endpoints/base.py is the one module protocol packages and the core import the contract from
     "Conflated", "EndpointError", "ExceptionTable", "Expired", "MessageRejected", "NotSent", "Unroutable", "UnroutableRejected",
-    "FINAL_REPLIES", "OVERFLOW_POLICIES", "REPLY_KINDS", "Inbound", "Inbox", "Outbound", "Reply", "late_window",
+    "FINAL_REPLIES", "OVERFLOW_POLICIES", "REPLY_KINDS", "Inbound", "Inbox", "Outbound", "Reply", "StoredLetter", "late_window",
+    "DeadLetterReader",
     "Deliver", "BatchReader", "Source", "Sink", "ConnectionMetric", "Connection", "Lease", "ELEMENT", "FieldPath", "FieldProblem",
     "CheckResult", "flat_field_problem", "EndpointOptions", "typed", "typed_or_problem", "Transport",
 ]
@@ -222,20 +223,6 @@ class ConnectionMetric:
     """``counter`` or ``gauge``"""
     value: float
     labels: tuple[tuple[str, str], ...] = ()
-
-
-@dataclass(eq=False)
-class StoredLetter:
-    """A dead letter as its store holds it: the body and headers :meth:`Connection.dead_letter`
-    (or the engine's spool) was given, when it was stored (seconds since the epoch, None when the
-    store does not say), and the store's handle for removing it."""
-
-    body: bytes
-    headers: Mapping[str, Any]
-    at: float | None = None
-    handle: Any = None
-    where: str = ""
-    """The store it is in, for operators (``amqp connection 'gcs'``, ``spool DIR``)."""
 
 
 class DeadLetterReader(ABC):

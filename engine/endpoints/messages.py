@@ -1,5 +1,6 @@
 """The contract's values (engine/endpoints/base.py): a message as a source received it
-(:class:`Inbound`), as a sink is given it (:class:`Outbound`, with its :class:`Reply`), and a
+(:class:`Inbound`), as a sink is given it (:class:`Outbound`, with its :class:`Reply`), as a
+dead-letter store holds it (:class:`StoredLetter`), and a
 push source's bounded queue (:class:`Inbox`). Protocol packages import them through
 engine/endpoints/base.py, the contract's one face.
 """
@@ -164,3 +165,17 @@ class Inbox(Generic[T]):
 
     def __len__(self) -> int:
         return len(self.items)
+
+
+@dataclass(eq=False)
+class StoredLetter:
+    """A dead letter as its store holds it: the body and headers :meth:`Connection.dead_letter`
+    (or the engine's spool) was given, when it was stored (seconds since the epoch, None when the
+    store does not say), and the store's handle for removing it."""
+
+    body: bytes
+    headers: Mapping[str, Any]
+    at: float | None = None
+    handle: Any = None
+    where: str = ""
+    """The store it is in, for operators (``amqp connection 'gcs'``, ``spool DIR``)."""
