@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any, Protocol, Sequence
 
 from engine.common.backoff import Backoff
 from engine.common.logs import ReportLimiter
-from engine.endpoints.base import (Connection, Conflated, EndpointError, Inbound, Inbox, MessageRejected, NotSent, Outbound, Source,
+from engine.endpoints.base import (Connection, Conflated, EndpointError, Inbound, Inbox, MessageRejected, NotSent, Outbound, Refused, Source,
                                    Unroutable)
 from engine.running.buffer import Buffers, Held, HoldingBuffer, stats_dict
 from engine.running.dead_letters import DeadLetters, dead_letter_message
@@ -389,9 +389,9 @@ class RouteRunner:
                 if message.dedupe_key is not None:
                     keys.append(message.dedupe_key)
                 continue
-            if message.dedupe_key is not None:
-                unsent.append(message.dedupe_key)
-            if isinstance(error, NotSent):  # the sink settled it unsent: conflated, or expired while it tried
+            if message.dedupe_key is not None:  # a refusal is an answer: its key is remembered as an acceptance's
+                (keys if isinstance(error, Refused) else unsent).append(message.dedupe_key)
+            if isinstance(error, NotSent):  # the sink settled it undelivered: refused, conflated, or expired while it tried
                 settled[message.index] = True
                 self._not_sent(error, message.inbound, message.outbound)
                 continue
@@ -414,8 +414,10 @@ class RouteRunner:
         return retry
 
     def _not_sent(self, outcome: NotSent, inbound: Inbound | None, outbound: Outbound) -> None:
-        """Count a message its sink settled without sending it (engine/endpoints/base.py)."""
-        if isinstance(outcome, Conflated):
+        """Count a message its sink settled without delivering it (engine/endpoints/base.py)."""
+        if isinstance(outcome, Refused):  # the sink replied with the refusal itself
+            self.observer.refuse(inbound, outbound)
+        elif isinstance(outcome, Conflated):
             self.observer.conflate(inbound, outbound)
         else:
             self.observer.expire(inbound, outbound)
@@ -485,6 +487,10 @@ class RouteRunner:
     def held_stale(self, held: Held) -> bool:
         received_at_ns = held[1]
         return received_at_ns is not None and self.too_old(time.time_ns() - received_at_ns)
+
+    def held_refused(self, held: list[Held]) -> None:
+        for outbound, _ in held:
+            self.observer.refuse(None, outbound)
 
     def held_expired(self, held: list[Held]) -> None:
         for outbound, _ in held:
