@@ -136,15 +136,15 @@ def test_a_command_to_a_vehicle_that_never_acknowledges_fails_within_its_bound_n
     assert "not acknowledged after" in found["letters"][0].headers["x-rabbitros-error"]
 
 
-def test_a_denied_command_is_a_reply_with_its_result_counted_refused_and_dead_letter_keeps_mains_way(
-        tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
-    """Two routes to one vehicle that answers every command DENIED: ``refusals`` by default
-    (reply) and ``refusals: dead_letter``."""
+@pytest.mark.parametrize("refusals", ["reply", "dead_letter"])
+def test_a_denied_command_is_a_reply_with_its_result_counted_refused_unless_dead_letter(
+        refusals: str, tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """A vehicle that answers every command DENIED; the route's ``refusals`` by default (reply),
+    and ``refusals: dead_letter`` (main's behaviour: an ``error`` reply and a dead letter)."""
     port = free_udp_port()
-    tag = uuid.uuid4().hex[:8]
-    answered, lettered = f"arm-{tag}", f"arm-dl-{tag}"
-    routes = write_routes(tmp_path, amqp_url, port, ARM.format(name=answered, options="") +
-                          ARM.format(name=lettered, options=", refusals: dead_letter"))
+    name = f"arm-{uuid.uuid4().hex[:8]}"
+    options = "" if refusals == "reply" else ", refusals: dead_letter"
+    routes = write_routes(tmp_path, amqp_url, port, ARM.format(name=name, options=options))
     found: dict[str, Any] = {}
 
     async def scenario() -> None:
@@ -159,23 +159,22 @@ def test_a_denied_command_is_a_reply_with_its_result_counted_refused_and_dead_le
             caller = await Caller.open(await client.channel())
             link = next(c for _, c in engine.connections.items() if c.name == "uav")
             await wait_for(lambda: link.has_heard(1, 1), 10, "the vehicle's HEARTBEAT")
-            channel = await client.channel()
-            dead = await Collector.bind(channel, "rabbitros.dead-letter", lettered)
-            dead_answered = await Collector.bind(channel, "rabbitros.dead-letter", answered)
-            first = await caller.call("", answered, command())
-            second = await caller.call("", lettered, command())
-            await caller.wait(lambda r: first in r and second in r, 20, "both replies")
-            found["replies"] = {"answered": reply_of(caller, first), "lettered": reply_of(caller, second)}
-            found["letters"] = await dead.wait_for(1, 10)
-            status = engine.status()["routes"]
-            found["routes"] = {"answered": status[answered], "lettered": status[lettered]}
+            dead = await Collector.bind(await client.channel(), "rabbitros.dead-letter", name)
+            call = await caller.call("", name, command())
+            await caller.wait(lambda r: call in r, 20, "the arm's reply")
+            found["reply"] = reply_of(caller, call)
+            route = lambda: engine.status()["routes"][name]  # noqa: E731
+            await wait_for(lambda: route().get("refused", 0) + route()["failed"] == 1, 10, "the arm settled", route)
+            if refusals == "dead_letter":
+                await dead.wait_for(1, 10)
+            found["route"] = route()
             async with aiohttp.ClientSession() as session:
                 async with session.get(f"http://127.0.0.1:{admin.port}/metrics") as response:
                     text = await response.text()
-            found["metrics"] = {(sample.labels["route"], sample.labels["outcome"]): sample.value
+            found["metrics"] = {sample.labels["outcome"]: sample.value
                                 for family in text_string_to_metric_families(text) for sample in family.samples
-                                if sample.name == "rabbitros_messages_total"}
-            found["dead_answered"] = len(dead_answered.messages)
+                                if sample.name == "rabbitros_messages_total" and sample.labels["route"] == name}
+            found["letters"] = [m.headers["x-rabbitros-error"] for m in dead.messages]
             found["commands"] = len(vehicle.arrivals)
         finally:
             vehicle.stop.set()
@@ -185,20 +184,21 @@ def test_a_denied_command_is_a_reply_with_its_result_counted_refused_and_dead_le
             vehicle.join(5)
 
     asyncio.run(asyncio.wait_for(scenario(), 90))
-    print(found["replies"])
+    print(found["reply"])
 
-    assert found["replies"]["answered"] == ("result", {"armed": False, "result": "MAV_RESULT_DENIED"})
-    route = found["routes"]["answered"]
-    assert (route["refused"], route["delivered"], route["failed"], route["retries"]) == (1, 0, 0, 0), route
-    assert found["metrics"][(answered, "refused")] == 1 and found["metrics"][(answered, "dead_lettered")] == 0
-    assert found["dead_answered"] == 0, "a refusal is no dead letter"
-
-    kind, body = found["replies"]["lettered"]
-    assert kind == "error" and "refused MAV_CMD_COMPONENT_ARM_DISARM: MAV_RESULT_DENIED" in body["error"], body
-    assert "MAV_RESULT_DENIED" in found["letters"][0].headers["x-rabbitros-error"]
-    route = found["routes"]["lettered"]
-    assert (route["refused"], route["failed"]) == (0, 1), route
-    assert found["commands"] == 2, "each refusal is final: sent once"
+    route = found["route"]
+    assert found["commands"] == 1, "a refusal is final: sent once"
+    if refusals == "reply":
+        assert found["reply"] == ("result", {"armed": False, "result": "MAV_RESULT_DENIED"})
+        assert (route["refused"], route["delivered"], route["failed"], route["retries"]) == (1, 0, 0, 0), route
+        assert found["metrics"]["refused"] == 1 and found["metrics"]["dead_lettered"] == 0, found["metrics"]
+        assert found["letters"] == [], "a refusal is no dead letter"
+    else:
+        kind, body = found["reply"]
+        assert kind == "error" and "refused MAV_CMD_COMPONENT_ARM_DISARM: MAV_RESULT_DENIED" in body["error"], body
+        assert len(found["letters"]) == 1 and "MAV_RESULT_DENIED" in found["letters"][0], found["letters"]
+        assert (route["refused"], route["failed"]) == (0, 1), route
+        assert found["metrics"]["refused"] == 0 and found["metrics"]["dead_lettered"] == 1, found["metrics"]
 
 
 PLAIN = """\
