@@ -60,7 +60,7 @@ from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterable, Mapping, Pr
 
 from engine.common.options import OptionError, describe, dotted, option, parse
 from engine.common.suggest import closest
-from engine.endpoints.errors import (Conflated, EndpointError, ExceptionTable, Expired, MessageRejected, NotSent, Unroutable,
+from engine.endpoints.errors import (Conflated, EndpointError, ExceptionTable, Expired, MessageRejected, NotSent, Refused, Unroutable,
                                      UnroutableRejected)
 from engine.endpoints.messages import FINAL_REPLIES, OVERFLOW_POLICIES, REPLY_KINDS, Inbound, Inbox, Outbound, Reply, StoredLetter, late_window
 
@@ -69,7 +69,7 @@ if TYPE_CHECKING:
 
 __all__ = [  # the contract's errors (engine/endpoints/errors.py) and values (engine/endpoints/messages.py), named here too:
     # engine/endpoints/base.py is the one module protocol packages and the core import the contract from
-    "Conflated", "EndpointError", "ExceptionTable", "Expired", "MessageRejected", "NotSent", "Unroutable", "UnroutableRejected",
+    "Conflated", "EndpointError", "ExceptionTable", "Expired", "MessageRejected", "NotSent", "Refused", "Unroutable", "UnroutableRejected",
     "FINAL_REPLIES", "OVERFLOW_POLICIES", "REPLY_KINDS", "Inbound", "Inbox", "Outbound", "Reply", "StoredLetter", "late_window",
     "DeadLetterReader",
     "Deliver", "BatchReader", "Source", "Sink", "ConnectionMetric", "Connection", "Lease", "ELEMENT", "FieldPath", "FieldProblem",

@@ -78,8 +78,8 @@ class ExceptionTable:
 
 
 class NotSent(Exception):
-    """Not a failure: the sink settled this message without sending it. A sink returns one of
-    the two kinds in ``send_batch``'s results; the route settles the message and counts it."""
+    """Not a failure: the sink settled this message without delivering it. A sink returns one
+    of the kinds below in ``send_batch``'s results; the route settles the message and counts it."""
 
 
 class Conflated(NotSent):
@@ -90,3 +90,11 @@ class Conflated(NotSent):
 class Expired(NotSent):
     """The message became older than its route's ``max_age`` while the sink was still
     trying to deliver it (a tunnel's retransmissions); counted ``expired``."""
+
+
+class Refused(NotSent):
+    """The destination answered, and its answer is no (a vehicle's COMMAND_ACK ``DENIED``): an
+    answer, not a failure, so not a dead letter. The sink has replied with the refusal already
+    (through the route's ``reply.mapping``, as any answer); the route counts it ``refused``.
+    Issue 31: as dead letters, every operator refusal filled the dead-letter queue and callers
+    had two reply shapes to handle."""

@@ -103,7 +103,7 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
     table = Table(expand=False, header_style="bold")
     columns: tuple[tuple[str, JustifyMethod], ...] = (
         ("route", "left"), ("state", "left"), ("recv/s", "right"), ("sent/s", "right"),
-        ("received", "right"), ("delivered", "right"), ("dead", "right"),
+        ("received", "right"), ("delivered", "right"), ("refused", "right"), ("dead", "right"),
         ("redelivered", "right"), ("conflated", "right"), ("expired", "right"), ("filtered", "right"),
         ("dup", "right"), ("dropped", "right"),
         ("last error", "left"))
@@ -126,7 +126,7 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
             state, error = "degraded", degraded
         row = [name, Text(state, "green" if state == "running" else "yellow"),
                _rate(route.get("received_per_s")), _rate(route.get("delivered_per_s")),
-               _count(messages.get("received")), _count(messages.get("delivered")),
+               _count(messages.get("received")), _count(messages.get("delivered")), _count(messages.get("refused")),
                _count(messages.get("dead_lettered")), _count(messages.get("redelivered")),
                _count(messages.get("conflated")), _count(messages.get("expired")), _count(messages.get("filtered")),
                _count(messages.get("duplicates")), _count(route.get("dropped")), Text(error, "red")]

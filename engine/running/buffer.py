@@ -59,7 +59,7 @@ from typing import Any, Awaitable, Callable, Protocol
 
 from engine.common.backoff import Backoff
 from engine.common.field_keys import slot_key
-from engine.endpoints.base import EndpointError, Expired, NotSent, Outbound
+from engine.endpoints.base import EndpointError, Expired, NotSent, Outbound, Refused
 from engine.language.stage_options import DEFAULT_MAX_MESSAGES, BufferSpec
 from engine.running.buffer_stores import Held, MemoryStore, SpillStore
 from engine.running.delivery import classify
@@ -93,6 +93,8 @@ class BufferStats:
     """Older than the route's ``max_age`` when their turn came: not sent."""
     conflated: int = 0
     """``latest_only``: a newer message with the same key was held too: not sent."""
+    refused: int = 0
+    """Sent, and refused by the destination (an answer, replied to the caller): settled."""
 
 
 class HoldingBuffer:
@@ -114,6 +116,7 @@ class HoldingBuffer:
         stale: Callable[[Held], bool] = lambda held: False,
         on_expired: Callable[[list[Held]], None] = lambda held: None,
         on_conflated: Callable[[list[Held]], None] = lambda held: None,
+        on_refused: Callable[[list[Held]], None] = lambda held: None,
         on_lost: Callable[[list[Held]], Awaitable[None]] | None = None,
     ) -> None:
         self.route = route
@@ -130,6 +133,7 @@ class HoldingBuffer:
         self._stale = stale
         self._on_expired = on_expired
         self._on_conflated = on_conflated
+        self._on_refused = on_refused
         self._on_lost = on_lost
         """Told of the messages held in memory only that a close lets go of (the route answers
         the calls among them with an error reply)."""
@@ -265,14 +269,15 @@ class HoldingBuffer:
         results = [None if i in sent_ahead or i in skipped else next(outcomes) for i in range(len(batch))]
         settled, failure = 0, None
         delivered: list[Held] = []
-        dropped: dict[str, list[Held]] = {"expired": [], "conflated": []}
+        dropped: dict[str, list[Held]] = {"expired": [], "conflated": [], "refused": []}
         for index, (held, result) in enumerate(zip(batch, results)):
             if index in skipped:
                 dropped[skipped[index]].append(held)
             elif result is None:
                 delivered.append(held)
             elif isinstance(result, NotSent):  # settled by the sink unsent; the route counts it
-                dropped["expired" if isinstance(result, Expired) else "conflated"].append(held)
+                kind = "expired" if isinstance(result, Expired) else "refused" if isinstance(result, Refused) else "conflated"
+                dropped[kind].append(held)
             elif classify(result).permanent:
                 await self._reject(held[0], result, self._head_attempts + 1)
             else:
@@ -302,10 +307,13 @@ class HoldingBuffer:
         if dropped:
             self.stats.expired += len(dropped["expired"])
             self.stats.conflated += len(dropped["conflated"])
+            self.stats.refused += len(dropped["refused"])
             if dropped["expired"]:
                 self._on_expired(dropped["expired"])
             if dropped["conflated"]:
                 self._on_conflated(dropped["conflated"])
+            if dropped["refused"]:
+                self._on_refused(dropped["refused"])
         self._update_room()
         self._head_attempts = 0
 
@@ -371,6 +379,8 @@ class BufferOwner(Protocol):
 
     def held_conflated(self, held: list[Held]) -> None: ...
 
+    def held_refused(self, held: list[Held]) -> None: ...
+
     async def held_lost(self, held: list[Held]) -> None: ...
 
 
@@ -414,6 +424,7 @@ class Buffers:
             latest_per=spec.latest_per, stale=lambda held: shared.owner.held_stale(held),
             on_expired=lambda held: shared.owner.held_expired(held),
             on_conflated=lambda held: shared.owner.held_conflated(held),
+            on_refused=lambda held: shared.owner.held_refused(held),
             on_lost=lambda held: shared.owner.held_lost(held),
         )
         shared = _Shared(buffer, owner)

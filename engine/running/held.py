@@ -59,6 +59,11 @@ class HeldMessages:
         received_at_ns = held[1]
         return received_at_ns is not None and self.route.too_old(time.time_ns() - received_at_ns)
 
+    def held_refused(self, held: list[Held]) -> None:
+        """Sent from the buffer and refused by the destination: the sink replied already."""
+        for outbound, _ in held:
+            self.route.observer.refuse(None, outbound)
+
     def held_expired(self, held: list[Held]) -> None:
         for outbound, _ in held:
             self.route.observer.expire(None, outbound)

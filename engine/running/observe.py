@@ -5,7 +5,8 @@ A route's :class:`RouteObserver` is the only place its message counts are kept: 
 ``/metrics`` and the taps all read these fields, so they cannot disagree. The route counts
 a message ``received`` once, when its source hands it over, and then exactly one of
 ``delivered`` (the sink took it, at once, after a throttle slot opened or from the buffer),
-``dead_lettered`` (per stage), ``conflated`` (a newer one replaced it under ``throttle``, or
+``refused`` (the destination answered no, a vehicle's DENIED: an answer, replied to the
+caller, not a dead letter), ``dead_lettered`` (per stage), ``conflated`` (a newer one replaced it under ``throttle``, or
 in the buffer under ``latest_only``), ``expired`` (older than the route's ``max_age`` when it
 would have been sent: never delivered), ``filtered`` (the route's ``when:`` said no),
 ``duplicates`` (its ``dedupe:`` key was accepted within the ttl), unless it is still in flight (parked, held in the buffer, being retried). Beside those:
@@ -47,12 +48,13 @@ import orjson
 from engine.endpoints.base import Inbound, Outbound
 from engine.running.recent import Fleet, RecentDeadLetters, is_position_schema
 
-RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES = (
-    "received", "delivered", "dead_lettered", "redelivered", "conflated", "expired", "dropped", "filtered", "duplicates")
-OUTCOMES = (RECEIVED, DELIVERED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES)
+RECEIVED, DELIVERED, REFUSED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES = (
+    "received", "delivered", "refused", "dead_lettered", "redelivered", "conflated", "expired", "dropped", "filtered",
+    "duplicates")
+OUTCOMES = (RECEIVED, DELIVERED, REFUSED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES)
 """The ``outcome`` label of ``rabbitros_messages_total`` and the keys of the status' ``messages``."""
-COUNTERS = ("received", "delivered", "failed", "conflated", "expired", "filtered", "duplicates", "retries", "sink_errors",
-            "unroutable", "dropped", "standby_skipped", "dead_letter_errors")
+COUNTERS = ("received", "delivered", "refused", "failed", "conflated", "expired", "filtered", "duplicates", "retries",
+            "sink_errors", "unroutable", "dropped", "standby_skipped", "dead_letter_errors")
 """The integer counters, as the status and the log's ``route counters`` line name them."""
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 """Seconds from reception to the sink's acceptance: sub-millisecond conversion on a LAN up to
@@ -93,6 +95,8 @@ class RouteObserver:
         self._fleet = fleet
         self.received = 0
         self.delivered = 0
+        self.refused = 0
+        """Messages the destination answered with a refusal (engine/endpoints/base.py ``Refused``)."""
         self.conflated = 0
         self.expired = 0
         self.filtered = 0
@@ -160,6 +164,12 @@ class RouteObserver:
         if self.taps:
             self._tap(inbound, outbound, REDELIVERED, error)
 
+    def refuse(self, inbound: Inbound | None, outbound: Outbound) -> None:
+        """The destination refused ``outbound`` (its answer went back to the caller)."""
+        self.refused += 1
+        if self.taps:
+            self._tap(inbound, outbound, REFUSED, None)
+
     def conflate(self, inbound: Inbound | None, outbound: Outbound) -> None:
         self.conflated += 1
         if self.taps:
@@ -207,6 +217,8 @@ class RouteObserver:
             self.accepted(inbound, outbound, time.monotonic_ns() - inbound.received_ns)
         elif outcome == REDELIVERED and outbound is not None and error is not None:
             self.retrying(inbound, outbound, error)
+        elif outcome == REFUSED and outbound is not None:
+            self.refuse(inbound, outbound)
         elif outcome == CONFLATED and outbound is not None:
             self.conflate(inbound, outbound)
         elif outcome == EXPIRED and outbound is not None:
@@ -257,7 +269,7 @@ class RouteObserver:
 
     def outcomes(self) -> dict[str, int]:
         """The counters by outcome (``rabbitros_messages_total``, the status' ``messages``)."""
-        return {RECEIVED: self.received, DELIVERED: self.delivered, DEAD_LETTERED: self.failed,
+        return {RECEIVED: self.received, DELIVERED: self.delivered, REFUSED: self.refused, DEAD_LETTERED: self.failed,
                 REDELIVERED: self.retries, CONFLATED: self.conflated, EXPIRED: self.expired,
                 DROPPED: self.dropped, FILTERED: self.filtered, DUPLICATES: self.duplicates}
 

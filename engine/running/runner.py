@@ -40,7 +40,7 @@ import logging
 import time
 from typing import TYPE_CHECKING, Any, Sequence
 
-from engine.endpoints.base import (Connection, Conflated, EndpointError, Inbound, Inbox, MessageRejected, NotSent, Outbound, Source,
+from engine.endpoints.base import (Connection, Conflated, EndpointError, Inbound, Inbox, MessageRejected, NotSent, Outbound, Refused, Source,
                                    Unroutable)
 from engine.running.buffer import HoldingBuffer
 from engine.running.dead_lettering import DeadLettering
@@ -332,9 +332,9 @@ class RouteRunner(RouteLifecycle):
                 if message.dedupe_key is not None:
                     keys.append(message.dedupe_key)
                 continue
-            if message.dedupe_key is not None:
-                unsent.append(message.dedupe_key)
-            if isinstance(error, NotSent):  # the sink settled it unsent: conflated, or expired while it tried
+            if message.dedupe_key is not None:  # a refusal is an answer: its key is remembered as an acceptance's
+                (keys if isinstance(error, Refused) else unsent).append(message.dedupe_key)
+            if isinstance(error, NotSent):  # the sink settled it undelivered: refused, conflated, or expired while it tried
                 settled[message.index] = True
                 self._not_sent(error, message.inbound, message.outbound)
                 continue
@@ -357,8 +357,10 @@ class RouteRunner(RouteLifecycle):
         return retry
 
     def _not_sent(self, outcome: NotSent, inbound: Inbound | None, outbound: Outbound) -> None:
-        """Count a message its sink settled without sending it (engine/endpoints/base.py)."""
-        if isinstance(outcome, Conflated):
+        """Count a message its sink settled without delivering it (engine/endpoints/base.py)."""
+        if isinstance(outcome, Refused):  # the sink replied with the refusal itself
+            self.observer.refuse(inbound, outbound)
+        elif isinstance(outcome, Conflated):
             self.observer.conflate(inbound, outbound)
         else:
             self.observer.expire(inbound, outbound)

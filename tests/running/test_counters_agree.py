@@ -115,7 +115,7 @@ def status(port: int, route: str) -> dict[str, Any]:
         document = json.loads(response.read())["routes"][route]
     by_outcome = document["messages"]
     assert by_outcome == {"received": document["received"], "delivered": document["delivered"],
-                          "dead_lettered": document["failed"], "redelivered": document["retries"],
+                          "refused": document["refused"], "dead_lettered": document["failed"], "redelivered": document["retries"],
                           "conflated": document["conflated"], "expired": document["expired"],
                           "dropped": document["dropped"], "filtered": document["filtered"],
                           "duplicates": document["duplicates"]}, document

@@ -112,13 +112,18 @@ class CommandVehicle(threading.Thread):
 class FleetVehicle(threading.Thread):
     """One of several vehicles sharing a link: system ``system_id`` (component 1) sends HEARTBEAT
     and GLOBAL_POSITION_INT (``time_boot_ms`` = sequence) at ``rate`` Hz from its own UDP socket
-    to the engine's ``udpin`` port, records the COMMAND_LONGs addressed to it and acknowledges
-    each (MAV_RESULT_ACCEPTED), and counts those addressed to another system (which a vehicle
-    ignores, as MAVLink routing says). Parsed with pymavlink alone."""
+    to the engine's ``udpin`` port, records the COMMAND_LONGs addressed to it (``arrivals``: their
+    ``time.monotonic()``) and acknowledges each with ``answer`` (MAV_RESULT_ACCEPTED; None: it never
+    answers, a vehicle whose uplink is lost while its telemetry still comes), counts those
+    addressed to another system (which a vehicle ignores, as MAVLink routing says) and the
+    engine's HEARTBEATs (``heartbeats``). Parsed with pymavlink alone."""
 
-    def __init__(self, system_id: int, port: int, rate: float = 20.0) -> None:
+    def __init__(self, system_id: int, port: int, rate: float = 20.0,
+                 answer: int | None = mavlink2.MAV_RESULT_ACCEPTED) -> None:
         super().__init__(daemon=True)
-        self.system_id, self.engine, self.rate = system_id, ("127.0.0.1", port), rate
+        self.system_id, self.engine, self.rate, self.answer = system_id, ("127.0.0.1", port), rate, answer
+        self.arrivals: list[float] = []
+        self.heartbeats = 0
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
         self.sock.settimeout(0.01)
@@ -151,6 +156,8 @@ class FleetVehicle(threading.Thread):
                 except (TimeoutError, OSError):
                     continue
                 for msg in mav.parse_buffer(data) or ():
+                    if msg.get_type() == "HEARTBEAT":
+                        self.heartbeats += 1
                     if msg.get_type() != "COMMAND_LONG":
                         continue
                     if msg.target_system != self.system_id:
@@ -158,6 +165,9 @@ class FleetVehicle(threading.Thread):
                         continue
                     with self.lock:
                         self.commands.append(msg)
-                    ack = mav.command_ack_encode(msg.command, mavlink2.MAV_RESULT_ACCEPTED, 0, 0,
+                        self.arrivals.append(time.monotonic())
+                    if self.answer is None:
+                        continue
+                    ack = mav.command_ack_encode(msg.command, self.answer, 0, 0,
                                                  msg.get_srcSystem(), msg.get_srcComponent())
                     self.sock.sendto(ack.pack(mav), peer)

@@ -20,10 +20,10 @@ from engine.endpoints.mavlink.transaction import TransactionOptions
 
 _SENDER = {"system_id", "component_id"}
 _TARGET = {"target_system", "target_component"}
-_TRANSACTION_OPTIONS = {"timeout", "retries", "vehicle_timeout"}
+_TRANSACTION_OPTIONS = {"timeout", "retries", "vehicle_timeout", "command_timeout"}
 _MISSION_ONLY = {"mission", "home_placeholder", "mission_type"}
 _MISSION_OPTIONS = {*_MISSION_ONLY, *_TARGET, *_TRANSACTION_OPTIONS}
-_COMMAND_OPTIONS = {"acknowledged", "in_progress_timeout", "retry_delay", *_TRANSACTION_OPTIONS}
+_COMMAND_OPTIONS = {"acknowledged", "in_progress_timeout", "retry_delay", "refusals", *_TRANSACTION_OPTIONS}
 
 # What each kind of endpoint reads: any other option would be silently ignored, so it is an error.
 _MESSAGE_SOURCE = {"message", "json_tunnel", *_SENDER}
@@ -42,6 +42,7 @@ _APPLIES_TO = {
     "acknowledged": "COMMAND_LONG and COMMAND_INT sinks",
     "in_progress_timeout": "acknowledged commands (acknowledged: true)",
     "retry_delay": "acknowledged commands (acknowledged: true)",
+    "refusals": "acknowledged commands (acknowledged: true)",
     **{key: "acknowledged commands (acknowledged: true) and missions (mission: upload)" for key in _TRANSACTION_OPTIONS},
     **{key: "mission sinks (mission: upload)" for key in _MISSION_ONLY},
 }

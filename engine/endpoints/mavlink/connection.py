@@ -274,6 +274,15 @@ class MavlinkConnection(Connection):
         else:
             seen.last_heard = time.monotonic()
 
+    def last_heard_text(self, system: int, component: int = 0) -> str:
+        """``vehicle 1/1 (uav1)`` with when it was last heard, for a failure's reason:
+        ``last heard 0.4 s ago`` or ``never heard (no HEARTBEAT)``."""
+        agent = self.agent_names.get(system)
+        heard_at = last_heard(self.seen.values(), system, component, self.config.source_system)
+        heard = "never heard (no HEARTBEAT)" if heard_at is None else \
+            f"last heard {time.monotonic() - heard_at:.1f} s ago"
+        return f"vehicle {system}/{component}{f' ({agent})' if agent else ''}, {heard}"
+
     def has_heard(self, system: int, component: int = 0) -> bool:
         return any(s == system and component in (0, c) for s, c in self.seen)
 

@@ -54,3 +54,6 @@ class SharedLink(Protocol):
 
     async def wait_for_vehicle(self, system: int, component: int, deadline: float) -> None:
         """Return once (system, component) was heard; EndpointError at ``deadline`` (loop time)."""
+
+    def last_heard_text(self, system: int, component: int = 0) -> str:
+        """The vehicle named (its agent too), with when its last HEARTBEAT came, for a reason."""

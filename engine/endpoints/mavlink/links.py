@@ -278,9 +278,20 @@ class UdpLink(Link):
             return
         peers = [addr for addr, seen in self.peers.items() if now - seen < PEER_TTL]
         if not peers:
-            raise EndpointError(f"udpin:{self.address.host}:{self.address.port} has not heard from any peer yet")
+            raise EndpointError(self._no_peer(now))
         for addr in peers:
             self._transport.sendto(data, addr)
+
+    def _no_peer(self, now: float) -> str:
+        """Why a ``udpin`` link has nowhere to write: nobody was ever heard, or every peer
+        expired (issue 31: it said "not heard from any peer yet" though it had)."""
+        where = f"udpin:{self.address.host}:{self.address.port}"
+        if not self.peers:
+            return f"{where} has not heard from any peer yet (a udpin link writes only to peers it has heard)"
+        last, heard = next(reversed(self.peers.items()))
+        peer = ":".join(map(str, last[:2])) if isinstance(last, tuple) else str(last)
+        return (f"{where}: no peer heard in the last {PEER_TTL:g} s (a peer expires {PEER_TTL:g} s after its last "
+                f"datagram); the last, {peer}, was heard {now - heard:.1f} s ago")
 
     async def close(self) -> None:
         """Return once the socket is closed, so the port is free for a connection that takes

@@ -19,8 +19,11 @@ MISSION_REQUEST is answered with the item asked for, repeats included; silence f
 timeout sends the last message again (``retries`` times; a SiK link needs ~1.5 s, not the
 protocol's 250 ms). MISSION_ACK ``MAV_MISSION_ACCEPTED`` completes the upload; any other result
 is permanent (:class:`MessageRejected` naming it), except ArduPilot's non-terminal
-``MAV_MISSION_INVALID_SEQUENCE`` during a transfer; no answer after the retries is transient
-(:class:`EndpointError`) and cancels the upload on the vehicle. One upload at a time per target.
+``MAV_MISSION_INVALID_SEQUENCE`` during a transfer. No answer after the retries, or for
+``command_timeout`` seconds (from when the route received the message, then from the vehicle's
+last answer: transaction.py), cancels the upload on the vehicle and is permanent too, naming the
+vehicle and when it was last heard: the route does not upload a stale mission later. One upload
+at a time per target.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
 from engine.endpoints.mavlink.codec import build_message, mavlink2, null_fields, null_problem
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name, enum_or_number
-from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions, per_target
+from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions, deadline, per_target
 
 ITEM = mavlink2.MAVLink_mission_item_int_message
 Targets = Callable[..., dict[str, int]]
@@ -221,16 +224,35 @@ class MissionUploadSink(Sink):
         connection, options = self.connection, self.options
         loop = asyncio.get_running_loop()
         canonical = message.canonical if isinstance(message.canonical, Mapping) else {}
+        bound = options.give_up_after(connection)
+        give_up = deadline(message.received_ns, bound)
         async with connection.transaction_lock(("mission", target)):
-            await connection.wait_for_vehicle(*target, loop.time() + options.vehicle_timeout)
+            try:
+                await connection.wait_for_vehicle(*target, min(loop.time() + options.vehicle_timeout, give_up))
+            except MessageRejected:
+                raise
+            except EndpointError:
+                if loop.time() < give_up:
+                    raise  # vehicle_timeout: transient, the route tries again within the bound
+                raise self._stale(target, len(items), bound, "not started: the vehicle was not heard") from None
+            if loop.time() >= give_up:
+                raise self._stale(target, len(items), bound, "not started: it waited for the previous upload")
             connection.mission_refs[target] = str(canonical.get("id") or message.message_id)
             async with Conversation(connection, target, _ANSWERS) as answers:
-                await self._upload(answers, items, target)
+                await self._upload(answers, items, target, give_up, bound)
         if message.reply is not None:  # a call: the vehicle's MISSION_ACK is the answer
             await message.reply("result", {"kind": "result", "result": "MAV_MISSION_ACCEPTED", "items": len(items)})
 
+    def _stale(self, target: tuple[int, int], items: int, bound: float, what: str) -> MessageRejected:
+        """The upload given up at its bound: permanent, so a stale mission is never uploaded later."""
+        connection = self.connection
+        connection.stats["mission_timeouts"] = connection.stats.get("mission_timeouts", 0) + 1
+        return MessageRejected(f"mavlink connection {connection.name!r}: {connection.last_heard_text(*target)}: the "
+                               f"mission upload ({items} items) {what} within command_timeout {bound:g} s; not sent "
+                               "again (a late vehicle must not fly a stale mission)")
+
     async def _upload(self, answers: Conversation, items: list[mavlink2.MAVLink_message],
-                      target: tuple[int, int]) -> None:
+                      target: tuple[int, int], give_up: float, bound: float) -> None:
         connection, options = self.connection, self.options
         stats = connection.stats
         target_system, target_component = target
@@ -238,20 +260,21 @@ class MissionUploadSink(Sink):
         last: mavlink2.MAVLink_message = mavlink2.MAVLink_mission_count_message(
             target_system, target_component, len(items), options.mission_type)
         await connection.send_message(last)
+        loop = asyncio.get_running_loop()
         tries, highest = 0, -1
+        wait_until = min(loop.time() + timeout, give_up)
         while True:
-            answer = await answers.next(timeout)
+            answer = await answers.next(max(0.0, wait_until - loop.time()))
             if answer is None:
                 tries += 1
-                if tries > options.retries:
-                    stats["mission_timeouts"] = stats.get("mission_timeouts", 0) + 1
+                if tries > options.retries or loop.time() >= give_up:
                     connection.post(mavlink2.MAVLink_mission_ack_message(
                         target_system, target_component, mavlink2.MAV_MISSION_OPERATION_CANCELLED, options.mission_type))
-                    raise EndpointError(f"mavlink connection {connection.name!r}: vehicle {target_system}/{target_component} "
-                                        f"did not answer the mission upload ({len(items)} items) after {options.retries} "
-                                        f"retries of {timeout:g} s (last: {last.get_type()})")
+                    raise self._stale(target, len(items), bound, f"got no answer to {last.get_type()} after {tries} "
+                                                                 f"send{'s' if tries > 1 else ''}")
                 stats["mission_resends"] = stats.get("mission_resends", 0) + 1
                 await connection.send_message(last)
+                wait_until = min(loop.time() + timeout, give_up)
                 continue
             if getattr(answer, "mission_type", options.mission_type) != options.mission_type:
                 continue
@@ -271,6 +294,8 @@ class MissionUploadSink(Sink):
                 continue  # a request for an item we never announced: the vehicle will time out or re-ask
             if seq > highest:
                 highest, tries = seq, 0
+            give_up = loop.time() + bound  # it answers: the upload progresses, it is not stale
             last = items[seq]
             stats["mission_items_sent"] = stats.get("mission_items_sent", 0) + 1
             await connection.send_message(last)
+            wait_until = min(loop.time() + timeout, give_up)

@@ -154,7 +154,9 @@ class MavlinkSinkOptions(MavlinkSourceOptions):
                                              "sink.mapping produces, with the MAVLink mission protocol, accepted once the "
                                              "vehicle's MISSION_ACK says so")
     acknowledged: bool = option(False, description="COMMAND_LONG/COMMAND_INT: accepted only once the target's COMMAND_ACK says "
-                                                   "MAV_RESULT_ACCEPTED; a refusal is dead-lettered, silence is retried")
+                                                   "MAV_RESULT_ACCEPTED; a refusal (DENIED, FAILED, UNSUPPORTED, "
+                                                   "TEMPORARILY_REJECTED) is an answer (see refusals); silence is sent "
+                                                   "again within command_timeout")
     home_placeholder: bool = option(False, description="mission: ArduPilot's seq-0 home item first")
     mission_type: str | int | None = option(None, description="mission: MAV_MISSION_TYPE_MISSION (default), _FENCE or _RALLY, "
                                                               "by name, short name (fence) or number")
@@ -164,7 +166,20 @@ class MavlinkSinkOptions(MavlinkSourceOptions):
                                                                           "timeout before the send fails (its source then "
                                                                           "redelivers); default 5")
     vehicle_timeout: float | None = option(None, description="acknowledged commands, missions: seconds to wait for a target not "
-                                                             "heard yet (no HEARTBEAT); default 10")
+                                                             "heard yet (no HEARTBEAT), within command_timeout; default 10")
+    command_timeout: float | None = option(None, description="acknowledged commands, missions: seconds from when the route "
+                                                             "received the message (a mission: from the vehicle's last "
+                                                             "answer) after which nothing more is sent and the message "
+                                                             "fails for good, naming the vehicle and when it was last "
+                                                             "heard: a late vehicle never acts on a stale command. >= 0.05; "
+                                                             "default (retries + 1) x timeout: 3 s on networks, 9 s on "
+                                                             "serial links")
+    refusals: str | None = option(None, schema={"enum": ["reply", "dead_letter"]},
+                                  description="acknowledged commands: what a refusal (COMMAND_ACK DENIED, FAILED, "
+                                              "UNSUPPORTED, or TEMPORARILY_REJECTED until command_timeout) is. reply "
+                                              "(default): an answer, replied through reply.mapping as {kind: result, "
+                                              "result: MAV_RESULT_DENIED, command} and counted refused, not a dead "
+                                              "letter; dead_letter: a dead letter naming the result")
     in_progress_timeout: float | None = option(None, description="acknowledged commands: how long MAV_RESULT_IN_PROGRESS extends "
                                                                  "the wait for the final COMMAND_ACK, seconds; default 30")
     retry_delay: float | None = option(None, description="acknowledged commands: seconds before sending again after "

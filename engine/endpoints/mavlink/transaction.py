@@ -4,11 +4,19 @@ queued while a transaction with it runs, and the typed options of both sinks.
 Timeouts suit the link: a SiK radio's TDM round is ~237 ms, so the mission protocol's 250 ms
 item timeout would fire on every item; serial links wait 1.5 s per answer (MAVROS: 1 s), networks
 0.5 s. A timeout is not an error: the last message is sent again, ``retries`` times.
+
+All of it within ``command_timeout`` seconds (:meth:`TransactionOptions.give_up_after`): a late
+vehicle never acts on a stale command. Issue 31: a command to a silent vehicle was answered only
+after 16.7 s, about 30 COMMAND_LONGs on the air: each send's retries, and then the route's
+delivery attempts sent it all again. Now nothing is sent once the bound has passed, counted from
+when the route received the message (a mission: from the vehicle's last answer, as an upload
+that progresses is not stale), and the failure is permanent, so the route does not send it again.
 """
 
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Awaitable, Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -22,6 +30,8 @@ if TYPE_CHECKING:
 
 SERIAL_TIMEOUT = 1.5
 NETWORK_TIMEOUT = 0.5
+REFUSALS = ("reply", "dead_letter")
+"""What an acknowledged command sink does with a refusal (DENIED, FAILED, UNSUPPORTED, ...)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,6 +49,10 @@ class TransactionOptions:
     """Commands: how long MAV_RESULT_IN_PROGRESS extends the wait for the final COMMAND_ACK."""
     retry_delay: float = 1.0
     """Commands: wait before resending after MAV_RESULT_TEMPORARILY_REJECTED."""
+    command_timeout: float | None = None
+    """Seconds after which nothing more is sent (see :meth:`give_up_after`); None: by link kind."""
+    refusals: str = "reply"
+    """Commands: ``reply`` (a refusal is an answer: replied, counted refused) or ``dead_letter``."""
     home_placeholder: bool = False
     mission_type: int = mavlink2.MAV_MISSION_TYPE_MISSION
 
@@ -51,6 +65,7 @@ class TransactionOptions:
         written = given(options)
         for key, kind, low in (("timeout", float, 0.05), ("retries", int, 0), ("vehicle_timeout", float, 0.0),
                                ("in_progress_timeout", float, 0.0), ("retry_delay", float, 0.0),
+                               ("command_timeout", float, 0.05),
                                ("target_system", int, 1), ("target_component", int, 0)):
             if key in written:
                 value = getattr(options, key)
@@ -60,6 +75,11 @@ class TransactionOptions:
                     problems.append((key, f"{key} must be {'an integer' if kind is int else 'a number'} >= {low}"))
                 else:
                     values[key] = kind(value)
+        if options.refusals is not None:
+            if options.refusals not in REFUSALS:
+                problems.append(("refusals", f"refusals must be one of {', '.join(REFUSALS)}"))
+            else:
+                values["refusals"] = options.refusals
         if "home_placeholder" in written:
             values["home_placeholder"] = options.home_placeholder
         if options.mission_type is not None:
@@ -77,9 +97,25 @@ class TransactionOptions:
             return self.timeout
         return SERIAL_TIMEOUT if connection.config.address.kind == "serial" else NETWORK_TIMEOUT
 
+    def give_up_after(self, connection: SharedLink) -> float:
+        """Seconds after which a command (or a mission upload without an answer) is given up:
+        ``command_timeout``, else every send's wait, ``(retries + 1) x timeout`` (3 s on
+        networks, 9 s on serial links with the defaults)."""
+        if self.command_timeout is not None:
+            return self.command_timeout
+        return (self.retries + 1) * self.answer_timeout(connection)
+
     @property
     def target(self) -> tuple[int, int]:
         return self.target_system, self.target_component
+
+
+def deadline(received_ns: int | None, seconds: float) -> float:
+    """The loop time ``seconds`` after the route received a message (``Outbound.received_ns``,
+    monotonic; now where it is not known)."""
+    loop_now, now_ns = asyncio.get_running_loop().time(), time.monotonic_ns()
+    age = 0.0 if received_ns is None else max(0.0, (now_ns - received_ns) / 1e9)
+    return loop_now - age + seconds
 
 
 M = TypeVar("M")

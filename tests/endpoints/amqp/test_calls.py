@@ -45,10 +45,12 @@ routes:
 
 def _impatient_arm_routes(tmp_path: Path, amqp_url: str, port: int, tag: str, route_keys: str) -> Path:
     """:func:`_routes` on ``udpin`` ``port`` whose arm route asks once (``retries: 0``, a 0.3 s
-    ``vehicle_timeout``) and has ``route_keys`` (indented YAML lines) besides."""
+    ``vehicle_timeout``) and has ``route_keys`` (indented YAML lines) besides. Its
+    ``command_timeout`` is 60 s: these tests are about what the route does with a call it holds
+    or retries (max_age, the buffer), not about the command's own bound (test_command_bounds.py)."""
     routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag)
     text = (routes / "routes.yaml").read_text().replace(
-        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3}").replace(
+        "acknowledged: true, retries: 2}", "acknowledged: true, retries: 0, vehicle_timeout: 0.3, command_timeout: 60}").replace(
         f"  - name: arm-{tag}\n", f"  - name: arm-{tag}\n{route_keys}")
     (routes / "routes.yaml").write_text(text)
     return routes
@@ -125,11 +127,11 @@ def test_arm_command_as_a_call_gets_mav_result_accepted_from_mavsdk(tmp_path: Pa
     assert (status["delivered"], status["failed"]) == (2, 1), status
 
 
-def test_denied_command_is_one_error_reply_and_a_mission_call_is_answered_through_the_reply_mapping(
+def test_denied_command_is_one_result_reply_and_a_mission_call_is_answered_through_the_reply_mapping(
         tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
-    """The simulated vehicle answers MAV_RESULT_DENIED: the caller gets one ``error`` reply naming
-    the result (the request is dead-lettered as before); the mission upload's answer goes through
-    the route's ``reply: {mapping}`` (a reply mapping failure would be an error reply too)."""
+    """The simulated vehicle answers MAV_RESULT_DENIED: the caller gets one ``result`` reply with
+    that result (a refusal is an answer, not a dead letter: issue 31); the mission upload's answer
+    goes through the route's ``reply: {mapping}`` (a reply mapping failure would be an error reply too)."""
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
     routes = _routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", tag, f"""\
@@ -154,8 +156,8 @@ def test_denied_command_is_one_error_reply_and_a_mission_call_is_answered_throug
             await running
 
     caller, arm, mission = run(scenario(), 60)
-    [(kind, error)] = [_reply(m) for m in caller.replies[arm]]
-    assert kind == "error" and error["stage"] == "sink" and "MAV_RESULT_DENIED" in error["error"], error
+    assert [_reply(m) for m in caller.replies[arm]] == [
+        ("result", {"kind": "result", "result": "MAV_RESULT_DENIED", "command": 400})]
     assert [_reply(m) for m in caller.replies[mission]] == [("result", {"accepted": True, "waypoints": len(WEEDS)})]
 
 

@@ -18,7 +18,7 @@ from typing import Any
 import aio_pika
 
 from engine.endpoints import mavlink
-from engine.endpoints.base import EndpointError, Outbound
+from engine.endpoints.base import MessageRejected, Outbound
 from engine.endpoints.mavlink.connection import MavlinkConnection
 from engine.running.runtime import Engine
 from rabbitros_sim.vehicle import SimVehicle
@@ -142,7 +142,7 @@ def test_a_silent_vehicle_does_not_hold_the_others_missions() -> None:
             await gcs.close()
 
     results = run(scenario(), 30)
-    assert isinstance(results[0], EndpointError) and "did not answer the mission upload" in str(results[0]), results
+    assert isinstance(results[0], MessageRejected) and "the mission upload (1 items) got no answer to MISSION_COUNT after 4 sends" in str(results[0]), results
     assert results[1:] == [None, None]
 
 
@@ -175,5 +175,6 @@ def test_a_silent_vehicle_does_not_hold_the_others_commands() -> None:
             await gcs.close()
 
     results = run(scenario(), 30)
-    assert isinstance(results[0], EndpointError) and "did not acknowledge" in str(results[0]), results
+    assert isinstance(results[0], MessageRejected) and "MAV_CMD_COMPONENT_ARM_DISARM not acknowledged after 4 sends" \
+        in str(results[0]), results
     assert results[1:] == [None, None]

@@ -226,11 +226,13 @@ def test_mission_over_lossy_sik_radio_arrives_complete_and_is_acked_once(tmp_pat
     assert (body["result"], body["detail"], body["ref_id"]) == ("accepted", "MAV_MISSION_ACCEPTED", mission["id"])
 
 
-# -- refusals through the engine: dead letters ---------------------------------------------------
+# -- refusals through the engine: dead letters where the route says so -----------------------------
 
 
 def test_refused_mission_and_command_are_dead_lettered_with_the_result_name(tmp_path: Path, amqp_url: str,
                                                                              schemas_dir: Path) -> None:
+    """A mission the vehicle refuses is a dead letter; so is a refused command on a route with
+    ``refusals: dead_letter`` (a refusal is an answer otherwise: test_command_bounds.py)."""
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
     routes = write_routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", amqp_route(
@@ -238,7 +240,7 @@ def test_refused_mission_and_command_are_dead_lettered_with_the_result_name(tmp_
     sink: {mavlink: {connection: uav, mission: upload}}
 """ + amqp_route("arm", tag, "command.uav1", "command") + """\
     sink:
-      mavlink: {connection: uav, message: COMMAND_INT, target_system: 1, acknowledged: true}
+      mavlink: {connection: uav, message: COMMAND_INT, target_system: 1, acknowledged: true, refusals: dead_letter}
       mapping: "{command: 'MAV_CMD_DO_REPOSITION', frame: `6`, x: deg_to_deg_e7(params.lat), y: deg_to_deg_e7(params.lon)}"
 """)
     command = {"type": "command", "agent_id": "uav1", "id": "c1", "stamp": canonical_stamp(), "command": "goto",
@@ -358,11 +360,11 @@ def test_each_waypoint_flies_in_the_frame_of_its_altitude_and_none_is_guessed(tm
     assert failed.endswith(f"expects the guess: expected it to pass, got a sink mapping error: {UNSAID['neither'][1]}"), failed
 
 
-def test_silent_vehicle_is_a_transient_failure_for_the_delivery_policy(tmp_path: Path, amqp_url: str,
-                                                                       schemas_dir: Path) -> None:
-    """No answer after the retries: the sink raises EndpointError, so the engine's delivery
-    policy decides. Today it redelivers without limit; with a max_attempts policy the message
-    ends as a dead letter naming the silence. Either way it is never acknowledged as delivered."""
+def test_a_mission_to_a_silent_vehicle_is_a_dead_letter_at_its_bound(tmp_path: Path, amqp_url: str,
+                                                                      schemas_dir: Path) -> None:
+    """No answer after the retries (within ``command_timeout``): the upload is cancelled on the
+    vehicle and the message is a dead letter at once, naming the vehicle and when it was last
+    heard; the route does not upload it again later (issue 31: a stale mission)."""
     port = free_udp_port()
     tag = uuid.uuid4().hex[:8]
     routes = write_routes(tmp_path / "routes", amqp_url, f"udpin:127.0.0.1:{port}", amqp_route(
@@ -382,8 +384,7 @@ def test_silent_vehicle_is_a_transient_failure_for_the_delivery_policy(tmp_path:
             dead = await Collector.bind(channel, "rabbitros.dead-letter", f"mission-{tag}")
             farm = await channel.declare_exchange(f"farm-{tag}", aio_pika.ExchangeType.TOPIC, durable=True)
             await farm.publish(aio_pika.Message(json.dumps(canonical_mission(WEEDS)).encode()), "mission.uav1")
-            route = lambda: engine.status()["routes"][f"mission-{tag}"]  # noqa: E731
-            await wait_for(lambda: route()["sink_errors"] >= 2 or bool(dead.messages), 30, "the delivery policy to retry")
+            await wait_for(lambda: bool(dead.messages), 30, "the dead letter")
             status = engine.status()
         finally:
             await engine.stop()
@@ -399,10 +400,11 @@ def test_silent_vehicle_is_a_transient_failure_for_the_delivery_policy(tmp_path:
 
     status, outcome, sim = run(scenario(), 60)
     route = status["routes"][f"mission-{tag}"]
-    assert route["delivered"] == 0 and route["sink_errors"] >= 1, route
-    assert len(outcome) == 1, "the message is either still queued for redelivery or dead-lettered, once"
-    if outcome[0] is not None:
-        assert "did not answer the mission upload" in outcome[0].headers["x-rabbitros-error"]
+    assert route["delivered"] == 0 and route["sink_errors"] == 0 and route["retries"] == 0, route
+    assert len(outcome) == 1 and outcome[0] is not None, "dead-lettered once, not queued again"
+    error = outcome[0].headers["x-rabbitros-error"]
+    assert "vehicle 1/1, last heard " in error and "the mission upload (3 items) got no answer to MISSION_COUNT after 3 sends" \
+        in error and "within command_timeout 0.6 s" in error, error
     assert sim.stats.missions_accepted == 0
 
 
@@ -461,9 +463,9 @@ def test_commands_in_progress_temporarily_rejected_and_silent() -> None:
             assert time.monotonic() - started >= 0.45 and sim.autopilot.armed
             await sink.send(outbound({"command": "MAV_CMD_DO_SET_SERVO", "param1": 9, "param2": 1500}))
             assert [c["confirmation"] for c in sim.autopilot.commands[1:]] == [0, 1], "resent after TEMPORARILY_REJECTED"
-            with pytest.raises(EndpointError, match="did not acknowledge MAV_CMD_NAV_RETURN_TO_LAUNCH") as error:
+            with pytest.raises(MessageRejected, match="MAV_CMD_NAV_RETURN_TO_LAUNCH not acknowledged after 3 sends within "
+                                                      "command_timeout 0.9 s"):
                 await sink.send(outbound({"command": 20}))
-            assert not isinstance(error.value, MessageRejected)
             assert [c["confirmation"] for c in sim.autopilot.commands[3:]] == [0, 1, 2], "confirmation counts resends"
             assert gcs.stats["commands_acknowledged"] == 2 and gcs.stats["command_timeouts"] == 1
 
@@ -549,7 +551,7 @@ def test_a_stale_accepted_ack_does_not_complete_an_upload() -> None:
             upload = asyncio.create_task(sink.send(outbound(canonical_mission(WEEDS))))
             await asyncio.sleep(0.1)
             sim.port.post(mavlink2.MAVLink_mission_ack_message(255, 190, mavlink2.MAV_MISSION_ACCEPTED, 0))
-            with pytest.raises(EndpointError, match="did not answer the mission upload"):
+            with pytest.raises(MessageRejected, match=r"the mission upload \(3 items\) got no answer to MISSION_COUNT"):
                 await upload
 
     run(scenario(), 20)
