@@ -119,6 +119,8 @@ class RouteOptions:
                                                description="run the route only on these engine instances (--instance NAME, default the host name)")
     active_standby: bool = option(False, description="every instance runs the source, only the holder of the broker lease forwards")
     lease: LeaseOptions | None = option(None)
+    record: bool = option(True, description="with --record DIR: record what the route receives and the canonical messages it "
+                                            "sends (MCAP, docs/operations.md); false leaves the route out of the recording")
 
 
 class RoutesInvalid(Exception):
@@ -191,6 +193,8 @@ class RouteSpec:
     """The route's condition (``when:``): messages it rejects are settled unsent, counted ``filtered``."""
     dedupe: DedupeSpec | None = field(default=None, compare=False)
     """The route's ``dedupe:`` (engine/running/dedupe.py), its key file resolved; the fingerprint covers it."""
+    record: bool = field(default=True, compare=False)
+    """Recorded under ``--record`` (engine/running/record.py); a change needs no restart of the route."""
 
 
 @dataclass(frozen=True)
@@ -687,6 +691,7 @@ def _compile_routes(
                 document.file, document.line(where), throttle=route.throttle, delivery=delivery, buffer=buffer,
                 placement=placement, reply=route.reply, variables=variables, fair=route.fair, remember=route.remember,
                 when=route.when, dedupe=DedupeSpec.parse(route.dedupe, name, _base_dir(document.file)),
+                record=route.record,
             )
     problems.extend(_store_problems(recalls, remembers))
     return routes

@@ -181,7 +181,7 @@ class RouteRunner:
         settled = [False] * len(inbounds)
         pipeline.enter()
         try:
-            self.observer.took(len(inbounds))
+            self.observer.took(len(inbounds), inbounds)
             dead: list[_Dead] = []
             pending = self._convert(pipeline, inbounds, settled, dead)
             if pending:
