@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.request
 import uuid
 from collections import Counter
 from pathlib import Path
@@ -26,6 +27,7 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
+from engine.common.processes import listening_port
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from tests.endpoints.mqtt.test_mqtt import publish
 from tests.support.amqp_helpers import Collector
@@ -94,7 +96,9 @@ def test_recording_counts_schemas_and_replay(tmp_path: Path, mosquitto: LocalMos
     tag = "r" + uuid.uuid4().hex[:8]
     routes = routes_dir(tmp_path, mosquitto, amqp_url, tag)
     record = tmp_path / "recording"
-    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--record", str(record))
+    port = listening_port()
+    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--record", str(record), "--admin", str(port))
+    metrics: list[str] = []
 
     async def traffic() -> int:
         connection = await aio_pika.connect_robust(amqp_url)
@@ -106,6 +110,8 @@ def test_recording_counts_schemas_and_replay(tmp_path: Path, mosquitto: LocalMos
             await collector.wait_for(N + 20)
             await wait_for(lambda: (engine.status() or {}).get("routes", {}).get("pos", {}).get("delivered") == N, 30,
                            "the pos route's delivered counter", lambda: engine.status())
+            metrics.append(await asyncio.to_thread(lambda: urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10)
+                                                   .read().decode()))
             return len(collector.messages)
 
     arrived, _ = engine.run(traffic)
@@ -114,6 +120,9 @@ def test_recording_counts_schemas_and_replay(tmp_path: Path, mosquitto: LocalMos
     counters = status["routes"]["pos"]
     assert counters["received"] == counters["delivered"] == N, counters
     assert status["recording"]["dropped"] == 0, status["recording"]
+    samples = [line for line in metrics[0].splitlines() if line.startswith("rabbitros_record")]
+    assert any(line.startswith("rabbitros_recorded_messages_total ") for line in samples), samples
+    assert not [line for line in samples if line.startswith("rabbitros_recording_dropped_total{")], samples  # none dropped
 
     files = sorted(record.glob("*.mcap"))
     assert len(files) == 1, files
@@ -195,5 +204,8 @@ def test_a_recording_engine_killed_with_9_leaves_all_but_the_last_second_readabl
     assert len(older) > 100, len(older)
     assert older <= recorded, sorted(older - recorded)[:10]
     assert older <= inputs, sorted(older - inputs)[:10]
+    replayed = replay(files[0], routes)  # replay reads a killed file the same way, up to its cut end
+    assert replayed.returncode == 0 and " 0 differ" in replayed.stdout, replayed.stdout + replayed.stderr
+    assert tail is None or "read up to the last whole chunk" in replayed.stderr, replayed.stderr
     print(f"kill -9: {len(arrivals)} delivered, {len(older)} older than 1 s all readable, {len(recorded)} canonical in the "
           f"file, tail: {tail}")
