@@ -25,8 +25,8 @@ from engine.ops.dead_letter_tool import run_command as run_dead_letters
 from engine.ops.dead_letter_tool import selection_of
 from engine.ops.local_broker import private_brokers, stand_in_for_check
 from engine.ops.opsview import AdminClient, print_status, print_tap
+from engine.ops.replay import run_from_recording, run_replay
 from engine.ops.route_tests import failing_tests, format_result, load_checked, run_tests
-from engine.ops.replay import run_replay
 from engine.running.loop import run as run_loop
 from engine.running.observe import COUNTERS
 from engine.running.record import Recorder, RecordLimits
@@ -133,6 +133,11 @@ def build_parser() -> argparse.ArgumentParser:
         "test", help="run the *.test.yaml cases through the routes' conversion, connecting to nothing; "
         "exit 0 when all pass, 1 when one fails, 2 when a route or test file is invalid")
     common(test)
+    test.add_argument("--from-recording", nargs="+", type=Path, metavar="FILE",
+                      help="instead of running the tests, print route tests (a *.test.yaml) made from a recording (--record): "
+                           "the first --count inputs of --route that were sent, each expecting its recorded canonical message")
+    test.add_argument("--route", metavar="NAME", help="with --from-recording: the route")
+    test.add_argument("--count", type=int, default=20, metavar="N", help="with --from-recording: at most N cases; default 20")
 
     replay = commands.add_parser(
         "replay", help="convert the inputs of a recording (--record) through the routes as they are now and compare each "
@@ -210,6 +215,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.local_broker:  # the private brokers' URLs are not known before they start: stand-ins no route file names
             stand_in_for_check()
         return check(args.routes, schema_directories(args))
+    if args.command == "test" and args.from_recording:
+        if not args.route:
+            print("test --from-recording needs --route NAME", file=sys.stderr)
+            return 2
+        return run_from_recording(args.from_recording, args.routes, schema_directories(args), args.route, args.count)
     if args.command == "test":
         return run_route_tests(args.routes, schema_directories(args))
     if args.command == "replay":

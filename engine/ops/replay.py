@@ -14,6 +14,9 @@ are filled as the engine filled them: each recorded message, in order.
 The files are read with the ``mcap`` library's :class:`~mcap.stream_reader.StreamReader`,
 record by record, so a file whose writer was killed (no summary, a chunk cut short at the
 end) is read up to its last whole chunk; the truncated tail is reported, not an error.
+
+``rabbitros-engine test --from-recording REC --route NAME --count N`` writes route test cases
+from the same pairs (:func:`recorded_cases`): field data as regression tests.
 """
 
 from __future__ import annotations
@@ -27,13 +30,14 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
+import yaml
 from mcap.exceptions import McapError
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Inbound
-from engine.language.routes import RoutesConfig
+from engine.language.routes import RoutesConfig, source_meta_names
 from engine.language.stores import Stores
 from engine.ops.route_tests import DrySink, _without, load_checked, same
 from engine.running.pipeline import ConversionError, Pipeline
@@ -207,3 +211,65 @@ def _diff(before: Any, now: Any) -> list[str]:
         return json.dumps(value, indent=2, sort_keys=True, ensure_ascii=False).splitlines()
 
     return list(difflib.unified_diff(lines(before), lines(now), "recorded", "now", lineterm="", n=2))
+
+
+def recorded_cases(recording: Recording, config: RoutesConfig, route: str, count: int) -> tuple[list[dict[str, Any]], int]:
+    """``test --from-recording``: route test cases (the ``*.test.yaml`` form, engine/ops/route_tests.py)
+    from the first ``count`` recorded inputs of ``route`` that were sent, each expecting the
+    canonical message recorded for it; and how many inputs could not be written as a case
+    (bytes that are not text)."""
+    spec = config.routes[route]
+    given = [name for name in source_meta_names(spec.source, {}) if name not in spec.variables]
+    recorded = recording.routes.get(route, RecordedRoute())
+    cases: list[dict[str, Any]] = []
+    unwritable = 0
+    for sequence, (log_time, envelope) in sorted(recorded.inputs.items()):
+        if len(cases) == count:
+            break
+        if sequence not in recorded.canonical:
+            continue
+        case: dict[str, Any] = {"name": f"recorded #{sequence} at "
+                                        f"{datetime.fromtimestamp(log_time / 1e9, timezone.utc).isoformat(timespec='milliseconds')}",
+                                "route": route}
+        if "fields" in envelope:
+            case["input"] = envelope["fields"]
+        elif "text" in envelope:
+            try:
+                case["input"] = json.loads(envelope["text"])
+            except ValueError:
+                case["input_raw"] = envelope["text"]
+        else:
+            unwritable += 1
+            continue
+        meta = {key: value for key, value in (envelope.get("meta") or {}).items() if key in given}
+        if meta:
+            case["meta"] = meta
+        case["expect"] = recorded.canonical[sequence]
+        cases.append(case)
+    return cases, unwritable
+
+
+def run_from_recording(paths: list[Path], routes: Path, schemas_dir: Path | Sequence[Path], route: str, count: int) -> int:
+    """Print the cases as a test file (YAML) on stdout; 2 when the route or the recording is not there."""
+    files = recording_files(paths)
+    if not files or not all(path.is_file() for path in files):
+        print(f"no recording: {' '.join(map(str, paths))}", file=sys.stderr)
+        return 2
+    config, _, problems, _ = load_checked(routes, SchemaRegistry(schemas_dir))
+    for problem in problems:
+        print(problem, file=sys.stderr)
+    if config is None or problems:
+        return 2
+    if route not in config.routes:
+        print(f"unknown route {route!r} in {routes}", file=sys.stderr)
+        return 2
+    cases, unwritable = recorded_cases(read_recording(files), config, route, count)
+    if not cases:
+        print(f"route {route!r}: no recorded message that was sent", file=sys.stderr)
+        return 2
+    if unwritable:
+        print(f"route {route!r}: {unwritable} inputs left out (bytes that are not UTF-8 text: no test input can hold them)",
+              file=sys.stderr)
+    print(f"# route tests from {', '.join(map(str, files))}: the canonical message each input made when it was recorded")
+    print(yaml.safe_dump({"tests": cases}, sort_keys=False, allow_unicode=True), end="")
+    return 0

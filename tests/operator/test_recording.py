@@ -163,6 +163,19 @@ def test_recording_counts_schemas_and_replay(tmp_path: Path, mosquitto: LocalMos
     assert named == of_b and len(of_b) == N // 2, (sorted(named)[:10], sorted(of_b)[:10])
     assert '"lat": 1.5' in changed.stdout and f"{N} messages compared: {N // 2} same, {N // 2} differ" in changed.stdout
 
+    made = subprocess.run([sys.executable, "-m", "engine", "test", "--from-recording", str(record), "--route", "pos", "--count", "10",
+                           "--routes", str(routes), "--schemas", str(REPO / "schemas")],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert made.returncode == 0, made.stderr
+    for directory in (routes, edited):
+        (directory / "recorded.test.yaml").write_text(made.stdout)
+    passing = subprocess.run([sys.executable, "-m", "engine", "test", "--routes", str(routes), "--schemas", str(REPO / "schemas")],
+                             cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert passing.returncode == 0 and "10 passed, 0 failed" in passing.stdout, passing.stdout + passing.stderr
+    failing = subprocess.run([sys.executable, "-m", "engine", "test", "--routes", str(edited), "--schemas", str(REPO / "schemas")],
+                             cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert failing.returncode == 1 and "5 passed, 5 failed" in failing.stdout, failing.stdout + failing.stderr
+
 
 def test_a_recording_engine_killed_with_9_leaves_all_but_the_last_second_readable(
         tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str) -> None:
