@@ -211,6 +211,11 @@ class Recorder:
                         self._remove_oldest()
             except OSError as error:  # a full or vanished disk: what was queued is lost, counted; try again
                 self._failed(error)
+            except Exception as error:  # a message the writer could not serialise: that one is lost, the thread goes on
+                self.write_errors += 1
+                if self.last_error != repr(error):
+                    log.exception("recording: a message could not be written")
+                self.last_error = repr(error)
             if stopping:
                 break
         try:
