@@ -40,7 +40,7 @@ from engine.endpoints.base import Inbound
 from engine.language.routes import RoutesConfig, source_meta_names
 from engine.language.stores import Stores
 from engine.ops.route_tests import DrySink, _without, load_checked, same
-from engine.running.pipeline import ConversionError, Pipeline
+from engine.running.pipeline import ConversionError, Filtered, Pipeline
 from engine.running.record import FILE_PATTERN
 
 _TOPIC_PREFIX = "/routes/"
@@ -148,6 +148,8 @@ def replay(recording: Recording, config: RoutesConfig, schemas: SchemaRegistry, 
                 error = None
             except ConversionError as failure:
                 now, error = None, f"{failure.stage} error: {failure.detail}"
+            except Filtered:
+                now, error = None, "message the route's when: rejects (nothing sent)"
             if before is None:
                 outcome.unsent += 1
                 continue
