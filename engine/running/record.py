@@ -26,6 +26,11 @@ got, the input is serialised by the writer) and a writer thread drains it every
 drops the recorded copy, counted per route (status and ``rabbitros_recording_dropped_total``),
 never the message. A route with ``record: false``, or an engine without ``--record``, has no
 :class:`RouteRecording` and pays one ``is None`` test per batch and per sent message.
+
+Cost (bench/bench_record.py, measured on a shared 2-CPU machine): the route's part 1.2 us a
+message; the writer thread about 8.5 us (``add_message`` 2.9 us each for the input and the
+canonical message, the input's envelope 0.7 us); end to end 11-30 % more engine CPU per message
+than without (74-105 us), above the issue's 10 % goal: the pure-Python writer is the lever left.
 """
 
 from __future__ import annotations
