@@ -303,6 +303,21 @@ class SchemaRegistry:
     def get(self, name: str) -> CanonicalSchema | None:
         return self._schemas.get(name)
 
+    def bundled(self, name: str) -> dict[str, Any] | None:
+        """Schema ``name`` as one self-contained document: every schema file its ``$ref``s reach
+        is embedded under ``$defs`` with its own ``$id``, so the references resolve without
+        the directory (a recording's channel schema, read by Foxglove or ``jsonschema``)."""
+        entry = self._schemas.get(name)
+        if entry is None or entry.path not in self._documents:
+            return None
+        root = self._documents[entry.path]
+        reached = [self._documents[self.files[relative].path] for relative in sorted(self._reached[f"{entry.name}.v{entry.version}"])
+                   if self.files[relative].path != entry.path and self.files[relative].path in self._documents]
+        if not reached:
+            return root
+        embedded = {f"bundled_{index}": document for index, document in enumerate(reached)}
+        return {**root, "$defs": {**root.get("$defs", {}), **embedded}}
+
 
 class Declared:
     """The object keys a schema declares, for ``check`` to warn about a key a mapping sets

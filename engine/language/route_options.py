@@ -86,3 +86,5 @@ class RouteOptions:
                                                description="run the route only on these engine instances (--instance NAME, default the host name)")
     active_standby: bool = option(False, description="every instance runs the source, only the holder of the broker lease forwards")
     lease: LeaseOptions | None = option(None)
+    record: bool = option(True, description="with --record DIR: record what the route receives and the canonical messages it "
+                                            "sends (MCAP, docs/operations.md); false leaves the route out of the recording")

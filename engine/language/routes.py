@@ -174,6 +174,7 @@ class _RouteCompiler:
             document.file, document.line(where), throttle=route.throttle, delivery=self._delivery(route, source, sink), buffer=buffer,
             placement=placement, reply=route.reply, variables=variables, fair=route.fair, remember=route.remember,
             when=route.when, dedupe=DedupeSpec.parse(route.dedupe, route.name, _base_dir(document.file)),
+            record=route.record,
         )
 
     def _claim_name(self, document: Document, where: Path_, name: str, expansion: Expansion | None) -> None:

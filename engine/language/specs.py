@@ -74,6 +74,8 @@ class RouteSpec:
     """The route's condition (``when:``): messages it rejects are settled unsent, counted ``filtered``."""
     dedupe: DedupeSpec | None = field(default=None, compare=False)
     """The route's ``dedupe:`` (engine/running/dedupe.py), its key file resolved; the fingerprint covers it."""
+    record: bool = field(default=True, compare=False)
+    """Recorded under ``--record`` (engine/running/record.py); a change needs no restart of the route."""
 
 
 @dataclass(frozen=True)

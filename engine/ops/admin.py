@@ -202,6 +202,15 @@ class EngineCollector:
         reloads.add_metric(["succeeded"], engine.reloads.succeeded)
         reloads.add_metric(["rejected"], engine.reloads.rejected)
         yield reloads
+        if engine.recorder is not None:  # --record (engine/running/record.py)
+            recording = engine.recorder.status()
+            yield CounterMetricFamily("rabbitros_recorded_messages", "Messages written to the recording (inputs and canonical)",
+                                      value=recording["written"])
+            recording_dropped = CounterMetricFamily("rabbitros_recording_dropped", "Recorded copies dropped: the writer fell "
+                                                    "behind (the messages themselves went on)", labels=["route"])
+            for name, count in sorted(recording["dropped_by_route"].items()):
+                recording_dropped.add_metric([name], count)
+            yield recording_dropped
         yield GaugeMetricFamily("rabbitros_config_generation", "Generation of the live configuration", value=engine.generation)
         up = GaugeMetricFamily("rabbitros_connection_up", "1 when the connection is up", labels=["connection", "protocol"])
         for name, health in sorted(connection_health(engine).items()):

@@ -25,14 +25,16 @@ from engine.ops.dead_letter_tool import run_command as run_dead_letters
 from engine.ops.dead_letter_tool import selection_of
 from engine.ops.local_broker import private_brokers, stand_in_for_check
 from engine.ops.opsview import AdminClient, print_status, print_tap
+from engine.ops.replay import run_from_recording, run_replay
 from engine.ops.route_tests import failing_tests, format_result, load_checked, run_tests
 from engine.running.loop import run as run_loop
 from engine.running.observe import COUNTERS
+from engine.running.record import Recorder, RecordLimits
 from engine.running.runtime import Engine
 from engine.running.watch import watch_routes
 
 log = logging.getLogger("engine.ops.cli")
-COMMANDS = ("run", "check", "test", "status", "tap", "dead-letters")
+COMMANDS = ("run", "check", "test", "replay", "status", "tap", "dead-letters")
 
 
 def default_schemas(routes: Path) -> Path:
@@ -76,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Routes messages between " + ", ".join(endpoints.PROTOCOLS) + " endpoints as declared in YAML route files.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    commands = parser.add_subparsers(dest="command", metavar="{run,check,test,status,tap,dead-letters}", title="commands")
+    commands = parser.add_subparsers(dest="command", metavar="{run,check,test,replay,status,tap,dead-letters}", title="commands")
 
     def common(sub: argparse.ArgumentParser) -> None:
         sub.add_argument("--routes", type=Path, default=Path("routes"), metavar="DIR", help="routes directory (or one file); default ./routes")
@@ -111,6 +113,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--log-format", default="text", choices=["text", "json"],
                      help="text lines, or one JSON object per line (for a log collector); default text")
     run.add_argument("--require-connections", action="store_true", help="exit 1 when a connection cannot be opened at start (default: retry it in the background while the other routes run)")
+    run.add_argument("--record", type=Path, metavar="DIR",
+                     help="record what every route receives and the canonical messages it sends in MCAP files in DIR "
+                          "(routes with record: false left out; docs/operations.md)")
+    run.add_argument("--record-file-mb", type=float, default=256.0, metavar="MB", help="with --record: start a new file past this size; default 256")
+    run.add_argument("--record-file-minutes", type=float, default=60.0, metavar="MINUTES",
+                     help="with --record: start a new file once one is this old; default 60")
+    run.add_argument("--record-total-mb", type=float, default=4096.0, metavar="MB",
+                     help="with --record: remove the oldest files while the recordings exceed this; default 4096")
     run.add_argument("--drain-timeout", type=float, default=10.0, metavar="SECONDS", help="seconds a stop (SIGTERM, SIGINT) waits for in-flight messages before requeueing the rest; default 10")
     parser.run_parser = run
 
@@ -123,6 +133,21 @@ def build_parser() -> argparse.ArgumentParser:
         "test", help="run the *.test.yaml cases through the routes' conversion, connecting to nothing; "
         "exit 0 when all pass, 1 when one fails, 2 when a route or test file is invalid")
     common(test)
+    test.add_argument("--from-recording", nargs="+", type=Path, metavar="FILE",
+                      help="instead of running the tests, print route tests (a *.test.yaml) made from a recording (--record): "
+                           "the first --count inputs of --route that were sent, each expecting its recorded canonical message")
+    test.add_argument("--route", metavar="NAME", help="with --from-recording: the route")
+    test.add_argument("--count", type=int, default=20, metavar="N", help="with --from-recording: at most N cases; default 20")
+
+    replay = commands.add_parser(
+        "replay", help="convert the inputs of a recording (--record) through the routes as they are now and compare each "
+        "canonical message with the recorded one; connects to nothing; exit 0 when none differs, 1 when one does, 2 when invalid")
+    replay.add_argument("recording", nargs="+", type=Path, metavar="FILE", help="MCAP files of --record (a directory: all its recordings)")
+    common(replay)
+    replay.add_argument("--route", metavar="NAME", help="replay this route only")
+    replay.add_argument("--ignore", action="append", default=[], metavar="KEY",
+                        help="leave this key (a.b) of the canonical messages out of the comparison, e.g. what a mapping takes "
+                             "from the clock (stamp()); repeatable")
 
     status = commands.add_parser("status", help="the live status of a running engine: a table from its admin endpoint, or the JSON of its status file")
     where = status.add_mutually_exclusive_group(required=True)
@@ -190,8 +215,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.local_broker:  # the private brokers' URLs are not known before they start: stand-ins no route file names
             stand_in_for_check()
         return check(args.routes, schema_directories(args))
+    if args.command == "test" and args.from_recording:
+        if not args.route:
+            print("test --from-recording needs --route NAME", file=sys.stderr)
+            return 2
+        return run_from_recording(args.from_recording, args.routes, schema_directories(args), args.route, args.count)
     if args.command == "test":
         return run_route_tests(args.routes, schema_directories(args))
+    if args.command == "replay":
+        return run_replay(args.recording, args.routes, schema_directories(args), args.route, tuple(args.ignore))
     if args.command == "status":
         if args.admin:
             client = _client(args)
@@ -321,8 +353,11 @@ def _protocols_used(args: argparse.Namespace) -> set[str] | None:
 
 
 async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> int:
+    recorder = None if args.record is None else Recorder(args.record, RecordLimits(
+        file_bytes=int(args.record_file_mb * 2**20), file_seconds=args.record_file_minutes * 60,
+        total_bytes=int(args.record_total_mb * 2**20)))
     engine = Engine(args.routes, schema_directories(args), require_connections=args.require_connections,
-                    instance=args.instance, vet=failing_tests if args.test_on_reload else None)
+                    instance=args.instance, vet=failing_tests if args.test_on_reload else None, recorder=recorder)
     admin = AdminServer(engine, args.admin[0], args.admin[1], access) if args.admin else None
     if admin is not None:
         try:
@@ -331,10 +366,18 @@ async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> 
             log.error("admin endpoint cannot listen", extra={"address": "%s:%s" % args.admin, "error": str(exc)})
             return 1
     try:
+        if recorder is not None:
+            try:
+                recorder.start()
+            except OSError as exc:
+                log.error("cannot record", extra={"directory": str(args.record), "error": str(exc)})
+                return 2
         return await _serve(args, engine)
     finally:
         if admin is not None:
             await admin.stop()
+        if recorder is not None:  # after the routes stopped: what they sent last is in the file, which gets its summary
+            await asyncio.to_thread(recorder.stop)
 
 
 async def _serve(args: argparse.Namespace, engine: Engine) -> int:

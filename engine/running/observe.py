@@ -18,6 +18,9 @@ unsettled at stop), ``dropped_by_agent`` (the part of ``dropped`` a ``fair:`` ro
 per-agent queues dropped, by agent: engine/running/fairness.py), ``standby_skipped`` and
 ``dead_letter_errors``.
 
+A recording (``--record``, engine/running/record.py) is one more observer of the same calls:
+what ``took`` and ``accepted`` see is handed to its queue.
+
 The calls are the whole cost on the hot path: a few integer increments and, for delivered
 messages, a bisect into the latency buckets. Nothing is formatted or logged per message;
 the Prometheus collector and ``/status`` read these counters when asked. A tap
@@ -41,12 +44,15 @@ import asyncio
 import time
 from bisect import bisect_left
 from collections import deque
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import orjson
 
 from engine.endpoints.base import Inbound, Outbound
 from engine.running.recent import Fleet, RecentDeadLetters, is_position_schema
+
+if TYPE_CHECKING:
+    from engine.running.record import RouteRecording
 
 RECEIVED, DELIVERED, REFUSED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES = (
     "received", "delivered", "refused", "dead_lettered", "redelivered", "conflated", "expired", "dropped", "filtered",
@@ -128,6 +134,9 @@ class RouteObserver:
         self.tap_dropped = 0
         self.generation: Callable[[], int] = lambda: 0
         """Set by the runner: the generation of the pipeline converting now."""
+        self.recording: RouteRecording | None = None
+        """Set by the engine under ``--record`` (engine/running/record.py), unless the route says
+        ``record: false``: it gets what the route received and the canonical messages it sent."""
 
     @property
     def failed(self) -> int:
@@ -135,8 +144,10 @@ class RouteObserver:
 
     # -- the hot path: integer increments, and a tap line only while a tap is attached
 
-    def took(self, count: int) -> None:
+    def took(self, count: int, inbounds: Sequence[Inbound] = ()) -> None:
         self.received += count
+        if self.recording is not None:
+            self.recording.received(inbounds)
 
     def agent_dropped(self, agent: Any, count: int = 1) -> None:
         """A fair route dropped ``count`` of ``agent``'s messages (counted in ``dropped`` too)."""
@@ -155,6 +166,8 @@ class RouteObserver:
         self.last_at = time.time()
         if self.fleet is not None:
             self.fleet.heard(outbound.canonical, self.route, self.last_at)
+        if self.recording is not None:
+            self.recording.sent(outbound)
         if self.taps:
             self._tap(inbound, outbound, DELIVERED, None)
 

@@ -131,7 +131,7 @@ class RouteRunner(RouteLifecycle):
         settled = [False] * len(inbounds)
         pipeline.enter()
         try:
-            self.observer.took(len(inbounds))
+            self.observer.took(len(inbounds), inbounds)
             dead: list[Dead] = []
             pending = self._convert(pipeline, inbounds, settled, dead)
             if pending:

@@ -40,6 +40,7 @@ from engine.language.routes import RoutesInvalid, load_routes
 from engine.language.specs import RoutesConfig, RouteSpec
 from engine.language.stores import Stores
 from engine.running.buffer import Buffers
+from engine.running.record import Recorder
 from engine.running.connections import ConnectionPool
 from engine.running.dead_letters import DeadLetters
 from engine.running.dedupe import DedupeKeys
@@ -100,6 +101,7 @@ class Engine:
     def __init__(
         self, routes_dir: Path, schemas_dirs: Path | Sequence[Path], require_connections: bool = False,
         instance: str | None = None, vet: Callable[[RoutesConfig, SchemaRegistry], list[Problem]] | None = None,
+        recorder: Recorder | None = None,
     ) -> None:
         self.routes_dir = routes_dir
         self.vet = vet
@@ -122,6 +124,8 @@ class Engine:
         self.leases = Leases(self.instance)
         self.observers = Observers()
         """Per-route counters for the log, status, metrics and taps, kept across reloads."""
+        self.recorder = recorder
+        """``--record``: what the routes receive and send, in MCAP files (engine/running/record.py)."""
         self.stores = Stores()
         """The latest-value stores and sequences mappings read (engine/language/stores.py), kept across reloads."""
         self.dedupe = DedupeKeys()
@@ -274,6 +278,7 @@ class Engine:
             await pipeline.sink.close()
             raise
         runner = RouteRunner(self, spec, pipeline, source, [source_connection, sink_connection])
+        self._record(spec, schemas)  # before its source starts: every message it takes is recorded
         if spec.placement.active_standby:
             await self._take_lease(runner, config)
         return runner
@@ -325,7 +330,17 @@ class Engine:
             await self._undo(change)
             raise
         stopped = await self._commit(change)
+        for spec in change.config.routes.values():  # a kept route's record: or schema may have changed
+            self._record(spec, change.schemas)
         await self._retire(change, stopped)
+
+    def _record(self, spec: RouteSpec, schemas: SchemaRegistry) -> None:
+        """Give the route's observer its recording (``--record``), or none (``record: false``)."""
+        if self.recorder is None:
+            return
+        schema = schemas.bundled(spec.schema) if spec.record else None
+        observer = self.observers.get(spec.name)
+        observer.recording = None if schema is None else self.recorder.route(spec.name, spec.schema, schema)
 
     def _plan(self, everywhere: RoutesConfig, schemas: SchemaRegistry) -> _Reload:
         config = replace(everywhere, routes={
@@ -564,6 +579,7 @@ class Engine:
             "elsewhere": self.elsewhere,
             "stores": self.stores.status(),
             "dedupe": self.dedupe.status(),
+            **({} if self.recorder is None else {"recording": self.recorder.status()}),
             "routes": {name: runner.status() for name, runner in sorted(self.runners.items())},
             "connections": self._connections_status(),
         }
