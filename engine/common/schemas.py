@@ -303,6 +303,21 @@ class SchemaRegistry:
     def get(self, name: str) -> CanonicalSchema | None:
         return self._schemas.get(name)
 
+    def bundled(self, name: str) -> dict[str, Any] | None:
+        """Schema ``name`` as one self-contained document: every schema file its ``$ref``s reach
+        is embedded under ``$defs`` with its own ``$id`` (JSON Schema 2020-12 bundling), so the
+        references resolve without the directory (a Foxglove channel's or a recording's schema)."""
+        entry = self._schemas.get(name)
+        if entry is None or entry.path not in self._documents:
+            return None
+        root = self._documents[entry.path]
+        reached = sorted(self._reached[f"{entry.name}.v{entry.version}"])
+        others = [self._documents[self.files[relative].path] for relative in reached if self.files[relative].path != entry.path]
+        if not others:
+            return root
+        embedded = {f"bundled_{index}": document for index, document in enumerate(others)}
+        return {**root, "$defs": {**root.get("$defs", {}), **embedded}}
+
 
 class Declared:
     """The object keys a schema declares, for ``check`` to warn about a key a mapping sets

@@ -23,6 +23,7 @@ from engine.language.routes import RoutesInvalid, load_routes
 from engine.ops.admin import AdminAccess, AdminConfigError, AdminServer, admin_access, parse_address, status_document
 from engine.ops.dead_letter_tool import run_command as run_dead_letters
 from engine.ops.dead_letter_tool import selection_of
+from engine.ops.foxglove import FoxgloveView
 from engine.ops.local_broker import private_brokers, stand_in_for_check
 from engine.ops.opsview import AdminClient, print_status, print_tap
 from engine.ops.route_tests import failing_tests, format_result, load_checked, run_tests
@@ -100,6 +101,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a bearer token every admin path but /healthz asks for; required when --admin is not a loopback address")
     run.add_argument("--admin-tls-cert", type=Path, metavar="FILE", help="serve the admin endpoint over HTTPS with this certificate (PEM)")
     run.add_argument("--admin-tls-key", type=Path, metavar="FILE", help="the private key of --admin-tls-cert (PEM)")
+    run.add_argument("--foxglove", type=_admin_address, metavar="[HOST:]PORT",
+                     help="serve a read-only live view to Foxglove or Lichtblick (ws://HOST:PORT): each route's canonical "
+                          "messages, the fleet on a map and the routes' status (a bare port binds 127.0.0.1); off by default")
+    run.add_argument("--foxglove-tls-cert", type=Path, metavar="FILE", help="serve the Foxglove view over wss:// with this certificate (PEM)")
+    run.add_argument("--foxglove-tls-key", type=Path, metavar="FILE", help="the private key of --foxglove-tls-cert (PEM, PKCS#8)")
     run.add_argument("--instance", metavar="NAME", help="this engine's name among instances sharing the routes (routes' instances:); default the host name")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
     run.add_argument("--test-on-reload", action="store_true",
@@ -330,11 +336,33 @@ async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> 
         except OSError as exc:
             log.error("admin endpoint cannot listen", extra={"address": "%s:%s" % args.admin, "error": str(exc)})
             return 1
+    view = await _foxglove_view(args, engine)
+    if view == 1:
+        return 1
     try:
         return await _serve(args, engine)
     finally:
+        if isinstance(view, FoxgloveView):
+            await view.stop()
         if admin is not None:
             await admin.stop()
+
+
+async def _foxglove_view(args: argparse.Namespace, engine: Engine) -> FoxgloveView | int | None:
+    """``--foxglove``: the view started (it follows the routes once they run), 1 when it
+    cannot be, None when not asked for."""
+    if not getattr(args, "foxglove", None):
+        return None
+    if bool(args.foxglove_tls_cert) != bool(args.foxglove_tls_key):
+        log.error("--foxglove-tls-cert and --foxglove-tls-key go together")
+        return 1
+    try:
+        view = FoxgloveView(engine, args.foxglove[0], args.foxglove[1], args.foxglove_tls_cert, args.foxglove_tls_key)
+        await view.start()
+    except (OSError, RuntimeError) as exc:
+        log.error("foxglove view cannot listen", extra={"address": "%s:%s" % args.foxglove, "error": str(exc)})
+        return 1
+    return view
 
 
 async def _serve(args: argparse.Namespace, engine: Engine) -> int:
