@@ -186,7 +186,6 @@ class FoxgloveView(ServerListener):
 
     async def start(self) -> None:
         """Listen (raises RuntimeError when the address cannot be bound) and follow the engine."""
-        self.sync()
         cert, key = self.tls if self.tls else (None, None)
         self._server = foxglove.start_server(
             name=f"rabbitros-engine {self.engine.instance}", host=self.host, port=self.port, capabilities=[],
@@ -206,13 +205,15 @@ class FoxgloveView(ServerListener):
                 self.engine.observers.get(name).watchers = ()
 
     async def _tick(self) -> None:
+        while self.engine.config is None:  # the routes are still loading: their channels as soon as they run
+            await asyncio.sleep(0.05)
         while True:
-            await asyncio.sleep(TICK_S)
             try:
-                self.sync()
+                await self.sync()
                 self.publish()
             except Exception:  # the view must outlive anything one tick meets
                 log.exception("foxglove view tick failed")
+            await asyncio.sleep(TICK_S)
 
     def publish(self) -> None:
         """The status and the fleet, each only while subscribed."""
@@ -232,14 +233,14 @@ class FoxgloveView(ServerListener):
                             "last_error": observer.last_error}
         return {"generation": engine.generation, "instance": engine.instance, "routes": routes}
 
-    def sync(self) -> None:
+    async def sync(self) -> None:
         """One channel per running route, with its schema; after a reload, the new ones
         advertised, those gone closed (unadvertised), those whose schema changed replaced."""
         config = self.engine.config
         key = (self.engine.generation, config.content_hash if config else None)
         if key == self._synced or config is None:
             return
-        schemas = SchemaRegistry(self.engine.schemas_dirs)
+        schemas = await asyncio.to_thread(SchemaRegistry, self.engine.schemas_dirs)  # once per generation
         with self._lock:
             for name in [n for n in self.routes if n not in self.engine.runners]:
                 self._close(name)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import ssl
 import struct
 import uuid
 from pathlib import Path
@@ -23,6 +24,7 @@ from engine.common.processes import listening_port
 from engine.ops.foxglove import LOCATION_FIXES_SCHEMA, agent_colour
 from tests.support.amqp_helpers import Collector, publish
 from tests.support.engine_process import EngineProcess
+from tests.support.tls_helpers import make_pki
 from tests.support.waiting import wait_for
 
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -210,3 +212,29 @@ def test_the_older_subprotocol_name_is_refused_at_the_handshake(engine) -> None:
             await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"])  # type: ignore[list-item]
 
     asyncio.run(scenario())
+
+
+def test_with_tls_only_wss_is_served_and_verified(amqp_url: str, tmp_path: Path) -> None:
+    pki = make_pki(tmp_path / "pki", server_names=("localhost", "127.0.0.1"))
+    (tmp_path / "routes").mkdir()
+    (tmp_path / "routes" / "fox.yaml").write_text(ROUTES)
+    port = listening_port()
+    process = EngineProcess(tmp_path / "routes", tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url},
+                            "--foxglove", f"127.0.0.1:{port}", "--foxglove-tls-cert", str(pki.server_cert),
+                            "--foxglove-tls-key", str(pki.server_key))
+
+    async def scenario() -> None:
+        trusted = ssl.create_default_context(cafile=str(pki.ca))
+        ws = await websockets.connect(f"wss://localhost:{port}", subprotocols=[SUBPROTOCOL], ssl=trusted)  # type: ignore[list-item]
+        client = FoxgloveClient(ws)
+        try:
+            await wait_for(lambda: "/routes/positions/canonical" in client.channels, 15, "the routes advertised over wss")
+        finally:
+            await client.close()
+        with pytest.raises((websockets.InvalidMessage, websockets.InvalidHandshake, OSError)):
+            await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], open_timeout=10)  # type: ignore[list-item]
+        with pytest.raises(ssl.SSLCertVerificationError):
+            await websockets.connect(f"wss://localhost:{port}", subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
+                                     ssl=ssl.create_default_context(cafile=str(pki.other_ca)))
+
+    process.run(scenario)
