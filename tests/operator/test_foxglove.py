@@ -21,7 +21,8 @@ import websockets
 from foxglove.messages import LocationFix, LocationFixes
 
 from engine.common.processes import listening_port
-from engine.ops.foxglove import LOCATION_FIXES_SCHEMA, agent_colour
+from engine.ops.foxglove import LOCATION_FIXES_SCHEMA, Fleet, FoxgloveView, RouteChannel, agent_colour
+from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector, publish
 from tests.support.engine_process import EngineProcess
 from tests.support.tls_helpers import make_pki
@@ -52,6 +53,7 @@ class FoxgloveClient:
         self.channels: dict[str, dict[str, Any]] = {}
         self.statuses: list[dict[str, Any]] = []
         self.received: dict[int, list[tuple[int, bytes]]] = {}
+        self.unadvertised: list[int] = []
         self._task = asyncio.create_task(self._read())
 
     async def _read(self) -> None:
@@ -66,6 +68,8 @@ class FoxgloveClient:
                 self.server_info = message
             elif message["op"] == "advertise":
                 self.channels.update((c["topic"], c) for c in message["channels"])
+            elif message["op"] == "unadvertise":
+                self.unadvertised.extend(message["channelIds"])
             elif message["op"] == "status":
                 self.statuses.append(message)
 
@@ -238,3 +242,46 @@ def test_with_tls_only_wss_is_served_and_verified(amqp_url: str, tmp_path: Path)
                                      ssl=ssl.create_default_context(cafile=str(pki.other_ca)))
 
     process.run(scenario)
+
+
+def test_nothing_watches_a_route_while_no_client_subscribes_and_channels_follow_a_reload(
+        amqp_url: str, tmp_path: Path, schemas_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "fox.yaml").write_text(ROUTES)
+
+    async def scenario() -> None:
+        engine = Engine(routes, schemas_dir)
+        await engine.start()
+        view = FoxgloveView(engine, "127.0.0.1", 0)
+        await view.start()
+        positions, telemetry = engine.observers.get("positions"), engine.observers.get("telemetry")
+        client = await _connect(view.port)
+        try:
+            await wait_for(lambda: "/routes/telemetry/canonical" in client.channels, 15, "the routes advertised")
+            assert positions.watchers == () and telemetry.watchers == (), "watching with no subscriber"
+            await client.subscribe(["/routes/positions/canonical", "/fleet"])
+            await wait_for(lambda: len(positions.watchers) == 2, 10, "the route's channel and the fleet attached",
+                           lambda: positions.watchers)
+            assert {type(w) for w in positions.watchers} == {RouteChannel, Fleet} and telemetry.watchers == ()
+            await client.close()
+            await wait_for(lambda: positions.watchers == (), 10, "everything detached once the client left",
+                           lambda: positions.watchers)
+            client = await _connect(view.port)
+            await wait_for(lambda: "/routes/telemetry/canonical" in client.channels, 15, "the routes advertised again")
+            (routes / "extra.yaml").write_text(ROUTES.replace("positions", "extra-positions").replace("telemetry", "extra-tel")
+                                               .replace("pos.#", "xpos.#").replace("tel.#", "xtel.#")
+                                               .replace("fox-extra-positions", "fox-xpos").replace("fox-extra-tel", "fox-xtel"))
+            assert await engine.reload(), engine.reloads.last_error
+            await wait_for(lambda: "/routes/extra-tel/canonical" in client.channels, 15, "a new route advertised")
+            gone = client.channels["/routes/extra-tel/canonical"]["id"]
+            (routes / "extra.yaml").unlink()
+            assert await engine.reload(), engine.reloads.last_error
+            await wait_for(lambda: gone in client.unadvertised, 15, "a removed route withdrawn", lambda: client.unadvertised)
+        finally:
+            await client.close()
+            await view.stop()
+            await engine.stop(1.0)
+
+    asyncio.run(scenario())
