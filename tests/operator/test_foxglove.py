@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import socket
 import ssl
 import struct
 import uuid
@@ -285,3 +286,15 @@ def test_nothing_watches_a_route_while_no_client_subscribes_and_channels_follow_
             await engine.stop(1.0)
 
     asyncio.run(scenario())
+
+
+def test_a_port_in_use_is_a_clear_exit_1(tmp_path: Path) -> None:
+    (tmp_path / "routes").mkdir()
+    (tmp_path / "routes" / "fox.yaml").write_text(ROUTES)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        process = EngineProcess(tmp_path / "routes", tmp_path / "status.json", {}, "--foxglove", str(taken.getsockname()[1]))
+        assert process.process.wait(60) == 1
+        process.stop()
+        assert "foxglove view cannot listen" in process.log() and "Address already in use" in process.log(), process.log()
