@@ -11,7 +11,7 @@ import signal
 import sys
 import tempfile
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 from engine import __version__, endpoints
 from engine.common.logs import setup_logging
@@ -23,7 +23,6 @@ from engine.language.routes import RoutesInvalid, load_routes
 from engine.ops.admin import AdminAccess, AdminConfigError, AdminServer, admin_access, parse_address, status_document
 from engine.ops.dead_letter_tool import run_command as run_dead_letters
 from engine.ops.dead_letter_tool import selection_of
-from engine.ops.foxglove import FoxgloveView
 from engine.ops.local_broker import private_brokers, stand_in_for_check
 from engine.ops.opsview import AdminClient, print_status, print_tap
 from engine.ops.route_tests import failing_tests, format_result, load_checked, run_tests
@@ -31,6 +30,9 @@ from engine.running.loop import run as run_loop
 from engine.running.observe import COUNTERS
 from engine.running.runtime import Engine
 from engine.running.watch import watch_routes
+
+if TYPE_CHECKING:  # imported when --foxglove asks for it: the SDK's import costs some 40 ms every command would pay
+    from engine.ops.foxglove import FoxgloveView
 
 log = logging.getLogger("engine.ops.cli")
 COMMANDS = ("run", "check", "test", "status", "tap", "dead-letters")
@@ -342,7 +344,7 @@ async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> 
     try:
         return await _serve(args, engine)
     finally:
-        if isinstance(view, FoxgloveView):
+        if view is not None and not isinstance(view, int):
             await view.stop()
         if admin is not None:
             await admin.stop()
@@ -353,6 +355,7 @@ async def _foxglove_view(args: argparse.Namespace, engine: Engine) -> FoxgloveVi
     cannot be, None when not asked for."""
     if not getattr(args, "foxglove", None):
         return None
+    from engine.ops.foxglove import FoxgloveView
     if bool(args.foxglove_tls_cert) != bool(args.foxglove_tls_key):
         log.error("--foxglove-tls-cert and --foxglove-tls-key go together")
         return 1
