@@ -305,8 +305,8 @@ class SchemaRegistry:
 
     def bundled(self, name: str) -> dict[str, Any] | None:
         """Schema ``name`` as one self-contained document: every schema file its ``$ref``s reach
-        is embedded under ``$defs`` with its own ``$id``, so the references resolve without
-        the directory (a recording's channel schema, read by Foxglove or ``jsonschema``)."""
+        is embedded under ``$defs`` with its own ``$id`` (JSON Schema 2020-12 bundling), so the
+        references resolve without the directory (a recording's or a Foxglove channel's schema)."""
         entry = self._schemas.get(name)
         if entry is None or entry.path not in self._documents:
             return None

@@ -11,7 +11,7 @@ import signal
 import sys
 import tempfile
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 from engine import __version__, endpoints
 from engine.common.logs import setup_logging
@@ -32,6 +32,9 @@ from engine.running.observe import COUNTERS
 from engine.running.record import Recorder, RecordLimits
 from engine.running.runtime import Engine
 from engine.running.watch import watch_routes
+
+if TYPE_CHECKING:  # imported when --foxglove asks for it: the SDK's import costs some 40 ms every command would pay
+    from engine.ops.foxglove import FoxgloveView
 
 log = logging.getLogger("engine.ops.cli")
 COMMANDS = ("run", "check", "test", "replay", "status", "tap", "dead-letters")
@@ -102,6 +105,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a bearer token every admin path but /healthz asks for; required when --admin is not a loopback address")
     run.add_argument("--admin-tls-cert", type=Path, metavar="FILE", help="serve the admin endpoint over HTTPS with this certificate (PEM)")
     run.add_argument("--admin-tls-key", type=Path, metavar="FILE", help="the private key of --admin-tls-cert (PEM)")
+    run.add_argument("--foxglove", type=_admin_address, metavar="[HOST:]PORT",
+                     help="serve a read-only live view to Foxglove or Lichtblick (ws://HOST:PORT): each route's canonical "
+                          "messages, the fleet on a map and the routes' status (a bare port binds 127.0.0.1); off by default")
+    run.add_argument("--foxglove-tls-cert", type=Path, metavar="FILE", help="serve the Foxglove view over wss:// with this certificate (PEM)")
+    run.add_argument("--foxglove-tls-key", type=Path, metavar="FILE", help="the private key of --foxglove-tls-cert (PEM, PKCS#8)")
     run.add_argument("--instance", metavar="NAME", help="this engine's name among instances sharing the routes (routes' instances:); default the host name")
     run.add_argument("--no-watch", action="store_true", help="do not reload when route files change (SIGHUP still reloads)")
     run.add_argument("--test-on-reload", action="store_true",
@@ -365,6 +373,9 @@ async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> 
         except OSError as exc:
             log.error("admin endpoint cannot listen", extra={"address": "%s:%s" % args.admin, "error": str(exc)})
             return 1
+    view = await _foxglove_view(args, engine)
+    if view == 1:
+        return 1
     try:
         if recorder is not None:
             try:
@@ -374,10 +385,30 @@ async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> 
                 return 2
         return await _serve(args, engine)
     finally:
+        if view is not None and not isinstance(view, int):
+            await view.stop()
         if admin is not None:
             await admin.stop()
         if recorder is not None:  # after the routes stopped: what they sent last is in the file, which gets its summary
             await asyncio.to_thread(recorder.stop)
+
+
+async def _foxglove_view(args: argparse.Namespace, engine: Engine) -> FoxgloveView | int | None:
+    """``--foxglove``: the view started (it follows the routes once they run), 1 when it
+    cannot be, None when not asked for."""
+    if not getattr(args, "foxglove", None):
+        return None
+    from engine.ops.foxglove import FoxgloveView
+    if bool(args.foxglove_tls_cert) != bool(args.foxglove_tls_key):
+        log.error("--foxglove-tls-cert and --foxglove-tls-key go together")
+        return 1
+    try:
+        view = FoxgloveView(engine, args.foxglove[0], args.foxglove[1], args.foxglove_tls_cert, args.foxglove_tls_key)
+        await view.start()
+    except (OSError, RuntimeError) as exc:
+        log.error("foxglove view cannot listen", extra={"address": "%s:%s" % args.foxglove, "error": str(exc)})
+        return 1
+    return view
 
 
 async def _serve(args: argparse.Namespace, engine: Engine) -> int:

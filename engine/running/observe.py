@@ -28,6 +28,10 @@ the Prometheus collector and ``/status`` read these counters when asked. A tap
 attached, and nothing otherwise; each tap client has a bounded buffer, and what a slow
 client cannot take is dropped and counted, never waited for.
 
+A watcher (``watchers``: the Foxglove view's channels, engine/ops/foxglove.py) is called with
+each message the sink took; it is attached only while someone looks (a Foxglove client
+subscribed), so with none the cost is the one truth test ``if self.watchers``.
+
 Observers are kept per route name across reloads, so counters stay monotonic for Prometheus
 while a route's pipeline or source is swapped.
 
@@ -137,6 +141,9 @@ class RouteObserver:
         self.recording: RouteRecording | None = None
         """Set by the engine under ``--record`` (engine/running/record.py), unless the route says
         ``record: false``: it gets what the route received and the canonical messages it sent."""
+        self.watchers: tuple[Callable[[Outbound], None], ...] = ()
+        """Called with every message the sink took, while attached (replaced whole, never
+        mutated, so another thread may attach one: engine/ops/foxglove.py)."""
 
     @property
     def failed(self) -> int:
@@ -170,6 +177,9 @@ class RouteObserver:
             self.recording.sent(outbound)
         if self.taps:
             self._tap(inbound, outbound, DELIVERED, None)
+        if self.watchers:
+            for watcher in self.watchers:
+                watcher(outbound)
 
     def retrying(self, inbound: Inbound | None, outbound: Outbound, error: BaseException) -> None:
         self.retries += 1
