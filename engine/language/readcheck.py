@@ -29,6 +29,7 @@ from engine.language.fieldcheck import mapping_reads, mapping_writes, undeclared
 from engine.language.mapping import parsed
 from engine.language.route_yaml import Document, Path_, Problem
 from engine.language.stores import remember_entries
+from engine.language.window_options import emitted_fields, window_expressions
 
 
 def read_problem(path: FieldPath, declared: Any, label: str) -> tuple[str, bool] | None:
@@ -65,9 +66,16 @@ def schema_checks(document: Document, where: Path_, route: Any, sink: Any, schem
     for message in undeclared_keys(mapping_writes(route.mapping), declared, schema_name):
         yield document.problem(where + ("mapping",), f"route {name!r}: {message}"), False
     reads: list[tuple[Path_, str, FieldPath]] = []
+    emitted_reads: list[tuple[Path_, str, FieldPath]] = []
+    """With a ``window:``, the sink mapping and templates read the window's message, not the canonical one."""
+    window = getattr(route, "window", None)
+    sink_reads = emitted_reads if window is not None else reads
     sink_mapping = route.sink.get("mapping")
     if isinstance(sink_mapping, str):
-        reads += [(where + ("sink", "mapping"), "sink mapping", path) for path in _leaves(mapping_reads(sink_mapping))]
+        sink_reads += [(where + ("sink", "mapping"), "sink mapping", path) for path in _leaves(mapping_reads(sink_mapping))]
+    for window_key, text in window_expressions(window):
+        reads += [(where + ("window",) + window_key, f"window {'.'.join(window_key)}", path)
+                  for path in _leaves(mapping_reads(text))]
     for index, entry in enumerate(remember_entries(route.remember)):
         if isinstance(entry.value, str):
             reads += [(where + _remembered_at(route, index) + ("value",), "remember value", path)
@@ -79,7 +87,7 @@ def schema_checks(document: Document, where: Path_, route: Any, sink: Any, schem
         for key, field_path in transport.canonical_fields(sink.options):
             key_path = where + ("sink", sink.protocol, key)
             if field_path not in captured:
-                reads.append((key_path, f"sink {key}", tuple(field_path.split("."))))
+                sink_reads.append((key_path, f"sink {key}", tuple(field_path.split("."))))
             elif read_problem(tuple(field_path.split(".")), declared, schema_name) is None and not declared.open:
                 yield document.problem(key_path, (
                     f"route {name!r}: {{{field_path}}} in sink {key} is the value the source captures from each topic, not the "
@@ -92,6 +100,12 @@ def schema_checks(document: Document, where: Path_, route: Any, sink: Any, schem
             found = unproduced(path, produced)
         if found is not None:
             yield document.problem(key_path, f"route {name!r}: {what} reads {found[0]}"), found[1]
+    if window is not None:
+        shape: Shape = dict.fromkeys(emitted_fields(window))
+        for key_path, what, path in emitted_reads:
+            found = unproduced(path, shape, "the route's window")
+            if found is not None:
+                yield document.problem(key_path, f"route {name!r}: {what} reads {found[0]}"), True
 
 
 Shape = dict[str, Any]
@@ -126,7 +140,7 @@ def _literal_shape(value: Any) -> Shape | None:
     return None
 
 
-def unproduced(path: FieldPath, shape: Shape) -> tuple[str, bool] | None:
+def unproduced(path: FieldPath, shape: Shape, maker: str = "the route's mapping") -> tuple[str, bool] | None:
     """``('temp', which the route's mapping never sets (it sets: ...); did you mean ...?',
     True)`` for a read of a key the route's mapping does not make: always null, an error."""
     for depth, step in enumerate(path):
@@ -136,7 +150,7 @@ def unproduced(path: FieldPath, shape: Shape) -> tuple[str, bool] | None:
             keys = sorted(key for key in shape if key != ELEMENT)
             guess = closest(step, keys)
             hint = f"; did you mean {_dotted(path[:depth] + (guess,))!r}?" if guess else f" (it sets: {', '.join(keys)})"
-            return f"{_dotted(path[:depth + 1])!r}, which the route's mapping never sets (always null){hint}", True
+            return f"{_dotted(path[:depth + 1])!r}, which {maker} never sets (always null){hint}", True
         shape = shape[step]
         if shape is None:
             return None

@@ -23,6 +23,7 @@ from engine.language.specs import EndpointSpec, RouteSpec
 from engine.language.stage_options import FairOptions
 from engine.language.stores import FAILURE_META, RememberOptions, remember_entries
 from engine.language.templates import Expansion
+from engine.language.window_options import window_expressions, window_problems
 
 
 def competing_consumers(routes: Mapping[str, RouteSpec]) -> tuple[Problem, ...]:
@@ -126,10 +127,17 @@ def _mapping_checks(checked: CheckedRoute) -> Iterator[Problem]:
 
 def _expressions(checked: CheckedRoute) -> tuple[tuple[Path_, str | None], ...]:
     """The route's JMESPath expressions on its messages, each where it is written: its mapping,
-    its sink's, its ``when:`` and its ``dedupe:`` key."""
+    its sink's, its ``when:``, its ``dedupe:`` key and its ``window:``'s ``per`` and aggregates' arguments."""
     where, route = checked.where, checked.route
     return ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping")),
-            (where + ("when",), route.when), (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None))
+            (where + ("when",), route.when), (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None),
+            *((where + ("window",) + key, text) for key, text in window_expressions(route.window)))
+
+
+def _window_checks(checked: CheckedRoute) -> Iterator[Problem]:
+    """A ``window:``'s aggregates: known functions, arguments where needed, no field named twice."""
+    for key, message in window_problems(checked.route.window):
+        yield checked.problem(checked.where + ("window",) + key, f"window: {message}")
 
 
 def _schema_checks(checked: CheckedRoute) -> Iterator[Finding]:
@@ -321,6 +329,7 @@ def _endpoint_checks(checked: CheckedRoute) -> Iterator[Problem]:
             yield checked.problem(base + ((key,) if key else ()), f"{side}: {message}")
 
 
-_ERROR_CHECKS: tuple[Callable[[CheckedRoute], Iterator[Problem]], ...] = (_mapping_checks, _endpoint_checks, _reply_checks, _source_checks)
+_ERROR_CHECKS: tuple[Callable[[CheckedRoute], Iterator[Problem]], ...] = (_mapping_checks, _endpoint_checks, _reply_checks, _source_checks,
+                                                                         _window_checks)
 """Every check whose findings are all errors (the schema's checks, which also warn, are composed
 beside them in :func:`route_checks`). Problems are sorted when reported: the order is for reading."""

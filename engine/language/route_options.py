@@ -12,6 +12,7 @@ from engine.common.options import option
 from engine.language.stage_options import (DEFAULT_MAX_ATTEMPTS, DEFAULT_MAX_MESSAGE_BYTES, BufferOptions, DedupeOptions, FairOptions, ReplyOptions,
                                            ThrottleOptions)
 from engine.language.stores import RememberOptions
+from engine.language.window_options import WindowOptions
 
 NAME_PATTERN = "^[A-Za-z0-9_][A-Za-z0-9_.-]*$"
 """Connection, route and lease names: safe in queue names, file names and metrics labels."""
@@ -70,6 +71,7 @@ class RouteOptions:
         "condition: JMESPath on the canonical message (meta(name) reads the source's metadata); a message for which it "
         "gives false, null or an empty string, list or object is settled unsent and counted filtered, never dead-lettered"))
     dedupe: DedupeOptions | None = option(None)
+    window: WindowOptions | None = option(None)
     throttle: ThrottleOptions | None = option(None)
     fair: FairOptions | None = option(None)
     remember: RememberOptions | tuple[RememberOptions, ...] | None = option(None)

@@ -37,6 +37,7 @@ from engine.language.specs import ConnectionSpec, EndpointSpec, Placement, Route
 from engine.language.stage_options import BufferSpec, DedupeSpec, RouteDelivery
 from engine.language.stores import RememberOptions, remember_entries
 from engine.language.templates import Expansion, expand_routes, is_items_text
+from engine.language.window_options import window_expressions
 from engine.language.yaml_bounds import FileTooLarge, read_bounded
 
 
@@ -173,7 +174,7 @@ class _RouteCompiler:
             self._fingerprint(body, route, source, sink, variables, agents_used),
             document.file, document.line(where), throttle=route.throttle, delivery=self._delivery(route, source, sink), buffer=buffer,
             placement=placement, reply=route.reply, variables=variables, fair=route.fair, remember=route.remember,
-            when=route.when, dedupe=DedupeSpec.parse(route.dedupe, route.name, _base_dir(document.file)),
+            when=route.when, dedupe=DedupeSpec.parse(route.dedupe, route.name, _base_dir(document.file)), window=route.window,
             record=route.record,
         )
 
@@ -193,6 +194,7 @@ class _RouteCompiler:
         for key_path, expression in ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping")),
                                      (where + ("when",), route.when),
                                      (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None),
+                                     *((where + ("window",) + key, text) for key, text in window_expressions(route.window)),
                                      *((remember_path(where, route, index) + ("value",), entry.value)
                                        for index, entry in enumerate(entries))):
             self.recalls.extend((document, key_path, route.name, store) for store in dict.fromkeys(recall_names(expression)))

@@ -12,6 +12,7 @@ from engine.language.route_yaml import Problem
 from engine.language.stage_options import (DEFAULT_MAX_MESSAGE_BYTES, BufferSpec, DeadLetterSpec, DedupeSpec, FairOptions, ReplyOptions, RouteDelivery,
                                            ThrottleOptions)
 from engine.language.stores import RememberOptions
+from engine.language.window_options import WindowOptions
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,8 @@ class RouteSpec:
     """The route's condition (``when:``): messages it rejects are settled unsent, counted ``filtered``."""
     dedupe: DedupeSpec | None = field(default=None, compare=False)
     """The route's ``dedupe:`` (engine/running/dedupe.py), its key file resolved; the fingerprint covers it."""
+    window: WindowOptions | None = field(default=None, compare=False)
+    """The route's ``window:`` (engine/running/windows.py): what the sink receives is its aggregates."""
     record: bool = field(default=True, compare=False)
     """Recorded under ``--record`` (engine/running/record.py); a change needs no restart of the route."""
 

@@ -35,10 +35,11 @@ from engine.language.specs import RoutesConfig, RouteSpec
 from engine.language.stores import Stores, remember_entries
 from engine.language.yaml_bounds import FileTooLarge, read_bounded
 from engine.running.dedupe import SeenKeys, key_text
-from engine.running.pipeline import ConversionError, Filtered, Pipeline
+from engine.running.pipeline import ConversionError, Filtered, Pipeline, Windowed
+from engine.language.window_options import WINDOW_END, WINDOW_START
 from engine.running.replies import ReplyFailed
 
-STAGES = ("input", "decode", "mapping", "schema", "when", "sink mapping", "sink", "reply mapping", "reply schema")
+STAGES = ("input", "decode", "mapping", "schema", "when", "window", "sink mapping", "sink", "reply mapping", "reply schema")
 """Where a message can be rejected, in pipeline order; ``expect_error`` names one."""
 
 TEST_FILE_SCHEMA: dict[str, Any] = {
@@ -81,6 +82,17 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
                     "response": {"description": "the sink's answer to the request, which the route's reply: mapping reads "
                                                 "(what each sink answers: route-language.md, Calls)"},
                     "expect_reply": {"description": "the reply body the route makes of response"},
+                    "window": {
+                        "type": "object", "additionalProperties": False, "required": ["inputs"],
+                        "description": "a window: route's case: its inputs go into one window, which then closes; expect "
+                                       "lists the messages it emits (window_start and window_end left out: a test has no "
+                                       "clock), expect_sink their sink mapping's outputs, in the order their keys came",
+                        "properties": {
+                            "inputs": {"type": "array", "minItems": 1, "description": "source messages, as input"},
+                            "expect": {"type": "array", "description": "the window's messages"},
+                            "expect_sink": {"type": "array", "description": "the sink mapping's output of each"},
+                        },
+                    },
                 },
             },
         }
@@ -88,7 +100,7 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
 }
 _VALIDATOR = jsonschema.Draft202012Validator(TEST_FILE_SCHEMA)
 _EXPECTATIONS = ("expect", "expect_sink", "expect_routing_key", "expect_reply", "expect_remembered", "expect_filtered",
-                 "expect_duplicate")
+                 "expect_duplicate", "window")
 
 
 def test_files(routes: Path) -> list[Path]:
@@ -148,7 +160,10 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
             before = len(problems)
             if "input" in body and "input_raw" in body:
                 problems.append(document.problem(where + ("input_raw",), "give either input or input_raw, not both"))
-            elif "input" not in body and "input_raw" not in body:
+            elif "window" in body and ("input" in body or "input_raw" in body):
+                problems.append(document.problem(where + ("window",), "a window case gives its inputs under window.inputs, "
+                                                                      "not input"))
+            elif "input" not in body and "input_raw" not in body and "window" not in body:
                 problems.append(document.problem(where, f"test of route {route!r}: 'input' is required"))
             expectations = [key for key in _EXPECTATIONS if key in body]
             if "expect_error" in body and expectations:
@@ -165,6 +180,8 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
             if config is not None and route not in config.routes:
                 problems.append(document.problem(where + ("route",), f"unknown route {route!r}{did_you_mean(route, config.routes)}"))
             elif config is not None:
+                if "window" in body and config.routes[route].window is None:
+                    problems.append(document.problem(where + ("window",), f"window: route {route!r} has no window:"))
                 if ("accepted" in body or "expect_duplicate" in body) and config.routes[route].dedupe is None:
                     key = "accepted" if "accepted" in body else "expect_duplicate"
                     problems.append(document.problem(where + (key,), f"{key}: route {route!r} has no dedupe:"))
@@ -235,6 +252,8 @@ def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mappin
         seen.accepted(text for text in map(key_text, case.body.get("accepted") or ()) if text is not None)
     pipeline = Pipeline.compile(spec, 0, schema, DrySink(), reply_schema, stores, seen)
     body = case.body
+    if "window" in body:
+        return _window_case(case, spec, pipeline)
     expected_error = body.get("expect_error")
     reply: Any = None
     try:
@@ -297,6 +316,43 @@ def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mappin
                 failures.append((f"store {store!r} holds other values", _diff(wanted, _plain(got))))
     if "expect_routing_key" in body and body["expect_routing_key"] != destination:
         failures.append((f"routing key/topic is {destination!r}, expected {body['expect_routing_key']!r}", []))
+    if failures:
+        return Result(case, False, "; ".join(reason for reason, _ in failures), [line for _, diff in failures for line in diff])
+    return Result(case, True)
+
+
+def _window_case(case: Case, spec: RouteSpec, pipeline: Pipeline) -> Result:
+    """A ``window`` case: every input into one window (a fixed clock), closed, its messages compared."""
+    window, body = pipeline.window, case.body["window"]
+    assert window is not None  # load_tests refuses a window case of a route without one
+    window.clock = lambda: 0.0
+    for index, value in enumerate(body["inputs"]):
+        try:
+            inbound = source_message(spec, {**case.body, "input": value})
+            pipeline.convert(inbound)
+        except Windowed as windowed:
+            problem = window.add(windowed, inbound.meta)
+            if problem is not None:
+                return Result(case, False, f"input {index}: a window error: {problem}")
+        except Filtered:
+            continue
+        except ConversionError as error:
+            return Result(case, False, f"input {index}: a {error.stage} error: {error.detail}")
+    outputs = window.close_now()
+    ignore = (*(case.body.get("ignore") or ()), WINDOW_START, WINDOW_END)
+    failures: list[tuple[str, list[str]]] = []
+    if "expect" in body:
+        want, got = [_without(e, ignore) for e in body["expect"]], [_without(_plain(e), ignore) for e, _ in outputs]
+        if not same(want, got):
+            failures.append(("window messages differ", _diff(want, got)))
+    if "expect_sink" in body:
+        try:
+            sunk = [_without(_plain(pipeline.window_output(e, m).fields), ignore) for e, m in outputs]
+        except ConversionError as error:
+            return Result(case, False, f"a window message's {error.stage} error: {error.detail}")
+        want = [_without(e, ignore) for e in body["expect_sink"]]
+        if not same(want, sunk):
+            failures.append(("sink mapping output of the window differs", _diff(want, sunk)))
     if failures:
         return Result(case, False, "; ".join(reason for reason, _ in failures), [line for _, diff in failures for line in diff])
     return Result(case, True)

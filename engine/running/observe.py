@@ -9,14 +9,17 @@ a message ``received`` once, when its source hands it over, and then exactly one
 caller, not a dead letter), ``dead_lettered`` (per stage), ``conflated`` (a newer one replaced it under ``throttle``, or
 in the buffer under ``latest_only``), ``expired`` (older than the route's ``max_age`` when it
 would have been sent: never delivered), ``filtered`` (the route's ``when:`` said no),
-``duplicates`` (its ``dedupe:`` key was accepted within the ttl), unless it is still in flight (parked, held in the buffer, being retried). Beside those:
+``duplicates`` (its ``dedupe:`` key was accepted within the ttl), ``windowed`` (added to its
+``window:``'s open window: engine/running/windows.py), unless it is still in flight (parked, held in the buffer, being retried). Beside those:
 ``retries`` (a message tried again after a transient sink failure: the tap's and
 Prometheus' ``redelivered`` outcome), ``sink_errors`` (transient sink failures, including
 the last one before a message is dead-lettered), ``unroutable`` (sends the destination routed
 to nobody, each attempt: an AMQP sink's returned messages), ``dropped`` (by a source: overflow, or
 unsettled at stop), ``dropped_by_agent`` (the part of ``dropped`` a ``fair:`` route's
 per-agent queues dropped, by agent: engine/running/fairness.py), ``standby_skipped`` and
-``dead_letter_errors``.
+``dead_letter_errors``, and ``emitted``: the messages a ``window:`` route's closed windows made,
+each then counted ``delivered`` once its sink took it (or dead-lettered), so on such a route
+``delivered`` counts windows, not inputs.
 
 A recording (``--record``, engine/running/record.py) is one more observer of the same calls:
 what ``took`` and ``accepted`` see is handed to its queue.
@@ -58,13 +61,13 @@ from engine.running.recent import Fleet, RecentDeadLetters, is_position_schema
 if TYPE_CHECKING:
     from engine.running.record import RouteRecording
 
-RECEIVED, DELIVERED, REFUSED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES = (
+RECEIVED, DELIVERED, REFUSED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES, WINDOWED = (
     "received", "delivered", "refused", "dead_lettered", "redelivered", "conflated", "expired", "dropped", "filtered",
-    "duplicates")
-OUTCOMES = (RECEIVED, DELIVERED, REFUSED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES)
+    "duplicates", "windowed")
+OUTCOMES = (RECEIVED, DELIVERED, REFUSED, DEAD_LETTERED, REDELIVERED, CONFLATED, EXPIRED, DROPPED, FILTERED, DUPLICATES, WINDOWED)
 """The ``outcome`` label of ``rabbitros_messages_total`` and the keys of the status' ``messages``."""
-COUNTERS = ("received", "delivered", "refused", "failed", "conflated", "expired", "filtered", "duplicates", "retries",
-            "sink_errors", "unroutable", "dropped", "standby_skipped", "dead_letter_errors")
+COUNTERS = ("received", "delivered", "refused", "failed", "conflated", "expired", "filtered", "duplicates", "windowed", "emitted",
+            "retries", "sink_errors", "unroutable", "dropped", "standby_skipped", "dead_letter_errors")
 """The integer counters, as the status and the log's ``route counters`` line name them."""
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 """Seconds from reception to the sink's acceptance: sub-millisecond conversion on a LAN up to
@@ -113,6 +116,10 @@ class RouteObserver:
         """Settled unsent because the route's ``when:`` said no."""
         self.duplicates = 0
         """Settled unsent because the route's ``dedupe:`` key was accepted within its ttl."""
+        self.windowed = 0
+        """Added to the route's open ``window:`` (settled at the source then)."""
+        self.emitted = 0
+        """Messages the route's closed windows made (each then delivered, or dead-lettered)."""
         self.retries = 0
         self.sink_errors = 0
         self.unroutable = 0
@@ -216,6 +223,12 @@ class RouteObserver:
         if self.taps:
             self._tap(inbound, outbound, DUPLICATES, None)
 
+    def window(self, inbound: Inbound, canonical: Any) -> None:
+        """``inbound`` (``canonical``) was added to the route's open window: settled, aggregated."""
+        self.windowed += 1
+        if self.taps:
+            self._tap(inbound, None, WINDOWED, None, canonical)
+
     def dead_letter(self, inbound: Inbound | None, outbound: Outbound | None, stage: str, error: str) -> None:
         self.dead_lettered[stage] = self.dead_lettered.get(stage, 0) + 1
         self.last_error = f"{stage}: {error}"
@@ -294,7 +307,7 @@ class RouteObserver:
         """The counters by outcome (``rabbitros_messages_total``, the status' ``messages``)."""
         return {RECEIVED: self.received, DELIVERED: self.delivered, REFUSED: self.refused, DEAD_LETTERED: self.failed,
                 REDELIVERED: self.retries, CONFLATED: self.conflated, EXPIRED: self.expired,
-                DROPPED: self.dropped, FILTERED: self.filtered, DUPLICATES: self.duplicates}
+                DROPPED: self.dropped, FILTERED: self.filtered, DUPLICATES: self.duplicates, WINDOWED: self.windowed}
 
     def snapshot(self) -> dict[str, Any]:
         """What ``/status`` shows beside the counters."""

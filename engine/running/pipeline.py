@@ -28,11 +28,12 @@ from engine.running.dedupe import Dedupe, SeenKeys
 from engine.running.delivery import ConversionError
 from engine.running.replies import ReplyShape
 from engine.running.throttle import Throttle
+from engine.running.windows import Window, Windowed
 
 if TYPE_CHECKING:
     from engine.language.specs import RouteSpec
 
-__all__ = ["ConversionError", "Filtered", "Pipeline", "passes"]
+__all__ = ["ConversionError", "Filtered", "Pipeline", "Windowed", "passes"]
 
 
 class Filtered(Exception):
@@ -81,6 +82,9 @@ class Pipeline:
     two-clause condition, beside the 4.5 us of the conversion."""
     dedupe: Dedupe | None = None
     """The route's ``dedupe:`` (engine/running/dedupe.py): its key, and the keys its sink accepted."""
+    window: Window | None = None
+    """The route's ``window:`` (engine/running/windows.py): its messages are aggregated, and what
+    the sink mapping and the sink get is each closed window's message."""
     in_flight: int = 0
     _drained: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -108,6 +112,7 @@ class Pipeline:
                                        lambda value: compile_mapping(value, spec.variables, stores, spec.name)),
             condition=compile_mapping(spec.when, spec.variables, stores, spec.name),
             dedupe=Dedupe.compile(spec.dedupe, seen_keys, spec.variables, stores, spec.name),
+            window=Window.compile(spec.window, spec.variables, stores, spec.name),
         )
 
     def convert(self, inbound: Inbound) -> Outbound:
@@ -150,18 +155,35 @@ class Pipeline:
                 raise ConversionError("when", _unexpected(exc)) from None
             if not passes(verdict):
                 raise Filtered(data)
+        if self.window is not None:  # aggregated: the sink mapping reads the window's message
+            try:
+                windowed = self.window.evaluate(data, inbound.meta)
+            except MappingError as exc:
+                raise ConversionError("window", str(exc)) from None
+            except Exception as exc:
+                raise ConversionError("window", _unexpected(exc)) from None
+            raise windowed
+        return self._outbound(body, data, inbound.meta)
+
+    def window_output(self, emitted: dict[str, Any], meta: dict[str, Any]) -> Outbound:
+        """A closed window's message, taken through the sink mapping as a canonical message is
+        (ConversionError ``sink mapping`` when it fails)."""
+        return self._outbound(canonical_bytes(emitted), emitted, meta)
+
+    def _outbound(self, body: bytes, data: Any, meta: dict[str, Any]) -> Outbound:
+        """The sink mapping and the sink's field check, then the message the sink is given."""
         fields = data
         if self.sink_mapper is not None or self.sink_check is not None:
             try:
                 if self.sink_mapper is not None:
-                    fields = self.sink_mapper(data, inbound.meta)
+                    fields = self.sink_mapper(data, meta)
                 if self.sink_check is not None:
                     self.sink_check(fields)
             except (MappingError, MessageRejected) as exc:
                 raise ConversionError("sink mapping", str(exc)) from None
             except Exception as exc:
                 raise ConversionError("sink mapping", _unexpected(exc)) from None
-        meta = inbound.meta  # the source's own dict for this message: extended, not copied
+        # meta: the source's own dict for this message: extended, not copied
         meta["route"] = self.route
         meta["generation"] = self.generation
         return Outbound(

@@ -9,6 +9,8 @@ in order, and is settled for its source once it leaves them:
    decoded, converted, or that is too large, or that already used its attempts, is a dead
    letter; one the route's ``when:`` rejects is settled unsent (``filtered``), and one whose
    ``dedupe:`` key the sink accepted within its ttl too (``duplicates``, engine/running/dedupe.py);
+   one of a ``window:`` route is added to its window and settled (``windowed``); each closed
+   window's message then takes steps 4 and 5 (engine/running/windows.py);
 3. **throttled** (``throttle:``, engine/running/throttle.py): parked and settled; the slot releases
    the converted message to step 4, or a newer one conflates it;
 4. **sent**: while the sink cannot take messages the route waits (or, with a buffer, holds
@@ -40,6 +42,8 @@ import logging
 import time
 from typing import TYPE_CHECKING, Any, Sequence
 
+from engine.common.schemas import canonical_bytes
+
 from engine.endpoints.base import (Connection, Conflated, EndpointError, Inbound, Inbox, MessageRejected, NotSent, Outbound, Refused, Source,
                                    Unroutable)
 from engine.running.buffer import HoldingBuffer
@@ -47,7 +51,7 @@ from engine.running.dead_lettering import DeadLettering
 from engine.running.delivery import HEALTH_POLL, Failure, classify, given_up, prior_attempts, retry_delay
 from engine.running.fairness import route_inbox
 from engine.running.held import HeldMessages
-from engine.running.pipeline import Filtered, Pipeline
+from engine.running.pipeline import ConversionError, Filtered, Pipeline, Windowed
 from engine.running.replies import Replies
 from engine.running.route_lifecycle import RouteLifecycle
 from engine.running.route_state import Converted, Dead, RouteHost
@@ -157,6 +161,9 @@ class RouteRunner(RouteLifecycle):
                 self.observer.filter(inbound, message.canonical)
                 self.dead_lettering.filtered_call(inbound)
                 continue
+            if isinstance(message, Windowed):
+                settled[index] = self._windowed(pipeline, index, inbound, message, dead)
+                continue
             if remember is not None and message.outbound is not None and message.outbound.canonical is not None:
                 remember.on_converted(message.outbound.canonical, message.outbound.meta)
             if isinstance(message, Dead):
@@ -182,7 +189,50 @@ class RouteRunner(RouteLifecycle):
         message.dedupe_key = key
         return False
 
-    def _converted(self, pipeline: Pipeline, index: int, inbound: Inbound) -> Converted | Dead | Filtered:
+    def _windowed(self, pipeline: Pipeline, index: int, inbound: Inbound, windowed: Windowed, dead: list[Dead]) -> bool:
+        """Add a message to the route's open window: settled (True), or a dead letter (stage ``window``)."""
+        window = pipeline.window
+        assert window is not None  # only a window route's pipeline raises Windowed
+        if window.stage is None:
+            window.stage = lambda outputs: self.window_closed(pipeline, outputs)
+        problem = window.add(windowed, inbound.meta)
+        if problem is None:
+            self.observer.window(inbound, windowed.canonical)
+            return True
+        dead.append(Dead(index, inbound, None, prior_attempts(inbound.meta) + 1, pipeline, Failure("window", problem, True)))
+        return False
+
+    def window_closed(self, pipeline: Pipeline, outputs: list[tuple[dict[str, Any], dict[str, Any]]]) -> None:
+        """Each closed window's message goes through the sink mapping and to the sink, together."""
+        messages: list[Converted] = []
+        dead: list[Dead] = []
+        for index, (emitted, meta) in enumerate(outputs):
+            inbound = Inbound(body=canonical_bytes(emitted), meta=meta)
+            try:
+                outbound = pipeline.window_output(emitted, meta)
+            except ConversionError as error:
+                dead.append(Dead(index, inbound, None, 1, pipeline, classify(error, "sink mapping")))
+                continue
+            outbound.received_ns = inbound.received_ns
+            messages.append(Converted(index, inbound, outbound, 0, pipeline))
+        self.observer.emitted += len(outputs)
+        pipeline.enter()  # before the pipeline can be seen drained
+        task = asyncio.create_task(self._send_window(pipeline, messages, dead, len(outputs)))
+        self._released.add(task)
+        task.add_done_callback(self._released_done)
+
+    async def _send_window(self, pipeline: Pipeline, messages: list[Converted], dead: list[Dead], count: int) -> None:
+        try:
+            settled = [False] * count
+            if messages:
+                await self._send(pipeline, messages, settled, dead)
+            if dead:
+                await self.dead_lettering.store(dead, settled)
+            self.observer.dropped += settled.count(False)  # the route stopped meanwhile
+        finally:
+            pipeline.leave()
+
+    def _converted(self, pipeline: Pipeline, index: int, inbound: Inbound) -> Converted | Dead | Filtered | Windowed:
         """The message converted, or with the failure that makes it a dead letter; the
         :class:`Filtered` raised when the route's ``when:`` rejected it."""
         delivery = pipeline.spec.delivery
@@ -198,8 +248,8 @@ class RouteRunner(RouteLifecycle):
                 outbound = pipeline.cancel_request(inbound)
             else:
                 outbound = pipeline.convert(inbound)
-        except Filtered as filtered:
-            return filtered
+        except (Filtered, Windowed) as shaped:
+            return shaped
         except Exception as error:  # ConversionError, or anything the pipeline did not foresee
             return Dead(index, inbound, None, prior + 1, pipeline, classify(error, "convert"))
         if len(outbound.body) > delivery.sink_max_message_bytes:
@@ -414,6 +464,8 @@ class RouteRunner(RouteLifecycle):
     async def retire_pipeline(self, pipeline: Pipeline) -> None:
         if pipeline.throttle is not None:  # parked messages go out, not lost
             pipeline.throttle.close(self)
+        if pipeline.window is not None:  # the open window is emitted with what it has
+            pipeline.window.close()
         await pipeline.drained()
         await pipeline.sink.close()
 

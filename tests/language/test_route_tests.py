@@ -102,7 +102,7 @@ def test_invalid_test_file_exits_2_with_file_and_line(tmp_path: Path):
     assert result.stderr.strip().splitlines() == [
         f"{routes}/bad.test.yaml:5: unknown route 'uav-weedz'; did you mean 'uav-weeds'?",
         f"{routes}/worse.test.yaml:4: tests[0].expect_error: 'scheme' is not one of "
-        "['input', 'decode', 'mapping', 'schema', 'when', 'sink mapping', 'sink', 'reply mapping', 'reply schema']; did you mean 'schema'?",
+        "['input', 'decode', 'mapping', 'schema', 'when', 'window', 'sink mapping', 'sink', 'reply mapping', 'reply schema']; did you mean 'schema'?",
     ]
     check = engine_cli("check", "--routes", str(routes), blocked=True)
     assert check.returncode == 1 and check.stderr == result.stderr
