@@ -118,7 +118,7 @@ def status(port: int, route: str) -> dict[str, Any]:
                           "refused": document["refused"], "dead_lettered": document["failed"], "redelivered": document["retries"],
                           "conflated": document["conflated"], "expired": document["expired"],
                           "dropped": document["dropped"], "filtered": document["filtered"],
-                          "duplicates": document["duplicates"]}, document
+                          "duplicates": document["duplicates"], "windowed": document["windowed"]}, document
     assert document["dead_letters"] == document["dead_lettered"], document
     return {key: document[key] for key in ("received", "delivered", "failed", "conflated", "retries", "dropped", "dead_lettered")}
 
