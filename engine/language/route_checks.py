@@ -136,8 +136,14 @@ def _expressions(checked: CheckedRoute) -> tuple[tuple[Path_, str | None], ...]:
 
 def _window_checks(checked: CheckedRoute) -> Iterator[Problem]:
     """A ``window:``'s aggregates: known functions, arguments where needed, no field named twice."""
-    for key, message in window_problems(checked.route.window):
+    route = checked.route
+    for key, message in window_problems(route.window):
         yield checked.problem(checked.where + ("window",) + key, f"window: {message}")
+    if route.window is not None:  # they act on single messages; a window's message is made after them
+        for other in ("throttle", "dedupe", "reply"):
+            if getattr(route, other) is not None:
+                yield checked.problem(checked.where + (other,), f"{other}: not with window: (a window's message is made "
+                                                                 "from many; use a second route for single messages)")
 
 
 def _schema_checks(checked: CheckedRoute) -> Iterator[Finding]:
