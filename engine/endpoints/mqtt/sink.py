@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from engine.common.schemas import SchemaError, canonical_bytes
-from engine.endpoints.base import MessageRejected, Outbound, Sink
+from engine.endpoints.addressed import send_addressed
+from engine.endpoints.base import Outbound, Sink
 from engine.endpoints.mqtt.link import MqttLink
 from engine.endpoints.mqtt.options import MqttSinkOptions
 from engine.endpoints.mqtt.topics import topic_renderer
@@ -33,23 +33,5 @@ class MqttSink(Sink):
             raise error
 
     async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
-        results: list[BaseException | None] = [None] * len(messages)
-        publishable: list[int] = []
-        batch: list[tuple[str, bytes]] = []
-        for index, message in enumerate(messages):
-            try:
-                topic = self._topic(message.template_data)
-                body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
-            except MessageRejected as exc:
-                results[index] = exc
-                continue
-            except SchemaError as exc:
-                results[index] = MessageRejected(f"{self._where}: {exc}")
-                continue
-            publishable.append(index)
-            batch.append((topic, body))
-        if batch:
-            outcomes = await self._connection.publish_batch(batch, self._qos, self._retain, self._where)
-            for index, outcome in zip(publishable, outcomes):
-                results[index] = outcome
-        return results
+        return await send_addressed(messages, self._topic, self._where,
+                                    lambda batch: self._connection.publish_batch(batch, self._qos, self._retain, self._where))

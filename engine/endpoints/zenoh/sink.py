@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from engine.common.schemas import SchemaError, canonical_bytes
-from engine.endpoints.base import MessageRejected, Outbound, Sink
+from engine.endpoints.addressed import send_addressed
+from engine.endpoints.base import Outbound, Sink
 from engine.endpoints.zenoh.keys import key_renderer
 from engine.endpoints.zenoh.options import ZenohSinkOptions
 from engine.endpoints.zenoh.session import ZenohLink
@@ -33,23 +33,4 @@ class ZenohSink(Sink):
             raise error
 
     async def send_batch(self, messages: Sequence[Outbound]) -> list[BaseException | None]:
-        results: list[BaseException | None] = [None] * len(messages)
-        putting: list[int] = []
-        batch: list[tuple[str, bytes]] = []
-        for index, message in enumerate(messages):
-            try:
-                key = self._key(message.template_data)
-                body = message.body if message.fields is message.canonical else canonical_bytes(message.fields)  # sink.mapping
-            except MessageRejected as exc:
-                results[index] = exc
-                continue
-            except SchemaError as exc:
-                results[index] = MessageRejected(f"{self._where}: {exc}")
-                continue
-            putting.append(index)
-            batch.append((key, body))
-        if batch:
-            outcomes = await self._connection.put_batch(batch, self._options, self._where)
-            for index, outcome in zip(putting, outcomes):
-                results[index] = outcome
-        return results
+        return await send_addressed(messages, self._key, self._where, lambda batch: self._connection.put_batch(batch, self._options, self._where))
