@@ -37,6 +37,7 @@ from typing import Any
 import aio_pika
 import websockets
 
+from bench.position_route import body, routes_yaml, status
 from bench.throughput import Broker, process_cpu_seconds
 import foxglove
 
@@ -48,28 +49,6 @@ from engine.running.observe import RouteObserver
 
 REPO = Path(__file__).resolve().parent.parent
 MODES = ("plain", "view", "subscribed")
-ROUTES = """
-connections:
-  bus: {{amqp: "{url}"}}
-routes:
-  - name: position
-    source: {{amqp: {{connection: bus, queue: fox-in, prefetch: 1000}}}}
-    mapping: "{{type: 'position', agent_id: agent, stamp: stamp, lat: lat, lon: lon, alt_msl: alt, id: to_string(seq)}}"
-    schema: position
-    sink: {{amqp: {{connection: bus, routing_key: fox-out}}}}
-"""
-
-
-def body(seq: int) -> bytes:
-    return json.dumps({"seq": seq, "agent": f"uav{seq % 20}", "lat": 48.0 + seq / 1e6, "lon": 11.0, "alt": 500.0,
-                       "stamp": {"sec": 1_700_000_000 + seq, "nanosec": 0}}).encode()
-
-
-def status(path: Path) -> dict[str, Any]:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
 
 
 class Viewer:
@@ -117,7 +96,7 @@ class Viewer:
 async def one_round(url: str, work: Path, mode: str, count: int, latency_count: int, rate: float) -> dict[str, float]:
     routes = work / "routes"
     routes.mkdir(exist_ok=True)
-    (routes / "bench.yaml").write_text(ROUTES.format(url=url))
+    (routes / "bench.yaml").write_text(routes_yaml(url, "fox-in", "fox-out"))
     status_file = work / "status.json"
     port = listening_port()
     extra = [] if mode == "plain" else ["--foxglove", str(port)]

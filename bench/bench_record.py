@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import statistics
 import subprocess
@@ -24,43 +23,21 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
 
+from bench.position_route import body, routes_yaml, status
 from bench.throughput import Broker, process_cpu_seconds
 from engine.endpoints.amqp.broker import LocalBroker
 from engine.endpoints.base import Inbound, Outbound
 from engine.running.record import Recorder, RecordLimits
 
 REPO = Path(__file__).resolve().parent.parent
-ROUTES = """
-connections:
-  bus: {{amqp: "{url}"}}
-routes:
-  - name: position
-    source: {{amqp: {{connection: bus, queue: rec-in, prefetch: 1000}}}}
-    mapping: "{{type: 'position', agent_id: agent, stamp: stamp, lat: lat, lon: lon, alt_msl: alt, id: to_string(seq)}}"
-    schema: position
-    sink: {{amqp: {{connection: bus, routing_key: rec-out}}}}
-"""
-
-
-def body(seq: int) -> bytes:
-    return json.dumps({"seq": seq, "agent": f"uav{seq % 20}", "lat": 48.0 + seq / 1e6, "lon": 11.0, "alt": 500.0,
-                       "stamp": {"sec": 1_700_000_000 + seq, "nanosec": 0}}).encode()
-
-
-def status(path: Path) -> dict[str, Any]:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
 
 
 async def one_round(url: str, work: Path, count: int, record: bool) -> float:
     """Engine CPU microseconds per message for one run."""
     routes = work / "routes"
     routes.mkdir(exist_ok=True)
-    (routes / "bench.yaml").write_text(ROUTES.format(url=url))
+    (routes / "bench.yaml").write_text(routes_yaml(url, "rec-in", "rec-out"))
     status_file = work / "status.json"
     status_file.unlink(missing_ok=True)
     extra = ["--record", str(work / "rec")] if record else []
