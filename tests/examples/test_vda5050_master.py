@@ -491,3 +491,72 @@ def test_an_instant_action_the_vehicle_refuses_is_failed_with_the_reason(example
     [refused] = [action for action in state.action_states if action.action_id == "refused-pause"]
     assert refused.action_status is ActionStatus.FAILED and "DENIED" in (refused.result_description or ""), refused
     assert state.paused is not True and state.driving
+
+
+def test_a_new_order_while_the_current_one_runs_is_refused_and_the_running_order_completes(
+        example_env: int, mosquitto: LocalMosquitto) -> None:
+    """VDA 5050 2.0 figure 8, step 3: a new orderId while the vehicle still executes its order
+    (node states left) is rejected. Each vehicle, given another order mid-way through its first,
+    names it in its state with an ``orderError`` (the order's headerId among its references, which
+    the SDK reports as an order rejection), is not given it (the robot gets no second Path, the
+    UAV's mission stays the first order's), and runs the first order to its end. On main the
+    second order was taken and replaced the running one."""
+    peer = Peer()
+    driver = RobotDriver(peer)
+    peer.start()
+    uav = start_uav(example_env)
+
+    def refused(key: VehicleKey, header_id: int) -> Callable[[], bool]:
+        def found() -> bool:
+            state = latest(master, key)
+            return state is not None and any(
+                error.error_type == "orderError" and any(
+                    ref.reference_key == "headerId" and ref.reference_value == str(header_id) for ref in error.error_references or [])
+                for error in state.errors or [])
+        return found
+
+    async def scenario() -> Heard:
+        nonlocal master
+        engine = Engine(EXAMPLE, REPO / "schemas")
+        await engine.start()
+        master, heard = master_control(mosquitto)
+        driving = asyncio.create_task(driver.run())
+        try:
+            await master.connect()
+            await until(lambda: all(latest(master, key) for key in (UAV, ROBOT)), "both states", heard)
+            spray = uav_order("spray-1", 3)
+            assert (await master.dispatch(spray, UAV)).accepted
+            row = robot_order("row-1", driver.position, 4)
+            assert (await master.dispatch(row, ROBOT)).accepted
+            await until(lambda: (s := latest(master, ROBOT)) is not None and s.order_id == "row-1" and s.driving
+                        and len(s.node_states) < 4, "the robot driving row-1, past its first node", heard)
+            await until(lambda: (s := latest(master, UAV)) is not None and s.order_id == "spray-1" and s.driving,
+                        "the UAV flying spray-1", heard)
+            # published as a master that does not track the vehicle would (the SDK's dispatch may refuse a busy vehicle itself)
+            other_row = {**robot_order("row-2", driver.position, 2).to_wire(), "headerId": 201}
+            other_spray = {**uav_order("spray-2", 2).to_wire(), "headerId": 202}
+            await publish(mosquitto, [("uagv/v2/rabbitros/robot1/order", other_row), ("uagv/v2/rabbitros/uav1/order", other_spray)])
+            await until(refused(ROBOT, 201), "the robot's state to refuse row-2 with an orderError", heard)
+            await until(refused(UAV, 202), "the UAV's state to refuse spray-2 with an orderError", heard)
+            for key, order_id in ((ROBOT, "row-1"), (UAV, "spray-1")):
+                state = latest(master, key)
+                assert state is not None and state.order_id == order_id and state.node_states, state
+            await until(lambda: finished(latest(master, ROBOT), row), "row-1 to its end", heard)
+            await until(lambda: finished(latest(master, UAV), spray), "spray-1 to its end", heard)
+            assert len(driver.goals) == 1 and len(driver.goals[0].poses) == 4, "the robot was given row-1 only"
+            return heard
+        finally:
+            driving.cancel()
+            await master.disconnect()
+            await engine.stop()
+
+    master: MasterClient
+    try:
+        heard = asyncio.run(asyncio.wait_for(scenario(), 150))
+    finally:
+        peer.close()
+        stopped = stop_uav(uav)
+    assert heard.errors == [], [(event.key, str(event.error)) for event in heard.errors]
+    assert stopped and len(stopped["mission"]) == 3, "the UAV kept spray-1's mission"
+    rejections = {(key.serial_number, event.error.error_type) for key, event in heard.vehicle_errors if event.is_order_rejection}
+    assert rejections == {("uav1", "orderError"), ("robot1", "orderError")}, rejections
