@@ -18,8 +18,9 @@ Keyed state several routes update (a VDA 5050 action's state: RUNNING when the e
 the action, FINISHED once the vehicle acknowledged it, FAILED when it refused) is the same
 store written at other moments and with a computed value: ``remember`` takes a list, and an
 entry may say ``when`` (``converted``: the mapping gave the canonical message; ``accepted``,
-the default; ``failed``: the message became a dead letter after conversion, ``meta('failure')``
-then says why) and ``value`` (a mapping from the canonical message to what is kept, which
+the default; ``failed``: the message became a dead letter once its mapping had given the
+canonical message, refused by the schema, ``when:`` or the sink mapping or failed at the sink;
+``meta('failure')`` then says why, as ``stage: error``) and ``value`` (a mapping from the canonical message to what is kept, which
 may ``recall()`` the value so far to append to it or merge into it; null forgets the key).
 Nothing here knows a protocol: the routes say what the states are. Each update is applied at
 once, on the event loop, so two routes updating one key never interleave within an update.
@@ -64,7 +65,8 @@ class RememberOptions:
                                    "no longer given (recall answers null): a position stops being reported once stale")
     when: Literal["converted", "accepted", "failed"] = option(
         "accepted", description="when it is kept: converted (the mapping gave the canonical message), accepted (the sink "
-                                "took it), failed (it became a dead letter after conversion; meta('failure') says why)")
+                                "took it), failed (it became a dead letter once the mapping gave it: refused by the schema, "
+                                "when: or the sink mapping, or failed at the sink; meta('failure') says why, 'stage: error')")
     value: str | None = option(None, description="JMESPath from the canonical message to the value kept (recall() reads "
                                "the value so far: append to it, merge into it); null forgets the key; none: the message")
 

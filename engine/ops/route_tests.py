@@ -66,7 +66,8 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
                                                                     "{STORE: {KEY: value}}, or {STORE: value} for a store without per"},
                     "expect": {"description": "the canonical message"},
                     "expect_remembered": {"type": "object", "description": "what the stores hold after the case, the route's "
-                                                                           "remember: applied as if the sink accepted: "
+                                                                           "remember: applied as if the sink accepted "
+                                                                           "(with expect_error: as the dead letter's when: failed): "
                                                                            "{STORE: {KEY: value}} (null: nothing), or {STORE: "
                                                                            "value} for a store without per"},
                     "ignore": {"type": "array", "items": {"type": "string"}, "description": "keys (a.b) left out"},
@@ -166,7 +167,7 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
             elif "input" not in body and "input_raw" not in body and "window" not in body:
                 problems.append(document.problem(where, f"test of route {route!r}: 'input' is required"))
             expectations = [key for key in _EXPECTATIONS if key in body]
-            if "expect_error" in body and expectations:
+            if "expect_error" in body and expectations and expectations != ["expect_remembered"]:
                 problems.append(document.problem(where + (expectations[0],), f"{expectations[0]!r} and 'expect_error' exclude each other"))
             elif "expect_error" not in body and not expectations:
                 problems.append(document.problem(where, f"test of route {route!r} expects nothing (expect, expect_sink, "
@@ -285,6 +286,13 @@ def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mappin
                 raise ConversionError(failed.stage, failed.error) from None
     except ConversionError as error:
         if expected_error == error.stage:
+            if "expect_remembered" not in body:
+                return Result(case, True)
+            if pipeline.remember is not None:  # as the engine does once the dead letter is stored
+                pipeline.remember.on_failed(error.canonical, inbound.meta, f"{error.stage}: {error.detail}")
+            differs = _remembered_failures(body, stores, keyed, body.get("ignore") or ())
+            if differs:
+                return Result(case, False, "; ".join(reason for reason, _ in differs), [line for _, diff in differs for line in diff])
             return Result(case, True)
         want = f"expected a {expected_error} error" if expected_error else "expected it to pass"
         return Result(case, False, f"{want}, got a {error.stage} error: {error.detail}")
@@ -309,11 +317,7 @@ def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mappin
         if pipeline.remember is not None:  # as the engine does: converted, then the sink accepted
             pipeline.remember.on_converted(outbound.canonical, outbound.meta)
             pipeline.remember.on_accepted(outbound.canonical, outbound.meta)
-        for store, wanted in body["expect_remembered"].items():
-            by_key = (keyed or {}).get(store, True) and isinstance(wanted, Mapping)
-            got = {key: stores.store(store).get(key) for key in wanted} if by_key else stores.store(store).get(None)
-            if not same(_without(wanted, ignore), _without(_plain(got), ignore)):
-                failures.append((f"store {store!r} holds other values", _diff(wanted, _plain(got))))
+        failures.extend(_remembered_failures(body, stores, keyed, ignore))
     if "expect_routing_key" in body and body["expect_routing_key"] != destination:
         failures.append((f"routing key/topic is {destination!r}, expected {body['expect_routing_key']!r}", []))
     if failures:
@@ -356,6 +360,18 @@ def _window_case(case: Case, spec: RouteSpec, pipeline: Pipeline) -> Result:
     if failures:
         return Result(case, False, "; ".join(reason for reason, _ in failures), [line for _, diff in failures for line in diff])
     return Result(case, True)
+
+
+def _remembered_failures(body: Mapping[str, Any], stores: Stores, keyed: Mapping[str, bool] | None,
+                         ignore: Any) -> list[tuple[str, list[str]]]:
+    """How the stores differ from the case's ``expect_remembered``."""
+    failures: list[tuple[str, list[str]]] = []
+    for store, wanted in body["expect_remembered"].items():
+        by_key = (keyed or {}).get(store, True) and isinstance(wanted, Mapping)
+        got = {key: stores.store(store).get(key) for key in wanted} if by_key else stores.store(store).get(None)
+        if not same(_without(wanted, ignore), _without(_plain(got), ignore)):
+            failures.append((f"store {store!r} holds other values", _diff(wanted, _plain(got))))
+    return failures
 
 
 def source_message(spec: RouteSpec, body: Mapping[str, Any]) -> Inbound:

@@ -51,8 +51,11 @@ class DeadLettering:
             failure = message.failure
             observer.dead_letter(message.inbound, message.outbound, failure.stage, failure.error)
             remember = message.pipeline.remember
-            if remember is not None and message.outbound is not None:
-                remember.on_failed(message.outbound.canonical, message.outbound.meta, f"{failure.stage}: {failure.error}")
+            if remember is not None:
+                if message.outbound is not None:
+                    remember.on_failed(message.outbound.canonical, message.outbound.meta, f"{failure.stage}: {failure.error}")
+                elif message.canonical is not None:  # refused after its mapping (schema, when:, sink mapping)
+                    remember.on_failed(message.canonical, message.inbound.meta, f"{failure.stage}: {failure.error}")
         self.report_failure(dead[-1].failure, len(dead))
         calls = [m for m in dead if m.inbound.meta.get("reply_to")]
         if calls:  # each request that failed for good: its caller gets one error reply, published together

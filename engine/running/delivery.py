@@ -39,12 +39,16 @@ ATTEMPTS_HEADER = "x-rabbitros-attempts"
 
 
 class ConversionError(Exception):
-    """A message cannot be converted; ``stage`` says where (decode, mapping, schema, ...)."""
+    """A message cannot be converted; ``stage`` says where (decode, mapping, schema, ...).
+    ``canonical``: the canonical message when the failure came after the mapping gave one (the
+    schema, ``when:`` or sink-mapping stage), so ``remember ... when: failed`` can read it (an
+    order the schema refused still names its headerId); None before."""
 
-    def __init__(self, stage: str, detail: str) -> None:
+    def __init__(self, stage: str, detail: str, canonical: Any = None) -> None:
         super().__init__(f"{stage}: {detail}")
         self.stage = stage
         self.detail = detail
+        self.canonical = canonical
 
 
 @dataclass(slots=True)

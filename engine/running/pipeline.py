@@ -143,16 +143,16 @@ class Pipeline:
             if body is None:
                 body = canonical_bytes(data)
         except SchemaError as exc:
-            raise ConversionError("schema", str(exc)) from None
+            raise ConversionError("schema", str(exc), data) from None
         except Exception as exc:
-            raise ConversionError("schema", _unexpected(exc)) from None
+            raise ConversionError("schema", _unexpected(exc), data) from None
         if self.condition is not None:
             try:
                 verdict = self.condition(data, inbound.meta)
             except MappingError as exc:
-                raise ConversionError("when", str(exc)) from None
+                raise ConversionError("when", str(exc), data) from None
             except Exception as exc:
-                raise ConversionError("when", _unexpected(exc)) from None
+                raise ConversionError("when", _unexpected(exc), data) from None
             if not passes(verdict):
                 raise Filtered(data)
         if self.window is not None:  # aggregated: the sink mapping reads the window's message
@@ -180,9 +180,9 @@ class Pipeline:
                 if self.sink_check is not None:
                     self.sink_check(fields)
             except (MappingError, MessageRejected) as exc:
-                raise ConversionError("sink mapping", str(exc)) from None
+                raise ConversionError("sink mapping", str(exc), data) from None
             except Exception as exc:
-                raise ConversionError("sink mapping", _unexpected(exc)) from None
+                raise ConversionError("sink mapping", _unexpected(exc), data) from None
         # meta: the source's own dict for this message: extended, not copied
         meta["route"] = self.route
         meta["generation"] = self.generation

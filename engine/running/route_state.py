@@ -8,7 +8,7 @@ through :class:`RunningRoute` rather than importing it: a reload swaps the runne
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Protocol, Sequence
 
 from engine.endpoints.base import Connection, Inbound, Outbound
 from engine.running.buffer import Buffers
@@ -74,15 +74,18 @@ class Converted:
 
 class Dead:
     """A message that failed for good, to be stored as a dead letter: its ``failure`` is
-    known, its ``outbound`` is None when it failed before or in its conversion."""
+    known, its ``outbound`` is None when it failed before or in its conversion; ``canonical``:
+    what its mapping gave when its conversion failed after that (the schema, ``when:`` or
+    sink-mapping stage), for ``remember ... when: failed``."""
 
-    __slots__ = ("index", "inbound", "outbound", "attempts", "failure", "pipeline")
+    __slots__ = ("index", "inbound", "outbound", "attempts", "failure", "pipeline", "canonical")
 
     def __init__(self, index: int, inbound: Inbound, outbound: Outbound | None, attempts: int,
-                 pipeline: Pipeline, failure: Failure) -> None:
+                 pipeline: Pipeline, failure: Failure, canonical: Any = None) -> None:
         self.index = index
         self.inbound = inbound
         self.outbound = outbound
         self.attempts = attempts
         self.pipeline = pipeline
         self.failure = failure
+        self.canonical = canonical

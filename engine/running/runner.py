@@ -251,7 +251,8 @@ class RouteRunner(RouteLifecycle):
         except (Filtered, Windowed) as shaped:
             return shaped
         except Exception as error:  # ConversionError, or anything the pipeline did not foresee
-            return Dead(index, inbound, None, prior + 1, pipeline, classify(error, "convert"))
+            return Dead(index, inbound, None, prior + 1, pipeline, classify(error, "convert"),
+                        error.canonical if isinstance(error, ConversionError) else None)
         if len(outbound.body) > delivery.sink_max_message_bytes:
             failure = Failure("size", f"canonical message of {len(outbound.body)} bytes exceeds the sink "
                               f"connection's max_message_bytes {delivery.sink_max_message_bytes}", True)

@@ -284,7 +284,7 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
                 status = engine.status()
                 assert all(route["failed"] == 0 for route in status["routes"].values()), status["routes"]
                 assert status["stores"] == {"connections_sent": 2, "factsheets_sent": 2, "instant_actions": 2, "order_checks": 2,
-                                           "orders": 2, "positions": 2, "progress": 2, "states": 2}, status["stores"]
+                                           "orders": 2, "positions": 2, "progress": 2, "states": 2, "order_schema_checks": 0}, status["stores"]
         finally:
             await engine.stop()
         for agent in ("uav1", "robot1"):  # on_stop, before the clean disconnection that drops the will

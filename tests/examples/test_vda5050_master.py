@@ -560,3 +560,61 @@ def test_a_new_order_while_the_current_one_runs_is_refused_and_the_running_order
     assert stopped and len(stopped["mission"]) == 3, "the UAV kept spray-1's mission"
     rejections = {(key.serial_number, event.error.error_type) for key, event in heard.vehicle_errors if event.is_order_rejection}
     assert rejections == {("uav1", "orderError"), ("robot1", "orderError")}, rejections
+
+
+def test_an_order_the_vda_schema_refuses_is_answered_with_a_validation_error(example_env: int, mosquitto: LocalMosquitto) -> None:
+    """VDA 5050 2.0 6.6.4.1 / figure 8 step 1: an order that is not valid (here a node without
+    its sequenceId, and an orderUpdateId given as a string) is rejected with a ``validationError``
+    in the state, the order's headerId among its references, which the SDK reports as an order
+    rejection; neither vehicle is given it. On main it was only a dead letter: the state said
+    nothing."""
+    peer = Peer()
+    driver = RobotDriver(peer)
+    peer.start()
+    uav = start_uav(example_env)
+
+    def refused(key: VehicleKey, header_id: int) -> Callable[[], bool]:
+        def found() -> bool:
+            state = latest(master, key)
+            return state is not None and any(
+                error.error_type == "validationError" and "schema" in (error.error_description or "") and any(
+                    ref.reference_key == "headerId" and ref.reference_value == str(header_id) for ref in error.error_references or [])
+                for error in state.errors or [])
+        return found
+
+    async def scenario() -> Heard:
+        nonlocal master
+        engine = Engine(EXAMPLE, REPO / "schemas")
+        await engine.start()
+        master, heard = master_control(mosquitto)
+        driving = asyncio.create_task(driver.run())
+        try:
+            await master.connect()
+            await until(lambda: all(latest(master, key) for key in (UAV, ROBOT)), "both states", heard)
+            row = robot_order("row-1", driver.position, 2).to_wire()
+            del row["nodes"][1]["sequenceId"]
+            spray = {**uav_order("spray-1", 2).to_wire(), "orderUpdateId": "0", "headerId": 302}
+            await publish(mosquitto, [("uagv/v2/rabbitros/robot1/order", {**row, "headerId": 301}),
+                                      ("uagv/v2/rabbitros/uav1/order", spray)])
+            await until(refused(ROBOT, 301), "the robot's state to name the invalid order with a validationError", heard)
+            await until(refused(UAV, 302), "the UAV's state to name the invalid order with a validationError", heard)
+            for key in (ROBOT, UAV):
+                state = latest(master, key)
+                assert state is not None and state.order_id == "" and not state.node_states, state
+            assert not driver.goals, "the robot was given no goal"
+            return heard
+        finally:
+            driving.cancel()
+            await master.disconnect()
+            await engine.stop()
+
+    master: MasterClient
+    try:
+        heard = asyncio.run(asyncio.wait_for(scenario(), 120))
+    finally:
+        peer.close()
+        stopped = stop_uav(uav)
+    assert heard.errors == [], [(event.key, str(event.error)) for event in heard.errors]
+    assert stopped and stopped["mission"] == [], "no order reached the UAV"
+    rejections = {(key.serial_number, event.error.error_type) for key, event in heard.vehicle_errors if event.is_order_rejection}
+    assert rejections == {("uav1", "validationError"), ("robot1", "validationError")}, rejections

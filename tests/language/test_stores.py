@@ -164,6 +164,36 @@ def test_a_route_remembers_what_its_sink_accepted_and_a_reload_keeps_stores_and_
 
 
 @pytest.mark.fast
+def test_a_message_refused_after_its_mapping_is_remembered_when_failed_with_the_stage(tmp_path: Path) -> None:
+    """``remember ... when: failed`` reads the canonical message its mapping gave when the schema,
+    ``when:`` or the sink mapping refused it (the runner's Dead carries it to the dead-lettering,
+    engine/running/dead_lettering.py; a route test applies it with ``expect_error`` and
+    ``expect_remembered``): a VDA 5050 order refused by its schema is reported with its headerId.
+    The engine's own path is driven by tests/examples/test_vda5050_master.py."""
+    routes = ROUTES.replace("""    remember: {store: positions, per: agent}
+    sink: {memory: {}}""", """    remember: {store: positions, per: agent}
+    sink: {memory: {}}
+  - name: commands-in
+    source: {mqtt: {connection: field, topic: "farm/+/command"}}
+    schema: command
+    remember:
+      - {store: refusals, per: agent, when: failed, value: "{agent: agent, id: id, why: meta('failure')}"}
+    sink: {mqtt: {connection: field, topic: "farm/out"}}
+    """, 1)
+    tests = """
+tests:
+  - route: commands-in
+    input: {agent: uav1, id: 7}
+    expect_error: schema
+    expect_remembered: {refusals: {uav1: {agent: uav1, id: 7, why: 'schema: schema command.v1: $: "agent_id" is a required property'}}}
+"""
+    config, cases, problems, _ = load_checked(_write(tmp_path, routes, tests), SCHEMAS)
+    assert [p.message for p in problems] == [] and config is not None
+    [result] = run_tests(cases, config, SCHEMAS)
+    assert result.passed, (result.reason, result.diff)
+
+
+@pytest.mark.fast
 def test_a_pipeline_without_stores_recalls_nothing() -> None:
     """``check`` and other callers compile without the engine's stores: a fresh, empty set."""
     assert Pipeline.__dataclass_fields__["remember"].default is None
