@@ -95,7 +95,24 @@ class MqttHarness(Harness):
 
     async def peer_back(self) -> None:
         await asyncio.to_thread(self.broker.start)
-        await self._connect()
+        await self._connect_again()
+
+    async def _connect_again(self, timeout: float = 10.0) -> None:
+        """The test's own clients back on a restarted broker: a connection refused in the moment
+        after it first accepted one (seen once under a loaded CI-like run) is tried again; a broker
+        that stays down still fails the case, naming the error."""
+        import aiomqtt
+
+        deadline = asyncio.get_running_loop().time() + timeout
+        while True:
+            try:
+                await self._connect()
+                return
+            except aiomqtt.MqttError:
+                await self._disconnect()  # whichever of the two clients got through: never two collectors
+                if asyncio.get_running_loop().time() > deadline:
+                    raise
+                await asyncio.sleep(0.1)  # poll interval of a deadline loop
 
     async def cancel_subscription(self) -> None:
         """Killed and started again: the engine's clean session (no client_id) and its
@@ -103,7 +120,7 @@ class MqttHarness(Harness):
         await self._disconnect()
         await asyncio.to_thread(self.broker.kill)
         await asyncio.to_thread(self.broker.start)
-        await self._connect()
+        await self._connect_again()
 
 
 HARNESS = MqttHarness
