@@ -33,7 +33,7 @@ import zenoh
 from engine.endpoints.base import FINAL_REPLIES, Deliver, EndpointError, Inbound, Source
 from engine.endpoints.pump import pump
 from engine.endpoints.zenoh.errors import mapped
-from engine.endpoints.zenoh.handoff import Handoff
+from engine.endpoints.zenoh.handoff import Handoff, stop_receiving
 from engine.endpoints.zenoh.keys import parse_pattern
 from engine.endpoints.zenoh.options import ZenohSourceOptions
 from engine.endpoints.zenoh.session import ZenohLink
@@ -159,16 +159,8 @@ class QuerySource(Source):
     async def stop(self) -> None:
         """Take no more queries (those coming meanwhile get an error reply), undeclare the
         queryable, settle what was queued, and end what is still waiting for an answer."""
-        if self._handoff is not None:
-            self._handoff.close()
         queryable, self._queryable = self._queryable, None
-        if queryable is not None:
-            try:
-                await asyncio.to_thread(queryable.undeclare)
-            except Exception as exc:  # a closed session undeclared it already
-                log.debug("%s: undeclare: %s", self._where, exc)
-        if self._loop is not None:
-            await self._loop
+        await stop_receiving(self._handoff, queryable, self._loop, self._where)
         for token in list(self._pending):
             self._end(token, "the route stopped")
 

@@ -14,11 +14,29 @@ own subscription runs the callback inline) never waits: it could not be given ro
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 from collections import deque
-from typing import Callable, Generic, TypeVar
+from typing import Any, Callable, Generic, TypeVar
 
 T = TypeVar("T")
+
+log = logging.getLogger("engine.zenoh")
+
+
+async def stop_receiving(handoff: Handoff[Any] | None, entity: Any, loop: asyncio.Task[None] | None, where: str) -> None:
+    """A subscriber's or queryable's stop, in its order: the queue closes first (a callback
+    waiting for room is let go, so undeclaring never waits on a route that cannot take more),
+    the entity is undeclared (off the event loop: it blocks), then what was queued is settled."""
+    if handoff is not None:
+        handoff.close()
+    if entity is not None:
+        try:
+            await asyncio.to_thread(entity.undeclare)
+        except Exception as exc:  # a closed session undeclared it already
+            log.debug("%s: undeclare: %s", where, exc)
+    if loop is not None:
+        await loop
 
 
 class Handoff(Generic[T]):

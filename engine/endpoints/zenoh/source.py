@@ -23,7 +23,7 @@ import zenoh
 from engine.endpoints.base import Deliver, EndpointError, Inbound, Source
 from engine.endpoints.pump import pump
 from engine.endpoints.zenoh.errors import mapped
-from engine.endpoints.zenoh.handoff import Handoff
+from engine.endpoints.zenoh.handoff import Handoff, stop_receiving
 from engine.endpoints.zenoh.keys import parse_pattern
 from engine.endpoints.zenoh.options import ZenohSourceOptions
 from engine.endpoints.zenoh.session import ZenohLink
@@ -111,16 +111,8 @@ class ZenohSource(Source):
         The queue closes first: a callback waiting for room (``overflow: block``) is let go
         (its sample dropped and counted), so undeclaring never waits on a route that cannot
         take more (its sink down)."""
-        if self._handoff is not None:
-            self._handoff.close()
         subscriber, self._subscriber = self._subscriber, None
-        if subscriber is not None:
-            try:
-                await asyncio.to_thread(subscriber.undeclare)
-            except Exception as exc:  # a closed session undeclared it already
-                log.debug("%s: undeclare: %s", self._where, exc)
-        if self._loop is not None:
-            await self._loop
+        await stop_receiving(self._handoff, subscriber, self._loop, self._where)
 
     def status(self) -> dict[str, Any]:
         return {"subscription": self.pattern.subscription, "received": self.received, "dropped": self.dropped}
