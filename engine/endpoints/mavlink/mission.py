@@ -17,7 +17,8 @@ ArduPilot's seq-0 home item first.
 Protocol (devguide ``services/mission.md``): MISSION_COUNT; every MISSION_REQUEST_INT or legacy
 MISSION_REQUEST is answered with the item asked for, repeats included; silence for the answer
 timeout sends the last message again (``retries`` times; a SiK link needs ~1.5 s, not the
-protocol's 250 ms). MISSION_ACK ``MAV_MISSION_ACCEPTED`` completes the upload; any other result
+protocol's 250 ms); a vehicle that answered and then fell silent that long gave the transfer up,
+and it starts again from MISSION_COUNT while within ``command_timeout``. MISSION_ACK ``MAV_MISSION_ACCEPTED`` completes the upload; any other result
 is permanent (:class:`MessageRejected` naming it), except ArduPilot's non-terminal
 ``MAV_MISSION_INVALID_SEQUENCE`` during a transfer. No answer after the retries, or for
 ``command_timeout`` seconds (from when the route received the message, then from the vehicle's
@@ -202,6 +203,11 @@ def mission_target(options: TransactionOptions, targets: Targets | None, message
     return read.get("target_system", options.target_system), read.get("target_component", options.target_component)
 
 
+_RESTART_AFTER = 3
+"""Unanswered resends of an item after which the transfer starts again from MISSION_COUNT: a
+vehicle that answered and then stays silent gave the transfer up (MAVSDK does after a few losses
+on a SiK link), and resending the same item to it until the bound would only run the bound out."""
+
 class MissionUploadSink(Sink):
     """Uploads each message's mission to its target; returns once the vehicle accepted it.
     A batch uploads to several targets at once, one upload at a time per target."""
@@ -257,8 +263,8 @@ class MissionUploadSink(Sink):
         stats = connection.stats
         target_system, target_component = target
         timeout = options.answer_timeout(connection)
-        last: mavlink2.MAVLink_message = mavlink2.MAVLink_mission_count_message(
-            target_system, target_component, len(items), options.mission_type)
+        count = mavlink2.MAVLink_mission_count_message(target_system, target_component, len(items), options.mission_type)
+        last: mavlink2.MAVLink_message = count
         await connection.send_message(last)
         loop = asyncio.get_running_loop()
         tries, highest = 0, -1
@@ -267,6 +273,14 @@ class MissionUploadSink(Sink):
             answer = await answers.next(max(0.0, wait_until - loop.time()))
             if answer is None:
                 tries += 1
+                if tries > min(options.retries, _RESTART_AFTER) and last is not count and loop.time() < give_up:
+                    # the vehicle answered this transfer, then fell silent: it gave the transfer up
+                    # (MAVSDK does after a few losses on a SiK link): start it again, within the bound
+                    stats["mission_restarts"] = stats.get("mission_restarts", 0) + 1
+                    tries, highest, last = 0, -1, count
+                    await connection.send_message(last)
+                    wait_until = min(loop.time() + timeout, give_up)
+                    continue
                 if tries > options.retries or loop.time() >= give_up:
                     connection.post(mavlink2.MAVLink_mission_ack_message(
                         target_system, target_component, mavlink2.MAV_MISSION_OPERATION_CANCELLED, options.mission_type))
