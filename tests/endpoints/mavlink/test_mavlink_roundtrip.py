@@ -65,6 +65,7 @@ def settings(tmp_path: Path, **kwargs: Any) -> Settings:
 
 @pytest.mark.soak
 @pytest.mark.timeout(400)  # the experiment's own bound is 300 s
+@pytest.mark.alone  # spurious retransmissions are wall time: 20 of 180 beside 3 busy workers in CI
 def test_round_trip_over_a_clean_radio_is_byte_identical(tmp_path: Path, amqp_url: str) -> None:
     config = settings(tmp_path, rate={50: 8.0, 150: 8.0, 250: 5.0})
     summary = run(config, amqp_url)
@@ -80,7 +81,8 @@ def test_round_trip_over_a_clean_radio_is_byte_identical(tmp_path: Path, amqp_ur
     assert vehicle["json_received"] == len(SIZES) * COUNT + 1, "each message stored once (plus the probe)"
     # A clean radio needs no retransmission (0 on a quiet machine); a loaded one may answer an
     # echo late, so some spurious ones (never a lost or duplicated message, checked above) are
-    # tolerated: up to 10 % (10 of 180 were seen at load 12, with other work beside the suite).
+    # tolerated: up to 10 % (10 of 180 were seen at load 12; 20 of 180 beside the parallel tier's
+    # three workers in CI, hence `alone`).
     assert vehicle["tunnel_retransmissions"] <= len(SIZES) * COUNT // 10 and vehicle["bad_frames"] == 0
 
 
