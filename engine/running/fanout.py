@@ -20,7 +20,8 @@ converted once (decode, mapping, schema, the route's ``when:``); then:
   never sent again**. A sink that refuses a message for good (or whose mapping did) makes the
   message one dead letter once the other sinks settled it, naming the sink and its error
   (stage ``sink``, or ``sink mapping``); the copies the other sinks accepted stay accepted
-  (a replay of that dead letter sends to every sink again: said in docs/route-language.md).
+  (its dead letter names the sinks that did not take it, ``x-source-sinks_unsent``, and
+  ``dead-letters replay`` sends it to those only).
 * **fallback**: what a sink refuses for good, or the broker returns unroutable (an
   exchange with no queue bound), goes to its fallback at once. While the sink cannot take
   messages (its connection down or not open, or not ready: :meth:`Slot.can_take`), the route
@@ -51,6 +52,9 @@ SETTLED = "sinks_settled"
 """Meta key: the names of the sinks that settled the message (accepted, or settled unsent)."""
 REFUSED = "sinks_refused"
 """Meta key: sink name -> ``stage: error`` of the sinks that refused it for good."""
+UNSENT = "sinks_unsent"
+"""Meta key: the sinks a message that failed was not accepted by, comma-separated (text, so its
+dead letter keeps it: ``x-source-sinks_unsent``); ``dead-letters replay`` sends it to those only."""
 
 
 class Filtered(Exception):
@@ -88,7 +92,10 @@ class SinkChoice:
     def __call__(self, data: Any, meta: dict[str, Any]) -> dict[str, Any]:
         chosen: dict[str, Any] = {}
         refused: dict[str, str] = {}
+        unsent = meta.get(UNSENT)  # a dead letter sent again: only to the sinks that did not take it
         for mapped, condition in self.sinks:
+            if unsent is not None and mapped.name not in str(unsent).split(","):
+                continue
             if condition is not None:
                 try:
                     if not passes(condition(data, meta)):
@@ -189,6 +196,10 @@ class _Progress:
         return Outbound(m.body, m.canonical, fields, m.message_id, m.meta, m.reply, m.received_ns, m.captured)
 
     def result(self) -> BaseException | None:
+        if self.pending is not None or self.refused:
+            fields = self.message.fields
+            unsent = [name for name in fields if name not in self.settled] + [name for name in self.refused if name not in fields]
+            self.message.meta[UNSENT] = ",".join(unsent)  # type: ignore[index]  # the source's own dict
         if self.pending is not None:
             return self.pending
         if self.refused:
