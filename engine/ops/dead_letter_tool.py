@@ -37,13 +37,13 @@ from typing import Any, Iterable, Sequence
 
 from engine import endpoints
 from engine.common.schemas import SchemaRegistry
-from engine.endpoints.base import DeadLetterReader, EndpointError, Inbound, NotSent, Outbound, Sink, StoredLetter
+from engine.endpoints.base import DeadLetterReader, EndpointError, Inbound, NotSent, Outbound, StoredLetter
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.language.specs import RoutesConfig, RouteSpec
 from engine.language.stores import Stores
 from engine.running.connections import ConnectionPool
 from engine.running.dead_letters import DeadLetterSpool, SpoolReader, default_spool_dir
-from engine.running.fanout import compiler, open_fan_out
+from engine.running.fanout import open_sinks
 from engine.running.pipeline import ConversionError, Filtered, Pipeline
 
 DEFAULT_LIMIT = 10_000
@@ -202,14 +202,9 @@ async def _replay_route(config: RoutesConfig, schemas: SchemaRegistry, pool: Con
     schema = schemas.get(spec.schema)
     assert schema is not None  # the routes loaded
     reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
-    stores = Stores()
-    sink: Sink
-    if spec.sinks:  # several sinks: a letter goes again only to those that did not take it (engine/running/fanout.py)
-        sink, _ = await open_fan_out(spec.sinks, spec.name, lambda end: pool.get(config.connections[end.connection], retry_in_background=False),
-                                     pool.is_open, None, compiler(spec, stores))
-    else:
-        connection = await pool.get(config.connections[spec.sink.connection], retry_in_background=False)
-        sink = connection.sink(spec.name, spec.sink.options)
+    stores = Stores()  # several sinks: a letter goes again only to those that did not take it (engine/running/fanout.py)
+    sink, _, _ = await open_sinks(spec, lambda end: pool.get(config.connections[end.connection], retry_in_background=False),
+                                  pool.is_open, stores)
     pipeline = Pipeline.compile(spec, 0, schema, sink, reply_schema, stores)
     try:
         settled: list[StoredLetter] = []

@@ -46,7 +46,7 @@ from engine.common.placeholders import MappingError
 from engine.endpoints import transport
 from engine.endpoints.base import Connection, EndpointError, MessageRejected, NotSent, Outbound, Sink, Unroutable
 from engine.language.mapping import Mapper, compile_mapping
-from engine.language.specs import SinkSpec
+from engine.language.specs import RouteSpec, SinkSpec
 
 SETTLED = "sinks_settled"
 """Meta key: the names of the sinks that settled the message (accepted, or settled unsent)."""
@@ -355,6 +355,23 @@ async def open_fan_out(sinks: Sequence[SinkSpec], route: str, connection_of: Cal
                             is_open, mapped=Mapped.compile(spec.fallback, compile_))
         slots.append(Slot(spec.name, connection.sink(route, spec.endpoint.options), connection, is_open, fallback, spec.after))
     return FanOutSink(slots, count_unroutable), connections
+
+
+async def open_sinks(spec: RouteSpec, connection_of: Callable[[Any], Any], is_open: Callable[[Connection], bool],
+                     stores: Any, observer: Any = None) -> tuple[Sink, list[Connection], Connection | None]:
+    """``(sink, connections, one)``: the route's one sink on its connection (``one``), or its
+    several sinks as a :class:`FanOutSink` (``one`` None: it asks its sinks' connections
+    itself); ``observer``: the route's counters (returns a fallback took count ``unroutable``)."""
+    if not spec.sinks:
+        connection = await connection_of(spec.sink)
+        return connection.sink(spec.name, spec.sink.options), [connection], connection
+
+    def count_unroutable(count: int) -> None:
+        observer.unroutable += count
+
+    sink, connections = await open_fan_out(spec.sinks, spec.name, connection_of, is_open,
+                                           count_unroutable if observer is not None else None, compiler(spec, stores))
+    return sink, connections, None
 
 
 def compiler(spec: Any, stores: Any) -> Callable[[str | None], Mapper | None]:

@@ -44,7 +44,7 @@ from engine.running.record import Recorder
 from engine.running.connections import ConnectionPool
 from engine.running.dead_letters import DeadLetters
 from engine.running.dedupe import DedupeKeys
-from engine.running.fanout import compiler, open_fan_out
+from engine.running.fanout import open_sinks
 from engine.running.leases import Leases
 from engine.running.observe import Observers
 from engine.running.pipeline import Pipeline
@@ -261,25 +261,16 @@ class Engine:
     async def _pipeline(
         self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int
     ) -> tuple[Pipeline, list[Connection]]:
-        """The route's pipeline on its sink (or its sinks: engine/running/fanout.py), and the
-        sinks' connections."""
+        """The route's pipeline on its sink or sinks (engine/running/fanout.py), and their connections."""
         schema = schemas.get(spec.schema)
         assert schema is not None
         reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
         seen_keys = await self.dedupe.get(spec.name, spec.dedupe)
-        if spec.sinks:
-            observer = self.observers.get(spec.name)
-
-            def count_unroutable(count: int) -> None:
-                observer.unroutable += count
-
-            sink, connections = await open_fan_out(spec.sinks, spec.name, lambda end: self.connections.get(config.connections[end.connection]),
-                                                   self.is_open, count_unroutable, compiler(spec, self.stores))
-            return Pipeline.compile(spec, generation, schema, sink, reply_schema, self.stores, seen_keys), connections
-        connection = await self.connections.get(config.connections[spec.sink.connection])
-        pipeline = Pipeline.compile(spec, generation, schema, connection.sink(spec.name, spec.sink.options), reply_schema, self.stores, seen_keys)
-        pipeline.sink_connection = connection
-        return pipeline, [connection]
+        sink, connections, one = await open_sinks(spec, lambda end: self.connections.get(config.connections[end.connection]),
+                                                  self.is_open, self.stores, self.observers.get(spec.name))
+        pipeline = Pipeline.compile(spec, generation, schema, sink, reply_schema, self.stores, seen_keys)
+        pipeline.sink_connection = one
+        return pipeline, connections
 
     async def _runner(self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int) -> RouteRunner:
         """A route's pipeline and source, not started yet."""
