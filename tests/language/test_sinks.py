@@ -200,3 +200,23 @@ def test_route_tests_name_a_sink_the_route_lacks(tmp_path: Path):
     text = result.stdout + result.stderr
     assert "fan.test.yaml:4: expect_sinks: route 'fan' has no sink 'amqp0'; did you mean 'amqp.0'?" in text, text
     assert "fan.test.yaml:7: expect_sink: route 'fan' has several sinks (amqp.0, ros2, spool): give expect_sinks: {NAME: output}" in text, text
+
+
+def test_a_single_sink_with_a_fallback_or_a_when_is_a_fan_out_of_one(tmp_path: Path):
+    config = load_routes(routes(tmp_path, """routes:
+  - name: spooled
+    source: {amqp: {queue: a}}
+    schema: raw_json
+    sink:
+      amqp: {exchange: cloud}
+      fallback: {mqtt: {topic: spool}}
+  - name: chosen
+    source: {amqp: {queue: b}}
+    schema: raw_json
+    sink:
+      amqp: {exchange: cloud}
+      when: ok
+"""), SCHEMAS, env={})
+    spooled, chosen = config.routes["spooled"].sinks, config.routes["chosen"].sinks
+    assert [(s.name, s.fallback.name if s.fallback else None, s.after) for s in spooled] == [("amqp", "amqp.fallback", 5.0)]
+    assert [(s.name, s.when) for s in chosen] == [("amqp", "ok")]
