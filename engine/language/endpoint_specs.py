@@ -97,22 +97,24 @@ def endpoint_spec(
     problems: list[Problem],
     table: agents_table.Table,
     used: dict[str, Any] | None = None,
+    side: str | None = None,
 ) -> tuple[EndpointSpec | None, bool]:
-    """``(spec, complete)`` of a route's source or sink; an incomplete spec (an option at
-    fault left out) serves only to check the rest of the route."""
+    """``(spec, complete)`` of a route's source or sink (``side``: ``source`` or ``sink``,
+    default the last key of ``where``: a ``sinks:`` item or a fallback says ``sink``); an
+    incomplete spec (an option at fault left out) serves only to check the rest of the route."""
+    side = side or str(where[-1])
     protocols = [p for p in endpoints.PROTOCOLS if p in body]
     if len(protocols) != 1:
         if not document.reported(where):
-            problems.append(document.problem(where, f"route {route!r}: {where[-1]} must name exactly one of {', '.join(endpoints.PROTOCOLS)}"))
+            problems.append(document.problem(where, f"route {route!r}: {_written(where)} must name exactly one of {', '.join(endpoints.PROTOCOLS)}"))
         return None, False
     protocol = protocols[0]
-    side = where[-1]
     try:
         transport = endpoints.transport(protocol)
     except EndpointError as exc:
         problems.append(document.problem(where + (protocol,), f"route {route!r}: {side}: {exc}"))
         return None, False
-    named = _agent_names(document, where + (protocol,), route, transport, body[protocol], table, problems, used)
+    named = _agent_names(document, where + (protocol,), route, transport, body[protocol], table, problems, used, side)
     if named is None:
         return None, False
     options, complete = parse_leniently(
@@ -144,8 +146,14 @@ def endpoint_spec(
     return EndpointSpec(protocol, wanted, options), complete
 
 
+def _written(where: Path_) -> str:
+    """``sink``, ``sinks[1]``, ``sinks[1].fallback``: the key as a route file writes it."""
+    at = where[2:] if where[:1] == ("routes",) and len(where) > 2 else where[-1:]
+    return ".".join(f"[{step}]" if isinstance(step, int) else str(step) for step in at).replace(".[", "[")
+
+
 def _agent_names(document: Document, where: Path_, route: str, transport: Transport, body: Any,
-                 table: agents_table.Table, problems: list[Problem], used: dict[str, Any] | None) -> Any:
+                 table: agents_table.Table, problems: list[Problem], used: dict[str, Any] | None, side: str) -> Any:
     """The endpoint's options with each agent's name (``target_system: uav2``) replaced by the
     entry's value the transport reads for that option (``Transport.agent_options``), and its
     connection the agent's when it names none; None after a problem (an unknown agent, with a
@@ -153,7 +161,6 @@ def _agent_names(document: Document, where: Path_, route: str, transport: Transp
     if not isinstance(body, Mapping) or not transport.agent_options:
         return body
     out = dict(body)
-    side = where[-2]
     for key, entry_key in transport.agent_options.items():
         name = body.get(key)
         if not agents_table.is_name(name):
@@ -181,7 +188,7 @@ def hand_agents(source: EndpointSpec | None, sink: EndpointSpec | None, route: R
     if not table:
         return source, sink
     reads_agent = agents_table.AGENT not in variables and any(
-        agents_table.AGENT in meta_names(expression) for expression in (route.mapping, route.sink.get("mapping")))
+        agents_table.AGENT in meta_names(expression) for expression in (route.mapping, (route.sink or {}).get("mapping")))
     handed = []
     for spec, wanted in ((source, reads_agent), (sink, True)):
         if spec is None or not wanted:

@@ -1,7 +1,9 @@
-"""``check`` reads every read of the canonical message: what the sink mapping, ``remember``'s
-``value`` mappings, the throttle's, ``remember``'s and ``latest_only``'s ``per`` and the sink's
-templates (routing key, topic, MAVLink target) read, against what the route's canonical schema
-can hold.
+"""``check`` reads every read of the canonical message: what the sink mapping (each sink's, on
+a route with ``sinks:``, and its fallback's), each sink's ``when:``, the route's ``when:``, the
+``dedupe`` key, a ``window``'s ``per`` and aggregates' arguments, ``remember``'s ``value``
+mappings, the throttle's, ``remember``'s and ``latest_only``'s ``per`` and the sink's templates
+(routing key, topic, MAVLink target) read, against what the route's canonical schema can hold
+(with a ``window:``, what its sinks read against the fields the window emits).
 
 Before, ``check`` warned about keys a mapping *sets* that the schema lacks, never about fields
 a mapping *reads* that its input cannot have: a sink mapping ``{temperature: temperatur_c}``
@@ -53,7 +55,7 @@ def read_problem(path: FieldPath, declared: Any, label: str) -> tuple[str, bool]
 
 
 def schema_checks(document: Document, where: Path_, route: Any, sink: Any, schemas: SchemaRegistry,
-                  captured: tuple[str, ...] = ()) -> Iterator[tuple[Problem, bool]]:
+                  captured: tuple[str, ...] = (), sink_path: Path_ = ("sink",)) -> Iterator[tuple[Problem, bool]]:
     """``(problem, error)`` for each canonical field name the schema does not declare: keys the
     mapping sets (warnings: the schema validates what is set), and fields the sink mapping, the
     ``per`` keys and the sink's templates read (:func:`read_problem`). A sink template's
@@ -70,9 +72,15 @@ def schema_checks(document: Document, where: Path_, route: Any, sink: Any, schem
     """With a ``window:``, the sink mapping and templates read the window's message, not the canonical one."""
     window = getattr(route, "window", None)
     sink_reads = emitted_reads if window is not None else reads
-    sink_mapping = route.sink.get("mapping")
-    if isinstance(sink_mapping, str):
-        sink_reads += [(where + ("sink", "mapping"), "sink mapping", path) for path in _leaves(mapping_reads(sink_mapping))]
+    sink_body = route.sink or {}
+    for key, what in (("mapping", "sink mapping"), ("when", "sink when")):
+        if isinstance(sink_body.get(key), str):
+            sink_reads += [(where + sink_path + (key,), what, path) for path in _leaves(mapping_reads(sink_body[key]))]
+    canonical_reads: tuple[tuple[Path_, str, str | None], ...] = (
+        (("when",), "when", route.when), (("dedupe", "key"), "dedupe key", route.dedupe.key if getattr(route, "dedupe", None) else None))
+    for key_path, what, text in canonical_reads:
+        if isinstance(text, str):  # they read the canonical message, a window's inputs
+            reads += [(where + key_path, what, path) for path in _leaves(mapping_reads(text))]
     for window_key, text in window_expressions(window):
         reads += [(where + ("window",) + window_key, f"window {'.'.join(window_key)}", path)
                   for path in _leaves(mapping_reads(text))]
@@ -85,7 +93,7 @@ def schema_checks(document: Document, where: Path_, route: Any, sink: Any, schem
     if sink is not None:
         transport = endpoints.transport(sink.protocol)
         for key, field_path in transport.canonical_fields(sink.options):
-            key_path = where + ("sink", sink.protocol, key)
+            key_path = where + sink_path + (sink.protocol, key)
             if field_path not in captured:
                 sink_reads.append((key_path, f"sink {key}", tuple(field_path.split("."))))
             elif read_problem(tuple(field_path.split(".")), declared, schema_name) is None and not declared.open:

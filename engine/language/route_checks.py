@@ -87,6 +87,9 @@ class CheckedRoute:
     """Whether the directory has an agents table."""
     expansion: Expansion | None = None
     """How the route was expanded from a ``for_each`` template, if it was."""
+    sink_path: Path_ = ("sink",)
+    """Where the sink checked is written: ``sink``, or an item of ``sinks:`` or its ``fallback``
+    (a route with several sinks is checked once per sink, each as ``route.sink``)."""
 
     def problem(self, key_path: Path_, message: str) -> Problem:
         return self.document.problem(key_path, f"route {self.route.name!r}: {message}")
@@ -110,7 +113,7 @@ def route_checks(checked: CheckedRoute) -> Iterator[Finding]:
     yield from _schema_checks(checked)
     if checked.expansion is not None:
         yield from ((problem, False) for problem in shadowing_warnings(
-            checked.document, checked.where, checked.route, checked.expansion, checked.schemas))
+            checked.document, checked.where, checked.route, checked.expansion, checked.schemas, checked.sink_path))
         yield from ((problem, False) for problem in captured_warnings(
             checked.document, checked.where, checked.route, checked.source, checked.expansion))
 
@@ -129,8 +132,9 @@ def _expressions(checked: CheckedRoute) -> tuple[tuple[Path_, str | None], ...]:
     """The route's JMESPath expressions on its messages, each where it is written: its mapping,
     its sink's, its ``when:``, its ``dedupe:`` key and its ``window:``'s ``per`` and aggregates' arguments."""
     where, route = checked.where, checked.route
-    return ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping")),
-            (where + ("when",), route.when), (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None),
+    sink = route.sink or {}
+    return ((where + ("mapping",), route.mapping), (where + checked.sink_path + ("mapping",), sink.get("mapping")),
+            (where + checked.sink_path + ("when",), sink.get("when")), (where + ("when",), route.when), (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None),
             *((where + ("window",) + key, text) for key, text in window_expressions(route.window)))
 
 
@@ -154,7 +158,8 @@ def _schema_checks(checked: CheckedRoute) -> Iterator[Finding]:
     elif schemas.get(schema_name) is None:
         yield checked.problem(where + ("schema",), f"unknown schema {schema_name!r} (known: {', '.join(n for n in schemas.names() if '.v' not in n)}){did_you_mean(schema_name, schemas.names())}"), True
     else:
-        yield from schema_checks(checked.document, where, checked.route, checked.sink, schemas, source_variables(checked.source))
+        yield from schema_checks(checked.document, where, checked.route, checked.sink, schemas, source_variables(checked.source),
+                                 checked.sink_path)
 
 
 def _source_checks(checked: CheckedRoute) -> Iterator[Problem]:
@@ -257,14 +262,14 @@ def _meta_problems(source: EndpointSpec, expression: str | None, variables: Mapp
 
 
 def shadowing_warnings(document: Document, where: Path_, route: RouteOptions, expansion: Expansion,
-                        schemas: SchemaRegistry) -> Iterator[Problem]:
+                        schemas: SchemaRegistry, sink_path: Path_ = ("sink",)) -> Iterator[Problem]:
     """A ``{var}`` the template filled in at load where the route's canonical message has a
     field of the same name: the variable wins (the field is never read there), so say so."""
     declared = schemas.declared(route.schema) if route.schema else None
     if declared is None or declared.open:
         return
     for path, names in expansion.placeholders.items():
-        if path[:1] not in (("sink",), ("throttle",)):
+        if path[:len(sink_path)] != sink_path and path[:1] != ("throttle",):
             continue
         for variable in names:
             if variable in declared.keys:
@@ -318,12 +323,12 @@ def _mapping_problems(expression: str | None) -> Iterator[str]:
 def _endpoint_checks(checked: CheckedRoute) -> Iterator[Problem]:
     """The transport's own checks of each endpoint that parsed completely (the other may not have)."""
     route = checked.route
-    ends = (("source", checked.source if checked.complete[0] else None, route.mapping),
-            ("sink", checked.sink if checked.complete[1] else None, route.sink.get("mapping")))
-    for side, spec, expression in ends:
+    ends = (("source", ("source",), checked.source if checked.complete[0] else None, route.mapping),
+            ("sink", checked.sink_path, checked.sink if checked.complete[1] else None, (route.sink or {}).get("mapping")))
+    for side, path, spec, expression in ends:
         if spec is None:
             continue
-        base = checked.where + (side, spec.protocol)
+        base = checked.where + path + (spec.protocol,)
         try:
             transport = endpoints.transport(spec.protocol)
             check = transport.check_source if side == "source" else transport.check_sink

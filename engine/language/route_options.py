@@ -40,6 +40,40 @@ class LeaseOptions:
 
 
 ENDPOINT_DESCRIPTION = "exactly one of " + " / ".join(endpoints.PROTOCOLS)
+SINK_MAPPING_DESCRIPTION = ("JMESPath from the canonical message to the sink's fields (a typed message, "
+                            "a mission's items); absent or null: the canonical message")
+DEFAULT_FALLBACK_AFTER = 5.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class FallbackKeys:
+    """``fallback:`` of a sink, beside its one protocol key (the fallback sink's options).
+    engine/running/fanout.py acts on it."""
+
+    __schema_description__ = (
+        "where the sink's messages go while it cannot take them: what it refuses for good or returns "
+        "unroutable goes here at once; while it cannot take messages (its connection down, not ready) they "
+        "wait 'after' seconds, then go here until it can again (then new messages go to it: the fallback gives back); "
+        "exactly one protocol key, as a sink")
+
+    after: float = option(DEFAULT_FALLBACK_AFTER, minimum=0, description=(
+        "seconds the primary may be unable to take messages before they go to the fallback (0: at once)"))
+    mapping: str | None = option(None, nullable=True, description=SINK_MAPPING_DESCRIPTION + " (the fallback's own)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SinkKeys:
+    """The keys of a sink beside its one protocol key: ``sink:`` and each item of ``sinks:``."""
+
+    name: str | None = option(None, pattern=NAME_PATTERN, description=(
+        "names the sink in dead letters, status and route tests; default: its protocol key (with its "
+        "position, as in PROTOCOL.1, when two sinks of a route have the same protocol)"))
+    mapping: str | None = option(None, nullable=True, description=SINK_MAPPING_DESCRIPTION)
+    when: str | None = option(None, description=(
+        "condition: JMESPath on the canonical message (meta(name) reads the source's metadata): the sink gets "
+        "only the messages it gives true for (false, null, empty: not this sink); a message no sink takes is "
+        "settled and counted filtered"))
+    fallback: dict[str, Any] | None = option(None, description="see routes[].sink.fallback")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -81,7 +115,11 @@ class RouteOptions:
     max_age: float | None = option(None, exclusive_minimum=0, description=(
         "seconds from reception after which a message is worthless (telemetry): one older when it would be sent (from "
         "the buffer after an outage, a throttle slot, a retry) is dropped and counted expired; absent: every message arrives"))
-    sink: dict[str, Any] = option(description=ENDPOINT_DESCRIPTION)
+    sink: dict[str, Any] | None = option(None, description=ENDPOINT_DESCRIPTION + "; or sinks:")
+    sinks: tuple[dict[str, Any], ...] | None = option(None, min_items=1, description=(
+        "several sinks (instead of sink:), each as sink: with its own mapping, when and fallback: a message is "
+        "converted once and settled at its source once every sink chosen for it settled it (delivered, or "
+        "dead-lettered naming the sink: one dead letter for a message, whatever the number of sinks)"))
     reply: ReplyOptions | None = option(None)
     ordered: bool = option(False, description="one engine instance at a time carries the route, in order (sources whose broker offers it: a single active consumer)")
     instances: tuple[str, ...] | None = option(None, min_items=1,

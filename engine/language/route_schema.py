@@ -27,7 +27,7 @@ from engine import endpoints
 from engine.common.options import property_schema, schema
 from engine.endpoints.base import Transport
 from engine.language.route_keys import render_keys
-from engine.language.route_options import ENDPOINT_DESCRIPTION, NAME_PATTERN, ConnectionLimits, RouteOptions
+from engine.language.route_options import ENDPOINT_DESCRIPTION, NAME_PATTERN, ConnectionLimits, FallbackKeys, RouteOptions, SinkKeys
 from engine.language.stage_options import DeadLettersOptions
 
 SCHEMA_PATH = Path(__file__).with_name("route_file.schema.json")
@@ -77,16 +77,18 @@ def _only(protocol: str, prop: dict[str, Any]) -> dict[str, Any]:
     return {**prop, "description": f"{protocol} connections: {prop.get('description', '')}".rstrip(": ")}
 
 
-SINK_MAPPING_DESCRIPTION = ("JMESPath from the canonical message to the sink's fields (a typed message, "
-                            "a mission's items); absent or null: the canonical message")
-
-
 def _endpoint(transports: list[Transport], side: str) -> dict[str, Any]:
     """``source:`` or ``sink:``: exactly one protocol key with that protocol's options; a sink
-    also has ``mapping`` (the sink mapping)."""
+    also has the keys of :class:`SinkKeys` (its mapping, name, when and fallback), a fallback
+    (side ``fallback``) those of :class:`FallbackKeys`."""
     properties = {t.name: schema(t.source_options if side == "source" else t.sink_options) for t in transports}
     if side == "sink":
-        properties["mapping"] = {**schema(RouteOptions)["properties"]["mapping"], "description": SINK_MAPPING_DESCRIPTION}
+        properties.update(schema(SinkKeys)["properties"])
+        properties["fallback"] = _endpoint(transports, "fallback")
+    elif side == "fallback":
+        fallback = schema(FallbackKeys)
+        properties.update(fallback["properties"])
+        return {"type": "object", "additionalProperties": False, "properties": properties, "description": fallback["description"]}
     return {"type": "object", "additionalProperties": False, "properties": properties,
             "description": ENDPOINT_DESCRIPTION}
 
@@ -97,6 +99,7 @@ def route_file_schema() -> dict[str, Any]:
     route = schema(RouteOptions)
     route["properties"]["source"] = _endpoint(transports, "source")
     route["properties"]["sink"] = _endpoint(transports, "sink")
+    route["properties"]["sinks"] = {**route["properties"]["sinks"], "items": _endpoint(transports, "sink")}
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "$id": "https://rabbitros.dev/schemas/route-file.json",

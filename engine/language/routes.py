@@ -19,7 +19,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal, Mapping
 
 from engine import endpoints
@@ -33,7 +33,8 @@ from engine.language.reading import ROUTE_FILE_VALIDATOR, ItemFiles, document_it
 from engine.language.route_checks import CheckedRoute, competing_consumers, remember_path, route_checks, store_problems
 from engine.language.route_options import RouteOptions
 from engine.language.route_yaml import Document, Path_, Problem, parse_document
-from engine.language.specs import ConnectionSpec, EndpointSpec, Placement, RoutesConfig, RouteSpec
+from engine.language.sink_items import SinkItem, SinkPart, duplicate_names, fans_out, sink_items
+from engine.language.specs import ConnectionSpec, EndpointSpec, RoutesConfig, RouteSpec, SinkSpec
 from engine.language.stage_options import BufferSpec, DedupeSpec, RouteDelivery
 from engine.language.stores import RememberOptions, remember_entries
 from engine.language.templates import Expansion, expand_routes, is_items_text
@@ -152,31 +153,81 @@ class _RouteCompiler:
         expansion: Expansion | None = document.expansions.get(index)
         variables = dict(expansion.variables) if expansion is not None else {}
         self._claim_name(document, where, route.name, expansion)
-        self._note_stores(document, where, route)
+        items = self._sink_items(document, where, route)
+        self._note_stores(document, where, route, items)
         agents_used: dict[str, Any] = {}
         """The agents table's entries the route uses (by name; ``@connection`` its connection's table)."""
-        source, sink, ends_complete = self._ends(document, where, route, variables, agents_used)
-        self._check_delivers(document, where, route, sink)
-        checked = CheckedRoute(document, where, route, source, sink, ends_complete, self.schemas, variables, bool(self.table), expansion)
-        for problem, error in route_checks(checked):
-            (self.problems if error else self.warnings).append(problem)
-        if not (complete and all(ends_complete)) or source is None or sink is None:
+        source, source_complete = endpoint_spec(document, where + ("source",), route.name, route.source, self.connections,
+                                                self.problems, self.table, agents_used)
+        ends: list[tuple[SinkPart, EndpointSpec | None]] = []
+        all_complete, source_now = source_complete, source
+        for part in (part for item in items for part in item.parts()):
+            # each sink is checked as the route's one sink (its own mapping, when, templates): the
+            # checks that do not look at the sink find the same problems again, reported once (a set)
+            seen_as = replace(route, sink=dict(part.body), sinks=None)
+            sink, sink_complete = endpoint_spec(document, where + part.path, route.name, part.body, self.connections,
+                                                self.problems, self.table, agents_used, side="sink")
+            handed_source, sink = hand_agents(source, sink, seen_as, variables, self.table, agents_used)
+            if part is items[0].primary:
+                source_now = handed_source
+            self._check_delivers(document, where + part.path, route, sink)
+            checked = CheckedRoute(document, where, seen_as, source, sink, (source_complete, sink_complete), self.schemas, variables,
+                                   bool(self.table), expansion, sink_path=part.path)
+            for problem, error in route_checks(checked):
+                (self.problems if error else self.warnings).append(problem)
+            ends.append((part, sink))
+            all_complete = all_complete and sink_complete
+        if not items:
             return None
-        placement = placement_of(document, where, route, source, sink, self.connections, self.problems)
+        source = source_now
+        if not (complete and all_complete) or source is None or any(sink is None for _, sink in ends):
+            return None
+        first = ends[0][1]
+        assert first is not None
+        placement = placement_of(document, where, route, source, first, self.connections, self.problems)
         if len(self.problems) > before or placement is None:
             return None
-        source, sink = self._with_route_keys(route, source, sink, placement)
+        if placement.ordered:
+            source = EndpointSpec(source.protocol, source.connection, endpoints.transport(source.protocol).ordered_source(source.options))
+        sinks = tuple(EndpointSpec(sink.protocol, sink.connection, route_to_sink(sink.options, route)) for _, sink in ends if sink is not None)
         buffer = self._buffer(document, where, route, source)
         if buffer is False:
             return None
+        fanned = self._sink_specs(items, sinks) if fans_out(route) else ()
+        sink_mapping = None if fanned else items[0].primary.body.get("mapping")
         return RouteSpec(
-            route.name, source, route.mapping, route.schema, sink, route.sink.get("mapping"),
-            self._fingerprint(body, route, source, sink, variables, agents_used),
-            document.file, document.line(where), throttle=route.throttle, delivery=self._delivery(route, source, sink), buffer=buffer,
+            route.name, source, route.mapping, route.schema, sinks[0], sink_mapping,
+            self._fingerprint(body, route, source, sinks, variables, agents_used),
+            document.file, document.line(where), throttle=route.throttle, delivery=self._delivery(route, source, sinks), buffer=buffer,
             placement=placement, reply=route.reply, variables=variables, fair=route.fair, remember=route.remember,
             when=route.when, dedupe=DedupeSpec.parse(route.dedupe, route.name, _base_dir(document.file)), window=route.window,
-            record=route.record,
+            record=route.record, sinks=fanned,
         )
+
+    def _sink_items(self, document: Document, where: Path_, route: RouteOptions) -> list[SinkItem]:
+        """The route's sinks; exactly one of ``sink:`` and ``sinks:``, each sink's name its own."""
+        if (route.sink is None) == (route.sinks is None):
+            self.problems.append(document.problem(where, f"route {route.name!r}: give exactly one of sink: (one sink) "
+                                                         "and sinks: (a list of sinks)"))
+            return []
+        items = sink_items(route)
+        for key_path, message in duplicate_names(items):
+            self.problems.append(document.problem(where + key_path, f"route {route.name!r}: {message}"))
+        return items
+
+    @staticmethod
+    def _sink_specs(items: list[SinkItem], ends: tuple[EndpointSpec, ...]) -> tuple[SinkSpec, ...]:
+        """The fan-out's sinks (engine/running/fanout.py), each with its endpoint as compiled."""
+        specs, at = [], 0
+        for item in items:
+            primary = ends[at]
+            at += 1
+            fallback = None
+            if item.fallback is not None:
+                fallback = SinkSpec(item.fallback.name, ends[at], item.fallback.body.get("mapping"))
+                at += 1
+            specs.append(SinkSpec(item.primary.name, primary, item.primary.body.get("mapping"), item.when, fallback, item.after))
+        return tuple(specs)
 
     def _claim_name(self, document: Document, where: Path_, name: str, expansion: Expansion | None) -> None:
         """A route name is unique across the directory."""
@@ -186,50 +237,35 @@ class _RouteCompiler:
             self.problems.append(document.problem(where + ("name",), f"route {name!r} is already defined at {first_file}:{first_line}{together_hint(document, first_file)}{template}"))
         self.defined.setdefault(name, (document.file, document.line(where)))
 
-    def _note_stores(self, document: Document, where: Path_, route: RouteOptions) -> None:
+    def _note_stores(self, document: Document, where: Path_, route: RouteOptions, items: list[SinkItem]) -> None:
         """The stores the route remembers into and those its mappings ``recall()`` (checked
         against each other once every route is read: :func:`store_problems`)."""
         entries = remember_entries(route.remember)
         self.remembers.extend((document, remember_path(where, route, index), entry) for index, entry in enumerate(entries))
-        for key_path, expression in ((where + ("mapping",), route.mapping), (where + ("sink", "mapping"), route.sink.get("mapping")),
+        sink_reads = [(where + part.path + (key,), part.body.get(key)) for item in items for part in item.parts()
+                      for key in ("mapping", "when")]
+        for key_path, expression in ((where + ("mapping",), route.mapping), *sink_reads,
                                      (where + ("when",), route.when),
                                      (where + ("dedupe", "key"), route.dedupe.key if route.dedupe else None),
                                      *((where + ("window",) + key, text) for key, text in window_expressions(route.window)),
                                      *((remember_path(where, route, index) + ("value",), entry.value)
                                        for index, entry in enumerate(entries))):
-            self.recalls.extend((document, key_path, route.name, store) for store in dict.fromkeys(recall_names(expression)))
-
-    def _ends(self, document: Document, where: Path_, route: RouteOptions, variables: Mapping[str, Any],
-              agents_used: dict[str, Any]) -> tuple[EndpointSpec | None, EndpointSpec | None, tuple[bool, bool]]:
-        """``(source, sink, (source complete, sink complete))``, the agents they look up handed to them."""
-        source, source_complete = endpoint_spec(document, where + ("source",), route.name, route.source, self.connections,
-                                                self.problems, self.table, agents_used)
-        sink, sink_complete = endpoint_spec(document, where + ("sink",), route.name, route.sink, self.connections,
-                                            self.problems, self.table, agents_used)
-        source, sink = hand_agents(source, sink, route, variables, self.table, agents_used)
-        return source, sink, (source_complete, sink_complete)
+            if isinstance(expression, str) or expression is None:
+                self.recalls.extend((document, key_path, route.name, store) for store in dict.fromkeys(recall_names(expression)))
 
     def _check_delivers(self, document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None) -> None:
         """A sink that delivers nowhere (a store's) makes sense only on a route that remembers."""
         if not remember_entries(route.remember) and sink is not None and not endpoints.transport(sink.protocol).delivers:
-            self.problems.append(document.problem(where + ("sink",), (
+            self.problems.append(document.problem(where, (
                 f"route {route.name!r}: a {sink.protocol} sink delivers nowhere: the route needs remember: {{store: NAME}} "
                 "(what it remembers is all it does)")))
 
-    def _with_route_keys(self, route: RouteOptions, source: EndpointSpec, sink: EndpointSpec,
-                         placement: Placement) -> tuple[EndpointSpec, EndpointSpec]:
-        """The ends with what the route says that they act on: an ordered source (one consumer at
-        a time), the sink's priority, latest-only and max_age (:func:`route_to_sink`)."""
-        if placement.ordered:
-            source = EndpointSpec(source.protocol, source.connection, endpoints.transport(source.protocol).ordered_source(source.options))
-        return source, EndpointSpec(sink.protocol, sink.connection, route_to_sink(sink.options, route))
-
-    def _fingerprint(self, body: Any, route: RouteOptions, source: EndpointSpec, sink: EndpointSpec,
+    def _fingerprint(self, body: Any, route: RouteOptions, source: EndpointSpec, sinks: tuple[EndpointSpec, ...],
                      variables: Mapping[str, Any], agents_used: Mapping[str, Any]) -> str:
         """What identifies the route's running form: its item as written, its connections'
         fingerprints and size limits, its schemas' contents, its template item and the agents
         it uses; a reload restarts the routes whose fingerprint changed."""
-        used = {source.connection: self.connections.get(source.connection), sink.connection: self.connections.get(sink.connection)}
+        used = {end.connection: self.connections.get(end.connection) for end in (source, *sinks)}
         schema = self.schemas.get(route.schema) if route.schema is not None else None
         return hashlib.sha256(
             json.dumps(
@@ -242,12 +278,12 @@ class _RouteCompiler:
             ).encode()
         ).hexdigest()[:16]
 
-    def _delivery(self, route: RouteOptions, source: EndpointSpec, sink: EndpointSpec) -> RouteDelivery:
+    def _delivery(self, route: RouteOptions, source: EndpointSpec, sinks: tuple[EndpointSpec, ...]) -> RouteDelivery:
         return RouteDelivery(
             max_attempts=route.max_attempts,
             overflow=route.overflow,
             max_message_bytes=self.connections[source.connection].max_message_bytes,
-            sink_max_message_bytes=self.connections[sink.connection].max_message_bytes,
+            sink_max_message_bytes=min(self.connections[sink.connection].max_message_bytes for sink in sinks),
             max_age_ns=None if route.max_age is None else int(route.max_age * 1e9),
         )
 

@@ -44,6 +44,21 @@ class EndpointSpec:
 
 
 @dataclass(frozen=True)
+class SinkSpec:
+    """One sink of a route with several (``sinks:``, a sink ``when:`` or ``fallback:``;
+    engine/running/fanout.py sends to them): its name (dead letters, status, route tests),
+    its endpoint, its own sink mapping and condition, and its fallback."""
+
+    name: str
+    endpoint: EndpointSpec
+    mapping: str | None = None
+    when: str | None = None
+    fallback: SinkSpec | None = None
+    after: float = 5.0
+    """Seconds the sink may be unable to take messages before they go to its ``fallback``."""
+
+
+@dataclass(frozen=True)
 class RouteSpec:
     name: str
     source: EndpointSpec
@@ -79,6 +94,22 @@ class RouteSpec:
     """The route's ``window:`` (engine/running/windows.py): what the sink receives is its aggregates."""
     record: bool = field(default=True, compare=False)
     """Recorded under ``--record`` (engine/running/record.py); a change needs no restart of the route."""
+    sinks: tuple[SinkSpec, ...] = ()
+    """The route's sinks when it fans out (several, a sink ``when:`` or a ``fallback:``;
+    engine/running/fanout.py); empty for a route with one plain ``sink:`` (then ``sink`` and
+    ``sink_mapping`` are it, and nothing of the fan-out runs). With sinks, ``sink`` is the
+    first one's endpoint and ``sink_mapping`` None (each sink maps for itself)."""
+
+    def endpoints(self) -> tuple[EndpointSpec, ...]:
+        """The source, then every sink and fallback: the connections the route uses."""
+        if not self.sinks:
+            return (self.source, self.sink)
+        ends = [self.source]
+        for sink in self.sinks:
+            ends.append(sink.endpoint)
+            if sink.fallback is not None:
+                ends.append(sink.fallback.endpoint)
+        return tuple(ends)
 
 
 @dataclass(frozen=True)

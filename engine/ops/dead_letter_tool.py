@@ -43,6 +43,7 @@ from engine.language.specs import RoutesConfig, RouteSpec
 from engine.language.stores import Stores
 from engine.running.connections import ConnectionPool
 from engine.running.dead_letters import DeadLetterSpool, SpoolReader, default_spool_dir
+from engine.running.fanout import open_sinks
 from engine.running.pipeline import ConversionError, Filtered, Pipeline
 
 DEFAULT_LIMIT = 10_000
@@ -201,8 +202,10 @@ async def _replay_route(config: RoutesConfig, schemas: SchemaRegistry, pool: Con
     schema = schemas.get(spec.schema)
     assert schema is not None  # the routes loaded
     reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
-    connection = await pool.get(config.connections[spec.sink.connection], retry_in_background=False)
-    pipeline = Pipeline.compile(spec, 0, schema, connection.sink(spec.name, spec.sink.options), reply_schema, Stores())
+    stores = Stores()  # several sinks: a letter goes again only to those that did not take it (engine/running/fanout.py)
+    sink, _, _ = await open_sinks(spec, lambda end: pool.get(config.connections[end.connection], retry_in_background=False),
+                                  pool.is_open, stores)
+    pipeline = Pipeline.compile(spec, 0, schema, sink, reply_schema, stores)
     try:
         settled: list[StoredLetter] = []
         sending: list[tuple[StoredLetter, Outbound]] = []

@@ -31,10 +31,11 @@ from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbo
 from engine.language.route_checks import source_meta_names
 from engine.language.route_yaml import Problem, parse_document
 from engine.language.routes import RoutesInvalid, load_routes
-from engine.language.specs import RoutesConfig, RouteSpec
+from engine.language.specs import EndpointSpec, RoutesConfig, RouteSpec
 from engine.language.stores import Stores, remember_entries
 from engine.language.yaml_bounds import FileTooLarge, read_bounded
 from engine.running.dedupe import SeenKeys, key_text
+from engine.running.fanout import REFUSED
 from engine.running.pipeline import ConversionError, Filtered, Pipeline, Windowed
 from engine.language.window_options import WINDOW_END, WINDOW_START
 from engine.running.replies import ReplyFailed
@@ -72,6 +73,9 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
                                                                            "value} for a store without per"},
                     "ignore": {"type": "array", "items": {"type": "string"}, "description": "keys (a.b) left out"},
                     "expect_sink": {"description": "the sink mapping's output"},
+                    "expect_sinks": {"type": "object", "description": "a route with several sinks (sinks:): each sink the message "
+                                                                    "goes to (its when: says yes), by name, and its sink mapping's "
+                                                                    "output; a sink not listed must not get it"},
                     "expect_routing_key": {"type": "string", "description": "the rendered routing key or topic"},
                     "expect_error": {"enum": list(STAGES)},
                     "expect_filtered": {"const": True, "description": "the route's when: rejects the message: nothing is sent "
@@ -100,7 +104,7 @@ TEST_FILE_SCHEMA: dict[str, Any] = {
     },
 }
 _VALIDATOR = jsonschema.Draft202012Validator(TEST_FILE_SCHEMA)
-_EXPECTATIONS = ("expect", "expect_sink", "expect_routing_key", "expect_reply", "expect_remembered", "expect_filtered",
+_EXPECTATIONS = ("expect", "expect_sink", "expect_sinks", "expect_routing_key", "expect_reply", "expect_remembered", "expect_filtered",
                  "expect_duplicate", "window")
 
 
@@ -181,6 +185,7 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
             if config is not None and route not in config.routes:
                 problems.append(document.problem(where + ("route",), f"unknown route {route!r}{did_you_mean(route, config.routes)}"))
             elif config is not None:
+                problems.extend(document.problem(where + (key,), message) for key, message in _sink_problems(config.routes[route], body))
                 if "window" in body and config.routes[route].window is None:
                     problems.append(document.problem(where + ("window",), f"window: route {route!r} has no window:"))
                 if ("accepted" in body or "expect_duplicate" in body) and config.routes[route].dedupe is None:
@@ -200,6 +205,21 @@ def load_tests(routes: Path, config: RoutesConfig | None, env: Mapping[str, str]
             if len(problems) == before:
                 cases.append(Case(str(path), line, route, body.get("name", ""), body))
     return cases, problems
+
+
+def _sink_problems(spec: RouteSpec, body: Mapping[str, Any]) -> Iterator[tuple[str, str]]:
+    """``expect_sinks`` on a route with several sinks, naming its sinks; ``expect_sink`` and
+    ``expect_routing_key`` on a route with one."""
+    names = [sink.name for sink in spec.sinks]
+    if spec.sinks:
+        for key in ("expect_sink", "expect_routing_key"):
+            if key in body:
+                yield key, f"{key}: route {spec.name!r} has several sinks ({', '.join(names)}): give expect_sinks: {{NAME: output}}"
+        for name in body.get("expect_sinks") or {}:
+            if name not in names:
+                yield "expect_sinks", f"expect_sinks: route {spec.name!r} has no sink {name!r}{did_you_mean(name, names) or ' (sinks: ' + ', '.join(names) + ')'}"
+    elif "expect_sinks" in body:
+        yield "expect_sinks", f"expect_sinks: route {spec.name!r} has one sink: give expect_sink"
 
 
 def _meta_key_problems(spec: RouteSpec, meta: Mapping[str, Any]) -> Iterator[tuple[str, str]]:
@@ -278,7 +298,7 @@ def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mappin
                 return Result(case, False, said)
             if duplicate:
                 return Result(case, True)
-        destination = dry_run_sink(spec)(outbound)
+        destination = dry_run_sink(spec)(outbound) if not spec.sinks else _dry_run_sinks(spec, outbound)
         if "response" in body:
             try:
                 reply = json.loads(pipeline.reply_shape.body(body["response"]))
@@ -309,6 +329,10 @@ def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mappin
         want, got = _without(body["expect_sink"], ignore), _without(_plain(outbound.fields), ignore)
         if not same(want, got):
             failures.append(("sink mapping output differs", _diff(want, got)))
+    if "expect_sinks" in body:
+        want, got = _without(body["expect_sinks"], ignore), _without(_plain(outbound.fields), ignore)
+        if not same(want, got):
+            failures.append(("the sinks the message goes to, or their sink mappings' outputs, differ", _diff(want, got)))
     if "expect_reply" in body:
         want, got = _without(body["expect_reply"], ignore), _without(reply, ignore)
         if not same(want, got):
@@ -395,11 +419,29 @@ def _typed_source(spec: RouteSpec) -> Callable[[Any], dict[str, Any]] | None:
     return endpoints.transport(spec.source.protocol).test_input(spec.source.options)
 
 
-def dry_run_sink(spec: RouteSpec) -> Callable[[Outbound], str | None]:
+def _dry_run_sinks(spec: RouteSpec, outbound: Outbound) -> str | None:
+    """A route with several sinks: what a sink's ``when:`` or mapping refused is the case's
+    ``sink mapping`` error (the engine dead-letters it, naming the sink), then each sink chosen
+    is dry-run with its own fields (:func:`dry_run_sink`)."""
+    refused = outbound.meta.get(REFUSED)
+    if refused:
+        raise ConversionError("sink mapping", "; ".join(f"sink {name!r}: {error}" for name, error in refused.items()))
+    fields = outbound.fields if isinstance(outbound.fields, dict) else {}
+    for sink in spec.sinks:
+        if sink.name in fields:
+            copy_ = Outbound(outbound.body, outbound.canonical, fields[sink.name], outbound.message_id, outbound.meta,
+                             captured=outbound.captured)
+            dry_run_sink(spec, sink.endpoint)(copy_)
+    return None
+
+
+def dry_run_sink(spec: RouteSpec, endpoint: EndpointSpec | None = None) -> Callable[[Outbound], str | None]:
     """What the sink would do short of sending (its transport's ``sink_dry_run``): the
     rendered routing key or topic, and for a typed sink the message built from the fields;
-    what the sink would refuse is an error of the stage it names (``sink`` by default)."""
-    dry_run = endpoints.transport(spec.sink.protocol).sink_dry_run(spec.name, spec.sink.options)
+    what the sink would refuse is an error of the stage it names (``sink`` by default).
+    ``endpoint``: one of the route's several sinks (default: its one sink)."""
+    endpoint = endpoint or spec.sink
+    dry_run = endpoints.transport(endpoint.protocol).sink_dry_run(spec.name, endpoint.options)
 
     def sink(outbound: Outbound) -> str | None:
         try:

@@ -26,6 +26,8 @@ from engine.language.mapping import Mapper, compile_mapping
 from engine.language.stores import Remembers, Stores
 from engine.running.dedupe import Dedupe, SeenKeys
 from engine.running.delivery import ConversionError
+from engine.running.fanout import Filtered as NoSinkChosen
+from engine.running.fanout import SinkChoice, compiler, passes
 from engine.running.replies import ReplyShape
 from engine.running.throttle import Throttle
 from engine.running.windows import Window, Windowed
@@ -44,16 +46,6 @@ class Filtered(Exception):
     def __init__(self, canonical: Any) -> None:
         super().__init__("filtered")
         self.canonical = canonical
-
-
-def passes(value: Any) -> bool:
-    """JMESPath's truth (the specification's "false-like" values): false, null, an empty string,
-    list or object say no; any number, 0 included, says yes (unlike Python's ``bool``)."""
-    if value is None or value is False:
-        return False
-    if isinstance(value, (str, list, dict)):
-        return len(value) > 0
-    return True
 
 
 @dataclass(eq=False)
@@ -85,6 +77,10 @@ class Pipeline:
     window: Window | None = None
     """The route's ``window:`` (engine/running/windows.py): its messages are aggregated, and what
     the sink mapping and the sink get is each closed window's message."""
+    sink_connection: Any = None
+    """The connection of the route's one sink, which the runner asks before sending (the
+    engine sets it); None for a route with several sinks (engine/running/fanout.py), whose
+    sink asks each of its own."""
     in_flight: int = 0
     _drained: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -96,6 +92,12 @@ class Pipeline:
         ``remember:`` use; a fresh, empty set when None (a route test gives its own). ``seen_keys``:
         the keys the route's sink accepted (``dedupe:``; the engine's, kept across reloads)."""
         stores = stores if stores is not None else Stores()
+        if spec.sinks:  # several sinks: each maps and checks its own (engine/running/fanout.py)
+            sink_mapper: Any = SinkChoice(spec.sinks, compiler(spec, stores))
+            sink_check = None
+        else:
+            sink_mapper = compile_mapping(spec.sink_mapping, spec.variables, stores, spec.name)
+            sink_check = transport(spec.sink.protocol).sink_field_check(spec.sink.options, spec.sink_mapping)
         return cls(
             route=spec.name,
             generation=generation,
@@ -103,8 +105,8 @@ class Pipeline:
             schema=schema,
             sink=sink,
             mapper=compile_mapping(spec.mapping, spec.variables, stores, spec.name),
-            sink_mapper=compile_mapping(spec.sink_mapping, spec.variables, stores, spec.name),
-            sink_check=transport(spec.sink.protocol).sink_field_check(spec.sink.options, spec.sink_mapping),
+            sink_mapper=sink_mapper,
+            sink_check=sink_check,
             throttle=Throttle.from_options(spec.throttle),
             reply_shape=ReplyShape(spec.reply, reply_schema),
             captured=transport(spec.source.protocol).source_variables(spec.source.options),
@@ -181,6 +183,8 @@ class Pipeline:
                     self.sink_check(fields)
             except (MappingError, MessageRejected) as exc:
                 raise ConversionError("sink mapping", str(exc), data) from None
+            except NoSinkChosen:  # several sinks, and no sink's when: chose it
+                raise Filtered(data) from None
             except Exception as exc:
                 raise ConversionError("sink mapping", _unexpected(exc), data) from None
         # meta: the source's own dict for this message: extended, not copied

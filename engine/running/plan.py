@@ -84,7 +84,7 @@ def connection_key(spec: ConnectionSpec) -> ConnectionKey:
 
 def route_connections(config: RoutesConfig, route: RouteSpec) -> tuple[ConnectionKey, ...]:
     """The route's source connection, then its sink connection."""
-    return tuple(connection_key(config.connections[e.connection]) for e in (route.source, route.sink))
+    return tuple(connection_key(config.connections[e.connection]) for e in route.endpoints())
 
 
 def plan_reload(old: RoutesConfig | None, new: RoutesConfig) -> ReloadPlan:
@@ -147,7 +147,7 @@ def _used(config: RoutesConfig) -> dict[ConnectionKey, ConnectionSpec]:
     """Connections some route uses (only those are ever opened)."""
     used: dict[ConnectionKey, ConnectionSpec] = {}
     for route in config.routes.values():
-        for endpoint in (route.source, route.sink):
+        for endpoint in route.endpoints():
             spec = config.connections[endpoint.connection]
             used[connection_key(spec)] = spec
     return used

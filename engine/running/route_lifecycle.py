@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 from engine.common.backoff import Backoff
 from engine.endpoints.base import Connection, Deliver, EndpointError, Source
 from engine.running.buffer import HoldingBuffer, stats_dict
+from engine.running.fanout import fan_out_of
 from engine.running.observe import RouteObserver
 from engine.running.pipeline import Pipeline
 from engine.running.replies import Replies
@@ -37,7 +38,8 @@ class RouteLifecycle:
     pipeline: Pipeline
     source: Source
     connections: list[Connection]
-    """The source's then the sink's connection: kept open while the runner lives."""
+    """The source's then the sinks' connections: kept open while the runner lives."""
+    sink_count: int
     lease: Any
     """The broker lease of an ``active_standby`` route: only its holder forwards."""
     observer: RouteObserver
@@ -71,7 +73,12 @@ class RouteLifecycle:
         self._starter = asyncio.create_task(self._start_when_open(), name=f"start-{self.spec.name}")
 
     def _needed(self) -> list[Connection]:
-        return self.connections if self.buffer is None else self.connections[:1]
+        """What must be open before the source starts: all (the source's only, with a buffer
+        that holds the rest); a route with several sinks waits for its sinks itself (a sink's
+        fallback takes over while its connection cannot open: engine/running/fanout.py)."""
+        if self.buffer is not None or self.pipeline.sink_connection is None:
+            return self.connections[:len(self.connections) - self.sink_count]
+        return self.connections
 
     def missing_connections(self) -> list[str]:
         return [c.name for c in self._needed() if not self.host.is_open(c)]
@@ -140,6 +147,7 @@ class RouteLifecycle:
             "state": self.state,
             "waiting_for": self.missing_connections() if self.state == "waiting" else [],
             "sink_not_ready": self.pipeline.sink.not_ready_reason(),
+            **({"sinks": sinks} if (sinks := fan_out_of(self.pipeline.sink)) is not None else {}),
             "source_degraded": self.source.degraded_reason(),
             "buffer": stats_dict(self.buffer) if self.buffer is not None else None,
             "replies": self.replies.counters(),

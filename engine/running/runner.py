@@ -73,7 +73,9 @@ class RouteRunner(RouteLifecycle):
         self.pipeline = pipeline
         self.source = source
         self.connections = connections
-        """The source's then the sink's connection: kept open while the runner lives."""
+        """The source's then the sinks' connections: kept open while the runner lives."""
+        self.sink_count = len(connections) - 1
+        """How many of ``connections`` are the sinks' (the last ones; a reload may change them)."""
         self.lease: Any = None
         """The broker lease of an ``active_standby`` route: only its holder forwards."""
         self.observer = host.observers.get(spec.name)
@@ -206,6 +208,7 @@ class RouteRunner(RouteLifecycle):
         """Each closed window's message goes through the sink mapping and to the sink, together."""
         messages: list[Converted] = []
         dead: list[Dead] = []
+        settled = [False] * len(outputs)
         for index, (emitted, meta) in enumerate(outputs):
             inbound = Inbound(body=canonical_bytes(emitted), meta=meta)
             try:
@@ -213,17 +216,20 @@ class RouteRunner(RouteLifecycle):
             except ConversionError as error:
                 dead.append(Dead(index, inbound, None, 1, pipeline, classify(error, "sink mapping")))
                 continue
+            except Filtered:  # several sinks, none of whose when: chose it
+                self.observer.filter(inbound, emitted)
+                settled[index] = True
+                continue
             outbound.received_ns = inbound.received_ns
             messages.append(Converted(index, inbound, outbound, 0, pipeline))
         self.observer.emitted += len(outputs)
         pipeline.enter()  # before the pipeline can be seen drained
-        task = asyncio.create_task(self._send_window(pipeline, messages, dead, len(outputs)))
+        task = asyncio.create_task(self._send_window(pipeline, messages, dead, settled))
         self._released.add(task)
         task.add_done_callback(self._released_done)
 
-    async def _send_window(self, pipeline: Pipeline, messages: list[Converted], dead: list[Dead], count: int) -> None:
+    async def _send_window(self, pipeline: Pipeline, messages: list[Converted], dead: list[Dead], settled: list[bool]) -> None:
         try:
-            settled = [False] * count
             if messages:
                 await self._send(pipeline, messages, settled, dead)
             if dead:
@@ -303,8 +309,9 @@ class RouteRunner(RouteLifecycle):
         connection is open and does not report itself down, and the sink is ready (a ROS 2
         topic some subscriber has matched). Everything that waits for the sink, holds
         messages instead of trying it, or lets the buffer try it asks this."""
-        connection = self.connections[-1]
-        return connection.healthy and self.host.is_open(connection) and (pipeline or self.pipeline).sink.ready
+        pipeline = pipeline or self.pipeline
+        connection = pipeline.sink_connection  # None: several sinks, each asked by the sink itself (engine/running/fanout.py)
+        return (connection is None or (connection.healthy and self.host.is_open(connection))) and pipeline.sink.ready
 
     async def _send(self, pipeline: Pipeline, pending: list[Converted], settled: list[bool],
                     dead: list[Dead]) -> None:

@@ -44,6 +44,7 @@ from engine.running.record import Recorder
 from engine.running.connections import ConnectionPool
 from engine.running.dead_letters import DeadLetters
 from engine.running.dedupe import DedupeKeys
+from engine.running.fanout import open_sinks
 from engine.running.leases import Leases
 from engine.running.observe import Observers
 from engine.running.pipeline import Pipeline
@@ -90,7 +91,7 @@ class _Reload:
     dead_letters: DeadLetters | None
     """The dead-letter destination before this reload (restored if it fails)."""
     fresh: list[RouteRunner] = field(default_factory=list)
-    swaps: list[tuple[RouteRunner, Pipeline, Connection]] = field(default_factory=list)
+    swaps: list[tuple[RouteRunner, Pipeline, list[Connection]]] = field(default_factory=list)
     handed: list[RouteRunner] = field(default_factory=list)
     """Runners started on the other side of a handover."""
     handed_over: list[RouteRunner] = field(default_factory=list)
@@ -259,25 +260,28 @@ class Engine:
 
     async def _pipeline(
         self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int
-    ) -> tuple[Pipeline, Connection]:
-        connection = await self.connections.get(config.connections[spec.sink.connection])
+    ) -> tuple[Pipeline, list[Connection]]:
+        """The route's pipeline on its sink or sinks (engine/running/fanout.py), and their connections."""
         schema = schemas.get(spec.schema)
         assert schema is not None
         reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
         seen_keys = await self.dedupe.get(spec.name, spec.dedupe)
-        sink = connection.sink(spec.name, spec.sink.options)
-        return Pipeline.compile(spec, generation, schema, sink, reply_schema, self.stores, seen_keys), connection
+        sink, connections, one = await open_sinks(spec, lambda end: self.connections.get(config.connections[end.connection]),
+                                                  self.is_open, self.stores, self.observers.get(spec.name))
+        pipeline = Pipeline.compile(spec, generation, schema, sink, reply_schema, self.stores, seen_keys)
+        pipeline.sink_connection = one
+        return pipeline, connections
 
     async def _runner(self, config: RoutesConfig, schemas: SchemaRegistry, spec: RouteSpec, generation: int) -> RouteRunner:
         """A route's pipeline and source, not started yet."""
-        pipeline, sink_connection = await self._pipeline(config, schemas, spec, generation)
+        pipeline, sink_connections = await self._pipeline(config, schemas, spec, generation)
         try:
             source_connection = await self.connections.get(config.connections[spec.source.connection])
             source = source_connection.source(spec.name, spec.source.options)
         except BaseException:
             await pipeline.sink.close()
             raise
-        runner = RouteRunner(self, spec, pipeline, source, [source_connection, sink_connection])
+        runner = RouteRunner(self, spec, pipeline, source, [source_connection, *sink_connections])
         self._record(spec, schemas)  # before its source starts: every message it takes is recorded
         if spec.placement.active_standby:
             await self._take_lease(runner, config)
@@ -289,7 +293,7 @@ class Engine:
         placement = runner.spec.placement
         assert placement.lease_connection is not None
         connection = await self.connections.get(config.connections[placement.lease_connection])
-        runner.connections.insert(1, connection)  # the sink's connection stays last
+        runner.connections.insert(1, connection)  # the sinks' connections stay last
         runner.lease = await self.leases.take(connection, placement.lease_name, placement.lease_heartbeat)
 
     async def _dead_letters(self, config: RoutesConfig) -> DeadLetters:
@@ -360,8 +364,8 @@ class Engine:
                 change.fresh.append(await self._runner(config, change.schemas, config.routes[name], change.generation))
         for name in plan.swap_pipeline:
             if name not in change.absent:
-                pipeline, sink_connection = await self._pipeline(config, change.schemas, config.routes[name], change.generation)
-                change.swaps.append((self.runners[name], pipeline, sink_connection))
+                pipeline, sink_connections = await self._pipeline(config, change.schemas, config.routes[name], change.generation)
+                change.swaps.append((self.runners[name], pipeline, sink_connections))
 
     async def _undo(self, change: _Reload) -> None:
         """A phase before commit failed: stop and close what this reload made."""
@@ -380,11 +384,12 @@ class Engine:
         change.handed_over = [self.runners[name] for name in later if name in self.runners]
         keep = {name: self.runners[name] for name in change.plan.keep if name not in change.absent}
         retired = []
-        for runner, pipeline, sink_connection in change.swaps:
+        for runner, pipeline, sink_connections in change.swaps:
             retired.append(runner.retire_pipeline(runner.pipeline))
             runner.spec, runner.pipeline = pipeline.spec, pipeline
             runner.observer.carries(pipeline.spec.schema)
-            runner.connections = [*runner.connections[:-1], sink_connection]
+            kept = len(runner.connections) - runner.sink_count  # the source's (and the lease's)
+            runner.connections, runner.sink_count = [*runner.connections[:kept], *sink_connections], len(sink_connections)
             keep[runner.spec.name] = runner
         for runner in change.fresh + change.handed:
             keep[runner.spec.name] = runner

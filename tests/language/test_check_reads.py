@@ -264,3 +264,44 @@ def test_a_remember_value_reads_the_canonical_message(tmp_path: Path, schemas: S
     ]
     assert warnings == [
         "r.yaml:12: route 'one': remember value reads 'temperatur_c', which schema 'sensor_loose' does not declare; did you mean 'temperature_c'?"]
+
+
+def test_conditions_dedupe_keys_windows_and_each_sinks_reads_are_checked(tmp_path: Path, schemas: SchemaRegistry):
+    """The route's ``when:``, each sink's ``when:`` and mapping (``sinks:``, a fallback's), the
+    ``dedupe`` key and a window's ``per`` and aggregates read the canonical message; a sink's
+    ``when:`` on a window route reads what the window emits."""
+    problems, warnings = checked(tmp_path, schemas, """routes:
+  - name: fan
+    source: {amqp: {queue: a}}
+    schema: sensor
+    when: "temperatur_c > `20`"
+    dedupe: {key: agentid, ttl: 60}
+    sinks:
+      - amqp: {exchange: out}
+        when: "origin.gnsss"
+      - mqtt: {topic: t}
+        mapping: "{t: temperature_c, who: agent_idd}"
+        fallback:
+          amqp: {exchange: spool}
+          mapping: "{t: temprature_c}"
+  - name: windowed
+    source: {amqp: {queue: b}}
+    schema: sensor
+    window: {seconds: 1, per: agnt_id, emit: {hot: "max(temperatur_c)"}}
+    sinks:
+      - amqp: {exchange: out}
+        when: "hott"
+      - mqtt: {topic: t}
+""")
+    null = "which schema 'sensor' does not declare and allows no other key there (always null)"
+    assert problems == [
+        f"r.yaml:5: route 'fan': when reads 'temperatur_c', {null}; did you mean 'temperature_c'?",
+        f"r.yaml:6: route 'fan': dedupe key reads 'agentid', {null}; did you mean 'agent_id'?",
+        f"r.yaml:9: route 'fan': sink when reads 'origin.gnsss', {null}; did you mean 'origin.gnss'?",
+        f"r.yaml:11: route 'fan': sink mapping reads 'agent_idd', {null}; did you mean 'agent_id'?",
+        f"r.yaml:14: route 'fan': sink mapping reads 'temprature_c', {null}; did you mean 'temperature_c'?",
+        f"r.yaml:18: route 'windowed': window emit.hot reads 'temperatur_c', {null}; did you mean 'temperature_c'?",
+        f"r.yaml:18: route 'windowed': window per reads 'agnt_id', {null}; did you mean 'agent_id'?",
+        "r.yaml:21: route 'windowed': sink when reads 'hott', which the route's window never sets (always null); did you mean 'hot'?",
+    ], problems
+    assert warnings == []

@@ -136,3 +136,64 @@ def test_the_spool_is_listed_while_the_broker_is_unreachable(tmp_path: Path, mon
     captured = capsys.readouterr()
     assert "weeds-t  schema  agent_id: None is not of type 'string'" in captured.out
     assert "its dead letters are not read; the local spool is" in captured.err
+
+
+FAN = """
+connections:
+  broker: {{amqp: "{url}"}}
+dead_letters: {{spool_dir: {spool}}}
+routes:
+  - name: fan-{tag}
+    source: {{amqp: {{exchange: {tag}-in, binding_key: "f.#", queue: {tag}-f}}}}
+    schema: raw_json
+    sinks:
+      - name: a
+        amqp: {{exchange: {tag}-a, routing_key: "a.{{agent}}"}}
+      - name: b
+        amqp: {{exchange: {tag}-b, routing_key: "b.{{{b_field}}}"}}
+"""
+
+
+def test_a_dead_letter_of_one_sink_among_several_is_replayed_to_that_sink_only(
+        tmp_path: Path, amqp_url: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """Sink ``b``'s routing key reads a field the messages lack: ``a`` takes each message, ``b``
+    refuses it for good, one dead letter each naming ``b``; the route fixed, ``replay`` sends them
+    to ``b`` alone (``a`` has them: no second copy)."""
+    tag = "s" + uuid.uuid4().hex[:8]
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    route_file = routes / "r.yaml"
+    route_file.write_text(FAN.format(url=amqp_url, tag=tag, spool=tmp_path / "spool", b_field="agnt"))  # misspelt
+    cli = ["--routes", str(routes), "--schemas", str(REPO / "schemas")]
+
+    async def scenario() -> tuple[list[int], list[int], int, str]:
+        engine = Engine(routes, REPO / "schemas")
+        await engine.start()
+        connection = await aio_pika.connect(amqp_url)
+        async with connection:
+            channel = await connection.channel(publisher_confirms=True)
+            a = await Collector.bind(channel, f"{tag}-a")
+            b = await Collector.bind(channel, f"{tag}-b")
+            try:
+                exchange = await channel.declare_exchange(f"{tag}-in", aio_pika.ExchangeType.TOPIC, durable=True)
+                for seq in range(3):
+                    await exchange.publish(aio_pika.Message(_body(seq)), "f.x")
+                await wait_for(lambda: engine.observers.get(f"fan-{tag}").failed == 3, 30, "3 dead letters")
+                await a.wait_for(3)
+            finally:
+                await engine.stop()
+            assert await asyncio.to_thread(main, ["dead-letters", "show", *cli, "--route", f"fan-{tag}"]) == 0
+            shown = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+            assert [(s["stage"], s["headers"]["x-source-sinks_unsent"]) for s in shown] == [("sink", "b")] * 3, shown
+            assert all(s["headers"]["x-rabbitros-error"].startswith("sink 'b': ") for s in shown), shown
+            route_file.write_text(FAN.format(url=amqp_url, tag=tag, spool=tmp_path / "spool", b_field="agent"))  # fixed
+            replayed = await asyncio.to_thread(main, ["dead-letters", "replay", *cli, "--route", f"fan-{tag}"])
+            out = capsys.readouterr().out
+            await b.wait_for(3, 10)
+            await asyncio.sleep(0.5)  # a second copy to a would arrive now (none may)
+            return (sorted(json.loads(m.body)["seq"] for m in a.messages), sorted(json.loads(m.body)["seq"] for m in b.messages),
+                    replayed, out)
+
+    a, b, replayed, out = asyncio.run(scenario())
+    assert a == [0, 1, 2] and b == [0, 1, 2], (a, b)  # each once at each sink
+    assert replayed == 0 and "3 sent, 0 filtered, 0 kept" in out, out
