@@ -118,7 +118,7 @@ def test_one_source_to_several_sinks_one_dead_letter_and_a_fallback_that_takes_o
     tag = "f" + uuid.uuid4().hex[:8]
     relay = LocalMosquitto(directory=tmp_path / "relay", keep_dir=True, lifetime=900)
     relay.start()
-    domain = ros_domain(9)
+    domain = ros_domain(16)
     (tmp_path / "routes").mkdir()
     (tmp_path / "routes" / "fan.yaml").write_text(ROUTES.format(field=mosquitto.url, relay=relay.url, amqp=amqp_url,
                                                                 domain=domain, tag=tag))

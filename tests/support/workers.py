@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import zlib
 
-SLOTS = 16
+SLOTS = 20
 """Domains per worker: one per test module that starts ROS 2 nodes (see :func:`ros_domain`)."""
 BLOCKS = 232 // SLOTS
 """ROS 2 domain ids go up to 232 on Linux (Fast DDS derives its UDP ports from them)."""
