@@ -553,6 +553,17 @@ class Transport(ABC):
         """The source options of an ``ordered: true`` route (only where ``supports_ordered``)."""
         raise NotImplementedError
 
+    def partition_problems(self, options: Any, partitions: int, key: str) -> CheckResult:
+        """For ``check``: why a source with these (typed) options cannot be split into
+        ``partitions`` ordered partitions by ``key`` (``ordered: {partitions, key}``), as
+        ``(key under ordered or None, message)``. The default: it cannot."""
+        yield None, f"a {self.name} source cannot be partitioned (use ordered: true for one instance at a time)"
+
+    def partitioned_source(self, options: Any, partitions: int, key: str) -> Any:
+        """The source options of an ``ordered: {partitions, key}`` route (only where
+        :meth:`partition_problems` found nothing)."""
+        raise NotImplementedError
+
     shares_sources: ClassVar[bool] = False
     """True when every instance's source competes for one stream (a broker queue): each
     message reaches one instance anyway, so ``active_standby`` is refused (use ``ordered``)."""

@@ -14,7 +14,7 @@ from engine.endpoints.base import EndpointError, Transport
 from engine.language import agents as agents_table
 from engine.language.connection_loading import capable_connections, default_connection, incapable_reason
 from engine.language.mapping import meta_names
-from engine.language.route_options import LeaseOptions, RouteOptions
+from engine.language.route_options import LeaseOptions, OrderedOptions, RouteOptions
 from engine.language.route_yaml import Document, Path_, Problem
 from engine.language.specs import ConnectionSpec, EndpointSpec, Placement
 
@@ -53,11 +53,16 @@ def placement_of(
 ) -> Placement | None:
     """The route's scale-out keys (``instances``, ``active_standby``, ``lease``, ``ordered``)."""
     before = len(problems)
-    route, ordered, active_standby = options.name, options.ordered, options.active_standby
+    route, active_standby = options.name, options.active_standby
+    partitioned = options.ordered if isinstance(options.ordered, OrderedOptions) else None
+    ordered = bool(options.ordered)
     lease = options.lease if options.lease is not None and given(options.lease) else None
     source_transport = endpoints.transport(source.protocol)
     if ordered and not source_transport.supports_ordered:
         problems.append(document.problem(where + ("ordered",), f"route {route!r}: ordered does not apply to a {source.protocol} source (it is carried by one instance: use instances or active_standby)"))
+    elif partitioned is not None:
+        for key, message in source_transport.partition_problems(source.options, partitioned.partitions, partitioned.key):
+            problems.append(document.problem(where + ("ordered",) + ((key,) if key else ()), f"route {route!r}: ordered: {message}"))
     if active_standby and source_transport.shares_sources:
         problems.append(document.problem(where + ("active_standby",), f"route {route!r}: a {source.protocol} source is shared by competing consumers; use ordered: true for one instance at a time"))
     if lease and not active_standby:
@@ -82,6 +87,8 @@ def placement_of(
         instances=options.instances,
         active_standby=active_standby,
         ordered=ordered,
+        partitions=partitioned.partitions if partitioned is not None else 1,
+        partition_key=partitioned.key if partitioned is not None else None,
         lease_name=lease.name or route,
         lease_connection=lease_connection,
         lease_heartbeat=float(lease.heartbeat),

@@ -39,6 +39,26 @@ class LeaseOptions:
                               description="lease shared by routes that must fail over together (one robot's topics); default: the route name")
 
 
+@dataclass(frozen=True, kw_only=True)
+class OrderedOptions:
+    """``ordered: {partitions: S, key: ...}``: order per key (an agent) kept across several
+    engine instances that share the route, instead of one instance carrying all of it
+    (``ordered: true``). How a source partitions is its transport's (``Transport.partition_problems``)."""
+
+    __schema_description__ = ("partitioned order: the broker hashes each message's key to one of `partitions` queues, each "
+                              "consumed by one instance at a time; the instances spread the partitions among themselves, so "
+                              "messages with one key stay in order while the route scales out (docs/operations.md, Partitioned ordered routes)")
+
+    partitions: int = option(minimum=2, maximum=256, description=(
+        "how many partitions (queues rabbitros.<route>.p0..): at most this many instances share the route; classic queues, since "
+        "RabbitMQ 3.10 quorum queues may hand a dead consumer's messages out after newer ones (rabbitmq-server#6804), so a "
+        "quorum queue_type is refused; changing it moves keys between partitions (drain the route first)"))
+    key: str = option("routing_key", description=(
+        "what the broker hashes to pick a message's partition: routing_key (the cheap default: publish with the agent in "
+        "the routing key, e.g. telemetry.robot7) or headers.NAME (a header the publisher sets); a field of the body needs a "
+        "route before this one that republishes with routing_key: '{agent_id}' (one more hop per message)"))
+
+
 ENDPOINT_DESCRIPTION = "exactly one of " + " / ".join(endpoints.PROTOCOLS)
 SINK_MAPPING_DESCRIPTION = ("JMESPath from the canonical message to the sink's fields (a typed message, "
                             "a mission's items); absent or null: the canonical message")
@@ -121,7 +141,9 @@ class RouteOptions:
         "converted once and settled at its source once every sink chosen for it settled it (delivered, or "
         "dead-lettered naming the sink: one dead letter for a message, whatever the number of sinks)"))
     reply: ReplyOptions | None = option(None)
-    ordered: bool = option(False, description="one engine instance at a time carries the route, in order (sources whose broker offers it: a single active consumer)")
+    ordered: bool | OrderedOptions = option(False, description=(
+        "true: one engine instance at a time carries the route, in order (sources whose broker offers it: a single active "
+        "consumer); {partitions: N, key: ...}: order per key (agent), the partitions spread over the instances"))
     instances: tuple[str, ...] | None = option(None, min_items=1,
                                                description="run the route only on these engine instances (--instance NAME, default the host name)")
     active_standby: bool = option(False, description="every instance runs the source, only the holder of the broker lease forwards")

@@ -306,7 +306,10 @@ def _schema_problems(error: jsonschema.ValidationError) -> Iterator[tuple[Path_,
                 yield path + (key,), unknown_key(key, path, allowed)
         return
     if error.context:
-        error = jsonschema.exceptions.best_match(error.context)
+        # of a value several types are allowed for (ordered: true or {partitions: N}), what is
+        # wrong within the alternative of its own type, not that it is not the other type
+        within = [child for child in error.context if child.validator != "type"]
+        error = jsonschema.exceptions.best_match(within or error.context)
         path = tuple(error.absolute_path)
     hint = ""
     if error.validator == "enum" and isinstance(error.instance, str):

@@ -119,11 +119,16 @@ class Placement:
     ``instances``: only on these instances (by ``--instance`` name). ``active_standby``:
     on every instance that can see the source, but only the holder of the broker lease
     ``lease_name`` (on AMQP connection ``lease_connection``) forwards. ``ordered`` (AMQP
-    sources): single active consumer, one instance at a time, in order."""
+    sources): single active consumer, one instance at a time, in order; with ``partitions``,
+    one such queue per partition, the partitions spread over the instances."""
 
     instances: tuple[str, ...] | None = None
     active_standby: bool = False
     ordered: bool = False
+    partitions: int = 1
+    """``ordered: {partitions: N}``: N partitions of the source, each ordered, spread over the instances."""
+    partition_key: str | None = None
+    """What the broker hashes to choose a message's partition (``ordered.key``)."""
     lease_name: str = ""
     lease_connection: str | None = None
     lease_heartbeat: float = 1.0

@@ -140,7 +140,8 @@ class RouteLifecycle:
             "file": f"{spec.file}:{spec.line}",
             "fingerprint": spec.fingerprint,
             "generation": self.pipeline.generation,
-            "role": lease.role if lease else ("single-active-consumer" if spec.placement.ordered else "shared"),
+            "role": lease.role if lease else ("partitioned" if spec.placement.partitions > 1 else
+                                              "single-active-consumer" if spec.placement.ordered else "shared"),
             "lease_changes": lease.changes if lease else 0,
             **self.observer.counters(),
             "source": self.source.status(),

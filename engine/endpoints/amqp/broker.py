@@ -46,6 +46,9 @@ ALWAYS = True
 """Started by every ``--local-broker`` (the default connection, and the dead letters' broker)."""
 CHECK_ENV: dict[str, str | None] = {URL_ENV: "amqp://guest:guest@local-broker.invalid/", URLS_ENV: None, CA_ENV: None}
 """``check --local-broker``'s stand-in for the private node's URL (``.invalid`` is never a host)."""
+PLUGINS = ("rabbitmq_consistent_hash_exchange",)
+"""Plugins every private node runs: the consistent-hash exchange partitioned ordered routes
+declare (``ordered: {partitions: N}``, partitions.py); it ships with rabbitmq-server 3.10."""
 _LOOPBACK = frozenset({"localhost", "127.0.0.1", "::1", "ip6-localhost"})
 
 
@@ -150,7 +153,8 @@ class LocalBroker(ServerProcess):
     def environment(self) -> dict[str, str]:
         home = self.directory
         external = self.tls is not None and self.tls.external_auth
-        (home / "enabled_plugins").write_text("[rabbitmq_auth_mechanism_ssl].\n" if external else "[].\n")
+        plugins = [*PLUGINS, *(["rabbitmq_auth_mechanism_ssl"] if external else [])]
+        (home / "enabled_plugins").write_text(f"[{','.join(plugins)}].\n")
         if self.tls is not None and self.tls_port is not None:
             (home / "rabbitmq.conf").write_text(self.tls.config(self.tls_port))
         if self.cookie is not None:

@@ -56,6 +56,10 @@ class AmqpSourceOptions(EndpointOptions):
     queue_type: QueueType | None = option(None, description="quorum: replicated by Raft over the cluster; default: the connection's queue_type")
     ordered: bool = option(False, internal=True)
     """Set by the loader from the route's ``ordered: true`` (single active consumer)."""
+    partitions: int = option(1, internal=True)
+    """Set by the loader from the route's ``ordered: {partitions: N}`` (partitions.py)."""
+    partition_key: str = option("routing_key", internal=True)
+    """Set by the loader from the route's ``ordered.key``: ``routing_key`` or ``headers.NAME``."""
 
 
 @dataclass(frozen=True, kw_only=True)

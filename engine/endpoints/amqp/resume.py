@@ -59,16 +59,20 @@ class Resumption:
 
     ``consume`` consumes the queue again on the source's own channel (and calls :meth:`watch`
     with the new consumer); ``connection`` gives the robust connection the declarations'
-    channels are opened on."""
+    channels are opened on; ``declaration``, if given, declares instead of :func:`declare`."""
 
     def __init__(self, route: str, queue: str, options: AmqpSourceOptions, queue_type: str | None,
-                 connection: Callable[[], aio_pika.abc.AbstractConnection], consume: Callable[[], Awaitable[None]]) -> None:
+                 connection: Callable[[], aio_pika.abc.AbstractConnection], consume: Callable[[], Awaitable[None]],
+                 declaration: Callable[[aio_pika.abc.AbstractChannel], Awaitable[Any]] | None = None) -> None:
         self._route = route
         self._queue = queue
         self._options = options
         self._queue_type = queue_type
         self._connection = connection
         self._consume = consume
+        self._declaration = declaration
+        """What the source declares (default :func:`declare` of its options); a partition's
+        source declares its whole partitioned topology (partitions.py)."""
         self._consumer_tag: str | None = None
         self._task: asyncio.Task[None] | None = None
         self._closed = False
@@ -140,7 +144,10 @@ class Resumption:
     async def _declare(self) -> None:
         channel = await open_plain_channel(self._connection(), publisher_confirms=False)
         try:
-            await declare(channel, self._queue, self._options, self._queue_type)
+            if self._declaration is not None:
+                await self._declaration(channel)
+            else:
+                await declare(channel, self._queue, self._options, self._queue_type)
         finally:
             with ignored():
                 await channel.close()

@@ -87,7 +87,7 @@ class AmqpSource(Source):
         self._acks = HeldAcks(options.prefetch, lambda: self._last_received_ns, lambda: self._received.wake())
         """The acknowledgement held across batches (acks.py)."""
         self._resumption = Resumption(route, self.queue_name, options, connection.queue_type,
-                                      connection.channel_factory, self._consume)
+                                      connection.channel_factory, self._consume, self._declare)
         """Takes the subscription up again when the broker cancels it (resume.py)."""
 
     @property
@@ -99,7 +99,7 @@ class AmqpSource(Source):
         try:
             self._channel = await self._connection.channel_factory().channel()
             await self._channel.set_qos(prefetch_count=options.prefetch)
-            self._queue = await declare(self._channel, self.queue_name, options, self._connection.queue_type)
+            self._queue = await self._declare(self._channel)
             self._deliver = deliver
             self._pump = Pump(self, deliver, f"route {self._route!r}, amqp queue {self.queue_name!r}", overlapping=True)
             self._loop = asyncio.create_task(self._run(self._pump), name=f"amqp-source:{self._route}")
@@ -109,6 +109,11 @@ class AmqpSource(Source):
             self._stopping = True
             self._received.close()
             raise edge_error(exc, f"route {self._route!r}: amqp source queue {self.queue_name!r}") from exc
+
+    async def _declare(self, channel: aio_pika.abc.AbstractChannel) -> aio_pika.abc.AbstractQueue:
+        """Declare what the source consumes (its queue, its exchange and binding) on ``channel``:
+        at start, and again when the broker cancelled the subscription (resume.py)."""
+        return await declare(channel, self.queue_name, self._options, self._connection.queue_type)
 
     async def _consume(self) -> None:
         """Consume on the channel's aiormq channel: no aio-pika message object or task per

@@ -23,6 +23,7 @@ import engine.endpoints.amqp.cluster as amqp_cluster
 from engine.endpoints.amqp.connection import AmqpConnection
 from engine.endpoints.amqp.link import redact
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSinkOptions, AmqpSourceOptions
+from engine.endpoints.amqp.partitions import partition_problems
 import engine.endpoints.amqp.tls as amqp_tls
 from engine.endpoints.base import CheckResult, Connection, MessageRejected, Outbound, Transport, typed_or_problem
 
@@ -118,6 +119,15 @@ class AmqpTransport(Transport):
     def ordered_source(self, options: AmqpSourceOptions) -> AmqpSourceOptions:
         """A single active consumer: one instance at a time consumes the queue, in order."""
         return evolve(options, ordered=True)
+
+    def partition_problems(self, options: AmqpSourceOptions, partitions: int, key: str) -> CheckResult:
+        """A consistent-hash exchange fed from the source's exchange by the routing key or a
+        header: the source needs an exchange to bind it to, and classic queues (partitions.py)."""
+        return partition_problems(options, key)
+
+    def partitioned_source(self, options: AmqpSourceOptions, partitions: int, key: str) -> AmqpSourceOptions:
+        """S classic queues with a single active consumer each, behind a consistent-hash exchange."""
+        return evolve(options, ordered=True, partitions=partitions, partition_key=key)
 
     def sink_dry_run(self, route: str, options: AmqpSinkOptions) -> Callable[[Outbound], str | None]:
         render = compile_template(options.routing_key)
