@@ -31,7 +31,7 @@ from tests.support.engine_process import EngineProcess
 from tests.support.waiting import wait_for
 
 CLIENT_NODE = 2
-AGENTS, PER_AGENT, PREFETCH, PARTITIONS = 24, 200, 20, 4
+AGENTS, PER_AGENT, PREFETCH, PARTITIONS = 24, 400, 20, 4
 
 ROUTE = """connections:
   gcs: {{amqp: {{urls: {urls}, queue_type: quorum}}}}
@@ -135,7 +135,7 @@ def test_three_instances_keep_every_agents_order_when_one_is_killed(amqp_cluster
             await wait_for(lambda: spread(engines, route), 60, "the four partitions spread over the three instances")
             figures["spread_s"] = round(time.monotonic() - began, 2)
             figures["active_before_kill"] = {engine.status_file.stem: active_partitions(engine, route) for engine in engines}
-            publishing = asyncio.create_task(publish_agents(await connection.channel(publisher_confirms=True), f"in-{tag}", 500))
+            publishing = asyncio.create_task(publish_agents(await connection.channel(publisher_confirms=True), f"in-{tag}", 2000))
             await wait_for(lambda: len(unique) >= total // 3, 120, "a third of the stream")
             victim = engines[1]
             figures["killed_active_on"] = active_partitions(victim, route)

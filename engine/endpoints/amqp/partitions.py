@@ -229,6 +229,11 @@ class PartitionConsumer(AmqpSource):
             if any(item is _HANDOVER for item in batch):
                 await self._hand_over()
                 continue
+            # received on a channel that is gone (a reconnect): the broker requeued it, in order,
+            # for whichever consumer it activated; sending it here could put it after newer ones
+            batch = [item for item in batch if not item[0].channel.is_closed]
+            if not batch:
+                continue
             if all(_is_probe(message) for message, _ in batch):
                 await self._acks.acknowledge([message for message, _ in batch], [True] * len(batch))
                 continue
