@@ -549,20 +549,14 @@ class Transport(ABC):
     (``ordered: true``; :meth:`ordered_source` says how). Otherwise a route's source is carried
     by one instance through ``instances`` or ``active_standby``."""
 
-    def ordered_source(self, options: Any) -> Any:
-        """The source options of an ``ordered: true`` route (only where ``supports_ordered``)."""
+    def ordered_source(self, options: Any, partitions: int = 1, key: str = "") -> Any:
+        """The source options of an ``ordered`` route: one consumer at a time (only where
+        ``supports_ordered``), or ``partitions`` > 1 split by ``key`` (where :meth:`partition_problems` found none)."""
         raise NotImplementedError
 
     def partition_problems(self, options: Any, partitions: int, key: str) -> CheckResult:
-        """For ``check``: why a source with these (typed) options cannot be split into
-        ``partitions`` ordered partitions by ``key`` (``ordered: {partitions, key}``), as
-        ``(key under ordered or None, message)``. The default: it cannot."""
+        """For ``check``: why a source cannot be split into ordered partitions (``ordered: {partitions, key}``)."""
         yield None, f"a {self.name} source cannot be partitioned (use ordered: true for one instance at a time)"
-
-    def partitioned_source(self, options: Any, partitions: int, key: str) -> Any:
-        """The source options of an ``ordered: {partitions, key}`` route (only where
-        :meth:`partition_problems` found nothing)."""
-        raise NotImplementedError
 
     shares_sources: ClassVar[bool] = False
     """True when every instance's source competes for one stream (a broker queue): each

@@ -188,9 +188,8 @@ class _RouteCompiler:
         if len(self.problems) > before or placement is None:
             return None
         if placement.ordered:
-            transport = endpoints.transport(source.protocol)
-            ordered = transport.ordered_source(source.options) if placement.partitions == 1 else \
-                transport.partitioned_source(source.options, placement.partitions, placement.partition_key or "")
+            ordered = endpoints.transport(source.protocol).ordered_source(source.options, placement.partitions,
+                                                                          placement.partition_key or "")
             source = EndpointSpec(source.protocol, source.connection, ordered)
         sinks = tuple(EndpointSpec(sink.protocol, sink.connection, route_to_sink(sink.options, route)) for _, sink in ends if sink is not None)
         buffer = self._buffer(document, where, route, source)

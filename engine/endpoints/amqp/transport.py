@@ -116,18 +116,17 @@ class AmqpTransport(Transport):
     supports_ordered = True
     shares_sources = True
 
-    def ordered_source(self, options: AmqpSourceOptions) -> AmqpSourceOptions:
-        """A single active consumer: one instance at a time consumes the queue, in order."""
+    def ordered_source(self, options: AmqpSourceOptions, partitions: int = 1, key: str = "") -> AmqpSourceOptions:
+        """A single active consumer: one instance at a time consumes the queue, in order; with
+        ``partitions``, that many such classic queues behind a consistent-hash exchange (partitions.py)."""
+        if partitions > 1:
+            return evolve(options, ordered=True, partitions=partitions, partition_key=key)
         return evolve(options, ordered=True)
 
     def partition_problems(self, options: AmqpSourceOptions, partitions: int, key: str) -> CheckResult:
         """A consistent-hash exchange fed from the source's exchange by the routing key or a
         header: the source needs an exchange to bind it to, and classic queues (partitions.py)."""
         return partition_problems(options, key)
-
-    def partitioned_source(self, options: AmqpSourceOptions, partitions: int, key: str) -> AmqpSourceOptions:
-        """S classic queues with a single active consumer each, behind a consistent-hash exchange."""
-        return evolve(options, ordered=True, partitions=partitions, partition_key=key)
 
     def sink_dry_run(self, route: str, options: AmqpSinkOptions) -> Callable[[Outbound], str | None]:
         render = compile_template(options.routing_key)
