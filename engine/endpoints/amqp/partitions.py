@@ -58,7 +58,7 @@ import uuid
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Iterator, Mapping, cast
+from typing import Any, Iterable, Iterator, Mapping, cast
 
 import aio_pika
 import aio_pika.abc
@@ -155,6 +155,50 @@ async def declare_partitions(channel: aio_pika.abc.AbstractChannel, route: str,
     return queues
 
 
+async def retire_partitions(factory: Any, route: str, options: AmqpSourceOptions,
+                            remaining: Iterable[tuple[str, AmqpSourceOptions]]) -> dict[str, list[str]]:
+    """Undo what a stopped partitioned source made and no remaining source needs (topology.py
+    for plain sources): its exchange-to-exchange binding, the partitions beyond a successor's
+    count (4 -> 2: p2 and p3 would otherwise keep taking their share of keys with no consumer),
+    and with no successor the hash exchange. An emptied partition queue is deleted, one still
+    holding messages is unbound and kept (reported): nothing is lost."""
+    name = hash_exchange(route, options)
+    successors = [o for r, o in remaining if o.partitions > 1 and hash_exchange(r, o) == name]
+    count = max((o.partitions for o in successors), default=0)
+    done: dict[str, list[str]] = {"unbound": [], "deleted": [], "kept": []}
+    channel = await factory().channel()
+    try:
+        if options.exchange and not any((o.exchange, o.binding_key) == (options.exchange, options.binding_key) for o in successors):
+            with ignored():
+                hashing = await channel.get_exchange(name, ensure=True)
+                await hashing.unbind(options.exchange, options.binding_key)
+                done["unbound"].append(f"{name} <- {options.exchange} [{options.binding_key}]")
+        for index in range(count, options.partitions):
+            queue = partition_queue(route, options, index)
+            try:
+                if channel.is_closed:
+                    channel = await factory().channel()
+                declared = await channel.declare_queue(queue, passive=True)
+                await declared.unbind(name, HASH_WEIGHT)
+                done["unbound"].append(f"{queue} <- {name}")
+                await declared.delete(if_unused=False, if_empty=True)
+                done["deleted"].append(queue)
+            except LIBRARY_ERRORS as exc:  # still holding messages (PRECONDITION_FAILED), or gone
+                done["kept"].append(f"{queue}: {exc}")
+        if not successors:
+            with ignored():
+                if channel.is_closed:
+                    channel = await factory().channel()
+                await channel.exchange_delete(name)
+                done["deleted"].append(name)
+    finally:
+        with ignored():
+            await channel.close()
+    if any(done.values()):
+        log.info("amqp partitions follow the routes", extra={"route": route, **done})
+    return done
+
+
 def _is_probe(message: aiormq.abc.DeliveredMessage | None) -> bool:
     headers = message.header.properties.headers if message is not None else None
     return bool(headers) and PROBE_HEADER in cast(Mapping[str, Any], headers)
@@ -178,6 +222,8 @@ class PartitionConsumer(AmqpSource):
         active consumer until its channel goes (SAC never moves the role otherwise)."""
         self.handing_over = False
         self.handovers = 0
+        self.taken = 0
+        """Messages of this partition handed to the route (probes not counted): the keys' skew."""
         self._retired: weakref.WeakSet[Any] = weakref.WeakSet()
         """Channels this consumer closed: a delivery still arriving from one is the broker's again."""
 
@@ -240,7 +286,10 @@ class PartitionConsumer(AmqpSource):
             return batch
 
     def inbounds(self, batch: Sequence[Delivered]) -> list[Inbound]:
-        return super().inbounds([item for item in batch if not _is_probe(item[0])])
+        """The data of a batch (read here or settled alone), without the probes."""
+        data = super().inbounds([item for item in batch if not _is_probe(item[0])])
+        self.taken += len(data)
+        return data
 
     async def settle(self, batch: Sequence[Delivered], settled: list[bool]) -> None:
         outcomes = iter(settled)
@@ -396,6 +445,7 @@ class PartitionedSource(Source):
             "instance": self.instance,
             "peers": {name: peer.active for name, peer in self.peers.items()},
             "handovers": self.handovers,
+            "taken": [partition.taken for partition in self.partitions],
             "consuming": all(partition.degraded_reason() is None for partition in self.partitions),
         }
 

@@ -21,6 +21,7 @@ from typing import Any, Iterable
 from engine.endpoints.base import Connection
 from engine.endpoints.amqp.errors import LIBRARY_ERRORS
 from engine.endpoints.amqp.options import AmqpSourceOptions
+from engine.endpoints.amqp.partitions import retire_partitions
 
 log = logging.getLogger("engine.amqp")
 
@@ -49,6 +50,9 @@ async def retire_source(
     """Undo what the stopped source of ``route`` made and no ``remaining`` (route, options)
     source on this connection needs; returns what was done, for the log and tests."""
     remaining = list(remaining)
+    factory = getattr(connection, "channel_factory", None)
+    if options.partitions > 1 and factory is not None:
+        return await retire_partitions(factory, route, options, remaining)
     wanted = set().union(*(bindings(r, o) for r, o in remaining))
     queues_in_use = {queue_name(r, o) for r, o in remaining}
     stale = sorted(bindings(route, options) - wanted, key=lambda b: (b.queue, b.exchange, b.key))
@@ -57,7 +61,6 @@ async def retire_source(
     done: dict[str, list[str]] = {"unbound": [], "deleted": [], "kept": []}
     if not stale and not auto_named:
         return done
-    factory = getattr(connection, "channel_factory", None)
     if factory is None:
         return done
     channel = await factory().channel()
