@@ -64,6 +64,7 @@ def test_partitioned_route_reaches_the_source_as_classic_single_active_queues(tm
     header = routes["by-header"].source.options
     assert (header.partitions, header.partition_key) == (3, "headers.agent")
     assert partition_queue("by-header", header, 2) == "q.p2"
+    assert hash_exchange("by-header", header) == "q.partitions.header.agent"  # a changed key: another exchange
     single = routes["single"].source.options
     assert single.ordered and single.partitions == 1 and routes["single"].placement.partitions == 1
 

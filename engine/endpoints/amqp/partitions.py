@@ -121,7 +121,11 @@ def partition_queue(route: str, options: AmqpSourceOptions, index: int) -> str:
 
 
 def hash_exchange(route: str, options: AmqpSourceOptions) -> str:
-    return f"{base_name(route, options)}.partitions"
+    """The route's consistent-hash exchange, named after its key: RabbitMQ compares only an
+    exchange's type and flags on a new declaration, not its ``hash-header``, so a changed key
+    under the same name would go on hashing the old one without a word."""
+    header = hash_header(options.partition_key)
+    return f"{base_name(route, options)}.partitions" + (f".header.{header}" if header else "")
 
 
 def partition_arguments(options: AmqpSourceOptions) -> dict[str, Any]:
@@ -142,6 +146,10 @@ async def declare_partitions(channel: aio_pika.abc.AbstractChannel, route: str,
     except aiormq.exceptions.ConnectionCommandInvalid as exc:
         raise EndpointError(f"route {route!r}: the broker has no x-consistent-hash exchange type for exchange {name!r} "
                             f"(rabbitmq-plugins enable rabbitmq_consistent_hash_exchange): {exc}") from exc
+    except aiormq.exceptions.ChannelPreconditionFailed as exc:
+        raise EndpointError(f"route {route!r}: exchange {name!r} exists with another type or key (ordered.key changed?); "
+                            "a partitioned route's key cannot change in place: drain the route and delete the exchange "
+                            f"(rabbitmqctl eval or the management UI), or give the route a new name: {exc}") from exc
     if options.exchange:
         source = await channel.declare_exchange(options.exchange, aio_pika.ExchangeType(options.exchange_type),
                                                 durable=options.durable)
@@ -158,21 +166,18 @@ async def declare_partitions(channel: aio_pika.abc.AbstractChannel, route: str,
 async def retire_partitions(factory: Any, route: str, options: AmqpSourceOptions,
                             remaining: Iterable[tuple[str, AmqpSourceOptions]]) -> dict[str, list[str]]:
     """Undo what a stopped partitioned source made and no remaining source needs (topology.py
-    for plain sources): its exchange-to-exchange binding, the partitions beyond a successor's
-    count (4 -> 2: p2 and p3 would otherwise keep taking their share of keys with no consumer),
-    and with no successor the hash exchange. An emptied partition queue is deleted, one still
-    holding messages is unbound and kept (reported): nothing is lost."""
+    for plain sources): the partitions beyond a successor's count (4 -> 2: p2 and p3 would
+    otherwise keep taking their share of keys with no consumer), its exchange-to-exchange
+    binding, and its hash exchange unless a successor hashes through it (same key). An emptied
+    partition queue is deleted, one still holding messages is unbound and kept (reported):
+    nothing is lost."""
     name = hash_exchange(route, options)
-    successors = [o for r, o in remaining if o.partitions > 1 and hash_exchange(r, o) == name]
-    count = max((o.partitions for o in successors), default=0)
+    successors = [(r, o) for r, o in remaining if o.partitions > 1 and base_name(r, o) == base_name(route, options)]
+    count = max((o.partitions for _, o in successors), default=0)
+    same_exchange = [o for r, o in successors if hash_exchange(r, o) == name]
     done: dict[str, list[str]] = {"unbound": [], "deleted": [], "kept": []}
     channel = await factory().channel()
     try:
-        if options.exchange and not any((o.exchange, o.binding_key) == (options.exchange, options.binding_key) for o in successors):
-            with ignored():
-                hashing = await channel.get_exchange(name, ensure=True)
-                await hashing.unbind(options.exchange, options.binding_key)
-                done["unbound"].append(f"{name} <- {options.exchange} [{options.binding_key}]")
         for index in range(count, options.partitions):
             queue = partition_queue(route, options, index)
             try:
@@ -185,12 +190,17 @@ async def retire_partitions(factory: Any, route: str, options: AmqpSourceOptions
                 done["deleted"].append(queue)
             except LIBRARY_ERRORS as exc:  # still holding messages (PRECONDITION_FAILED), or gone
                 done["kept"].append(f"{queue}: {exc}")
-        if not successors:
-            with ignored():
-                if channel.is_closed:
-                    channel = await factory().channel()
+        with ignored():
+            if channel.is_closed:
+                channel = await factory().channel()
+            if not same_exchange:  # its bindings, to the queues and from the source's exchange, go with it
                 await channel.exchange_delete(name)
                 done["deleted"].append(name)
+            elif options.exchange and all((o.exchange, o.binding_key) != (options.exchange, options.binding_key)
+                                          for o in same_exchange):
+                hashing = await channel.get_exchange(name, ensure=True)
+                await hashing.unbind(options.exchange, options.binding_key)
+                done["unbound"].append(f"{name} <- {options.exchange} [{options.binding_key}]")
     finally:
         with ignored():
             await channel.close()

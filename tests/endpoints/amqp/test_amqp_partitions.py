@@ -1,6 +1,7 @@
 """Partitioned ordered routes on one real RabbitMQ node: the key taken from a header spreads the
 agents over the partitions and keeps each agent's order; the topology follows a reload (fewer
-partitions: the extra queues go; no route: the exchange and the queues go); two engine
+partitions: the extra queues go; another key: another exchange, the old one goes; no route: the
+exchange and the queues go); two engine
 processes share the partitions, and one stopped cleanly mid-stream hands its partitions over
 without a single duplicate or a message out of order."""
 
@@ -105,6 +106,18 @@ def test_header_key_spreads_agents_in_order_and_the_topology_follows_reloads(
             await publish_agents(publisher, f"in-{tag}", 12, range(30, 40))
             await out.wait_for(480)
             assert per_agent(out.messages) == {agent: list(range(40)) for agent in range(12)}
+
+            # another key: RabbitMQ would keep the old exchange's hash-header, so it is another exchange
+            assert await exists(connection, "exchange", f"{base}.partitions.header.agent")
+            farm.write_text(ROUTES.format(tag=tag, partitions=2, key="routing_key"))
+            assert await engine.reload(), engine.reloads.last_error
+            await engine.topology_settled()
+            assert not await exists(connection, "exchange", f"{base}.partitions.header.agent"), "the old key's exchange left behind"
+            assert await exists(connection, "exchange", f"{base}.partitions")
+            await publish_agents(publisher, f"in-{tag}", 12, range(40, 50))
+            await out.wait_for(600)
+            assert per_agent(out.messages) == {agent: list(range(50)) for agent in range(12)}
+            assert len(out.messages) == 600, "nothing through both exchanges"
 
             farm.write_text("routes: []\n")
             assert await engine.reload(), engine.reloads.last_error
