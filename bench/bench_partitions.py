@@ -1,7 +1,10 @@
 """Partitioned ordered routes (``ordered: {partitions: 4}``) on a private three-node RabbitMQ
 cluster: drain throughput of one vs two engine instances, interleaved in the same run.
 
-    .venv/bin/python -m bench.bench_partitions [--count 20000] [--repeat 3] [--agents 24] [--partitions 4]
+    .venv/bin/python -m bench.bench_partitions [--count 20000] [--repeat 3] [--agents 24] [--partitions 4] [--nodes 3]
+
+``--nodes 1`` runs one broker node instead of three: on a small machine the cluster's nodes take
+most of the CPU, and one node leaves more of it to the engines.
 
 Each pass fills the route's partitions first (the same topology the engine declares:
 engine/endpoints/amqp/partitions.py ``declare_partitions``; ``--agents`` agents, routing key
@@ -104,14 +107,14 @@ async def one_pass(cluster: LocalCluster, work: Path, args: argparse.Namespace, 
     rates: dict[int, float] = {}
     for instances in order:
         tag = uuid.uuid4().hex[:8]
-        await fill(cluster.urls[2], tag, args.count, args.agents, args.partitions, args.prefetch)
+        await fill(cluster.urls[-1], tag, args.count, args.agents, args.partitions, args.prefetch)
         directory = work / f"routes-{tag}"
         directory.mkdir()
         (directory / "r.yaml").write_text(ROUTE.format(urls=json.dumps(cluster.urls[:2]), tag=tag, partitions=args.partitions,
                                                        prefetch=args.prefetch))
         started = engines(directory, work, [f"e{i}" for i in range(instances)])
         try:
-            rates[instances], cpu_us, spread_s = await drain(cluster.urls[2], tag, args.count, started)
+            rates[instances], cpu_us, spread_s = await drain(cluster.urls[-1], tag, args.count, started)
         finally:
             for engine in started:
                 engine.stop()
@@ -121,10 +124,10 @@ async def one_pass(cluster: LocalCluster, work: Path, args: argparse.Namespace, 
 
 
 async def main(args: argparse.Namespace) -> None:
-    cluster = LocalCluster(3)
+    cluster = LocalCluster(args.nodes)
     began = time.monotonic()
     await asyncio.to_thread(cluster.start)
-    print(f"three-node cluster up in {time.monotonic() - began:.1f} s; {args.count} messages, {args.agents} agents, "
+    print(f"{args.nodes}-node cluster up in {time.monotonic() - began:.1f} s; {args.count} messages, {args.agents} agents, "
           f"{args.partitions} partitions, prefetch {args.prefetch}", flush=True)
     try:
         with tempfile.TemporaryDirectory(prefix="bench-partitions-") as tmp:
@@ -145,4 +148,5 @@ if __name__ == "__main__":
     parser.add_argument("--agents", type=int, default=24)
     parser.add_argument("--partitions", type=int, default=4)
     parser.add_argument("--prefetch", type=int, default=200)
+    parser.add_argument("--nodes", type=int, default=3, choices=(1, 3), help="broker nodes (the clients use the last one)")
     asyncio.run(main(parser.parse_args()))
