@@ -10,7 +10,7 @@ import pytest
 
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.amqp.options import AmqpSourceOptions
-from engine.endpoints.amqp.partitions import hash_exchange, partition_arguments, partition_queue
+from engine.endpoints.amqp.partitions import hash_exchange, partition_arguments, partition_queue, should_hand_over
 from engine.language.routes import RoutesInvalid, load_routes
 from tests.support.repo import REPO
 
@@ -106,3 +106,19 @@ def test_what_breaks_partitioned_order_is_refused_at_check(tmp_path: Path) -> No
     assert any(line == 20 and "less than the minimum of 2" in message for line, message in found), text
     assert any(line == 25 and "'from-mqtt'" in message and "ordered does not apply to a mqtt source" in message
                for line, message in found), text
+
+
+@pytest.mark.parametrize(("mine", "partitions", "instances", "me", "peers", "hands_over"), [
+    (4, 4, 1, "a", {}, False),                        # alone: keeps everything
+    (4, 4, 2, "a", {"b": 0}, True),                   # a second instance came: more than ceil(4/2)
+    (2, 4, 2, "a", {"b": 2}, False),                  # its share
+    (2, 4, 3, "a", {"b": 2, "c": 0}, True),           # c has none, a and b are the busiest: a, the first name, moves
+    (2, 4, 3, "b", {"a": 2, "c": 0}, False),          # ... and b waits
+    (2, 4, 3, "a", {"b": 1, "c": 1}, False),          # 2, 1, 1: spread
+    (1, 2, 3, "a", {"b": 1, "c": 0}, False),          # more instances than partitions: one waits, no churn
+    (3, 4, 2, "a", {"b": 1}, True),                   # after a kill left 3 here
+    (0, 4, 3, "a", {"b": 4}, False),                  # none here: nothing to hand over (b hands over)
+], ids=lambda value: str(value))
+def test_the_spreading_rule(mine: int, partitions: int, instances: int, me: str, peers: dict[str, int],
+                            hands_over: bool) -> None:
+    assert should_hand_over(mine, partitions, instances, me, peers) is hands_over
