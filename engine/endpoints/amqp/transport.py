@@ -8,6 +8,7 @@ acknowledgements), resume.py (a consumer the broker cancelled, taken up again), 
 (publishing, mandatory), publisher.py (every route's publishes in one round), returns.py (the
 broker's returns of mandatory messages),
 calls.py (a sink's request/reply), channels.py, cluster.py (cluster URLs, failover, leases),
+partitions.py (partitioned ordered routes: a consistent-hash exchange, a queue per partition),
 topology.py (what a retired source leaves behind), tls.py and broker.py (a private broker).
 """
 
