@@ -57,7 +57,7 @@ UNSENT = "sinks_unsent"
 dead letter keeps it: ``x-source-sinks_unsent``); ``dead-letters replay`` sends it to those only."""
 
 
-class Filtered(Exception):
+class NoSinkChosen(Exception):
     """No sink's ``when:`` chose the message (the pipeline settles it as ``filtered``)."""
 
 
@@ -114,7 +114,7 @@ class SinkChoice:
                 raise MessageRejected("; ".join(f"sink {name!r}: {error}" for name, error in refused.items()), stage="sink mapping")
             meta[REFUSED] = refused
         elif not chosen:
-            raise Filtered("no sink's when: chose the message")
+            raise NoSinkChosen("no sink's when: chose the message")
         return chosen
 
 

@@ -26,8 +26,7 @@ from engine.language.mapping import Mapper, compile_mapping
 from engine.language.stores import Remembers, Stores
 from engine.running.dedupe import Dedupe, SeenKeys
 from engine.running.delivery import ConversionError
-from engine.running.fanout import Filtered as NoSinkChosen
-from engine.running.fanout import SinkChoice, compiler, passes
+from engine.running.fanout import NoSinkChosen, SinkChoice, compiler, passes
 from engine.running.replies import ReplyShape
 from engine.running.throttle import Throttle
 from engine.running.windows import Window, Windowed
