@@ -178,6 +178,8 @@ class EngineCollector:
                                          labels=["route"])
         agent_dropped = CounterMetricFamily("rabbitros_agent_dropped", "Messages a fair route dropped from one agent's queue",
                                             labels=["route", "agent"])
+        sink_messages = CounterMetricFamily("rabbitros_sink_messages", "A route with several sinks: copies per sink (or fallback) "
+                                            "and outcome", labels=["route", "sink", "outcome"])
         for name in sorted(engine.runners):
             observer = engine.observers.get(name)
             for outcome, count in observer.outcomes().items():
@@ -188,13 +190,16 @@ class EngineCollector:
             unroutable.add_metric([name], observer.unroutable)
             for agent, count in sorted(observer.dropped_by_agent.items()):
                 agent_dropped.add_metric([name, agent], count)
+            for sink, counts in sorted(observer.sinks.items()):
+                for outcome, count in counts.as_dict().items():
+                    sink_messages.add_metric([name, sink, outcome], count)
             cumulative, buckets = 0, []
             for bound, count in zip((*LATENCY_BUCKETS, float("inf")), observer.latency_buckets):
                 cumulative += count
                 buckets.append(("+Inf" if bound == float("inf") else repr(bound), cumulative))
             latency.add_metric([name], buckets, observer.latency_ns_total / 1e9)
             dropped.add_metric([name], observer.tap_dropped + sum(t.dropped for t in observer.taps))
-        yield from (messages, dead, latency, dropped, sink_errors, unroutable, agent_dropped)
+        yield from (messages, dead, latency, dropped, sink_errors, unroutable, agent_dropped, sink_messages)
         failures = CounterMetricFamily("rabbitros_admin_auth_failures", "Admin requests refused for a missing or wrong token")
         failures.add_metric([], self.auth_failures)
         yield failures

@@ -28,8 +28,15 @@ converted once (decode, mapping, schema, the route's ``when:``); then:
   waits as it waits for one sink (no attempt spent) for ``after`` seconds, then sends to the
   fallback until the sink can take messages again: then new messages go to it again (the
   fallback gives back). A transient send failure of a sink with a fallback counts toward the
-  same ``after`` from the first failure; a success resets it. Every message is accepted by
-  the sink or by its fallback, once.
+  same ``after`` from the first failure; a success resets it, and an outage counts only while
+  it lasts (a sink seen able again starts the next one's ``after`` afresh, though no message
+  reached it between). Every message is accepted by the sink or by its fallback, once. No
+  clock or retry loop of its own: the route's runner waits (``ready``) and retries with the
+  engine's one backoff, and every failure is classified by the one delivery policy
+  (engine/running/delivery.py ``classify``).
+* **counts**: each sink's and fallback's (delivered, refused, to_fallback, unroutable) are in
+  the route's one set of counters (engine/running/observe.py :class:`SinkCounts`, kept across
+  reloads), read by the status' ``sinks`` and ``/metrics`` (``rabbitros_sink_messages_total``).
 
 A down sink without a fallback makes the whole route wait (as one sink does), whatever the
 others could take: a message is acknowledged at its source only once every chosen sink has it.
@@ -39,7 +46,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Sequence
 
 from engine.common.placeholders import MappingError
@@ -47,6 +54,8 @@ from engine.endpoints import transport
 from engine.endpoints.base import Connection, EndpointError, MessageRejected, NotSent, Outbound, Sink, Unroutable
 from engine.language.mapping import Mapper, compile_mapping
 from engine.language.specs import RouteSpec, SinkSpec
+from engine.running.delivery import classify
+from engine.running.observe import RouteObserver, SinkCounts
 
 SETTLED = "sinks_settled"
 """Meta key: the names of the sinks that settled the message (accepted, or settled unsent)."""
@@ -137,29 +146,40 @@ class Slot:
     sink: Sink
     connection: Connection
     is_open: Callable[[Connection], bool]
+    counts: SinkCounts
+    """Its counts in the route's one set (engine/running/observe.py), kept across reloads."""
     fallback: Slot | None = None
     after: float = 5.0
     mapped: Mapped | None = None
     """A fallback's own mapping (a primary's ran in the pipeline: :class:`SinkChoice`)."""
-    down_since: float | None = None
-    """Monotonic time the sink was first seen unable to take messages (or failing), until it accepts one."""
-    counts: dict[str, int] = field(default_factory=lambda: {"delivered": 0, "refused": 0, "to_fallback": 0})
+    unable_since: float | None = None
+    """Monotonic time the sink was first seen unable to take messages, until it is seen able
+    again (so an outage long past never counts toward the next one's ``after``)."""
+    failing_since: float | None = None
+    """Monotonic time of its first transient send failure, until it accepts a message."""
 
     def can_take(self) -> bool:
         """Its connection is open and healthy, and the sink is ready (as the runner asks of one sink)."""
         connection = self.connection
         return connection.healthy and self.is_open(connection) and self.sink.ready
 
+    def down_since(self) -> float | None:
+        """Since when the sink has been unable to take messages or failing to send (None: neither)."""
+        if self.can_take():
+            self.unable_since = None
+        elif self.unable_since is None:
+            self.unable_since = time.monotonic()
+        if self.failing_since is None or (self.unable_since is not None and self.unable_since < self.failing_since):
+            return self.unable_since
+        return self.failing_since
+
     def fallback_due(self) -> bool:
         """Whether messages for this sink go to its fallback now: it has one that can take
-        them, and this sink has been unable for ``after`` seconds."""
-        fallback = self.fallback
-        if fallback is None:
+        them, and this sink has been unable (or failing) for ``after`` seconds."""
+        if self.fallback is None:
             return False
-        now = time.monotonic()
-        if self.down_since is None:
-            self.down_since = now
-        return now - self.down_since >= self.after and fallback.can_take()
+        since = self.down_since()
+        return since is not None and time.monotonic() - since >= self.after and self.fallback.can_take()
 
     def able(self) -> bool:
         return self.can_take() or self.fallback_due()
@@ -168,8 +188,9 @@ class Slot:
         if self.able():
             return None
         why = self.sink.not_ready_reason() or f"connection {self.connection.name!r} {'down' if self.is_open(self.connection) else 'not open'}"
-        if self.fallback is not None and self.down_since is not None:
-            why += f" (fallback {self.fallback.name!r} in {max(0.0, self.after - (time.monotonic() - self.down_since)):.1f} s)"
+        since = self.down_since()
+        if self.fallback is not None and since is not None:
+            why += f" (fallback {self.fallback.name!r} in {max(0.0, self.after - (time.monotonic() - since)):.1f} s)"
         return f"sink {self.name!r}: {why}"
 
 
@@ -214,10 +235,11 @@ class _Progress:
 class FanOutSink(Sink):
     """The route's sinks as one (see the module docstring)."""
 
-    def __init__(self, slots: list[Slot], count_unroutable: Callable[[int], None] | None = None) -> None:
+    def __init__(self, slots: list[Slot], observer: RouteObserver) -> None:
         self.slots = slots
-        self._count_unroutable = count_unroutable
-        """Counts returns a fallback took (those that end a message's send count there)."""
+        self.observer = observer
+        """The route's counters: returns that end a message's send here (a fallback took it, or
+        the sink refused it for good) count ``unroutable`` here; the runner counts the rest."""
         self.batches_in_flight = min(slot.sink.batches_in_flight for slot in slots)  # type: ignore[misc]
 
     @property
@@ -235,10 +257,10 @@ class FanOutSink(Sink):
         """Each sink's counts and whether it can take messages now (the route's status ``sinks``)."""
         out: dict[str, Any] = {}
         for slot in self.slots:
-            out[slot.name] = {**slot.counts, "can_take": slot.can_take()}
+            out[slot.name] = {**slot.counts.as_dict(), "can_take": slot.can_take()}
             if slot.fallback is not None:
-                out[slot.fallback.name] = {**slot.fallback.counts, "can_take": slot.fallback.can_take(),
-                                           "taking_over": slot.down_since is not None and not slot.can_take()}
+                out[slot.fallback.name] = {**slot.fallback.counts.as_dict(), "can_take": slot.fallback.can_take(),
+                                           "taking_over": slot.down_since() is not None and not slot.can_take()}
         return out
 
     async def send(self, message: Outbound) -> None:
@@ -264,26 +286,45 @@ class FanOutSink(Sink):
                     p.pending = waiting
             return
         results = await slot.sink.send_batch([p.copy_for(slot.name, p.message.fields[slot.name]) for p in mine])
-        diverted: list[_Progress] = []
-        returned = 0
-        for p, error in zip(mine, results):
-            if error is None or isinstance(error, NotSent):
-                self._settled(slot, p, error)
-                slot.down_since = None
-            elif slot.fallback is not None and (isinstance(error, (MessageRejected, Unroutable)) or slot.fallback_due()):
-                returned += isinstance(error, Unroutable)
-                diverted.append(p)
-            elif isinstance(error, MessageRejected) or not isinstance(error, EndpointError):
-                p.refused[slot.name] = f"{getattr(error, 'stage', 'sink')}: {error}"
-                slot.counts["refused"] += 1
-            else:
-                if slot.fallback is not None and slot.down_since is None:
-                    slot.down_since = time.monotonic()
-                p.pending = _named(slot.name, error)
-        if returned and self._count_unroutable is not None:
-            self._count_unroutable(returned)
+        diverted = self._settle(slot, mine, results)
         if diverted:
             await self._to_fallback(slot, diverted)
+
+    def _settle(self, slot: Slot, mine: list[_Progress], results: list[BaseException | None],
+                primary: Slot | None = None) -> list[_Progress]:
+        """Record what ``slot`` (``primary``'s fallback, when given) did with each message, by the
+        engine's one classification (engine/running/delivery.py); return what goes on to its
+        fallback: what it refused for good or had returned, and a transient failure once the
+        fallback is due."""
+        diverted: list[_Progress] = []
+        counts = slot.counts
+        for p, error in zip(mine, results):
+            if error is None or isinstance(error, NotSent):
+                p.settled.append(slot.name)
+                if primary is not None:
+                    p.settled.append(primary.name)
+                if error is None:
+                    p.delivered = True
+                    counts.delivered += 1
+                else:
+                    p.not_sent = error
+                slot.failing_since = None
+                continue
+            returned = isinstance(error, Unroutable)
+            counts.unroutable += returned
+            failure = classify(error)
+            if not failure.permanent and slot.fallback is not None and slot.failing_since is None:
+                slot.failing_since = time.monotonic()
+            if slot.fallback is not None and (failure.permanent or returned or slot.fallback_due()):
+                self.observer.unroutable += returned  # the runner never sees this return
+                diverted.append(p)
+            elif failure.permanent:
+                self.observer.unroutable += returned
+                p.refused[slot.name] = f"{failure.stage}: {failure.error}"
+                counts.refused += 1
+            else:
+                p.pending = _named(slot.name, error)
+        return diverted
 
     async def _to_fallback(self, slot: Slot, mine: list[_Progress]) -> None:
         """Send what ``slot`` cannot take to its fallback; settled there counts as settled by ``slot``."""
@@ -301,27 +342,8 @@ class FanOutSink(Sink):
             copies.append(p.copy_for(fallback.name, fields))
         if not copies:
             return
-        slot.counts["to_fallback"] += len(copies)
-        results = await fallback.sink.send_batch(copies)
-        for p, error in zip(ready, results):
-            if error is None or isinstance(error, NotSent):
-                self._settled(fallback, p, error)
-                p.settled.append(slot.name)
-            elif isinstance(error, MessageRejected) or not isinstance(error, EndpointError):
-                p.refused[fallback.name] = f"{getattr(error, 'stage', 'sink')}: {error}"
-                fallback.counts["refused"] += 1
-            else:
-                p.pending = _named(fallback.name, error)
-
-    @staticmethod
-    def _settled(slot: Slot, p: _Progress, error: BaseException | None) -> None:
-        p.settled.append(slot.name)
-        if error is None:
-            p.delivered = True
-            slot.counts["delivered"] += 1
-        else:
-            assert isinstance(error, NotSent)
-            p.not_sent = error
+        slot.counts.to_fallback += len(copies)
+        self._settle(fallback, ready, await fallback.sink.send_batch(copies), slot)
 
     async def close(self) -> None:
         await asyncio.gather(*(sink.close() for sink in self.sinks()), return_exceptions=True)
@@ -338,7 +360,7 @@ def _named(name: str, error: BaseException) -> BaseException:
 
 
 async def open_fan_out(sinks: Sequence[SinkSpec], route: str, connection_of: Callable[[Any], Any],
-                       is_open: Callable[[Connection], bool], count_unroutable: Callable[[int], None] | None,
+                       is_open: Callable[[Connection], bool], observer: RouteObserver,
                        compile_: Callable[[str | None], Mapper | None]) -> tuple[FanOutSink, list[Connection]]:
     """The route's sinks (and fallbacks) on their connections (``connection_of(endpoint)``
     awaits the engine's pooled connection), as one :class:`FanOutSink`, and those connections."""
@@ -352,25 +374,22 @@ async def open_fan_out(sinks: Sequence[SinkSpec], route: str, connection_of: Cal
             fallback_connection = await connection_of(spec.fallback.endpoint)
             connections.append(fallback_connection)
             fallback = Slot(spec.fallback.name, fallback_connection.sink(route, spec.fallback.endpoint.options), fallback_connection,
-                            is_open, mapped=Mapped.compile(spec.fallback, compile_))
-        slots.append(Slot(spec.name, connection.sink(route, spec.endpoint.options), connection, is_open, fallback, spec.after))
-    return FanOutSink(slots, count_unroutable), connections
+                            is_open, observer.sink(spec.fallback.name), mapped=Mapped.compile(spec.fallback, compile_))
+        slots.append(Slot(spec.name, connection.sink(route, spec.endpoint.options), connection, is_open, observer.sink(spec.name),
+                          fallback, spec.after))
+    return FanOutSink(slots, observer), connections
 
 
 async def open_sinks(spec: RouteSpec, connection_of: Callable[[Any], Any], is_open: Callable[[Connection], bool],
-                     stores: Any, observer: Any = None) -> tuple[Sink, list[Connection], Connection | None]:
+                     stores: Any, observer: RouteObserver | None = None) -> tuple[Sink, list[Connection], Connection | None]:
     """``(sink, connections, one)``: the route's one sink on its connection (``one``), or its
     several sinks as a :class:`FanOutSink` (``one`` None: it asks its sinks' connections
-    itself); ``observer``: the route's counters (returns a fallback took count ``unroutable``)."""
+    itself); ``observer``: the route's counters (None: counts nobody reads, as a replay's)."""
     if not spec.sinks:
         connection = await connection_of(spec.sink)
         return connection.sink(spec.name, spec.sink.options), [connection], connection
-
-    def count_unroutable(count: int) -> None:
-        observer.unroutable += count
-
     sink, connections = await open_fan_out(spec.sinks, spec.name, connection_of, is_open,
-                                           count_unroutable if observer is not None else None, compiler(spec, stores))
+                                           observer if observer is not None else RouteObserver(spec.name), compiler(spec, stores))
     return sink, connections, None
 
 

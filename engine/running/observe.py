@@ -35,6 +35,11 @@ A watcher (``watchers``: the Foxglove view's channels, engine/ops/foxglove.py) i
 each message the sink took; it is attached only while someone looks (a Foxglove client
 subscribed), so with none the cost is the one truth test ``if self.watchers``.
 
+A route with several sinks (``sinks:``, engine/running/fanout.py) also counts per sink, here
+too (:class:`SinkCounts`, by sink name, kept across reloads like the rest): what each sink (or
+fallback) took, refused for good, handed to its fallback, and had returned unroutable. They
+say where the route's messages went; the route's own counts above stay one per message.
+
 Observers are kept per route name across reloads, so counters stay monotonic for Prometheus
 while a route's pipeline or source is swapped.
 
@@ -96,6 +101,29 @@ class Tap:
             self.dropped += 1
 
 
+SINK_OUTCOMES = ("delivered", "refused", "to_fallback", "unroutable")
+"""The per-sink counts (:class:`SinkCounts`): the ``outcome`` label of ``rabbitros_sink_messages_total``."""
+
+
+class SinkCounts:
+    """One sink's counts on a route with several (engine/running/fanout.py increments them):
+    ``delivered`` (it, or as a fallback it, took a copy), ``refused`` (refused for good: the
+    message's dead letter names it), ``to_fallback`` (copies handed to its fallback: while it
+    could not take them, or what it refused or had returned), ``unroutable`` (returns: sends
+    the destination routed to nobody, each attempt)."""
+
+    __slots__ = SINK_OUTCOMES
+
+    def __init__(self) -> None:
+        self.delivered = 0
+        self.refused = 0
+        self.to_fallback = 0
+        self.unroutable = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return {name: getattr(self, name) for name in SINK_OUTCOMES}
+
+
 class RouteObserver:
     """The counters of one route (see the module docstring) and its taps."""
 
@@ -130,6 +158,8 @@ class RouteObserver:
         self.dead_letter_errors = 0
         self.dropped_by_agent: dict[str, int] = {}
         """Of ``dropped``: what a ``fair:`` route dropped from each agent's queue, by agent."""
+        self.sinks: dict[str, SinkCounts] = {}
+        """A route with several sinks: each sink's (and fallback's) counts, by name (:meth:`sink`)."""
         self.dead_lettered: dict[str, int] = {}
         """Dead-lettered messages by stage (decode, size, mapping, schema, sink mapping, sink)."""
         self.latency_buckets = [0] * (len(LATENCY_BUCKETS) + 1)
@@ -237,6 +267,14 @@ class RouteObserver:
             self.recent_dead_letters.add(self.route, stage, str(error))
         if self.taps:
             self._tap(inbound, outbound, DEAD_LETTERED, self.last_error)
+
+    def sink(self, name: str) -> SinkCounts:
+        """The counts of the route's sink ``name`` (made at its first use: a fan-out asks once,
+        when it opens, and increments them on the hot path)."""
+        counts = self.sinks.get(name)
+        if counts is None:
+            counts = self.sinks[name] = SinkCounts()
+        return counts
 
     def carries(self, schema: str | None) -> None:
         """The route's canonical schema (set by the runner, again on a reload): a position's
