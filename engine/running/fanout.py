@@ -21,7 +21,10 @@ converted once (decode, mapping, schema, the route's ``when:``); then:
   message one dead letter once the other sinks settled it, naming the sink and its error
   (stage ``sink``, or ``sink mapping``); the copies the other sinks accepted stay accepted
   (its dead letter names the sinks that did not take it, ``x-source-sinks_unsent``, and
-  ``dead-letters replay`` sends it to those only).
+  ``dead-letters replay`` sends it to those only). A message the buffer held across a reload
+  that changed the route's sinks (``sink:`` to ``sinks:``, back, or other names) has fields
+  for sinks the route no longer has: the new pipeline maps it again before it is sent
+  (:func:`mapped_for`, engine/running/held.py), so no copy is lost or sent in the old shape.
 * **fallback**: what a sink refuses for good, or the broker returns unroutable (an
   exchange with no queue bound), goes to its fallback at once. While the sink cannot take
   messages (its connection down or not open, or not ready: :meth:`Slot.can_take`), the route
@@ -61,6 +64,10 @@ SETTLED = "sinks_settled"
 """Meta key: the names of the sinks that settled the message (accepted, or settled unsent)."""
 REFUSED = "sinks_refused"
 """Meta key: sink name -> ``stage: error`` of the sinks that refused it for good."""
+CHOSEN = "sinks_chosen"
+"""Meta key: the names of every sink of the fan-out whose choice made the message's ``fields``
+(the :class:`SinkChoice`'s own tuple, no copy): a message the buffer held across a reload that
+changed the route's sinks is mapped again by the new pipeline (:func:`mapped_for`)."""
 UNSENT = "sinks_unsent"
 """Meta key: the sinks a message that failed was not accepted by, comma-separated (text, so its
 dead letter keeps it: ``x-source-sinks_unsent``); ``dead-letters replay`` sends it to those only."""
@@ -97,6 +104,7 @@ class SinkChoice:
 
     def __init__(self, sinks: Sequence[SinkSpec], compile_: Callable[[str | None], Mapper | None]) -> None:
         self.sinks = [(Mapped.compile(spec, compile_), compile_(spec.when)) for spec in sinks]
+        self.names = tuple(spec.name for spec in sinks)
 
     def __call__(self, data: Any, meta: dict[str, Any]) -> dict[str, Any]:
         chosen: dict[str, Any] = {}
@@ -124,7 +132,20 @@ class SinkChoice:
             meta[REFUSED] = refused
         elif not chosen:
             raise NoSinkChosen("no sink's when: chose the message")
+        meta[CHOSEN] = self.names
         return chosen
+
+
+def mapped_for(meta: Mapping[str, Any], names: tuple[str, ...] | None) -> bool:
+    """Whether a message's ``fields`` were made for a route whose sinks are ``names`` (None: one
+    plain sink): False for one the buffer held across a reload from ``sink:`` to ``sinks:``,
+    back, or to other sinks (its fields are for sinks the route no longer has: sent as they are,
+    the fan-out would send it nowhere and count it delivered). One look and an identity test
+    for a message this pipeline mapped."""
+    chosen = meta.get(CHOSEN)
+    if chosen is names:
+        return True
+    return chosen is not None and names is not None and tuple(chosen) == names
 
 
 def passes(value: Any) -> bool:

@@ -15,7 +15,9 @@ import time
 from engine.endpoints.base import Inbound, Outbound, Unroutable
 from engine.running.buffer_stores import Held
 from engine.running.dead_lettering import DeadLettering
-from engine.running.delivery import classify
+from engine.running.delivery import ConversionError, classify
+from engine.running.fanout import mapped_for
+from engine.running.pipeline import Pipeline
 from engine.running.route_state import Dead, RunningRoute
 
 
@@ -30,17 +32,37 @@ class HeldMessages:
         return self.route.sink_can_take()
 
     async def send_held(self, messages: list[Outbound]) -> list[BaseException | None]:
-        for message in messages:
-            self.dead_lettering.reply_of(message)
         pipeline = self.route.pipeline
+        unmappable = self._mapped_again(pipeline, messages)
+        to_send = [m for i, m in enumerate(messages) if i not in unmappable] if unmappable else messages
         pipeline.enter()
         try:
-            results = await pipeline.sink.send_batch(messages)
+            results: list[BaseException | None] = await pipeline.sink.send_batch(to_send) if to_send else []
         finally:
             pipeline.leave()
+        if unmappable:  # the buffer dead-letters those with their error
+            sent = iter(results)
+            results = [unmappable[i] if i in unmappable else next(sent) for i in range(len(messages))]
         if results.count(None) != len(results):
             self.route.observer.unroutable += sum(isinstance(result, Unroutable) for result in results)
         return results
+
+    def _mapped_again(self, pipeline: Pipeline, messages: list[Outbound]) -> dict[int, BaseException] | None:
+        """Register each message's reply, and map again those held across a reload that changed
+        the route's sinks (``sink:`` to ``sinks:``, back, or to other sinks: their fields are for
+        sinks the route no longer has); returns those the new mappings refuse, by index (None:
+        none, the common case, with nothing made)."""
+        names = pipeline.sink_names
+        unmappable: dict[int, BaseException] | None = None
+        for index, message in enumerate(messages):
+            self.dead_lettering.reply_of(message)
+            if not mapped_for(message.meta, names):
+                try:
+                    pipeline.remap(message)
+                except ConversionError as error:
+                    unmappable = unmappable or {}
+                    unmappable[index] = error
+        return unmappable
 
     def held_delivered(self, held: list[Held]) -> None:
         now_ns = time.time_ns()

@@ -80,6 +80,8 @@ class Pipeline:
     """The connection of the route's one sink, which the runner asks before sending (the
     engine sets it); None for a route with several sinks (engine/running/fanout.py), whose
     sink asks each of its own."""
+    sink_names: tuple[str, ...] | None = None
+    """The names of the route's several sinks (its :class:`SinkChoice`'s); None for one sink."""
     in_flight: int = 0
     _drained: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -93,10 +95,11 @@ class Pipeline:
         stores = stores if stores is not None else Stores()
         if spec.sinks:  # several sinks: each maps and checks its own (engine/running/fanout.py)
             sink_mapper: Any = SinkChoice(spec.sinks, compiler(spec, stores))
-            sink_check = None
+            sink_check, sink_names = None, sink_mapper.names
         else:
             sink_mapper = compile_mapping(spec.sink_mapping, spec.variables, stores, spec.name)
             sink_check = transport(spec.sink.protocol).sink_field_check(spec.sink.options, spec.sink_mapping)
+            sink_names = None
         return cls(
             route=spec.name,
             generation=generation,
@@ -106,6 +109,7 @@ class Pipeline:
             mapper=compile_mapping(spec.mapping, spec.variables, stores, spec.name),
             sink_mapper=sink_mapper,
             sink_check=sink_check,
+            sink_names=sink_names,
             throttle=Throttle.from_options(spec.throttle),
             reply_shape=ReplyShape(spec.reply, reply_schema),
             captured=transport(spec.source.protocol).source_variables(spec.source.options),
@@ -173,6 +177,33 @@ class Pipeline:
 
     def _outbound(self, body: bytes, data: Any, meta: dict[str, Any]) -> Outbound:
         """The sink mapping and the sink's field check, then the message the sink is given."""
+        fields = self._sink_fields(data, meta)
+        # meta: the source's own dict for this message: extended, not copied
+        meta["route"] = self.route
+        meta["generation"] = self.generation
+        return Outbound(
+            body=body,
+            canonical=data,
+            fields=fields,
+            message_id=meta.get("message_id") or new_message_id(),
+            meta=meta,
+            captured={name: meta[name] for name in self.captured if name in meta} if self.captured else None,
+        )
+
+    def remap(self, outbound: Outbound) -> None:
+        """Make ``outbound``'s fields again with this pipeline's sink mapping (a message held
+        across a reload that changed the route's sinks: engine/running/held.py); ConversionError
+        ``sink mapping`` when it cannot (no sink's ``when:`` chooses it any more, too)."""
+        meta: dict[str, Any] = outbound.meta  # type: ignore[assignment]  # the source's own dict
+        try:
+            outbound.fields = self._sink_fields(outbound.canonical, meta)
+        except Filtered:
+            raise ConversionError("sink mapping", "no sink's when: chooses it (held while a reload changed the route's sinks)",
+                                  outbound.canonical) from None
+        meta["generation"] = self.generation
+
+    def _sink_fields(self, data: Any, meta: dict[str, Any]) -> Any:
+        """What the sink (or each chosen sink) is given: the sink mapping's output, checked."""
         fields = data
         if self.sink_mapper is not None or self.sink_check is not None:
             try:
@@ -186,17 +217,7 @@ class Pipeline:
                 raise Filtered(data) from None
             except Exception as exc:
                 raise ConversionError("sink mapping", _unexpected(exc), data) from None
-        # meta: the source's own dict for this message: extended, not copied
-        meta["route"] = self.route
-        meta["generation"] = self.generation
-        return Outbound(
-            body=body,
-            canonical=data,
-            fields=fields,
-            message_id=meta.get("message_id") or new_message_id(),
-            meta=meta,
-            captured={name: meta[name] for name in self.captured if name in meta} if self.captured else None,
-        )
+        return fields
 
     def cancel_request(self, inbound: Inbound) -> Outbound:
         """A cancel for a sink that understands it (``Sink.cancels``): not converted, as its
