@@ -87,7 +87,7 @@ def test_sink_to_sinks_and_back_swaps_the_pipeline_and_releases_what_only_the_si
 
 
 
-HELD_ONE = """
+HELD = """
 connections:
   gcs: {{amqp: "{amqp}"}}
   relay: {{mqtt: "{mqtt}"}}
@@ -96,40 +96,44 @@ routes:
     source: {{amqp: {{connection: gcs, exchange: in-{tag}, binding_key: "p.#", queue: q-{tag}}}}}
     schema: raw_json
     buffer: {{max_messages: 100}}
+"""
+ONE_RELAY = """
     sink: {{mqtt: {{connection: relay, topic: relayed}}}}
 """
-HELD_SEVERAL = """
-connections:
-  gcs: {{amqp: "{amqp}"}}
-  relay: {{mqtt: "{mqtt}"}}
-routes:
-  - name: held
-    source: {{amqp: {{connection: gcs, exchange: in-{tag}, binding_key: "p.#", queue: q-{tag}}}}}
-    schema: raw_json
-    buffer: {{max_messages: 100}}
+CLOUD_AND_RELAY = """
     sinks:
       - name: cloud
         amqp: {{connection: gcs, exchange: cloud-{tag}, routing_key: ok}}
-        mapping: "{{m: n}}"
+        mapping: "{{{field}: n}}"
       - name: relay
         mqtt: {{connection: relay, topic: relayed}}
+"""
+RELAY_FALLBACK = """
         fallback:
           after: 0
           amqp: {{connection: gcs, exchange: spool-{tag}, routing_key: spool}}
 """
+ONE_CLOUD = """
+    sink:
+      amqp: {{connection: gcs, exchange: cloud-{tag}, routing_key: ok}}
+      mapping: "{{m: n}}"
+"""
 
 
-def test_messages_held_by_one_sink_go_to_every_sink_after_a_reload_to_several(
-        tmp_path: Path, amqp_url: str, mosquitto: LocalMosquitto, schemas_dir: Path) -> None:
-    """The buffer holds what the one sink (the relay, stopped) could not take; a reload to
-    ``sinks:`` keeps the buffer, and what it held was mapped for the one sink: the new sinks map
-    it again, so each gets its copy (it used to be sent to no sink and counted delivered)."""
+def held_then_reloaded(tmp_path: Path, amqp_url: str, mosquitto: LocalMosquitto, schemas_dir: Path,
+                       before: str, after: str) -> dict[str, Any]:
+    """Three messages held by the route's buffer while the relay's mosquitto is stopped (the
+    route ``before``), then a reload to ``after`` with the relay still stopped: what the cloud and
+    the spool exchanges got once the route counted the three delivered, and its status."""
     tag = uuid.uuid4().hex[:8]
     routes = tmp_path / "routes"
     routes.mkdir()
-    (routes / "r.yaml").write_text(HELD_ONE.format(amqp=amqp_url, mqtt=mosquitto.url, tag=tag))
+
+    def write(sinks: str) -> None:
+        (routes / "r.yaml").write_text((HELD + sinks).format(amqp=amqp_url, mqtt=mosquitto.url, tag=tag))
 
     async def scenario() -> dict[str, Any]:
+        write(before)
         engine = Engine(routes, schemas_dir)
         async with started_with_client(engine, amqp_url) as client:
             channel = await client.channel()
@@ -142,49 +146,27 @@ def test_messages_held_by_one_sink_go_to_every_sink_after_a_reload_to_several(
             await asyncio.to_thread(mosquitto.halt)  # held: seen down, or failed once and handed to the buffer
             await publish(channel, f"in-{tag}", "p.x", [b'{"n": %d}' % n for n in range(3)])
             await wait_for(lambda: route()["buffer"]["held"] == 3, 30, "three held", detail=route)
-            (routes / "r.yaml").write_text(HELD_SEVERAL.format(amqp=amqp_url, mqtt=mosquitto.url, tag=tag))
+            write(after)
             assert await engine.reload()
-            await cloud.wait_for(3, 30)
-            await spool.wait_for(3, 30)
-            await wait_for(lambda: route()["delivered"] == 3 and route()["buffer"]["held"] == 0, 30, "the route's counters",
-                           detail=route)
-            return {"cloud": sorted(json.loads(m.body)["m"] for m in cloud.messages),
-                    "spool": sorted(json.loads(m.body)["n"] for m in spool.messages), "status": route()}
+            await wait_for(lambda: route()["delivered"] == 3 and route()["buffer"]["held"] == 0 and len(cloud.messages) >= 3,
+                           30, "the held three", detail=route)
+            return {"cloud": [json.loads(m.body) for m in cloud.messages], "spool": [json.loads(m.body) for m in spool.messages],
+                    "status": route()}
 
-    result = asyncio.run(asyncio.wait_for(scenario(), 120))
-    assert result["cloud"] == [0, 1, 2] and result["spool"] == [0, 1, 2], result
+    return asyncio.run(asyncio.wait_for(scenario(), 120))
+
+
+def test_messages_held_by_one_sink_go_to_every_sink_after_a_reload_to_several(
+        tmp_path: Path, amqp_url: str, mosquitto: LocalMosquitto, schemas_dir: Path) -> None:
+    """The buffer holds what the one sink (the relay, stopped) could not take; a reload to
+    ``sinks:`` keeps the buffer, and what it held was mapped for the one sink: the new sinks map
+    it again, so each gets its copy (it used to be sent to no sink and counted delivered)."""
+    several = CLOUD_AND_RELAY.replace("{field}", "m") + RELAY_FALLBACK
+    result = held_then_reloaded(tmp_path, amqp_url, mosquitto, schemas_dir, ONE_RELAY, several)
+    assert sorted(body["m"] for body in result["cloud"]) == [0, 1, 2], result
+    assert sorted(body["n"] for body in result["spool"]) == [0, 1, 2], result
     sinks = result["status"]["sinks"]
     assert sinks["cloud"]["delivered"] == 3 and sinks["relay"]["to_fallback"] == 3 and sinks["relay.fallback"]["delivered"] == 3, sinks
-
-
-HELD_BY_SEVERAL = """
-connections:
-  gcs: {{amqp: "{amqp}"}}
-  relay: {{mqtt: "{mqtt}"}}
-routes:
-  - name: held
-    source: {{amqp: {{connection: gcs, exchange: in-{tag}, binding_key: "p.#", queue: q-{tag}}}}}
-    schema: raw_json
-    buffer: {{max_messages: 100}}
-    sinks:
-      - name: cloud
-        amqp: {{connection: gcs, exchange: cloud-{tag}, routing_key: ok}}
-        mapping: "{{old: n}}"
-      - name: relay
-        mqtt: {{connection: relay, topic: relayed}}
-"""
-HELD_BY_ONE = """
-connections:
-  gcs: {{amqp: "{amqp}"}}
-routes:
-  - name: held
-    source: {{amqp: {{connection: gcs, exchange: in-{tag}, binding_key: "p.#", queue: q-{tag}}}}}
-    schema: raw_json
-    buffer: {{max_messages: 100}}
-    sink:
-      amqp: {{connection: gcs, exchange: cloud-{tag}, routing_key: ok}}
-      mapping: "{{m: n}}"
-"""
 
 
 def test_messages_held_by_several_sinks_get_the_one_sinks_mapping_after_a_reload_to_one(
@@ -192,29 +174,5 @@ def test_messages_held_by_several_sinks_get_the_one_sinks_mapping_after_a_reload
     """The reverse: held while one of several sinks (the relay, stopped, no fallback) could not
     take them, then a reload to one ``sink:``: each held message is mapped by the one sink's
     mapping (it used to be sent as the several sinks' ``{name: fields}``)."""
-    tag = uuid.uuid4().hex[:8]
-    routes = tmp_path / "routes"
-    routes.mkdir()
-    (routes / "r.yaml").write_text(HELD_BY_SEVERAL.format(amqp=amqp_url, mqtt=mosquitto.url, tag=tag))
-
-    async def scenario() -> dict[str, Any]:
-        engine = Engine(routes, schemas_dir)
-        async with started_with_client(engine, amqp_url) as client:
-            channel = await client.channel()
-            cloud = await Collector.bind(channel, f"cloud-{tag}")
-
-            def route() -> dict[str, Any]:
-                return engine.status()["routes"]["held"]
-
-            await asyncio.to_thread(mosquitto.halt)
-            await wait_for(lambda: not route()["sinks"]["relay"]["can_take"], 30, "the relay seen down", detail=route)
-            await publish(channel, f"in-{tag}", "p.x", [b'{"n": %d}' % n for n in range(3)])
-            await wait_for(lambda: route()["buffer"]["held"] == 3, 30, "three held", detail=route)
-            (routes / "r.yaml").write_text(HELD_BY_ONE.format(amqp=amqp_url, tag=tag))
-            assert await engine.reload()
-            await wait_for(lambda: len(cloud.messages) >= 3 and route()["delivered"] == 3, 30, "the held three",
-                           detail=route)
-            return {"cloud": [json.loads(m.body) for m in cloud.messages], "status": route()}
-
-    result = asyncio.run(asyncio.wait_for(scenario(), 120))
+    result = held_then_reloaded(tmp_path, amqp_url, mosquitto, schemas_dir, CLOUD_AND_RELAY.replace("{field}", "old"), ONE_CLOUD)
     assert sorted(result["cloud"], key=lambda body: body.get("m", -1)) == [{"m": 0}, {"m": 1}, {"m": 2}], result
