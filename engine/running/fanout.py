@@ -30,10 +30,13 @@ converted once (decode, mapping, schema, the route's ``when:``); then:
   messages (its connection down or not open, or not ready: :meth:`Slot.can_take`), the route
   waits as it waits for one sink (no attempt spent) for ``after`` seconds, then sends to the
   fallback until the sink can take messages again: then new messages go to it again (the
-  fallback gives back). A transient send failure of a sink with a fallback counts toward the
-  same ``after`` from the first failure; a success resets it, and an outage counts only while
-  it lasts (a sink seen able again starts the next one's ``after`` afresh, though no message
-  reached it between). Every message is accepted by the sink or by its fallback, once. No
+  fallback gives back); an outage counts only while it lasts (a sink seen able again starts the
+  next one's ``after`` afresh, though no message reached it between). A send that fails while
+  the sink says it can take messages (a publish timed out, a negative confirm) goes to the
+  fallback at once, as a refusal does: the route's runner spends an attempt on each such
+  failure, and its ``max_attempts`` (5, about 1.5 s of backoff) would dead-letter the message
+  well before an ``after`` of seconds let the fallback take it; the next message tries the sink
+  first again. Every message is accepted by the sink or by its fallback, once. No
   clock or retry loop of its own: the route's runner waits (``ready``) and retries with the
   engine's one backoff, and every failure is classified by the one delivery policy
   (engine/running/delivery.py ``classify``).
@@ -176,8 +179,6 @@ class Slot:
     unable_since: float | None = None
     """Monotonic time the sink was first seen unable to take messages, until it is seen able
     again (so an outage long past never counts toward the next one's ``after``)."""
-    failing_since: float | None = None
-    """Monotonic time of its first transient send failure, until it accepts a message."""
 
     def can_take(self) -> bool:
         """Its connection is open and healthy, and the sink is ready (as the runner asks of one sink)."""
@@ -185,18 +186,16 @@ class Slot:
         return connection.healthy and self.is_open(connection) and self.sink.ready
 
     def down_since(self) -> float | None:
-        """Since when the sink has been unable to take messages or failing to send (None: neither)."""
+        """Since when the sink has been unable to take messages (None: it can take them)."""
         if self.can_take():
             self.unable_since = None
         elif self.unable_since is None:
             self.unable_since = time.monotonic()
-        if self.failing_since is None or (self.unable_since is not None and self.unable_since < self.failing_since):
-            return self.unable_since
-        return self.failing_since
+        return self.unable_since
 
     def fallback_due(self) -> bool:
         """Whether messages for this sink go to its fallback now: it has one that can take
-        them, and this sink has been unable (or failing) for ``after`` seconds."""
+        them, and this sink has been unable to take them for ``after`` seconds."""
         if self.fallback is None:
             return False
         since = self.down_since()
@@ -315,8 +314,8 @@ class FanOutSink(Sink):
                 primary: Slot | None = None) -> list[_Progress]:
         """Record what ``slot`` (``primary``'s fallback, when given) did with each message, by the
         engine's one classification (engine/running/delivery.py); return what goes on to its
-        fallback: what it refused for good or had returned, and a transient failure once the
-        fallback is due."""
+        fallback: whatever it did not take (refused for good, returned, or a transient failure:
+        see the module docstring)."""
         diverted: list[_Progress] = []
         counts = slot.counts
         for p, error in zip(mine, results):
@@ -329,17 +328,15 @@ class FanOutSink(Sink):
                     counts.delivered += 1
                 else:
                     p.not_sent = error
-                slot.failing_since = None
                 continue
             returned = isinstance(error, Unroutable)
             counts.unroutable += returned
-            failure = classify(error)
-            if not failure.permanent and slot.fallback is not None and slot.failing_since is None:
-                slot.failing_since = time.monotonic()
-            if slot.fallback is not None and (failure.permanent or returned or slot.fallback_due()):
+            if slot.fallback is not None:
                 self.observer.unroutable += returned  # the runner never sees this return
                 diverted.append(p)
-            elif failure.permanent:
+                continue
+            failure = classify(error)
+            if failure.permanent:
                 self.observer.unroutable += returned
                 p.refused[slot.name] = f"{failure.stage}: {failure.error}"
                 counts.refused += 1

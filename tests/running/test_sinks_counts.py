@@ -10,7 +10,9 @@ from the outage at hand: a real RabbitMQ node and a private mosquitto, the engin
   (the fan-out used to count only the returns a fallback took);
 * an outage of a sink with a fallback that ended long ago does not count toward the next one:
   the next outage waits its ``after`` seconds again before the fallback takes over (it used to
-  take over at once when no message had reached the sink between the two)."""
+  take over at once when no message had reached the sink between the two);
+* a send the broker refuses while the sink is up (a negative confirm) goes to the fallback at
+  once instead of spending the route's attempts and being dead-lettered before ``after``."""
 
 from __future__ import annotations
 
@@ -164,3 +166,60 @@ def test_an_outage_long_past_does_not_count_toward_the_next_ones_after(
     assert result["waiting"] is not None and "fallback 'relay.fallback' in" in result["waiting"], result
     assert result["taken_over_after_s"] >= AFTER_S * 0.5, result  # not at once: (nearly) 'after' from this outage
     assert result["route"]["sinks"]["relay"]["to_fallback"] == 1 and result["route"]["sinks"]["relay.fallback"]["delivered"] == 1
+
+
+NACKED = """
+connections:
+  gcs: {{amqp: "{amqp}"}}
+dead_letters: {{connection: gcs}}
+routes:
+  - name: nacked
+    source: {{amqp: {{connection: gcs, exchange: in-{tag}, binding_key: "p.#", queue: q-{tag}}}}}
+    schema: raw_json
+    sinks:
+      - name: full
+        amqp: {{connection: gcs, exchange: full-{tag}, routing_key: x}}
+        fallback:
+          after: 60
+          amqp: {{connection: gcs, exchange: spool-{tag}, routing_key: spool}}
+"""
+
+
+def test_a_send_the_broker_refuses_while_the_sink_is_up_goes_to_the_fallback_at_once(
+        tmp_path: Path, amqp_url: str, schemas_dir: Path) -> None:
+    """A queue full under ``x-overflow: reject-publish`` makes RabbitMQ nack each publish (a
+    transient failure, the connection healthy): the route would spend its 5 attempts (about 1.5 s)
+    and dead-letter the message long before an ``after`` of 60 s; it goes to the fallback at once."""
+    tag = uuid.uuid4().hex[:8]
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text(NACKED.format(amqp=amqp_url, tag=tag))
+
+    async def scenario() -> dict[str, Any]:
+        engine = Engine(routes, schemas_dir)
+        async with started_with_client(engine, amqp_url) as client:
+            channel = await client.channel()
+            full = await channel.declare_exchange(f"full-{tag}", "topic", durable=True)
+            queue = await channel.declare_queue(f"full-{tag}", exclusive=True,
+                                                arguments={"x-max-length": 2, "x-overflow": "reject-publish"})
+            await queue.bind(full, "#")
+            spool = await Collector.bind(channel, f"spool-{tag}")
+
+            def route() -> dict[str, Any]:
+                return engine.status()["routes"]["nacked"]
+
+            began = time.monotonic()
+            await publish(channel, f"in-{tag}", "p.x", [b'{"n": %d}' % n for n in range(6)])
+            await spool.wait_for(4, DEADLINE_S)
+            await wait_for(lambda: route()["delivered"] == 6, DEADLINE_S, "six delivered", detail=route)
+            declared = await channel.declare_queue(f"full-{tag}", passive=True)
+            return {"route": route(), "seconds": time.monotonic() - began, "in_full": declared.declaration_result.message_count,
+                    "spooled": sorted(int(m.body.decode().split(":")[1].strip(" }")) for m in spool.messages)}
+
+    result = asyncio.run(asyncio.wait_for(scenario(), 120))
+    print(result)
+    route = result["route"]
+    assert result["in_full"] == 2 and result["spooled"] == [2, 3, 4, 5], result
+    assert route["sinks"]["full"]["to_fallback"] == 4 and route["sinks"]["full.fallback"]["delivered"] == 4, route["sinks"]
+    assert route["dead_lettered"] == {} and route["failed"] == 0, route
+    assert result["seconds"] < 30, result  # well before 'after' (60 s): the fallback took them at once
