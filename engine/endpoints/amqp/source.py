@@ -254,10 +254,13 @@ class AmqpSource(Source):
 
     async def stop(self) -> None:
         """Cancel the consumer, settle what was received, then close the channel so anything
-        the broker sent but we did not take is requeued."""
+        the broker sent but we did not take is requeued. An ``ordered`` (single active consumer)
+        source does not cancel first: the broker would activate the next instance's consumer at
+        once, and it would send newer messages while this one still sends the older ones in
+        hand; closing the channel after settling requeues the rest in place, then hands over."""
         self._stopping = True
         await self._resumption.close()
-        if self._consumer is not None:
+        if self._consumer is not None and not self._options.ordered:
             channel, tag = self._consumer
             try:
                 await channel.basic_cancel(tag)
