@@ -485,6 +485,11 @@ class Transport(ABC):
         the new (break-before-make) instead of the usual make-before-break."""
         return None
 
+    def worker_affinity(self, connection: str, settings: Any) -> str | None:
+        """What of a connection one worker of ``run --workers N`` must hold alone, as a key its routes are placed by
+        (engine/running/placement.py): by default the :meth:`exclusive_resource`; None: any worker may open it."""
+        return self.exclusive_resource(settings)
+
     def key_files(self, settings: Any) -> Iterable[str]:
         """Files whose contents the connection reads when it opens (signing keys): a reload
         reopens the connection when their contents change."""
@@ -559,8 +564,8 @@ class Transport(ABC):
         yield None, f"a {self.name} source cannot be partitioned (use ordered: true for one instance at a time)"
 
     shares_sources: ClassVar[bool] = False
-    """True when every instance's source competes for one stream (a broker queue): each
-    message reaches one instance anyway, so ``active_standby`` is refused (use ``ordered``)."""
+    """True when every instance's source competes for one stream (a broker queue): each message reaches one
+    instance anyway, so ``active_standby`` is refused (use ``ordered``), and every worker of ``run --workers N`` runs it."""
 
     def sink_dry_run(self, route: str, options: Any) -> Callable[[Outbound], str | None]:
         """What the sink would do short of sending, for ``rabbitros-engine test``: the rendered

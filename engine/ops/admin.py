@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Awaitable, Callable, Iterator
 
 from aiohttp import web
+from aiohttp.typedefs import Middleware
 from multidict import MultiDict
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
@@ -250,6 +251,33 @@ def basic_password(credentials: bytes) -> bytes:
         return b""
 
 
+def authenticate(access: AdminAccess, refused: Callable[[], None]) -> Middleware:
+    """The middleware asking every path but /healthz (unknown ones too, so no route name
+    leaks) for the bearer token; ``refused`` counts each refusal."""
+
+    @web.middleware
+    async def middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
+        if request.path in OPEN_PATHS:
+            return await handler(request)
+        scheme, _, given = request.headers.get("Authorization", "").partition(" ")
+        assert access.token is not None
+        # surrogateescape: aiohttp keeps a header's undecodable bytes as surrogates (a 500 before, found by the fuzz test)
+        presented = given.strip().encode("utf-8", "surrogateescape")
+        if scheme.lower() == "basic":
+            presented = basic_password(presented)
+        if scheme.lower() in ("bearer", "basic") and hmac.compare_digest(presented, access.token):
+            return await handler(request)
+        refused()
+        log.warning("admin request refused", extra={"peer": request.remote, "path": request.path[:200],
+                                                    "reason": "wrong token" if given else "no bearer token"})
+        # two challenges: a program sends the bearer token, a browser (the console) asks its user for it
+        headers = MultiDict([("WWW-Authenticate", 'Bearer realm="rabbitros"'), ("WWW-Authenticate", 'Basic realm="rabbitros"')])
+        return web.json_response({"error": "a bearer token is required (Authorization: Bearer <token>)"}, status=401,
+                                 headers=headers)
+
+    return middleware
+
+
 class AdminServer:
     def __init__(self, engine: Engine, host: str, port: int, access: AdminAccess | None = None) -> None:
         self.engine = engine
@@ -258,7 +286,7 @@ class AdminServer:
         self.registry = CollectorRegistry(auto_describe=False)
         self.collector = EngineCollector(engine)
         self.registry.register(self.collector)
-        app = web.Application(middlewares=[self._authenticate] if self.access.token is not None else [])
+        app = web.Application(middlewares=[authenticate(self.access, self._refused)] if self.access.token is not None else [])
         app.router.add_get("/metrics", self.metrics)
         app.router.add_get("/healthz", self.healthz)
         app.router.add_get("/status", self.status)
@@ -267,6 +295,9 @@ class AdminServer:
         self._sampler: asyncio.Task[None] | None = None
         self._taps: set[asyncio.Task[Any]] = set()
         Console(engine, status_document, self._taps).add_to(app)
+
+    def _refused(self) -> None:
+        self.collector.auth_failures += 1
 
     async def start(self) -> None:
         await self._runner.setup()
@@ -278,27 +309,6 @@ class AdminServer:
         self._sampler = asyncio.create_task(self._sample(), name="admin-rates")
         log.info("admin endpoint listening", extra={"url": f"{self.access.scheme}://{self.host}:{self.port}/",
                                                     "token": self.access.token is not None})
-
-    @web.middleware
-    async def _authenticate(self, request: web.Request, handler: Handler) -> web.StreamResponse:
-        """Every path but /healthz (unknown ones too, so no route name leaks) needs the bearer token."""
-        if request.path in OPEN_PATHS:
-            return await handler(request)
-        scheme, _, given = request.headers.get("Authorization", "").partition(" ")
-        assert self.access.token is not None
-        # surrogateescape: aiohttp keeps a header's undecodable bytes as surrogates (a 500 before, found by the fuzz test)
-        presented = given.strip().encode("utf-8", "surrogateescape")
-        if scheme.lower() == "basic":
-            presented = basic_password(presented)
-        if scheme.lower() in ("bearer", "basic") and hmac.compare_digest(presented, self.access.token):
-            return await handler(request)
-        self.collector.auth_failures += 1
-        log.warning("admin request refused", extra={"peer": request.remote, "path": request.path[:200],
-                                                    "reason": "wrong token" if given else "no bearer token"})
-        # two challenges: a program sends the bearer token, a browser (the console) asks its user for it
-        headers = MultiDict([("WWW-Authenticate", 'Bearer realm="rabbitros"'), ("WWW-Authenticate", 'Basic realm="rabbitros"')])
-        return web.json_response({"error": "a bearer token is required (Authorization: Bearer <token>)"}, status=401,
-                                 headers=headers)
 
     async def stop(self) -> None:
         for task in list(self._taps):  # a tap streams until its client leaves: end it

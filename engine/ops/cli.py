@@ -11,7 +11,7 @@ import signal
 import sys
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 from engine import __version__, endpoints
 from engine.common.logs import setup_logging
@@ -27,11 +27,15 @@ from engine.ops.local_broker import private_brokers, stand_in_for_check
 from engine.ops.opsview import AdminClient, print_status, print_tap
 from engine.ops.replay import run_from_recording, run_replay
 from engine.ops.route_tests import failing_tests, format_result, load_checked, run_tests
+from engine.ops.supervise import compiler, supervise
+from engine.ops.supervisor import Supervisor, worker_count
 from engine.running.loop import run as run_loop
 from engine.running.observe import COUNTERS
 from engine.running.record import Recorder, RecordLimits
 from engine.running.runtime import Engine
+from engine.running.placement import place_routes
 from engine.running.watch import watch_routes
+from engine.running.worker import WorkerEngine, die_with_parent, tell_supervisor
 
 if TYPE_CHECKING:  # imported when --foxglove asks for it: the SDK's import costs some 40 ms every command would pay
     from engine.ops.foxglove import FoxgloveView
@@ -130,12 +134,18 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--record-total-mb", type=float, default=4096.0, metavar="MB",
                      help="with --record: remove the oldest files while the recordings exceed this; default 4096")
     run.add_argument("--drain-timeout", type=float, default=10.0, metavar="SECONDS", help="seconds a stop (SIGTERM, SIGINT) waits for in-flight messages before requeueing the rest; default 10")
+    run.add_argument("--workers", type=worker_count, default=1, metavar="N|auto",
+                     help="run N engine processes under one supervisor and one admin endpoint (auto: one per core); "
+                          "a broker queue is consumed by every worker, a device or a link by one (check --workers N shows where)")
+    run.add_argument("--worker", type=int, help=argparse.SUPPRESS)  # set by the supervisor: this process is worker K of --workers
+    run.add_argument("--worker-channel", type=int, help=argparse.SUPPRESS)  # the pipe a worker says it runs on
     parser.run_parser = run
 
     check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
     common(check)
     check.add_argument("--local-broker", action="store_true",
                        help="check as run --local-broker would load the routes: warn about connections that name another broker")
+    check.add_argument("--workers", type=worker_count, default=1, metavar="N|auto", help="print on which worker of run --workers N each route runs")
 
     test = commands.add_parser(
         "test", help="run the *.test.yaml cases through the routes' conversion, connecting to nothing; "
@@ -222,7 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "check":
         if args.local_broker:  # the private brokers' URLs are not known before they start: stand-ins no route file names
             stand_in_for_check()
-        return check(args.routes, schema_directories(args))
+        return check(args.routes, schema_directories(args), args.workers)
     if args.command == "test" and args.from_recording:
         if not args.route:
             print("test --from-recording needs --route NAME", file=sys.stderr)
@@ -261,7 +271,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         listener.stop()
 
 
-def check(routes: Path, schema_dirs: Path | Sequence[Path]) -> int:
+def check(routes: Path, schema_dirs: Path | Sequence[Path], workers: int = 1) -> int:
     schema_dirs = [schema_dirs] if isinstance(schema_dirs, Path) else list(schema_dirs)
     try:
         registry = SchemaRegistry(schema_dirs)
@@ -280,6 +290,8 @@ def check(routes: Path, schema_dirs: Path | Sequence[Path]) -> int:
         for schema_file in registry.files_used(sorted({route.schema for route in config.routes.values()})):
             over = f" (over {', '.join(map(str, schema_file.replaces))})" if schema_file.replaces else ""
             print(f"  schema {schema_file.relative}: {schema_file.path}{over}")
+    if workers > 1:
+        print("\n".join(place_routes(config, workers).lines()))
     return 0
 
 
@@ -361,11 +373,22 @@ def _protocols_used(args: argparse.Namespace) -> set[str] | None:
 
 
 async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> int:
+    if getattr(args, "workers", 1) > 1 and getattr(args, "worker", None) is None:
+        if args.foxglove:
+            log.error("--foxglove serves one engine's routes: not with --workers (yet)")
+            return 2
+        supervisor = Supervisor(args, args.workers, compiler(args, schema_directories(args), failing_tests if args.test_on_reload else None),
+                                access.token if access is not None else None)
+        return await supervise(args, supervisor, access, lambda document: _write_status(args.status_file, document))
     recorder = None if args.record is None else Recorder(args.record, RecordLimits(
         file_bytes=int(args.record_file_mb * 2**20), file_seconds=args.record_file_minutes * 60,
         total_bytes=int(args.record_total_mb * 2**20)))
-    engine = Engine(args.routes, schema_directories(args), require_connections=args.require_connections,
-                    instance=args.instance, vet=failing_tests if args.test_on_reload else None, recorder=recorder)
+    worker = {"index": args.worker, "workers": args.workers} if getattr(args, "worker", None) is not None else None
+    if worker is not None:
+        die_with_parent()
+    engine = (WorkerEngine if worker is not None else Engine)(
+        args.routes, schema_directories(args), require_connections=args.require_connections, instance=args.instance,
+        vet=failing_tests if args.test_on_reload else None, recorder=recorder, **(worker or {}))
     admin = AdminServer(engine, args.admin[0], args.admin[1], access) if args.admin else None
     if admin is not None:
         try:
@@ -373,6 +396,7 @@ async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> 
         except OSError as exc:
             log.error("admin endpoint cannot listen", extra={"address": "%s:%s" % args.admin, "error": str(exc)})
             return 1
+        args.admin_bound_port = admin.port
     view = await _foxglove_view(args, engine)
     if view == 1:
         return 1
@@ -441,8 +465,7 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
             write_status()
 
     def write_status() -> None:
-        if args.status_file:
-            _write_atomically(args.status_file, json.dumps(status_document(engine), indent=2, default=str) + "\n")
+        _write_status(args.status_file, status_document(engine))
 
     async def reporter() -> None:
         while True:
@@ -456,6 +479,8 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
     if not args.no_watch:
         tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dirs, engine.key_files)))
     log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__, "instance": engine.instance})
+    if getattr(args, "worker_channel", None) is not None:  # a worker: tell the supervisor where its admin answers
+        tell_supervisor(args.worker_channel, {"admin_port": getattr(args, "admin_bound_port", None), "pid": os.getpid()})
     await stopping.wait()
     log.info("stopping: draining in-flight messages", extra={"drain_timeout": args.drain_timeout})
     for task in tasks:
@@ -465,6 +490,11 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
     write_status()
     log.info("stopped")
     return 0
+
+
+def _write_status(path: Path | None, document: dict[str, Any]) -> None:
+    if path is not None:
+        _write_atomically(path, json.dumps(document, indent=2, default=str) + "\n")
 
 
 def _write_atomically(path: Path, text: str) -> None:

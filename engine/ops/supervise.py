@@ -1,0 +1,98 @@
+"""Running ``run --workers N`` as the command line does: the supervisor (engine/ops/supervisor.py),
+its admin (engine/ops/supervisor_admin.py), the watch and the signals, in one place apart from
+both so that neither imports the other's caller."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+from pathlib import Path
+from typing import Any, Callable
+
+from engine.common.schemas import SchemaRegistry
+from engine.language.route_yaml import Problem
+from engine.language.routes import RoutesInvalid, load_routes
+from engine.language.specs import RoutesConfig
+from engine.ops.admin import AdminAccess
+from engine.ops.supervisor import Supervisor
+from engine.ops.supervisor_admin import SupervisorAdmin
+from engine.running.watch import watch_routes
+
+log = logging.getLogger("engine.ops.supervise")
+
+
+def compiler(args: argparse.Namespace, schema_dirs: list[Path],
+             vet: Callable[[RoutesConfig, SchemaRegistry], list[Problem]] | None) -> Callable[[], RoutesConfig]:
+    """The supervisor's check of the routes: the workers' own (Engine.compile), once for all."""
+
+    def compile_routes() -> RoutesConfig:
+        schemas = SchemaRegistry(schema_dirs)
+        config = load_routes(args.routes, schemas)
+        problems = vet(config, schemas) if vet is not None else []
+        if problems:
+            raise RoutesInvalid(problems, list(config.warnings))
+        return config
+
+    return compile_routes
+
+
+async def supervise(args: argparse.Namespace, supervisor: Supervisor, access: AdminAccess | None,
+                    write_status: Callable[[dict[str, Any]], None]) -> int:
+    """``run --workers N``: start the workers, serve the admin, reload on changes and SIGHUP,
+    write the status file, and stop every worker on SIGTERM or SIGINT; the exit status as
+    ``run``'s (2: invalid routes, 1: a worker could not start)."""
+    stopping, reload_requested = asyncio.Event(), asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, stopping.set)
+    loop.add_signal_handler(signal.SIGHUP, reload_requested.set)
+    admin = SupervisorAdmin(supervisor, args.admin[0], args.admin[1], access) if args.admin else None
+    try:
+        await supervisor.start()
+    except RoutesInvalid as invalid:
+        for problem in invalid.problems:
+            log.error("invalid routes", extra={"problem": str(problem)})
+        return 2
+    except RuntimeError as error:
+        log.error("cannot start", extra={"error": str(error)})
+        return 1
+    if admin is not None:
+        try:
+            await admin.start()
+        except OSError as exc:
+            log.error("admin endpoint cannot listen", extra={"address": "%s:%s" % args.admin, "error": str(exc)})
+            await supervisor.stop(args.drain_timeout)
+            return 1
+
+    async def reloader() -> None:
+        while True:
+            await reload_requested.wait()
+            reload_requested.clear()
+            await supervisor.reload()
+
+    async def reporter() -> None:
+        while True:
+            if args.status_file and admin is not None:
+                write_status(await admin.status_document())
+            elif args.status_file:
+                write_status(supervisor.status())
+            await asyncio.sleep(args.stats_interval)
+
+    tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
+    if not args.no_watch:
+        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, args.schemas or None,
+                                                      lambda: supervisor.config.watched_files if supervisor.config else frozenset())))
+    await stopping.wait()
+    log.info("stopping: every worker drains its in-flight messages", extra={"drain_timeout": args.drain_timeout})
+    for task in tasks:
+        task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+    await supervisor.stop(args.drain_timeout)
+    if admin is not None:
+        await admin.stop()
+    if args.status_file:
+        write_status(supervisor.status())
+    log.info("stopped")
+    return 0

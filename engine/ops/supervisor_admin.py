@@ -1,0 +1,204 @@
+"""The admin endpoint of ``run --workers N``: the engine as a whole, and each worker.
+
+The supervisor (engine/ops/supervisor.py) serves ``--admin`` with the same access rules as a
+single engine (engine/ops/admin.py: a token off loopback, TLS), and answers from its workers'
+private admin endpoints, asked at once when a request comes:
+
+* ``/status``: the supervisor's part (generation, config hash, reloads, the placement, each
+  worker's pid, up, restarts and routes) and the workers' documents merged: a route's
+  counters summed over the workers that run it (``workers`` names them), its other fields
+  from the first; a connection healthy only when it is in every worker holding it; each
+  worker's own document under ``workers[i].status``;
+* ``/metrics``: every worker's samples summed under their own names (a dashboard of one
+  engine keeps working) and, labelled ``worker``, as ``rabbitros_worker_*``; a gauge named
+  ``*_up`` is the least any worker reports (a connection is up only when it is up in each),
+  other gauges are summed; plus ``rabbitros_workers_up`` and ``rabbitros_worker_restarts_total``;
+* ``/healthz``: 200 when every worker is up and answers 200 itself; else 503 naming them;
+* ``/tap/{route}``: the lines of every worker that runs the route, interleaved as they come.
+
+The web console is not served here (it reads one engine's observers): open a worker's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+from typing import Any, Iterator
+
+import aiohttp
+from aiohttp import web
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.exposition import CONTENT_TYPE_LATEST
+from prometheus_client.parser import text_string_to_metric_families
+
+from engine.ops.admin import AdminAccess, authenticate
+from engine.ops.supervisor import Supervisor
+
+log = logging.getLogger("engine.ops.supervisor_admin")
+
+
+def merge_status(own: dict[str, Any], documents: list[dict[str, Any] | None]) -> dict[str, Any]:
+    """The supervisor's status with the workers' merged into it (see the module docstring)."""
+    routes: dict[str, dict[str, Any]] = {}
+    connections: dict[str, dict[str, Any]] = {}
+    for index, document in enumerate(documents):
+        if document is None:
+            continue
+        for name, route in document.get("routes", {}).items():
+            merged = routes.get(name)
+            if merged is None:
+                routes[name] = {**route, "workers": [index]}
+                continue
+            merged["workers"].append(index)
+            for key, value in route.items():
+                if isinstance(value, (int, float)) and not isinstance(value, bool) and isinstance(merged.get(key), (int, float)):
+                    merged[key] += value
+        for name, health in document.get("connections", {}).items():
+            held = connections.setdefault(name, {**health, "workers": []})
+            held["workers"].append(index)
+            held["healthy"] = bool(held.get("healthy", True)) and bool(health.get("healthy", True))
+            held["up"] = held["healthy"]
+    first = next((d for d in documents if d is not None), {})
+    workers = [{**worker, "status": documents[i]} for i, worker in enumerate(own["workers"])]
+    return {**{key: first.get(key) for key in ("instance", "dead_letters", "brokers")}, **own, "workers": workers,
+            "routes": dict(sorted(routes.items())), "connections": connections, "elsewhere": []}
+
+
+class MergedCollector:
+    """prometheus_client collector over the workers' scraped text (see the module docstring)."""
+
+    def __init__(self, supervisor: Supervisor) -> None:
+        self.supervisor = supervisor
+        self.scraped: list[tuple[int, str]] = []
+        self.auth_failures = 0
+
+    def collect(self) -> Iterator[Metric]:
+        totals: dict[str, Metric] = {}
+        sums: dict[str, dict[tuple[str, tuple[tuple[str, str], ...]], float]] = {}
+        per_worker: dict[str, Metric] = {}
+        for index, text in self.scraped:
+            for family in text_string_to_metric_families(text):
+                if family.name not in totals:
+                    totals[family.name] = Metric(family.name, family.documentation, family.type)
+                    sums[family.name] = {}
+                    worker_name = "rabbitros_worker_" + family.name.removeprefix("rabbitros_")
+                    per_worker[family.name] = Metric(worker_name, family.documentation + " (per worker)", family.type)
+                least = family.type == "gauge" and family.name.endswith("_up")
+                for sample in family.samples:
+                    key = (sample.name, tuple(sorted(sample.labels.items())))
+                    seen = sums[family.name].get(key)
+                    sums[family.name][key] = sample.value if seen is None else min(seen, sample.value) if least else seen + sample.value
+                    per_worker[family.name].add_sample("rabbitros_worker_" + sample.name.removeprefix("rabbitros_"),
+                                                       {**sample.labels, "worker": str(index)}, sample.value)
+        for name, metric in totals.items():
+            for (sample_name, labels), value in sums[name].items():
+                metric.add_sample(sample_name, dict(labels), value)
+            yield metric
+            yield per_worker[name]
+        up = GaugeMetricFamily("rabbitros_workers_up", "1 while the worker runs its routes", labels=["worker"])
+        restarts = CounterMetricFamily("rabbitros_worker_restarts", "Times the supervisor started the worker again", labels=["worker"])
+        for worker in self.supervisor.workers:
+            up.add_metric([str(worker.index)], 1 if worker.up else 0)
+            restarts.add_metric([str(worker.index)], worker.restarts)
+        yield up
+        yield restarts
+        yield CounterMetricFamily("rabbitros_supervisor_admin_auth_failures", "Admin requests refused for a missing or wrong token",
+                                  value=self.auth_failures)
+
+
+class SupervisorAdmin:
+    def __init__(self, supervisor: Supervisor, host: str, port: int, access: AdminAccess | None = None) -> None:
+        self.supervisor = supervisor
+        self.host, self.port = host, port
+        self.access = access or AdminAccess()
+        self.collector = MergedCollector(supervisor)
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(self.collector)
+        middlewares = [authenticate(self.access, self._refused)] if self.access.token is not None else []
+        app = web.Application(middlewares=middlewares)
+        app.router.add_get("/metrics", self.metrics)
+        app.router.add_get("/healthz", self.healthz)
+        app.router.add_get("/status", self.status)
+        app.router.add_get("/tap/{route}", self.tap)
+        self._runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0)
+        self._taps: set[asyncio.Task[Any]] = set()
+
+    def _refused(self) -> None:
+        self.collector.auth_failures += 1
+
+    async def start(self) -> None:
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.host, self.port, reuse_address=True, ssl_context=self.access.tls)
+        await site.start()
+        sockets = getattr(site._server, "sockets", None) or []
+        if sockets:
+            self.port = sockets[0].getsockname()[1]
+        log.info("admin endpoint listening", extra={"url": f"{self.access.scheme}://{self.host}:{self.port}/",
+                                                    "workers": len(self.supervisor.workers)})
+
+    async def stop(self) -> None:
+        for task in list(self._taps):
+            task.cancel()
+        await self._runner.cleanup()
+
+    async def status_document(self) -> dict[str, Any]:
+        answers = await self.supervisor.documents("/status")
+        documents = [json.loads(body) if code == 200 else None for _, code, body in answers]
+        return merge_status(self.supervisor.status(), documents)
+
+    async def status(self, request: web.Request) -> web.Response:
+        return web.json_response(await self.status_document(), dumps=lambda d: json.dumps(d, default=str))
+
+    async def metrics(self, request: web.Request) -> web.Response:
+        answers = await self.supervisor.documents("/metrics")
+        self.collector.scraped = [(worker.index, body.decode()) for worker, code, body in answers if code == 200]
+        return web.Response(body=generate_latest(self.registry), headers={"Content-Type": CONTENT_TYPE_LATEST})
+
+    async def healthz(self, request: web.Request) -> web.Response:
+        answers = await self.supervisor.documents("/healthz")
+        workers = {str(worker.index): json.loads(body) if body else {"status": "down"} for worker, _, body in answers}
+        failing = sorted(str(worker.index) for worker, code, _ in answers if code != 200)
+        document = {"status": "ok" if not failing else "down" if any(not w.up for w in self.supervisor.workers) else "degraded",
+                    "failing_workers": failing, "workers": workers, "generation": self.supervisor.generation}
+        return web.json_response(document, status=503 if failing else 200)
+
+    async def tap(self, request: web.Request) -> web.StreamResponse:
+        route = request.match_info["route"]
+        placement = self.supervisor.placement
+        place = placement.routes.get(route) if placement is not None else None
+        if place is None:
+            known = ", ".join(sorted(placement.routes)) if placement is not None else ""
+            return web.json_response({"error": f"unknown route {route!r} (running: {known})"}, status=404)
+        lines: asyncio.Queue[bytes] = asyncio.Queue(maxsize=1024)
+        response = web.StreamResponse(headers={"Content-Type": "application/x-ndjson", "Cache-Control": "no-cache"})
+        readers = [asyncio.create_task(self._follow(self.supervisor.workers[index], route, lines)) for index in place.workers]
+        task = asyncio.current_task()
+        assert task is not None
+        self._taps.add(task)
+        try:
+            await response.prepare(request)
+            while True:
+                await response.write(await lines.get())
+        except (ConnectionResetError, asyncio.CancelledError):
+            pass
+        finally:
+            self._taps.discard(task)
+            for reader in readers:
+                reader.cancel()
+            await asyncio.gather(*readers, return_exceptions=True)
+        return response
+
+    async def _follow(self, worker: Any, route: str, lines: asyncio.Queue[bytes]) -> None:
+        """One worker's tap lines into ``lines`` (a full queue drops, as the engine's tap does)."""
+        supervisor = self.supervisor
+        headers = {"Authorization": f"Bearer {supervisor.token.decode()}"} if supervisor.token else {}
+        timeout = aiohttp.ClientTimeout(total=None, sock_read=None)
+        with contextlib.suppress(aiohttp.ClientError, OSError):
+            async with aiohttp.ClientSession(timeout=timeout) as session, \
+                    session.get(f"http://127.0.0.1:{worker.admin_port}/tap/{route}", headers=headers) as answer:
+                async for line in answer.content:
+                    with contextlib.suppress(asyncio.QueueFull):
+                        lines.put_nowait(line)

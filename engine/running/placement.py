@@ -1,0 +1,162 @@
+"""Which worker of ``run --workers N`` runs each route: one pure function of the configuration.
+
+:func:`place_routes` reads a compiled :class:`~engine.language.specs.RoutesConfig` and the
+worker count and says, for every route, on which workers it runs and why. Like the reload
+plan (engine/running/plan.py) it is a value, tested on its own (tests/running/test_placement.py);
+the supervisor (engine/ops/supervisor.py) prints it for ``check --workers N`` and each worker
+(engine/running/worker.py) runs the routes it is given. The rules, first that applies:
+
+1. **Something one process must hold alone**: a route whose source or sink connection has a
+   worker affinity (``Transport.worker_affinity``: a serial device, a listening port, an MQTT
+   persistent session, a MAVLink link) runs on exactly one worker, the one that owns that
+   affinity. Routes that share an affinity (every route of the farm's radio) share the owner;
+   affinities a route joins (a radio to a listening port) are owned together (union-find), so
+   two workers never open one device. The owner is a stable hash of the group's first key:
+   the same configuration places the same way in every process and after every restart.
+2. **State the process keeps across messages**: the latest-value stores (``remember:`` and
+   ``recall()``) are one table per process, so every route that writes or reads one runs with
+   the others on one worker (the key ``stores``); a route's own state (``dedupe:``,
+   ``window:``, ``throttle:``, ``sequence()``) would see only part of the messages on several
+   workers, so such a route runs on one worker, by the hash of its name.
+3. **Competing consumers**: a source whose consumers compete for one stream
+   (``Transport.shares_sources``: an AMQP queue) runs on every worker; the broker hands each
+   message to one of them, and what a worker that died had not acknowledged to another.
+4. **Everything else** (ROS 2 topics, MQTT, Zenoh subscriptions: each subscriber gets every
+   message) runs on one worker, by a stable hash of the route's name.
+
+A hash, not a balancer: placement must not depend on what runs now, or a restart or a reload
+would move routes between processes. With few one-worker routes the split can be uneven;
+``check --workers N`` shows it. What is not built (issue 34): MQTT shared subscriptions and
+splitting one ROS 2 pattern's agents or one MAVLink socket's vehicles over workers.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Callable, Iterable, Mapping
+
+from engine import endpoints
+from engine.language.specs import ConnectionSpec, RoutesConfig, RouteSpec
+
+STORES = "stores"
+"""The affinity key of the routes that share the latest-value stores (rule 2)."""
+
+
+class PlacementError(ValueError):
+    """The worker count cannot place the routes."""
+
+
+@dataclass(frozen=True)
+class RoutePlace:
+    """Where one route runs: its workers (all of them for a competing source) and why."""
+
+    workers: tuple[int, ...]
+    reason: str
+
+
+@dataclass(frozen=True)
+class WorkerPlacement:
+    workers: int
+    routes: Mapping[str, RoutePlace]
+
+    def on(self, worker: int) -> frozenset[str]:
+        """The routes worker ``worker`` runs."""
+        return frozenset(name for name, place in self.routes.items() if worker in place.workers)
+
+    def lines(self) -> list[str]:
+        """What ``check --workers N`` prints: one line a route, then each worker's count."""
+        shown = []
+        for name, place in sorted(self.routes.items()):
+            where = "every worker" if len(place.workers) == self.workers > 1 else f"worker {place.workers[0]}"
+            shown.append(f"  {name}: {where} ({place.reason})")
+        counts = ", ".join(f"worker {k}: {len(self.on(k))}" for k in range(self.workers))
+        return [f"placement on {self.workers} workers ({counts} routes):", *shown]
+
+
+def stable_worker(key: str, workers: int) -> int:
+    """The worker a key hashes to, the same in every process (``hash()`` of a str is salted)."""
+    return int.from_bytes(hashlib.blake2b(key.encode(), digest_size=8).digest(), "big") % workers
+
+
+def default_affinity(spec: ConnectionSpec) -> str | None:
+    """The connection's affinity, as its protocol states it (``Transport.worker_affinity``)."""
+    return endpoints.transport(spec.protocol).worker_affinity(spec.name, spec.options if spec.options is not None else spec.settings)
+
+
+def default_shares(route: RouteSpec) -> bool:
+    return endpoints.transport(route.source.protocol).shares_sources
+
+
+def place_routes(config: RoutesConfig, workers: int, affinity: Callable[[ConnectionSpec], str | None] = default_affinity,
+                 shares: Callable[[RouteSpec], bool] = default_shares) -> WorkerPlacement:
+    """Place every route of ``config`` on ``workers`` workers (see the module docstring)."""
+    if workers < 1:
+        raise PlacementError(f"--workers {workers}: at least 1")
+    keys_of = {name: _keys(config, route, affinity) for name, route in config.routes.items()}
+    owner = _union(keys_of.values())
+    every = tuple(range(workers))
+    places: dict[str, RoutePlace] = {}
+    for name, route in config.routes.items():
+        keys = keys_of[name]
+        if keys:
+            group = owner[keys[0]]
+            held = ", ".join(keys)
+            joined = f"; with {group}" if group not in keys else ""
+            places[name] = RoutePlace((stable_worker(group, workers),), f"holds {held}{joined}")
+        elif (state := _own_state(route)) is not None:
+            places[name] = RoutePlace((stable_worker(name, workers),), f"keeps {state} in the process")
+        elif shares(route):
+            places[name] = RoutePlace(every, "competing consumers")
+        else:
+            places[name] = RoutePlace((stable_worker(name, workers),), "hash of the route name")
+    return WorkerPlacement(workers, places)
+
+
+def _keys(config: RoutesConfig, route: RouteSpec, affinity: Callable[[ConnectionSpec], str | None]) -> tuple[str, ...]:
+    found = [affinity(config.connections[endpoint.connection]) for endpoint in (route.source, route.sink)]
+    if route.remember is not None or any("recall(" in text for text in _expressions(route)):
+        found.append(STORES)
+    return tuple(sorted({key for key in found if key}))
+
+
+def _expressions(route: RouteSpec) -> list[str]:
+    remembered = route.remember if isinstance(route.remember, tuple) else (route.remember,) if route.remember else ()
+    texts = [route.mapping, route.sink_mapping, route.when, route.reply.mapping if route.reply else None,
+             *(getattr(entry, "value", None) for entry in remembered)]
+    return [text for text in texts if isinstance(text, str)]
+
+
+def _own_state(route: RouteSpec) -> str | None:
+    """What state of its own the route keeps in the process, or None."""
+    if route.dedupe is not None:
+        return "dedupe keys"
+    if route.window is not None:
+        return "a window"
+    if route.throttle is not None:
+        return "a throttle"
+    if any("sequence(" in text for text in _expressions(route)):
+        return "a sequence"
+    return None
+
+
+def _union(groups: Iterable[tuple[str, ...]]) -> dict[str, str]:
+    """Each key -> its group's representative (the smallest key): keys a route holds together
+    are one group."""
+    parent: dict[str, str] = {}
+
+    def find(key: str) -> str:
+        parent.setdefault(key, key)
+        while parent[key] != key:
+            parent[key] = parent[parent[key]]
+            key = parent[key]
+        return key
+
+    for keys in groups:
+        for key in keys:
+            find(key)
+        for key in keys[1:]:
+            a, b = find(keys[0]), find(key)
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+    return {key: find(key) for key in parent}

@@ -1,0 +1,64 @@
+"""One worker of ``run --workers N``: the normal engine, running the routes placed on it.
+
+A worker is an ordinary engine process (engine/running/runtime.py) started by the supervisor
+(engine/ops/supervisor.py) with its index. Every worker loads the whole routes directory, as
+the supervisor checked it, and runs only what :func:`~engine.running.placement.place_routes`
+gives its index; the other routes are listed as ``elsewhere`` in its status, as the routes
+pinned to other instances are. Placement is recomputed from each generation it loads, so a
+reload that moves a route (a new route joins a device group) stops it here and starts it on
+its new worker; both are the same pure function of the same files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+from dataclasses import replace
+from typing import Any
+
+from engine.common.schemas import SchemaRegistry
+from engine.language.specs import RoutesConfig
+from engine.running.placement import place_routes
+from engine.running.runtime import Engine, _Reload
+
+
+class WorkerEngine(Engine):
+    """An :class:`Engine` that runs the routes of worker ``index`` of ``workers``."""
+
+    def __init__(self, *args: Any, index: int, workers: int, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.index, self.workers = index, workers
+
+    def _plan(self, everywhere: RoutesConfig, schemas: SchemaRegistry) -> _Reload:
+        placed = place_routes(everywhere, self.workers).on(self.index)
+        mine = replace(everywhere, routes={name: spec for name, spec in everywhere.routes.items() if name in placed})
+        change = super()._plan(mine, schemas)
+        change.everywhere = everywhere  # the others are listed as elsewhere (Engine._retire)
+        return change
+
+    def status(self) -> dict[str, Any]:
+        return {**super().status(), "worker": {"index": self.index, "workers": self.workers}}
+
+
+def die_with_parent() -> None:
+    """In a worker: SIGTERM when the supervisor dies, even by SIGKILL, so no worker outlives it
+    consuming queues (Linux ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing). Set by the worker
+    itself rather than in a ``preexec_fn`` (unsafe in a process with threads); a supervisor
+    already gone by then (the parent is init) stops the worker at once."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    parent = os.getppid()
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def tell_supervisor(channel: int, message: dict[str, Any]) -> None:
+    """Write one JSON line to the supervisor's pipe and close it: the worker runs its routes,
+    its admin answers on ``message["admin_port"]`` (engine/ops/supervisor.py reads it)."""
+    with os.fdopen(channel, "w") as pipe:
+        pipe.write(json.dumps(message) + "\n")
