@@ -85,6 +85,8 @@ class Worker:
     last_exit: int | None = None
     ready: asyncio.Event = field(default_factory=asyncio.Event)
     backoff: Backoff = field(default_factory=lambda: Backoff(first=0.2, cap=10.0))
+    channel: asyncio.Task[None] | None = None
+    """Reading the worker's pipe until it says it runs."""
 
     @property
     def pid(self) -> int | None:
@@ -177,7 +179,8 @@ class Supervisor:
             os.close(write)
         worker.ready.clear()
         worker.admin_port, worker.up, worker.started_at = None, False, time.monotonic()
-        asyncio.create_task(self._read_channel(worker, read), name=f"worker-{worker.index}-channel")
+        # held by the worker: a task nobody references may be collected mid-read, closing the pipe under the worker
+        worker.channel = asyncio.create_task(self._read_channel(worker, read), name=f"worker-{worker.index}-channel")
 
     async def _read_channel(self, worker: Worker, fd: int) -> None:
         """The worker's one line once its routes run: ``{"admin_port": P}``; EOF before it
