@@ -96,6 +96,11 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
         (f"{len(connections) - len(down)}/{len(connections)} up", "red" if down else "green"),
         (f" (down: {', '.join(down)})" if down else "", "red"),
     )
+    workers = status.get("workers") or []
+    if workers:  # run --workers N: the supervisor's document (engine/ops/supervisor_admin.py)
+        up = sum(1 for w in workers if w.get("up"))
+        header.append(Text.assemble(("\nworkers ", "dim"), (f"{up}/{len(workers)} up", "green" if up == len(workers) else "red"), *(
+            (f"  {w['index']}: pid {w['pid']}, {len(w.get('routes', []))} routes, restarts {w['restarts']}", "dim") for w in workers)))
     rejected = [f"{name}: " + ", ".join(f"{key} {count}" for key, count in c["rejected"].items() if count)
                 for name, c in connections.items() if any((c.get("rejected") or {}).values())]
     if rejected:

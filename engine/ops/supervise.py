@@ -17,7 +17,7 @@ from engine.language.routes import RoutesInvalid, load_routes
 from engine.language.specs import RoutesConfig
 from engine.ops.admin import AdminAccess
 from engine.ops.supervisor import Supervisor
-from engine.ops.supervisor_admin import SupervisorAdmin
+from engine.ops.supervisor_admin import SupervisorAdmin, status_document
 from engine.running.watch import watch_routes
 
 log = logging.getLogger("engine.ops.supervise")
@@ -74,10 +74,8 @@ async def supervise(args: argparse.Namespace, supervisor: Supervisor, access: Ad
 
     async def reporter() -> None:
         while True:
-            if args.status_file and admin is not None:
-                write_status(await admin.status_document())
-            elif args.status_file:
-                write_status(supervisor.status())
+            if args.status_file:
+                write_status(await status_document(supervisor))
             await asyncio.sleep(args.stats_interval)
 
     tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]

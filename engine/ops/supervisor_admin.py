@@ -67,6 +67,12 @@ def merge_status(own: dict[str, Any], documents: list[dict[str, Any] | None]) ->
             "routes": dict(sorted(routes.items())), "connections": connections, "elsewhere": []}
 
 
+async def status_document(supervisor: Supervisor) -> dict[str, Any]:
+    """The status of the engine as a whole: the supervisor's, with every worker's asked now."""
+    answers = await supervisor.documents("/status")
+    return merge_status(supervisor.status(), [json.loads(body) if code == 200 else None for _, code, body in answers])
+
+
 class MergedCollector:
     """prometheus_client collector over the workers' scraped text (see the module docstring)."""
 
@@ -144,13 +150,8 @@ class SupervisorAdmin:
             task.cancel()
         await self._runner.cleanup()
 
-    async def status_document(self) -> dict[str, Any]:
-        answers = await self.supervisor.documents("/status")
-        documents = [json.loads(body) if code == 200 else None for _, code, body in answers]
-        return merge_status(self.supervisor.status(), documents)
-
     async def status(self, request: web.Request) -> web.Response:
-        return web.json_response(await self.status_document(), dumps=lambda d: json.dumps(d, default=str))
+        return web.json_response(await status_document(self.supervisor), dumps=lambda d: json.dumps(d, default=str))
 
     async def metrics(self, request: web.Request) -> web.Response:
         answers = await self.supervisor.documents("/metrics")

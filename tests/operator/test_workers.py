@@ -11,6 +11,8 @@ import asyncio
 import json
 import os
 import signal
+import subprocess
+import sys
 import uuid
 from pathlib import Path
 from typing import Any
@@ -18,10 +20,12 @@ from typing import Any
 import aio_pika
 import aiohttp
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 
 from engine.common.processes import listening_port
 from tests.support.engine_process import EngineProcess
 from tests.support.faults_harness import Recorder
+from tests.support.repo import REPO
 from tests.support.waiting import wait_for
 
 ROUTES = """
@@ -97,7 +101,12 @@ def test_a_worker_killed_under_load_loses_nothing_and_comes_back(tmp_path: Path,
                            lambda: f"{arrived()} distinct, {len(out.messages)} in all")
             await publishing
             route = (await admin_status(port))["routes"][f"pass-{tag}"]
-            return {"at_kill": at_kill, "status": status, "route": route, "received": len(out.messages)}
+            async with aiohttp.ClientSession() as session, session.get(f"http://127.0.0.1:{port}/metrics") as answer:
+                metrics = await answer.text()
+            table = await asyncio.to_thread(subprocess.run, [sys.executable, "-m", "engine", "status", "--admin", str(port)],
+                                            capture_output=True, text=True, cwd=REPO)
+            return {"at_kill": at_kill, "status": status, "route": route, "received": len(out.messages), "metrics": metrics,
+                    "table": table.stdout + table.stderr}
         finally:
             publishing.cancel()
             await connection.close()
@@ -108,6 +117,15 @@ def test_a_worker_killed_under_load_loses_nothing_and_comes_back(tmp_path: Path,
     assert worker["last_exit"] == -signal.SIGKILL and worker["restarts"] == 1
     assert result["received"] >= TOTAL  # at least once: what worker 0 held may arrive twice
     assert result["route"]["workers"] == [0, 1]
+    samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
+               for family in text_string_to_metric_families(result["metrics"]) for s in family.samples}
+    delivered = {labels: value for (name, labels), value in samples.items() if name == "rabbitros_worker_messages_total"
+                 and ("outcome", "delivered") in labels}
+    assert len(delivered) == 2  # one series a worker; the restarted worker's counters begin at 0
+    assert samples[("rabbitros_messages_total", (("outcome", "delivered"), ("route", f"pass-{tag}")))] == sum(delivered.values())
+    assert samples[("rabbitros_worker_restarts_total", (("worker", "0"),))] == 1
+    assert samples[("rabbitros_workers_up", (("worker", "0"),))] == samples[("rabbitros_workers_up", (("worker", "1"),))] == 1
+    assert "workers 2/2 up" in result["table"] and "restarts 1" in result["table"], result["table"]
 
 
 def test_a_reload_reaches_both_workers_and_a_broken_one_neither(tmp_path: Path, amqp_url: str) -> None:

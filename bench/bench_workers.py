@@ -1,0 +1,200 @@
+"""A backlog drain AMQP -> AMQP through the engine with 1 and 2 workers, in one run (issue 34).
+
+``python -m bench.bench_workers [--count 20000] [--rounds 3]``: a private RabbitMQ node; each
+round runs ``rabbitros-engine run --workers 1`` and ``--workers 2`` (their order alternating
+from round to round, so a drift of the machine's load weighs on both) on the throughput
+section's AMQP -> AMQP route (bench/throughput.py: a JSON mapping to the canonical position,
+schema-checked, published with confirms). Each drain:
+
+1. the engine starts on an empty queue and is running (its status file says so, every worker
+   up), then its workers are stopped (SIGSTOP) so that none starts before the other;
+2. ``count`` messages are published to its queue, each confirmed by the broker;
+3. the workers continue (SIGCONT) and the sink queue is counted until every message arrived.
+
+The rate is taken at the sink from 10 % of the messages to the last (the start of the drain
+is left out); the CPU seconds of each process of the engine (supervisor and workers) over the
+same span; lost = published - arrived. The figure is the ratio of the medians, 2 workers over
+1, measured in the same run: this machine has 2 cores, which the broker (and the publisher of
+the next round, nothing else of ours) shares with the workers, so the ratio is bounded by
+that, not by the engine; the CPU per process says where the time went.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+from bench.systems import gnss_json
+from bench.throughput import Broker, process_cpu_seconds, routes_file
+
+REPO = Path(__file__).resolve().parent.parent
+BROKER_GROUP = [0]
+"""The process group of the broker node (set by :func:`main`), whose CPU is measured beside the engine's."""
+STALL_S = 15.0
+"""A drain that moves no message for this long is over (its lost are counted)."""
+
+
+class EngineRun:
+    """``rabbitros-engine run --workers N`` as a child, in its own process group."""
+
+    def __init__(self, routes: Path, workers: int, work: Path) -> None:
+        self.status_file = work / f"status-{workers}.json"
+        self.log = open(work / f"engine-{workers}.log", "w")
+        self.workers = workers
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "engine", "run", "--routes", str(routes), "--schemas", str(REPO / "schemas"),
+             "--workers", str(workers), "--status-file", str(self.status_file), "--stats-interval", "0.2",
+             "--no-watch", "--log-level", "warning"],
+            cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=self.log, stderr=subprocess.STDOUT,
+            start_new_session=True)
+
+    async def running(self, timeout: float = 120.0) -> list[int]:
+        """The pids that carry routes (the workers; the engine itself with one), once all run."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"engine --workers {self.workers} exited {self.process.returncode}")
+            try:
+                status = json.loads(self.status_file.read_text())
+            except (OSError, ValueError):
+                status = {}
+            if status.get("generation", 0) >= 1:
+                if self.workers == 1:
+                    return [self.process.pid]
+                workers = status.get("workers") or []
+                if len(workers) == self.workers and all(w["up"] and w.get("status") for w in workers):
+                    return [w["pid"] for w in workers]
+            await asyncio.sleep(0.05)
+        raise RuntimeError(f"engine --workers {self.workers} did not start within {timeout:.0f} s")
+
+    def signal(self, pids: list[int], signum: int) -> None:
+        for pid in pids:
+            os.kill(pid, signum)
+
+    async def stop(self) -> int:
+        if self.process.poll() is None:
+            os.killpg(self.process.pid, signal.SIGTERM)
+            deadline = time.monotonic() + 60
+            while self.process.poll() is None and time.monotonic() < deadline:
+                await asyncio.sleep(0.05)
+            if self.process.poll() is None:
+                os.killpg(self.process.pid, signal.SIGKILL)
+        self.log.close()
+        return self.process.wait()
+
+
+async def drain(broker: Broker, workers: int, count: int) -> dict[str, Any]:
+    tag = uuid.uuid4().hex[:8]
+    names = await broker.topology(tag)
+    try:
+        with tempfile.TemporaryDirectory() as work:
+            routes = routes_file(Path(work), "amqp-amqp", names, broker.url, 0).parent
+            engine = EngineRun(routes, workers, Path(work))
+            pids: list[int] = []
+            try:
+                pids = await engine.running()
+                engine.signal(pids, signal.SIGSTOP)
+                await broker.prefill_confirmed(names["queue"], [gnss_json(i) for i in range(count)])
+                processes = [engine.process.pid, *(pid for pid in pids if pid != engine.process.pid)]
+                engine.signal(pids, signal.SIGCONT)
+                result = await observe(broker, names["sink"], count, processes)
+            finally:
+                for pid in pids:  # a stopped worker would not see its SIGTERM
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(pid, signal.SIGCONT)
+                result_exit = await engine.stop()
+            return {"workers": workers, **result, "exit": result_exit}
+    finally:
+        await broker.drop(names)
+
+
+def group_cpu_seconds(group: int) -> float:
+    """CPU time of every process of process group ``group`` (the broker node under ``timeout``)."""
+    total = 0
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == group:
+                total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+async def observe(broker: Broker, sink: str, total: int, pids: list[int]) -> dict[str, Any]:
+    """Count the sink until ``total`` arrived or it stalls: the rate and each process's CPU
+    seconds (and the broker node's) from 10 % of the messages to the last."""
+    samples: list[tuple[float, int, list[float]]] = []
+    last_change, last = time.monotonic(), 0
+    while True:
+        now, seen = time.monotonic(), await broker.count(sink)
+        samples.append((now, seen, [process_cpu_seconds(pid) for pid in pids] + [group_cpu_seconds(BROKER_GROUP[0])]))
+        if seen != last:
+            last_change, last = now, seen
+        if seen >= total or now - last_change > STALL_S:
+            break
+        await asyncio.sleep(0.02)
+    start = next(sample for sample in samples if sample[1] >= total * 0.1)
+    end = next(sample for sample in samples if sample[1] >= seen)
+    carried, seconds = end[1] - start[1], end[0] - start[0]
+    cpu = [round(b - a, 2) for a, b in zip(start[2], end[2])]
+    broker_cpu = cpu.pop()
+    return {"msg_per_s": carried / seconds if seconds > 0 else float("nan"), "lost": total - seen, "seconds": round(seconds, 2),
+            "broker_cpu_s": broker_cpu,
+            "cpu_s_by_process": dict(zip(["supervisor" if len(pids) > 1 else "engine", *(f"worker {k}" for k in range(len(pids) - 1))],
+                                         cpu)),
+            "cpu_us_per_msg": round(sum(cpu) * 1e6 / carried, 1) if carried else float("nan")}
+
+
+async def measure(url: str, count: int, rounds: int) -> dict[str, Any]:
+    """``rounds`` pairs of drains, 1 and 2 workers alternating first; the ratio of the medians."""
+    broker = Broker(url)
+    await broker.open()
+    runs: list[dict[str, Any]] = []
+    try:
+        for round_index in range(rounds):
+            for workers in ((1, 2) if round_index % 2 == 0 else (2, 1)):
+                result = await drain(broker, workers, count)
+                print(f"  round {round_index + 1}, {workers} worker(s): {result['msg_per_s']:.0f} msg/s, lost {result['lost']}, "
+                      f"{result['seconds']} s, CPU s {result['cpu_s_by_process']}, broker {result['broker_cpu_s']}", flush=True)
+                runs.append(result)
+    finally:
+        await broker.close()
+    median = {k: statistics.median(r["msg_per_s"] for r in runs if r["workers"] == k) for k in (1, 2)}
+    return {"count": count, "rounds": rounds, "runs": runs, "median_msg_per_s": median,
+            "ratio_2_over_1": round(median[2] / median[1], 2), "lost": sum(r["lost"] for r in runs), "cpus": os.cpu_count(),
+            "loadavg": os.getloadavg()}
+
+
+def main() -> None:
+    from engine.endpoints.amqp.broker import LocalBroker
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--count", type=int, default=20_000, help="messages per drain")
+    parser.add_argument("--rounds", type=int, default=3, help="pairs of drains (1 and 2 workers)")
+    parser.add_argument("--out", type=Path, help="write the results as JSON to this file")
+    args = parser.parse_args()
+    with LocalBroker() as node:
+        BROKER_GROUP[0] = node._process.pid if node._process is not None else 0  # its own group (start_new_session)
+        result = asyncio.run(measure(node.url, args.count, args.rounds))
+    print(json.dumps({k: v for k, v in result.items() if k != "runs"}, indent=1))
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
