@@ -35,7 +35,7 @@ from engine.running.record import Recorder, RecordLimits
 from engine.running.runtime import Engine
 from engine.running.placement import place_routes
 from engine.running.watch import watch_routes
-from engine.running.worker import WorkerEngine, die_with_parent, tell_supervisor
+from engine.running.worker import WorkerEngine, die_with_parent, log_as_worker, tell_supervisor
 
 if TYPE_CHECKING:  # imported when --foxglove asks for it: the SDK's import costs some 40 ms every command would pay
     from engine.ops.foxglove import FoxgloveView
@@ -386,6 +386,7 @@ async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> 
     worker = {"index": args.worker, "workers": args.workers} if getattr(args, "worker", None) is not None else None
     if worker is not None:
         die_with_parent()
+        log_as_worker(args.worker)
     engine = (WorkerEngine if worker is not None else Engine)(
         args.routes, schema_directories(args), require_connections=args.require_connections, instance=args.instance,
         vet=failing_tests if args.test_on_reload else None, recorder=recorder, **(worker or {}))

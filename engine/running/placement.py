@@ -17,7 +17,8 @@ the supervisor (engine/ops/supervisor.py) prints it for ``check --workers N`` an
    ``recall()``) are one table per process, so every route that writes or reads one runs with
    the others on one worker (the key ``stores``); a route's own state (``dedupe:``,
    ``window:``, ``throttle:``, ``sequence()``) would see only part of the messages on several
-   workers, so such a route runs on one worker, by the hash of its name.
+   workers, and a buffer's spill directory (``spill_dir/<route>/``) or a dedupe key file
+   belongs to one process, so such a route runs on one worker, by the hash of its name.
 3. **Competing consumers**: a source whose consumers compete for one stream
    (``Transport.shares_sources``: an AMQP queue) runs on every worker; the broker hands each
    message to one of them, and what a worker that died had not acknowledged to another.
@@ -135,6 +136,8 @@ def _own_state(route: RouteSpec) -> str | None:
         return "a window"
     if route.throttle is not None:
         return "a throttle"
+    if route.buffer is not None and route.buffer.spill_dir is not None:
+        return "a spill directory"
     if any("sequence(" in text for text in _expressions(route)):
         return "a sequence"
     return None

@@ -12,6 +12,7 @@ its new worker; both are the same pure function of the same files.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import sys
@@ -62,3 +63,16 @@ def tell_supervisor(channel: int, message: dict[str, Any]) -> None:
     its admin answers on ``message["admin_port"]`` (engine/ops/supervisor.py reads it)."""
     with os.fdopen(channel, "w") as pipe:
         pipe.write(json.dumps(message) + "\n")
+
+
+def log_as_worker(index: int) -> None:
+    """Every log line of this process names its worker (``worker=K``): the workers write to the
+    supervisor's stderr, where two workers' ``route counters`` lines were otherwise alike."""
+
+    def named(record: logging.LogRecord) -> bool:
+        if not hasattr(record, "worker"):
+            record.worker = index
+        return True
+
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(named)

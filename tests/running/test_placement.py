@@ -87,16 +87,18 @@ def test_a_route_joining_two_links_puts_both_on_one_worker(tmp_path: Path):
 
 
 def test_state_in_the_process_keeps_a_route_on_one_worker(tmp_path: Path):
-    """dedupe keys and a sequence live in one process: a queue route with them runs on one
-    worker; the routes that write and read the stores run together."""
+    """dedupe keys, a sequence and a buffer's spill files live in one process: a queue route
+    with them runs on one worker; the routes that write and read the stores run together."""
     routes = (amqp_route("deduped", "    dedupe: {key: id, ttl: 60}\n")
               + amqp_route("writer", "    remember: {store: positions, per: agent}\n")
               + amqp_route("reader", "    mapping: \"{agent: agent, last: recall('positions', agent)}\"\n")
-              + amqp_route("counted", "    mapping: '{n: sequence()}'\n"))
+              + amqp_route("counted", "    mapping: '{n: sequence()}'\n")
+              + amqp_route("spilled", f"    buffer: {{spill_dir: {tmp_path / 'spill'}}}\n"))
     placement = place_routes(config(tmp_path, routes), 4)
     assert placement.routes["deduped"].workers == (stable_worker("deduped", 4),)
     assert placement.routes["deduped"].reason == "keeps dedupe keys in the process"
     assert placement.routes["counted"].reason == "keeps a sequence in the process"
+    assert placement.routes["spilled"].reason == "keeps a spill directory in the process"
     assert placement.routes["writer"].workers == placement.routes["reader"].workers == (stable_worker("stores", 4),)
 
 
