@@ -8,7 +8,7 @@ latency at half that rate, throughput against message size, 1/100/1,000 routes, 
 the emulated SiK radio at 0 and 5 % loss, ROS 2 topic discovery latency for 20 robots, the round trip of a ROS 2
 service call from AMQP next to a plain rclpy client, a fleet of 100 agents (bench/fleet.py), MAVLink latency over
 the radio against MAVSDK as the ground station, a 20-waypoint mission uploaded by the engine, pymavlink and MAVSDK,
-to the simulated vehicle and to MAVSDK's own behind the radio) and writes
+to the simulated vehicle and to MAVSDK's own behind the radio, a backlog drained by 1 and 2 engine workers (bench/bench_workers.py)) and writes
 ``results.json``, ``report.md`` (the paper's table format
 plus p50/p99) and PNG plots. Throughput is reported as ratios measured in the same run: the
 machine is shared, absolute numbers move with its load (recorded in the report).
@@ -32,12 +32,12 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from bench import bench_discovery, call_ros2, ct_l1, fleet, mission_upload, radio_latency, sections
+from bench import bench_discovery, bench_workers, call_ros2, ct_l1, fleet, mission_upload, radio_latency, sections
 from bench import throughput as tp
 from bench.report import write_report
 
 REPO = Path(__file__).resolve().parent.parent
-SECTIONS = ("latency", "ct_l1", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "calls", "fleet", "radio_latency", "mission")
+SECTIONS = ("latency", "ct_l1", "throughput", "sizes", "routes", "sik", "discovery", "sik5", "calls", "fleet", "radio_latency", "mission", "workers")
 KINDS = {
     "amqp-amqp": ("ref-amqp-amqp", None),
     "amqp-ros2": ("ref-amqp-ros2", "paper-amqp-ros2"),
@@ -103,6 +103,8 @@ async def run(args: argparse.Namespace) -> Path:
         ("fleet", lambda: fleet.fleet(None, ["reference", "templated", "shared", "hand_written"], duration=args.fleet_seconds)),
         ("radio_latency", lambda: radio_latency.run(url, 8.0)),
         ("mission", lambda: asyncio.to_thread(mission_upload.run, [20], [0.0, 0.05], args.mission_repeat)),
+        ("workers", lambda: bench_workers.measure(url, args.workers_count, args.workers_rounds,
+                                                  node._process.pid if node._process is not None else 0)),
     ]
     try:
         for name, step in steps:
@@ -147,6 +149,8 @@ def main() -> None:
                         help="seconds of the fleet's load (bench/fleet.py), each way of writing its routes")
     parser.add_argument("--mission-repeat", type=int, default=2,
                         help="uploads of the 20-waypoint mission per client, vehicle and loss (about 25 s each round)")
+    parser.add_argument("--workers-count", type=int, default=20_000, help="messages per drain of the workers section (1 and 2 workers)")
+    parser.add_argument("--workers-rounds", type=int, default=4, help="rounds of the workers section, each a drain with 1 and with 2 workers")
     parser.add_argument("--kinds", help=f"comma-separated route kinds of the throughput section ({', '.join(KINDS)}; default all)")
     parser.add_argument("--only", help=f"comma-separated sections of {', '.join(SECTIONS)}")
     parser.add_argument("--out", help="output directory (default bench/results/<date>)")

@@ -159,8 +159,10 @@ async def observe(broker: Broker, sink: str, total: int, pids: list[int]) -> dic
             "cpu_us_per_msg": round(sum(cpu) * 1e6 / carried, 1) if carried else float("nan")}
 
 
-async def measure(url: str, count: int, rounds: int) -> dict[str, Any]:
-    """``rounds`` pairs of drains, 1 and 2 workers alternating first; the ratio of the medians."""
+async def measure(url: str, count: int, rounds: int, broker_group: int = 0) -> dict[str, Any]:
+    """``rounds`` pairs of drains, 1 and 2 workers alternating first; the ratio of the medians,
+    and each round's own ratio (its two drains ran back to back, under the same load)."""
+    BROKER_GROUP[0] = broker_group
     broker = Broker(url)
     await broker.open()
     runs: list[dict[str, Any]] = []
@@ -174,9 +176,28 @@ async def measure(url: str, count: int, rounds: int) -> dict[str, Any]:
     finally:
         await broker.close()
     median = {k: statistics.median(r["msg_per_s"] for r in runs if r["workers"] == k) for k in (1, 2)}
+    pairs = [runs[i:i + 2] for i in range(0, len(runs), 2)]
+    round_ratios = [round(next(r for r in pair if r["workers"] == 2)["msg_per_s"] / next(r for r in pair if r["workers"] == 1)["msg_per_s"], 2)
+                    for pair in pairs]
     return {"count": count, "rounds": rounds, "runs": runs, "median_msg_per_s": median,
-            "ratio_2_over_1": round(median[2] / median[1], 2), "lost": sum(r["lost"] for r in runs), "cpus": os.cpu_count(),
-            "loadavg": os.getloadavg()}
+            "ratio_2_over_1": round(median[2] / median[1], 2), "round_ratios": round_ratios,
+            "lost": sum(r["lost"] for r in runs), "cpus": os.cpu_count(), "loadavg": os.getloadavg()}
+
+
+def report(result: dict[str, Any]) -> list[str]:
+    """The section's lines for bench/report.py (and this module's own output)."""
+    lines = [f"{result['count']} messages a drain, {result['rounds']} rounds (1 and 2 workers back to back, the order "
+             f"alternating); {result['cpus']} CPUs, load average {'/'.join(f'{x:.1f}' for x in result['loadavg'])} after.", "",
+             "| round | workers | msg/s | lost | s | CPU s by process | broker CPU s | engine µs/msg |", "|---|---|---|---|---|---|---|---|"]
+    for index, run in enumerate(result["runs"]):
+        cpu = ", ".join(f"{name} {seconds}" for name, seconds in run["cpu_s_by_process"].items())
+        lines.append(f"| {index // 2 + 1} | {run['workers']} | {run['msg_per_s']:.0f} | {run['lost']} | {run['seconds']} | {cpu} | "
+                     f"{run['broker_cpu_s']} | {run['cpu_us_per_msg']} |")
+    median = result["median_msg_per_s"]
+    lines += ["", f"Median: 1 worker {median['1' if '1' in median else 1]:.0f} msg/s, 2 workers "
+              f"{median['2' if '2' in median else 2]:.0f} msg/s: **2 workers / 1 = {result['ratio_2_over_1']}** "
+              f"(each round: {', '.join(map(str, result['round_ratios']))}); lost {result['lost']}.", ""]
+    return lines
 
 
 def main() -> None:
@@ -188,9 +209,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, help="write the results as JSON to this file")
     args = parser.parse_args()
     with LocalBroker() as node:
-        BROKER_GROUP[0] = node._process.pid if node._process is not None else 0  # its own group (start_new_session)
-        result = asyncio.run(measure(node.url, args.count, args.rounds))
-    print(json.dumps({k: v for k, v in result.items() if k != "runs"}, indent=1))
+        group = node._process.pid if node._process is not None else 0  # the node's own process group (start_new_session)
+        result = asyncio.run(measure(node.url, args.count, args.rounds, group))
+    print("\n".join(report(result)))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(result, indent=1) + "\n")

@@ -244,7 +244,7 @@ def write_report(results: dict[str, Any], out: Path) -> None:
     for key, render in (("latency", latency_tables), ("ct_l1", ct_l1_table), ("throughput", throughput_table), ("sizes", sizes_table),
                         ("routes", routes_table), ("sik", sik_table), ("discovery", discovery_table), ("sik5", sik_table),
                         ("calls", calls_table), ("fleet", fleet_table),
-                        ("radio_latency", radio_latency_table), ("mission", mission_table)):
+                        ("radio_latency", radio_latency_table), ("mission", mission_table), ("workers", workers_table)):
         value = results.get(key)
         if value is None:
             continue
@@ -264,6 +264,12 @@ def ct_l1_table(result: dict[str, Any]) -> list[str]:
 
     return ["## 1b. CT-L1 at a robot's pace: the engine against the paper's design, same machine, same run", "",
             *report(result), ""]
+
+
+def workers_table(result: dict[str, Any]) -> list[str]:
+    from bench.bench_workers import report
+
+    return ["## 11. A backlog drained AMQP -> AMQP by 1 and 2 engine workers (run --workers), same run", "", *report(result)]
 
 
 def fleet_table(fleet: dict[str, Any]) -> list[str]:
