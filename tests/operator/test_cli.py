@@ -54,7 +54,10 @@ def _commands() -> dict[str, argparse.ArgumentParser]:
 
 
 def _options(parser: argparse.ArgumentParser) -> list[str]:
-    return [option for action in parser._actions for option in action.option_strings if option not in ("-h", "--help")]
+    """The operator's options: hidden ones (``--worker``, which the supervisor of ``run
+    --workers N`` gives its workers) are not for the help nor the docs."""
+    return [option for action in parser._actions for option in action.option_strings
+            if option not in ("-h", "--help") and action.help != argparse.SUPPRESS]
 
 
 @pytest.mark.fast
