@@ -128,6 +128,48 @@ def test_a_worker_killed_under_load_loses_nothing_and_comes_back(tmp_path: Path,
     assert "workers 2/2 up" in result["table"] and "restarts 1" in result["table"], result["table"]
 
 
+def test_a_stop_under_load_drains_both_workers_and_loses_nothing(tmp_path: Path, amqp_url: str) -> None:
+    """SIGTERM to the supervisor while both workers drain a backlog: both stop (each drains
+    what it holds), the supervisor exits 0 and no worker outlives it; one engine started
+    afterwards carries the rest, and every message arrived at least once."""
+    tag = "s" + uuid.uuid4().hex[:8]
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text(ROUTES.format(url=amqp_url, tag=tag, key="out"))
+    port = listening_port()
+    first = EngineProcess(routes, tmp_path / "status-first.json", {}, "--workers", "2", "--admin", str(port))
+
+    async def scenario() -> tuple[list[int], int, int]:
+        connection = await aio_pika.connect(amqp_url)
+        out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
+        try:
+            await asyncio.to_thread(first.wait_started)
+            pids = [w["pid"] for w in (await admin_status(port))["workers"]]
+            publishing = asyncio.create_task(publish(connection, tag, range(TOTAL)))  # while the workers drain it
+            await wait_for(lambda: len(out.messages) >= TOTAL // 4, 120, "a quarter of the messages before the stop")
+            exited = await asyncio.to_thread(first.stop)
+            at_stop = len(out.messages)
+            await publishing
+            second = EngineProcess(routes, tmp_path / "status-second.json", {})
+            try:
+                await asyncio.to_thread(second.wait_started)
+                await wait_for(lambda: len({json.loads(m.body)["seq"] for m in out.messages}) == TOTAL, 240,
+                               f"all {TOTAL} messages at the sink", lambda: f"{len(out.messages)} in all")
+            finally:
+                assert await asyncio.to_thread(second.stop) == 0, second.log()
+            return pids, exited, at_stop
+        finally:
+            await connection.close()
+
+    pids, exited, at_stop = asyncio.run(scenario())
+    assert exited == 0, first.log()
+    assert at_stop < TOTAL, "the stop came after the drain: nothing was in flight"
+    for pid in pids:  # each worker exited (a zombie is reaped by its parent, gone too)
+        assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(f"/proc/{pid}/status").read_text().lower()
+    log = (tmp_path / "status-first.log").read_text()
+    assert log.count('"msg": "stopped"') == 3, log[-3000:]  # the two workers and the supervisor, each after its drain
+
+
 def test_a_reload_reaches_both_workers_and_a_broken_one_neither(tmp_path: Path, amqp_url: str) -> None:
     """An edit of the routes: the supervisor checks it once, both workers run the new config
     hash and the supervisor's generation is 2; a file that does not compile is rejected once,
