@@ -64,9 +64,10 @@ POLL_S = 0.05
 
 
 def worker_count(text: str) -> int:
-    """``--workers N`` or ``auto`` (one per core, ``os.cpu_count()``)."""
+    """``--workers N`` or ``auto``: one per core this process may run on (its CPU affinity: a
+    container's cpuset, ``taskset``), else ``os.cpu_count()`` where the system does not say."""
     if text == "auto":
-        return os.cpu_count() or 1
+        return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     if not text.isdigit() or int(text) < 1:
         raise argparse.ArgumentTypeError(f"--workers {text!r}: a number of processes (1 or more) or auto")
     return int(text)

@@ -213,7 +213,7 @@ def test_a_reload_reaches_both_workers_and_a_broken_one_neither(tmp_path: Path, 
 def test_workers_is_a_count_or_auto() -> None:
     from engine.ops.supervisor import worker_count
 
-    assert worker_count("3") == 3 and worker_count("auto") == (os.cpu_count() or 1)
+    assert worker_count("3") == 3 and worker_count("auto") == len(os.sched_getaffinity(0))
     for bad in ("0", "-1", "two"):
         with pytest.raises(Exception, match="--workers"):
             worker_count(bad)
