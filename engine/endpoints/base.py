@@ -63,6 +63,7 @@ from engine.common.suggest import closest
 from engine.endpoints.errors import (Conflated, EndpointError, ExceptionTable, Expired, MessageRejected, NotSent, Refused, Unroutable,
                                      UnroutableRejected)
 from engine.endpoints.messages import FINAL_REPLIES, OVERFLOW_POLICIES, REPLY_KINDS, Inbound, Inbox, Outbound, Reply, StoredLetter, late_window
+from engine.endpoints.workers import WorkerHints
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
@@ -392,8 +393,9 @@ def typed_or_problem(cls: type[O], value: Any) -> tuple[O | None, list[tuple[str
         return None, [(dotted(path) if path else None, describe(path, message)) for path, message in exc.problems]
 
 
-class Transport(ABC):
-    """What the engine knows about a protocol before connecting: defaults and static checks."""
+class Transport(WorkerHints, ABC):
+    """What the engine knows about a protocol before connecting: defaults and static checks
+    (and, from :class:`WorkerHints`, how its routes spread over ``run --workers N``)."""
 
     name: ClassVar[str]
     connection_type: ClassVar[type[Connection]] = Connection  # type: ignore[type-abstract]  # read for its capabilities, never instantiated
@@ -485,11 +487,6 @@ class Transport(ABC):
         the new (break-before-make) instead of the usual make-before-break."""
         return None
 
-    def worker_affinity(self, connection: str, settings: Any) -> str | None:
-        """What of a connection one worker of ``run --workers N`` must hold alone, as a key its routes are placed by
-        (engine/running/placement.py): by default the :meth:`exclusive_resource`; None: any worker may open it."""
-        return self.exclusive_resource(settings)
-
     def key_files(self, settings: Any) -> Iterable[str]:
         """Files whose contents the connection reads when it opens (signing keys): a reload
         reopens the connection when their contents change."""
@@ -564,8 +561,8 @@ class Transport(ABC):
         yield None, f"a {self.name} source cannot be partitioned (use ordered: true for one instance at a time)"
 
     shares_sources: ClassVar[bool] = False
-    """True when every instance's source competes for one stream (a broker queue): each message reaches one
-    instance anyway, so ``active_standby`` is refused (use ``ordered``), and every worker of ``run --workers N`` runs it."""
+    """True when every instance's source competes for one stream (a broker queue): each
+    message reaches one instance anyway, so ``active_standby`` is refused (use ``ordered``)."""
 
     def sink_dry_run(self, route: str, options: Any) -> Callable[[Outbound], str | None]:
         """What the sink would do short of sending, for ``rabbitros-engine test``: the rendered

@@ -6,9 +6,9 @@ plan (engine/running/plan.py) it is a value, tested on its own (tests/running/te
 the supervisor (engine/ops/supervisor.py) prints it for ``check --workers N`` and each worker
 (engine/running/worker.py) runs the routes it is given. The rules, first that applies:
 
-1. **Something one process must hold alone**: a route whose source or sink connection has a
-   worker affinity (``Transport.worker_affinity``: a serial device, a listening port, an MQTT
-   persistent session, a MAVLink link) runs on exactly one worker, the one that owns that
+1. **Something one process must hold alone**: a route whose source or sink connection has an
+   exclusive resource (a serial device, a listening port, an MQTT client id) or a worker
+   affinity (``Transport.worker_affinity``: a MAVLink link) runs on exactly one worker, the one that owns that
    affinity. Routes that share an affinity (every route of the farm's radio) share the owner;
    affinities a route joins (a radio to a listening port) are owned together (union-find), so
    two workers never open one device. The owner is a stable hash of the group's first key:
@@ -20,15 +20,17 @@ the supervisor (engine/ops/supervisor.py) prints it for ``check --workers N`` an
    workers, and a buffer's spill directory (``spill_dir/<route>/``) or a dedupe key file
    belongs to one process, so such a route runs on one worker, by the hash of its name.
 3. **Competing consumers**: a source whose consumers compete for one stream
-   (``Transport.shares_sources``: an AMQP queue) runs on every worker; the broker hands each
-   message to one of them, and what a worker that died had not acknowledged to another.
-4. **Everything else** (ROS 2 topics, MQTT, Zenoh subscriptions: each subscriber gets every
-   message) runs on one worker, by a stable hash of the route's name.
+   (``Transport.spreads_over_workers``: an AMQP queue, an MQTT shared subscription) runs on
+   every worker; the broker hands each message to one of them, and what a worker that died
+   had not acknowledged to another (an AMQP queue; MQTT as the broker treats a shared
+   subscription's in-flight messages of a session that ended).
+4. **Everything else** (ROS 2 topics, plain MQTT subscriptions, Zenoh keys: each subscriber
+   gets every message) runs on one worker, by a stable hash of the route's name.
 
 A hash, not a balancer: placement must not depend on what runs now, or a restart or a reload
 would move routes between processes. With few one-worker routes the split can be uneven;
-``check --workers N`` shows it. What is not built (issue 34): MQTT shared subscriptions and
-splitting one ROS 2 pattern's agents or one MAVLink socket's vehicles over workers.
+``check --workers N`` shows it. What is not built (issue 34): splitting one ROS 2 pattern's
+agents or one MAVLink socket's vehicles over workers.
 """
 
 from __future__ import annotations
@@ -81,12 +83,15 @@ def stable_worker(key: str, workers: int) -> int:
 
 
 def default_affinity(spec: ConnectionSpec) -> str | None:
-    """The connection's affinity, as its protocol states it (``Transport.worker_affinity``)."""
-    return endpoints.transport(spec.protocol).worker_affinity(spec.name, spec.options if spec.options is not None else spec.settings)
+    """The connection's exclusive resource, else its affinity as its protocol states it
+    (``Transport.worker_affinity``, engine/endpoints/workers.py)."""
+    settings = spec.options if spec.options is not None else spec.settings
+    return spec.exclusive or endpoints.transport(spec.protocol).worker_affinity(spec.name, settings)
 
 
 def default_shares(route: RouteSpec) -> bool:
-    return endpoints.transport(route.source.protocol).shares_sources
+    """Whether the route's source spreads over every worker (``Transport.spreads_over_workers``)."""
+    return endpoints.transport(route.source.protocol).spreads_over_workers(route.source.options)
 
 
 def place_routes(config: RoutesConfig, workers: int, affinity: Callable[[ConnectionSpec], str | None] = default_affinity,

@@ -217,3 +217,49 @@ def test_workers_is_a_count_or_auto() -> None:
     for bad in ("0", "-1", "two"):
         with pytest.raises(Exception, match="--workers"):
             worker_count(bad)
+
+
+MQTT_ROUTES = """
+connections:
+  field: {{mqtt: "{mqtt}"}}
+  broker: {{amqp: "{url}"}}
+routes:
+  - name: weather-{tag}
+    source: {{mqtt: {{connection: field, topic: "{tag}/+/weather", shared: engines}}}}
+    schema: raw_json
+    sink: {{amqp: {{connection: broker, exchange: {tag}-out, routing_key: wx}}}}
+"""
+MQTT_TOTAL = 2_000
+
+
+def test_an_mqtt_shared_subscription_is_split_between_the_workers(tmp_path: Path, mosquitto: Any, amqp_url: str) -> None:
+    """A route on an MQTT shared subscription (``shared: engines``) runs on both workers
+    (check says so); mosquitto 2.0 hands each QoS 1 message to one of them: both carry some,
+    every message arrives at least once."""
+    from tests.endpoints.mqtt.test_mqtt import publish as mqtt_publish
+
+    tag = "m" + uuid.uuid4().hex[:8]
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text(MQTT_ROUTES.format(mqtt=mosquitto.url, url=amqp_url, tag=tag))
+    port = listening_port()
+    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--workers", "2", "--admin", str(port))
+
+    async def scenario() -> dict[str, Any]:
+        connection = await aio_pika.connect(amqp_url)
+        out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
+        try:
+            placed = await admin_status(port)
+            assert placed["placement"] == {f"weather-{tag}": [0, 1]}
+            sent = await mqtt_publish(mosquitto, ((f"{tag}/field{seq % 4}/weather", {"seq": seq}) for seq in range(MQTT_TOTAL)))
+            assert sent == MQTT_TOTAL
+            await wait_for(lambda: len({json.loads(m.body)["seq"] for m in out.messages}) == MQTT_TOTAL, 120,
+                           f"all {MQTT_TOTAL} messages at the sink", lambda: f"{len(out.messages)} in all")
+            return await admin_status(port)
+        finally:
+            await connection.close()
+
+    status, _ = engine.run(scenario)
+    received = [w["status"]["routes"][f"weather-{tag}"]["received"] for w in status["workers"]]
+    print(f"MQTT shared subscription over 2 workers: received {received}")
+    assert all(count > 0 for count in received) and sum(received) >= MQTT_TOTAL, received

@@ -62,6 +62,27 @@ def test_a_broker_queue_runs_on_every_worker_and_a_subscription_on_one(tmp_path:
     assert placement.on(0) | placement.on(1) | placement.on(2) == {"orders", "fix-a", "fix-b"}
 
 
+def test_an_mqtt_shared_subscription_spreads_and_a_session_stays_on_one_worker(tmp_path: Path):
+    """``shared: GROUP``: the broker hands each message to one member of the group, so every
+    worker subscribes; a plain subscription gives each subscriber every message (one worker);
+    a connection with a client_id is one session (one worker, with its other routes)."""
+    connections = CONNECTIONS + ('  mq: {mqtt: "mqtt://127.0.0.1:1883"}\n'
+                                 '  kept: {mqtt: {url: "mqtt://127.0.0.1:1883", client_id: gcs-1}}\n')
+
+    def mqtt_route(name: str, connection: str, shared: str = "") -> str:
+        return (f"  - name: {name}\n    source: {{mqtt: {{connection: {connection}, topic: farm/+/weather{shared}}}}}\n"
+                f"    schema: raw_json\n    sink: {{amqp: {{connection: bus, exchange: out, routing_key: {name}}}}}\n")
+
+    routes = (mqtt_route("weather-shared", "mq", ", shared: engines") + mqtt_route("weather-plain", "mq")
+              + mqtt_route("weather-kept", "kept", ", shared: engines") + mqtt_route("weather-kept-2", "kept"))
+    placement = place_routes(config(tmp_path, routes, connections), 3)
+    assert placement.routes["weather-shared"].workers == (0, 1, 2)
+    assert placement.routes["weather-plain"].workers == (stable_worker("weather-plain", 3),)
+    session = "mqtt:127.0.0.1:1883/gcs-1"
+    assert placement.routes["weather-kept"].workers == placement.routes["weather-kept-2"].workers == (stable_worker(session, 3),)
+    assert placement.routes["weather-kept"].reason == f"holds {session}"
+
+
 def test_one_worker_holds_every_route_of_a_device_whatever_their_sources(tmp_path: Path):
     """The radio's telemetry routes and a command route fed by a broker queue (which alone
     would run everywhere) all run where the serial device is open, so it is opened once."""

@@ -172,8 +172,9 @@ class MavlinkTransport(Transport):
 
     def worker_affinity(self, connection: str, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> str | None:
         """A link is one process's even where it holds no device (``udpout``, ``tcp``): the vehicle answers the
-        address it heard last, and the link's heartbeats, sequence numbers and radio budget are its own."""
-        return self.exclusive_resource(settings) or f"mavlink link {connection!r}"
+        address it heard last, and the link's heartbeats, sequence numbers and radio budget are its own (a link on
+        a device or a listening port is placed by that exclusive resource instead)."""
+        return f"mavlink link {connection!r}"
 
     def key_files(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> Iterable[str]:
         options, _ = typed_or_problem(MavlinkConnectionOptions, settings)

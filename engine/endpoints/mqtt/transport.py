@@ -87,6 +87,11 @@ class MqttTransport(Transport):
         a QoS 0 message is delivered once, so its route keeps the default buffer."""
         return options.qos >= 1
 
+    def spreads_over_workers(self, options: MqttSourceOptions) -> bool:
+        """A shared subscription (``shared: GROUP``): the broker hands each message to one member
+        of the group, so every worker subscribes; a plain one gives each subscriber every message."""
+        return options.shared is not None
+
     def sink_dry_run(self, route: str, options: MqttSinkOptions) -> Callable[[Outbound], str | None]:
         render = topic_renderer(options.topic, f"route {route!r}: mqtt sink")
         return lambda outbound: render(outbound.template_data)
