@@ -6,10 +6,10 @@ plan (engine/running/plan.py) it is a value, tested on its own (tests/running/te
 the supervisor (engine/ops/supervisor.py) prints it for ``check --workers N`` and each worker
 (engine/running/worker.py) runs the routes it is given. The rules, first that applies:
 
-1. **Something one process must hold alone**: a route whose source or sink connection has an
-   exclusive resource (a serial device, a listening port, an MQTT client id) or a worker
-   affinity (``Transport.worker_affinity``: a MAVLink link) runs on exactly one worker, the one that owns that
-   affinity. Routes that share an affinity (every route of the farm's radio) share the owner;
+1. **Something one process must hold alone**: a route whose source, sink or fallback connection
+   has an exclusive resource (a serial device, a listening port, an MQTT client id) or a
+   worker affinity (``Transport.worker_affinity``: a MAVLink link) runs on exactly one worker,
+   the one that owns it. Routes that share one (every route of the farm's radio) share the owner;
    affinities a route joins (a radio to a listening port) are owned together (union-find), so
    two workers never open one device. The owner is a stable hash of the group's first key:
    the same configuration places the same way in every process and after every restart.
@@ -120,7 +120,7 @@ def place_routes(config: RoutesConfig, workers: int, affinity: Callable[[Connect
 
 
 def _keys(config: RoutesConfig, route: RouteSpec, affinity: Callable[[ConnectionSpec], str | None]) -> tuple[str, ...]:
-    found = [affinity(config.connections[endpoint.connection]) for endpoint in (route.source, route.sink)]
+    found = [affinity(config.connections[endpoint.connection]) for endpoint in route.endpoints()]
     if route.remember is not None or any("recall(" in text for text in _expressions(route)):
         found.append(STORES)
     return tuple(sorted({key for key in found if key}))
@@ -128,8 +128,9 @@ def _keys(config: RoutesConfig, route: RouteSpec, affinity: Callable[[Connection
 
 def _expressions(route: RouteSpec) -> list[str]:
     remembered = route.remember if isinstance(route.remember, tuple) else (route.remember,) if route.remember else ()
+    sinks = [*route.sinks, *(sink.fallback for sink in route.sinks if sink.fallback is not None)]
     texts = [route.mapping, route.sink_mapping, route.when, route.reply.mapping if route.reply else None,
-             *(getattr(entry, "value", None) for entry in remembered)]
+             *(getattr(entry, "value", None) for entry in remembered), *(text for sink in sinks for text in (sink.mapping, sink.when))]
     return [text for text in texts if isinstance(text, str)]
 
 

@@ -96,6 +96,19 @@ def test_one_worker_holds_every_route_of_a_device_whatever_their_sources(tmp_pat
     assert placement.routes["commands"].reason == f"holds {device}"
 
 
+def test_a_fallback_on_a_device_places_the_route_with_the_device(tmp_path: Path):
+    """A queue route (alone: every worker) whose second sink's fallback writes to the radio
+    runs where the radio is open, once."""
+    routes = ("  - name: orders\n    source: {amqp: {connection: bus, queue: orders-q}}\n    schema: raw_json\n"
+              "    sinks:\n      - amqp: {connection: bus, exchange: out, routing_key: a}\n"
+              "      - amqp: {connection: bus, exchange: out2, routing_key: b}\n"
+              "        fallback:\n          mavlink: {connection: radio, json_tunnel: true, target_system: 1}\n"
+              + radio_route("uav"))
+    placement = place_routes(config(tmp_path, routes), 3)
+    assert placement.routes["orders"].workers == placement.routes["uav"].workers
+    assert len(placement.routes["orders"].workers) == 1 and "serial:" in placement.routes["orders"].reason
+
+
 def test_a_route_joining_two_links_puts_both_on_one_worker(tmp_path: Path):
     """field (udpin: a listening port) -> gcs (udpout: a link the vehicle answers): owned
     together, so a route on the gcs link alone runs with them, wherever the hash of either
