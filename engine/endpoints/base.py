@@ -395,7 +395,7 @@ def typed_or_problem(cls: type[O], value: Any) -> tuple[O | None, list[tuple[str
 
 class Transport(WorkerHints, ABC):
     """What the engine knows about a protocol before connecting: defaults and static checks
-    (and, from :class:`WorkerHints`, how its routes spread over ``run --workers N``)."""
+    (and, from :class:`WorkerHints`, how its sources spread over instances and workers)."""
 
     name: ClassVar[str]
     connection_type: ClassVar[type[Connection]] = Connection  # type: ignore[type-abstract]  # read for its capabilities, never instantiated
@@ -559,10 +559,6 @@ class Transport(WorkerHints, ABC):
     def partition_problems(self, options: Any, partitions: int, key: str) -> CheckResult:
         """For ``check``: why a source cannot be split into ordered partitions (``ordered: {partitions, key}``)."""
         yield None, f"a {self.name} source cannot be partitioned (use ordered: true for one instance at a time)"
-
-    shares_sources: ClassVar[bool] = False
-    """True when every instance's source competes for one stream (a broker queue): each
-    message reaches one instance anyway, so ``active_standby`` is refused (use ``ordered``)."""
 
     def sink_dry_run(self, route: str, options: Any) -> Callable[[Outbound], str | None]:
         """What the sink would do short of sending, for ``rabbitros-engine test``: the rendered

@@ -1,22 +1,34 @@
-"""What a protocol says about the worker processes of ``run --workers N``: part of the endpoint
-contract (``Transport`` inherits it; engine/endpoints/base.py is still where it is imported from).
+"""What a protocol says about how its sources spread over engine instances and over the worker
+processes of ``run --workers N``: part of the endpoint contract (``Transport`` inherits it;
+engine/endpoints/base.py is still where the contract is imported from).
 
 The placement of routes over workers (engine/running/placement.py) is the core's, one pure
-function; it never names a protocol, so it asks each transport two questions: what of a
-connection only one process may hold (beyond the exclusive resource every transport already
-states, ``Transport.exclusive_resource``), and whether a source's consumers may run in every
-worker and compete. Kept apart from engine/endpoints/base.py, which is at its size limit.
+function; it never names a protocol, so it asks each transport: whether a source's consumers
+compete for one stream (then every instance and every worker runs it), and what of a
+connection only one process may hold beyond the exclusive resource every transport already
+states (``Transport.exclusive_resource``). Kept apart from engine/endpoints/base.py, which is
+at its size limit.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 
 class WorkerHints:
-    """The defaults: a connection holds nothing beyond its exclusive resource, and a source runs
-    in one worker (each subscriber of a topic gets every message: two workers would carry each
-    message twice)."""
+    """The defaults: a source's subscribers each get every message (one worker runs it), and a
+    connection holds nothing beyond its exclusive resource."""
+
+    shares_sources: ClassVar[bool] = False
+    """True when every instance's source competes for one stream (a broker queue): each
+    message reaches one instance anyway, so ``active_standby`` is refused (use ``ordered``)."""
+
+    def spreads_over_workers(self, options: Any) -> bool:
+        """True when every worker may run a source with these (typed) options: its consumers
+        compete for one stream and the broker hands each message to one of them (by default
+        :attr:`shares_sources`: an AMQP queue; an MQTT shared subscription says so per source).
+        False: the route runs on one worker, as each subscriber would get every message."""
+        return self.shares_sources
 
     def worker_affinity(self, connection: str, settings: Any) -> str | None:
         """A key for what connection ``connection`` (these typed settings) is that one process
@@ -24,9 +36,3 @@ class WorkerHints:
         the address it heard last); its routes run on the one worker that holds it. None: any
         worker may open the connection."""
         return None
-
-    def spreads_over_workers(self, options: Any) -> bool:
-        """True when every worker may run a source with these (typed) options: its consumers
-        compete for one stream and the broker hands each message to one of them (an AMQP
-        queue, an MQTT shared subscription). False: the route runs on one worker."""
-        return False
