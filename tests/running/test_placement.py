@@ -62,6 +62,18 @@ def test_a_broker_queue_runs_on_every_worker_and_a_subscription_on_one(tmp_path:
     assert placement.on(0) | placement.on(1) | placement.on(2) == {"orders", "fix-a", "fix-b"}
 
 
+def test_an_ordered_queue_and_its_partitions_run_on_every_worker(tmp_path: Path):
+    """``ordered: true``: every worker waits on the single-active-consumer queue, one consumes;
+    ``ordered: {partitions: 4}``: each worker's source names itself (host, pid), so the
+    partitions spread over the workers as over instances (engine/endpoints/amqp/partitions.py)."""
+    routes = (amqp_route("commands", "    ordered: true\n")
+              + "  - name: telemetry\n    source: {amqp: {connection: bus, exchange: farm, binding_key: 't.#'}}\n"
+                "    ordered: {partitions: 4}\n    schema: raw_json\n"
+                "    sink: {amqp: {connection: bus, exchange: out, routing_key: t}}\n")
+    placement = place_routes(config(tmp_path, routes), 2)
+    assert placement.routes["commands"].workers == placement.routes["telemetry"].workers == (0, 1)
+
+
 def test_an_mqtt_shared_subscription_spreads_and_a_session_stays_on_one_worker(tmp_path: Path):
     """``shared: GROUP``: the broker hands each message to one member of the group, so every
     worker subscribes; a plain subscription gives each subscriber every message (one worker);
