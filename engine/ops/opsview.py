@@ -100,7 +100,8 @@ def status_table(status: dict[str, Any], last_canonical: bool = False, width: in
     if workers:  # run --workers N: the supervisor's document (engine/ops/supervisor_admin.py)
         up = sum(1 for w in workers if w.get("up"))
         header.append(Text.assemble(("\nworkers ", "dim"), (f"{up}/{len(workers)} up", "green" if up == len(workers) else "red"), *(
-            (f"  {w['index']}: pid {w['pid']}, {len(w.get('routes', []))} routes, restarts {w['restarts']}", "dim") for w in workers)))
+            (f"  {w['index']}: pid {w['pid']}, {len(w.get('routes', []))} routes, restarts {w['restarts']}"
+             + (f", cpu {w['cpu_s']} s, rss {w['rss_mib']} MiB" if "cpu_s" in w else ""), "dim") for w in workers)))
     rejected = [f"{name}: " + ", ".join(f"{key} {count}" for key, count in c["rejected"].items() if count)
                 for name, c in connections.items() if any((c.get("rejected") or {}).values())]
     if rejected:

@@ -39,6 +39,7 @@ import signal
 import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable
 
 import aiohttp
@@ -97,7 +98,20 @@ class Worker:
         return {"index": self.index, "pid": self.pid, "up": self.up, "restarts": self.restarts,
                 "admin_port": self.admin_port, "last_exit": self.last_exit,
                 "uptime_s": round(time.monotonic() - self.started_at, 1) if self.up else 0.0,
+                **(process_usage(self.pid) if self.up and self.pid is not None else {}),
                 "routes": sorted(placement.on(self.index)) if placement is not None else []}
+
+
+def process_usage(pid: int) -> dict[str, float]:
+    """The CPU seconds (user + system) a process used since it started and its resident memory
+    (MiB), from Linux's /proc: how the load spreads over the workers; empty elsewhere."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        pages = int(Path(f"/proc/{pid}/statm").read_text().split()[1])
+    except (OSError, IndexError, ValueError):
+        return {}
+    return {"cpu_s": round((int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), 2),
+            "rss_mib": round(pages * os.sysconf("SC_PAGE_SIZE") / 2**20, 1)}
 
 
 @dataclass

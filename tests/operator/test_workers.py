@@ -115,6 +115,7 @@ def test_a_worker_killed_under_load_loses_nothing_and_comes_back(tmp_path: Path,
     assert result["at_kill"] < TOTAL, "the kill came after the drain: nothing was in flight"
     worker = result["status"]["workers"][0]
     assert worker["last_exit"] == -signal.SIGKILL and worker["restarts"] == 1
+    assert worker["cpu_s"] >= 0 and worker["rss_mib"] > 10  # a running engine process, read from /proc
     assert result["received"] >= TOTAL  # at least once: what worker 0 held may arrive twice
     assert result["route"]["workers"] == [0, 1]
     samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
