@@ -22,7 +22,7 @@ a device or a link by one. The supervisor itself runs no route; it owns:
   the worker's admin already answers status, metrics, health and taps, so the supervisor
   merges documents instead of a second encoding of them). A worker tells its port over a pipe
   (``--worker-channel FD``) once its routes run;
-* **reloads** (:meth:`Supervisor.reload`), one generation for all workers, see there;
+* **reloads** (:meth:`Supervisor.reload`), one generation for all workers or none, see there;
 * **a clean stop**: SIGTERM (or SIGINT) to the supervisor sends SIGTERM to every worker,
   each drains as a single engine does (``--drain-timeout``), and the supervisor waits for all.
 """
@@ -48,6 +48,7 @@ from engine.common.backoff import Backoff
 from engine.language.routes import RoutesInvalid
 from engine.language.specs import RoutesConfig
 from engine.running.placement import WorkerPlacement, place_routes
+from engine.running.worker import ROLL_BACK_SIGNAL
 
 log = logging.getLogger("engine.ops.supervisor")
 
@@ -276,20 +277,23 @@ class Supervisor:
     # -- reloading
 
     async def reload(self) -> bool:
-        """Apply the routes as they are now to every worker, as one generation.
+        """Apply the routes as they are now to every worker, as one generation: all or none.
 
-        What is guaranteed: the supervisor compiles, vets and places the directory once; a
-        directory that does not compile (or whose route tests fail under ``--test-on-reload``)
-        reaches no worker, and every worker keeps the generation it runs. One that compiles is
-        applied by every worker, each all or nothing for itself (a reload that fails in a worker
-        leaves that worker's routes as they were: engine/running/runtime.py). What is not: an
-        atomic switch across processes. A worker that fails to apply a generation the
-        supervisor accepted (only its own process can cause that: a device not yet released,
-        a connection that cannot open under ``--require-connections``) keeps its previous
-        routes while the others switched; the supervisor names it in ``reloads.split`` and
-        starts it again, so it comes up on the new generation (or keeps failing, counted in its
-        ``restarts``). A worker that read the files after a further edit reports another hash:
-        the watch has seen that edit too, and the next reload brings every worker to it."""
+        The supervisor compiles, vets and places the directory once: a directory that does not
+        compile (or whose route tests fail under ``--test-on-reload``) reaches no worker. One
+        that compiles goes to every worker (SIGHUP), each applying it all or nothing for itself
+        (engine/running/runtime.py). A worker can still refuse it for a reason of its own
+        process (a connection that cannot open under ``--require-connections``, a device not yet
+        released): then the workers that did switch are told to go back (:data:`ROLL_BACK_SIGNAL`:
+        each applies again the generation it ran before, kept in memory, engine/running/worker.py)
+        and the reload counts as rejected, naming the worker and its reason; every worker runs
+        the previous generation again. What is not guaranteed: an atomic switch. Between a
+        worker's switch and its rollback it converts messages with the new generation, and a
+        rollback that fails itself (rare: the old generation ran a moment ago) leaves that
+        worker on the new one, named in ``reloads.split``. A worker down during the reload
+        starts again on the files as they are (the new generation), and one that read the files
+        after a further edit reports another hash: the watch saw that edit too, and the next
+        reload brings every worker to it."""
         async with self._lock:
             try:
                 config = await asyncio.to_thread(self.compile_routes)
@@ -297,7 +301,8 @@ class Supervisor:
                 return self._rejected([str(problem) for problem in invalid.problems])
             except Exception as error:  # the supervisor must outlive whatever the loader did not foresee
                 return self._rejected([f"{self.args.routes}: cannot load: {type(error).__name__}: {error}"])
-            if self.config is not None and config.content_hash == self.config.content_hash:
+            old = self.config.content_hash if self.config is not None else None
+            if config.content_hash == old:
                 return True
             before = {worker.index: await self.worker_status(worker) for worker in self.workers}
             for worker in self.workers:
@@ -306,33 +311,62 @@ class Supervisor:
                         worker.process.send_signal(signal.SIGHUP)
             outcomes = await asyncio.gather(*(self._applied(worker, before[worker.index], config.content_hash)
                                               for worker in self.workers))
+            refused = {index: errors for index, (found, errors) in enumerate(outcomes) if found == old}
+            if refused:
+                switched = [self.workers[index] for index, (found, _) in enumerate(outcomes) if found == config.content_hash]
+                back = await self._roll_back(switched, str(old))
+                self.reloads.split = {index: found for index, found in back.items() if found != old}
+                if self.reloads.split:
+                    log.error("a worker could not go back to the previous generation", extra={"workers": self.reloads.split})
+                return self._rejected([f"worker {index} refused generation {config.content_hash}: "
+                                       + ("; ".join(errors) or "no reason given") for index, errors in refused.items()])
             self.config, self.placement = config, place_routes(config, len(self.workers))
             self.generation += 1
-            self.reloads.split = {index: found for index, found in enumerate(outcomes) if found != config.content_hash}
-            if self.reloads.split:
-                log.error("a worker did not take the generation; starting it again", extra={
-                    "generation": self.generation, "config_hash": config.content_hash, "workers": self.reloads.split})
-                for index in self.reloads.split:
+            self.reloads.split = {index: found for index, (found, _) in enumerate(outcomes) if found != config.content_hash}
+            for index, found in self.reloads.split.items():
+                if found == "timed out":  # still applying, or stuck: started again on the files as they are
                     await self._restart(self.workers[index])
             self.reloads.succeeded += 1
             self.reloads.last_error = []
-            log.info("reload applied on every worker", extra={"generation": self.generation, "config_hash": config.content_hash})
+            log.info("reload applied on every worker", extra={"generation": self.generation, "config_hash": config.content_hash,
+                                                              **({"split": self.reloads.split} if self.reloads.split else {})})
             return True
 
-    async def _applied(self, worker: Worker, before: dict[str, Any] | None, wanted: str) -> str:
-        """The config hash ``worker`` runs once its reload settled: ``wanted``, or what it kept
-        (its reload rejected), or ``"down"``."""
+    async def _applied(self, worker: Worker, before: dict[str, Any] | None, wanted: str) -> tuple[str, list[str]]:
+        """The config hash ``worker`` runs once its reload settled (``wanted``, or what it kept
+        when its reload was rejected, then with the worker's reasons), ``"down"`` or ``"timed out"``."""
         rejected = before["reloads"]["rejected"] if before else 0
         deadline = time.monotonic() + RELOAD_TIMEOUT_S
         while time.monotonic() < deadline:
             status = await self.worker_status(worker)
             if status is None:
                 if not worker.up:
-                    return "down"  # it starts again on the files as they are (Supervisor._keep)
-            elif status["config_hash"] == wanted or status["reloads"]["rejected"] > rejected:
-                return str(status["config_hash"])
+                    return "down", []  # it starts again on the files as they are (Supervisor._keep)
+            elif status["config_hash"] == wanted:
+                return wanted, []
+            elif status["reloads"]["rejected"] > rejected:
+                return str(status["config_hash"]), list(status["reloads"]["last_error"])
             await asyncio.sleep(POLL_S)
-        return "timed out"
+        return "timed out", []
+
+    async def _roll_back(self, workers: list[Worker], old: str) -> dict[int, str]:
+        """Tell ``workers`` to go back to generation ``old``; the hash each runs then."""
+        for worker in workers:
+            if worker.process is not None and worker.process.returncode is None:
+                with contextlib.suppress(ProcessLookupError):
+                    worker.process.send_signal(ROLL_BACK_SIGNAL)
+        hashes = {}
+        for worker in workers:
+            deadline, found = time.monotonic() + RELOAD_TIMEOUT_S, "timed out"
+            while time.monotonic() < deadline:
+                status = await self.worker_status(worker)
+                found = "down" if status is None and not worker.up else str(status["config_hash"]) if status else found
+                if found in (old, "down"):
+                    break
+                await asyncio.sleep(POLL_S)
+            hashes[worker.index] = found
+        log.warning("rolled back: a worker refused the generation", extra={"workers": [w.index for w in workers], "config_hash": old})
+        return hashes
 
     async def _restart(self, worker: Worker) -> None:
         if worker.process is not None and worker.process.returncode is None:

@@ -11,6 +11,8 @@ its new worker; both are the same pure function of the same files.
 
 from __future__ import annotations
 
+import asyncio
+import gc
 import json
 import logging
 import os
@@ -24,13 +26,57 @@ from engine.language.specs import RoutesConfig
 from engine.running.placement import place_routes
 from engine.running.runtime import Engine, _Reload
 
+log = logging.getLogger("engine.running.worker")
+
+
+ROLL_BACK_SIGNAL = signal.SIGUSR1
+"""The supervisor's "go back to the generation you ran before" (engine/ops/supervisor.py)."""
+
 
 class WorkerEngine(Engine):
-    """An :class:`Engine` that runs the routes of worker ``index`` of ``workers``."""
+    """An :class:`Engine` that runs the routes of worker ``index`` of ``workers``, and goes back
+    to its previous generation when the supervisor asks (:data:`ROLL_BACK_SIGNAL`)."""
 
     def __init__(self, *args: Any, index: int, workers: int, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.index, self.workers = index, workers
+        self._applied: tuple[RoutesConfig, SchemaRegistry] | None = None
+        self._previous: tuple[RoutesConfig, SchemaRegistry] | None = None
+        """The compiled generation this worker ran before the last one it applied, kept in memory:
+        the files on disk are already the new generation's when a rollback is asked for."""
+        self._rolling_back: asyncio.Task[bool] | None = None
+
+    async def start(self) -> None:
+        await super().start()
+        asyncio.get_running_loop().add_signal_handler(ROLL_BACK_SIGNAL, self._roll_back_asked)
+
+    async def _apply(self, everywhere: RoutesConfig, schemas: SchemaRegistry) -> None:
+        await super()._apply(everywhere, schemas)  # raises (and changes nothing) when it fails
+        self._previous, self._applied = self._applied, (everywhere, schemas)
+
+    def _roll_back_asked(self) -> None:
+        if self._rolling_back is None or self._rolling_back.done():
+            self._rolling_back = asyncio.create_task(self.roll_back(), name="roll-back")
+
+    async def roll_back(self) -> bool:
+        """Apply again the generation this worker ran before its last reload (another worker
+        refused the new one: engine/ops/supervisor.py ``Supervisor.reload``). Messages it
+        converted meanwhile were converted by the new generation; a rollback that fails leaves
+        the new generation running, and says so in the log and the status's reloads."""
+        gc.unfreeze()
+        async with self._lock:
+            previous = self._previous
+            if previous is None:
+                return False
+            try:
+                await self._apply(*previous)
+            except Exception as error:  # the worker must outlive it; the supervisor sees the hash it kept
+                log.exception("rollback failed")
+                self._rejected([f"rollback to {previous[0].content_hash}: {type(error).__name__}: {error}"])
+                return False
+            log.warning("rolled back: another worker refused the generation", extra={"generation": self.generation,
+                                                                                       "config_hash": previous[0].content_hash})
+            return True
 
     def _plan(self, everywhere: RoutesConfig, schemas: SchemaRegistry) -> _Reload:
         placed = place_routes(everywhere, self.workers).on(self.index)

@@ -264,3 +264,76 @@ def test_an_mqtt_shared_subscription_is_split_between_the_workers(tmp_path: Path
     received = [w["status"]["routes"][f"weather-{tag}"]["received"] for w in status["workers"]]
     print(f"MQTT shared subscription over 2 workers: received {received}")
     assert all(count > 0 for count in received) and sum(received) >= MQTT_TOTAL, received
+
+
+ROLLBACK_ROUTES = """
+connections:
+  broker: {{amqp: "{url}"}}
+  vehicle: {{mavlink: "udpin:127.0.0.1:{port}", heartbeat: 0}}
+routes:
+  - name: pass-{tag}
+    source: {{amqp: {{connection: broker, exchange: {tag}-in, binding_key: "#", queue: {tag}-q}}}}
+    schema: raw_json
+    sink: {{amqp: {{connection: broker, exchange: {tag}-out, routing_key: "{key}"}}}}
+  - name: heartbeats-{tag}
+    source: {{mavlink: {{connection: vehicle, message: HEARTBEAT}}}}
+    schema: raw_json
+    mapping: '{{type: type}}'
+    sink: {{amqp: {{connection: broker, exchange: {tag}-out, routing_key: heartbeat}}}}
+"""
+
+
+def test_a_generation_one_worker_refuses_is_rolled_back_on_the_others(tmp_path: Path, amqp_url: str) -> None:
+    """``--require-connections``: an edit changes the queue route's routing key (every worker)
+    and moves the vehicle's link to a UDP port another socket holds. The supervisor accepts the
+    files; the worker that must open the link cannot and refuses; the worker that switched is
+    told to go back. Every worker then runs the first generation (its hash), the reload counts
+    as rejected naming the worker, and messages published afterwards still get the first
+    routing key: no worker converts with the refused generation."""
+    import socket
+
+    tag = "b" + uuid.uuid4().hex[:8]
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    route_file = routes / "r.yaml"
+    free, busy = listening_port(kind=socket.SOCK_DGRAM), listening_port(kind=socket.SOCK_DGRAM)
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # no SO_REUSEADDR: the engine's bind must fail
+    holder.bind(("127.0.0.1", busy))
+    route_file.write_text(ROLLBACK_ROUTES.format(url=amqp_url, tag=tag, key="first", port=free))
+    port = listening_port()
+    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--workers", "2", "--admin", str(port), "--require-connections")
+
+    async def scenario() -> tuple[dict[str, Any], dict[str, Any], list[str]]:
+        connection = await aio_pika.connect(amqp_url)
+        out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
+        try:
+            first = await admin_status(port)
+            route_file.write_text(ROLLBACK_ROUTES.format(url=amqp_url, tag=tag, key="second", port=busy))
+
+            async def rejected() -> dict[str, Any] | None:
+                status = await admin_status(port)
+                return status if status["reloads"]["rejected"] == 1 else None
+
+            after = await wait_for(rejected, 90, "the generation refused by one worker and rolled back", lambda: engine.log())
+
+            async def back() -> dict[str, Any] | None:
+                status = await admin_status(port)
+                hashes = {w["status"]["config_hash"] for w in status["workers"] if w["status"]}
+                return status if hashes == {first["config_hash"]} and all(w["up"] for w in status["workers"]) else None
+
+            after = await wait_for(back, 60, "every worker back on the first generation", lambda: engine.log())
+            await publish(connection, tag, range(50))
+            await wait_for(lambda: len([m for m in out.messages if m.routing_key != "heartbeat"]) >= 50, 60, "50 messages")
+            return first, after, sorted({m.routing_key or "" for m in out.messages})
+        finally:
+            await connection.close()
+
+    try:
+        (first, after, keys), _ = engine.run(scenario)
+    finally:
+        holder.close()
+    assert after["generation"] == first["generation"] == 1 and after["config_hash"] == first["config_hash"]
+    assert "refused generation" in " ".join(after["reloads"]["last_error"]), after["reloads"]
+    assert after["reloads"]["split"] == {}
+    assert [w["restarts"] for w in after["workers"]] == [0, 0]  # went back in place, no restart
+    assert keys == ["first"] or keys == ["first", "heartbeat"], keys
