@@ -337,3 +337,18 @@ def test_a_generation_one_worker_refuses_is_rolled_back_on_the_others(tmp_path: 
     assert after["reloads"]["split"] == {}
     assert [w["restarts"] for w in after["workers"]] == [0, 0]  # went back in place, no restart
     assert keys == ["first"] or keys == ["first", "heartbeat"], keys
+
+
+@pytest.mark.fast
+def test_invalid_routes_start_no_worker(tmp_path: Path) -> None:
+    """The supervisor checks the routes before it starts anything: a file with a problem exits
+    2 naming the file, line and route, and no worker process was started."""
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text("routes:\n  - name: typo\n    source: {amqp: {queue: q, prefetchh: 10}}\n"
+                                   "    schema: raw_json\n    sink: {amqp: {exchange: out}}\n")
+    result = subprocess.run([sys.executable, "-m", "engine", "run", "--routes", str(routes), "--workers", "2", "--no-watch"],
+                            capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert f"{routes / 'r.yaml'}:3" in result.stderr and "prefetchh" in result.stderr
+    assert "worker" not in result.stderr.replace("--workers", "")  # no worker's line: none started
