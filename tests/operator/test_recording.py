@@ -222,3 +222,68 @@ def test_a_recording_engine_killed_with_9_leaves_all_but_the_last_second_readabl
     assert tail is None or "read up to the last whole chunk" in replayed.stderr, replayed.stderr
     print(f"kill -9: {len(arrivals)} delivered, {len(older)} older than 1 s all readable, {len(recorded)} canonical in the "
           f"file, tail: {tail}")
+
+
+def test_replay_to_sinks_sends_every_recorded_input_once_in_order_at_the_speed_asked(
+        tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str) -> None:
+    """``replay --to-sinks``: a recording of ~4 s of positions sent again into the route's real
+    sink (a RabbitMQ exchange, a queue bound to it): all of them, once each, in the order
+    received; at ``--speed 10`` the arrivals span about a tenth of the recorded span (from the
+    recording's receive times and the queue's arrival times), at ``max`` less than that."""
+    tag = "s" + uuid.uuid4().hex[:8]
+    routes = routes_dir(tmp_path, mosquitto, amqp_url, tag)
+    record = tmp_path / "recording"
+    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--record", str(record))
+    count = 100
+
+    async def traffic() -> None:
+        connection = await aio_pika.connect_robust(amqp_url)
+        async with connection:
+            collector = await Collector.bind(await connection.channel(), f"{tag}-out")
+            await publish(mosquitto, ((f"{tag}/{AGENTS[seq % 2]}/position", position(seq)) for seq in range(count)),
+                          window=4, pause=0.15)  # the field's pace: 25 steps over ~4 s
+            await collector.wait_for(count)
+
+    engine.run(traffic)
+    [file] = sorted(record.glob("*.mcap"))
+    received = sorted(m.log_time for c, m in read_tolerant(file)[0] if c.topic == "/routes/pos/in")
+    assert len(received) == count
+    recorded_span = (received[-1] - received[0]) / 1e9
+    assert recorded_span > 3.0, recorded_span
+
+    async def replayed(speed: str) -> tuple[list[str], float, str]:
+        connection = await aio_pika.connect_robust(amqp_url)
+        async with connection:
+            arrivals: list[tuple[float, str]] = []
+            channel = await connection.channel()
+            exchange = await channel.declare_exchange(f"{tag}-out", aio_pika.ExchangeType.TOPIC, durable=True)
+            queue = await channel.declare_queue(f"{tag}-{speed}", exclusive=True)
+            await queue.bind(exchange, "#")
+
+            async def arrived(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+                arrivals.append((time.monotonic(), json.loads(message.body)["id"]))
+
+            await queue.consume(arrived, no_ack=True)
+            command = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "engine", "replay", str(record), "--routes", str(routes), "--schemas", str(REPO / "schemas"),
+                "--to-sinks", "--speed", speed, cwd=REPO, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT)
+            output = (await asyncio.wait_for(command.communicate(), 120))[0].decode()
+            assert command.returncode == 0, output
+            # every message was confirmed (in the queue) before the command exited: wait until the
+            # queue is empty and all arrived; a duplicate (there must be none) would be counted
+            await wait_for(lambda: len(arrivals) >= count, 30, "the replayed messages", lambda: len(arrivals))
+            waiting = await channel.declare_queue(f"{tag}-{speed}", passive=True)
+            assert waiting.declaration_result.message_count == 0
+            return [identity for _, identity in arrivals], arrivals[-1][0] - arrivals[0][0], output
+
+    ids, span, output = asyncio.run(replayed("10"))
+    assert ids == [str(seq) for seq in range(count)], ids  # complete, once each, in order
+    assert f"{count} sent, 0 filtered, 0 not sent, at 10x" in output, output
+    print(f"--speed 10: recorded {recorded_span:.2f} s, arrivals over {span:.3f} s")
+    assert 0.7 * recorded_span / 10 <= span <= 2.0 * recorded_span / 10 + 0.3, (span, recorded_span)
+
+    ids, fastest, output = asyncio.run(replayed("max"))
+    assert ids == [str(seq) for seq in range(count)], ids
+    assert "as fast as the sinks take them" in output, output
+    print(f"--speed max: arrivals over {fastest:.3f} s")
+    assert fastest < span, (fastest, span)
