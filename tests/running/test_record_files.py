@@ -5,6 +5,7 @@ with the ``mcap`` library's reader (the summary of each finished file)."""
 from __future__ import annotations
 
 import base64
+import json
 import os
 from pathlib import Path
 
@@ -26,11 +27,17 @@ def feed(recorder: Recorder, route: str, first: int, count: int) -> None:
 
 
 def sequences(path: Path) -> tuple[list[int], dict[str, int]]:
+    """The ``seq`` of each canonical message of a finished file, in order (each paired with its
+    input: the same receive time, ``publish_time``), and the file's message count per channel."""
     with path.open("rb") as stream:
         reader = make_reader(stream)
         summary = reader.get_summary()
         assert summary is not None and summary.statistics is not None, f"{path} was not finished"
-        seen = [message.sequence for _, channel, message in reader.iter_messages(topics=["/routes/r/canonical"])]
+        received = {message.publish_time: json.loads(message.data)["text"] for _, _, message in reader.iter_messages(topics=["/routes/r/in"])}
+        seen = []
+        for _, _, message in reader.iter_messages(topics=["/routes/r/canonical"]):
+            assert received.get(message.publish_time) == message.data.decode(), "paired with its input by the receive time"
+            seen.append(json.loads(message.data)["seq"])
         counts = {summary.channels[key].topic: value for key, value in summary.statistics.channel_message_counts.items()}
     return seen, counts
 
