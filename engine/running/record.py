@@ -8,7 +8,7 @@ took, its JSON as sent, the route's JSON Schema as the channel's schema, encodin
 both channels: an input and the canonical message made of it share it, which is how
 ``rabbitros-engine replay`` (engine/ops/replay.py) pairs them (a window's message, made of no
 one input, carries the time it was sent). The ``in`` channel's ``sequence`` numbers the route's
-inputs from 1.
+inputs within the file, from 1 (the SDK counts per channel and file).
 
 Files are written by the Foxglove SDK's MCAP writer (``foxglove-sdk``: a Rust writer,
 ``foxglove.open_mcap``), on a :class:`foxglove.Context` of the recorder's own (nothing else
