@@ -26,6 +26,7 @@ from __future__ import annotations
 import base64
 import difflib
 import json
+import struct
 import sys
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -86,7 +87,7 @@ def read_records(path: Path, recording: Recording) -> Iterator[tuple[Channel, Me
                     channels[record.id] = record
                 elif isinstance(record, Message) and record.channel_id in channels:
                     yield channels[record.channel_id], record
-        except (McapError, EOFError, ValueError) as error:  # a killed writer's last chunk, cut short
+        except (McapError, EOFError, ValueError, struct.error) as error:  # a killed writer's last chunk, cut short
             recording.truncated.append(f"{path}: {type(error).__name__}: {error}")
 
 

@@ -62,6 +62,9 @@ FILE_PATTERN = "rabbitros-*.mcap"
 IN_TOPIC = "/routes/{route}/in"
 CANONICAL_TOPIC = "/routes/{route}/canonical"
 POLL_S = 0.05
+RETRY_S = 1.0
+"""After a file could not be written, the next is opened no sooner than this (recorded copies
+meanwhile dropped, counted): a full disk is not hammered with a new empty file every ``POLL_S``."""
 """How often the writer thread drains the queue: the route never wakes it (no per-message
 notify), so this bounds both the delay and how much one drain writes."""
 INPUT_SCHEMA: dict[str, Any] = {
@@ -159,6 +162,10 @@ class Recorder:
         """Per route: its ``in`` channel (the same whatever the route's schema: its ``sequence`` goes on)."""
         self._canonical: dict[_Channels, foxglove.Channel] = {}
         self._logs: dict[_Channels, tuple[Any, Any]] = {}
+        self._unflushed: dict[str, int] = {}
+        self._retry_at = 0.0
+        """Monotonic time before which no new file is opened after a failure (:data:`RETRY_S`)."""
+        """Per route: messages logged to the file since its last flush (``written`` once flushed)."""
         """Per route's channels: the ``log`` of its ``in`` and ``canonical`` SDK channels."""
         self._offset_ns = time.time_ns() - time.monotonic_ns()
         """Receive times are monotonic; recorded as wall time with one offset for the recorder's
@@ -214,6 +221,7 @@ class Recorder:
                 current = self._file
                 if current is not None and (stopping or now - last_flush >= self.limits.flush_s):
                     current.flush()
+                    self._flushed()
                     last_flush = now
                     if current.full(self.limits, now):
                         self._close()
@@ -229,23 +237,35 @@ class Recorder:
                 break
         try:
             self._close()
+            self._flushed()
         except OSError as error:
             self._failed(error)
 
+    def _flushed(self) -> None:
+        """What was logged since the last flush is in the file: counted written."""
+        self.written += sum(self._unflushed.values())
+        self._unflushed.clear()
+
     def _failed(self, error: OSError) -> None:
+        """The file cannot be written: what is queued, and what was logged to the file since its
+        last flush, is dropped, counted by route (chunks of it that filled up and reached the
+        file before the one the disk refused are readable nonetheless: the SDK says nothing of
+        which did); the file is abandoned and, after :data:`RETRY_S`, the next message opens a
+        new one."""
         self.write_errors += 1
         if self.last_error != str(error):
             log.error("recording failed; recorded copies are dropped until a file can be written", extra={"error": str(error)})
         self.last_error = str(error)
+        for route, count in self._unflushed.items():
+            self.drop(route, count)
+        self._unflushed.clear()
         while self.queue:
             channels, *_ = self.queue.popleft()
             self.drop(channels.route, 1)
-        current, self._file = self._file, None  # the next message opens a new file
+        self._retry_at = time.monotonic() + RETRY_S
+        current, self._file = self._file, None
         if current is not None:
-            try:
-                current.finish()  # detached from the context, so nothing more is logged to it
-            except Exception:  # noqa: BLE001 - its disk failed already: what it says next adds nothing
-                pass
+            current.abandon()
 
     def _drain(self) -> None:
         """Write what is queued. Per message this is the cost of recording beside the route's
@@ -254,26 +274,31 @@ class Recorder:
         queue = self.queue
         if not queue:
             return
-        self._file or self._open()
+        if self._file is None and time.monotonic() < self._retry_at:
+            while queue:
+                channels, *_ = queue.popleft()
+                self.drop(channels.route, 1)
+            return
+        stream = (self._file or self._open()).stream
         offset_ns = self._offset_ns
+        unflushed = self._unflushed
         last: _Channels | None = None
         log_input = log_canonical = None
-        written = 0
-        try:
-            while queue:
-                channels, inbound, outbound, sent_at_ns = queue.popleft()
-                if channels is not last:
-                    log_input, log_canonical = self._logs.get(channels) or self._channels(channels)
-                    last = channels
-                if inbound is not None:
-                    received_at_ns = inbound.received_ns + offset_ns
-                    log_input(_input_json(inbound, received_at_ns), received_at_ns, None)  # type: ignore[misc]
-                elif outbound is not None:
-                    received_ns = outbound.received_ns
-                    log_canonical(outbound.body, sent_at_ns if received_ns is None else received_ns + offset_ns, None)  # type: ignore[misc]
-                written += 1
-        finally:
-            self.written += written
+        route = ""
+        while queue:
+            if stream.error is not None:  # the disk refused a chunk: stop logging into a writer that failed
+                raise stream.error
+            channels, inbound, outbound, sent_at_ns = queue.popleft()
+            if channels is not last:
+                log_input, log_canonical = self._logs.get(channels) or self._channels(channels)
+                last, route = channels, channels.route
+            if inbound is not None:
+                received_at_ns = inbound.received_ns + offset_ns
+                log_input(_input_json(inbound, received_at_ns), received_at_ns, None)  # type: ignore[misc]
+            elif outbound is not None:
+                received_ns = outbound.received_ns
+                log_canonical(outbound.body, sent_at_ns if received_ns is None else received_ns + offset_ns, None)  # type: ignore[misc]
+            unflushed[route] = unflushed.get(route, 0) + 1
 
     def _channels(self, channels: _Channels) -> tuple[Any, Any]:
         """The ``log`` of the route's two SDK channels (declared on first use; a route whose
@@ -325,6 +350,43 @@ class Recorder:
             self.files_removed += 1
 
 
+class _Stream:
+    """The file as the SDK's writer writes it (``write``, ``seek``, ``flush``; a chunk at a time,
+    buffered): it keeps the first error, which the SDK only logs (``log`` raises nothing), so the
+    writer thread sees a full or vanished disk at once and abandons the file."""
+
+    def __init__(self, path: Path) -> None:
+        self.file = open(path, "wb")  # closed by close()
+        self.error: OSError | None = None
+
+    def write(self, data: bytes) -> int:
+        try:
+            return self.file.write(data)
+        except OSError as error:
+            self.error = self.error or error
+            raise
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        try:
+            return self.file.seek(offset, whence)
+        except OSError as error:
+            self.error = self.error or error
+            raise
+
+    def flush(self) -> None:
+        try:
+            self.file.flush()
+        except OSError as error:
+            self.error = self.error or error
+            raise
+
+    def close(self) -> None:
+        try:
+            self.file.close()
+        except OSError:  # its disk failed: what it says next adds nothing
+            pass
+
+
 class _File:
     """One MCAP file being written: the SDK's writer on the recorder's context (every channel of
     the context is written to it from its first message in this file)."""
@@ -335,19 +397,47 @@ class _File:
 
         self.path = path
         self.opened = time.monotonic()
+        self.stream = _Stream(path)
         options = MCAPWriteOptions(compression=MCAPCompression.Zstd, chunk_size=chunk_bytes, compression_threads=0,
                                    profile="")
-        self.writer = foxglove.open_mcap(path, context=context, writer_options=options)  # closed by finish()
-        self.writer.write_metadata("rabbitros", {"engine_version": __version__, "layout": "routes/NAME/in, routes/NAME/canonical"})
+        try:
+            self.writer = foxglove.open_mcap(self.stream, context=context, writer_options=options)  # type: ignore[arg-type]
+            self.writer.write_metadata("rabbitros", {"engine_version": __version__, "layout": "routes/NAME/in, routes/NAME/canonical"})
+        except Exception as error:  # the SDK's FoxgloveError: a disk that refused the header
+            self.stream.close()
+            path.unlink(missing_ok=True)  # nothing of it could be read
+            raise self.stream.error or OSError(str(error)) from None
 
     def flush(self) -> None:
-        self.writer.flush()
+        """Write the chunk in progress; an OSError when the disk refused it (now or before)."""
+        try:
+            self.writer.flush()
+        except Exception as error:  # the SDK's FoxgloveError: the stream knows the OSError behind it
+            raise self.stream.error or OSError(str(error)) from None
+        if self.stream.error is not None:
+            raise self.stream.error
 
     def full(self, limits: RecordLimits, now: float) -> bool:
         return _size(self.path) >= limits.file_bytes or now - self.opened >= limits.file_seconds
 
     def finish(self) -> None:
-        self.writer.close()
+        """Write the summary and close the file (detached from the context)."""
+        try:
+            self.writer.close()
+        except Exception as error:  # the SDK's FoxgloveError, after a write the disk refused
+            raise self.stream.error or OSError(str(error)) from None
+        finally:
+            self.stream.close()
+        if self.stream.error is not None:
+            raise self.stream.error
+
+    def abandon(self) -> None:
+        """Detach a file whose disk failed from the context; what it holds is what it holds."""
+        try:
+            self.writer.close()
+        except Exception:  # noqa: BLE001 - the failure was counted already
+            pass
+        self.stream.close()
 
 
 def _input_json(inbound: Inbound, received_at_ns: int) -> bytes:
