@@ -23,12 +23,15 @@ from typing import Any
 
 import aio_pika
 import jsonschema
+import pytest
 from mcap.reader import make_reader
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
 from engine.common.processes import listening_port
 from engine.endpoints.mqtt.broker import LocalMosquitto
+from engine.ops.cli import build_parser
+from engine.ops.replay_sinks import parse_speed
 from tests.endpoints.mqtt.test_mqtt import publish
 from tests.support.amqp_helpers import Collector
 from tests.support.engine_process import EngineProcess
@@ -287,3 +290,15 @@ def test_replay_to_sinks_sends_every_recorded_input_once_in_order_at_the_speed_a
     assert "as fast as the sinks take them" in output, output
     print(f"--speed max: arrivals over {fastest:.3f} s")
     assert fastest < span, (fastest, span)
+
+
+@pytest.mark.fast
+def test_replay_speed_is_a_factor_above_0_or_max(capsys: pytest.CaptureFixture[str]) -> None:
+    parser = build_parser()
+    for speed, problem in (("0", "--speed must be above 0 or max, not '0'"), ("fast", "could not convert string to float: 'fast'")):
+        with pytest.raises(SystemExit) as refused:
+            parser.parse_args(["replay", "rec", "--to-sinks", "--speed", speed])
+        assert refused.value.code == 2 and problem in capsys.readouterr().err
+    assert parser.parse_args(["replay", "rec", "--to-sinks", "--speed", "max"]).speed is None
+    assert parser.parse_args(["replay", "rec", "--to-sinks"]).speed == 1.0
+    assert parse_speed("10") == 10.0 and parse_speed("MAX") is None
