@@ -32,6 +32,7 @@ from engine.language.stores import Stores
 from engine.ops.replay import Recording, inbound_of, read_recording, recording_files
 from engine.ops.route_tests import load_checked
 from engine.running.connections import ConnectionPool
+from engine.running.fanout import open_sinks
 from engine.running.pipeline import ConversionError, Filtered, Pipeline
 
 MAX_BATCH = 500
@@ -99,8 +100,9 @@ async def send_recorded(inputs: list[_Input], config: RoutesConfig, schemas: Sch
             schema = schemas.get(spec.schema)
             assert schema is not None  # the routes loaded
             reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
-            connection = await pool.get(config.connections[spec.sink.connection], retry_in_background=False)
-            pipelines[name] = Pipeline.compile(spec, 0, schema, connection.sink(spec.name, spec.sink.options), reply_schema, stores)
+            sink, _, _ = await open_sinks(spec, lambda end: pool.get(config.connections[end.connection], retry_in_background=False),
+                                          pool.is_open, stores)  # one sink, or a route's several (sinks:)
+            pipelines[name] = Pipeline.compile(spec, 0, schema, sink, reply_schema, stores)
         loop = asyncio.get_running_loop()
         started = loop.time()
         first_ns = inputs[0].at_ns if inputs else 0
