@@ -232,7 +232,9 @@ def test_replay_to_sinks_sends_every_recorded_input_once_in_order_at_the_speed_a
     """``replay --to-sinks``: a recording of ~4 s of positions sent again into the route's real
     sink (a RabbitMQ exchange, a queue bound to it): all of them, once each, in the order
     received; at ``--speed 10`` the arrivals span about a tenth of the recorded span (from the
-    recording's receive times and the queue's arrival times), at ``max`` less than that."""
+    recording's receive times and the queue's arrival times), at ``max`` less than that; and
+    through the routes as they are now: after an edit that gives the route two sinks (``sinks:``),
+    each sink gets every message, once, in order."""
     tag = "s" + uuid.uuid4().hex[:8]
     routes = routes_dir(tmp_path, mosquitto, amqp_url, tag)
     record = tmp_path / "recording"
@@ -254,17 +256,17 @@ def test_replay_to_sinks_sends_every_recorded_input_once_in_order_at_the_speed_a
     recorded_span = (received[-1] - received[0]) / 1e9
     assert recorded_span > 3.0, recorded_span
 
-    async def replayed(speed: str) -> tuple[list[str], float, str]:
+    async def replayed(speed: str, routes: Path = routes) -> tuple[list[tuple[str, str]], float, str]:
         connection = await aio_pika.connect_robust(amqp_url)
         async with connection:
-            arrivals: list[tuple[float, str]] = []
+            arrivals: list[tuple[float, str, str]] = []
             channel = await connection.channel()
             exchange = await channel.declare_exchange(f"{tag}-out", aio_pika.ExchangeType.TOPIC, durable=True)
-            queue = await channel.declare_queue(f"{tag}-{speed}", exclusive=True)
+            queue = await channel.declare_queue(f"{tag}-{speed}-{routes.name}", exclusive=True)
             await queue.bind(exchange, "#")
 
             async def arrived(message: aio_pika.abc.AbstractIncomingMessage) -> None:
-                arrivals.append((time.monotonic(), json.loads(message.body)["id"]))
+                arrivals.append((time.monotonic(), json.loads(message.body)["id"], message.routing_key or ""))
 
             await queue.consume(arrived, no_ack=True)
             command = await asyncio.create_subprocess_exec(
@@ -274,22 +276,39 @@ def test_replay_to_sinks_sends_every_recorded_input_once_in_order_at_the_speed_a
             assert command.returncode == 0, output
             # every message was confirmed (in the queue) before the command exited: wait until the
             # queue is empty and all arrived; a duplicate (there must be none) would be counted
-            await wait_for(lambda: len(arrivals) >= count, 30, "the replayed messages", lambda: len(arrivals))
-            waiting = await channel.declare_queue(f"{tag}-{speed}", passive=True)
+            expected = count * (2 if routes.name == "fan-out" else 1)
+            await wait_for(lambda: len(arrivals) >= expected, 30, "the replayed messages", lambda: len(arrivals))
+            waiting = await channel.declare_queue(queue.name, passive=True)
             assert waiting.declaration_result.message_count == 0
-            return [identity for _, identity in arrivals], arrivals[-1][0] - arrivals[0][0], output
+            return [(identity, key) for _, identity, key in arrivals], arrivals[-1][0] - arrivals[0][0], output
 
-    ids, span, output = asyncio.run(replayed("10"))
+    arrived, span, output = asyncio.run(replayed("10"))
+    ids = [identity for identity, _ in arrived]
     assert ids == [str(seq) for seq in range(count)], ids  # complete, once each, in order
     assert f"{count} sent, 0 filtered, 0 not sent, at 10x" in output, output
     print(f"--speed 10: recorded {recorded_span:.2f} s, arrivals over {span:.3f} s")
     assert 0.7 * recorded_span / 10 <= span <= 2.0 * recorded_span / 10 + 0.3, (span, recorded_span)
 
-    ids, fastest, output = asyncio.run(replayed("max"))
+    arrived, fastest, output = asyncio.run(replayed("max"))
+    ids = [identity for identity, _ in arrived]
     assert ids == [str(seq) for seq in range(count)], ids
     assert "as fast as the sinks take them" in output, output
     print(f"--speed max: arrivals over {fastest:.3f} s")
     assert fastest < span, (fastest, span)
+
+    # the routes as they are now: the route sends each message to two sinks (sinks:)
+    fan_out = tmp_path / "fan-out"
+    fan_out.mkdir()
+    one_sink = f'    sink: {{amqp: {{connection: bus, exchange: {tag}-out, routing_key: "pos.{{agent_id}}"}}}}\n'
+    two_sinks = (f'    sinks:\n'
+                 f'      - {{name: main, amqp: {{connection: bus, exchange: {tag}-out, routing_key: "pos.{{agent_id}}"}}}}\n'
+                 f'      - {{name: copy, amqp: {{connection: bus, exchange: {tag}-out, routing_key: "copy.{{agent_id}}"}}}}\n')
+    assert one_sink in (routes / "rec.yaml").read_text()
+    (fan_out / "rec.yaml").write_text((routes / "rec.yaml").read_text().replace(one_sink, two_sinks, 1))
+    arrived, _, output = asyncio.run(replayed("max", fan_out))
+    for prefix in ("pos.", "copy."):
+        assert [identity for identity, key in arrived if key.startswith(prefix)] == [str(seq) for seq in range(count)], arrived
+    assert f"{count} sent, 0 filtered, 0 not sent" in output, output
 
 
 @pytest.mark.fast
