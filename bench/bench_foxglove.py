@@ -1,21 +1,23 @@
 """Cost of ``--foxglove`` (issue 33: with no client, nothing measurable; with a client
 subscribed to every channel, route latency p99 within 10 % of without).
 
-The engine as a child process on a private RabbitMQ node, one route (AMQP queue -> position
-mapping -> ``position`` schema -> AMQP queue), in three modes: ``plain`` (no ``--foxglove``),
-``view`` (``--foxglove``, no client) and ``subscribed`` (a ``websockets`` client subscribed to
-the route's channel, ``/fleet`` and ``/routes/status``, reading every frame). Each round runs
-the modes one after the other on the same broker, so the machine's load moves them alike; the
-medians of the rounds are reported. Per mode and round:
+Three engines as child processes on one private RabbitMQ node, at the same time, each with one
+route (AMQP queue -> position mapping -> ``position`` schema -> AMQP queue) on queues of its own:
+``plain`` (no ``--foxglove``), ``view`` (``--foxglove``, no client) and ``subscribed`` (a
+``websockets`` client subscribed to the route's channel, ``/fleet`` and ``/routes/status``,
+reading every frame). Running the three in the same seconds puts a shared machine's load on all
+alike (one after the other, the p99 of separate runs moved between 5 and 400 ms with the
+machine's load). Per round:
 
-- CPU: COUNT messages published at once (confirmed), the engine's CPU time (user + system,
-  every thread: the SDK's server threads included) from before the first to the last delivered,
-  per message;
-- latency: LATENCY_COUNT messages published at RATE per second, each timed from its publish to
-  its arrival in the output queue (this process holds both clocks), p50 and p99. In
-  ``subscribed`` the client unsubscribes and subscribes again every second, so the same run
-  also gives the latency without a subscriber, under the same load (a shared machine's load
-  moves between runs far more than the view could).
+- CPU: COUNT messages published to each engine at once (confirmed), each engine's CPU time
+  (user + system, every thread: the SDK's server threads included) from before the first to the
+  last delivered, per message;
+- latency: LATENCY_COUNT messages published at RATE per second, each one to the three engines
+  back to back (the order turning with each message, so none is always first), each timed from
+  its publish to its arrival in its engine's output queue (this process holds both clocks): p50
+  and p99 per mode, and the ratio of ``subscribed`` and ``view`` to ``plain`` in that round.
+
+The medians over the rounds are reported.
 
     .venv/bin/python -m bench.bench_foxglove [--count 10000] [--latency-count 2000] [--rate 200] [--rounds 3]
 """
@@ -75,9 +77,6 @@ class Viewer:
         await self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [
             {"id": index, "channelId": channel} for index, channel in enumerate(self.channels.values())]}))
 
-    async def unsubscribe(self) -> None:
-        await self.ws.send(json.dumps({"op": "unsubscribe", "subscriptionIds": list(range(len(self.channels)))}))
-
     async def _read(self) -> None:
         async for frame in self.ws:
             if isinstance(frame, bytes):
@@ -93,95 +92,110 @@ class Viewer:
             await asyncio.gather(self._task, return_exceptions=True)
 
 
-async def one_round(url: str, work: Path, mode: str, count: int, latency_count: int, rate: float) -> dict[str, float]:
-    routes = work / "routes"
-    routes.mkdir(exist_ok=True)
-    (routes / "bench.yaml").write_text(routes_yaml(url, "fox-in", "fox-out"))
-    status_file = work / "status.json"
-    port = listening_port()
-    extra = [] if mode == "plain" else ["--foxglove", str(port)]
+class Engine:
+    """One engine of a round, on queues of its own (``fox-in-MODE``, ``fox-out-MODE``)."""
+
+    def __init__(self, url: str, work: Path, mode: str) -> None:
+        self.mode, self.work = mode, work
+        self.queue, self.out = f"fox-in-{mode}", f"fox-out-{mode}"
+        routes = work / "routes"
+        routes.mkdir(parents=True, exist_ok=True)
+        (routes / "bench.yaml").write_text(routes_yaml(url, self.queue, self.out))
+        self.status_file = work / "status.json"
+        self.port = listening_port()
+        extra = [] if mode == "plain" else ["--foxglove", str(self.port)]
+        with open(work / "engine.log", "w") as log:
+            self.process = subprocess.Popen([sys.executable, "-m", "engine", "--routes", str(routes), "--schemas",
+                                             str(REPO / "schemas"), "--status-file", str(self.status_file),
+                                             "--stats-interval", "0.2", *extra],
+                                            cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+        self.viewer = Viewer(self.port) if mode == "subscribed" else None
+
+    async def started(self, deadline: float) -> None:
+        while status(self.status_file).get("generation", 0) < 1:
+            if time.monotonic() > deadline or self.process.poll() is not None:
+                raise RuntimeError((self.work / "engine.log").read_text()[-2000:])
+            await asyncio.sleep(0.1)
+
+    async def cpu_us(self, broker: Broker, count: int, deadline: float) -> float:
+        began = process_cpu_seconds(self.process.pid)
+        await broker.prefill_confirmed(self.queue, [body(seq) for seq in range(count)])
+        while status(self.status_file).get("routes", {}).get("position", {}).get("delivered", 0) < count:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{self.mode}: stalled")
+            await asyncio.sleep(0.05)
+        return (process_cpu_seconds(self.process.pid) - began) / count * 1e6
+
+    async def stop(self) -> None:
+        if self.viewer is not None and self.viewer.ws is not None:
+            await self.viewer.stop()
+        self.process.terminate()
+        await asyncio.to_thread(self.process.wait, 60)
+
+
+async def one_round(url: str, work: Path, count: int, latency_count: int, rate: float) -> dict[str, dict[str, float]]:
     broker = Broker(url)
     await broker.open()
-    await broker.channel.queue_declare("fox-out", durable=True)
-    await broker.channel.queue_purge("fox-out")
-    with open(work / "engine.log", "w") as log:
-        engine = subprocess.Popen([sys.executable, "-m", "engine", "--routes", str(routes), "--schemas", str(REPO / "schemas"),
-                                   "--status-file", str(status_file), "--stats-interval", "0.2", *extra],
-                                  cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
-    viewer = Viewer(port) if mode == "subscribed" else None
+    engines = [Engine(url, work / mode, mode) for mode in MODES]
     try:
+        for engine in engines:
+            await broker.channel.queue_declare(engine.out, durable=True)
+            await broker.channel.queue_purge(engine.out)
         deadline = time.monotonic() + 60
-        while status(status_file).get("generation", 0) < 1:
-            if time.monotonic() > deadline or engine.poll() is not None:
-                raise RuntimeError((work / "engine.log").read_text()[-2000:])
-            await asyncio.sleep(0.1)
-        await asyncio.sleep(2)  # the same settling in every mode: the view's channels are made once the routes run
-        if viewer is not None:
-            await viewer.start()
-        began = process_cpu_seconds(engine.pid)
-        await broker.prefill_confirmed("fox-in", [body(seq) for seq in range(count)])
-        while status(status_file).get("routes", {}).get("position", {}).get("delivered", 0) < count:
-            if time.monotonic() > deadline + 300:
-                raise RuntimeError("stalled")
-            await asyncio.sleep(0.05)
-        cpu_us = (process_cpu_seconds(engine.pid) - began) / count * 1e6
-        latencies = await paced_latencies(url, latency_count, rate, offset=count, viewer=viewer)
-        result = {"cpu_us": cpu_us, "p50_ms": percentile(latencies[True], 0.5) * 1e3,
-                  "p99_ms": percentile(latencies[True], 0.99) * 1e3}
-        if viewer is not None:
-            result["frames"] = viewer.frames
-            result["off_p50_ms"] = percentile(latencies[False], 0.5) * 1e3
-            result["off_p99_ms"] = percentile(latencies[False], 0.99) * 1e3
-        return result
+        await asyncio.gather(*(engine.started(deadline) for engine in engines))
+        await asyncio.sleep(2)  # the same settling for all: the view's channels are made once the routes run
+        for engine in engines:
+            if engine.viewer is not None:
+                await engine.viewer.start()
+        costs = await asyncio.gather(*(engine.cpu_us(broker, count, deadline + 300) for engine in engines))
+        latencies = await paced_latencies(url, engines, latency_count, rate, offset=count)
+        results = {engine.mode: {"cpu_us": cost, "p50_ms": percentile(latencies[engine.mode], 0.5) * 1e3,
+                                 "p99_ms": percentile(latencies[engine.mode], 0.99) * 1e3}
+                   for engine, cost in zip(engines, costs)}
+        for engine in engines:
+            if engine.viewer is not None:
+                results[engine.mode]["frames"] = engine.viewer.frames
+        return results
     finally:
-        if viewer is not None:
-            await viewer.stop()
-        engine.terminate()
-        engine.wait(60)
+        for engine in engines:
+            await engine.stop()
         await broker.close()
 
 
-async def paced_latencies(url: str, count: int, rate: float, offset: int, viewer: Viewer | None = None) -> dict[bool, list[float]]:
-    """Seconds from publish to arrival in ``fox-out`` of ``count`` messages sent at ``rate``.
-    With a ``viewer``, it unsubscribes and subscribes again every second: the latencies while
-    subscribed (``True``) and not (``False``) come from the same minutes of the same engine,
-    so the machine's load (other work on a shared machine) moves both alike; messages sent
-    within 0.1 s of a switch are left out."""
+async def paced_latencies(url: str, engines: list[Engine], count: int, rate: float, offset: int) -> dict[str, list[float]]:
+    """Seconds from publish to arrival of ``count`` messages sent at ``rate`` to every engine,
+    each message to all of them back to back (the order turning), sorted, by mode."""
     connection = await aio_pika.connect(url)
     channel = await connection.channel()
-    queue = await channel.declare_queue("fox-out", durable=True)
-    await queue.purge()
-    sent: dict[str, float] = {}
-    subscribed: dict[str, bool | None] = {}
-    arrived: dict[str, float] = {}
-    state, switched = True, time.monotonic()
+    sent: dict[tuple[str, str], float] = {}
+    arrived: dict[tuple[str, str], float] = {}
     done = asyncio.Event()
 
-    async def on_message(message: aio_pika.abc.AbstractIncomingMessage) -> None:
-        arrived[json.loads(message.body)["id"]] = time.monotonic()
-        if len(arrived) >= count:
-            done.set()
+    def consumer(mode: str) -> Any:
+        async def on_message(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+            arrived[(mode, json.loads(message.body)["id"])] = time.monotonic()
+            if len(arrived) >= count * len(engines):
+                done.set()
+        return on_message
 
-    await queue.consume(on_message, no_ack=True)
+    for engine in engines:
+        queue = await channel.declare_queue(engine.out, durable=True)
+        await queue.purge()
+        await queue.consume(consumer(engine.mode), no_ack=True)
     began = time.monotonic()
     for index in range(count):
         seq = offset + index
-        now = time.monotonic()
-        if viewer is not None and now - switched >= 1.0:
-            state, switched = not state, now
-            await (viewer.subscribe() if state else viewer.unsubscribe())
-        sent[str(seq)] = now
-        subscribed[str(seq)] = state if viewer is None or now - switched >= 0.1 else None
-        await channel.default_exchange.publish(aio_pika.Message(body(seq), content_type="application/json"), "fox-in")
+        turn = index % len(engines)
+        for engine in engines[turn:] + engines[:turn]:
+            sent[(engine.mode, str(seq))] = time.monotonic()
+            await channel.default_exchange.publish(aio_pika.Message(body(seq), content_type="application/json"), engine.queue)
         delay = began + (index + 1) / rate - time.monotonic()
         if delay > 0.0005:
             await asyncio.sleep(delay)
     await asyncio.wait_for(done.wait(), 60)
     await connection.close()
-    if viewer is not None and not state:
-        await viewer.subscribe()
-    return {flag: sorted(arrived[key] - sent[key] for key in sent if key in arrived and subscribed[key] is flag)
-            for flag in (True, False)}
+    return {engine.mode: sorted(arrived[key] - sent[key] for key in sent if key[0] == engine.mode and key in arrived)
+            for engine in engines}
 
 
 def percentile(values: list[float], fraction: float) -> float:
@@ -216,28 +230,21 @@ def main() -> None:
     results: dict[str, list[dict[str, float]]] = {mode: [] for mode in MODES}
     with LocalBroker() as broker, tempfile.TemporaryDirectory() as directory:
         for index in range(args.rounds):
+            round_results = asyncio.run(one_round(broker.url, Path(directory) / str(index), args.count, args.latency_count, args.rate))
+            plain = round_results["plain"]
             for mode in MODES:
-                work = Path(directory) / f"{index}-{mode}"
-                work.mkdir()
-                result = asyncio.run(one_round(broker.url, work, mode, args.count, args.latency_count, args.rate))
+                result = round_results[mode]
+                result["cpu_ratio"] = result["cpu_us"] / plain["cpu_us"] - 1
+                result["p99_ratio"] = result["p99_ms"] / plain["p99_ms"] - 1
                 results[mode].append(result)
-                print(f"round {index}: {mode:10} {result['cpu_us']:7.1f} us CPU per message, latency p50 "
-                      f"{result['p50_ms']:6.2f} ms p99 {result['p99_ms']:6.2f} ms"
-                      + (f" subscribed; p50 {result['off_p50_ms']:6.2f} ms p99 {result['off_p99_ms']:6.2f} ms in the "
-                         f"seconds between, unsubscribed; {result['frames']} frames to the client" if "frames" in result else ""),
-                      flush=True)
-    medians = {mode: {key: statistics.median(r[key] for r in results[mode]) for key in ("cpu_us", "p50_ms", "p99_ms")}
-               for mode in MODES}
-    plain = medians["plain"]
+                print(f"round {index}: {mode:10} {result['cpu_us']:7.1f} us CPU per message ({result['cpu_ratio']:+.1%}), "
+                      f"latency p50 {result['p50_ms']:6.2f} ms p99 {result['p99_ms']:6.2f} ms ({result['p99_ratio']:+.1%})"
+                      + (f", {result['frames']:.0f} frames to the client" if "frames" in result else ""), flush=True)
     for mode in MODES:
-        m = medians[mode]
-        print(f"median {mode:10}: {m['cpu_us']:6.1f} us CPU per message ({m['cpu_us'] / plain['cpu_us'] - 1:+.1%}), "
-              f"p50 {m['p50_ms']:.2f} ms, p99 {m['p99_ms']:.2f} ms ({m['p99_ms'] / plain['p99_ms'] - 1:+.1%})")
-    alternating = {key: statistics.median(r[key] for r in results["subscribed"]) for key in ("p99_ms", "off_p99_ms")}
-    print(f"same engine, alternating each second: p99 subscribed {alternating['p99_ms']:.2f} ms, unsubscribed "
-          f"{alternating['off_p99_ms']:.2f} ms ({alternating['p99_ms'] / alternating['off_p99_ms'] - 1:+.1%})")
+        m = {key: statistics.median(r[key] for r in results[mode]) for key in ("cpu_us", "p50_ms", "p99_ms", "cpu_ratio", "p99_ratio")}
+        print(f"median {mode:10}: {m['cpu_us']:6.1f} us CPU per message (per round against plain: {m['cpu_ratio']:+.1%}), "
+              f"p50 {m['p50_ms']:.2f} ms, p99 {m['p99_ms']:.2f} ms ({m['p99_ratio']:+.1%})")
     print(f"({os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f})")
-
 
 if __name__ == "__main__":
     main()

@@ -17,7 +17,11 @@ It exits 0 only when every flow it promises carried messages: the supervisor saw
 flow, and every route of ``farm_uav_gcs.yaml`` delivered at least one message and dead-lettered
 none (the engine's final status); otherwise it names the flows that did not and exits 1.
 
-    .venv/bin/python examples/farm_demo.py [--duration 30] [--work DIR] [--plain]
+With ``--record DIR`` the engine records what every route received and sent (MCAP, engine
+``--record``; ``rabbitros-engine replay DIR --routes examples/farm_uav_gcs.yaml`` checks a
+mapping edit against it); ``--admin PORT`` fixes the admin port (the web console at ``/``).
+
+    .venv/bin/python examples/farm_demo.py [--duration 30] [--work DIR] [--plain] [--record DIR] [--admin PORT]
 """
 
 from __future__ import annotations
@@ -114,6 +118,8 @@ def main() -> int:
     parser.add_argument("--ros-domain", type=int, default=random.randint(1, 100),
                         help="ROS 2 domain of the engine and the robot (default: a random one, 1..100, so the "
                         "demo does not meet other ROS 2 programs on the machine)")
+    parser.add_argument("--record", type=Path, metavar="DIR", help="the engine records every route in MCAP files in DIR")
+    parser.add_argument("--admin", type=int, metavar="PORT", help="the engine's admin port on 127.0.0.1 (default: a free one)")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="rabbitros-farm-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -121,13 +127,14 @@ def main() -> int:
     env = {**os.environ, "ROS_DOMAIN_ID": str(args.ros_domain), "PYTHONPATH": str(REPO)}
     processes: list[subprocess.Popen[bytes]] = []
     lines: deque[str] = deque(maxlen=12)
-    admin = ("127.0.0.1", listening_port())
+    admin = ("127.0.0.1", args.admin or listening_port())
+    recording = ["--record", str(args.record)] if args.record else []
     with SikRadioPair(link_a=str(work / "radio-gcs"), link_b=str(work / "radio-uav"), seed=1) as radio:
         env["RABBITROS_RADIO"] = radio.link_a
         try:
             engine = spawn([str(Path(PYTHON).with_name("rabbitros-engine")), "--routes", "examples/farm_uav_gcs.yaml",
                             "--local-broker", "--broker-url-file", str(work / "url"), "--admin", f"{admin[0]}:{admin[1]}",
-                            "--status-file", str(work / "status.json"), "--stats-interval", "2"], env, work / "engine.log")
+                            "--status-file", str(work / "status.json"), "--stats-interval", "2", *recording], env, work / "engine.log")
             processes.append(engine)
             wait_for(work / "status.json", engine, 120)
             url = (work / "url").read_text().strip()

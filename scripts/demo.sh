@@ -7,4 +7,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
-exec timeout -s KILL 600 .venv/bin/python examples/farm_demo.py --duration "${DURATION:-30}"
+# RECORD=DIR records every route of the farm in MCAP files in DIR (docs/operations.md, Recording and replay).
+exec timeout -s KILL 600 .venv/bin/python examples/farm_demo.py --duration "${DURATION:-30}" ${RECORD:+--record "$RECORD"}

@@ -26,6 +26,7 @@ from engine.ops.dead_letter_tool import selection_of
 from engine.ops.local_broker import private_brokers, stand_in_for_check
 from engine.ops.opsview import AdminClient, print_status, print_tap
 from engine.ops.replay import run_from_recording, run_replay
+from engine.ops.replay_sinks import parse_speed, run_replay_to_sinks
 from engine.ops.route_tests import failing_tests, format_result, load_checked, run_tests
 from engine.ops.supervise import compiler, supervise
 from engine.ops.supervisor import Supervisor, worker_count
@@ -166,6 +167,11 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--ignore", action="append", default=[], metavar="KEY",
                         help="leave this key (a.b) of the canonical messages out of the comparison, e.g. what a mapping takes "
                              "from the clock (stamp()); repeatable")
+    replay.add_argument("--to-sinks", action="store_true",
+                        help="instead of comparing, send the recorded inputs through the routes as they are now to their real "
+                             "sinks, in the order received; exit 1 when one was not sent")
+    replay.add_argument("--speed", type=_speed, default=1.0, metavar="N|max",
+                        help="with --to-sinks: 1 = the recorded pace (default), 10 = ten times faster, max = as fast as the sinks take them")
 
     status = commands.add_parser("status", help="the live status of a running engine: a table from its admin endpoint, or the JSON of its status file")
     where = status.add_mutually_exclusive_group(required=True)
@@ -217,6 +223,13 @@ def _client(args: argparse.Namespace) -> AdminClient | int:
         return 2
 
 
+def _speed(text: str) -> float | None:
+    try:
+        return parse_speed(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _admin_address(text: str) -> tuple[str, int]:
     try:
         return parse_address(text)
@@ -240,6 +253,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return run_from_recording(args.from_recording, args.routes, schema_directories(args), args.route, args.count)
     if args.command == "test":
         return run_route_tests(args.routes, schema_directories(args))
+    if args.command == "replay" and args.to_sinks:
+        return run_replay_to_sinks(args.recording, args.routes, schema_directories(args), args.route, args.speed)
     if args.command == "replay":
         return run_replay(args.recording, args.routes, schema_directories(args), args.route, tuple(args.ignore))
     if args.command == "status":

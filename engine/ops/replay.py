@@ -2,7 +2,9 @@
 
 A recording (``--record``, engine/running/record.py) keeps, per route, each input as received
 (``/routes/NAME/in``) and the canonical message the sink took (``/routes/NAME/canonical``),
-paired by the MCAP ``sequence``. Replay converts every recorded input through the route's
+paired by their receive time (the MCAP ``publish_time`` both carry). Inputs are numbered in the
+order of the files (oldest first) and within them: ``#N`` in the report is that number (the MCAP
+``sequence`` of a single file's ``in`` channel). Replay converts every recorded input through the route's
 conversion as it is now (the very :class:`~engine.running.pipeline.Pipeline` the engine and
 ``rabbitros-engine test`` run: decode, mapping, schema, sink mapping; connecting to nothing)
 and compares the result with the canonical message recorded for it: one diff per message
@@ -24,6 +26,7 @@ from __future__ import annotations
 import base64
 import difflib
 import json
+import struct
 import sys
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -52,9 +55,11 @@ class RecordedRoute:
     """One route's recorded messages, by sequence."""
 
     inputs: dict[int, tuple[int, dict[str, Any]]] = field(default_factory=dict)
-    """sequence -> (log time ns, the input envelope)."""
+    """number (from 1, in the order recorded) -> (log time ns, the input envelope)."""
     canonical: dict[int, Any] = field(default_factory=dict)
-    """sequence -> the canonical message sent."""
+    """number -> the canonical message sent."""
+    received: dict[int, int] = field(default_factory=dict)
+    """An input's receive time (ns, its ``publish_time``) -> its number: what pairs a canonical message with it."""
 
 
 @dataclass
@@ -82,7 +87,7 @@ def read_records(path: Path, recording: Recording) -> Iterator[tuple[Channel, Me
                     channels[record.id] = record
                 elif isinstance(record, Message) and record.channel_id in channels:
                     yield channels[record.channel_id], record
-        except (McapError, EOFError, ValueError) as error:  # a killed writer's last chunk, cut short
+        except (McapError, EOFError, ValueError, struct.error) as error:  # a killed writer's last chunk, cut short
             recording.truncated.append(f"{path}: {type(error).__name__}: {error}")
 
 
@@ -95,9 +100,13 @@ def read_recording(paths: list[Path]) -> Recording:
             route_name, _, kind = channel.topic[len(_TOPIC_PREFIX):].rpartition("/")
             route = recording.routes.setdefault(route_name, RecordedRoute())
             if kind == "in":
-                route.inputs[message.sequence] = (message.log_time, json.loads(message.data))
-            elif kind == "canonical" and message.sequence:
-                route.canonical[message.sequence] = json.loads(message.data)
+                number = len(route.inputs) + 1
+                route.inputs[number] = (message.log_time, json.loads(message.data))
+                route.received[message.publish_time] = number
+            elif kind == "canonical":
+                sequence = route.received.get(message.publish_time, 0)
+                if sequence:  # else a window's message, or one whose input is in a file removed since
+                    route.canonical[sequence] = json.loads(message.data)
     return recording
 
 

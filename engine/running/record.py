@@ -4,39 +4,43 @@ Per route two channels: ``/routes/NAME/in`` (what the source handed over, as rec
 bytes, or a typed source's fields, with the source's metadata and the receive time; a JSON
 envelope, :data:`INPUT_SCHEMA`) and ``/routes/NAME/canonical`` (the canonical message the sink
 took, its JSON as sent, the route's JSON Schema as the channel's schema, encoding
-``jsonschema``). A message's ``sequence`` is the same on both channels (its number among the
-route's inputs), which is how ``rabbitros-engine replay`` (engine/ops/replay.py) pairs them;
-``log_time`` is when the engine received (``in``) or sent (``canonical``) it, ``publish_time``
-when it was received on both.
+``jsonschema``). ``log_time`` (= ``publish_time``) is when the engine received the input, on
+both channels: an input and the canonical message made of it share it, which is how
+``rabbitros-engine replay`` (engine/ops/replay.py) pairs them (a window's message, made of no
+one input, carries the time it was sent). The ``in`` channel's ``sequence`` numbers the route's
+inputs within the file, from 1 (the SDK counts per channel and file).
 
-Files are written by the ``mcap`` library (PyPI ``mcap``, the format's reference Python
-writer) rather than the Foxglove SDK's writer: the SDK's ``foxglove.open_mcap`` logs through the
-SDK's global channels (one process-wide context, every channel also offered to a live
-WebSocket server), offers no flush we call at the time we choose (we need a chunk out every
-second so a ``kill -9`` loses at most a second) and no rotation; ``mcap.writer.Writer`` is a
-plain object per file with ``flush()``, zstd or lz4 chunks, and is what the reader our tests
-use is tested against.
+Files are written by the Foxglove SDK's MCAP writer (``foxglove-sdk``: a Rust writer,
+``foxglove.open_mcap``), on a :class:`foxglove.Context` of the recorder's own (nothing else
+logged through the SDK, such as the ``--foxglove`` live view, lands in the file), with
+``flush()`` called when we choose (a chunk out every ``flush_s``, so a ``kill -9`` loses at most
+about a second) and rotation done here (one writer per file). It replaced the ``mcap`` library's
+pure-Python ``Writer``: ``add_message`` cost 2.5 us a message (zstd, 1 MiB chunks; lz4, no
+message index or no CRCs saved at most 0.3 us), the SDK's ``log`` 0.4-0.6 us (measured in one
+process, 100,000 messages each). The files are read by the ``mcap`` library's reader (tests,
+``replay``) as before.
 
 Recording never holds a route: the route appends a reference to a bounded deque (a few
 hundred nanoseconds, no lock, no serialisation: the canonical bytes are the ones the sink
 got, the input is serialised by the writer) and a writer thread drains it every
-``POLL_S``, writes chunks (zstd, else lz4, else none), flushes one at least every
-``limits.flush_s`` and rotates files by size and age; when the files together exceed
-``limits.total_bytes`` the oldest are removed. A full deque (a disk slower than the routes)
-drops the recorded copy, counted per route (status and ``rabbitros_recording_dropped_total``),
-never the message. A route with ``record: false``, or an engine without ``--record``, has no
-:class:`RouteRecording` and pays one ``is None`` test per batch and per sent message.
+``POLL_S``, writes chunks (zstd), flushes one at least every ``limits.flush_s`` and rotates
+files by size and age; when the files together exceed ``limits.total_bytes`` the oldest are
+removed. A full deque (a disk slower than the routes) drops the recorded copy, counted per route
+(status and ``rabbitros_recording_dropped_total``), never the message. A route with ``record:
+false``, or an engine without ``--record``, has no :class:`RouteRecording` and pays one ``is
+None`` test per batch and per sent message.
 
-Cost (bench/bench_record.py, measured on a shared 2-CPU machine): the route's part 1.2 us a
-message; the writer thread about 8.5 us (``add_message`` 2.9 us each for the input and the
-canonical message, the input's envelope 0.7 us); end to end 11-30 % more engine CPU per message
-than without (74-105 us), above the issue's 10 % goal: the pure-Python writer is the lever left.
+Cost (bench/bench_record.py: an engine with and one without ``--record`` at the same time, on a
+shared 2-CPU machine): +7 to +8 % engine CPU per message (medians of two sessions of 7 rounds,
+every round +6 % to +11 %; the ``mcap`` writer gave +10.9 %, +5 % to +26 %). In process 3.7-5.3
+us a message: the route's two appends 1.2 us, the writer thread's drain 2.4 us, the rest the
+thread's turns and flushes. lz4 or zstd level 1 instead of zstd's default saved 0.1-0.3 us, within
+the noise: zstd stays (65 bytes a message on disk).
 """
 
 from __future__ import annotations
 
 import base64
-import hashlib
 import logging
 import threading
 import time
@@ -44,13 +48,15 @@ from collections import deque
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import IO, Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import orjson
-from mcap.writer import CompressionType, Writer
 
 from engine import __version__
 from engine.endpoints.base import Inbound, Outbound
+
+if TYPE_CHECKING:  # imported when a recording starts: the SDK's import costs some 40 ms every command would pay
+    import foxglove
 
 log = logging.getLogger("engine.running.record")
 
@@ -58,6 +64,9 @@ FILE_PATTERN = "rabbitros-*.mcap"
 IN_TOPIC = "/routes/{route}/in"
 CANONICAL_TOPIC = "/routes/{route}/canonical"
 POLL_S = 0.05
+RETRY_S = 1.0
+"""After a file could not be written, the next is opened no sooner than this (recorded copies
+meanwhile dropped, counted): a full disk is not hammered with a new empty file every ``POLL_S``."""
 """How often the writer thread drains the queue: the route never wakes it (no per-message
 notify), so this bounds both the delay and how much one drain writes."""
 INPUT_SCHEMA: dict[str, Any] = {
@@ -79,16 +88,6 @@ INPUT_SCHEMA: dict[str, Any] = {
 }
 _INPUT_SCHEMA_BYTES = orjson.dumps(INPUT_SCHEMA)
 _JSON_OPTIONS = orjson.OPT_NON_STR_KEYS | orjson.OPT_SERIALIZE_NUMPY
-
-
-def _compression() -> CompressionType:
-    for kind, module in ((CompressionType.ZSTD, "zstandard"), (CompressionType.LZ4, "lz4.frame")):
-        try:
-            __import__(module)
-        except ImportError:
-            continue
-        return kind
-    return CompressionType.NONE
 
 
 @dataclass(frozen=True)
@@ -156,13 +155,24 @@ class Recorder:
         self.files_removed = 0
         self.write_errors = 0
         self.last_error: str | None = None
-        self._compression = _compression()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._file: _File | None = None
-        self._sequence: dict[str, int] = {}
-        self._pending: dict[str, dict[int, int]] = {}
-        """Per route: an input's receive time (monotonic ns, which its outbound carries) -> its sequence."""
+        self._context: foxglove.Context | None = None
+        """The recorder's own SDK context, made by the writer thread; its channels outlive a file."""
+        self._inputs: dict[str, foxglove.Channel] = {}
+        """Per route: its ``in`` channel (the same whatever the route's schema: its ``sequence`` goes on)."""
+        self._canonical: dict[_Channels, foxglove.Channel] = {}
+        self._logs: dict[_Channels, tuple[Any, Any]] = {}
+        self._unflushed: dict[str, int] = {}
+        self._retry_at = 0.0
+        """Monotonic time before which no new file is opened after a failure (:data:`RETRY_S`)."""
+        """Per route: messages logged to the file since its last flush (``written`` once flushed)."""
+        """Per route's channels: the ``log`` of its ``in`` and ``canonical`` SDK channels."""
+        self._offset_ns = time.time_ns() - time.monotonic_ns()
+        """Receive times are monotonic; recorded as wall time with one offset for the recorder's
+        life, so an input and its canonical message (written in different drains) carry the same
+        time, which pairs them."""
         self._routes: dict[str, RouteRecording] = {}
 
     # -- the event loop's side
@@ -180,10 +190,13 @@ class Recorder:
         self.dropped[route] = self.dropped.get(route, 0) + count
 
     def start(self) -> None:
+        import foxglove  # here, not with the first message: its import (26 ms of CPU) is the engine's start-up
+
         self.directory.mkdir(parents=True, exist_ok=True)
+        self._context = foxglove.Context()
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
-        log.info("recording", extra={"directory": str(self.directory), "compression": self._compression.name.lower()})
+        log.info("recording", extra={"directory": str(self.directory), "compression": "zstd"})
 
     def stop(self) -> None:
         """Write what is queued and close the file with its summary (blocking: call it in a thread)."""
@@ -209,7 +222,8 @@ class Recorder:
                 now = time.monotonic()
                 current = self._file
                 if current is not None and (stopping or now - last_flush >= self.limits.flush_s):
-                    current.writer.flush()
+                    current.flush()
+                    self._flushed()
                     last_flush = now
                     if current.full(self.limits, now):
                         self._close()
@@ -225,64 +239,99 @@ class Recorder:
                 break
         try:
             self._close()
+            self._flushed()
         except OSError as error:
             self._failed(error)
 
+    def _flushed(self) -> None:
+        """What was logged since the last flush is in the file: counted written."""
+        self.written += sum(self._unflushed.values())
+        self._unflushed.clear()
+
     def _failed(self, error: OSError) -> None:
+        """The file cannot be written: what is queued, and what was logged to the file since its
+        last flush, is dropped, counted by route (chunks of it that filled up and reached the
+        file before the one the disk refused are readable nonetheless: the SDK says nothing of
+        which did); the file is abandoned and, after :data:`RETRY_S`, the next message opens a
+        new one."""
         self.write_errors += 1
         if self.last_error != str(error):
             log.error("recording failed; recorded copies are dropped until a file can be written", extra={"error": str(error)})
         self.last_error = str(error)
+        for route, count in self._unflushed.items():
+            self.drop(route, count)
+        self._unflushed.clear()
         while self.queue:
             channels, *_ = self.queue.popleft()
             self.drop(channels.route, 1)
-        self._file = None  # the next message opens a new file
+        self._retry_at = time.monotonic() + RETRY_S
+        current, self._file = self._file, None
+        if current is not None:
+            current.abandon()
 
     def _drain(self) -> None:
         """Write what is queued. Per message this is the cost of recording beside the route's
-        append: measured 8.5 us per input and canonical pair (the ``mcap`` writer's
-        ``add_message``, 2.9 us each, is most of it; the input's JSON envelope 0.7 us)."""
+        append: the SDK's ``log`` (0.4-0.6 us, the serialisation and zstd included) for the input
+        and for the canonical message, and the input's JSON envelope (0.7 us)."""
         queue = self.queue
         if not queue:
             return
-        current = self._file or self._open()
-        add = current.writer.add_message
-        offset_ns = time.time_ns() - time.monotonic_ns()
-        sequences, pending_by_route, most = self._sequence, self._pending, self.limits.queue
-        last: _Channels | None = None
-        in_id = canonical_id = 0
-        written = 0
-        try:
+        if self._file is None and time.monotonic() < self._retry_at:
             while queue:
-                channels, inbound, outbound, sent_at_ns = queue.popleft()
-                if channels is not last:
-                    in_id, canonical_id = current.channel_ids(channels)
-                    last = channels
-                route = channels.route
-                if inbound is not None:
-                    sequence = sequences[route] = (sequences.get(route, 0) + 1) & 0xFFFFFFFF
-                    received_at_ns = inbound.received_ns + offset_ns
-                    pending = pending_by_route.get(route)
-                    if pending is None:
-                        pending = pending_by_route[route] = {}
-                    pending[inbound.received_ns] = sequence
-                    if len(pending) > most:  # inputs never sent (dead-lettered, dropped): forget the oldest
-                        del pending[next(iter(pending))]
-                    add(in_id, received_at_ns, _input_json(inbound, received_at_ns), received_at_ns, sequence)
-                elif outbound is not None:
-                    received_ns = outbound.received_ns
-                    pending = pending_by_route.get(route)
-                    sequence = 0 if received_ns is None or pending is None else pending.pop(received_ns, 0)
-                    add(canonical_id, sent_at_ns, outbound.body, sent_at_ns if received_ns is None else received_ns + offset_ns,
-                        sequence)
-                written += 1
-        finally:
-            self.written += written
+                channels, *_ = queue.popleft()
+                self.drop(channels.route, 1)
+            return
+        stream = (self._file or self._open()).stream
+        offset_ns = self._offset_ns
+        unflushed = self._unflushed
+        last: _Channels | None = None
+        log_input = log_canonical = None
+        route = ""
+        while queue:
+            if stream.error is not None:  # the disk refused a chunk: stop logging into a writer that failed
+                raise stream.error
+            channels, inbound, outbound, sent_at_ns = queue.popleft()
+            if channels is not last:
+                log_input, log_canonical = self._logs.get(channels) or self._channels(channels)
+                last, route = channels, channels.route
+            if inbound is not None:
+                received_at_ns = inbound.received_ns + offset_ns
+                log_input(_input_json(inbound, received_at_ns), received_at_ns, None)  # type: ignore[misc]
+            elif outbound is not None:
+                received_ns = outbound.received_ns
+                log_canonical(outbound.body, sent_at_ns if received_ns is None else received_ns + offset_ns, None)  # type: ignore[misc]
+            unflushed[route] = unflushed.get(route, 0) + 1
+
+    def _channels(self, channels: _Channels) -> tuple[Any, Any]:
+        """The ``log`` of the route's two SDK channels (declared on first use; a route whose
+        schema changed gets a new canonical channel, the old one closed)."""
+        import foxglove
+
+        context = self._context
+        assert context is not None  # made by start()
+        route = channels.route
+        inputs = self._inputs.get(route)
+        if inputs is None:
+            inputs = self._inputs[route] = foxglove.Channel(
+                IN_TOPIC.format(route=route), message_encoding="json", context=context, metadata={"route": route},
+                schema=foxglove.Schema(name="rabbitros.Received", encoding="jsonschema", data=_INPUT_SCHEMA_BYTES))
+        canonical = self._canonical.get(channels)
+        if canonical is None:
+            for old in [other for other in self._canonical if other.route == route]:
+                self._canonical.pop(old).close()
+                self._logs.pop(old, None)
+            canonical = self._canonical[channels] = foxglove.Channel(
+                CANONICAL_TOPIC.format(route=route), message_encoding="json", context=context,
+                metadata={"route": route, "schema": channels.schema_name},
+                schema=foxglove.Schema(name=channels.schema_name, encoding="jsonschema", data=channels.schema))
+        logs = self._logs[channels] = (inputs.base.log, canonical.base.log)
+        return logs
 
     def _open(self) -> _File:
+        assert self._context is not None  # made by start()
         stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S-%f")
         path = self.directory / f"rabbitros-{stamp}.mcap"
-        self._file = _File(path, self.limits.chunk_bytes, self._compression)
+        self._file = _File(path, self.limits.chunk_bytes, self._context)
         self._remove_oldest()
         return self._file
 
@@ -303,43 +352,94 @@ class Recorder:
             self.files_removed += 1
 
 
-class _File:
-    """One MCAP file being written, with the channels declared in it so far."""
+class _Stream:
+    """The file as the SDK's writer writes it (``write``, ``seek``, ``flush``; a chunk at a time,
+    buffered): it keeps the first error, which the SDK only logs (``log`` raises nothing), so the
+    writer thread sees a full or vanished disk at once and abandons the file."""
 
-    def __init__(self, path: Path, chunk_bytes: int, compression: CompressionType) -> None:
+    def __init__(self, path: Path) -> None:
+        self.file = open(path, "wb")  # closed by close()
+        self.error: OSError | None = None
+
+    def write(self, data: bytes) -> int:
+        try:
+            return self.file.write(data)
+        except OSError as error:
+            self.error = self.error or error
+            raise
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        try:
+            return self.file.seek(offset, whence)
+        except OSError as error:
+            self.error = self.error or error
+            raise
+
+    def flush(self) -> None:
+        try:
+            self.file.flush()
+        except OSError as error:
+            self.error = self.error or error
+            raise
+
+    def close(self) -> None:
+        try:
+            self.file.close()
+        except OSError:  # its disk failed: what it says next adds nothing
+            pass
+
+
+class _File:
+    """One MCAP file being written: the SDK's writer on the recorder's context (every channel of
+    the context is written to it from its first message in this file)."""
+
+    def __init__(self, path: Path, chunk_bytes: int, context: foxglove.Context) -> None:
+        import foxglove
+        from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+
         self.path = path
         self.opened = time.monotonic()
-        self.stream: IO[bytes] = open(path, "wb")  # closed by finish()
-        self.writer = Writer(self.stream, chunk_size=chunk_bytes, compression=compression)
-        self.writer.start(profile="", library=f"rabbitros-engine {__version__}")
-        self.writer.add_metadata("rabbitros", {"engine_version": __version__, "layout": "routes/NAME/in, routes/NAME/canonical"})
-        self.input_schema = self.writer.register_schema("rabbitros.Received", "jsonschema", _INPUT_SCHEMA_BYTES)
-        self._ids: dict[_Channels, tuple[int, int]] = {}
-        self._schemas: dict[bytes, int] = {}
+        self.stream = _Stream(path)
+        options = MCAPWriteOptions(compression=MCAPCompression.Zstd, chunk_size=chunk_bytes, compression_threads=0,
+                                   profile="")
+        try:
+            self.writer = foxglove.open_mcap(self.stream, context=context, writer_options=options)  # type: ignore[arg-type]
+            self.writer.write_metadata("rabbitros", {"engine_version": __version__, "layout": "routes/NAME/in, routes/NAME/canonical"})
+        except Exception as error:  # the SDK's FoxgloveError: a disk that refused the header
+            self.stream.close()
+            path.unlink(missing_ok=True)  # nothing of it could be read
+            raise self.stream.error or OSError(str(error)) from None
 
-    def channel_ids(self, channels: _Channels) -> tuple[int, int]:
-        ids = self._ids.get(channels)
-        if ids is None:
-            digest = hashlib.sha256(channels.schema).digest()
-            schema_id = self._schemas.get(digest)
-            if schema_id is None:
-                schema_id = self._schemas[digest] = self.writer.register_schema(channels.schema_name, "jsonschema", channels.schema)
-            route = channels.route
-            ids = self._ids[channels] = (
-                self.writer.register_channel(IN_TOPIC.format(route=route), "json", self.input_schema, {"route": route}),
-                self.writer.register_channel(CANONICAL_TOPIC.format(route=route), "json", schema_id,
-                                             {"route": route, "schema": channels.schema_name}),
-            )
-        return ids
+    def flush(self) -> None:
+        """Write the chunk in progress; an OSError when the disk refused it (now or before)."""
+        try:
+            self.writer.flush()
+        except Exception as error:  # the SDK's FoxgloveError: the stream knows the OSError behind it
+            raise self.stream.error or OSError(str(error)) from None
+        if self.stream.error is not None:
+            raise self.stream.error
 
     def full(self, limits: RecordLimits, now: float) -> bool:
-        return self.stream.tell() >= limits.file_bytes or now - self.opened >= limits.file_seconds
+        return _size(self.path) >= limits.file_bytes or now - self.opened >= limits.file_seconds
 
     def finish(self) -> None:
+        """Write the summary and close the file (detached from the context)."""
         try:
-            self.writer.finish()
+            self.writer.close()
+        except Exception as error:  # the SDK's FoxgloveError, after a write the disk refused
+            raise self.stream.error or OSError(str(error)) from None
         finally:
             self.stream.close()
+        if self.stream.error is not None:
+            raise self.stream.error
+
+    def abandon(self) -> None:
+        """Detach a file whose disk failed from the context; what it holds is what it holds."""
+        try:
+            self.writer.close()
+        except Exception:  # noqa: BLE001 - the failure was counted already
+            pass
+        self.stream.close()
 
 
 def _input_json(inbound: Inbound, received_at_ns: int) -> bytes:

@@ -26,22 +26,19 @@ from typing import Any, Iterator
 
 import aio_pika
 import pytest
-from selenium import webdriver
-from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
-from selenium.webdriver.remote.webdriver import WebDriver
 
 from engine.common.processes import listening_port
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from tests.endpoints.mqtt.test_mqtt import publish as mqtt_publish
 from tests.support.amqp_helpers import publish as amqp_publish
+from tests.support.browser import PAGE_SNAPSHOT, browser
 from tests.support.engine_process import EngineProcess
 from tests.support.repo import REPO
 from tests.support.tls_helpers import make_pki
 from tests.support.waiting import wait_for_sync
 
 TOKEN = "console-test-token-0123456789abcdef"
-CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 ROUTES = """
 connections:
   field: {mqtt: {url: "${CONSOLE_MQTT_URL}"}}
@@ -62,37 +59,8 @@ routes:
     schema: weed_detection
     sink: {mqtt: {topic: "canonical/{agent_id}/weeds"}}
 """
-PAGE_SNAPSHOT = """
-const all = (selector) => [...document.querySelectorAll(selector)];
-return {
-  live: document.getElementById("live").textContent,
-  routes: Object.fromEntries(all("#routes tbody tr").map((row) => [row.getAttribute("data-route"),
-    Object.fromEntries([...row.cells].map((cell) => [cell.className.split(" ").pop(), cell.textContent]))])),
-  dead: all("#dead-letters tbody tr").map((row) => ({route: row.getAttribute("data-route"),
-    stage: row.querySelector(".stage").textContent, reason: row.querySelector(".reason").textContent})),
-  agents: Object.fromEntries(all("#map circle").map((dot) => [dot.getAttribute("data-agent"),
-    [Number(dot.getAttribute("cx")), Number(dot.getAttribute("cy"))]])),
-  labels: all("#map text.agent-label").map((text) => text.textContent),
-  scale: (document.querySelector("#map text.scale-label") || {textContent: ""}).textContent,
-  tap: all("#tap-lines li").map((item) => item.textContent),
-};
-"""
-"""What the page shows, read in one script (the page redraws every second: elements found one
-by one could be replaced between two reads)."""
 FIELD = (48.1500, 11.5800)
 """A field near Munich: the UAV and the robot are about 180 m apart."""
-
-
-def browser(profile: Path) -> WebDriver:
-    """Headless chromium with the system driver; no network of its own (no updates, sync, QUIC)."""
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 "--disable-dev-shm-usage", "--ignore-certificate-errors", "--window-size=1400,1000",
-                 f"--user-data-dir={profile}"):
-        options.add_argument(flag)
-    return webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=options)
 
 
 def fetch(url: str, authorization: str | None = None) -> tuple[int, dict[str, Any], str]:

@@ -23,12 +23,15 @@ from typing import Any
 
 import aio_pika
 import jsonschema
+import pytest
 from mcap.reader import make_reader
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
 from engine.common.processes import listening_port
 from engine.endpoints.mqtt.broker import LocalMosquitto
+from engine.ops.cli import build_parser
+from engine.ops.replay_sinks import parse_speed
 from tests.endpoints.mqtt.test_mqtt import publish
 from tests.support.amqp_helpers import Collector
 from tests.support.engine_process import EngineProcess
@@ -222,3 +225,99 @@ def test_a_recording_engine_killed_with_9_leaves_all_but_the_last_second_readabl
     assert tail is None or "read up to the last whole chunk" in replayed.stderr, replayed.stderr
     print(f"kill -9: {len(arrivals)} delivered, {len(older)} older than 1 s all readable, {len(recorded)} canonical in the "
           f"file, tail: {tail}")
+
+
+def test_replay_to_sinks_sends_every_recorded_input_once_in_order_at_the_speed_asked(
+        tmp_path: Path, mosquitto: LocalMosquitto, amqp_url: str) -> None:
+    """``replay --to-sinks``: a recording of ~4 s of positions sent again into the route's real
+    sink (a RabbitMQ exchange, a queue bound to it): all of them, once each, in the order
+    received; at ``--speed 10`` the arrivals span about a tenth of the recorded span (from the
+    recording's receive times and the queue's arrival times), at ``max`` less than that; and
+    through the routes as they are now: after an edit that gives the route two sinks (``sinks:``),
+    each sink gets every message, once, in order."""
+    tag = "s" + uuid.uuid4().hex[:8]
+    routes = routes_dir(tmp_path, mosquitto, amqp_url, tag)
+    record = tmp_path / "recording"
+    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--record", str(record))
+    count = 100
+
+    async def traffic() -> None:
+        connection = await aio_pika.connect_robust(amqp_url)
+        async with connection:
+            collector = await Collector.bind(await connection.channel(), f"{tag}-out")
+            await publish(mosquitto, ((f"{tag}/{AGENTS[seq % 2]}/position", position(seq)) for seq in range(count)),
+                          window=4, pause=0.15)  # the field's pace: 25 steps over ~4 s
+            await collector.wait_for(count)
+
+    engine.run(traffic)
+    [file] = sorted(record.glob("*.mcap"))
+    received = sorted(m.log_time for c, m in read_tolerant(file)[0] if c.topic == "/routes/pos/in")
+    assert len(received) == count
+    recorded_span = (received[-1] - received[0]) / 1e9
+    assert recorded_span > 3.0, recorded_span
+
+    async def replayed(speed: str, routes: Path = routes) -> tuple[list[tuple[str, str]], float, str]:
+        connection = await aio_pika.connect_robust(amqp_url)
+        async with connection:
+            arrivals: list[tuple[float, str, str]] = []
+            channel = await connection.channel()
+            exchange = await channel.declare_exchange(f"{tag}-out", aio_pika.ExchangeType.TOPIC, durable=True)
+            queue = await channel.declare_queue(f"{tag}-{speed}-{routes.name}", exclusive=True)
+            await queue.bind(exchange, "#")
+
+            async def arrived(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+                arrivals.append((time.monotonic(), json.loads(message.body)["id"], message.routing_key or ""))
+
+            await queue.consume(arrived, no_ack=True)
+            command = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "engine", "replay", str(record), "--routes", str(routes), "--schemas", str(REPO / "schemas"),
+                "--to-sinks", "--speed", speed, cwd=REPO, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT)
+            output = (await asyncio.wait_for(command.communicate(), 120))[0].decode()
+            assert command.returncode == 0, output
+            # every message was confirmed (in the queue) before the command exited: wait until the
+            # queue is empty and all arrived; a duplicate (there must be none) would be counted
+            expected = count * (2 if routes.name == "fan-out" else 1)
+            await wait_for(lambda: len(arrivals) >= expected, 30, "the replayed messages", lambda: len(arrivals))
+            waiting = await channel.declare_queue(queue.name, passive=True)
+            assert waiting.declaration_result.message_count == 0
+            return [(identity, key) for _, identity, key in arrivals], arrivals[-1][0] - arrivals[0][0], output
+
+    arrived, span, output = asyncio.run(replayed("10"))
+    ids = [identity for identity, _ in arrived]
+    assert ids == [str(seq) for seq in range(count)], ids  # complete, once each, in order
+    assert f"{count} sent, 0 filtered, 0 not sent, at 10x" in output, output
+    print(f"--speed 10: recorded {recorded_span:.2f} s, arrivals over {span:.3f} s")
+    assert 0.7 * recorded_span / 10 <= span <= 2.0 * recorded_span / 10 + 0.3, (span, recorded_span)
+
+    arrived, fastest, output = asyncio.run(replayed("max"))
+    ids = [identity for identity, _ in arrived]
+    assert ids == [str(seq) for seq in range(count)], ids
+    assert "as fast as the sinks take them" in output, output
+    print(f"--speed max: arrivals over {fastest:.3f} s")
+    assert fastest < span, (fastest, span)
+
+    # the routes as they are now: the route sends each message to two sinks (sinks:)
+    fan_out = tmp_path / "fan-out"
+    fan_out.mkdir()
+    one_sink = f'    sink: {{amqp: {{connection: bus, exchange: {tag}-out, routing_key: "pos.{{agent_id}}"}}}}\n'
+    two_sinks = (f'    sinks:\n'
+                 f'      - {{name: main, amqp: {{connection: bus, exchange: {tag}-out, routing_key: "pos.{{agent_id}}"}}}}\n'
+                 f'      - {{name: copy, amqp: {{connection: bus, exchange: {tag}-out, routing_key: "copy.{{agent_id}}"}}}}\n')
+    assert one_sink in (routes / "rec.yaml").read_text()
+    (fan_out / "rec.yaml").write_text((routes / "rec.yaml").read_text().replace(one_sink, two_sinks, 1))
+    arrived, _, output = asyncio.run(replayed("max", fan_out))
+    for prefix in ("pos.", "copy."):
+        assert [identity for identity, key in arrived if key.startswith(prefix)] == [str(seq) for seq in range(count)], arrived
+    assert f"{count} sent, 0 filtered, 0 not sent" in output, output
+
+
+@pytest.mark.fast
+def test_replay_speed_is_a_factor_above_0_or_max(capsys: pytest.CaptureFixture[str]) -> None:
+    parser = build_parser()
+    for speed, problem in (("0", "--speed must be above 0 or max, not '0'"), ("fast", "could not convert string to float: 'fast'")):
+        with pytest.raises(SystemExit) as refused:
+            parser.parse_args(["replay", "rec", "--to-sinks", "--speed", speed])
+        assert refused.value.code == 2 and problem in capsys.readouterr().err
+    assert parser.parse_args(["replay", "rec", "--to-sinks", "--speed", "max"]).speed is None
+    assert parser.parse_args(["replay", "rec", "--to-sinks"]).speed == 1.0
+    assert parse_speed("10") == 10.0 and parse_speed("MAX") is None
