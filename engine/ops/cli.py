@@ -491,9 +491,13 @@ async def _serve(args: argparse.Namespace, engine: Engine) -> int:
             for name, route in engine.status()["routes"].items():
                 log.info("route counters", extra={"route": name, **{k: route[k] for k in (*COUNTERS, "dead_lettered")}})
 
-    tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
-    if not args.no_watch:
-        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dirs, engine.key_files)))
+    # The watch first: its task's first step sets up inotify (watchfiles' RustNotify, before its
+    # first await), and it runs before the reporter's first step writes the status that says the
+    # engine runs. Created after it, an edit made as soon as the status said so went unseen (a
+    # test missed its reload for 30 s beside a busy CI).
+    tasks = [] if args.no_watch else [
+        asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, engine.schemas_dirs, engine.key_files))]
+    tasks += [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
     log.info("engine running", extra={"routes": len(engine.runners), "generation": engine.generation, "version": __version__, "instance": engine.instance})
     if getattr(args, "worker_channel", None) is not None:  # a worker: tell the supervisor where its admin answers
         tell_supervisor(args.worker_channel, {"admin_port": getattr(args, "admin_bound_port", None), "pid": os.getpid()})

@@ -78,10 +78,11 @@ async def supervise(args: argparse.Namespace, supervisor: Supervisor, access: Ad
                 write_status(await status_document(supervisor))
             await asyncio.sleep(args.stats_interval)
 
-    tasks = [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
-    if not args.no_watch:
-        tasks.append(asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, args.schemas or None,
-                                                      lambda: supervisor.config.watched_files if supervisor.config else frozenset())))
+    # the watch first, as in ``run`` (engine/ops/cli.py says why)
+    tasks = [] if args.no_watch else [
+        asyncio.create_task(watch_routes(args.routes, reload_requested.set, stopping, args.schemas or None,
+                                         lambda: supervisor.config.watched_files if supervisor.config else frozenset()))]
+    tasks += [asyncio.create_task(reloader()), asyncio.create_task(reporter())]
     await stopping.wait()
     log.info("stopping: every worker drains its in-flight messages", extra={"drain_timeout": args.drain_timeout})
     for task in tasks:

@@ -56,7 +56,9 @@ async def watch_routes(
 ) -> None:
     """Call ``changed`` after every change of a route file (or of the one file ``routes``
     names), of a schema file (of any of the ``schemas`` directories), or of one of the files ``key_files()`` names now (absolute
-    paths); runs until ``stop`` is set, outliving watcher errors."""
+    paths); runs until ``stop`` is set, outliving watcher errors. The task's first step, before
+    its first await, sets the watch up (watchfiles' RustNotify adds the inotify watches when it
+    is made): the engine starts this task before it says it runs (engine/ops/cli.py)."""
     target = routes.resolve()
     single = target if target.is_file() else None
     routes_dir = target.parent if single else target

@@ -56,7 +56,7 @@ def test_the_console_shows_the_farm(tmp_path: Path) -> None:
     demo = subprocess.Popen(
         ["timeout", "-s", "KILL", "300", sys.executable, "examples/farm_demo.py", "--duration", str(DURATION),
          "--work", str(work), "--plain", "--admin", str(port),
-         "--ros-domain", str(ros_domain(11))],  # the farm's slot: the demos run one after the other, each stops its nodes
+         "--ros-domain", str(ros_domain(18))],
         cwd=REPO, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     driver = None
     try:

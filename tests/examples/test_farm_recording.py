@@ -51,7 +51,7 @@ def test_the_farm_recorded_counts_schemas_and_replay(tmp_path: Path) -> None:
     demo = subprocess.run(
         ["timeout", "-s", "KILL", "300", sys.executable, "examples/farm_demo.py", "--duration", str(DURATION),
          "--work", str(work), "--plain", "--record", str(record),
-         "--ros-domain", str(ros_domain(11))],  # the farm's slot: the demos run one after the other, each stops its nodes
+         "--ros-domain", str(ros_domain(17))],
         cwd=REPO, capture_output=True, text=True, timeout=320)
     assert demo.returncode == 0, demo.stdout[-3000:] + demo.stderr[-3000:]
     final = json.loads((work / "status.json").read_text())
