@@ -416,6 +416,42 @@ def _calls(node: Any, function: str | None = None) -> list[dict[str, Any]]:
     return found
 
 
+UNREPEATABLE = ("now", "stamp", "uuid")
+"""Functions whose value differs at every evaluation: the clock and a random id (a protocol's
+``Functions`` class names its own in ``UNREPEATABLE``)."""
+
+
+def _unrepeatable_functions() -> set[str]:
+    from engine import endpoints
+
+    return {*UNREPEATABLE, *(name for module in endpoints.MAPPING_FUNCTIONS
+                             for name in getattr(importlib.import_module(module).Functions, "UNREPEATABLE", ()))}
+
+
+def unrepeatable_keys(expression: str | None) -> list[str]:
+    """The keys (``a.b`` when nested) of a mapping's multi-select hash whose value calls one of
+    :data:`UNREPEATABLE` (``{stamp: stamp(), header: {id: uuid()}}`` -> ``stamp``,
+    ``header.id``): no replay can make them again, so ``replay`` leaves them out of its
+    comparison and says which (engine/ops/replay.py)."""
+    found: list[str] = []
+    unrepeatable = _unrepeatable_functions()
+
+    def visit(node: dict[str, Any], prefix: str) -> None:
+        for pair in node.get("children", ()):
+            key, value = prefix + pair["value"], pair["children"][0]
+            if value.get("type") == "multi_select_dict":
+                visit(value, key + ".")
+            elif _called(value) & unrepeatable:
+                found.append(key)
+
+    tree = parsed(expression)
+    while tree.get("type") in ("pipe", "subexpression"):  # ``[@, f(x)] | {...}``: the result is the last part's
+        tree = tree["children"][-1]
+    if tree.get("type") == "multi_select_dict":
+        visit(tree, "")
+    return found
+
+
 def known_functions() -> list[str]:
     """Every function a mapping may call: JMESPath's own, ours and the protocols'."""
     return sorted(_all_options().custom_functions.FUNCTION_TABLE)

@@ -40,6 +40,7 @@ from mcap.stream_reader import StreamReader
 
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Inbound
+from engine.language.mapping import unrepeatable_keys
 from engine.language.route_checks import source_meta_names
 from engine.language.specs import RoutesConfig
 from engine.language.stores import Stores
@@ -131,13 +132,16 @@ class Outcome:
     """Inputs with no recorded canonical message (dead-lettered, dropped or still in flight)."""
     skipped: dict[str, int] = field(default_factory=dict)
     """Routes of the recording the routes directory no longer has (or that have no schema now), and their inputs."""
+    unrepeatable: dict[str, list[str]] = field(default_factory=dict)
+    """Per route, the keys its mapping takes from the clock or a random id (``stamp()``,
+    ``now()``, ``uuid()``): never the same twice, so left out of the comparison."""
 
 
 def replay(recording: Recording, config: RoutesConfig, schemas: SchemaRegistry, only: str | None = None,
            ignore: tuple[str, ...] = ()) -> Iterator[str | Outcome]:
     """The report's lines (a diff per message that changed), then the :class:`Outcome`;
-    ``ignore``: keys (``a.b``) left out of the comparison (what a mapping takes from the clock,
-    ``stamp()``, differs on every replay)."""
+    ``ignore``: keys (``a.b``) left out of the comparison, besides those each route's mapping
+    takes from the clock or a random id (found in the mapping: :func:`unrepeatable_keys`)."""
     outcome = Outcome()
     stores = Stores()
     for name, recorded in sorted(recording.routes.items()):
@@ -150,6 +154,10 @@ def replay(recording: Recording, config: RoutesConfig, schemas: SchemaRegistry, 
             continue
         reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
         pipeline = Pipeline.compile(spec, 0, schema, DrySink(), reply_schema, stores)
+        unrepeatable = [key for key in unrepeatable_keys(spec.mapping) if key not in ignore]
+        if unrepeatable:
+            outcome.unrepeatable[name] = unrepeatable
+        route_ignore = (*ignore, *unrepeatable)
         for sequence, (log_time, envelope) in sorted(recorded.inputs.items()):
             before = recorded.canonical.get(sequence)
             try:
@@ -168,7 +176,7 @@ def replay(recording: Recording, config: RoutesConfig, schemas: SchemaRegistry, 
                 pipeline.remember.on_converted(outbound.canonical, outbound.meta)
                 pipeline.remember.on_accepted(outbound.canonical, outbound.meta)
             if error is None:
-                before, now = _without(before, ignore), _without(now, ignore)
+                before, now = _without(before, route_ignore), _without(now, route_ignore)
                 if same(before, now):
                     continue
             outcome.differ += 1
@@ -207,6 +215,8 @@ def run_replay(paths: list[Path], routes: Path, schemas_dir: Path | Sequence[Pat
             outcome = item
         else:
             print(item, flush=True)
+    for name, keys in sorted(outcome.unrepeatable.items()):
+        print(f"not compared in route {name!r}: {', '.join(keys)} (the mapping takes them from the clock or a random id)", file=sys.stderr)
     for name, count in sorted(outcome.skipped.items()):
         print(f"skipped route {name!r}: not in {routes} now ({count} recorded inputs)", file=sys.stderr)
     print(f"{outcome.compared} messages compared: {outcome.compared - outcome.differ} same, {outcome.differ} differ; "

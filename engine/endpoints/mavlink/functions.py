@@ -43,6 +43,10 @@ def from_time_boot_ms(time_boot_ms: Any) -> dict[str, int]:
 
 
 class Functions(functions.Functions):
+    UNREPEATABLE = ("stamp_usec", "stamp_boot_ms")
+    """Functions whose value may be the reception time (see above): ``replay`` does not compare
+    what they make (engine/language/mapping.py ``unrepeatable_keys``)."""
+
     @functions.signature({"types": ["number"]})
     def _func_stamp_usec(self, time_usec: int) -> dict[str, int]:
         return from_time_usec(time_usec)
