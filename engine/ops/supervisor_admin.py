@@ -6,13 +6,16 @@ private admin endpoints, asked at once when a request comes:
 
 * ``/status``: the supervisor's part (generation, config hash, reloads, the placement, each
   worker's pid, up, restarts and routes) and the workers' documents merged: a route's
-  counters summed over the workers that run it (``workers`` names them), its other fields
-  from the first; a connection healthy only when it is in every worker holding it; each
+  counters summed over the workers that run it (``workers`` names them), its mean latency
+  over all, its latest error, its other fields from the first (:func:`merge_route`); a connection healthy only when it is in every worker holding it; each
   worker's own document under ``workers[i].status``;
-* ``/metrics``: every worker's samples summed under their own names (a dashboard of one
-  engine keeps working) and, labelled ``worker``, as ``rabbitros_worker_*``; a gauge named
-  ``*_up`` is the least any worker reports (a connection is up only when it is up in each),
-  other gauges are summed; plus ``rabbitros_workers_up`` and ``rabbitros_worker_restarts_total``;
+* ``/metrics``: every worker's counters and histograms summed under their own names (a
+  dashboard of one engine keeps working) and, labelled ``worker``, as ``rabbitros_worker_*``.
+  No gauge the engine exports adds up over processes, so none is summed (:func:`merge_gauge`):
+  a gauge named ``*_up`` is the least any worker reports (a connection is up only when it is up
+  in each), ``rabbitros_config_generation`` is the supervisor's (a restarted worker counts its
+  own from 1), any other the largest (``vehicle_heard_seconds_ago``: the stalest); plus
+  ``rabbitros_workers_up`` and ``rabbitros_worker_restarts_total``;
 * ``/healthz``: 200 when every worker is up and answers 200 itself; else 503 naming them;
 * ``/tap/{route}``: the lines of every worker that runs the route, interleaved as they come.
 
@@ -23,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import json
 import logging
 from typing import Any, Iterator
@@ -35,9 +39,56 @@ from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.parser import text_string_to_metric_families
 
 from engine.ops.admin import AdminAccess, authenticate
-from engine.ops.supervisor import Supervisor
+from engine.ops.supervisor import Supervisor, Worker
+from engine.running.observe import COUNTERS
 
 log = logging.getLogger("engine.ops.supervisor_admin")
+
+
+SUMMED = frozenset((*COUNTERS, "latency_ns_total", "lease_changes", "taps", "tap_dropped", "received_per_s",
+                    "delivered_per_s", "messages", "dead_letters", "dead_lettered", "dropped_by_agent", "replies", "sinks"))
+"""A route's status fields that add up over workers: its counters (engine/running/observe.py's
+one set), the rates, and the dictionaries of counts (per outcome, stage, agent, sink)."""
+LATEST = ("last_at", "last_error_at")
+"""Timestamps: the merged route shows the latest, with the worker's ``last_error`` /
+``last_canonical`` that goes with it."""
+
+
+def add_counts(total: dict[str, Any], more: dict[str, Any]) -> None:
+    """``more``'s counts added into ``total``, key by key (nested per sink); a sink can take
+    messages only when it can in every worker, and is taken over when it is in any."""
+    for key, value in more.items():
+        held = total.get(key)
+        if isinstance(value, dict) and isinstance(held, dict):
+            add_counts(held, value)
+        elif isinstance(value, bool) or isinstance(held, bool):
+            total[key] = (bool(held) or value) if key == "taking_over" else (held is not False and value)
+        elif isinstance(value, (int, float)):
+            total[key] = (held if isinstance(held, (int, float)) else 0) + value
+        elif key not in total:
+            total[key] = value
+
+
+def latency_count(route: dict[str, Any]) -> float:
+    """How many latencies a route's ``latency_mean_s`` averages (its total over its mean)."""
+    mean = route.get("latency_mean_s")
+    return route.get("latency_ns_total", 0) / (mean * 1e9) if mean else 0.0
+
+
+def merge_route(merged: dict[str, Any], route: dict[str, Any]) -> None:
+    """One more worker's status of a route merged into ``merged``: counts summed (:data:`SUMMED`),
+    the largest ``latency_ns_max``, the latest error and message (:data:`LATEST`), the mean
+    latency over both; every other field (file, role, state, source) stays the first worker's.
+    Summing every number summed a mean, a maximum, a generation and timestamps."""
+    count = latency_count(merged) + latency_count(route)
+    add_counts(merged, {key: route[key] for key in SUMMED if key in route})
+    merged["latency_ns_max"] = max(merged.get("latency_ns_max") or 0, route.get("latency_ns_max") or 0)
+    if count:
+        merged["latency_mean_s"] = merged.get("latency_ns_total", 0) / count / 1e9
+    if (route.get("last_at") or 0) > (merged.get("last_at") or 0):
+        merged.update(last_at=route["last_at"], last_canonical=route.get("last_canonical"))
+    if (route.get("last_error_at") or 0) > (merged.get("last_error_at") or 0):
+        merged.update(last_error_at=route["last_error_at"], last_error=route.get("last_error"))
 
 
 def merge_status(own: dict[str, Any], documents: list[dict[str, Any] | None]) -> dict[str, Any]:
@@ -50,12 +101,10 @@ def merge_status(own: dict[str, Any], documents: list[dict[str, Any] | None]) ->
         for name, route in document.get("routes", {}).items():
             merged = routes.get(name)
             if merged is None:
-                routes[name] = {**route, "workers": [index]}
+                routes[name] = {**copy.deepcopy(route), "workers": [index]}  # the worker's own stays as it was
                 continue
             merged["workers"].append(index)
-            for key, value in route.items():
-                if isinstance(value, (int, float)) and not isinstance(value, bool) and isinstance(merged.get(key), (int, float)):
-                    merged[key] += value
+            merge_route(merged, route)
         for name, health in document.get("connections", {}).items():
             held = connections.setdefault(name, {**health, "workers": []})
             held["workers"].append(index)
@@ -71,6 +120,18 @@ async def status_document(supervisor: Supervisor) -> dict[str, Any]:
     """The status of the engine as a whole: the supervisor's, with every worker's asked now."""
     answers = await supervisor.documents("/status")
     return merge_status(supervisor.status(), [json.loads(body) if code == 200 else None for _, code, body in answers])
+
+
+GENERATION_GAUGE = "rabbitros_config_generation"
+"""The workers' generation gauge: in the merged metrics the supervisor's generation."""
+
+
+def merge_gauge(name: str, seen: float, value: float) -> float:
+    """Two workers' values of one gauge series as the engine's one value: none of the engine's
+    gauges adds up over processes (a connection up in each, a generation, a vehicle heard some
+    seconds ago), so ``*_up`` is the least (up only where up in every worker), any other the
+    largest (the stalest vehicle; a device's gauge comes from the one worker that holds it)."""
+    return min(seen, value) if name.endswith("_up") else max(seen, value)
 
 
 class MergedCollector:
@@ -92,16 +153,17 @@ class MergedCollector:
                     sums[family.name] = {}
                     worker_name = "rabbitros_worker_" + family.name.removeprefix("rabbitros_")
                     per_worker[family.name] = Metric(worker_name, family.documentation + " (per worker)", family.type)
-                least = family.type == "gauge" and family.name.endswith("_up")
                 for sample in family.samples:
                     key = (sample.name, tuple(sorted(sample.labels.items())))
                     seen = sums[family.name].get(key)
-                    sums[family.name][key] = sample.value if seen is None else min(seen, sample.value) if least else seen + sample.value
+                    sums[family.name][key] = sample.value if seen is None else \
+                        seen + sample.value if family.type != "gauge" else merge_gauge(family.name, seen, sample.value)
                     per_worker[family.name].add_sample("rabbitros_worker_" + sample.name.removeprefix("rabbitros_"),
                                                        {**sample.labels, "worker": str(index)}, sample.value)
         for name, metric in totals.items():
             for (sample_name, labels), value in sums[name].items():
-                metric.add_sample(sample_name, dict(labels), value)
+                own = GENERATION_GAUGE == sample_name and not labels
+                metric.add_sample(sample_name, dict(labels), float(self.supervisor.generation) if own else value)
             yield metric
             yield per_worker[name]
         up = GaugeMetricFamily("rabbitros_workers_up", "1 while the worker runs its routes", labels=["worker"])
@@ -192,7 +254,7 @@ class SupervisorAdmin:
             await asyncio.gather(*readers, return_exceptions=True)
         return response
 
-    async def _follow(self, worker: Any, route: str, lines: asyncio.Queue[bytes]) -> None:
+    async def _follow(self, worker: Worker, route: str, lines: asyncio.Queue[bytes]) -> None:
         """One worker's tap lines into ``lines`` (a full queue drops, as the engine's tap does)."""
         supervisor = self.supervisor
         headers = {"Authorization": f"Bearer {supervisor.token.decode()}"} if supervisor.token else {}

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
 from engine.language.specs import RoutesConfig
@@ -68,8 +69,6 @@ def test_metrics_are_summed_labelled_by_worker_and_up_only_where_up_everywhere()
 
 
 def test_the_merged_metrics_are_valid_exposition_text() -> None:
-    from prometheus_client import CollectorRegistry, generate_latest
-
     collector = MergedCollector(supervisor(2))
     collector.scraped = [(0, WORKER_METRICS.format(delivered=7, up=1)), (1, WORKER_METRICS.format(delivered=5, up=1))]
     registry = CollectorRegistry(auto_describe=False)
@@ -77,3 +76,52 @@ def test_the_merged_metrics_are_valid_exposition_text() -> None:
     text = generate_latest(registry).decode()
     names = {family.name for family in text_string_to_metric_families(text)}
     assert {"rabbitros_messages", "rabbitros_worker_messages", "rabbitros_connection_up", "rabbitros_workers_up"} <= names
+
+
+def route_of_worker(delivered: int, mean_s: float, max_ns: int, last_at: float, error: str) -> dict[str, Any]:
+    """A route's status as a worker's admin writes it (engine/ops/admin.py status_document)."""
+    return {"file": "routes/orders.yaml:3", "generation": 2, "role": "shared", "state": "running",
+            "received": delivered, "delivered": delivered, "latency_ns_total": int(mean_s * 1e9) * delivered,
+            "latency_ns_max": max_ns, "latency_mean_s": mean_s, "last_at": last_at, "last_error_at": last_at,
+            "last_error": error, "last_canonical": {"from": error}, "messages": {"received": delivered, "delivered": delivered},
+            "dead_letters": {"mapping": 1}, "replies": {"sent": 1, "errors": 0},
+            "sinks": {"bus": {"delivered": delivered, "can_take": error != "w1"}}}
+
+
+def test_a_routes_means_maxima_timestamps_and_generation_are_not_summed() -> None:
+    documents: list[dict[str, Any] | None] = [
+        {"routes": {"orders": route_of_worker(10, 0.002, 9_000_000, 100.0, "w0")}, "connections": {}},
+        {"routes": {"orders": route_of_worker(30, 0.006, 4_000_000, 200.0, "w1")}, "connections": {}}]
+    merged = merge_status(supervisor(2).status(), documents)["routes"]["orders"]
+    assert merged["delivered"] == 40 and merged["messages"] == {"received": 40, "delivered": 40}
+    assert merged["dead_letters"] == {"mapping": 2} and merged["replies"] == {"sent": 2, "errors": 0}
+    assert merged["sinks"]["bus"] == {"delivered": 40, "can_take": False}  # can take only where it can in each
+    assert merged["latency_mean_s"] == pytest.approx((10 * 0.002 + 30 * 0.006) / 40)
+    assert merged["latency_ns_max"] == 9_000_000 and merged["generation"] == 2
+    assert (merged["last_at"], merged["last_error"], merged["last_canonical"]) == (200.0, "w1", {"from": "w1"})
+    assert documents[0] is not None and documents[0]["routes"]["orders"]["messages"]["delivered"] == 10  # untouched
+
+
+GAUGES = """\
+# HELP rabbitros_config_generation Generation of the live configuration
+# TYPE rabbitros_config_generation gauge
+rabbitros_config_generation {generation}
+# HELP rabbitros_vehicle_heard_seconds_ago Seconds since the vehicle's last HEARTBEAT
+# TYPE rabbitros_vehicle_heard_seconds_ago gauge
+rabbitros_vehicle_heard_seconds_ago{{agent="uav1",connection="radio",system_id="1"}} {heard}
+"""
+
+
+def test_no_gauge_is_summed_and_the_generation_is_the_supervisors() -> None:
+    own = supervisor(2)
+    own.generation = 3
+    collector = MergedCollector(own)
+    collector.scraped = [(0, GAUGES.format(generation=3, heard=0.5)), (1, GAUGES.format(generation=1, heard=2.0))]
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(collector)
+    families = {f.name: f for f in text_string_to_metric_families(generate_latest(registry).decode())}
+    assert families["rabbitros_config_generation"].type == "gauge"
+    assert [s.value for s in families["rabbitros_config_generation"].samples] == [3.0]
+    assert [s.value for s in families["rabbitros_vehicle_heard_seconds_ago"].samples] == [2.0]  # the stalest
+    per_worker = {s.labels["worker"]: s.value for s in families["rabbitros_worker_config_generation"].samples}
+    assert per_worker == {"0": 3.0, "1": 1.0}
