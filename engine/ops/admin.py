@@ -243,6 +243,17 @@ def connection_metrics(engine: Engine) -> Iterator[Metric]:
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 
+async def listen(runner: web.AppRunner, host: str, port: int, access: AdminAccess) -> int:
+    """Serve ``runner``'s app on ``host:port`` (TLS when ``access`` has it); the bound port,
+    the one the system chose when 0 was asked (a worker's private admin, tests). One engine's
+    admin and the supervisor's (engine/ops/supervisor_admin.py) listen alike."""
+    await runner.setup()
+    site = web.TCPSite(runner, host, port, reuse_address=True, ssl_context=access.tls)
+    await site.start()
+    sockets = getattr(site._server, "sockets", None) or []
+    return int(sockets[0].getsockname()[1]) if sockets else port
+
+
 def basic_password(credentials: bytes) -> bytes:
     """The password of HTTP Basic credentials (base64 of ``user:password``); b"" when they do not decode."""
     try:
@@ -300,12 +311,7 @@ class AdminServer:
         self.collector.auth_failures += 1
 
     async def start(self) -> None:
-        await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port, reuse_address=True, ssl_context=self.access.tls)
-        await site.start()
-        sockets = getattr(site._server, "sockets", None) or []  # the bound port when 0 was asked
-        if sockets:
-            self.port = sockets[0].getsockname()[1]
+        self.port = await listen(self._runner, self.host, self.port, self.access)
         self._sampler = asyncio.create_task(self._sample(), name="admin-rates")
         log.info("admin endpoint listening", extra={"url": f"{self.access.scheme}://{self.host}:{self.port}/",
                                                     "token": self.access.token is not None})

@@ -38,7 +38,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.parser import text_string_to_metric_families
 
-from engine.ops.admin import AdminAccess, authenticate
+from engine.ops.admin import AdminAccess, authenticate, listen
 from engine.ops.supervisor import Supervisor, Worker
 from engine.running.observe import COUNTERS
 
@@ -198,12 +198,7 @@ class SupervisorAdmin:
         self.collector.auth_failures += 1
 
     async def start(self) -> None:
-        await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port, reuse_address=True, ssl_context=self.access.tls)
-        await site.start()
-        sockets = getattr(site._server, "sockets", None) or []
-        if sockets:
-            self.port = sockets[0].getsockname()[1]
+        self.port = await listen(self._runner, self.host, self.port, self.access)
         log.info("admin endpoint listening", extra={"url": f"{self.access.scheme}://{self.host}:{self.port}/",
                                                     "workers": len(self.supervisor.workers)})
 
