@@ -14,7 +14,8 @@ private admin endpoints, asked at once when a request comes:
   No gauge the engine exports adds up over processes, so none is summed (:func:`merge_gauge`):
   a gauge named ``*_up`` is the least any worker reports (a connection is up only when it is up
   in each), ``rabbitros_config_generation`` is the supervisor's (a restarted worker counts its
-  own from 1), any other the largest (``vehicle_heard_seconds_ago``: the stalest); plus
+  own from 1), any other the largest (``vehicle_heard_seconds_ago``: the stalest); the sums
+  never go down when a worker restarts (:class:`MergedCollector`); plus
   ``rabbitros_workers_up`` and ``rabbitros_worker_restarts_total``;
 * ``/healthz``: 200 when every worker is up and answers 200 itself; else 503 naming them;
 * ``/tap/{route}``: the lines of every worker that runs the route, interleaved as they come.
@@ -134,38 +135,75 @@ def merge_gauge(name: str, seen: float, value: float) -> float:
     return min(seen, value) if name.endswith("_up") else max(seen, value)
 
 
+Series = tuple[str, str, tuple[tuple[str, str], ...]]
+"""One sample series: its family, its sample name, its labels."""
+ADDS_UP = frozenset(("counter", "histogram"))
+"""The metric types whose samples sum over workers (a histogram's buckets, count and sum)."""
+
+
 class MergedCollector:
-    """prometheus_client collector over the workers' scraped text (see the module docstring)."""
+    """prometheus_client collector over the workers' scraped text (see the module docstring).
+
+    The merged counters never go down, as Prometheus' ``rate()`` needs (it takes a drop for a
+    reset to 0 and counts the whole new value again): a worker that does not answer counts with
+    what it said last, and when a worker was started again what its dead predecessor said last
+    is carried (:attr:`carried`) beside the new one's counts from 0. Its per-worker series
+    (``rabbitros_worker_*``) do restart from 0: a reset of that process, as Prometheus expects."""
 
     def __init__(self, supervisor: Supervisor) -> None:
         self.supervisor = supervisor
         self.scraped: list[tuple[int, str]] = []
         self.auth_failures = 0
+        self.families: dict[str, tuple[str, str]] = {}
+        """Family name -> (help, type), of every family any worker reported."""
+        self.last: dict[int, tuple[int, dict[Series, float]]] = {}
+        """Worker index -> (its restarts when it answered last, its counters then)."""
+        self.carried: dict[Series, float] = {}
+        """What workers that died had counted, by series."""
+
+    def _remember(self, index: int, counts: dict[Series, float]) -> None:
+        restarts = self.supervisor.workers[index].restarts
+        before = self.last.get(index)
+        if before is not None and before[0] != restarts:  # a new process: its predecessor's counts stay in the sum
+            for series, value in before[1].items():
+                self.carried[series] = self.carried.get(series, 0.0) + value
+        self.last[index] = (restarts, counts)
 
     def collect(self) -> Iterator[Metric]:
-        totals: dict[str, Metric] = {}
-        sums: dict[str, dict[tuple[str, tuple[tuple[str, str], ...]], float]] = {}
+        gauges: dict[Series, float] = {}
         per_worker: dict[str, Metric] = {}
         for index, text in self.scraped:
+            counts: dict[Series, float] = {}
             for family in text_string_to_metric_families(text):
-                if family.name not in totals:
-                    totals[family.name] = Metric(family.name, family.documentation, family.type)
-                    sums[family.name] = {}
-                    worker_name = "rabbitros_worker_" + family.name.removeprefix("rabbitros_")
-                    per_worker[family.name] = Metric(worker_name, family.documentation + " (per worker)", family.type)
+                self.families.setdefault(family.name, (family.documentation, family.type))
+                if family.name not in per_worker:
+                    per_worker[family.name] = Metric("rabbitros_worker_" + family.name.removeprefix("rabbitros_"),
+                                                     family.documentation + " (per worker)", family.type)
                 for sample in family.samples:
-                    key = (sample.name, tuple(sorted(sample.labels.items())))
-                    seen = sums[family.name].get(key)
-                    sums[family.name][key] = sample.value if seen is None else \
-                        seen + sample.value if family.type != "gauge" else merge_gauge(family.name, seen, sample.value)
+                    series = (family.name, sample.name, tuple(sorted(sample.labels.items())))
+                    if family.type in ADDS_UP:
+                        counts[series] = sample.value
+                    else:
+                        seen = gauges.get(series)
+                        gauges[series] = sample.value if seen is None else merge_gauge(family.name, seen, sample.value)
                     per_worker[family.name].add_sample("rabbitros_worker_" + sample.name.removeprefix("rabbitros_"),
                                                        {**sample.labels, "worker": str(index)}, sample.value)
-        for name, metric in totals.items():
-            for (sample_name, labels), value in sums[name].items():
-                own = GENERATION_GAUGE == sample_name and not labels
-                metric.add_sample(sample_name, dict(labels), float(self.supervisor.generation) if own else value)
-            yield metric
-            yield per_worker[name]
+            self._remember(index, counts)
+        totals = dict(self.carried)
+        for _, counts in self.last.values():
+            for series, value in counts.items():
+                totals[series] = totals.get(series, 0.0) + value
+        totals.update(gauges)
+        if (GENERATION_GAUGE, GENERATION_GAUGE, ()) in totals:
+            totals[(GENERATION_GAUGE, GENERATION_GAUGE, ())] = float(self.supervisor.generation)
+        merged = {name: Metric(name, documentation, kind) for name, (documentation, kind) in self.families.items()}
+        for (name, sample_name, labels), value in totals.items():  # in the workers' order: a histogram's buckets ascending
+            merged[name].add_sample(sample_name, dict(labels), value)
+        for name, metric in merged.items():
+            if metric.samples:
+                yield metric
+            if name in per_worker:
+                yield per_worker[name]
         up = GaugeMetricFamily("rabbitros_workers_up", "1 while the worker runs its routes", labels=["worker"])
         restarts = CounterMetricFamily("rabbitros_worker_restarts", "Times the supervisor started the worker again", labels=["worker"])
         for worker in self.supervisor.workers:

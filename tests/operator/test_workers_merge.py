@@ -125,3 +125,43 @@ def test_no_gauge_is_summed_and_the_generation_is_the_supervisors() -> None:
     assert [s.value for s in families["rabbitros_vehicle_heard_seconds_ago"].samples] == [2.0]  # the stalest
     per_worker = {s.labels["worker"]: s.value for s in families["rabbitros_worker_config_generation"].samples}
     assert per_worker == {"0": 3.0, "1": 1.0}
+
+
+HISTOGRAM = """\
+# HELP rabbitros_route_latency_seconds Reception to sink acceptance
+# TYPE rabbitros_route_latency_seconds histogram
+rabbitros_route_latency_seconds_bucket{{le="0.001",route="orders"}} {fast}
+rabbitros_route_latency_seconds_bucket{{le="0.01",route="orders"}} {all}
+rabbitros_route_latency_seconds_bucket{{le="+Inf",route="orders"}} {all}
+rabbitros_route_latency_seconds_count{{route="orders"}} {all}
+rabbitros_route_latency_seconds_sum{{route="orders"}} 0.5
+"""
+
+
+def merged_samples(collector: MergedCollector) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    """The collector's exposition text as Prometheus parses it, by sample name and labels."""
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(collector)
+    return {(s.name, tuple(sorted(s.labels.items()))): s.value
+            for family in text_string_to_metric_families(generate_latest(registry).decode()) for s in family.samples}
+
+
+def test_the_merged_counters_never_go_down_when_a_worker_restarts_or_does_not_answer() -> None:
+    """Prometheus' rate() takes any drop of a counter for a reset to 0: the sum keeps what a
+    dead worker counted, and a worker not answering counts with what it said last."""
+    own = supervisor(2)
+    collector = MergedCollector(own)
+    delivered = ("rabbitros_messages_total", (("outcome", "delivered"), ("route", "orders")))
+    count = ("rabbitros_route_latency_seconds_count", (("route", "orders"),))
+    collector.scraped = [(0, WORKER_METRICS.format(delivered=7, up=1) + HISTOGRAM.format(fast=3, all=7)),
+                         (1, WORKER_METRICS.format(delivered=5, up=1) + HISTOGRAM.format(fast=5, all=5))]
+    first = merged_samples(collector)
+    assert first[delivered] == 12 and first[count] == 12
+    own.workers[0].restarts = 1  # worker 0 was killed and started again: its counts begin at 0
+    collector.scraped = [(0, WORKER_METRICS.format(delivered=2, up=1) + HISTOGRAM.format(fast=1, all=2))]  # 1 not answering
+    second = merged_samples(collector)
+    assert second[delivered] == 7 + 2 + 5 and second[count] == 14
+    assert second[("rabbitros_route_latency_seconds_bucket", (("le", "0.001"), ("route", "orders")))] == 3 + 1 + 5
+    assert second[("rabbitros_worker_messages_total", (("outcome", "delivered"), ("route", "orders"), ("worker", "0")))] == 2
+    collector.scraped = [(0, WORKER_METRICS.format(delivered=4, up=1)), (1, WORKER_METRICS.format(delivered=6, up=1))]
+    assert merged_samples(collector)[delivered] == 7 + 4 + 6
