@@ -171,6 +171,58 @@ def test_a_stop_under_load_drains_both_workers_and_loses_nothing(tmp_path: Path,
     assert log.count('"msg": "stopped"') == 3, log[-3000:]  # the two workers and the supervisor, each after its drain
 
 
+def process_gone(pid: int) -> bool:
+    """The process exited (a zombie waits only for its new parent to reap it)."""
+    try:
+        return "zombie" in Path(f"/proc/{pid}/status").read_text().lower()
+    except FileNotFoundError:
+        return True
+
+
+def test_a_supervisor_killed_with_9_leaves_no_worker_and_loses_nothing(tmp_path: Path, amqp_url: str) -> None:
+    """SIGKILL to the supervisor (no chance to stop anything) while both workers drain a
+    backlog: each worker is told by the kernel (PR_SET_PDEATHSIG), drains and exits, so none
+    goes on consuming the queue unsupervised; an engine started afterwards carries the rest and
+    every message arrives at least once."""
+    tag = "o" + uuid.uuid4().hex[:8]
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text(ROUTES.format(url=amqp_url, tag=tag, key="out"))
+    port = listening_port()
+    first = EngineProcess(routes, tmp_path / "status-first.json", {}, "--workers", "2", "--admin", str(port))
+
+    async def scenario() -> list[int]:
+        connection = await aio_pika.connect(amqp_url)
+        out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
+        try:
+            await asyncio.to_thread(first.wait_started)
+            status = await admin_status(port)
+            pids = [w["pid"] for w in status["workers"]]
+            publishing = asyncio.create_task(publish(connection, tag, range(TOTAL)))  # while the workers drain it
+            await wait_for(lambda: len(out.messages) >= TOTAL // 4, 120, "a quarter of the messages before the kill")
+            os.kill(status["pid"], signal.SIGKILL)
+            await wait_for(lambda: all(process_gone(pid) for pid in pids), 60, "both workers gone after their supervisor",
+                           lambda: [pid for pid in pids if not process_gone(pid)])
+            await publishing
+            second = EngineProcess(routes, tmp_path / "status-second.json", {})
+            try:
+                await asyncio.to_thread(second.wait_started)
+                await wait_for(lambda: len({json.loads(m.body)["seq"] for m in out.messages}) == TOTAL, 240,
+                               f"all {TOTAL} messages at the sink", lambda: f"{len(out.messages)} in all")
+            finally:
+                assert await asyncio.to_thread(second.stop) == 0, second.log()
+            return pids
+        finally:
+            await connection.close()
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        first.stop()
+    log = (tmp_path / "status-first.log").read_text()
+    assert log.count('"msg": "stopped"') == 2, log[-3000:]  # each worker after its drain; the supervisor was killed
+
+
 def test_a_reload_reaches_both_workers_and_a_broken_one_neither(tmp_path: Path, amqp_url: str) -> None:
     """An edit of the routes: the supervisor checks it once, both workers run the new config
     hash and the supervisor's generation is 2; a file that does not compile is rejected once,
