@@ -15,7 +15,7 @@ import subprocess
 import sys
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import aio_pika
 import aiohttp
@@ -57,17 +57,24 @@ async def publish(connection: aio_pika.abc.AbstractConnection, tag: str, ids: ra
                                for seq in range(first, min(first + 500, ids.stop))))
 
 
+def two_workers(tmp_path: Path, text: str, status: str = "status.json", *extra: str) -> tuple[Path, int, EngineProcess]:
+    """``text`` as the routes directory's one file, and ``run --workers 2`` on it with an admin
+    port: (the route file, the admin port, the supervisor's process)."""
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    route_file = routes / "r.yaml"
+    route_file.write_text(text)
+    port = listening_port()
+    return route_file, port, EngineProcess(routes, tmp_path / status, {}, "--workers", "2", "--admin", str(port), *extra)
+
+
 def test_a_worker_killed_under_load_loses_nothing_and_comes_back(tmp_path: Path, amqp_url: str) -> None:
     """12,000 messages published while two workers drain them; worker 0 killed with -9 a quarter of
     the way: every message arrives at least once (what it held unacknowledged the broker hands
     to the others), the supervisor starts it again (status: up, another pid, ``restarts: 1``),
     and a SIGTERM then stops both workers and the supervisor cleanly (exit 0)."""
     tag = "w" + uuid.uuid4().hex[:8]
-    routes = tmp_path / "routes"
-    routes.mkdir()
-    (routes / "r.yaml").write_text(ROUTES.format(url=amqp_url, tag=tag, key="out"))
-    port = listening_port()
-    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--workers", "2", "--admin", str(port))
+    _, port, engine = two_workers(tmp_path, ROUTES.format(url=amqp_url, tag=tag, key="out"))
 
     async def scenario() -> dict[str, Any]:
         connection = await aio_pika.connect(amqp_url)
@@ -129,69 +136,15 @@ def test_a_worker_killed_under_load_loses_nothing_and_comes_back(tmp_path: Path,
     assert "workers 2/2 up" in result["table"] and "restarts 1" in result["table"], result["table"]
 
 
-def test_a_stop_under_load_drains_both_workers_and_loses_nothing(tmp_path: Path, amqp_url: str) -> None:
-    """SIGTERM to the supervisor while both workers drain a backlog: both stop (each drains
-    what it holds), the supervisor exits 0 and no worker outlives it; one engine started
-    afterwards carries the rest, and every message arrived at least once."""
+def stopped_under_load(tmp_path: Path, amqp_url: str, stop: Callable[[EngineProcess, int], int | None]) -> tuple[list[int], int | None, int, str]:
+    """Two workers draining a backlog are stopped a quarter of the way by ``stop(supervisor,
+    its pid)``; once both workers are gone, one engine started afterwards must carry the rest
+    (every message at the sink at least once). The workers' pids, what ``stop`` returned, the
+    messages at the sink when it was called, and the supervisor's log."""
     tag = "s" + uuid.uuid4().hex[:8]
-    routes = tmp_path / "routes"
-    routes.mkdir()
-    (routes / "r.yaml").write_text(ROUTES.format(url=amqp_url, tag=tag, key="out"))
-    port = listening_port()
-    first = EngineProcess(routes, tmp_path / "status-first.json", {}, "--workers", "2", "--admin", str(port))
+    route_file, port, first = two_workers(tmp_path, ROUTES.format(url=amqp_url, tag=tag, key="out"), "status-first.json")
 
-    async def scenario() -> tuple[list[int], int, int]:
-        connection = await aio_pika.connect(amqp_url)
-        out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
-        try:
-            await asyncio.to_thread(first.wait_started)
-            pids = [w["pid"] for w in (await admin_status(port))["workers"]]
-            publishing = asyncio.create_task(publish(connection, tag, range(TOTAL)))  # while the workers drain it
-            await wait_for(lambda: len(out.messages) >= TOTAL // 4, 120, "a quarter of the messages before the stop")
-            exited = await asyncio.to_thread(first.stop)
-            at_stop = len(out.messages)
-            await publishing
-            second = EngineProcess(routes, tmp_path / "status-second.json", {})
-            try:
-                await asyncio.to_thread(second.wait_started)
-                await wait_for(lambda: len({json.loads(m.body)["seq"] for m in out.messages}) == TOTAL, 240,
-                               f"all {TOTAL} messages at the sink", lambda: f"{len(out.messages)} in all")
-            finally:
-                assert await asyncio.to_thread(second.stop) == 0, second.log()
-            return pids, exited, at_stop
-        finally:
-            await connection.close()
-
-    pids, exited, at_stop = asyncio.run(scenario())
-    assert exited == 0, first.log()
-    assert at_stop < TOTAL, "the stop came after the drain: nothing was in flight"
-    for pid in pids:  # each worker exited (a zombie is reaped by its parent, gone too)
-        assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(f"/proc/{pid}/status").read_text().lower()
-    log = (tmp_path / "status-first.log").read_text()
-    assert log.count('"msg": "stopped"') == 3, log[-3000:]  # the two workers and the supervisor, each after its drain
-
-
-def process_gone(pid: int) -> bool:
-    """The process exited (a zombie waits only for its new parent to reap it)."""
-    try:
-        return "zombie" in Path(f"/proc/{pid}/status").read_text().lower()
-    except FileNotFoundError:
-        return True
-
-
-def test_a_supervisor_killed_with_9_leaves_no_worker_and_loses_nothing(tmp_path: Path, amqp_url: str) -> None:
-    """SIGKILL to the supervisor (no chance to stop anything) while both workers drain a
-    backlog: each worker is told by the kernel (PR_SET_PDEATHSIG), drains and exits, so none
-    goes on consuming the queue unsupervised; an engine started afterwards carries the rest and
-    every message arrives at least once."""
-    tag = "o" + uuid.uuid4().hex[:8]
-    routes = tmp_path / "routes"
-    routes.mkdir()
-    (routes / "r.yaml").write_text(ROUTES.format(url=amqp_url, tag=tag, key="out"))
-    port = listening_port()
-    first = EngineProcess(routes, tmp_path / "status-first.json", {}, "--workers", "2", "--admin", str(port))
-
-    async def scenario() -> list[int]:
+    async def scenario() -> tuple[list[int], int | None, int]:
         connection = await aio_pika.connect(amqp_url)
         out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
         try:
@@ -199,27 +152,55 @@ def test_a_supervisor_killed_with_9_leaves_no_worker_and_loses_nothing(tmp_path:
             status = await admin_status(port)
             pids = [w["pid"] for w in status["workers"]]
             publishing = asyncio.create_task(publish(connection, tag, range(TOTAL)))  # while the workers drain it
-            await wait_for(lambda: len(out.messages) >= TOTAL // 4, 120, "a quarter of the messages before the kill")
-            os.kill(status["pid"], signal.SIGKILL)
+            await wait_for(lambda: len(out.messages) >= TOTAL // 4, 120, "a quarter of the messages before the stop")
+            stopped = await asyncio.to_thread(stop, first, status["pid"])
+            at_stop = len(out.messages)
             await wait_for(lambda: all(process_gone(pid) for pid in pids), 60, "both workers gone after their supervisor",
                            lambda: [pid for pid in pids if not process_gone(pid)])
             await publishing
-            second = EngineProcess(routes, tmp_path / "status-second.json", {})
+            second = EngineProcess(route_file.parent, tmp_path / "status-second.json", {})
             try:
                 await asyncio.to_thread(second.wait_started)
                 await wait_for(lambda: len({json.loads(m.body)["seq"] for m in out.messages}) == TOTAL, 240,
                                f"all {TOTAL} messages at the sink", lambda: f"{len(out.messages)} in all")
             finally:
                 assert await asyncio.to_thread(second.stop) == 0, second.log()
-            return pids
+            return pids, stopped, at_stop
         finally:
             await connection.close()
 
     try:
-        asyncio.run(scenario())
+        pids, stopped, at_stop = asyncio.run(scenario())
     finally:
         first.stop()
-    log = (tmp_path / "status-first.log").read_text()
+    return pids, stopped, at_stop, (tmp_path / "status-first.log").read_text()
+
+
+def process_gone(pid: int) -> bool:
+    """The process exited (a zombie waits only for its parent to reap it)."""
+    try:
+        return "zombie" in Path(f"/proc/{pid}/status").read_text().lower()
+    except FileNotFoundError:
+        return True
+
+
+def test_a_stop_under_load_drains_both_workers_and_loses_nothing(tmp_path: Path, amqp_url: str) -> None:
+    """SIGTERM to the supervisor while both workers drain a backlog: both stop (each drains
+    what it holds), the supervisor exits 0 and no worker outlives it; one engine started
+    afterwards carries the rest, and every message arrived at least once."""
+    _, exited, at_stop, log = stopped_under_load(tmp_path, amqp_url, lambda supervisor, _: supervisor.stop())
+    assert exited == 0, log[-3000:]
+    assert at_stop < TOTAL, "the stop came after the drain: nothing was in flight"
+    assert log.count('"msg": "stopped"') == 3, log[-3000:]  # the two workers and the supervisor, each after its drain
+
+
+def test_a_supervisor_killed_with_9_leaves_no_worker_and_loses_nothing(tmp_path: Path, amqp_url: str) -> None:
+    """SIGKILL to the supervisor (no chance to stop anything) while both workers drain a
+    backlog: each worker is told by the kernel (PR_SET_PDEATHSIG), drains and exits, so none
+    goes on consuming the queue unsupervised; an engine started afterwards carries the rest and
+    every message arrives at least once."""
+    _, _, at_stop, log = stopped_under_load(tmp_path, amqp_url, lambda _, pid: os.kill(pid, signal.SIGKILL))
+    assert at_stop < TOTAL, "the kill came after the drain: nothing was in flight"
     assert log.count('"msg": "stopped"') == 2, log[-3000:]  # each worker after its drain; the supervisor was killed
 
 
@@ -228,12 +209,7 @@ def test_a_reload_reaches_both_workers_and_a_broken_one_neither(tmp_path: Path, 
     hash and the supervisor's generation is 2; a file that does not compile is rejected once,
     by the supervisor, and both workers keep running the hash they had."""
     tag = "r" + uuid.uuid4().hex[:8]
-    routes = tmp_path / "routes"
-    routes.mkdir()
-    route_file = routes / "r.yaml"
-    route_file.write_text(ROUTES.format(url=amqp_url, tag=tag, key="first"))
-    port = listening_port()
-    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--workers", "2", "--admin", str(port))
+    route_file, port, engine = two_workers(tmp_path, ROUTES.format(url=amqp_url, tag=tag, key="first"))
 
     async def scenario() -> tuple[dict[str, Any], dict[str, Any]]:
         first = await admin_status(port)
@@ -292,11 +268,7 @@ def test_an_mqtt_shared_subscription_is_split_between_the_workers(tmp_path: Path
     from tests.endpoints.mqtt.test_mqtt import publish as mqtt_publish
 
     tag = "m" + uuid.uuid4().hex[:8]
-    routes = tmp_path / "routes"
-    routes.mkdir()
-    (routes / "r.yaml").write_text(MQTT_ROUTES.format(mqtt=mosquitto.url, url=amqp_url, tag=tag))
-    port = listening_port()
-    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--workers", "2", "--admin", str(port))
+    _, port, engine = two_workers(tmp_path, MQTT_ROUTES.format(mqtt=mosquitto.url, url=amqp_url, tag=tag))
 
     async def scenario() -> dict[str, Any]:
         connection = await aio_pika.connect(amqp_url)
@@ -345,15 +317,11 @@ def test_a_generation_one_worker_refuses_is_rolled_back_on_the_others(tmp_path: 
     import socket
 
     tag = "b" + uuid.uuid4().hex[:8]
-    routes = tmp_path / "routes"
-    routes.mkdir()
-    route_file = routes / "r.yaml"
     free, busy = listening_port(kind=socket.SOCK_DGRAM), listening_port(kind=socket.SOCK_DGRAM)
     holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # no SO_REUSEADDR: the engine's bind must fail
     holder.bind(("127.0.0.1", busy))
-    route_file.write_text(ROLLBACK_ROUTES.format(url=amqp_url, tag=tag, key="first", port=free))
-    port = listening_port()
-    engine = EngineProcess(routes, tmp_path / "status.json", {}, "--workers", "2", "--admin", str(port), "--require-connections")
+    route_file, port, engine = two_workers(tmp_path, ROLLBACK_ROUTES.format(url=amqp_url, tag=tag, key="first", port=free),
+                                           "status.json", "--require-connections")
 
     async def scenario() -> tuple[dict[str, Any], dict[str, Any], list[str]]:
         connection = await aio_pika.connect(amqp_url)
