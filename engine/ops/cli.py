@@ -140,6 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "a broker queue is consumed by every worker, a device or a link by one (check --workers N shows where)")
     run.add_argument("--worker", type=int, help=argparse.SUPPRESS)  # set by the supervisor: this process is worker K of --workers
     run.add_argument("--worker-channel", type=int, help=argparse.SUPPRESS)  # the pipe a worker says it runs on
+    run.add_argument("--supervisor-pid", type=int, help=argparse.SUPPRESS)  # a worker stops when its parent is not this
     parser.run_parser = run
 
     check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
@@ -400,7 +401,7 @@ async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> 
         total_bytes=int(args.record_total_mb * 2**20)))
     worker = {"index": args.worker, "workers": args.workers} if getattr(args, "worker", None) is not None else None
     if worker is not None:
-        die_with_parent()
+        die_with_parent(args.supervisor_pid)
         log_as_worker(args.worker)
     engine = (WorkerEngine if worker is not None else Engine)(
         args.routes, schema_directories(args), require_connections=args.require_connections, instance=args.instance,

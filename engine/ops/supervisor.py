@@ -171,6 +171,7 @@ class Supervisor:
         args = self.args
         command = [sys.executable, "-m", "engine", "run", "--routes", str(args.routes), "--no-watch",
                    "--workers", str(len(self.workers)), "--worker", str(worker.index), "--worker-channel", str(channel),
+                   "--supervisor-pid", str(os.getpid()),
                    "--admin", "127.0.0.1:0", "--log-level", args.log_level, "--log-format", args.log_format,
                    "--stats-interval", str(args.stats_interval), "--drain-timeout", str(args.drain_timeout)]
         for directory in args.schemas or ():

@@ -89,18 +89,21 @@ class WorkerEngine(Engine):
         return {**super().status(), "worker": {"index": self.index, "workers": self.workers}}
 
 
-def die_with_parent() -> None:
+def die_with_parent(supervisor: int | None) -> None:
     """In a worker: SIGTERM when the supervisor dies, even by SIGKILL, so no worker outlives it
     consuming queues (Linux ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing). Set by the worker
-    itself rather than in a ``preexec_fn`` (unsafe in a process with threads); a supervisor
-    already gone by then (the parent is init) stops the worker at once."""
+    itself rather than in a ``preexec_fn`` (unsafe in a process with threads), so the worker
+    compares its parent with the pid the supervisor gave it (``--supervisor-pid``): a
+    supervisor that died while the worker was still importing (a second or so) is found here
+    and the worker stops at once. (Comparing with the parent read just before missed that
+    death: by then the parent was already init, and the worker ran on unsupervised.)"""
     if not sys.platform.startswith("linux"):
         return
     import ctypes
 
-    parent = os.getppid()
+    expected = supervisor if supervisor is not None else os.getppid()
     ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # 1: PR_SET_PDEATHSIG
-    if os.getppid() != parent:
+    if os.getppid() != expected:
         os.kill(os.getpid(), signal.SIGTERM)
 
 

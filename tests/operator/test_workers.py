@@ -204,6 +204,37 @@ def test_a_supervisor_killed_with_9_leaves_no_worker_and_loses_nothing(tmp_path:
     assert log.count('"msg": "stopped"') == 2, log[-3000:]  # each worker after its drain; the supervisor was killed
 
 
+SPAWN_AND_DIE = """\
+import os, subprocess, sys
+log = open(sys.argv[1], "w")
+worker = subprocess.Popen(sys.argv[2:] + ["--supervisor-pid", str(os.getpid())], stdout=log, stderr=log)
+print(worker.pid, flush=True)
+"""
+"""A stand-in supervisor that starts a worker and dies at once, while the worker still imports."""
+
+
+def test_a_worker_whose_supervisor_died_before_it_ran_stops(tmp_path: Path, amqp_url: str) -> None:
+    """A supervisor killed in the second a worker (re)starts, before the worker asked the kernel
+    for PR_SET_PDEATHSIG: the worker finds its parent is not the supervisor that started it and
+    stops, instead of consuming the queue unsupervised."""
+    tag = "d" + uuid.uuid4().hex[:8]
+    routes = tmp_path / "routes"
+    routes.mkdir()
+    (routes / "r.yaml").write_text(ROUTES.format(url=amqp_url, tag=tag, key="out"))
+    worker = [sys.executable, "-m", "engine", "run", "--routes", str(routes), "--schemas", str(REPO / "schemas"),
+              "--no-watch", "--workers", "2", "--worker", "0", "--log-format", "json"]
+    parent = subprocess.run([sys.executable, "-c", SPAWN_AND_DIE, str(tmp_path / "worker.log"), *worker],
+                            capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert parent.returncode == 0, parent.stderr
+    pid = int(parent.stdout)
+    try:
+        asyncio.run(wait_for(lambda: process_gone(pid), 60, "the worker gone after its supervisor",
+                             lambda: (tmp_path / "worker.log").read_text()[-2000:]))
+    finally:
+        if not process_gone(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
 def test_a_reload_reaches_both_workers_and_a_broken_one_neither(tmp_path: Path, amqp_url: str) -> None:
     """An edit of the routes: the supervisor checks it once, both workers run the new config
     hash and the supervisor's generation is 2; a file that does not compile is rejected once,
