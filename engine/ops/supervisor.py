@@ -65,6 +65,16 @@ POLL_S = 0.05
 """Between two questions to a worker while a reload settles."""
 
 
+SUPERVISOR_OWN_OPTIONS = frozenset((
+    "--workers", "--no-watch", "--status-file", "--admin", "--admin-tls-cert", "--admin-tls-key",  # one watch, one admin
+    "--local-broker", "--broker-url-file", "--cluster", "--local-broker-tls",  # started once; the workers read its environment
+    "--foxglove", "--foxglove-tls-cert", "--foxglove-tls-key",  # refused with --workers
+))
+"""The ``run`` options the supervisor keeps for itself; every other one reaches each worker
+through :meth:`Supervisor.command` (a fast test holds the two lists to the parser, so a new
+run option cannot be silently dropped for workers)."""
+
+
 def worker_count(text: str) -> int:
     """``--workers N`` or ``auto``: one per core this process may run on (its CPU affinity: a
     container's cpuset, ``taskset``), else ``os.cpu_count()`` where the system does not say."""

@@ -165,3 +165,18 @@ def test_the_merged_counters_never_go_down_when_a_worker_restarts_or_does_not_an
     assert second[("rabbitros_worker_messages_total", (("outcome", "delivered"), ("route", "orders"), ("worker", "0")))] == 2
     collector.scraped = [(0, WORKER_METRICS.format(delivered=4, up=1)), (1, WORKER_METRICS.format(delivered=6, up=1))]
     assert merged_samples(collector)[delivered] == 7 + 4 + 6
+
+
+def test_every_run_option_reaches_the_workers_or_is_the_supervisors() -> None:
+    """The supervisor writes its workers' command lines from its own options: one it neither
+    passes on nor keeps for itself (SUPERVISOR_OWN_OPTIONS) would be dropped for workers."""
+    from engine.ops.cli import build_parser
+    from engine.ops.supervisor import SUPERVISOR_OWN_OPTIONS, Worker
+
+    run = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["run"]
+    options = {o for a in run._actions if a.help != argparse.SUPPRESS for o in a.option_strings} - {"-h", "--help"}
+    args = run.parse_args(["--routes", "r", "--schemas", "s", "--instance", "i", "--admin-token-file", "t",
+                           "--require-connections", "--test-on-reload", "--record", "rec"])
+    passed = {word for word in Supervisor(args, 2, not_compiled).command(Worker(0), 9) if word.startswith("--")}
+    assert options - passed - SUPERVISOR_OWN_OPTIONS == set()
+    assert passed & SUPERVISOR_OWN_OPTIONS <= {"--workers", "--no-watch", "--admin"}  # each worker's own values
