@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
-from typing import Callable, Iterable, Mapping
+from typing import Iterable, Mapping
 
 from engine import endpoints
 from engine.language.specs import ConnectionSpec, RoutesConfig, RouteSpec
@@ -82,24 +82,23 @@ def stable_worker(key: str, workers: int) -> int:
     return int.from_bytes(hashlib.blake2b(key.encode(), digest_size=8).digest(), "big") % workers
 
 
-def default_affinity(spec: ConnectionSpec) -> str | None:
+def held_alone(spec: ConnectionSpec) -> str | None:
     """The connection's exclusive resource, else its affinity as its protocol states it
     (``Transport.worker_affinity``, engine/endpoints/workers.py)."""
     settings = spec.options if spec.options is not None else spec.settings
     return spec.exclusive or endpoints.transport(spec.protocol).worker_affinity(spec.name, settings)
 
 
-def default_shares(route: RouteSpec) -> bool:
+def spreads_over_workers(route: RouteSpec) -> bool:
     """Whether the route's source spreads over every worker (``Transport.spreads_over_workers``)."""
     return endpoints.transport(route.source.protocol).spreads_over_workers(route.source.options)
 
 
-def place_routes(config: RoutesConfig, workers: int, affinity: Callable[[ConnectionSpec], str | None] = default_affinity,
-                 shares: Callable[[RouteSpec], bool] = default_shares) -> WorkerPlacement:
+def place_routes(config: RoutesConfig, workers: int) -> WorkerPlacement:
     """Place every route of ``config`` on ``workers`` workers (see the module docstring)."""
     if workers < 1:
         raise PlacementError(f"--workers {workers}: at least 1")
-    keys_of = {name: _keys(config, route, affinity) for name, route in config.routes.items()}
+    keys_of = {name: _keys(config, route) for name, route in config.routes.items()}
     owner = _union(keys_of.values())
     every = tuple(range(workers))
     places: dict[str, RoutePlace] = {}
@@ -112,15 +111,15 @@ def place_routes(config: RoutesConfig, workers: int, affinity: Callable[[Connect
             places[name] = RoutePlace((stable_worker(group, workers),), f"holds {held}{joined}")
         elif (state := _own_state(route)) is not None:
             places[name] = RoutePlace((stable_worker(name, workers),), f"keeps {state} in the process")
-        elif shares(route):
+        elif spreads_over_workers(route):
             places[name] = RoutePlace(every, "competing consumers")
         else:
             places[name] = RoutePlace((stable_worker(name, workers),), "hash of the route name")
     return WorkerPlacement(workers, places)
 
 
-def _keys(config: RoutesConfig, route: RouteSpec, affinity: Callable[[ConnectionSpec], str | None]) -> tuple[str, ...]:
-    found = [affinity(config.connections[endpoint.connection]) for endpoint in route.endpoints()]
+def _keys(config: RoutesConfig, route: RouteSpec) -> tuple[str, ...]:
+    found = [held_alone(config.connections[endpoint.connection]) for endpoint in route.endpoints()]
     if route.remember is not None or any("recall(" in text for text in _expressions(route)):
         found.append(STORES)
     return tuple(sorted({key for key in found if key}))
