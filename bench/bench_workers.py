@@ -38,6 +38,7 @@ from typing import Any
 
 from bench.systems import gnss_json
 from bench.throughput import Broker, process_cpu_seconds, routes_file
+from engine.common.processes import process_usage
 
 REPO = Path(__file__).resolve().parent.parent
 BROKER_GROUP = [0]
@@ -122,16 +123,8 @@ async def drain(broker: Broker, workers: int, count: int) -> dict[str, Any]:
 
 def group_cpu_seconds(group: int) -> float:
     """CPU time of every process of process group ``group`` (the broker node under ``timeout``)."""
-    total = 0
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[2]) == group:
-                total += int(fields[11]) + int(fields[12])
-    return total / os.sysconf("SC_CLK_TCK")
+    usages = (process_usage(int(entry.name)) for entry in Path("/proc").iterdir() if entry.name.isdigit())
+    return sum(usage.cpu_s for usage in usages if usage is not None and usage.group == group)
 
 
 async def observe(broker: Broker, sink: str, total: int, pids: list[int]) -> dict[str, Any]:

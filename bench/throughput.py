@@ -59,6 +59,7 @@ from typing import Any, AsyncIterator
 from pamqp.commands import Basic
 
 from bench.systems import gnss_json
+from engine.common.processes import process_usage
 
 Properties = Basic.Properties
 
@@ -499,11 +500,8 @@ class Bridge:
 
 def process_cpu_seconds(pid: int) -> float:
     """CPU time (user + system, all threads) process ``pid`` has used, 0 once it is gone."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    usage = process_usage(pid)
+    return usage.cpu_s if usage is not None else 0.0
 
 
 async def observe_drain(sunk: Any, base: int, total: int, cpu: Any, stall: float = STALL_S) -> dict[str, Any]:

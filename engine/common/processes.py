@@ -16,6 +16,7 @@ import socket
 import subprocess
 import time
 from pathlib import Path
+from dataclasses import dataclass
 from typing import Collection, Iterable, Mapping, Protocol, Self, Sequence
 
 LOCAL_BROKER_ENV = "RABBITROS_LOCAL_BROKER"
@@ -212,3 +213,27 @@ class PrivateBroker(Protocol):
         """Start and wait until it serves; BrokerError if it cannot."""
 
     def stop(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class ProcessUsage:
+    """What a process has used, as Linux's /proc tells it."""
+
+    cpu_s: float
+    """User + system seconds of every thread since it started."""
+    rss_bytes: int
+    """Resident memory now."""
+    group: int
+    """Its process group (a broker node under ``timeout``, a supervisor's worker)."""
+
+
+def process_usage(pid: int) -> ProcessUsage | None:
+    """Process ``pid``'s use of the machine from /proc/PID/stat; None once it is gone, or
+    where there is no /proc. One reader for the supervisor's status of its workers and the
+    benchmarks' CPU per message."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()  # the name may hold spaces
+        return ProcessUsage(cpu_s=(int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"),
+                            rss_bytes=int(fields[21]) * os.sysconf("SC_PAGE_SIZE"), group=int(fields[2]))
+    except (OSError, IndexError, ValueError):
+        return None

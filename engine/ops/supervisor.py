@@ -39,12 +39,12 @@ import signal
 import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable
 
 import aiohttp
 
 from engine.common.backoff import Backoff
+from engine.common.processes import process_usage
 from engine.language.routes import RoutesInvalid
 from engine.language.specs import RoutesConfig
 from engine.running.placement import WorkerPlacement, place_routes
@@ -109,20 +109,15 @@ class Worker:
         return {"index": self.index, "pid": self.pid, "up": self.up, "restarts": self.restarts,
                 "admin_port": self.admin_port, "last_exit": self.last_exit,
                 "uptime_s": round(time.monotonic() - self.started_at, 1) if self.up else 0.0,
-                **(process_usage(self.pid) if self.up and self.pid is not None else {}),
+                **(usage_fields(self.pid) if self.up and self.pid is not None else {}),
                 "routes": sorted(placement.on(self.index)) if placement is not None else []}
 
 
-def process_usage(pid: int) -> dict[str, float]:
-    """The CPU seconds (user + system) a process used since it started and its resident memory
-    (MiB), from Linux's /proc: how the load spreads over the workers; empty elsewhere."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        pages = int(Path(f"/proc/{pid}/statm").read_text().split()[1])
-    except (OSError, IndexError, ValueError):
-        return {}
-    return {"cpu_s": round((int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), 2),
-            "rss_mib": round(pages * os.sysconf("SC_PAGE_SIZE") / 2**20, 1)}
+def usage_fields(pid: int) -> dict[str, float]:
+    """The CPU seconds a worker used since it started and its resident memory (MiB): how the
+    load spreads over the workers; empty where /proc does not say."""
+    usage = process_usage(pid)
+    return {} if usage is None else {"cpu_s": round(usage.cpu_s, 2), "rss_mib": round(usage.rss_bytes / 2**20, 1)}
 
 
 @dataclass
