@@ -11,7 +11,7 @@ import signal
 import sys
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, NoReturn, Sequence
 
 from engine import __version__, endpoints
 from engine.common.logs import setup_logging
@@ -64,6 +64,13 @@ class _TopLevelParser(argparse.ArgumentParser):
     default command, so its options follow the command list."""
 
     run_parser: argparse.ArgumentParser | None = None
+
+    def error(self, message: str) -> NoReturn:
+        """argparse's error, with the way to give a routes directory when a bare word was one
+        (``check --workers 2 examples/``: the directory is an option's value, not a word)."""
+        if message.startswith("unrecognized arguments:") and any(Path(word).exists() for word in message.split(":", 1)[1].split()):
+            message += " (give the routes directory as --routes DIR)"
+        super().error(message)
 
     def format_help(self) -> str:
         text = super().format_help()

@@ -299,3 +299,12 @@ def test_local_broker_tls_refused_without_local_broker_or_with_a_cluster(tmp_pat
     assert alone.returncode == 2 and "--local-broker-tls needs --local-broker" in alone.stderr, alone.stderr
     cluster = cli("--routes", str(tmp_path), "--schemas", "schemas", "--local-broker", "--local-broker-tls", "--cluster", "2")
     assert cluster.returncode == 2 and "leave out --cluster" in cluster.stderr, cluster.stderr
+
+
+@pytest.mark.fast
+def test_a_routes_directory_given_as_a_bare_word_is_pointed_to_routes() -> None:
+    """``check --workers 2 examples/``: argparse's 'unrecognized arguments' says how to give it."""
+    result = cli("check", "--workers", "2", "examples/")
+    assert result.returncode == 2
+    assert "unrecognized arguments: examples/ (give the routes directory as --routes DIR)" in result.stderr
+    assert "--routes DIR)" not in cli("check", "--no-such-option").stderr
