@@ -111,9 +111,14 @@ def merge_status(own: dict[str, Any], documents: list[dict[str, Any] | None]) ->
             held["workers"].append(index)
             held["healthy"] = bool(held.get("healthy", True)) and bool(health.get("healthy", True))
             held["up"] = held["healthy"]
-    first = next((d for d in documents if d is not None), {})
+    answered = [d for d in documents if d is not None]
+    first = answered[0] if answered else {}
+    dead_letters = copy.deepcopy(first.get("dead_letters"))
+    for document in answered[1:]:  # one destination, each worker's stored and spooled letters
+        if isinstance(dead_letters, dict) and isinstance(document.get("dead_letters"), dict):
+            add_counts(dead_letters, document["dead_letters"])
     workers = [{**worker, "status": documents[i]} for i, worker in enumerate(own["workers"])]
-    return {**{key: first.get(key) for key in ("instance", "dead_letters", "brokers")}, **own, "workers": workers,
+    return {"instance": first.get("instance"), "brokers": first.get("brokers"), "dead_letters": dead_letters, **own, "workers": workers,
             "routes": dict(sorted(routes.items())), "connections": connections, "elsewhere": []}
 
 

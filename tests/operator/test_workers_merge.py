@@ -23,7 +23,8 @@ pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./sc
 
 
 def worker_document(received: int, healthy: bool, routes: tuple[str, ...] = ("orders",)) -> dict[str, Any]:
-    return {"instance": "farm", "dead_letters": None, "brokers": {}, "generation": 1, "config_hash": "abc",
+    return {"instance": "farm", "dead_letters": {"destination": "amqp dead-letters", "stored": received // 3, "spooled": 1},
+            "brokers": {}, "generation": 1, "config_hash": "abc",
             "routes": {name: {"received": received, "delivered": received - 1, "state": "running", "role": "shared"}
                        for name in routes},
             "connections": {"bus": {"protocol": "amqp", "healthy": healthy, "state": "up" if healthy else "down"}}}
@@ -46,6 +47,7 @@ def test_status_sums_a_routes_counters_and_keeps_each_worker() -> None:
     assert merged["connections"]["bus"]["up"] is False and merged["connections"]["bus"]["workers"] == [0, 2]
     assert [w["status"] is not None for w in merged["workers"]] == [True, False, True]
     assert merged["instance"] == "farm" and merged["generation"] == 0  # the supervisor's own, not started here
+    assert merged["dead_letters"] == {"destination": "amqp dead-letters", "stored": 10 // 3 + 5 // 3, "spooled": 2}
 
 
 WORKER_METRICS = """\
