@@ -197,6 +197,9 @@ class Supervisor:
         try:
             worker.process = await asyncio.create_subprocess_exec(
                 *self.command(worker, write), pass_fds=(write,), start_new_session=True)
+        except BaseException:
+            os.close(read)
+            raise
         finally:
             os.close(write)
         worker.ready.clear()
@@ -242,21 +245,32 @@ class Supervisor:
             assert worker.process is not None
             code = await worker.process.wait()
             worker.up, worker.last_exit = False, code
-            if self.stopping:
+            if self.stopping or not await self._start_again(worker, f"exit {code}"):
                 return
+            if await self._wait_ready(worker):
+                log.info("worker running again", extra={"worker": worker.index, "pid": worker.pid, "restarts": worker.restarts})
+
+    async def _start_again(self, worker: Worker, why: str) -> bool:
+        """Start a worker that exited, after the backoff (none when it had run :data:`STEADY_S`);
+        a start that fails itself (no process slot or file descriptor left: ``OSError``) is
+        tried again after the next backoff, so a worker is never left down for good. False
+        when the engine stops meanwhile."""
+        while True:
             steady = time.monotonic() - worker.started_at > STEADY_S
             if steady:
                 worker.backoff.reset()
             delay = 0.0 if steady else worker.backoff.next()
-            log.error("worker exited; starting it again", extra={"worker": worker.index, "pid": worker.pid, "exit": code,
-                                                                  "restart_in_s": round(delay, 2)})
+            log.error("worker is down; starting it again", extra={"worker": worker.index, "pid": worker.pid, "why": why,
+                                                                   "restart_in_s": round(delay, 2)})
             await asyncio.sleep(delay)
             if self.stopping:
-                return
+                return False
             worker.restarts += 1
-            await self._spawn(worker)
-            if await self._wait_ready(worker):
-                log.info("worker running again", extra={"worker": worker.index, "pid": worker.pid, "restarts": worker.restarts})
+            try:
+                await self._spawn(worker)
+                return True
+            except OSError as error:
+                worker.started_at, why = time.monotonic(), f"cannot start: {error}"
 
     # -- asking workers
 

@@ -2,12 +2,17 @@
 route's counters summed over the workers that run it, a connection healthy only where it is
 in every worker, each counter summed and labelled by worker in /metrics.
 
+Beside it, what of the supervisor needs no broker: the run options it passes its workers, and
+a worker that cannot be started is tried again.
+
 Real parts: the workers' documents as a worker's admin writes them (prometheus_client's text
-format, the status JSON's keys); no process is started."""
+format, the status JSON's keys); the only process started is a worker that exited at once."""
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -16,8 +21,9 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
 from engine.language.specs import RoutesConfig
-from engine.ops.supervisor import Supervisor
+from engine.ops.supervisor import Supervisor, Worker
 from engine.ops.supervisor_admin import MergedCollector, merge_status
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
@@ -173,7 +179,7 @@ def test_every_run_option_reaches_the_workers_or_is_the_supervisors() -> None:
     """The supervisor writes its workers' command lines from its own options: one it neither
     passes on nor keeps for itself (SUPERVISOR_OWN_OPTIONS) would be dropped for workers."""
     from engine.ops.cli import build_parser
-    from engine.ops.supervisor import SUPERVISOR_OWN_OPTIONS, Worker
+    from engine.ops.supervisor import SUPERVISOR_OWN_OPTIONS
 
     run = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["run"]
     options = {o for a in run._actions if a.help != argparse.SUPPRESS for o in a.option_strings} - {"-h", "--help"}
@@ -182,3 +188,29 @@ def test_every_run_option_reaches_the_workers_or_is_the_supervisors() -> None:
     passed = {word for word in Supervisor(args, 2, not_compiled).command(Worker(0), 9) if word.startswith("--")}
     assert options - passed - SUPERVISOR_OWN_OPTIONS == set()
     assert passed & SUPERVISOR_OWN_OPTIONS <= {"--workers", "--no-watch", "--admin"}  # each worker's own values
+
+
+class NoExecutable(Supervisor):
+    """A supervisor whose worker program is missing: every start fails with the OS's error."""
+
+    def command(self, worker: Worker, channel: int) -> list[str]:
+        return [str(Path("/nonexistent") / "python"), "-c", "pass"]
+
+
+def test_a_worker_that_cannot_be_started_is_tried_again_until_the_stop() -> None:
+    """A start that fails itself (OSError: here no such program; in the field no process slot
+    or file descriptor) leaves the worker down only until the next backoff, never for good."""
+
+    async def scenario() -> tuple[int, bool]:
+        supervisor = NoExecutable(argparse.Namespace(routes=Path("routes")), 1, not_compiled)
+        worker = supervisor.workers[0]
+        worker.process = await asyncio.create_subprocess_exec(sys.executable, "-c", "pass")  # a worker that exited
+        keeping = asyncio.create_task(supervisor._keep(worker))
+        await wait_for(lambda: worker.restarts >= 3 or keeping.done(), 30, "three starts tried")
+        alive = not keeping.done()
+        supervisor.stopping = True
+        await asyncio.wait_for(keeping, 30)
+        return worker.restarts, alive
+
+    restarts, alive = asyncio.run(scenario())
+    assert alive and restarts >= 3
