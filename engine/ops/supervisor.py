@@ -48,6 +48,7 @@ from engine.common.processes import process_usage
 from engine.language.routes import RoutesInvalid
 from engine.language.specs import RoutesConfig
 from engine.running.placement import WorkerPlacement, place_routes
+from engine.running.reload_stats import ReloadStats
 from engine.running.worker import ROLL_BACK_SIGNAL
 
 log = logging.getLogger("engine.ops.supervisor")
@@ -121,10 +122,9 @@ def usage_fields(pid: int) -> dict[str, float]:
 
 
 @dataclass
-class SupervisorReloads:
-    succeeded: int = 0
-    rejected: int = 0
-    last_error: list[str] = field(default_factory=list)
+class SupervisorReloads(ReloadStats):
+    """The engine's reload counts (one rule: ReloadStats.reject), and the workers left apart."""
+
     split: dict[int, str] = field(default_factory=dict)
     """Workers that did not take the last generation: index -> the config hash they run."""
 
@@ -394,9 +394,7 @@ class Supervisor:
                 os.killpg(worker.process.pid, signal.SIGTERM)  # drains; _keep starts it again
 
     def _rejected(self, problems: list[str]) -> bool:
-        if problems != self.reloads.last_error:
-            self.reloads.rejected += 1
-            self.reloads.last_error = problems
+        if self.reloads.reject(problems):
             log.error("reload rejected; every worker keeps its routes", extra={"generation": self.generation, "problems": problems})
         return False
 

@@ -49,6 +49,7 @@ from engine.running.leases import Leases
 from engine.running.observe import Observers
 from engine.running.pipeline import Pipeline
 from engine.running.plan import ReloadPlan, plan_reload
+from engine.running.reload_stats import ReloadStats
 from engine.running.runner import RouteRunner
 
 log = logging.getLogger("engine.running.runtime")
@@ -64,17 +65,6 @@ EMPTIED_SETTLE_S = 0.1
 
 STOP_GRACE = 2.0
 """Seconds a stop gives sources to hand back what they hold once the drain timeout is over."""
-
-
-@dataclass
-class ReloadStats:
-    succeeded: int = 0
-    rejected: int = 0
-    last_error: list[str] = field(default_factory=list)
-    last_reload_s: float = 0.0
-    last_handovers: list[dict[str, Any]] = field(default_factory=list)
-    """Exclusive resources the last reload handed over break-before-make, with the gap
-    (ms from stopping the old routes to the new ones running) during which none was served."""
 
 
 @dataclass
@@ -243,13 +233,9 @@ class Engine:
         self.reloads.last_error = []
 
     def _rejected(self, problems: list[str]) -> bool:
-        """Count and report a rejected reload, once per rejection: the same problems found again
-        with nothing applied in between (an editor's save seen as two changes, a SIGHUP) are
-        the same rejected files, not a new rejection."""
-        if problems == self.reloads.last_error:
+        """Count and report a rejected reload, once per rejection (ReloadStats.reject)."""
+        if not self.reloads.reject(problems):
             return False
-        self.reloads.rejected += 1
-        self.reloads.last_error = problems
         log.error(
             "reload rejected; previous routes keep running",
             extra={"generation": self.generation, "problems": problems},
