@@ -189,26 +189,38 @@ def replay(recording: Recording, config: RoutesConfig, schemas: SchemaRegistry, 
     yield outcome
 
 
-def run_replay(paths: list[Path], routes: Path, schemas_dir: Path | Sequence[Path], only: str | None = None, ignore: tuple[str, ...] = ()) -> int:
-    """The command: 0 when every recorded canonical message is what the routes make now, 1 when
-    one differs, 2 when the routes are invalid or nothing was recorded."""
+def opened(paths: list[Path], routes: Path, schemas_dir: Path | Sequence[Path],
+           only: str | None) -> tuple[Recording, RoutesConfig, SchemaRegistry] | None:
+    """What both replays start from: the recording, the routes as they are now and their schemas;
+    None (said on stderr) when there is no recording, the routes are invalid, or ``only`` names a
+    route the recording lacks (the command's exit status 2)."""
     files = recording_files(paths)
     missing = [str(path) for path in files if not path.is_file()]
     if missing or not files:
         print(f"no recording: {', '.join(missing) or ' '.join(map(str, paths))}", file=sys.stderr)
-        return 2
+        return None
     schemas = SchemaRegistry(schemas_dir)
     config, _, problems, _ = load_checked(routes, schemas)
     for problem in problems:
         print(problem, file=sys.stderr)
     if config is None or problems:
-        return 2
+        return None
     recording = read_recording(files)
     for note in recording.truncated:
         print(f"note: {note} (read up to the last whole chunk)", file=sys.stderr)
     if only is not None and only not in recording.routes:
         print(f"route {only!r} is not in the recording (it has: {', '.join(sorted(recording.routes)) or 'none'})", file=sys.stderr)
+        return None
+    return recording, config, schemas
+
+
+def run_replay(paths: list[Path], routes: Path, schemas_dir: Path | Sequence[Path], only: str | None = None, ignore: tuple[str, ...] = ()) -> int:
+    """The command: 0 when every recorded canonical message is what the routes make now, 1 when
+    one differs, 2 when the routes are invalid or nothing was recorded."""
+    opening = opened(paths, routes, schemas_dir, only)
+    if opening is None:
         return 2
+    recording, config, schemas = opening
     outcome = Outcome()
     for item in replay(recording, config, schemas, only, ignore):
         if isinstance(item, Outcome):

@@ -29,8 +29,7 @@ from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import EndpointError, NotSent, Outbound
 from engine.language.specs import RoutesConfig
 from engine.language.stores import Stores
-from engine.ops.replay import Recording, inbound_of, read_recording, recording_files
-from engine.ops.route_tests import load_checked
+from engine.ops.replay import Recording, inbound_of, opened
 from engine.running.connections import ConnectionPool
 from engine.running.fanout import open_sinks
 from engine.running.pipeline import ConversionError, Filtered, Pipeline
@@ -171,22 +170,10 @@ def run_replay_to_sinks(paths: list[Path], routes: Path, schemas_dir: Path | Seq
                         speed: float | None) -> int:
     """The command: 0 when every recorded input of the routes replayed was sent (or filtered), 1
     when one was not, 2 when the routes are invalid or nothing was recorded."""
-    files = recording_files(paths)
-    if not files or not all(path.is_file() for path in files):
-        print(f"no recording: {' '.join(map(str, paths))}", file=sys.stderr)
+    opening = opened(paths, routes, schemas_dir, only)
+    if opening is None:
         return 2
-    schemas = SchemaRegistry(schemas_dir)
-    config, _, problems, _ = load_checked(routes, schemas)
-    for problem in problems:
-        print(problem, file=sys.stderr)
-    if config is None or problems:
-        return 2
-    recording = read_recording(files)
-    for note in recording.truncated:
-        print(f"note: {note} (read up to the last whole chunk)", file=sys.stderr)
-    if only is not None and only not in recording.routes:
-        print(f"route {only!r} is not in the recording (it has: {', '.join(sorted(recording.routes)) or 'none'})", file=sys.stderr)
-        return 2
+    recording, config, schemas = opening
     done = Sent()
     inputs = timeline(recording, config, only, done)
     try:
