@@ -50,13 +50,15 @@ STALL_S = 15.0
 class EngineRun:
     """``rabbitros-engine run --workers N`` as a child, in its own process group."""
 
-    def __init__(self, routes: Path, workers: int, work: Path) -> None:
+    def __init__(self, routes: Path, workers: int, work: Path, stats_interval: float = 0.2) -> None:
+        """``stats_interval``: how often the status file is written (0.2 s: a drain of a few
+        seconds is seen running at once; bench/fleet.py, whose load runs 30-60 s, asks 1 s)."""
         self.status_file = work / f"status-{workers}.json"
         self.log = open(work / f"engine-{workers}.log", "w")
         self.workers = workers
         self.process = subprocess.Popen(
             [sys.executable, "-m", "engine", "run", "--routes", str(routes), "--schemas", str(REPO / "schemas"),
-             "--workers", str(workers), "--status-file", str(self.status_file), "--stats-interval", "0.2",
+             "--workers", str(workers), "--status-file", str(self.status_file), "--stats-interval", str(stats_interval),
              "--no-watch", "--log-level", "warning"],
             cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=self.log, stderr=subprocess.STDOUT,
             start_new_session=True)

@@ -517,15 +517,89 @@ def _rss_kib(child: tp.Child) -> int:
     return best
 
 
+class EngineWorkers:
+    """``rabbitros-engine run --workers N`` in the bridge's place (issue 34), started as
+    bench/bench_workers.py starts it (its status file says when every worker runs). With
+    ``--workers 1`` the CLI runs one engine process (no supervisor); with N > 1 a supervisor
+    and N workers, each in its own session: their CPU is read per process, not per group."""
+
+    def __init__(self, routes: Path, workers: int, work: Path) -> None:
+        from bench.bench_workers import EngineRun
+
+        self.run = EngineRun(routes, workers, work, stats_interval=1.0)
+        self.workers = workers
+        self.processes: dict[str, int] = {}
+
+    async def start(self) -> float:
+        """Wait until every worker runs; the seconds it took."""
+        began = time.perf_counter()
+        pids = await self.run.running(timeout=300)
+        if self.workers == 1:
+            self.processes = {"engine": pids[0]}
+        else:
+            self.processes = {"supervisor": self.run.process.pid, **{f"worker {k}": pid for k, pid in enumerate(pids)}}
+        return time.perf_counter() - began
+
+    def cpu_seconds(self) -> float:
+        return sum(tp.process_cpu_seconds(pid) for pid in self.processes.values())
+
+    async def stop(self) -> None:
+        await self.run.stop()
+
+
+def _pid_usage(pid: int) -> tuple[float, int]:
+    """(CPU seconds, VmRSS KiB) of one process; (0, 0) once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        rss = next((int(line.split()[1]) for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+                    if line.startswith("VmRSS:")), 0)
+    except OSError:
+        return 0.0, 0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), rss
+
+
+def _group_members(group: int) -> list[int]:
+    """Every process of process group ``group`` (the RabbitMQ node: beam.smp, epmd, its shells)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if int(entry.joinpath("stat").read_text().rsplit(")", 1)[1].split()[2]) == group:
+                    pids.append(int(entry.name))
+            except OSError:
+                continue
+    return pids
+
+
+def _usage(processes: dict[str, list[int]]) -> dict[str, tuple[float, int]]:
+    """Per name: the CPU seconds and the RSS (KiB) summed over its processes."""
+    out = {}
+    for name, pids in processes.items():
+        usages = [_pid_usage(pid) for pid in pids]
+        out[name] = (sum(cpu for cpu, _ in usages), sum(rss for _, rss in usages))
+    return out
+
+
+def _per_process(before: dict[str, tuple[float, int]], after: dict[str, tuple[float, int]], wall: float) -> dict[str, Any]:
+    """Each process's CPU over the measured period (s and cores) and its RSS at its end (MiB)."""
+    return {name: {"cpu_s": round(after[name][0] - before[name][0], 2),
+                   "cores": round((after[name][0] - before[name][0]) / wall, 3), "rss_mib": round(after[name][1] / 1024, 1)}
+            for name in before}
+
+
 async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration: float, rate: float = 10.0,
                    command_rate: float = 1.0, publishers: int = 2, domain: int | None = None,
-                   agents_nice: int = 0) -> dict[str, Any]:
+                   agents_nice: int = 0, workers: int = 0, broker_group: int = 0) -> dict[str, Any]:
     """One measurement: the engine on the fleet's routes written ``mode`` (templated, shared or
     hand_written), or the reference bridge in its place (``reference``), the load for
     ``duration`` seconds, then everything drained and counted.
     ``domain``: the ROS 2 domain (the tests give each of their workers its own), else one
     derived from the pid and the mode. ``agents_nice``: the robots' and vehicles' processes
-    run at this nice value (see :data:`AGENTS_NICE`)."""
+    run at this nice value (see :data:`AGENTS_NICE`). ``workers``: not 0, the routes run by
+    ``rabbitros-engine run --workers N`` (:class:`EngineWorkers`; its in-engine latency probes
+    are not read: they live in bench/systems.py's in-process engine). ``broker_group``: the
+    RabbitMQ node's process group, whose CPU and RSS are reported with every other process's
+    (``processes``: each engine process, the robots' and vehicles' generators, the consumer)."""
     import aiormq
 
     from engine.common.schemas import SchemaRegistry
@@ -541,7 +615,7 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
     channel = await connection.channel()
     await channel.exchange_declare(names["out"], exchange_type="topic", durable=True)
     await channel.exchange_declare(names["cmd"], exchange_type="topic", durable=True)
-    children: list[tp.Child] = []
+    children: list[Any] = []
     result: dict[str, Any] = {"agents_nice": agents_nice, "mode": mode, "robots": robots_n, "vehicles": vehicles_n, "links": len(links),
                               "duration_s": duration, "rate_hz": rate, "command_hz": command_rate}
     with tempfile.TemporaryDirectory() as work:
@@ -574,13 +648,23 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
 
         try:
             await reader.wait_for("ready", timeout=60)
-            engine = tp.Child(*bridge, limit_s=limit)
-            children.append(engine)
-            started = await engine.wait_for("started", timeout=300)
-            await engine.wait_for("ready", timeout=60)
+            engine: Any
+            if workers:
+                engine = EngineWorkers(routes, workers, Path(work))
+                children.append(engine)
+                result["workers"] = workers
+                result["load_s"] = await engine.start()
+                engine_processes = {name: [pid] for name, pid in engine.processes.items()}
+                result["rss_after_load_mib"] = sum(rss for _, rss in _usage(engine_processes).values()) / 1024
+            else:
+                engine = tp.Child(*bridge, limit_s=limit)
+                children.append(engine)
+                started = await engine.wait_for("started", timeout=300)
+                await engine.wait_for("ready", timeout=60)
+                _, load_s, rss_kib = started.split()
+                result["load_s"], result["rss_after_load_mib"] = float(load_s), int(rss_kib) / 1024
+                engine_processes = {"reference" if mode == REFERENCE else "engine": engine.group_pids()}
             phase("engine")
-            _, load_s, rss_kib = started.split()
-            result["load_s"], result["rss_after_load_mib"] = float(load_s), int(rss_kib) / 1024
             groups = [agents[index::publishers] for index in range(publishers)]
             ros = [tp.Child("fleet-robots", {"domain": domain, "agents": group, "rate": rate, **files}, limit_s=limit)
                    for group in groups if group]
@@ -594,6 +678,11 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             await mav.wait_for("ready", timeout=60)
             phase("matched")
             await asyncio.sleep(1.2)  # every vehicle's first HEARTBEAT heard (sent within 1 s): its link knows where to send its commands
+            processes = {**engine_processes, **{f"robots {k + 1}": child.group_pids() for k, child in enumerate(ros)},
+                         "vehicles": mav.group_pids(), "consumer": reader.group_pids()}
+            if broker_group:
+                processes["rabbitmq"] = _group_members(broker_group)
+            usage_before = _usage(processes)
             cpu_before, wall_before = engine.cpu_seconds(), time.monotonic()
             received_before = telemetry.count
             Path(files["go"]).touch()
@@ -604,7 +693,9 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             phase("drain")
             cpu = engine.cpu_seconds() - cpu_before
             wall = time.monotonic() - wall_before
-            result["rss_end_mib"] = _rss_kib(engine) / 1024
+            result["processes"] = _per_process(usage_before, _usage(processes), wall)
+            result["rss_end_mib"] = (sum(result["processes"][name]["rss_mib"] for name in engine_processes) if workers
+                                     else _rss_kib(engine) / 1024)
             Path(files["done"]).touch()
             outputs = [json.loads((await child.wait_for("result ", timeout=120))[len("result "):]) for child in children[1:]]
             finish.touch()
@@ -617,8 +708,8 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             await _forget(channel, names, agents + [f"uav{sid}" for sid in range(1, vehicles_n + 1)])
             await connection.close()
         phase("stop")
-        internal = json.loads((Path(work) / "latency.json").read_text())
-        handed = json.loads((Path(work) / "handed.json").read_text())
+        internal = json.loads(Path(samples["latency_out"]).read_text()) if Path(samples["latency_out"]).exists() else {}
+        handed = json.loads(Path(samples["handed_out"]).read_text()) if Path(samples["handed_out"]).exists() else {}
         published = Path(work) / "publish.json"
         if published.exists():  # the engine's AMQP publishes over the whole run, and the rounds (one write each) they took
             result["amqp_publish"] = json.loads(published.read_text())
