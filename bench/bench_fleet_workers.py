@@ -18,7 +18,8 @@ machine's load weighs on each); then, if ``--larger`` is given, 1 and 2 workers 
 those fleet sizes (the "largest fleet" steps). Every step reports what bench/fleet.py
 reports (lost, p50/p99 per stream kind, CPU per message) and each process's CPU and RSS
 over the measured period: each engine process, the generators, the consumer, the RabbitMQ
-node; and the load average before and after (the machine is shared).
+node; the whole machine's busy cores (/proc/stat: other sessions' processes too, which this
+one cannot see) and the load average before and after (the machine is shared).
 """
 
 from __future__ import annotations
@@ -104,6 +105,8 @@ def report(runs: list[dict[str, Any]]) -> list[str]:
         row(f"{name}: CPU cores / RSS MiB", lambda r, n=name: (f"{r['processes'][n]['cores']:.2f} / {r['processes'][n]['rss_mib']:.0f}"
                                                                if n in r.get("processes", {}) else "-"))
     row("all measured processes (cores)", lambda r: f"{sum(p['cores'] for p in r['processes'].values()):.2f}")
+    row("the machine: busy / of which niced / idle (cores)", lambda r: (
+        f"{r['machine']['busy_cores']:.2f} / {r['machine']['niced_cores']:.2f} / {r['machine']['idle_cores']:.2f}" if "machine" in r else "-"))
     row("load average before / after", lambda r: f"{r['loadavg_before'][0]:.1f} / {r['loadavg_after'][0]:.1f}")
     failed = [run for run in runs if "error" in run]
     lines += [f"- failed: {run['system']}, {run['agents']} agents: {run['error']}" for run in failed]

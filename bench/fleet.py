@@ -580,6 +580,20 @@ def _usage(processes: dict[str, list[int]]) -> dict[str, tuple[float, int]]:
     return out
 
 
+def _machine_ticks() -> tuple[int, int, int]:
+    """The machine's CPU ticks from /proc/stat (every process of the host, including other
+    sessions' that this one cannot see): (busy, of which niced, idle)."""
+    user, nice, system, idle, iowait, irq, softirq, steal = (int(x) for x in Path("/proc/stat").read_text().split()[1:9])
+    return user + nice + system + irq + softirq + steal, nice, idle + iowait
+
+
+def _machine(before: tuple[int, int, int], wall: float) -> dict[str, float]:
+    """The whole machine's busy cores over the measured period, and how much of it ran niced."""
+    after, tick = _machine_ticks(), os.sysconf("SC_CLK_TCK")
+    return {"busy_cores": round((after[0] - before[0]) / tick / wall, 2), "niced_cores": round((after[1] - before[1]) / tick / wall, 2),
+            "idle_cores": round((after[2] - before[2]) / tick / wall, 2)}
+
+
 def _per_process(before: dict[str, tuple[float, int]], after: dict[str, tuple[float, int]], wall: float) -> dict[str, Any]:
     """Each process's CPU over the measured period (s and cores) and its RSS at its end (MiB)."""
     return {name: {"cpu_s": round(after[name][0] - before[name][0], 2),
@@ -682,7 +696,7 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
                          "vehicles": mav.group_pids(), "consumer": reader.group_pids()}
             if broker_group:
                 processes["rabbitmq"] = _group_members(broker_group)
-            usage_before = _usage(processes)
+            usage_before, machine_before = _usage(processes), _machine_ticks()
             cpu_before, wall_before = engine.cpu_seconds(), time.monotonic()
             received_before = telemetry.count
             Path(files["go"]).touch()
@@ -694,6 +708,7 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             cpu = engine.cpu_seconds() - cpu_before
             wall = time.monotonic() - wall_before
             result["processes"] = _per_process(usage_before, _usage(processes), wall)
+            result["machine"] = _machine(machine_before, wall)
             result["rss_end_mib"] = (sum(result["processes"][name]["rss_mib"] for name in engine_processes) if workers
                                      else _rss_kib(engine) / 1024)
             Path(files["done"]).touch()
