@@ -37,3 +37,21 @@ def test_fleet_smoke_loses_nothing(amqp_url: str, mode: str) -> None:
         counts = result["amqp_publish"]["gcs"]
         assert counts["published"] >= result["telemetry_sent"], counts
         assert 0 < counts["publish_rounds"] <= counts["published"], counts
+
+
+def test_fleet_with_two_workers_loses_nothing_and_measures_each_process(amqp_url: str) -> None:
+    """``run --workers 2`` in the bridge's place (bench/bench_fleet_workers.py, issue 34): every
+    message arrives both ways, and each process's CPU and RSS is reported (the supervisor, both
+    workers, the generators, the consumer) with the whole machine's busy cores."""
+    result = asyncio.run(run_mode(amqp_url, "templated", robots_n=3, vehicles_n=9, duration=2.0, domain=ros_domain(13), workers=2))
+    assert result["workers"] == 2 and result["routes"] == ROUTES["templated"]
+    assert result["unmatched_publishers"] == 0
+    assert (result["telemetry_lost"], result["commands_lost"]) == (0, 0), (result["lost_streams"], result["lost_commands"])
+    assert result["commands_sent"] == 12 * 2 and result["foreign_commands"] == 0
+    assert all(result["latency_ms"][kind]["n"] > 0 for kind in STREAM_KINDS), result["latency_ms"]
+    processes = result["processes"]
+    assert set(processes) == {"supervisor", "worker 0", "worker 1", "robots 1", "robots 2", "vehicles", "consumer"}, processes
+    assert all(processes[name]["rss_mib"] > 0 for name in processes), processes
+    assert processes["worker 0"]["cpu_s"] + processes["worker 1"]["cpu_s"] > 0, processes
+    assert result["engine_cpu_s"] >= processes["worker 0"]["cpu_s"] + processes["worker 1"]["cpu_s"] - 0.02  # rounded to 0.01 s
+    assert result["machine"]["busy_cores"] > 0
