@@ -79,7 +79,12 @@ def test_schema_edit_takes_effect_within_a_second(amqp_url: str, tmp_path: Path,
                 sequence += 1
                 await exchange.publish(aio_pika.Message(json.dumps({"b": sequence}).encode()), "p.x")
                 await asyncio.sleep(0.01)
-            return time.monotonic() - edited
+            live = time.monotonic() - edited
+            # the new generation carries messages before its reload returns and the status file
+            # is written: wait for the file (read at the end) to say so
+            await wait_for(lambda: (engine.status() or {}).get("generation") == 2, 10, "the status file's generation 2",
+                           lambda: (engine.status() or {}).get("generation"))
+            return live
         finally:
             await connection.close()
 
