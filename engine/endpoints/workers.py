@@ -30,6 +30,17 @@ class WorkerHints:
         False: the route runs on one worker, as each subscriber would get every message."""
         return self.shares_sources
 
+    def splits_over_workers(self, options: Any) -> bool:
+        """True when a source with these (typed) options follows streams it discovers (a ROS 2
+        topic pattern): every worker runs it, each following its share of them
+        (:meth:`split_source`). False by default."""
+        return False
+
+    def split_source(self, options: Any, share: int, shares: int) -> Any:
+        """The source options of worker ``share`` of ``shares`` for a route that
+        :meth:`splits_over_workers` (only called where it does)."""
+        raise NotImplementedError(f"{type(self).__name__} does not split its sources over workers")
+
     def worker_affinity(self, connection: str, settings: Any) -> str | None:
         """A key for what connection ``connection`` (these typed settings) is that one process
         must hold alone even without an exclusive resource (a MAVLink link: the vehicle answers

@@ -24,22 +24,26 @@ the supervisor (engine/ops/supervisor.py) prints it for ``check --workers N`` an
    every worker; the broker hands each message to one of them, and what a worker that died
    had not acknowledged to another (an AMQP queue; MQTT as the broker treats a shared
    subscription's in-flight messages of a session that ended).
-4. **Everything else** (ROS 2 topics, plain MQTT subscriptions, Zenoh keys: each subscriber
+4. **Discovered streams**: a source that follows the streams it discovers
+   (``Transport.splits_over_workers``: a ROS 2 topic pattern, ``/{agent}/fix``) runs on every
+   worker, and each worker follows only the streams whose stable hash falls in its share
+   (engine/common/shares.py): a fleet's agents spread over the workers, every agent on one.
+5. **Everything else** (a ROS 2 topic, a plain MQTT subscription, a Zenoh key: each subscriber
    gets every message) runs on one worker, by a stable hash of the route's name.
 
 A hash, not a balancer: placement must not depend on what runs now, or a restart or a reload
 would move routes between processes. With few one-worker routes the split can be uneven;
-``check --workers N`` shows it. What is not built (issue 34): splitting one ROS 2 pattern's
-agents or one MAVLink socket's vehicles over workers.
+``check --workers N`` shows it. What is not built (issue 34): splitting one MAVLink socket's
+vehicles over workers (a link is one process's: rule 1).
 """
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from typing import Iterable, Mapping
 
 from engine import endpoints
+from engine.common.shares import share_of
 from engine.language.specs import ConnectionSpec, RoutesConfig, RouteSpec
 
 STORES = "stores"
@@ -56,6 +60,9 @@ class RoutePlace:
 
     workers: tuple[int, ...]
     reason: str
+    split: bool = False
+    """Every worker runs it, each following its share of the streams the source discovers
+    (``Transport.splits_over_workers``): the worker gives the source its share."""
 
 
 @dataclass(frozen=True)
@@ -78,8 +85,8 @@ class WorkerPlacement:
 
 
 def stable_worker(key: str, workers: int) -> int:
-    """The worker a key hashes to, the same in every process (``hash()`` of a str is salted)."""
-    return int.from_bytes(hashlib.blake2b(key.encode(), digest_size=8).digest(), "big") % workers
+    """The worker a key hashes to, the same in every process (engine/common/shares.py)."""
+    return share_of(key, workers)
 
 
 def held_alone(spec: ConnectionSpec) -> str | None:
@@ -87,6 +94,11 @@ def held_alone(spec: ConnectionSpec) -> str | None:
     (``Transport.worker_affinity``, engine/endpoints/workers.py)."""
     settings = spec.options if spec.options is not None else spec.settings
     return spec.exclusive or endpoints.transport(spec.protocol).worker_affinity(spec.name, settings)
+
+
+def splits_over_workers(route: RouteSpec) -> bool:
+    """Whether the route's source follows streams it discovers, each a worker's share (``Transport.splits_over_workers``)."""
+    return endpoints.transport(route.source.protocol).splits_over_workers(route.source.options)
 
 
 def spreads_over_workers(route: RouteSpec) -> bool:
@@ -113,6 +125,8 @@ def place_routes(config: RoutesConfig, workers: int) -> WorkerPlacement:
             places[name] = RoutePlace((stable_worker(name, workers),), f"keeps {state} in the process")
         elif spreads_over_workers(route):
             places[name] = RoutePlace(every, "competing consumers")
+        elif splits_over_workers(route):
+            places[name] = RoutePlace(every, "each worker follows its share of the discovered streams", split=True)
         else:
             places[name] = RoutePlace((stable_worker(name, workers),), "hash of the route name")
     return WorkerPlacement(workers, places)

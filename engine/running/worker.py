@@ -22,7 +22,8 @@ from dataclasses import replace
 from typing import Any
 
 from engine.common.schemas import SchemaRegistry
-from engine.language.specs import RoutesConfig
+from engine import endpoints
+from engine.language.specs import RouteSpec, RoutesConfig
 from engine.running.placement import place_routes
 from engine.running.runtime import Engine, _Reload
 
@@ -79,11 +80,19 @@ class WorkerEngine(Engine):
             return True
 
     def _plan(self, everywhere: RoutesConfig, schemas: SchemaRegistry) -> _Reload:
-        placed = place_routes(everywhere, self.workers).on(self.index)
-        mine = replace(everywhere, routes={name: spec for name, spec in everywhere.routes.items() if name in placed})
+        placement = place_routes(everywhere, self.workers)
+        placed = placement.on(self.index)
+        mine = replace(everywhere, routes={name: self._share(spec) if placement.routes[name].split else spec
+                                           for name, spec in everywhere.routes.items() if name in placed})
         change = super()._plan(mine, schemas)
         change.everywhere = everywhere  # the others are listed as elsewhere (Engine._retire)
         return change
+
+    def _share(self, spec: RouteSpec) -> RouteSpec:
+        """A route every worker runs, each following its share of the streams the source discovers."""
+        source = spec.source
+        options = endpoints.transport(source.protocol).split_source(source.options, self.index, self.workers)
+        return replace(spec, source=replace(source, options=options))
 
     def status(self) -> dict[str, Any]:
         return {**super().status(), "worker": {"index": self.index, "workers": self.workers}}

@@ -189,3 +189,11 @@ def test_check_refuses_a_serial_device_claimed_twice(tmp_path: Path, capsys: pyt
     assert f"{path}:" in captured.err and "radio2" in captured.err and "serial:" in captured.err
     assert "already used by connection 'radio'" in captured.err
     assert "placement" not in captured.out
+
+
+def test_a_topic_pattern_runs_on_every_worker_each_following_its_share(tmp_path: Path):
+    pattern = ("  - name: fixes\n    source: {ros2: {connection: ros, topic: '/{agent}/fix', type: std_msgs/msg/String}}\n"
+               "    schema: raw_json\n    sink: {amqp: {connection: bus, exchange: out, routing_key: 'fix.{agent}'}}\n")
+    placement = place_routes(config(tmp_path, pattern + ros_route("one-topic")), 2)
+    assert placement.routes["fixes"].workers == (0, 1) and placement.routes["fixes"].split
+    assert placement.routes["one-topic"].workers == (stable_worker("one-topic", 2),) and not placement.routes["one-topic"].split

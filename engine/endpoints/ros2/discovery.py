@@ -42,6 +42,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from rclpy.expand_topic_name import expand_topic_name
 
+from engine.common.shares import share_of
 from engine.common.placeholders import Placeholder, TemplateError, capture_levels, scan_placeholders
 
 log = logging.getLogger("engine.ros2")
@@ -156,6 +157,9 @@ class Discovery:
     unmatched: set[str] = field(default_factory=set)
     """Followed topics whose publishers of the route's type the subscription has not matched
     for ``forget_after`` (an incompatible QoS): kept, reported once."""
+    share: tuple[int, int] | None = None
+    """(index, count) of a worker of ``run --workers N``: only the topics whose stable hash falls
+    in this share are followed (every other worker follows the rest); None: every topic."""
     discovered: int = 0
     forgotten: int = 0
     _failed: set[str] = field(default_factory=set)
@@ -166,7 +170,7 @@ class Discovery:
             if topic in self.followed:
                 continue
             captured = self.pattern.match(topic)
-            if captured is None:
+            if captured is None or (self.share is not None and share_of(topic, self.share[1]) != self.share[0]):
                 continue
             present.add(topic)
             if self.type_name not in types:

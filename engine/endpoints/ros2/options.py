@@ -94,6 +94,9 @@ class Ros2SourceOptions(Ros2EndpointOptions):
     forget_after: float = option(discovery.DEFAULT_FORGET_AFTER, exclusive_minimum=0,
                                  description="a topic with {var} segments: seconds a discovered topic may go without a publisher "
                                              "of the type before its subscription is let go (followed again when one comes back)")
+    share: tuple[int, int] | None = option(None, internal=True)
+    """Set by a worker of ``run --workers N`` for a topic pattern: (its index, N). The source
+    follows only the discovered topics whose stable hash falls in its share (engine/common/shares.py)."""
 
 
 @dataclass(frozen=True, kw_only=True)

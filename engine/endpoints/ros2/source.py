@@ -158,7 +158,7 @@ class Ros2Source(Source):
             settings = connection.settings
             pattern = discovery.compile_pattern(self._topic, settings.node, settings.namespace)
             self._discovery = discovery.Discovery(pattern, self._type_name, options.forget_after, self._where,
-                                                  self._follow, self._matched, self._let_go)
+                                                  self._follow, self._matched, self._let_go, share=options.share)
         self._pump: asyncio.Task[None] | None = None
         self._watch: asyncio.Task[None] | None = None
         self._stopping = False

@@ -11,6 +11,7 @@ pattern), rosmsg.py (messages as dicts) and contract.py (what the core's checks 
 
 from __future__ import annotations
 
+from dataclasses import replace as evolve
 from typing import Any, Callable, Iterable, Mapping
 
 from engine.endpoints.base import CheckResult, Connection, FieldProblem, MessageRejected, Outbound, Transport
@@ -40,6 +41,13 @@ class Ros2Transport(Transport):
 
     def meta_names(self, options: Ros2SourceOptions) -> tuple[str, ...]:
         return (*self.source_meta, *self.source_variables(options))
+
+    def splits_over_workers(self, options: Ros2SourceOptions) -> bool:
+        """A topic pattern (``/{agent}/fix``): each worker follows its share of the topics discovered."""
+        return options.service is None and bool(self.source_variables(options))
+
+    def split_source(self, options: Ros2SourceOptions, share: int, shares: int) -> Ros2SourceOptions:
+        return evolve(options, share=(share, shares))
 
     def connection_problems(self, options: Ros2ConnectionOptions) -> CheckResult:
         return checks.connection_problems(options)
