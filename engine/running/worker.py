@@ -21,8 +21,8 @@ import sys
 from dataclasses import replace
 from typing import Any
 
-from engine.common.schemas import SchemaRegistry
 from engine import endpoints
+from engine.common.schemas import SchemaRegistry
 from engine.language.specs import RouteSpec, RoutesConfig
 from engine.running.placement import place_routes
 from engine.running.runtime import Engine, _Reload

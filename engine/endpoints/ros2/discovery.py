@@ -42,8 +42,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from rclpy.expand_topic_name import expand_topic_name
 
-from engine.common.shares import share_of
 from engine.common.placeholders import Placeholder, TemplateError, capture_levels, scan_placeholders
+from engine.common.shares import share_of
 
 log = logging.getLogger("engine.ros2")
 
