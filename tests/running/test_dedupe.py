@@ -187,6 +187,18 @@ def test_a_message_redelivered_after_a_kill_is_sent_once(tmp_path: Path, amqp_ur
                 assert asyncio.get_running_loop().time() < deadline, (f"missions: {seen()} of {TOTAL}, {ready} in the queue, "
                                                                       f"{counters()}, in doubt {in_doubt()}")
                 await asyncio.sleep(0.05)
+            # The status file is written every 0.5 s and the engine may still settle prefetched
+            # messages the queue no longer counts as ready: read ``before`` once ``received`` stood
+            # still across two writes (a stale one made the exact count below unreachable in CI)
+            writes: list[tuple[int, int]] = []
+
+            def idle() -> bool:
+                written = (second.status_file.stat().st_mtime_ns, counters()["received"])
+                if not writes or writes[-1][0] != written[0]:
+                    writes.append(written)
+                return len(writes) >= 3 and writes[-1][1] == writes[-3][1] and all_settled()
+
+            await wait_for(idle, 60, "the second engine idle", lambda: writes[-3:])
             before = counters()["received"]
             await publish(range(200))  # the first 200 again: their keys were accepted before the kill
             await wait_for(lambda: counters()["received"] == before + 200 and all_settled(), 120, "the 200 published again settled")
