@@ -30,11 +30,11 @@ import asyncio
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Refused, Reply, Sink
+from engine.endpoints.base import MessageRejected, Outbound, Refused, Reply, Sink
 from engine.endpoints.mavlink.codec import mavlink2
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name
-from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions, deadline, per_target
+from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions, deadline, heard_in_time, per_target
 
 _ACK = (mavlink2.MAVLINK_MSG_ID_COMMAND_ACK,)
 COMMAND_ANSWER = ("kind", "result", "command", "progress")
@@ -82,14 +82,8 @@ class AcknowledgedCommandSink(Sink):
         async with connection.transaction_lock(("command", target, msg.command)):
             if loop.time() >= give_up:  # it waited behind the vehicle's previous command that long
                 raise self._stale(msg, bound, "not sent: it waited for the previous one to the vehicle")
-            try:
-                await connection.wait_for_vehicle(*target, min(loop.time() + options.vehicle_timeout, give_up))
-            except MessageRejected:
-                raise
-            except EndpointError:
-                if loop.time() < give_up:
-                    raise  # vehicle_timeout: transient, the route tries again within the bound
-                raise self._stale(msg, bound, "not sent: the vehicle was not heard") from None
+            if not await heard_in_time(connection, target, options.vehicle_timeout, give_up):
+                raise self._stale(msg, bound, "not sent: the vehicle was not heard")
             async with Conversation(connection, target, _ACK) as answers:
                 await self._exchange(answers, fields, message.reply, msg, give_up, bound)
 

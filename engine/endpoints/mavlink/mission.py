@@ -35,11 +35,11 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 from engine.common.suggest import did_you_mean
-from engine.endpoints.base import EndpointError, MessageRejected, Outbound, Sink
+from engine.endpoints.base import MessageRejected, Outbound, Sink
 from engine.endpoints.mavlink.codec import build_message, mavlink2, null_fields, null_problem
 from engine.endpoints.mavlink.contract import SharedLink
 from engine.endpoints.mavlink.enums import enum_name, enum_or_number
-from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions, deadline, per_target
+from engine.endpoints.mavlink.transaction import Conversation, TransactionOptions, deadline, heard_in_time, per_target
 
 ITEM = mavlink2.MAVLink_mission_item_int_message
 Targets = Callable[..., dict[str, int]]
@@ -233,14 +233,8 @@ class MissionUploadSink(Sink):
         bound = options.give_up_after(connection)
         give_up = deadline(message.received_ns, bound)
         async with connection.transaction_lock(("mission", target)):
-            try:
-                await connection.wait_for_vehicle(*target, min(loop.time() + options.vehicle_timeout, give_up))
-            except MessageRejected:
-                raise
-            except EndpointError:
-                if loop.time() < give_up:
-                    raise  # vehicle_timeout: transient, the route tries again within the bound
-                raise self._stale(target, len(items), bound, "not started: the vehicle was not heard") from None
+            if not await heard_in_time(connection, target, options.vehicle_timeout, give_up):
+                raise self._stale(target, len(items), bound, "not started: the vehicle was not heard")
             if loop.time() >= give_up:
                 raise self._stale(target, len(items), bound, "not started: it waited for the previous upload")
             connection.mission_refs[target] = str(canonical.get("id") or message.message_id)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from engine.common.options import given
+from engine.endpoints.base import EndpointError, MessageRejected
 from engine.endpoints.mavlink.codec import mavlink2
 from engine.endpoints.mavlink.contract import SharedLink
 
@@ -116,6 +117,24 @@ def deadline(received_ns: int | None, seconds: float) -> float:
     loop_now, now_ns = asyncio.get_running_loop().time(), time.monotonic_ns()
     age = 0.0 if received_ns is None else max(0.0, (now_ns - received_ns) / 1e9)
     return loop_now - age + seconds
+
+
+async def heard_in_time(connection: SharedLink, target: tuple[int, int], vehicle_timeout: float, give_up: float) -> bool:
+    """Wait until the vehicle ``target`` is heard, at most ``vehicle_timeout`` and never past
+    ``give_up`` (loop time): True once heard; False when ``give_up`` passed unheard (the caller
+    gives the message up, stale). A ``vehicle_timeout`` that ends before ``give_up`` raises the
+    link's EndpointError (transient: the route tries again within the bound); a refusal
+    (MessageRejected) passes as it is. One step of a command and a mission upload alike."""
+    loop = asyncio.get_running_loop()
+    try:
+        await connection.wait_for_vehicle(*target, min(loop.time() + vehicle_timeout, give_up))
+    except MessageRejected:
+        raise
+    except EndpointError:
+        if loop.time() < give_up:
+            raise
+        return False
+    return True
 
 
 M = TypeVar("M")
