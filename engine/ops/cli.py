@@ -291,6 +291,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return run_loop(run(args))
     finally:
+        # Stopped: a second SIGTERM must not kill the exit itself (-15 instead of 0) once the
+        # loop, whose handler took the first, has put back the default action. It comes: GNU
+        # ``timeout`` (as systemd's KillMode=mixed, a supervisor asking twice) passes the signal
+        # it got on to its process group, which the engine already got from ``kill -- -PGID``.
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         listener.stop()
 
 
