@@ -35,14 +35,18 @@ from typing import Any
 from bench import fleet
 
 REPO = Path(__file__).resolve().parent.parent
-SYSTEMS = {"reference": 0, "1 worker": 1, "2 workers": 2}
+SYSTEMS = {"reference": 0, "1 worker": 1, "2 workers": 2, "1 worker, asyncio loop": 1}
 """Each system's ``--workers`` (0: the reference, no engine)."""
+ENGINE_ENV = {"1 worker, asyncio loop": {"RABBITROS_LOOP": "asyncio"}}
+"""A system's engine environment beyond the run's: the standard asyncio loop in place of
+uvloop (engine/running/loop.py), to measure what uvloop saves in the same run (issue 34)."""
+DEFAULT_SYSTEMS = ("reference", "1 worker", "2 workers")
 
 
-def schedule(agents: int, rounds: int, larger: list[int]) -> list[tuple[str, int]]:
-    """(system, agents) in the order run: the three alternating at ``agents``, then 1 and 2
-    workers at each larger size."""
-    names = list(SYSTEMS)
+def schedule(agents: int, rounds: int, larger: list[int], names: list[str] | None = None) -> list[tuple[str, int]]:
+    """(system, agents) in the order run: the systems (by default the reference, 1 and 2
+    workers) alternating at ``agents``, then 1 and 2 workers at each larger size."""
+    names = names or list(DEFAULT_SYSTEMS)
     steps = [(name, agents) for index in range(rounds) for name in (names if index % 2 == 0 else names[::-1])]
     return steps + [(name, size) for size in larger for name in ("1 worker", "2 workers")]
 
@@ -65,9 +69,9 @@ async def step(system: str, agents: int, duration: float) -> dict[str, Any]:
         await asyncio.to_thread(node.stop)
 
 
-async def measure(agents: int, rounds: int, larger: list[int], duration: float) -> list[dict[str, Any]]:
+async def measure(agents: int, rounds: int, larger: list[int], duration: float, systems: list[str] | None = None) -> list[dict[str, Any]]:
     runs = []
-    for system, size in schedule(agents, rounds, larger):
+    for system, size in schedule(agents, rounds, larger, systems):
         print(f"  fleet-workers: {system}, {size} agents, {duration:.0f} s", flush=True)
         try:
             result = await step(system, size, duration)
@@ -118,14 +122,19 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--agents", type=int, default=100, help="agents of the interleaved rounds (half robots, half vehicles)")
-    parser.add_argument("--rounds", type=int, default=2, help="rounds of reference, 1 worker, 2 workers")
+    parser.add_argument("--rounds", type=int, default=2, help="rounds of the systems at --agents")
+    parser.add_argument("--systems", default=",".join(DEFAULT_SYSTEMS),
+                        help=f"comma-separated systems of the rounds at --agents, of: {', '.join(SYSTEMS)}")
     parser.add_argument("--larger", default="", help="comma-separated fleet sizes run after, 1 and 2 workers each")
     parser.add_argument("--duration", type=float, default=40.0, help="seconds of load per step")
     parser.add_argument("--out", type=Path, help="output directory (results.json, report.md)")
     args = parser.parse_args()
     larger = [int(size) for size in args.larger.split(",") if size]
+    systems = [name.strip() for name in args.systems.split(",") if name.strip()]
+    if unknown := [name for name in systems if name not in SYSTEMS]:
+        parser.error(f"--systems: unknown {', '.join(unknown)}; known: {', '.join(SYSTEMS)}")
     stamp = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-    runs = run_loop(measure(args.agents, args.rounds, larger, args.duration))
+    runs = run_loop(measure(args.agents, args.rounds, larger, args.duration, systems))
     commit = os.popen(f"git -C {REPO} rev-parse --short HEAD").read().strip()
     text = [f"# Fleet with engine workers\n\n{stamp}, commit {commit}, {os.cpu_count()} CPUs, {args.duration:.0f} s a step.\n",
             *report(runs)]

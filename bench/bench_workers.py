@@ -1,10 +1,14 @@
-"""A backlog drain AMQP -> AMQP through the engine with 1 and 2 workers, in one run (issue 34).
+"""A backlog drain AMQP -> AMQP or AMQP -> ROS 2 through the engine with 1 and 2 workers, in one
+run (issue 34).
 
-``python -m bench.bench_workers [--count 20000] [--rounds 3]``: a private RabbitMQ node; each
-round runs ``rabbitros-engine run --workers 1`` and ``--workers 2`` (their order alternating
-from round to round, so a drift of the machine's load weighs on both) on the throughput
-section's AMQP -> AMQP route (bench/throughput.py: a JSON mapping to the canonical position,
-schema-checked, published with confirms). Each drain:
+``python -m bench.bench_workers [--kind amqp-amqp|amqp-ros2] [--count 20000] [--rounds 3]``: a
+private RabbitMQ node; each round runs ``rabbitros-engine run --workers 1`` and ``--workers 2``
+(their order alternating from round to round, so a drift of the machine's load weighs on both)
+on the throughput section's route (bench/throughput.py: a JSON mapping to the canonical
+position, schema-checked, published with confirms to AMQP, or published on a ROS 2 topic with
+``transient_local`` durability, where a plain rclpy subscription counts it; each worker is
+then a publisher of that topic, and the drain starts once the subscription matched every
+one). Each drain:
 
 1. the engine starts on an empty queue and is running (its status file says so, every worker
    up), then its workers are stopped (SIGSTOP) so that none starts before the other;
@@ -34,10 +38,10 @@ import tempfile
 import time
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import Any, Awaitable, Callable
 
 from bench.systems import gnss_json
-from bench.throughput import Broker, process_cpu_seconds, routes_file
+from bench.throughput import Broker, RosCounter, domain_id, process_cpu_seconds, routes_file
 from engine.common.processes import process_usage
 
 REPO = Path(__file__).resolve().parent.parent
@@ -50,9 +54,10 @@ STALL_S = 15.0
 class EngineRun:
     """``rabbitros-engine run --workers N`` as a child, in its own process group."""
 
-    def __init__(self, routes: Path, workers: int, work: Path, stats_interval: float = 0.2) -> None:
+    def __init__(self, routes: Path, workers: int, work: Path, stats_interval: float = 0.2, env: dict[str, str] | None = None) -> None:
         """``stats_interval``: how often the status file is written (0.2 s: a drain of a few
-        seconds is seen running at once; bench/fleet.py, whose load runs 30-60 s, asks 1 s)."""
+        seconds is seen running at once; bench/fleet.py, whose load runs 30-60 s, asks 1 s).
+        ``env``: more environment for the engine (e.g. ``RABBITROS_LOOP=asyncio``)."""
         self.status_file = work / f"status-{workers}.json"
         self.log = open(work / f"engine-{workers}.log", "w")
         self.workers = workers
@@ -60,7 +65,7 @@ class EngineRun:
             [sys.executable, "-m", "engine", "run", "--routes", str(routes), "--schemas", str(REPO / "schemas"),
              "--workers", str(workers), "--status-file", str(self.status_file), "--stats-interval", str(stats_interval),
              "--no-watch", "--log-level", "warning"],
-            cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=self.log, stderr=subprocess.STDOUT,
+            cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})}, stdout=self.log, stderr=subprocess.STDOUT,
             start_new_session=True)
 
     async def running(self, timeout: float = 120.0) -> list[int]:
@@ -98,29 +103,46 @@ class EngineRun:
         return self.process.wait()
 
 
-async def drain(broker: Broker, workers: int, count: int) -> dict[str, Any]:
+async def drain(broker: Broker, workers: int, count: int, kind: str = "amqp-amqp") -> dict[str, Any]:
     tag = uuid.uuid4().hex[:8]
     names = await broker.topology(tag)
+    domain = domain_id()
+    counter = RosCounter(domain, f"/bench/{names['queue'].replace('-', '_')}") if kind == "amqp-ros2" else None
     try:
         with tempfile.TemporaryDirectory() as work:
-            routes = routes_file(Path(work), "amqp-amqp", names, broker.url, 0).parent
+            routes = routes_file(Path(work), kind, names, broker.url, domain).parent
             engine = EngineRun(routes, workers, Path(work))
             pids: list[int] = []
             try:
                 pids = await engine.running()
+                if counter is not None:
+                    await matched(counter, workers)
                 engine.signal(pids, signal.SIGSTOP)
                 await broker.prefill_confirmed(names["queue"], [gnss_json(i) for i in range(count)])
                 processes = [engine.process.pid, *(pid for pid in pids if pid != engine.process.pid)]
                 engine.signal(pids, signal.SIGCONT)
-                result = await observe(broker, names["sink"], count, processes)
+                sunk = counter.value if counter is not None else (lambda: broker.count(names["sink"]))
+                result = await observe(sunk, count, processes)
             finally:
                 for pid in pids:  # a stopped worker would not see its SIGTERM
                     with contextlib.suppress(ProcessLookupError):
                         os.kill(pid, signal.SIGCONT)
                 result_exit = await engine.stop()
-            return {"workers": workers, **result, "exit": result_exit}
+            return {"workers": workers, "kind": kind, **result, "exit": result_exit}
     finally:
+        if counter is not None:
+            counter.close()
         await broker.drop(names)
+
+
+async def matched(counter: RosCounter, publishers: int, timeout: float = 60.0) -> None:
+    """Until the counting subscription matched every worker's publisher (the engine holds a
+    message until a reader matched: a worker still discovering would start its drain late)."""
+    deadline = time.monotonic() + timeout
+    while counter.subscription.get_publisher_count() < publishers:
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the counter matched {counter.subscription.get_publisher_count()} of {publishers} publishers")
+        await asyncio.sleep(0.05)
 
 
 def group_cpu_seconds(group: int) -> float:
@@ -129,13 +151,13 @@ def group_cpu_seconds(group: int) -> float:
     return sum(usage.cpu_s for usage in usages if usage is not None and usage.group == group)
 
 
-async def observe(broker: Broker, sink: str, total: int, pids: list[int]) -> dict[str, Any]:
+async def observe(sunk: Callable[[], Awaitable[int]], total: int, pids: list[int]) -> dict[str, Any]:
     """Count the sink until ``total`` arrived or it stalls: the rate and each process's CPU
     seconds (and the broker node's) from 10 % of the messages to the last."""
     samples: list[tuple[float, int, list[float]]] = []
     last_change, last = time.monotonic(), 0
     while True:
-        now, seen = time.monotonic(), await broker.count(sink)
+        now, seen = time.monotonic(), await sunk()
         samples.append((now, seen, [process_cpu_seconds(pid) for pid in pids] + [group_cpu_seconds(BROKER_GROUP[0])]))
         if seen != last:
             last_change, last = now, seen
@@ -154,7 +176,7 @@ async def observe(broker: Broker, sink: str, total: int, pids: list[int]) -> dic
             "cpu_us_per_msg": round(sum(cpu) * 1e6 / carried, 1) if carried else float("nan")}
 
 
-async def measure(url: str, count: int, rounds: int, broker_group: int = 0) -> dict[str, Any]:
+async def measure(url: str, count: int, rounds: int, broker_group: int = 0, kind: str = "amqp-amqp") -> dict[str, Any]:
     """``rounds`` pairs of drains, 1 and 2 workers alternating first; the ratio of the medians,
     and each round's own ratio (its two drains ran back to back, under the same load)."""
     BROKER_GROUP[0] = broker_group
@@ -164,7 +186,7 @@ async def measure(url: str, count: int, rounds: int, broker_group: int = 0) -> d
     try:
         for round_index in range(rounds):
             for workers in ((1, 2) if round_index % 2 == 0 else (2, 1)):
-                result = await drain(broker, workers, count)
+                result = await drain(broker, workers, count, kind)
                 print(f"  round {round_index + 1}, {workers} worker(s): {result['msg_per_s']:.0f} msg/s, lost {result['lost']}, "
                       f"{result['seconds']} s, CPU s {result['cpu_s_by_process']}, broker {result['broker_cpu_s']}", flush=True)
                 runs.append(result)
@@ -174,14 +196,14 @@ async def measure(url: str, count: int, rounds: int, broker_group: int = 0) -> d
     pairs = [runs[i:i + 2] for i in range(0, len(runs), 2)]
     round_ratios = [round(next(r for r in pair if r["workers"] == 2)["msg_per_s"] / next(r for r in pair if r["workers"] == 1)["msg_per_s"], 2)
                     for pair in pairs]
-    return {"count": count, "rounds": rounds, "runs": runs, "median_msg_per_s": median,
+    return {"kind": kind, "count": count, "rounds": rounds, "runs": runs, "median_msg_per_s": median,
             "ratio_2_over_1": round(median[2] / median[1], 2), "round_ratios": round_ratios,
             "lost": sum(r["lost"] for r in runs), "cpus": os.cpu_count(), "loadavg": os.getloadavg()}
 
 
 def report(result: dict[str, Any]) -> list[str]:
     """The section's lines for bench/report.py (and this module's own output)."""
-    lines = [f"{result['count']} messages a drain, {result['rounds']} rounds (1 and 2 workers back to back, the order "
+    lines = [f"{result.get('kind', 'amqp-amqp')}: {result['count']} messages a drain, {result['rounds']} rounds (1 and 2 workers back to back, the order "
              f"alternating); {result['cpus']} CPUs, load average {'/'.join(f'{x:.1f}' for x in result['loadavg'])} after.", "",
              "| round | workers | msg/s | lost | s | CPU s by process | broker CPU s | engine µs/msg |", "|---|---|---|---|---|---|---|---|"]
     for index, run in enumerate(result["runs"]):
@@ -199,13 +221,14 @@ def main() -> None:
     from engine.endpoints.amqp.broker import LocalBroker
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--kind", choices=("amqp-amqp", "amqp-ros2"), default="amqp-amqp", help="the route drained")
     parser.add_argument("--count", type=int, default=20_000, help="messages per drain")
     parser.add_argument("--rounds", type=int, default=3, help="pairs of drains (1 and 2 workers)")
     parser.add_argument("--out", type=Path, help="write the results as JSON to this file")
     args = parser.parse_args()
     with LocalBroker() as node:
         group = node._process.pid if node._process is not None else 0  # the node's own process group (start_new_session)
-        result = asyncio.run(measure(node.url, args.count, args.rounds, group))
+        result = asyncio.run(measure(node.url, args.count, args.rounds, group, args.kind))
     print("\n".join(report(result)))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -523,10 +523,10 @@ class EngineWorkers:
     ``--workers 1`` the CLI runs one engine process (no supervisor); with N > 1 a supervisor
     and N workers, each in its own session: their CPU is read per process, not per group."""
 
-    def __init__(self, routes: Path, workers: int, work: Path) -> None:
+    def __init__(self, routes: Path, workers: int, work: Path, env: dict[str, str] | None = None) -> None:
         from bench.bench_workers import EngineRun
 
-        self.run = EngineRun(routes, workers, work, stats_interval=1.0)
+        self.run = EngineRun(routes, workers, work, stats_interval=1.0, env=env)
         self.workers = workers
         self.processes: dict[str, int] = {}
 
@@ -603,7 +603,8 @@ def _per_process(before: dict[str, tuple[float, int]], after: dict[str, tuple[fl
 
 async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration: float, rate: float = 10.0,
                    command_rate: float = 1.0, publishers: int = 2, domain: int | None = None,
-                   agents_nice: int = 0, workers: int = 0, broker_group: int = 0) -> dict[str, Any]:
+                   agents_nice: int = 0, workers: int = 0, broker_group: int = 0,
+                   engine_env: dict[str, str] | None = None) -> dict[str, Any]:
     """One measurement: the engine on the fleet's routes written ``mode`` (templated, shared or
     hand_written), or the reference bridge in its place (``reference``), the load for
     ``duration`` seconds, then everything drained and counted.
@@ -613,7 +614,9 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
     ``rabbitros-engine run --workers N`` (:class:`EngineWorkers`; its in-engine latency probes
     are not read: they live in bench/systems.py's in-process engine). ``broker_group``: the
     RabbitMQ node's process group, whose CPU and RSS are reported with every other process's
-    (``processes``: each engine process, the robots' and vehicles' generators, the consumer)."""
+    (``processes``: each engine process, the robots' and vehicles' generators, the consumer).
+    ``engine_env``: more environment for ``run --workers`` (``RABBITROS_LOOP=asyncio``: the
+    standard loop in place of uvloop, engine/running/loop.py)."""
     import aiormq
 
     from engine.common.schemas import SchemaRegistry
@@ -664,7 +667,7 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
             await reader.wait_for("ready", timeout=60)
             engine: Any
             if workers:
-                engine = EngineWorkers(routes, workers, Path(work))
+                engine = EngineWorkers(routes, workers, Path(work), engine_env)
                 children.append(engine)
                 result["workers"] = workers
                 result["load_s"] = await engine.start()
