@@ -35,9 +35,9 @@ from typing import Any
 from bench import fleet
 
 REPO = Path(__file__).resolve().parent.parent
-SYSTEMS = {"reference": 0, "1 worker": 1, "2 workers": 2, "1 worker, asyncio loop": 1}
+SYSTEMS = {"reference": 0, "1 worker": 1, "2 workers": 2, "1 worker asyncio": 1}
 """Each system's ``--workers`` (0: the reference, no engine)."""
-ENGINE_ENV = {"1 worker, asyncio loop": {"RABBITROS_LOOP": "asyncio"}}
+ENGINE_ENV = {"1 worker asyncio": {"RABBITROS_LOOP": "asyncio"}}
 """A system's engine environment beyond the run's: the standard asyncio loop in place of
 uvloop (engine/running/loop.py), to measure what uvloop saves in the same run (issue 34)."""
 DEFAULT_SYSTEMS = ("reference", "1 worker", "2 workers")
