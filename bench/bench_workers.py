@@ -103,7 +103,7 @@ class EngineRun:
         return self.process.wait()
 
 
-async def drain(broker: Broker, workers: int, count: int, kind: str = "amqp-amqp") -> dict[str, Any]:
+async def drain(broker: Broker, workers: int, count: int, kind: str = "amqp-amqp", env: dict[str, str] | None = None) -> dict[str, Any]:
     tag = uuid.uuid4().hex[:8]
     names = await broker.topology(tag)
     domain = domain_id()
@@ -111,7 +111,7 @@ async def drain(broker: Broker, workers: int, count: int, kind: str = "amqp-amqp
     try:
         with tempfile.TemporaryDirectory() as work:
             routes = routes_file(Path(work), kind, names, broker.url, domain).parent
-            engine = EngineRun(routes, workers, Path(work))
+            engine = EngineRun(routes, workers, Path(work), env=env)
             pids: list[int] = []
             try:
                 pids = await engine.running()
@@ -201,6 +201,36 @@ async def measure(url: str, count: int, rounds: int, broker_group: int = 0, kind
             "lost": sum(r["lost"] for r in runs), "cpus": os.cpu_count(), "loadavg": os.getloadavg()}
 
 
+LOOPS = {"uvloop": {"RABBITROS_LOOP": "uvloop"}, "asyncio": {"RABBITROS_LOOP": "asyncio"}}
+"""``--loops``: one engine on each event loop (engine/running/loop.py)."""
+
+
+async def measure_loops(url: str, count: int, rounds: int, broker_group: int = 0, kind: str = "amqp-amqp") -> dict[str, Any]:
+    """``rounds`` pairs of drains by one engine on uvloop and on asyncio's own loop, alternating
+    first: the engine's CPU per message on each, and each round's asyncio / uvloop ratio (issue
+    34: keep uvloop only if it saves at least 15 % per message)."""
+    BROKER_GROUP[0] = broker_group
+    broker = Broker(url)
+    await broker.open()
+    runs: list[dict[str, Any]] = []
+    try:
+        for round_index in range(rounds):
+            for loop in (list(LOOPS) if round_index % 2 == 0 else list(LOOPS)[::-1]):
+                result = {"loop": loop, **await drain(broker, 1, count, kind, LOOPS[loop])}
+                print(f"  round {round_index + 1}, {loop}: {result['msg_per_s']:.0f} msg/s, {result['cpu_us_per_msg']} us/msg, "
+                      f"lost {result['lost']}", flush=True)
+                runs.append(result)
+    finally:
+        await broker.close()
+    pairs = [runs[i:i + 2] for i in range(0, len(runs), 2)]
+    cpu = {loop: statistics.median(r["cpu_us_per_msg"] for r in runs if r["loop"] == loop) for loop in LOOPS}
+    return {"kind": kind, "count": count, "rounds": rounds, "runs": runs, "median_cpu_us_per_msg": cpu,
+            "round_cpu_ratios_asyncio_over_uvloop": [round(next(r for r in pair if r["loop"] == "asyncio")["cpu_us_per_msg"]
+                                                           / next(r for r in pair if r["loop"] == "uvloop")["cpu_us_per_msg"], 2)
+                                                     for pair in pairs],
+            "lost": sum(r["lost"] for r in runs), "loadavg": os.getloadavg()}
+
+
 def report(result: dict[str, Any]) -> list[str]:
     """The section's lines for bench/report.py (and this module's own output)."""
     lines = [f"{result.get('kind', 'amqp-amqp')}: {result['count']} messages a drain, {result['rounds']} rounds (1 and 2 workers back to back, the order "
@@ -224,12 +254,17 @@ def main() -> None:
     parser.add_argument("--kind", choices=("amqp-amqp", "amqp-ros2"), default="amqp-amqp", help="the route drained")
     parser.add_argument("--count", type=int, default=20_000, help="messages per drain")
     parser.add_argument("--rounds", type=int, default=3, help="pairs of drains (1 and 2 workers)")
+    parser.add_argument("--loops", action="store_true", help="one worker on uvloop against one on asyncio's loop, instead of 1 and 2 workers")
     parser.add_argument("--out", type=Path, help="write the results as JSON to this file")
     args = parser.parse_args()
     with LocalBroker() as node:
         group = node._process.pid if node._process is not None else 0  # the node's own process group (start_new_session)
-        result = asyncio.run(measure(node.url, args.count, args.rounds, group, args.kind))
-    print("\n".join(report(result)))
+        if args.loops:
+            result = asyncio.run(measure_loops(node.url, args.count, args.rounds, group, args.kind))
+            print(json.dumps({k: v for k, v in result.items() if k != "runs"}))
+        else:
+            result = asyncio.run(measure(node.url, args.count, args.rounds, group, args.kind))
+            print("\n".join(report(result)))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(result, indent=1) + "\n")

@@ -2,7 +2,7 @@
 
     python -m bench.systems SYSTEM '{"url": ..., ...}'
 
-* ``engine``: the RabbitROS engine on a routes file (uvloop where installed); with
+* ``engine``: the RabbitROS engine on a routes file (on its default loop, engine/running/loop.py); with
   ``latency_out`` it records every message's reception-to-acceptance time (t2 - t1) and
   writes them there when stopped.
 * ``ref-amqp-amqp``: the plain aiormq pass-through of issue 10: consume with prefetch 1,000

@@ -31,6 +31,7 @@ from engine.ops.replay_sinks import parse_speed, run_replay_to_sinks
 from engine.ops.route_tests import failing_tests, format_result, load_checked, run_tests
 from engine.ops.supervise import compiler, supervise
 from engine.ops.supervisor import Supervisor, worker_count
+from engine.running.loop import LoopChoiceError, loop_factory
 from engine.running.loop import run as run_loop
 from engine.running.observe import COUNTERS
 from engine.running.record import Recorder, RecordLimits
@@ -289,6 +290,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         client = _client(args)
         return client if isinstance(client, int) else print_tap(args.admin, args.route, args.count, client)
     listener = setup_logging(args.log_level, args.log_format)
+    try:
+        loop_factory()  # a loop it cannot run is refused by name before anything starts
+    except LoopChoiceError as error:
+        listener.stop()
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     try:
         return run_loop(run(args))
     finally:

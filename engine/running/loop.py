@@ -1,9 +1,23 @@
-"""The event loop the engine runs on: uvloop where it is installed, asyncio's otherwise.
+"""The event loop the engine runs on: asyncio's own, or uvloop when asked.
 
-uvloop (libuv) cuts the loop's own cost per callback and per socket read/write: the batched
-aiormq pass-through of issue 10 carried about 10 % more with it. It is an optional
-dependency (``pip install rabbitros-engine[fast]``, Unix only); ``RABBITROS_LOOP=asyncio``
-forces the standard loop, e.g. to compare the two.
+``RABBITROS_LOOP=uvloop`` runs the engine on uvloop (libuv; the optional extra ``fast``,
+``pip install rabbitros-engine[fast]``, Unix only); unset or ``asyncio``, on asyncio's loop.
+
+asyncio's loop is the default because uvloop saves nothing measurable here any more (issue 34
+asked to keep it only for at least 15 % less CPU per message, measured in the same run). It
+carried about 10 % more in the batched aiormq pass-through of issue 10; since then the engine
+writes a round of publishes as one write and takes ROS 2 messages in batches, and the loop's
+own cost per callback is a small part of a message's. Measured on the 2-core machine, shared,
+2026-11-27 (bench/results/2026-11-27/session4-loops/ and session4-fleet-*):
+
+- a backlog drain AMQP -> AMQP, one engine, 4 rounds alternating: 52.75 µs of CPU a message
+  on either loop (median), asyncio / uvloop 0.92-1.15 round by round; AMQP -> ROS 2: 59.7 /
+  58.75 µs (1.6 % more on asyncio's), 0.68-1.3 round by round;
+- the fleet (bench/fleet.py, 100 agents, 2,100 msg/s): 262 / 276, 239 / 215 and 182 / 189 µs a
+  message, asyncio / uvloop, in three interleaved rounds; p99 alike.
+
+One loop less to reason about (signal handling, ``add_reader`` and subprocess support differ
+in corner cases) and one native dependency less on a robot's computer.
 """
 
 from __future__ import annotations
@@ -14,15 +28,25 @@ from typing import Any, Callable, Coroutine, TypeVar
 
 T = TypeVar("T")
 
+LOOPS = ("asyncio", "uvloop")
+"""The values ``RABBITROS_LOOP`` takes."""
+
+
+class LoopChoiceError(RuntimeError):
+    """``RABBITROS_LOOP`` names a loop that is unknown or not installed."""
+
 
 def loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
-    """uvloop's loop factory if installed and not disabled, else None (asyncio's default)."""
-    if os.environ.get("RABBITROS_LOOP", "").lower() == "asyncio":
+    """uvloop's loop factory when ``RABBITROS_LOOP=uvloop``, else None (asyncio's default)."""
+    chosen = os.environ.get("RABBITROS_LOOP", "").strip().lower() or "asyncio"
+    if chosen not in LOOPS:
+        raise LoopChoiceError(f"RABBITROS_LOOP={chosen!r}: use one of {', '.join(LOOPS)}")
+    if chosen == "asyncio":
         return None
     try:
         import uvloop
-    except ImportError:
-        return None
+    except ImportError as error:
+        raise LoopChoiceError("RABBITROS_LOOP=uvloop: uvloop is not installed (pip install 'rabbitros-engine[fast]')") from error
     return uvloop.new_event_loop
 
 

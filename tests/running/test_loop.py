@@ -1,4 +1,4 @@
-"""The engine runs on uvloop where it is installed, and on asyncio's loop when told."""
+"""The engine runs on asyncio's loop, on uvloop when asked, and refuses a loop it cannot run."""
 
 from __future__ import annotations
 
@@ -18,14 +18,20 @@ def running_loop_module() -> str:
     return loop.run(which())
 
 
-def test_uvloop_runs_the_engine_where_installed(monkeypatch: pytest.MonkeyPatch) -> None:
-    import uvloop  # noqa: F401  (the "fast" extra, installed by scripts/setup.sh: missing = red)
+def test_asyncio_loop_by_default(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("RABBITROS_LOOP", raising=False)
+    assert loop.loop_factory() is None and loop.loop_name() == "asyncio"
+    assert running_loop_module().startswith("asyncio")
+
+
+def test_uvloop_on_request(monkeypatch: pytest.MonkeyPatch) -> None:
+    import uvloop  # noqa: F401  (the "fast" extra, installed by scripts/setup.sh: missing = red)
+    monkeypatch.setenv("RABBITROS_LOOP", "uvloop")
     assert loop.loop_name() == "uvloop"
     assert running_loop_module().startswith("uvloop")
 
 
-def test_asyncio_loop_on_request(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("RABBITROS_LOOP", "asyncio")
-    assert loop.loop_factory() is None and loop.loop_name() == "asyncio"
-    assert running_loop_module().startswith("asyncio")
+def test_an_unknown_loop_is_refused_by_name(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("RABBITROS_LOOP", "trio")
+    with pytest.raises(loop.LoopChoiceError, match="RABBITROS_LOOP='trio': use one of asyncio, uvloop"):
+        loop.loop_factory()
