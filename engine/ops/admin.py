@@ -13,7 +13,8 @@ Served by aiohttp on the engine's own event loop:
 * ``GET /status``: the status document (generation, config hash, reloads, each route's
   counters, rates, state and last error, the connections);
 * ``GET /tap/{route}``: JSON lines, one per message through the route, from now on;
-* ``GET /``: the web console (engine/ops/console.py) and its stream ``/console/events``.
+* ``GET /``: the web console (engine/ops/console.py), its stream ``/console/events`` and its
+  document once, ``/console/state``.
 
 A bare port binds 127.0.0.1: the admin endpoint exposes message contents (taps), so it is
 reachable from elsewhere only when an address is given on purpose, and then only with an
@@ -52,7 +53,7 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
-from engine.ops.console import Console
+from engine.ops.console import Console, engine_state
 from engine.running.observe import LATENCY_BUCKETS, Tap
 
 if TYPE_CHECKING:
@@ -302,10 +303,13 @@ class AdminServer:
         app.router.add_get("/healthz", self.healthz)
         app.router.add_get("/status", self.status)
         app.router.add_get("/tap/{route}", self.tap)
-        self._runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0)
+        # handler_cancellation: a stream (a tap, the console's events) ends when its client leaves,
+        # not at the next message it would write: a tap the supervisor closed (its Foxglove
+        # channel has no subscriber left) costs the route nothing from then on
+        self._runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0, handler_cancellation=True)
         self._sampler: asyncio.Task[None] | None = None
         self._taps: set[asyncio.Task[Any]] = set()
-        Console(engine, status_document, self._taps).add_to(app)
+        Console(engine_state(engine, status_document), self._taps).add_to(app)
 
     def _refused(self) -> None:
         self.collector.auth_failures += 1

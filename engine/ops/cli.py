@@ -410,12 +410,10 @@ def _protocols_used(args: argparse.Namespace) -> set[str] | None:
 
 async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> int:
     if getattr(args, "workers", 1) > 1 and getattr(args, "worker", None) is None:
-        if args.foxglove:
-            log.error("--foxglove serves one engine's routes: not with --workers (yet)")
-            return 2
         supervisor = Supervisor(args, args.workers, compiler(args, schema_directories(args), failing_tests if args.test_on_reload else None),
                                 access.token if access is not None else None)
-        return await supervise(args, supervisor, access, lambda document: _write_status(args.status_file, document))
+        return await supervise(args, supervisor, access, lambda document: _write_status(args.status_file, document),
+                               schema_directories(args))
     recorder = None if args.record is None else Recorder(args.record, RecordLimits(
         file_bytes=int(args.record_file_mb * 2**20), file_seconds=args.record_file_minutes * 60,
         total_bytes=int(args.record_total_mb * 2**20)))
@@ -459,17 +457,9 @@ async def _foxglove_view(args: argparse.Namespace, engine: Engine) -> FoxgloveVi
     cannot be, None when not asked for."""
     if not getattr(args, "foxglove", None):
         return None
-    from engine.ops.foxglove import FoxgloveView
-    if bool(args.foxglove_tls_cert) != bool(args.foxglove_tls_key):
-        log.error("--foxglove-tls-cert and --foxglove-tls-key go together")
-        return 1
-    try:
-        view = FoxgloveView(engine, args.foxglove[0], args.foxglove[1], args.foxglove_tls_cert, args.foxglove_tls_key)
-        await view.start()
-    except (OSError, RuntimeError) as exc:
-        log.error("foxglove view cannot listen", extra={"address": "%s:%s" % args.foxglove, "error": str(exc)})
-        return 1
-    return view
+    from engine.ops.foxglove import EngineFeed, start_view
+    view = await start_view(EngineFeed(engine), args)
+    return 1 if view is None else view
 
 
 async def _serve(args: argparse.Namespace, engine: Engine) -> int:

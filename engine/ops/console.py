@@ -9,7 +9,10 @@ nothing fetched from elsewhere, so it works offline) and one server-sent-event s
   counters, rates and last error; without the routes' last canonical message), the recent dead
   letters (route, stage, reason) and the fleet (each agent's last position from the routes whose
   schema is ``position``; engine/running/recent.py). The browser's ``EventSource`` reconnects
-  by itself when the engine restarts.
+  by itself when the engine restarts;
+* ``GET /console/state``: that document once, as JSON: what the supervisor of ``run --workers N``
+  reads from each worker to show the engine as a whole (engine/ops/supervisor_admin.py), the
+  same document its own console then streams (one state builder, merged there, not a second).
 
 The live tap of a route is the admin's own ``GET /tap/{route}``, read by the page with
 ``fetch`` as a stream of JSON lines. These paths sit behind the admin's access rules like every
@@ -23,7 +26,7 @@ from __future__ import annotations
 
 import asyncio
 from importlib.resources import files
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Awaitable, Callable
 
 import orjson
 from aiohttp import web
@@ -45,6 +48,11 @@ def page_file(name: str) -> bytes:
     return files("engine.ops").joinpath("console_page", name).read_bytes()
 
 
+ConsoleState = Callable[[], Awaitable[dict[str, Any]]]
+"""What a console shows, built when asked: one engine's (:func:`engine_state`) or the
+supervisor's merge of its workers' (engine/ops/supervisor_admin.py ``console_document``)."""
+
+
 def console_state(engine: Engine, status: Callable[[Engine], dict[str, Any]]) -> dict[str, Any]:
     """What the console shows: ``status`` (the admin's status document) without the routes'
     last canonical messages, the recent dead letters and the fleet."""
@@ -55,12 +63,25 @@ def console_state(engine: Engine, status: Callable[[Engine], dict[str, Any]]) ->
             "fleet": engine.observers.fleet.view()}
 
 
-class Console:
-    """The console's handlers, added to the admin's application (behind its middleware)."""
+def engine_state(engine: Engine, status: Callable[[Engine], dict[str, Any]]) -> ConsoleState:
+    """:func:`console_state` of one engine, as a :class:`Console` asks for it."""
 
-    def __init__(self, engine: Engine, status: Callable[[Engine], dict[str, Any]], streams: set[asyncio.Task[Any]]) -> None:
-        self.engine = engine
-        self.status = status
+    async def state() -> dict[str, Any]:
+        return console_state(engine, status)
+
+    return state
+
+
+def state_bytes(state: dict[str, Any]) -> bytes:
+    return orjson.dumps(state, default=str, option=orjson.OPT_NON_STR_KEYS)
+
+
+class Console:
+    """The console's handlers, added to an admin's application (behind its middleware): one
+    engine's (engine/ops/admin.py) or the supervisor's (engine/ops/supervisor_admin.py)."""
+
+    def __init__(self, state: ConsoleState, streams: set[asyncio.Task[Any]]) -> None:
+        self.state = state
         self.streams = streams
         """The admin's set of streaming tasks, ended when the admin stops."""
         self.pages = {path: (page_file(name), content_type) for path, (name, content_type) in PAGE_FILES.items()}
@@ -69,10 +90,14 @@ class Console:
         for path in self.pages:
             app.router.add_get(path, self.page)
         app.router.add_get("/console/events", self.events)
+        app.router.add_get("/console/state", self.current)
 
     async def page(self, request: web.Request) -> web.Response:
         body, content_type = self.pages[request.path]
         return web.Response(body=body, content_type=content_type, headers=PAGE_HEADERS)
+
+    async def current(self, request: web.Request) -> web.Response:
+        return web.Response(body=state_bytes(await self.state()), content_type="application/json")
 
     async def events(self, request: web.Request) -> web.StreamResponse:
         response = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-cache"})
@@ -82,8 +107,7 @@ class Console:
         try:
             await response.prepare(request)
             while True:
-                state = orjson.dumps(console_state(self.engine, self.status), default=str, option=orjson.OPT_NON_STR_KEYS)
-                await response.write(b"event: state\ndata: " + state + b"\n\n")
+                await response.write(b"event: state\ndata: " + state_bytes(await self.state()) + b"\n\n")
                 await asyncio.sleep(CONSOLE_PERIOD_S)
         except (ConnectionResetError, asyncio.CancelledError):
             pass

@@ -15,9 +15,14 @@ its own :class:`foxglove.Context`, so nothing else logged through the SDK's glob
   derived from its ``agent_id`` (the same on every run and every engine). Sent once a second.
 - ``/routes/status``: the routes' state, counters and rates, JSON, once a second.
 
-Cost: a route's channel is wired to its observer (``RouteObserver.watchers``) only while a
-client subscribes to it, and the fleet's observer of position routes only while a client
-subscribes to ``/fleet``; the SDK tells of each subscribe and unsubscribe through its server
+Where the data comes from is a :class:`ViewFeed`: one engine in this process
+(:class:`EngineFeed`, below) or, under ``run --workers N``, the supervisor's workers
+(engine/ops/supervisor_foxglove.py: the merged status, the merged fleet and the workers' taps),
+so the channels, schemas and subscriptions are this module's in both.
+
+Cost (one engine): a route's channel is wired to its observer (``RouteObserver.watchers``)
+only while a client subscribes to it, and the fleet's observer of position routes only while a
+client subscribes to ``/fleet``; the SDK tells of each subscribe and unsubscribe through its server
 listener. With no client the hot path does nothing more than before (one truth test); with one,
 a message costs one ``orjson`` serialisation and the SDK's queueing. The SDK never waits for a
 slow client: each client has a bounded queue (``message_backlog_size``) whose oldest message
@@ -42,10 +47,11 @@ import logging
 import math
 import threading
 import time
+from argparse import Namespace
 from colorsys import hsv_to_rgb
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Hashable, Protocol, Sequence
 
 import foxglove
 import orjson
@@ -53,7 +59,11 @@ from foxglove.websocket import ChannelView, Client, ServerListener
 
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.base import Outbound
-from engine.running.runtime import Engine
+from engine.language.specs import RoutesConfig
+from engine.ops.admin import status_document
+
+if TYPE_CHECKING:
+    from engine.running.runtime import Engine
 
 log = logging.getLogger("engine.ops.foxglove")
 
@@ -93,7 +103,8 @@ def agent_colour(agent_id: str) -> dict[str, float]:
 
 
 class RouteChannel:
-    """One route's canonical stream; called by the route's observer while subscribed."""
+    """One route's canonical stream: called by the route's observer while subscribed (one
+    engine), or handed the canonical messages a worker's tap carried (:meth:`send`)."""
 
     def __init__(self, route: str, schema_name: str, schema: dict[str, Any], context: foxglove.Context) -> None:
         self.route = route
@@ -105,20 +116,20 @@ class RouteChannel:
         self.errors = 0
 
     def __call__(self, outbound: Outbound) -> None:
+        self.send(outbound.canonical)
+
+    def send(self, canonical: Any) -> None:
         try:
-            self.channel.log(orjson.dumps(outbound.canonical, default=str, option=_ORJSON_OPTIONS), log_time=time.time_ns())
+            self.channel.log(orjson.dumps(canonical, default=str, option=_ORJSON_OPTIONS), log_time=time.time_ns())
         except (TypeError, orjson.JSONEncodeError):  # a view must never fail a route: counted
             self.errors += 1
 
 
 class Fleet:
-    """The latest position of every agent, kept only while ``/fleet`` is subscribed."""
+    """The latest position of every agent one engine took, kept only while ``/fleet`` is
+    subscribed (a watcher of the position routes, :class:`EngineFeed`)."""
 
-    def __init__(self, context: foxglove.Context) -> None:
-        self.channel = foxglove.Channel(
-            FLEET_TOPIC, context=context, message_encoding="json",
-            schema=foxglove.Schema(name="foxglove.LocationFixes", encoding="jsonschema",
-                                   data=json.dumps(LOCATION_FIXES_SCHEMA).encode()))
+    def __init__(self) -> None:
         self.latest: dict[str, tuple[float, dict[str, Any]]] = {}
 
     def __call__(self, outbound: Outbound) -> None:
@@ -129,11 +140,16 @@ class Fleet:
         if agent is not None:
             self.latest[str(agent)] = (time.monotonic(), position)
 
-    def fixes(self, now: float) -> dict[str, Any]:
-        """The ``foxglove.LocationFixes`` of the agents heard within :data:`FLEET_WINDOW_S`."""
+    def recent(self, now: float) -> dict[str, dict[str, Any]]:
+        """Agent -> its position, of the agents heard within :data:`FLEET_WINDOW_S`."""
         for agent in [a for a, (at, _) in self.latest.items() if now - at > FLEET_WINDOW_S]:
             del self.latest[agent]
-        return {"fixes": [location_fix(agent, position) for agent, (_, position) in sorted(self.latest.items())]}
+        return {agent: position for agent, (_, position) in self.latest.items()}
+
+
+def location_fixes(positions: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The ``foxglove.LocationFixes`` of agent -> canonical position, one fix each, by agent."""
+    return {"fixes": [location_fix(agent, position) for agent, position in sorted(positions.items())]}
 
 
 def location_fix(agent: str, position: dict[str, Any]) -> dict[str, Any]:
@@ -162,25 +178,94 @@ def location_fix(agent: str, position: dict[str, Any]) -> dict[str, Any]:
     return fix
 
 
+def status_message(document: dict[str, Any]) -> dict[str, Any]:
+    """``/routes/status`` from a status document (engine/ops/admin.py's, or the supervisor's
+    merge of its workers'): each route's state, counters, rates, mean latency and last error."""
+    routes = {name: {"state": route.get("state"), **{key: route.get(key, 0) for key in STATUS_FIELDS[1:]},
+                     "received_per_s": route.get("received_per_s", 0.0), "delivered_per_s": route.get("delivered_per_s", 0.0),
+                     "latency_mean_s": route.get("latency_mean_s"), "last_error": route.get("last_error")}
+              for name, route in sorted(document.get("routes", {}).items())}
+    return {"generation": document.get("generation"), "instance": document.get("instance"), "routes": routes}
+
+
+class ViewFeed(Protocol):
+    """Where a :class:`FoxgloveView` takes its data from: one engine (:class:`EngineFeed`) or
+    the workers of ``run --workers N`` (engine/ops/supervisor_foxglove.py)."""
+
+    name: str
+    """The server's name, as a client shows it."""
+
+    def running(self) -> tuple[Hashable, RoutesConfig, Sequence[Path], Sequence[str]] | None:
+        """(what changes with every reload, the routes, the schema directories, the names of
+        the routes running), None while they are still loading."""
+
+    async def status(self) -> dict[str, Any]:
+        """A status document (asked only while ``/routes/status`` is subscribed)."""
+
+    async def positions(self) -> dict[str, dict[str, Any]]:
+        """Agent -> its canonical position, heard within :data:`FLEET_WINDOW_S` (asked only
+        while ``/fleet`` is subscribed)."""
+
+    def wire(self, route: str, channel: RouteChannel | None, fleet: bool) -> None:
+        """Feed ``channel`` with the route's canonical messages (None: no longer), and the fleet
+        with its positions when ``fleet``. Called from the SDK's thread too (a subscription)."""
+
+    async def stop(self) -> None:
+        """Feed nothing any more."""
+
+
+class EngineFeed:
+    """One engine in this process: its status document and its routes' observers."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+        self.name = f"rabbitros-engine {engine.instance}"
+        self.fleet = Fleet()
+
+    def running(self) -> tuple[Hashable, RoutesConfig, Sequence[Path], Sequence[str]] | None:
+        config = self.engine.config
+        if config is None:
+            return None
+        return (self.engine.generation, config.content_hash), config, self.engine.schemas_dirs, list(self.engine.runners)
+
+    async def status(self) -> dict[str, Any]:
+        return status_document(self.engine)
+
+    async def positions(self) -> dict[str, dict[str, Any]]:
+        return self.fleet.recent(time.monotonic())
+
+    def wire(self, route: str, channel: RouteChannel | None, fleet: bool) -> None:
+        watchers: list[Any] = [channel] if channel is not None else []
+        if fleet:
+            watchers.append(self.fleet)
+        self.engine.observers.get(route).watchers = tuple(watchers)
+
+    async def stop(self) -> None:
+        for route in self.engine.runners:
+            self.engine.observers.get(route).watchers = ()
+
+
 class FoxgloveView(ServerListener):
     """The server and its channels (see the module docstring); also the SDK's server listener."""
 
-    def __init__(self, engine: Engine, host: str, port: int, tls_cert: Path | None = None, tls_key: Path | None = None) -> None:
-        self.engine = engine
+    def __init__(self, feed: ViewFeed, host: str, port: int, tls_cert: Path | None = None, tls_key: Path | None = None) -> None:
+        self.feed = feed
         self.host, self.port = host, port
         self.tls = (tls_cert.read_bytes(), tls_key.read_bytes()) if tls_cert and tls_key else None
         self.context = foxglove.Context()
         self.routes: dict[str, RouteChannel] = {}
         self.positions: set[str] = set()
         """The routes whose canonical schema is ``position``: what the fleet watches."""
-        self.fleet = Fleet(self.context)
+        self.fleet = foxglove.Channel(FLEET_TOPIC, context=self.context, message_encoding="json",
+                                      schema=foxglove.Schema(name="foxglove.LocationFixes", encoding="jsonschema",
+                                                             data=json.dumps(LOCATION_FIXES_SCHEMA).encode()))
         self.status = foxglove.Channel(STATUS_TOPIC, context=self.context, message_encoding="json",
                                        schema=foxglove.Schema(name="rabbitros.RouteStatus", encoding="jsonschema",
                                                               data=json.dumps(STATUS_SCHEMA).encode()))
         self.subscribers: dict[int, int] = {}
         """Channel id -> subscriptions to it (the SDK calls the listener from its own thread)."""
         self._lock = threading.Lock()
-        self._synced: tuple[int, str | None] | None = None
+        self._synced: Hashable | None = None
         self._server: Any = None
         self._task: asyncio.Task[None] | None = None
 
@@ -188,7 +273,7 @@ class FoxgloveView(ServerListener):
         """Listen (raises RuntimeError when the address cannot be bound) and follow the engine."""
         cert, key = self.tls if self.tls else (None, None)
         self._server = foxglove.start_server(
-            name=f"rabbitros-engine {self.engine.instance}", host=self.host, port=self.port, capabilities=[],
+            name=self.feed.name, host=self.host, port=self.port, capabilities=[],
             server_listener=self, context=self.context, tls_cert=cert, tls_key=key)
         self.port = self._server.port
         self._task = asyncio.create_task(self._tick(), name="foxglove-view")
@@ -200,52 +285,41 @@ class FoxgloveView(ServerListener):
             await asyncio.gather(self._task, return_exceptions=True)
         if self._server is not None:
             self._server.stop()
-        with self._lock:
-            for name in self.routes:
-                self.engine.observers.get(name).watchers = ()
+        await self.feed.stop()
 
     async def _tick(self) -> None:
-        while self.engine.config is None:  # the routes are still loading: their channels as soon as they run
+        while self.feed.running() is None:  # the routes are still loading: their channels as soon as they run
             await asyncio.sleep(0.05)
         while True:
             try:
                 await self.sync()
-                self.publish()
+                await self.publish()
             except Exception:  # the view must outlive anything one tick meets
                 log.exception("foxglove view tick failed")
             await asyncio.sleep(TICK_S)
 
-    def publish(self) -> None:
+    async def publish(self) -> None:
         """The status and the fleet, each only while subscribed."""
         if self.status.has_sinks():
-            self.status.log(orjson.dumps(self.status_message(), default=str, option=_ORJSON_OPTIONS), log_time=time.time_ns())
-        if self.fleet.channel.has_sinks():
-            self.fleet.channel.log(orjson.dumps(self.fleet.fixes(time.monotonic())), log_time=time.time_ns())
-
-    def status_message(self) -> dict[str, Any]:
-        engine = self.engine
-        routes = {}
-        for name, runner in sorted(engine.runners.items()):
-            observer = engine.observers.get(name)
-            snapshot = observer.snapshot()
-            routes[name] = {"state": runner.state, **{k: getattr(observer, k) for k in STATUS_FIELDS[1:]},
-                            **engine.observers.rates(name), "latency_mean_s": snapshot["latency_mean_s"],
-                            "last_error": observer.last_error}
-        return {"generation": engine.generation, "instance": engine.instance, "routes": routes}
+            message = status_message(await self.feed.status())
+            self.status.log(orjson.dumps(message, default=str, option=_ORJSON_OPTIONS), log_time=time.time_ns())
+        if self.fleet.has_sinks():
+            fixes = location_fixes(await self.feed.positions())
+            self.fleet.log(orjson.dumps(fixes, default=str, option=_ORJSON_OPTIONS), log_time=time.time_ns())
 
     async def sync(self) -> None:
         """One channel per running route, with its schema; after a reload, the new ones
         advertised, those gone closed (unadvertised), those whose schema changed replaced."""
-        config = self.engine.config
-        key = (self.engine.generation, config.content_hash if config else None)
-        if key == self._synced or config is None:
+        running = self.feed.running()
+        if running is None or running[0] == self._synced:
             return
-        schemas = await asyncio.to_thread(SchemaRegistry, self.engine.schemas_dirs)  # once per generation
+        key, config, schema_dirs, names = running
+        schemas = await asyncio.to_thread(SchemaRegistry, list(schema_dirs))  # once per generation
         with self._lock:
-            for name in [n for n in self.routes if n not in self.engine.runners]:
+            for name in [n for n in self.routes if n not in names]:
                 self._close(name)
             self.positions = set()
-            for name in self.engine.runners:
+            for name in names:
                 spec = config.routes.get(name)
                 entry = schemas.get(spec.schema) if spec else None
                 if spec is None or entry is None:
@@ -271,14 +345,10 @@ class FoxgloveView(ServerListener):
         self._wire(name)
 
     def _wire(self, name: str) -> None:
-        """Attach to route ``name``'s observer what is subscribed now (under ``_lock``)."""
-        watchers: list[Any] = []
+        """Hand the feed what of route ``name`` is subscribed now (under ``_lock``)."""
         channel = self.routes.get(name)
-        if channel is not None and self.subscribers.get(channel.channel.id()):
-            watchers.append(channel)
-        if name in self.positions and self.subscribers.get(self.fleet.channel.id()):
-            watchers.append(self.fleet)
-        self.engine.observers.get(name).watchers = tuple(watchers)
+        subscribed = channel if channel is not None and self.subscribers.get(channel.channel.id()) else None
+        self.feed.wire(name, subscribed, name in self.positions and bool(self.subscribers.get(self.fleet.id())))
 
     # -- the SDK's server listener (called from the SDK's thread)
 
@@ -291,10 +361,24 @@ class FoxgloveView(ServerListener):
     def _subscribed(self, channel_id: int, change: int) -> None:
         with self._lock:
             self.subscribers[channel_id] = max(0, self.subscribers.get(channel_id, 0) + change)
-            if channel_id == self.fleet.channel.id():
+            if channel_id == self.fleet.id():
                 for name in self.positions:
                     self._wire(name)
                 return
             for name, route in self.routes.items():
                 if route.channel.id() == channel_id:
                     self._wire(name)
+
+
+async def start_view(feed: ViewFeed, args: Namespace) -> FoxgloveView | None:
+    """``--foxglove`` of ``run``, started on ``feed``; None (the reason logged) when it cannot be."""
+    if bool(args.foxglove_tls_cert) != bool(args.foxglove_tls_key):
+        log.error("--foxglove-tls-cert and --foxglove-tls-key go together")
+        return None
+    try:
+        view = FoxgloveView(feed, args.foxglove[0], args.foxglove[1], args.foxglove_tls_cert, args.foxglove_tls_key)
+        await view.start()
+    except (OSError, RuntimeError) as exc:
+        log.error("foxglove view cannot listen", extra={"address": "%s:%s" % args.foxglove, "error": str(exc)})
+        return None
+    return view

@@ -9,7 +9,7 @@ import asyncio
 import logging
 import signal
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from engine.common.schemas import SchemaRegistry
 from engine.language.route_yaml import Problem
@@ -19,6 +19,9 @@ from engine.ops.admin import AdminAccess
 from engine.ops.supervisor import Supervisor
 from engine.ops.supervisor_admin import SupervisorAdmin, status_document
 from engine.running.watch import watch_routes
+
+if TYPE_CHECKING:  # imported when --foxglove asks for it (the SDK's import costs some 40 ms)
+    from engine.ops.foxglove import FoxgloveView
 
 log = logging.getLogger("engine.ops.supervise")
 
@@ -38,11 +41,32 @@ def compiler(args: argparse.Namespace, schema_dirs: list[Path],
     return compile_routes
 
 
+async def foxglove_view(args: argparse.Namespace, supervisor: Supervisor, schema_dirs: list[Path]) -> FoxgloveView | None:
+    """``--foxglove`` of the whole engine (engine/ops/supervisor_foxglove.py), started before
+    the workers as one engine starts it before its routes (it shows the routes once they run)."""
+    from engine.ops.foxglove import start_view
+    from engine.ops.supervisor_foxglove import WorkersFeed
+    return await start_view(WorkersFeed(supervisor, schema_dirs), args)
+
+
 async def supervise(args: argparse.Namespace, supervisor: Supervisor, access: AdminAccess | None,
-                    write_status: Callable[[dict[str, Any]], None]) -> int:
-    """``run --workers N``: start the workers, serve the admin, reload on changes and SIGHUP,
-    write the status file, and stop every worker on SIGTERM or SIGINT; the exit status as
-    ``run``'s (2: invalid routes, 1: a worker could not start)."""
+                    write_status: Callable[[dict[str, Any]], None], schema_dirs: list[Path]) -> int:
+    """``run --workers N``: start the workers, serve the admin (and the Foxglove view), reload
+    on changes and SIGHUP, write the status file, and stop every worker on SIGTERM or SIGINT;
+    the exit status as ``run``'s (2: invalid routes, 1: a worker, the admin or the view could
+    not start)."""
+    view = await foxglove_view(args, supervisor, schema_dirs) if args.foxglove else None
+    if args.foxglove and view is None:
+        return 1
+    try:
+        return await _supervise(args, supervisor, access, write_status)
+    finally:
+        if view is not None:
+            await view.stop()
+
+
+async def _supervise(args: argparse.Namespace, supervisor: Supervisor, access: AdminAccess | None,
+                     write_status: Callable[[dict[str, Any]], None]) -> int:
     stopping, reload_requested = asyncio.Event(), asyncio.Event()
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):

@@ -17,7 +17,9 @@ a device or a link by one. The supervisor itself runs no route; it owns:
   connection drops, to the other workers or to the restarted one (at-least-once, as across a
   restart of a single engine); what a push source (ROS 2, MAVLink) had queued in the dead
   worker is lost as it is when a single engine is killed;
-* **the one admin endpoint** (engine/ops/supervisor_admin.py): the workers serve their own
+* **the one admin endpoint** (engine/ops/supervisor_admin.py: status, metrics, health, taps
+  and the web console of the whole engine) and **the Foxglove view** of ``--foxglove``
+  (engine/ops/supervisor_foxglove.py), both read from the workers: the workers serve their own
   admin on private loopback ports the supervisor alone reads (chosen over a pipe protocol:
   the worker's admin already answers status, metrics, health and taps, so the supervisor
   merges documents instead of a second encoding of them). A worker tells its port over a pipe
@@ -39,7 +41,7 @@ import signal
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, AsyncIterator, Callable
 
 import aiohttp
 
@@ -69,7 +71,7 @@ POLL_S = 0.05
 SUPERVISOR_OWN_OPTIONS = frozenset((
     "--workers", "--no-watch", "--status-file", "--admin", "--admin-tls-cert", "--admin-tls-key",  # one watch, one admin
     "--local-broker", "--broker-url-file", "--cluster", "--local-broker-tls",  # started once; the workers read its environment
-    "--foxglove", "--foxglove-tls-cert", "--foxglove-tls-key",  # refused with --workers
+    "--foxglove", "--foxglove-tls-cert", "--foxglove-tls-key",  # one view of the whole engine (engine/ops/supervisor_foxglove.py)
 ))
 """The ``run`` options the supervisor keeps for itself; every other one reaches each worker
 through :meth:`Supervisor.command` (a fast test holds the two lists to the parser, so a new
@@ -289,6 +291,27 @@ class Supervisor:
         """``path`` of every worker, asked at once."""
         answers = await asyncio.gather(*(self.ask(worker, path) for worker in self.workers))
         return [(worker, code, body) for worker, (code, body) in zip(self.workers, answers)]
+
+    async def tap_lines(self, worker: Worker, route: str) -> AsyncIterator[bytes]:
+        """The worker's ``/tap/{route}`` lines as they come, until its stream ends (the worker
+        stopped or was restarted) or it does not answer: the supervisor's ``/tap`` passes them on
+        as the worker wrote them, its Foxglove view takes the canonical messages from them."""
+        if not worker.up or worker.admin_port is None:
+            return
+        headers = {"Authorization": f"Bearer {self.token.decode()}"} if self.token else {}
+        endless = aiohttp.ClientTimeout(total=None, sock_read=None)  # a quiet route sends nothing for long
+        with contextlib.suppress(aiohttp.ClientError, OSError):
+            # a session of its own: a tap holds its connection for as long as it is read, and the
+            # shared session's pool (asked for status, metrics, health) must never run out for it
+            async with aiohttp.ClientSession(timeout=endless) as session, \
+                    session.get(f"http://127.0.0.1:{worker.admin_port}/tap/{route}", headers=headers) as answer:
+                if answer.status != 200:
+                    return
+                pending = b""
+                async for chunk in answer.content.iter_any():  # not by line: aiohttp refuses a line over 64 KiB (an image)
+                    *lines, pending = (pending + chunk).split(b"\n")
+                    for line in lines:
+                        yield line + b"\n"
 
     async def worker_status(self, worker: Worker) -> dict[str, Any] | None:
         code, body = await self.ask(worker, "/status")

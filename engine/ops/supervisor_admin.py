@@ -18,9 +18,13 @@ private admin endpoints, asked at once when a request comes:
   never go down when a worker restarts (:class:`MergedCollector`); plus
   ``rabbitros_workers_up`` and ``rabbitros_worker_restarts_total``;
 * ``/healthz``: 200 when every worker is up and answers 200 itself; else 503 naming them;
-* ``/tap/{route}``: the lines of every worker that runs the route, interleaved as they come.
-
-The web console is not served here (it reads one engine's observers): open a worker's.
+* ``/tap/{route}``: the lines of every worker that runs the route, interleaved as they come;
+* ``/`` (the web console, engine/ops/console.py) and its ``/console/events``: the engine as a
+  whole, from each worker's ``/console/state`` (the document a single engine's console streams)
+  merged as ``/status`` is, with the workers' pid, up, restarts, CPU and memory, the recent dead
+  letters of every worker (newest first) and the fleet (each agent's latest position, whichever
+  worker carried it): :func:`console_document`. The workers are asked once a second while a
+  console is open, and not at all otherwise.
 """
 
 from __future__ import annotations
@@ -32,7 +36,6 @@ import json
 import logging
 from typing import Any, Iterator
 
-import aiohttp
 from aiohttp import web
 from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
@@ -40,8 +43,10 @@ from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.parser import text_string_to_metric_families
 
 from engine.ops.admin import AdminAccess, authenticate, listen
+from engine.ops.console import Console
 from engine.ops.supervisor import Supervisor, Worker
 from engine.running.observe import COUNTERS
+from engine.running.recent import FLEET_AGENTS, RECENT_DEAD_LETTERS
 
 log = logging.getLogger("engine.ops.supervisor_admin")
 
@@ -126,6 +131,43 @@ async def status_document(supervisor: Supervisor) -> dict[str, Any]:
     """The status of the engine as a whole: the supervisor's, with every worker's asked now."""
     answers = await supervisor.documents("/status")
     return merge_status(supervisor.status(), [json.loads(body) if code == 200 else None for _, code, body in answers])
+
+
+def merge_dead_letters(documents: list[dict[str, Any] | None]) -> list[dict[str, Any]]:
+    """The workers' recent dead letters as one list, newest first, each naming its worker, as
+    many as one engine keeps (:data:`RECENT_DEAD_LETTERS`)."""
+    letters = [{**letter, "worker": index} for index, document in enumerate(documents) if document is not None
+               for letter in document.get("recent_dead_letters") or ()]
+    letters.sort(key=lambda letter: letter.get("at") or 0, reverse=True)
+    return letters[:RECENT_DEAD_LETTERS]
+
+
+def merge_fleet(documents: list[dict[str, Any] | None]) -> list[dict[str, Any]]:
+    """Each agent's latest position over the workers (a fleet's agents spread over workers, and
+    an agent whose messages compete on a queue is heard by several), naming the worker that
+    carried it; the least recently heard first, at most :data:`FLEET_AGENTS`, as one engine's."""
+    latest: dict[str, dict[str, Any]] = {}
+    for index, document in enumerate(documents):
+        for agent in (document or {}).get("fleet") or ():
+            held = latest.get(agent["agent_id"])
+            if held is None or (agent.get("at") or 0) > (held.get("at") or 0):
+                latest[agent["agent_id"]] = {**agent, "worker": index}
+    return sorted(latest.values(), key=lambda agent: agent.get("at") or 0)[-FLEET_AGENTS:]
+
+
+async def console_document(supervisor: Supervisor) -> dict[str, Any]:
+    """What the supervisor's console shows: every worker's console document (``/console/state``,
+    engine/ops/console.py) asked now and merged: the status as :func:`merge_status` merges it
+    (without each worker's whole document, which the page does not show), the dead letters
+    (:func:`merge_dead_letters`) and the fleet (:func:`merge_fleet`)."""
+    answers = await supervisor.documents("/console/state")
+    documents = [json.loads(body) if code == 200 else None for _, code, body in answers]
+    merged = merge_status(supervisor.status(), documents)
+    for worker in merged["workers"]:
+        worker.pop("status", None)
+    for route in merged["routes"].values():
+        route.pop("last_canonical", None)
+    return {**merged, "recent_dead_letters": merge_dead_letters(documents), "fleet": merge_fleet(documents)}
 
 
 GENERATION_GAUGE = "rabbitros_config_generation"
@@ -234,8 +276,11 @@ class SupervisorAdmin:
         app.router.add_get("/healthz", self.healthz)
         app.router.add_get("/status", self.status)
         app.router.add_get("/tap/{route}", self.tap)
-        self._runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0)
+        # a tap or a console that its client left stops reading the workers at once (engine/ops/admin.py)
+        self._runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=2.0, handler_cancellation=True)
         self._taps: set[asyncio.Task[Any]] = set()
+        """The streams open now (taps, consoles), ended when the admin stops."""
+        Console(lambda: console_document(supervisor), self._taps).add_to(app)
 
     def _refused(self) -> None:
         self.collector.auth_failures += 1
@@ -294,12 +339,6 @@ class SupervisorAdmin:
 
     async def _follow(self, worker: Worker, route: str, lines: asyncio.Queue[bytes]) -> None:
         """One worker's tap lines into ``lines`` (a full queue drops, as the engine's tap does)."""
-        supervisor = self.supervisor
-        headers = {"Authorization": f"Bearer {supervisor.token.decode()}"} if supervisor.token else {}
-        timeout = aiohttp.ClientTimeout(total=None, sock_read=None)
-        with contextlib.suppress(aiohttp.ClientError, OSError):
-            async with aiohttp.ClientSession(timeout=timeout) as session, \
-                    session.get(f"http://127.0.0.1:{worker.admin_port}/tap/{route}", headers=headers) as answer:
-                async for line in answer.content:
-                    with contextlib.suppress(asyncio.QueueFull):
-                        lines.put_nowait(line)
+        async for line in self.supervisor.tap_lines(worker, route):
+            with contextlib.suppress(asyncio.QueueFull):
+                lines.put_nowait(line)

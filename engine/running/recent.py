@@ -60,13 +60,16 @@ class Fleet:
             last.popitem(last=False)
 
     def view(self) -> list[dict[str, Any]]:
-        """One entry per agent with a numeric lat/lon: agent_id, lat, lon, alt_rel, heading, route, at."""
+        """One entry per agent with a numeric lat/lon: agent_id, lat, lon, alt_rel, alt_msl,
+        heading, stamp, route, at (``alt_msl`` and ``stamp``: what the Foxglove view of ``run
+        --workers N`` draws a fix from, engine/ops/supervisor_foxglove.py)."""
         agents = []
         for agent, (canonical, route, at) in self.last.items():
             lat, lon = canonical.get("lat"), canonical.get("lon")
             if isinstance(lat, (int, float)) and isinstance(lon, (int, float)):
                 agents.append({"agent_id": agent, "lat": lat, "lon": lon, "alt_rel": canonical.get("alt_rel"),
-                               "heading": canonical.get("heading"), "route": route, "at": at})
+                               "alt_msl": canonical.get("alt_msl"), "heading": canonical.get("heading"),
+                               "stamp": canonical.get("stamp"), "route": route, "at": at})
         return agents
 
 

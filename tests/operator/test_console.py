@@ -128,6 +128,7 @@ def test_the_console_shows_routes_counters_dead_letters_and_the_fleet(console: t
         wait_for_sync(lambda: list(seen()["routes"]) == ["robot-position", "uav-position", "weeds"], 30,
                       "the console to list every route", lambda: (seen(), engine.log()[-1500:]))
         assert cell("weeds", "received") == "0" and cell("weeds", "state") == "running"
+        assert seen()["workers"] == [] and "workers" not in seen()["summary"]  # one engine: no workers table
         wait_for_sync(lambda: seen()["live"] == "live", 10, "the event stream", seen)
 
         # a live tap of the weeds route, opened before anything is sent

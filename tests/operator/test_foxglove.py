@@ -13,7 +13,7 @@ import ssl
 import struct
 import uuid
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Iterator
 
 import aio_pika
 import jsonschema
@@ -22,14 +22,14 @@ import websockets
 from foxglove.messages import LocationFix, LocationFixes
 
 from engine.common.processes import listening_port
-from engine.ops.foxglove import LOCATION_FIXES_SCHEMA, Fleet, FoxgloveView, RouteChannel, agent_colour
+from engine.ops.foxglove import LOCATION_FIXES_SCHEMA, EngineFeed, Fleet, FoxgloveView, RouteChannel, agent_colour
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector, publish
 from tests.support.engine_process import EngineProcess
+from tests.support.foxglove_client import SUBPROTOCOL, FoxgloveClient, connect
 from tests.support.tls_helpers import make_pki
 from tests.support.waiting import wait_for
 
-SUBPROTOCOL = "foxglove.sdk.v1"
 ROUTES = """
 routes:
   - name: positions
@@ -43,50 +43,6 @@ routes:
     schema: raw_json
     sink: {amqp: {exchange: fox-test, routing_key: "out.telemetry"}}
 """
-
-
-class FoxgloveClient:
-    """One connection: the channels advertised, subscriptions, and the message data received."""
-
-    def __init__(self, ws: Any) -> None:
-        self.ws = ws
-        self.server_info: dict[str, Any] = {}
-        self.channels: dict[str, dict[str, Any]] = {}
-        self.statuses: list[dict[str, Any]] = []
-        self.received: dict[int, list[tuple[int, bytes]]] = {}
-        self.unadvertised: list[int] = []
-        self._task = asyncio.create_task(self._read())
-
-    async def _read(self) -> None:
-        async for frame in self.ws:
-            if isinstance(frame, bytes):
-                assert frame[0] == 1, f"not message data: opcode {frame[0]}"
-                subscription, timestamp = struct.unpack_from("<IQ", frame, 1)
-                self.received.setdefault(subscription, []).append((timestamp, frame[13:]))
-                continue
-            message = json.loads(frame)
-            if message["op"] == "serverInfo":
-                self.server_info = message
-            elif message["op"] == "advertise":
-                self.channels.update((c["topic"], c) for c in message["channels"])
-            elif message["op"] == "unadvertise":
-                self.unadvertised.extend(message["channelIds"])
-            elif message["op"] == "status":
-                self.statuses.append(message)
-
-    async def subscribe(self, topics: list[str]) -> dict[str, int]:
-        """Subscribe to ``topics``; returns topic -> subscription id."""
-        ids = {topic: index for index, topic in enumerate(topics, start=1)}
-        await self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-            {"id": ids[topic], "channelId": self.channels[topic]["id"]} for topic in topics]}))
-        return ids
-
-    def messages(self, subscription: int) -> list[Any]:
-        return [json.loads(payload) for _, payload in self.received.get(subscription, [])]
-
-    async def close(self) -> None:
-        await self.ws.close()
-        await asyncio.gather(self._task, return_exceptions=True)
 
 
 @pytest.fixture
@@ -123,16 +79,11 @@ async def _feed(url: str, stop: asyncio.Event) -> int:
     return sent
 
 
-async def _connect(port: int) -> FoxgloveClient:
-    ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL])  # type: ignore[list-item]
-    return FoxgloveClient(ws)
-
-
 def test_every_route_is_a_channel_with_its_schema_and_messages_flow_after_subscribing(engine, amqp_url: str) -> None:
     process, port = engine
 
     async def scenario() -> None:
-        client = await _connect(port)
+        client = await connect(port)
         stop = asyncio.Event()
         feeder = asyncio.create_task(_feed(amqp_url, stop))
         try:
@@ -183,7 +134,7 @@ def test_a_client_cannot_publish_into_a_route(engine, amqp_url: str) -> None:
     process, port = engine
 
     async def scenario() -> None:
-        client = await _connect(port)
+        client = await connect(port)
         try:
             await wait_for(lambda: "/routes/telemetry/canonical" in client.channels, 15, "the route advertised")
             before = (process.status() or {})["routes"]["telemetry"]["received"]
@@ -255,10 +206,10 @@ def test_nothing_watches_a_route_while_no_client_subscribes_and_channels_follow_
     async def scenario() -> None:
         engine = Engine(routes, schemas_dir)
         await engine.start()
-        view = FoxgloveView(engine, "127.0.0.1", 0)
+        view = FoxgloveView(EngineFeed(engine), "127.0.0.1", 0)
         await view.start()
         positions, telemetry = engine.observers.get("positions"), engine.observers.get("telemetry")
-        client = await _connect(view.port)
+        client = await connect(view.port)
         try:
             await wait_for(lambda: "/routes/telemetry/canonical" in client.channels, 15, "the routes advertised")
             assert positions.watchers == () and telemetry.watchers == (), "watching with no subscriber"
@@ -269,7 +220,7 @@ def test_nothing_watches_a_route_while_no_client_subscribes_and_channels_follow_
             await client.close()
             await wait_for(lambda: positions.watchers == (), 10, "everything detached once the client left",
                            lambda: positions.watchers)
-            client = await _connect(view.port)
+            client = await connect(view.port)
             await wait_for(lambda: "/routes/telemetry/canonical" in client.channels, 15, "the routes advertised again")
             (routes / "extra.yaml").write_text(ROUTES.replace("positions", "extra-positions").replace("telemetry", "extra-tel")
                                                .replace("pos.#", "xpos.#").replace("tel.#", "xtel.#")

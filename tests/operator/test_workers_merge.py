@@ -22,7 +22,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from engine.language.specs import RoutesConfig
 from engine.ops.supervisor import Supervisor, Worker
-from engine.ops.supervisor_admin import MergedCollector, merge_status
+from engine.ops.supervisor_admin import MergedCollector, merge_dead_letters, merge_fleet, merge_status
 from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
@@ -54,6 +54,21 @@ def test_status_sums_a_routes_counters_and_keeps_each_worker() -> None:
     assert [w["status"] is not None for w in merged["workers"]] == [True, False, True]
     assert merged["instance"] == "farm" and merged["generation"] == 0  # the supervisor's own, not started here
     assert merged["dead_letters"] == {"destination": "amqp dead-letters", "stored": 10 // 3 + 5 // 3, "spooled": 2}
+
+
+def test_the_console_merges_dead_letters_newest_first_and_each_agents_latest_position() -> None:
+    """What the supervisor's console shows beside the merged status (engine/ops/supervisor_admin.py
+    console_document): every worker's recent dead letters, newest first, each naming its worker;
+    an agent heard by both workers once, at its latest position."""
+    first = {"recent_dead_letters": [{"at": 30.0, "route": "a", "stage": "schema", "reason": "x"},
+                                     {"at": 10.0, "route": "a", "stage": "mapping", "reason": "y"}],
+             "fleet": [{"agent_id": "uav1", "lat": 1.0, "lon": 2.0, "at": 5.0}, {"agent_id": "rover", "lat": 3.0, "lon": 4.0, "at": 9.0}]}
+    second = {"recent_dead_letters": [{"at": 20.0, "route": "b", "stage": "sink", "reason": "z"}],
+              "fleet": [{"agent_id": "uav1", "lat": 1.5, "lon": 2.5, "at": 7.0}]}
+    letters = merge_dead_letters([first, None, second])
+    assert [(d["at"], d["worker"]) for d in letters] == [(30.0, 0), (20.0, 2), (10.0, 0)]
+    fleet = merge_fleet([first, None, second])
+    assert [(a["agent_id"], a["lat"], a["worker"]) for a in fleet] == [("uav1", 1.5, 2), ("rover", 3.0, 0)]  # least recent first
 
 
 WORKER_METRICS = """\

@@ -25,6 +25,9 @@ return {
   labels: all("#map text.agent-label").map((text) => text.textContent),
   scale: (document.querySelector("#map text.scale-label") || {textContent: ""}).textContent,
   tap: all("#tap-lines li").map((item) => item.textContent),
+  summary: document.getElementById("summary").textContent,
+  workers: document.getElementById("workers-panel").hidden ? [] : all("#workers tbody tr").map((row) =>
+    Object.fromEntries([...row.cells].map((cell) => [cell.className.split(" ").pop(), cell.textContent]))),
 };
 """
 """What the page shows, read in one script (the page redraws every second: elements found one

@@ -1,5 +1,7 @@
 // The engine's web console (engine/ops/console.py): state from /console/events (server-sent
 // events, once a second), a live tap from /tap/ROUTE (JSON lines). No library, no build step.
+// Under run --workers N the supervisor serves it (engine/ops/supervisor_admin.py): the state
+// then has the workers, shown in their own table, and each route names the workers running it.
 // URLs are built on location.origin: a page opened as https://user:token@host/ has credentials
 // in its own URL, and fetch() refuses a URL that carries them.
 "use strict";
@@ -44,6 +46,7 @@ function renderRoutes(routes) {
       el("td", {"class": "num received"}, messages.received), el("td", {"class": "num delivered"}, messages.delivered),
       el("td", {"class": "num dead-lettered"}, messages.dead_lettered),
       el("td", {"class": "num"}, rate(route.received_per_s)), el("td", {"class": "num"}, rate(route.delivered_per_s)),
+      el("td", {"class": "on-workers workers"}, (route.workers || []).join(", ")),
       el("td", {"class": "error", "title": time(route.last_error_at)}, route.last_error || ""));
     return row;
   });
@@ -57,12 +60,47 @@ function renderRoutes(routes) {
   }
 }
 
+function duration(seconds) {
+  if (!seconds) return "";
+  return seconds < 120 ? `${Math.round(seconds)} s` : seconds < 7200 ? `${Math.round(seconds / 60)} min` : `${(seconds / 3600).toFixed(1)} h`;
+}
+
+const cpuSeen = new Map();  // worker index -> {pid, cpu, at}: its CPU share from two successive states
+
+function cpuShare(worker, now) {
+  const before = cpuSeen.get(worker.index);
+  if (worker.cpu_s == null) return "";
+  cpuSeen.set(worker.index, {pid: worker.pid, cpu: worker.cpu_s, at: now});
+  if (!before || before.pid !== worker.pid || now <= before.at) return "";
+  return (100 * (worker.cpu_s - before.cpu) / ((now - before.at) / 1000)).toFixed(0);
+}
+
+function renderWorkers(workers) {
+  const panel = document.getElementById("workers-panel");
+  document.body.classList.toggle("workers", workers.length > 0);
+  panel.hidden = workers.length === 0;  // one engine: no workers, no table
+  if (!workers.length) return;
+  const now = Date.now();
+  const up = workers.filter((w) => w.up).length;
+  document.getElementById("workers-count").textContent = `(${up}/${workers.length} up)`;
+  document.querySelector("#workers tbody").replaceChildren(...workers.map((worker) => {
+    const row = el("tr", {"data-worker": worker.index, "class": worker.up ? "worker-up" : "worker-down"});
+    const state = worker.up ? "up" : (worker.last_exit != null ? `down (exit ${worker.last_exit})` : "starting");
+    row.append(el("td", {"class": "index"}, worker.index), el("td", {"class": "num pid"}, worker.pid),
+      el("td", {"class": "state"}, state), el("td", {"class": "num restarts"}, worker.restarts),
+      el("td", {"class": "num uptime"}, duration(worker.uptime_s)), el("td", {"class": "num cpu"}, cpuShare(worker, now)),
+      el("td", {"class": "num cpu-s"}, worker.cpu_s), el("td", {"class": "num rss"}, worker.rss_mib),
+      el("td", {"class": "routes"}, (worker.routes || []).join(", ")));
+    return row;
+  }));
+}
+
 function renderDeadLetters(entries) {
   const body = document.querySelector("#dead-letters tbody");
   body.replaceChildren(...entries.map((entry) => {
     const row = el("tr", {"data-route": entry.route});
-    row.append(el("td", {}, time(entry.at)), el("td", {}, entry.route), el("td", {"class": "stage"}, entry.stage),
-      el("td", {"class": "reason"}, entry.reason));
+    row.append(el("td", {"title": entry.worker != null ? `worker ${entry.worker}` : ""}, time(entry.at)),
+      el("td", {}, entry.route), el("td", {"class": "stage"}, entry.stage), el("td", {"class": "reason"}, entry.reason));
     return row;
   }));
 }
@@ -85,7 +123,8 @@ function renderFleet(agents) {
       const x = width / 2 + p.x * scale, y = height / 2 - p.y * scale;
       const id = p.agent.agent_id;
       const title = `${id} ${p.agent.lat.toFixed(6)}, ${p.agent.lon.toFixed(6)}` +
-        (p.agent.alt_rel != null ? ` ${p.agent.alt_rel} m` : "") + ` (${p.agent.route}, ${time(p.agent.at)})`;
+        (p.agent.alt_rel != null ? ` ${p.agent.alt_rel} m` : "") +
+        ` (${p.agent.route}${p.agent.worker != null ? ", worker " + p.agent.worker : ""}, ${time(p.agent.at)})`;
       const dot = svg("circle", {cx: x.toFixed(1), cy: y.toFixed(1), r: 6, fill: colour(id), "data-agent": id});
       dot.append(svg("title", {}, title));
       shapes.push(dot, svg("text", {x: (x + 9).toFixed(1), y: (y + 4).toFixed(1), "class": "agent-label"}, id));
@@ -106,8 +145,11 @@ function render(state) {
   const routes = state.routes || {};
   const connections = Object.values(state.connections || {});
   const up = connections.filter((c) => c.up).length;
+  const workers = state.workers || [];
   document.getElementById("summary").textContent =
-    `generation ${state.generation} · ${Object.keys(routes).length} routes · ${up}/${connections.length} connections up`;
+    `generation ${state.generation} · ${Object.keys(routes).length} routes · ${up}/${connections.length} connections up` +
+    (workers.length ? ` · ${workers.filter((w) => w.up).length}/${workers.length} workers up` : "");
+  renderWorkers(workers);
   renderRoutes(routes);
   renderDeadLetters(state.recent_dead_letters || []);
   renderFleet(state.fleet || []);

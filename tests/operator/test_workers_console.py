@@ -1,0 +1,164 @@
+"""The web console of ``run --workers 2``, served by the supervisor's admin, in a real browser.
+
+Debian's chromium, headless, driven by selenium through the system chromedriver (nothing is
+downloaded: tests/support/browser.py). A real RabbitMQ (tests/conftest.py); the engine as an
+operator runs it: the supervisor and its two worker processes. One route consumes a queue, so
+both workers compete for its messages. The supervisor's admin has a token and TLS, as on a
+field machine; the browser sends the token as HTTP Basic. The page must show both workers (pid,
+up, CPU, memory), the route's counts summed over both (each worker's own count read from the
+supervisor's ``/status``), the dead letter one of them made, every agent on the map whichever
+worker carried its position, and a live tap through the supervisor."""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import ssl
+import urllib.error
+import urllib.request
+import uuid
+from pathlib import Path
+from typing import Any
+
+import aio_pika
+from selenium.webdriver.common.by import By
+
+from engine.common.processes import listening_port
+from tests.support.amqp_helpers import Collector, publish
+from tests.support.browser import PAGE_SNAPSHOT, browser
+from tests.support.engine_process import EngineProcess
+from tests.support.tls_helpers import make_pki
+from tests.support.waiting import wait_for_sync
+
+TOKEN = "workers-console-token-0123456789abcdef"
+ROUTES = """
+routes:
+  - name: positions
+    source: {{amqp: {{exchange: {tag}, binding_key: "pos.#", queue: {tag}-positions}}}}
+    mapping: "{{type: 'position', agent_id: agent, lat: lat, lon: lon}}"
+    schema: position
+    sink: {{amqp: {{exchange: {tag}, routing_key: "out.{{agent_id}}"}}}}
+"""
+AGENTS = 12
+MESSAGES = 240
+FIELD = (48.15, 11.58)
+
+
+def fetch(url: str, authorization: str | None = None) -> tuple[int, str]:
+    request = urllib.request.Request(url)
+    if authorization:
+        request.add_header("Authorization", authorization)
+    context = ssl.create_default_context()
+    context.check_hostname, context.verify_mode = False, ssl.CERT_NONE  # the throwaway certificate
+    try:
+        with urllib.request.urlopen(request, timeout=10, context=context) as response:
+            return response.status, response.read().decode()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read().decode()
+
+
+async def send(url: str, tag: str, bodies: list[dict[str, Any]]) -> None:
+    connection = await aio_pika.connect(url)
+    channel = await connection.channel()
+    await publish(channel, tag, "pos.x", [json.dumps(body).encode() for body in bodies])
+    await connection.close()
+
+
+def test_the_supervisors_console_shows_both_workers_and_the_engine_as_a_whole(amqp_url: str, tmp_path: Path) -> None:
+    tag = "wcon" + uuid.uuid4().hex[:8]
+    (tmp_path / "routes").mkdir()
+    (tmp_path / "routes" / "positions.yaml").write_text(ROUTES.format(tag=tag))
+    token_file = tmp_path / "admin-token"
+    token_file.write_text(TOKEN + "\n")
+    token_file.chmod(0o600)
+    pki = make_pki(tmp_path / "pki")
+    port = listening_port()
+    base = f"https://127.0.0.1:{port}"
+    bearer = f"Bearer {TOKEN}"
+    engine = EngineProcess(tmp_path / "routes", tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url},
+                           "--workers", "2", "--admin", f"127.0.0.1:{port}", "--admin-token-file", str(token_file),
+                           "--admin-tls-cert", str(pki.server_cert), "--admin-tls-key", str(pki.server_key))
+
+    def status() -> dict[str, Any]:
+        code, body = fetch(base + "/status", bearer)
+        assert code == 200, body
+        return dict(json.loads(body))
+
+    def per_worker(document: dict[str, Any], counter: str) -> list[int]:
+        return [((w.get("status") or {}).get("routes", {}).get("positions") or {}).get(counter, 0) for w in document["workers"]]
+
+    async def collector() -> tuple[aio_pika.abc.AbstractConnection, Collector]:
+        connection = await aio_pika.connect(amqp_url)  # the sink publishes mandatory: someone reads
+        return connection, await Collector.bind(await connection.channel(), tag, "out.#")
+
+    loop = asyncio.new_event_loop()
+    driver = None
+    try:
+        engine.wait_started()
+        reader, out = loop.run_until_complete(collector())
+        # the console sits behind the supervisor admin's token like every other path
+        for path in ("/", "/console.js", "/console/events", "/console/state"):
+            assert fetch(base + path)[0] == 401, path
+        code, page = fetch(base + "/", "Basic " + base64.b64encode(f"anyone:{TOKEN}".encode()).decode())
+        assert code == 200 and 'id="workers-panel"' in page
+
+        driver = browser(tmp_path / "chromium-profile")
+        driver.get(base.replace("https://", f"https://console:{TOKEN}@") + "/")
+
+        def seen() -> dict[str, Any]:
+            return dict(driver.execute_script(PAGE_SNAPSHOT))
+
+        pids = [w["pid"] for w in status()["workers"]]
+        page_workers = wait_for_sync(lambda: len((view := seen())["workers"]) == 2 and view["live"] == "live" and view["workers"],
+                                     30, "both workers in the page", lambda: (seen(), engine.log()[-1500:]))
+        assert [int(w["pid"]) for w in page_workers] == pids and [w["state"] for w in page_workers] == ["up", "up"], page_workers
+        assert all(float(w["rss"]) > 10 and w["cpu-s"] and w["routes"] == "positions" for w in page_workers), page_workers
+        assert "2/2 workers up" in seen()["summary"]
+
+        lat, lon = FIELD
+        bodies = [{"agent": f"agent{seq % AGENTS}", "lat": lat + seq * 1e-5, "lon": lon + (seq % AGENTS) * 1e-4, "seq": seq}
+                  for seq in range(MESSAGES)]
+        loop.run_until_complete(send(amqp_url, tag, [*bodies, {"agent": "broken", "lat": 500.0, "lon": lon}]))
+
+        settled = wait_for_sync(lambda: sum(per_worker(document := status(), "delivered")) == MESSAGES
+                                and sum(per_worker(document, "received")) == MESSAGES + 1 and document, 60,
+                                "every message carried", lambda: per_worker(status(), "received"))
+        received = per_worker(settled, "received")
+        assert all(count > 0 for count in received), f"one worker carried everything: {received}"
+
+        def row() -> dict[str, str]:
+            return dict(seen()["routes"].get("positions") or {})
+
+        wait_for_sync(lambda: row().get("received") == str(MESSAGES + 1), 20, "the route's counts summed from both workers", row)
+        assert row()["delivered"] == str(MESSAGES) and row()["dead-lettered"] == "1" and row()["workers"] == "0, 1", row()
+        dead = wait_for_sync(lambda: seen()["dead"], 10, "the dead letter in the console", seen)
+        assert [(d["route"], d["stage"]) for d in dead] == [("positions", "schema")], dead
+        agents = wait_for_sync(lambda: len(view := seen()["agents"]) == AGENTS and view, 20, "every agent on the map",
+                               lambda: seen()["agents"])
+        assert sorted(agents) == sorted(f"agent{n}" for n in range(AGENTS))
+        # each agent's latest position over the workers: what each worker's own console document says
+        fleets = [json.loads(fetch(f"http://127.0.0.1:{w['admin_port']}/console/state", bearer)[1])["fleet"] for w in status()["workers"]]
+        latest: dict[str, tuple[float, int]] = {}
+        for index, fleet in enumerate(fleets):
+            for agent in fleet:
+                if agent["at"] > latest.get(agent["agent_id"], (0.0, -1))[0]:
+                    latest[agent["agent_id"]] = (agent["at"], index)
+        merged = json.loads(fetch(base + "/console/state", bearer)[1])["fleet"]
+        assert {a["agent_id"]: (a["at"], a["worker"]) for a in merged} == latest
+
+        # a live tap through the supervisor: both workers' taps attached, lines from either
+        driver.find_element(By.ID, "tap-route").send_keys("positions")
+        driver.find_element(By.ID, "tap-toggle").click()
+        wait_for_sync(lambda: status()["routes"]["positions"]["taps"] == 2, 15, "the tap attached on both workers")
+        loop.run_until_complete(send(amqp_url, tag, bodies[:20]))
+        lines = wait_for_sync(lambda: len(tapped := seen()["tap"]) == 20 and tapped, 20, "the tapped messages", seen)
+        assert all("delivered" in line for line in lines), lines
+        errors = [entry for entry in driver.get_log("browser") if entry["level"] == "SEVERE"]
+        assert not errors, errors  # no script error, nothing the page's content security policy refused
+        loop.run_until_complete(reader.close())
+    finally:
+        if driver is not None:
+            driver.quit()
+        loop.close()
+        assert engine.stop(60) == 0, engine.log()
