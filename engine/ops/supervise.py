@@ -1,6 +1,6 @@
 """Running ``run --workers N`` as the command line does: the supervisor (engine/ops/supervisor.py),
-its admin (engine/ops/supervisor_admin.py), the watch and the signals, in one place apart from
-both so that neither imports the other's caller."""
+its admin (engine/ops/supervisor_admin.py), its Foxglove view (engine/ops/supervisor_foxglove.py),
+the watch and the signals, in one place apart from them so that none imports its caller."""
 
 from __future__ import annotations
 

@@ -110,7 +110,7 @@ class WorkersFeed:
         tap opened again whenever it ended (the worker restarted) until cancelled."""
         while True:
             async for line in self.supervisor.tap_lines(worker, route):
-                with contextlib.suppress(orjson.JSONDecodeError, TypeError):
+                with contextlib.suppress(orjson.JSONDecodeError, TypeError, AttributeError):  # not a tap line
                     record = orjson.loads(line)
                     if record.get("outcome") == "delivered":
                         channel.send(record.get("canonical"))

@@ -7,13 +7,17 @@ both workers compete for its messages. The supervisor's admin has a token and TL
 field machine; the browser sends the token as HTTP Basic. The page must show both workers (pid,
 up, CPU, memory), the route's counts summed over both (each worker's own count read from the
 supervisor's ``/status``), the dead letter one of them made, every agent on the map whichever
-worker carried its position, and a live tap through the supervisor."""
+worker carried its position, and a live tap through the supervisor. With
+``CONSOLE_SCREENSHOT=docs/console-workers.png`` the test saves its screenshot there."""
 
 from __future__ import annotations
 
 import asyncio
 import base64
 import json
+import math
+import os
+import shutil
 import ssl
 import urllib.error
 import urllib.request
@@ -25,9 +29,10 @@ import aio_pika
 from selenium.webdriver.common.by import By
 
 from engine.common.processes import listening_port
-from tests.support.amqp_helpers import Collector, publish
+from tests.support.amqp_helpers import publish
 from tests.support.browser import PAGE_SNAPSHOT, browser
 from tests.support.engine_process import EngineProcess
+from tests.support.repo import REPO
 from tests.support.tls_helpers import make_pki
 from tests.support.waiting import wait_for_sync
 
@@ -56,6 +61,17 @@ def fetch(url: str, authorization: str | None = None) -> tuple[int, str]:
             return response.status, response.read().decode()
     except urllib.error.HTTPError as exc:
         return exc.code, exc.read().decode()
+
+
+async def sink_queue(url: str, tag: str) -> None:
+    """A queue bound to what the route sends (its sink publishes mandatory: the messages must
+    be routed somewhere), left to fill: the test reads the engine's counters, not the messages."""
+    connection = await aio_pika.connect(url)
+    channel = await connection.channel()
+    exchange = await channel.declare_exchange(tag, aio_pika.ExchangeType.TOPIC, durable=True)
+    queue = await channel.declare_queue(f"{tag}-out", durable=False, auto_delete=False)
+    await queue.bind(exchange, "out.#")
+    await connection.close()
 
 
 async def send(url: str, tag: str, bodies: list[dict[str, Any]]) -> None:
@@ -88,15 +104,10 @@ def test_the_supervisors_console_shows_both_workers_and_the_engine_as_a_whole(am
     def per_worker(document: dict[str, Any], counter: str) -> list[int]:
         return [((w.get("status") or {}).get("routes", {}).get("positions") or {}).get(counter, 0) for w in document["workers"]]
 
-    async def collector() -> tuple[aio_pika.abc.AbstractConnection, Collector]:
-        connection = await aio_pika.connect(amqp_url)  # the sink publishes mandatory: someone reads
-        return connection, await Collector.bind(await connection.channel(), tag, "out.#")
-
-    loop = asyncio.new_event_loop()
     driver = None
     try:
         engine.wait_started()
-        reader, out = loop.run_until_complete(collector())
+        asyncio.run(sink_queue(amqp_url, tag))
         # the console sits behind the supervisor admin's token like every other path
         for path in ("/", "/console.js", "/console/events", "/console/state"):
             assert fetch(base + path)[0] == 401, path
@@ -117,9 +128,10 @@ def test_the_supervisors_console_shows_both_workers_and_the_engine_as_a_whole(am
         assert "2/2 workers up" in seen()["summary"]
 
         lat, lon = FIELD
-        bodies = [{"agent": f"agent{seq % AGENTS}", "lat": lat + seq * 1e-5, "lon": lon + (seq % AGENTS) * 1e-4, "seq": seq}
-                  for seq in range(MESSAGES)]
-        loop.run_until_complete(send(amqp_url, tag, [*bodies, {"agent": "broken", "lat": 500.0, "lon": lon}]))
+        # the agents on a circle of some 100 m around the field, each moving a little with every message
+        bodies = [{"agent": f"agent{seq % AGENTS}", "lat": lat + 0.0009 * math.cos(seq % AGENTS * math.tau / AGENTS) + seq * 1e-7,
+                   "lon": lon + 0.00135 * math.sin(seq % AGENTS * math.tau / AGENTS), "seq": seq} for seq in range(MESSAGES)]
+        asyncio.run(send(amqp_url, tag, [*bodies, {"agent": "broken", "lat": 500.0, "lon": lon}]))
 
         settled = wait_for_sync(lambda: sum(per_worker(document := status(), "delivered")) == MESSAGES
                                 and sum(per_worker(document, "received")) == MESSAGES + 1 and document, 60,
@@ -151,14 +163,16 @@ def test_the_supervisors_console_shows_both_workers_and_the_engine_as_a_whole(am
         driver.find_element(By.ID, "tap-route").send_keys("positions")
         driver.find_element(By.ID, "tap-toggle").click()
         wait_for_sync(lambda: status()["routes"]["positions"]["taps"] == 2, 15, "the tap attached on both workers")
-        loop.run_until_complete(send(amqp_url, tag, bodies[:20]))
+        asyncio.run(send(amqp_url, tag, bodies[:20]))
         lines = wait_for_sync(lambda: len(tapped := seen()["tap"]) == 20 and tapped, 20, "the tapped messages", seen)
         assert all("delivered" in line for line in lines), lines
+        shot = tmp_path / "console-workers.png"
+        assert driver.save_screenshot(str(shot))
+        if os.environ.get("CONSOLE_SCREENSHOT"):  # docs/console-workers.png is made this way (docs/operations.md)
+            shutil.copyfile(shot, REPO / os.environ["CONSOLE_SCREENSHOT"])
         errors = [entry for entry in driver.get_log("browser") if entry["level"] == "SEVERE"]
         assert not errors, errors  # no script error, nothing the page's content security policy refused
-        loop.run_until_complete(reader.close())
     finally:
         if driver is not None:
             driver.quit()
-        loop.close()
         assert engine.stop(60) == 0, engine.log()
