@@ -6,12 +6,14 @@ Foxglove client (plain ``websockets``, tests/support/foxglove_client.py). Both r
 queue, so both workers carry their messages. The view must advertise every route, send
 ``/routes/status`` with the counts summed over the workers, ``/fleet`` with every agent, and on a
 route's channel every message the route carried, whichever worker carried it (each worker's own
-count read from the supervisor's ``/status``); and no worker's tap is open while no client
-subscribes."""
+count read from the supervisor's ``/status``), also once a worker killed with -9 is back; and no
+worker's tap is open while no client subscribes."""
 
 from __future__ import annotations
 
 import json
+import os
+import signal
 import uuid
 from pathlib import Path
 from typing import Any
@@ -97,9 +99,22 @@ def test_the_supervisor_serves_the_foxglove_view_of_every_worker(amqp_url: str, 
                                    "every agent on the fleet channel", lambda: client.messages(ids["/fleet"])[-1:])
             position_channel = await wait_for(lambda: len(m := client.messages(ids["/routes/positions/canonical"])) == AGENTS and m,
                                               15, "every position on the route's channel")
+
+            # a worker killed and started again: its tap is opened again, what it carries then reaches the channel
+            victim = settled["workers"][0]["pid"]
+            os.kill(victim, signal.SIGKILL)
+            await wait_for(lambda: restarted(victim), 120, "worker 0 started again", engine.log)
+            await wait_for(lambda: status_of("telemetry", "taps", 2), 30, "the restarted worker's tap open again",
+                           lambda: seen["status"]["routes"]["telemetry"])
+            again = range(10_000, 10_000 + MESSAGES)
+            await publish(channel, tag, "tel.x", [json.dumps({"agent": "uav1", "seq": seq}).encode() for seq in again])
+            await wait_for(lambda: carried() >= set(again), 60, "every message after the restart on the channel",
+                           lambda: f"{len(carried() & set(again))} of {MESSAGES}")
+            by_new = await wait_for(lambda: worker_delivered(0), 15, "the restarted worker's own count")
             await client.close()
             await wait_for(lambda: status_of("telemetry", "taps", 0), 15, "the workers' taps closed once the client left")
-            return {"settled": settled, "carried": carried(), "fleet": fleet[-1], "positions": position_channel}
+            return {"settled": settled, "carried": carried(), "fleet": fleet[-1], "positions": position_channel,
+                    "by_new": by_new, "again": set(again)}
         finally:
             await client.close()
             await connection.close()
@@ -110,6 +125,13 @@ def test_the_supervisor_serves_the_foxglove_view_of_every_worker(amqp_url: str, 
         seen["status"] = await status()
         return bool(seen["status"]["routes"].get(route, {}).get(counter) == value)
 
+    async def restarted(victim: int) -> bool:
+        worker = (await status())["workers"][0]
+        return bool(worker["up"] and worker["restarts"] == 1 and worker["pid"] != victim)
+
+    async def worker_delivered(index: int) -> int:
+        return per_worker(await status(), "telemetry", "delivered")[index]
+
     async def settled_status(total: int) -> dict[str, Any] | None:
         document = await status()
         return document if sum(per_worker(document, "telemetry", "delivered")) == total else None
@@ -117,7 +139,8 @@ def test_the_supervisor_serves_the_foxglove_view_of_every_worker(amqp_url: str, 
     result, _ = engine.run(scenario)
     delivered = per_worker(result["settled"], "telemetry", "delivered")
     assert all(count > 0 for count in delivered), f"one worker carried everything: {delivered}"
-    assert result["carried"] == set(range(MESSAGES))  # not the message carried before the subscription
+    assert result["carried"] == set(range(MESSAGES)) | result["again"]  # not the message carried before the subscription
+    assert 0 < result["by_new"] < MESSAGES, result["by_new"]  # the restarted worker carried some of the last batch, not all
     assert sorted(fix["frame_id"] for fix in result["fleet"]["fixes"]) == [f"agent{n}" for n in range(AGENTS)]
     assert {fix["frame_id"]: fix["altitude"] for fix in result["fleet"]["fixes"]}["agent3"] == 13.0
     assert sorted(m["agent_id"] for m in result["positions"]) == [f"agent{n}" for n in range(AGENTS)]
