@@ -7,7 +7,7 @@ queue, so both workers carry their messages. The view must advertise every route
 ``/routes/status`` with the counts summed over the workers, ``/fleet`` with every agent, and on a
 route's channel every message the route carried, whichever worker carried it (each worker's own
 count read from the supervisor's ``/status``), also once a worker killed with -9 is back; and no
-worker's tap is open while no client subscribes."""
+worker's tap is open while no client subscribes. The channels follow a reload."""
 
 from __future__ import annotations
 
@@ -40,6 +40,13 @@ routes:
     mapping: "{{agent_id: agent, seq: seq}}"
     schema: raw_json
     sink: {{amqp: {{exchange: {tag}, routing_key: "out.telemetry"}}}}
+"""
+EXTRA = """
+routes:
+  - name: extra
+    source: {{amqp: {{exchange: {tag}, binding_key: "extra.#", queue: {tag}-extra}}}}
+    schema: raw_json
+    sink: {{amqp: {{exchange: {tag}, routing_key: "out.extra"}}}}
 """
 MESSAGES = 300
 AGENTS = 6
@@ -111,6 +118,15 @@ def test_the_supervisor_serves_the_foxglove_view_of_every_worker(amqp_url: str, 
             await wait_for(lambda: carried() >= set(again), 60, "every message after the restart on the channel",
                            lambda: f"{len(carried() & set(again))} of {MESSAGES}")
             by_new = await wait_for(lambda: worker_delivered(0), 15, "the restarted worker's own count")
+
+            # a reload reaches the view as one generation of every worker: a new route advertised, a removed one withdrawn
+            extra = tmp_path / "routes" / "extra.yaml"
+            extra.write_text(EXTRA.format(tag=tag))
+            await wait_for(lambda: "/routes/extra/canonical" in client.channels, 60, "the new route advertised",
+                           lambda: sorted(client.channels))
+            gone = client.channels["/routes/extra/canonical"]["id"]
+            extra.unlink()
+            await wait_for(lambda: gone in client.unadvertised, 60, "the removed route withdrawn", lambda: client.unadvertised)
             await client.close()
             await wait_for(lambda: status_of("telemetry", "taps", 0), 15, "the workers' taps closed once the client left")
             return {"settled": settled, "carried": carried(), "fleet": fleet[-1], "positions": position_channel,
