@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import logging
 import os
 import signal
@@ -533,8 +534,16 @@ arriving meanwhile waited out, and the largest part of one engine's p99 there.""
 
 
 def _write_status(path: Path | None, document: dict[str, Any]) -> None:
+    """The status document as JSON into ``path``. A document orjson refuses (a route's last
+    canonical message holding an integer beyond 64 bits, which the engine carries exactly, or
+    a lone surrogate) is written by the standard library: an exception here would end the
+    reporter (the file never written again) and the reloader (no reload applied again)."""
     if path is not None:
-        _write_atomically(path, orjson.dumps(document, default=str, option=STATUS_JSON))
+        try:
+            data = orjson.dumps(document, default=str, option=STATUS_JSON)
+        except TypeError:  # orjson.JSONEncodeError too
+            data = (json.dumps(document, indent=2, default=str) + "\n").encode()
+        _write_atomically(path, data)
 
 
 def _write_atomically(path: Path, data: str | bytes) -> None:
