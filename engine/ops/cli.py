@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import logging
 import os
 import signal
@@ -16,6 +15,7 @@ from typing import TYPE_CHECKING, Any, NoReturn, Sequence
 import orjson
 
 from engine import __version__, endpoints
+from engine.common.json_bytes import json_bytes
 from engine.common.logs import setup_logging
 from engine.common.processes import LOCAL_BROKER_ENV, BrokerError, PrivateBroker
 from engine.common.redaction import redact_urls
@@ -534,16 +534,8 @@ arriving meanwhile waited out, and the largest part of one engine's p99 there.""
 
 
 def _write_status(path: Path | None, document: dict[str, Any]) -> None:
-    """The status document as JSON into ``path``. A document orjson refuses (a route's last
-    canonical message holding an integer beyond 64 bits, which the engine carries exactly, or
-    a lone surrogate) is written by the standard library: an exception here would end the
-    reporter (the file never written again) and the reloader (no reload applied again)."""
-    if path is not None:
-        try:
-            data = orjson.dumps(document, default=str, option=STATUS_JSON)
-        except TypeError:  # orjson.JSONEncodeError too
-            data = (json.dumps(document, indent=2, default=str) + "\n").encode()
-        _write_atomically(path, data)
+    if path is not None:  # json_bytes: a value orjson refuses must not end the reporter (engine/common/json_bytes.py)
+        _write_atomically(path, json_bytes(document, STATUS_JSON))
 
 
 def _write_atomically(path: Path, data: str | bytes) -> None:

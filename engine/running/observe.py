@@ -60,6 +60,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import orjson
 
+from engine.common.json_bytes import json_bytes
 from engine.endpoints.base import Inbound, Outbound
 from engine.running.recent import Fleet, RecentDeadLetters, is_position_schema
 
@@ -322,7 +323,7 @@ class RouteObserver:
             "outcome": outcome,
             "error": None if error is None else str(error),
         }
-        line = orjson.dumps(record, default=str, option=_ORJSON_OPTIONS)
+        line = json_bytes(record, _ORJSON_OPTIONS)  # not orjson alone: a value it refuses must not fail the route
         for tap in taps:
             tap.offer(line)
 
