@@ -35,11 +35,11 @@ from typing import Any
 from bench import fleet
 
 REPO = Path(__file__).resolve().parent.parent
-SYSTEMS = {"reference": 0, "1 worker": 1, "2 workers": 2, "1 worker asyncio": 1}
+SYSTEMS = {"reference": 0, "1 worker": 1, "2 workers": 2, "1 worker uvloop": 1}
 """Each system's ``--workers`` (0: the reference, no engine)."""
-ENGINE_ENV = {"1 worker asyncio": {"RABBITROS_LOOP": "asyncio"}}
-"""A system's engine environment beyond the run's: the standard asyncio loop in place of
-uvloop (engine/running/loop.py), to measure what uvloop saves in the same run (issue 34)."""
+ENGINE_ENV = {"1 worker uvloop": {"RABBITROS_LOOP": "uvloop"}}
+"""A system's engine environment beyond the run's: uvloop in place of asyncio's loop (the
+default, engine/running/loop.py), to measure what uvloop saves in the same run (issue 34)."""
 DEFAULT_SYSTEMS = ("reference", "1 worker", "2 workers")
 
 
@@ -51,6 +51,14 @@ def schedule(agents: int, rounds: int, larger: list[int], names: list[str] | Non
     return steps + [(name, size) for size in larger for name in ("1 worker", "2 workers")]
 
 
+def mode_arguments(system: str) -> dict[str, Any]:
+    """What :func:`~bench.fleet.run_mode` is given for ``system``: its mode, workers and
+    engine environment (without it, "1 worker asyncio" ran on the default loop, then uvloop:
+    its figures of 2026-11-27 compared uvloop with itself)."""
+    workers = SYSTEMS[system]
+    return {"mode": fleet.REFERENCE if workers == 0 else "templated", "workers": workers, "engine_env": ENGINE_ENV.get(system)}
+
+
 async def step(system: str, agents: int, duration: float) -> dict[str, Any]:
     """One system on a fleet of ``agents`` (half robots, half vehicles) on a fresh broker."""
     from engine.endpoints.amqp.broker import LocalBroker
@@ -60,9 +68,8 @@ async def step(system: str, agents: int, duration: float) -> dict[str, Any]:
     try:
         group = node._process.pid if node._process is not None else 0  # the node's own process group (start_new_session)
         before = os.getloadavg()
-        workers = SYSTEMS[system]
-        result = await fleet.run_mode(url, fleet.REFERENCE if workers == 0 else "templated", agents - agents // 2, agents // 2,
-                                      duration, workers=workers, broker_group=group)
+        result = await fleet.run_mode(url, robots_n=agents - agents // 2, vehicles_n=agents // 2, duration=duration,
+                                      broker_group=group, **mode_arguments(system))
         result.update(system=system, agents=agents, loadavg_before=before, loadavg_after=os.getloadavg())
         return result
     finally:

@@ -25,7 +25,7 @@ Three ways of writing the same routes (``--modes``): ``templated`` (``for_each``
 agent and stream, 300 routes), ``shared`` (:func:`shared_routes`: discovery and one route per
 link, 116 routes, of which the 100 command routes) and ``hand_written`` (the 300 routes written
 out); and ``reference``: no engine, the same bridge written directly on the client libraries
-(bench/systems.py ``ref_fleet``: rclpy, pymavlink, aiormq with confirms, one process, uvloop)
+(bench/systems.py ``ref_fleet``: rclpy, pymavlink, aiormq with confirms, one process, the engine's loop)
 in the engine's place, on the same load, consumer and accounting ("engine" figures are then
 the reference process's). The engine's figures are stated as ratios of the reference's,
 measured in the same run: on a 2-core machine the broker, the load generators and the bench's
@@ -615,8 +615,8 @@ async def run_mode(url: str, mode: str, robots_n: int, vehicles_n: int, duration
     are not read: they live in bench/systems.py's in-process engine). ``broker_group``: the
     RabbitMQ node's process group, whose CPU and RSS are reported with every other process's
     (``processes``: each engine process, the robots' and vehicles' generators, the consumer).
-    ``engine_env``: more environment for ``run --workers`` (``RABBITROS_LOOP=asyncio``: the
-    standard loop in place of uvloop, engine/running/loop.py)."""
+    ``engine_env``: more environment for ``run --workers`` (``RABBITROS_LOOP=uvloop``: uvloop
+    in place of asyncio's loop, engine/running/loop.py)."""
     import aiormq
 
     from engine.common.schemas import SchemaRegistry

@@ -8,13 +8,15 @@ asked to keep it only for at least 15 % less CPU per message, measured in the sa
 carried about 10 % more in the batched aiormq pass-through of issue 10; since then the engine
 writes a round of publishes as one write and takes ROS 2 messages in batches, and the loop's
 own cost per callback is a small part of a message's. Measured on the 2-core machine, shared,
-2026-11-27 (bench/results/2026-11-27/session4-loops/ and session4-fleet-*):
+2026-11-27 (bench/results/2026-11-27/session4-loops/):
 
 - a backlog drain AMQP -> AMQP, one engine, 4 rounds alternating: 52.75 µs of CPU a message
   on either loop (median), asyncio / uvloop 0.92-1.15 round by round; AMQP -> ROS 2: 59.7 /
   58.75 µs (1.6 % more on asyncio's), 0.68-1.3 round by round;
-- the fleet (bench/fleet.py, 100 agents, 2,100 msg/s): 262 / 276, 239 / 215 and 182 / 189 µs a
-  message, asyncio / uvloop, in three interleaved rounds; p99 alike.
+- the fleet (bench/fleet.py): not measured yet on both loops. The rounds of
+  session4-status-ab named "1 worker asyncio" ran on the default loop, uvloop at that commit
+  (bench/bench_fleet_workers.py did not pass the system's environment on), so their 262 / 276, 239 / 215 and 182 / 189 µs a
+  message compare uvloop with itself: a spread of up to 11 % between identical systems.
 
 One loop less to reason about (signal handling, ``add_reader`` and subprocess support differ
 in corner cases) and one native dependency less on a robot's computer.
