@@ -66,6 +66,8 @@ STEADY_S = 30.0
 """A worker up this long has recovered: the next death restarts it without waiting."""
 POLL_S = 0.05
 """Between two questions to a worker while a reload settles."""
+FOLLOW_AGAIN_S = 0.5
+"""After a worker's tap ended (it stopped, or was started again), before it is opened again."""
 
 
 SUPERVISOR_OWN_OPTIONS = frozenset((
@@ -312,6 +314,15 @@ class Supervisor:
                     *lines, pending = (pending + chunk).split(b"\n")
                     for line in lines:
                         yield line + b"\n"
+
+    async def follow_tap(self, worker: Worker, route: str) -> AsyncIterator[bytes]:
+        """:meth:`tap_lines`, opened again whenever it ended (the worker was killed and started
+        again, or did not run the route yet), until the reader stops: the supervisor's ``/tap``
+        (its console's live tap) and its Foxglove view both follow a restarted worker so."""
+        while True:
+            async for line in self.tap_lines(worker, route):
+                yield line
+            await asyncio.sleep(FOLLOW_AGAIN_S)
 
     async def worker_status(self, worker: Worker) -> dict[str, Any] | None:
         code, body = await self.ask(worker, "/status")

@@ -18,7 +18,8 @@ private admin endpoints, asked at once when a request comes:
   never go down when a worker restarts (:class:`MergedCollector`); plus
   ``rabbitros_workers_up`` and ``rabbitros_worker_restarts_total``;
 * ``/healthz``: 200 when every worker is up and answers 200 itself; else 503 naming them;
-* ``/tap/{route}``: the lines of every worker that runs the route, interleaved as they come;
+* ``/tap/{route}``: the lines of every worker that runs the route, interleaved as they come (a
+  worker started again is followed again, :meth:`~engine.ops.supervisor.Supervisor.follow_tap`);
 * ``/`` (the web console, engine/ops/console.py) and its ``/console/events``: the engine as a
   whole, from each worker's ``/console/state`` (the document a single engine's console streams)
   merged as ``/status`` is, with the workers' pid, up, restarts, CPU and memory, the recent dead
@@ -338,7 +339,8 @@ class SupervisorAdmin:
         return response
 
     async def _follow(self, worker: Worker, route: str, lines: asyncio.Queue[bytes]) -> None:
-        """One worker's tap lines into ``lines`` (a full queue drops, as the engine's tap does)."""
-        async for line in self.supervisor.tap_lines(worker, route):
+        """One worker's tap lines into ``lines`` (a full queue drops, as the engine's tap does),
+        also once it was started again (:meth:`Supervisor.follow_tap`)."""
+        async for line in self.supervisor.follow_tap(worker, route):
             with contextlib.suppress(asyncio.QueueFull):
                 lines.put_nowait(line)

@@ -37,10 +37,6 @@ from engine.ops.foxglove import FLEET_WINDOW_S, TICK_S, RouteChannel
 from engine.ops.supervisor import Supervisor, Worker
 from engine.ops.supervisor_admin import console_document, status_document
 
-FOLLOW_AGAIN_S = 0.5
-"""After a worker's tap ended (it stopped, or was started again), before it is opened again."""
-
-
 class WorkersFeed:
     """A :class:`~engine.ops.foxglove.ViewFeed` of the supervisor's workers (module docstring)."""
 
@@ -108,13 +104,11 @@ class WorkersFeed:
     async def _follow_worker(self, worker: Worker, route: str, channel: RouteChannel) -> None:
         """The canonical messages the worker's sink took, from its tap, into ``channel``; the
         tap opened again whenever it ended (the worker restarted) until cancelled."""
-        while True:
-            async for line in self.supervisor.tap_lines(worker, route):
-                with contextlib.suppress(orjson.JSONDecodeError, TypeError, AttributeError):  # not a tap line
-                    record = orjson.loads(line)
-                    if record.get("outcome") == "delivered":
-                        channel.send(record.get("canonical"))
-            await asyncio.sleep(FOLLOW_AGAIN_S)
+        async for line in self.supervisor.follow_tap(worker, route):
+            with contextlib.suppress(orjson.JSONDecodeError, TypeError, AttributeError):  # not a tap line
+                record = orjson.loads(line)
+                if record.get("outcome") == "delivered":
+                    channel.send(record.get("canonical"))
 
     async def stop(self) -> None:
         self.stopped = True
