@@ -1,13 +1,13 @@
-"""JSON bytes of what a route carried, for the operator's views (the status file, the taps):
-orjson, and the standard library where orjson refuses the value.
+"""JSON bytes of what a route carried, for the operator's views (the status file, the taps,
+the console's document): orjson, and the standard library where orjson refuses the value.
 
 orjson refuses integers beyond 64 bits, which the engine carries exactly (engine/common/schemas.py
 parses them with the standard library, and ``canonical_bytes`` writes them so), and strings with
-a lone surrogate (a JSON ``\\ud800`` escape the standard library parses). One such message in a
-route's last canonical message or on a tap raised ``TypeError`` where a view was written: the
-status file's reporter ended (the file never written again), a tapped route failed each batch
-after its sink took it (the source redelivered it, the sink took it again, without end). The
-standard library is ten times slower but runs only for such a value.
+a lone surrogate (a JSON ``\\ud800`` escape the standard library parses). One such value where a
+view was written raised ``TypeError``: the status file's reporter ended (the file never written
+again), a tapped route failed each batch after its sink took it (the source redelivered it, the
+sink took it again, without end), the console's document failed (a position's ``alt_msl`` is
+unbounded). The standard library is ten times slower but runs only for such a value.
 """
 
 from __future__ import annotations

@@ -31,6 +31,8 @@ from typing import TYPE_CHECKING, Any, Awaitable, Callable
 import orjson
 from aiohttp import web
 
+from engine.common.json_bytes import json_bytes
+
 if TYPE_CHECKING:
     from engine.running.runtime import Engine
 
@@ -73,7 +75,9 @@ def engine_state(engine: Engine, status: Callable[[Engine], dict[str, Any]]) -> 
 
 
 def state_bytes(state: dict[str, Any]) -> bytes:
-    return orjson.dumps(state, default=str, option=orjson.OPT_NON_STR_KEYS)
+    """The document as JSON; one orjson refuses (a position's unbounded ``alt_msl`` as an integer
+    beyond 64 bits) by the standard library, not a failed console (engine/common/json_bytes.py)."""
+    return json_bytes(state, orjson.OPT_NON_STR_KEYS)
 
 
 class Console:

@@ -1,5 +1,6 @@
-"""The status file against a real engine and RabbitMQ: it keeps being written, whatever a route
-carried (engine/ops/cli.py ``_write_status``)."""
+"""The operator's views against a real engine and RabbitMQ: the status file, a tap and the
+console's document keep working whatever a route carried, also values orjson refuses
+(engine/common/json_bytes.py)."""
 
 from __future__ import annotations
 
@@ -96,3 +97,47 @@ def test_a_tapped_message_with_an_integer_beyond_64_bits_reaches_the_tap_and_the
     assert [line["canonical"]["count"] for line in lines] == [1, LONG_COUNT, 1]
     assert [line["outcome"] for line in lines] == ["delivered"] * 3
     assert status["routes"]["relay"]["messages"]["delivered"] == 3
+
+
+POSITIONS = """
+routes:
+  - name: positions
+    source: {{amqp: {{exchange: {exchange}, binding_key: "pos.#", queue: {exchange}-pos}}}}
+    mapping: "{{type: 'position', agent_id: agent, lat: lat, lon: lon, alt_msl: alt}}"
+    schema: position
+    sink: {{amqp: {{exchange: {exchange}, routing_key: "out.positions"}}}}
+"""
+
+
+def test_a_position_with_an_integer_beyond_64_bits_leaves_the_console_document_served(amqp_url: str, tmp_path: Path) -> None:
+    """``alt_msl`` has no bound in the position schema: a bogus altitude as a long integer is a
+    valid position, on the fleet of the console's document (``/console/state``, which the
+    supervisor of ``run --workers`` merges, and ``/console/events``). orjson refused it: a 500,
+    and under workers that worker's routes, dead letters and agents gone from the console."""
+    exchange = f"view-console-{uuid.uuid4().hex[:8]}"
+    (tmp_path / "routes").mkdir()
+    (tmp_path / "routes" / "positions.yaml").write_text(POSITIONS.format(exchange=exchange))
+    port = listening_port()
+    engine = EngineProcess(tmp_path / "routes", tmp_path / "status.json", {"RABBITROS_AMQP_URL": amqp_url}, "--admin", str(port))
+
+    async def scenario() -> dict[str, Any]:
+        connection = await aio_pika.connect(amqp_url)
+        try:
+            channel = await connection.channel()
+            collector = await Collector.bind(channel, exchange, "out.#")
+            await publish(channel, exchange, "pos.a", [json.dumps({"agent": "uav1", "lat": 48.15, "lon": 11.58, "alt": LONG_COUNT}).encode()])
+            await wait_for(lambda: len(collector.messages) == 1, 30, "the position delivered")
+            seen: dict[str, Any] = {}
+
+            async def with_the_agent() -> dict[str, Any] | None:  # the fleet hears it once the broker confirmed it
+                async with aiohttp.ClientSession() as session, session.get(f"http://127.0.0.1:{port}/console/state") as answer:
+                    seen.update(code=answer.status, body=await answer.text())
+                    state = json.loads(seen["body"]) if answer.status == 200 else {}
+                    return state if state.get("fleet") else None
+
+            return await wait_for(with_the_agent, 30, "the console's document with the agent", lambda: seen)
+        finally:
+            await connection.close()
+
+    state, _ = engine.run(scenario)
+    assert [(agent["agent_id"], agent["alt_msl"]) for agent in state["fleet"]] == [("uav1", LONG_COUNT)]
