@@ -16,6 +16,9 @@ from typing import Iterator
 
 import orjson
 
+from engine.common.json_bytes import json_bytes
+from engine.common.schemas import parse_json
+
 from engine.endpoints.base import Outbound
 
 log = logging.getLogger("engine.running.buffer")
@@ -40,7 +43,7 @@ def encode(message: Outbound, received_at_ns: int | None = None) -> bytes:
         record["v"] = message.captured
     if received_at_ns is not None:
         record["t"] = received_at_ns
-    return orjson.dumps(record, default=str, option=orjson.OPT_APPEND_NEWLINE)
+    return json_bytes(record, orjson.OPT_APPEND_NEWLINE)  # an integer beyond 64 bits kept exactly (json_bytes.py)
 
 
 def decode(line: bytes) -> Outbound:
@@ -48,7 +51,7 @@ def decode(line: bytes) -> Outbound:
 
 
 def decode_held(line: bytes) -> Held:
-    record = orjson.loads(line)
+    record = parse_json(line)  # the engine's one parser: an integer beyond 64 bits comes back exact
     body = record["b"].encode() if "b" in record else base64.b64decode(record["b64"])
     canonical = record["c"]
     received_at = record.get("t")  # wall clock ns (it outlives the process); the sink's clock is monotonic

@@ -57,6 +57,17 @@ def test_encode_decode_round_trip_keeps_bytes_and_fields() -> None:
     )
 
 
+def test_a_held_message_with_values_orjson_refuses_round_trips_exactly() -> None:
+    """An integer beyond 64 bits (valid JSON, carried exactly by the engine) and a lone
+    surrogate: orjson refuses to write both; a spilled message keeps them as they were."""
+    canonical = {"big": 2**70 + 1, "text": "\ud800", "nested": [{"n": -(2**65)}]}
+    original = Outbound(b'{"big":1180591620717411303425}', canonical, canonical, "id-2", {"route": "r"})
+    line = encode(original, 123)
+    back = decode(line)
+    assert back.canonical == canonical and back.fields is back.canonical
+    assert back.body == original.body and back.message_id == "id-2"
+
+
 @pytest.mark.parametrize("spill", [False, True])
 def test_holds_in_order_while_down_and_delivers_after(tmp_path: Path, spill: bool) -> None:
     async def scenario() -> None:
