@@ -12,7 +12,21 @@ at its size limit.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
+
+
+@dataclass(frozen=True)
+class ConnectionShare:
+    """Where one worker stands on a connection split over the workers
+    (:meth:`WorkerHints.splits_connection`): its index of ``workers``, the ``owner`` that holds
+    the connection's resource, and the supervisor's private directory of this run, where the
+    workers' local sockets are bound (``run --workers N`` makes one and removes it)."""
+
+    index: int
+    workers: int
+    owner: int
+    runtime_dir: str
 
 
 class WorkerHints:
@@ -40,6 +54,24 @@ class WorkerHints:
         """The source options of worker ``share`` of ``shares`` for a route that
         :meth:`splits_over_workers` (only called where it does)."""
         raise NotImplementedError(f"{type(self).__name__} does not split its sources over workers")
+
+    def splits_connection(self, settings: Any) -> bool:
+        """True when a connection with these (typed) settings is split over the workers: one
+        worker, its owner (placed by its exclusive resource or affinity, rule 1), holds it and
+        hands each worker its share of what comes in (a MAVLink ``udpin`` link with
+        ``split_over_workers``: its vehicles by system id); every worker runs the routes that
+        read it, and sends through the owner. False by default."""
+        return False
+
+    def split_connection(self, settings: Any, share: ConnectionShare) -> Any:
+        """The connection settings worker ``share.index`` opens for a connection that
+        :meth:`splits_connection` (only called where it does)."""
+        raise NotImplementedError(f"{type(self).__name__} does not split its connections over workers")
+
+    def split_problems(self, side: str, options: Any) -> list[tuple[str | None, str]]:
+        """What a route's ``side`` (``source`` or ``sink``) with these (typed) options cannot do
+        on a connection that :meth:`splits_connection`, as (key, message); none by default."""
+        return []
 
     def worker_affinity(self, connection: str, settings: Any) -> str | None:
         """A key for what connection ``connection`` (these typed settings) is that one process

@@ -171,6 +171,7 @@ class _RouteCompiler:
             if part is items[0].primary:
                 source_now = handed_source
             self._check_delivers(document, where + part.path, route, sink)
+            self._check_split(document, where + part.path, route.name, sink)
             checked = CheckedRoute(document, where, seen_as, source, sink, (source_complete, sink_complete), self.schemas, variables,
                                    bool(self.table), expansion, sink_path=part.path)
             for problem, error in route_checks(checked):
@@ -254,6 +255,17 @@ class _RouteCompiler:
                                        for index, entry in enumerate(entries))):
             if isinstance(expression, str) or expression is None:
                 self.recalls.extend((document, key_path, route.name, store) for store in dict.fromkeys(recall_names(expression)))
+
+    def _check_split(self, document: Document, where: Path_, route: str, sink: EndpointSpec | None) -> None:
+        """What a sink cannot do on a connection split over the workers (``Transport.split_problems``)."""
+        spec = self.connections.get(sink.connection) if sink is not None else None
+        if sink is None or spec is None or spec.options is None:
+            return
+        transport = endpoints.transport(sink.protocol)
+        if transport.splits_connection(spec.options):
+            for key, message in transport.split_problems("sink", sink.options):
+                self.problems.append(document.problem(where + (sink.protocol,) + ((key,) if key else ()),
+                                                      f"route {route!r}: sink: {message}"))
 
     def _check_delivers(self, document: Document, where: Path_, route: RouteOptions, sink: EndpointSpec | None) -> None:
         """A sink that delivers nowhere (a store's) makes sense only on a route that remembers."""

@@ -37,7 +37,7 @@ from engine.running.loop import run as run_loop
 from engine.running.observe import COUNTERS
 from engine.running.record import Recorder, RecordLimits
 from engine.running.runtime import Engine
-from engine.running.placement import place_routes
+from engine.running.placement import PlacementError, place_routes
 from engine.running.watch import watch_routes
 from engine.running.worker import WorkerEngine, die_with_parent, log_as_worker, tell_supervisor
 
@@ -151,6 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--worker", type=int, help=argparse.SUPPRESS)  # set by the supervisor: this process is worker K of --workers
     run.add_argument("--worker-channel", type=int, help=argparse.SUPPRESS)  # the pipe a worker says it runs on
     run.add_argument("--supervisor-pid", type=int, help=argparse.SUPPRESS)  # a worker stops when its parent is not this
+    run.add_argument("--runtime-dir", help=argparse.SUPPRESS)  # the supervisor's private directory (split connections' sockets)
     parser.run_parser = run
 
     check = commands.add_parser("check", help="validate the routes (and their *.test.yaml files) without connecting; exit 0 when valid")
@@ -328,7 +329,11 @@ def check(routes: Path, schema_dirs: Path | Sequence[Path], workers: int = 1) ->
             over = f" (over {', '.join(map(str, schema_file.replaces))})" if schema_file.replaces else ""
             print(f"  schema {schema_file.relative}: {schema_file.path}{over}")
     if workers > 1:
-        print("\n".join(place_routes(config, workers).lines()))
+        try:
+            print("\n".join(place_routes(config, workers).lines()))
+        except PlacementError as error:
+            print(f"{error} (with --workers {workers})", file=sys.stderr)
+            return 1
     return 0
 
 
@@ -418,7 +423,8 @@ async def serve(args: argparse.Namespace, access: AdminAccess | None = None) -> 
     recorder = None if args.record is None else Recorder(args.record, RecordLimits(
         file_bytes=int(args.record_file_mb * 2**20), file_seconds=args.record_file_minutes * 60,
         total_bytes=int(args.record_total_mb * 2**20)))
-    worker = {"index": args.worker, "workers": args.workers} if getattr(args, "worker", None) is not None else None
+    worker = {"index": args.worker, "workers": args.workers, "runtime_dir": args.runtime_dir} \
+        if getattr(args, "worker", None) is not None else None
     if worker is not None:
         die_with_parent(args.supervisor_pid)
         log_as_worker(args.worker)

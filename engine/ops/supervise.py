@@ -18,6 +18,7 @@ from engine.language.specs import RoutesConfig
 from engine.ops.admin import AdminAccess
 from engine.ops.supervisor import Supervisor
 from engine.ops.supervisor_admin import SupervisorAdmin, status_document
+from engine.running.placement import PlacementError, place_routes
 from engine.running.watch import watch_routes
 
 if TYPE_CHECKING:  # imported when --foxglove asks for it (the SDK's import costs some 40 ms)
@@ -34,6 +35,10 @@ def compiler(args: argparse.Namespace, schema_dirs: list[Path],
         schemas = SchemaRegistry(schema_dirs)
         config = load_routes(args.routes, schemas)
         problems = vet(config, schemas) if vet is not None else []
+        try:
+            place_routes(config, args.workers)  # a route the workers cannot run (placement rule 1b) reaches none
+        except PlacementError as error:
+            problems = [*problems, Problem(error.file, error.line, f"{error.message} (with --workers {args.workers})")]
         if problems:
             raise RoutesInvalid(problems, list(config.warnings))
         return config

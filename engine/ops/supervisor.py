@@ -26,7 +26,10 @@ a device or a link by one. The supervisor itself runs no route; it owns:
   (``--worker-channel FD``) once its routes run;
 * **reloads** (:meth:`Supervisor.reload`), one generation for all workers or none, see there;
 * **a clean stop**: SIGTERM (or SIGINT) to the supervisor sends SIGTERM to every worker,
-  each drains as a single engine does (``--drain-timeout``), and the supervisor waits for all.
+  each drains as a single engine does (``--drain-timeout``), and the supervisor waits for all;
+* **a private runtime directory** (``--runtime-dir``, made at start, removed at the stop) where
+  the workers bind the local sockets of a connection split over them (placement rule 1b: a
+  MAVLink link's vehicles, engine/endpoints/mavlink/split.py); a workers' own, not the user's.
 """
 
 from __future__ import annotations
@@ -37,8 +40,10 @@ import contextlib
 import json
 import logging
 import os
+import shutil
 import signal
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from typing import Any, AsyncIterator, Callable
@@ -152,6 +157,8 @@ class Supervisor:
         self._lock = asyncio.Lock()
         self._tasks: list[asyncio.Task[None]] = []
         self._session: aiohttp.ClientSession | None = None
+        self.runtime_dir: str | None = None
+        """The workers' private directory of this run (see the module docstring)."""
 
     # -- starting
 
@@ -162,6 +169,7 @@ class Supervisor:
         self.config = await asyncio.to_thread(self.compile_routes)
         self.placement = place_routes(self.config, len(self.workers))
         self.generation = 1
+        self.runtime_dir = tempfile.mkdtemp(prefix="rabbitros-")
         self._session = aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=10))
         for worker in self.workers:
             await self._spawn(worker)
@@ -187,6 +195,8 @@ class Supervisor:
             command += ["--schemas", str(directory)]
         if args.instance:
             command += ["--instance", args.instance]
+        if self.runtime_dir is not None:
+            command += ["--runtime-dir", self.runtime_dir]
         if args.admin_token_file:
             command += ["--admin-token-file", str(args.admin_token_file)]
         command += [flag for flag, on in (("--require-connections", args.require_connections),
@@ -458,6 +468,8 @@ class Supervisor:
             worker.up = False
         if self._session is not None:
             await self._session.close()
+        if self.runtime_dir is not None:
+            shutil.rmtree(self.runtime_dir, ignore_errors=True)
 
     def status(self) -> dict[str, Any]:
         """The supervisor's own part of the status (the admin merges the workers' into it)."""

@@ -98,6 +98,19 @@ def merge_route(merged: dict[str, Any], route: dict[str, Any]) -> None:
         merged.update(last_error_at=route["last_error_at"], last_error=route.get("last_error"))
 
 
+def merge_split(merged: dict[str, Any], health: dict[str, Any]) -> None:
+    """One more worker's health of a connection split over the workers (placement rule 1b),
+    which reports only its own share of what the connection carries (a MAVLink link's
+    vehicles): its counters added, its lists (the vehicles heard, their liveness) joined, so
+    the merged connection names each vehicle once."""
+    for key, value in health.items():
+        held = merged.get(key)
+        if isinstance(value, list) and isinstance(held, list):
+            merged[key] = held + copy.deepcopy(value)
+        elif key in ("counters", "rejected") and isinstance(value, dict) and isinstance(held, dict):
+            add_counts(held, value)
+
+
 def merge_status(own: dict[str, Any], documents: list[dict[str, Any] | None]) -> dict[str, Any]:
     """The supervisor's status with the workers' merged into it (see the module docstring)."""
     routes: dict[str, dict[str, Any]] = {}
@@ -113,7 +126,11 @@ def merge_status(own: dict[str, Any], documents: list[dict[str, Any] | None]) ->
             merged["workers"].append(index)
             merge_route(merged, route)
         for name, health in document.get("connections", {}).items():
-            held = connections.setdefault(name, {**health, "workers": []})
+            held = connections.get(name)
+            if held is None:
+                held = connections[name] = {**copy.deepcopy(health), "workers": []}
+            elif health.get("split"):
+                merge_split(held, health)
             held["workers"].append(index)
             held["healthy"] = bool(held.get("healthy", True)) and bool(health.get("healthy", True))
             held["up"] = held["healthy"]

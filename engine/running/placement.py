@@ -13,6 +13,16 @@ the supervisor (engine/ops/supervisor.py) prints it for ``check --workers N`` an
    affinities a route joins (a radio to a listening port) are owned together (union-find), so
    two workers never open one device. The owner is a stable hash of the group's first key:
    the same configuration places the same way in every process and after every restart.
+   A connection split over the workers (``Transport.splits_connection``: a MAVLink ``udpin``
+   link with ``split_over_workers``) is held the same way by one worker, its *owner*, but
+   holds no route that reads it (rule 1b) nor one that runs on every worker anyway (rules 3
+   and 4: a command queue's consumers), which send through the owner; a route that writes to
+   it from one worker is held with it, so the owner always runs one of its routes.
+1b. **A connection split over the workers**: a route that reads one runs on every worker,
+   each worker's connection getting its share of what comes in (a MAVLink link's vehicles by
+   system id, engine/endpoints/mavlink/split.py). Such a route cannot also hold a resource
+   or keep state in the process (rules 1 and 2: one worker would see a share only):
+   :class:`PlacementError` names it.
 2. **State the process keeps across messages**: the latest-value stores (``remember:`` and
    ``recall()``) are one table per process, so every route that writes or reads one runs with
    the others on one worker (the key ``stores``); a route's own state (``dedupe:``,
@@ -33,13 +43,14 @@ the supervisor (engine/ops/supervisor.py) prints it for ``check --workers N`` an
 
 A hash, not a balancer: placement must not depend on what runs now, or a restart or a reload
 would move routes between processes. With few one-worker routes the split can be uneven;
-``check --workers N`` shows it. What is not built (issue 34): splitting one MAVLink socket's
-vehicles over workers (a link is one process's: rule 1).
+``check --workers N`` shows it. What is not built: a serial radio shared by the workers
+(one owner through which every worker sends: a radio's routes run on its owner alone), and a
+route that reads a split connection while keeping state in the process.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable, Mapping
 
 from engine import endpoints
@@ -51,7 +62,12 @@ STORES = "stores"
 
 
 class PlacementError(ValueError):
-    """The worker count cannot place the routes."""
+    """The worker count cannot place the routes: ``file`` and ``line`` of the route at fault,
+    where one is (``check`` and the supervisor report it as a problem of that file)."""
+
+    def __init__(self, message: str, file: str = "", line: int = 0) -> None:
+        super().__init__(f"{file}:{line}: {message}" if file else message)
+        self.message, self.file, self.line = message, file, line
 
 
 @dataclass(frozen=True)
@@ -69,6 +85,8 @@ class RoutePlace:
 class WorkerPlacement:
     workers: int
     routes: Mapping[str, RoutePlace]
+    owners: Mapping[str, int] = field(default_factory=dict)
+    """Each connection split over the workers (rule 1b) -> the worker that holds it."""
 
     def on(self, worker: int) -> frozenset[str]:
         """The routes worker ``worker`` runs."""
@@ -81,7 +99,8 @@ class WorkerPlacement:
             where = "every worker" if len(place.workers) == self.workers > 1 else f"worker {place.workers[0]}"
             shown.append(f"  {name}: {where} ({place.reason})")
         counts = ", ".join(f"worker {k}: {len(self.on(k))}" for k in range(self.workers))
-        return [f"placement on {self.workers} workers ({counts} routes):", *shown]
+        held = [f"  connection {name}: split over every worker, held by worker {owner}" for name, owner in sorted(self.owners.items())]
+        return [f"placement on {self.workers} workers ({counts} routes):", *shown, *held]
 
 
 def stable_worker(key: str, workers: int) -> int:
@@ -94,6 +113,11 @@ def held_alone(spec: ConnectionSpec) -> str | None:
     (``Transport.worker_affinity``, engine/endpoints/workers.py)."""
     settings = spec.options if spec.options is not None else spec.settings
     return spec.exclusive or endpoints.transport(spec.protocol).worker_affinity(spec.name, settings)
+
+
+def splits(spec: ConnectionSpec) -> bool:
+    """Whether the connection is split over the workers (``Transport.splits_connection``)."""
+    return spec.options is not None and endpoints.transport(spec.protocol).splits_connection(spec.options)
 
 
 def splits_over_workers(route: RouteSpec) -> bool:
@@ -110,13 +134,22 @@ def place_routes(config: RoutesConfig, workers: int) -> WorkerPlacement:
     """Place every route of ``config`` on ``workers`` workers (see the module docstring)."""
     if workers < 1:
         raise PlacementError(f"--workers {workers}: at least 1")
-    keys_of = {name: _keys(config, route) for name, route in config.routes.items()}
+    split = {name: held_alone(spec) or f"connection {name!r}" for name, spec in config.connections.items() if splits(spec)}
+    keys_of = {name: _keys(config, route, split) for name, route in config.routes.items()}
     owner = _union(keys_of.values())
     every = tuple(range(workers))
     places: dict[str, RoutePlace] = {}
+    owners = {connection: stable_worker(owner.get(key, key), workers) for connection, key in split.items()}
     for name, route in config.routes.items():
         keys = keys_of[name]
-        if keys:
+        if (read := route.source.connection) in split:
+            held = ", ".join(keys) if keys else _own_state(route)
+            if held is not None:
+                raise PlacementError(f"route {name!r}: reads connection {read!r}, split over the workers (each worker gets "
+                                     f"its share of what comes in), but holds or keeps {held}, which one worker must do; "
+                                     "give it a connection without the split, or no such state", route.file, route.line)
+            places[name] = RoutePlace(every, f"each worker with its share of connection {read}, held by worker {owners[read]}")
+        elif keys:
             group = owner[keys[0]]
             held = ", ".join(keys)
             joined = f"; with {group}" if group not in keys else ""
@@ -129,14 +162,21 @@ def place_routes(config: RoutesConfig, workers: int) -> WorkerPlacement:
             places[name] = RoutePlace(every, "each worker follows its share of the discovered streams", split=True)
         else:
             places[name] = RoutePlace((stable_worker(name, workers),), "hash of the route name")
-    return WorkerPlacement(workers, places)
+    return WorkerPlacement(workers, places, owners)
 
 
-def _keys(config: RoutesConfig, route: RouteSpec) -> tuple[str, ...]:
-    found = [held_alone(config.connections[endpoint.connection]) for endpoint in route.endpoints()]
+def _keys(config: RoutesConfig, route: RouteSpec, split: Mapping[str, str]) -> tuple[str, ...]:
+    """What the route holds (rule 1): a split connection only where the route writes to it
+    from one worker (then it runs on the connection's owner); never where it reads it (rule 1b)."""
+    found = [held_alone(config.connections[endpoint.connection]) for endpoint in route.endpoints() if endpoint.connection not in split]
     if route.remember is not None or any("recall(" in text for text in _expressions(route)):
         found.append(STORES)
-    return tuple(sorted({key for key in found if key}))
+    held = {key for key in found if key}
+    everywhere = route.source.connection in split or (
+        not held and _own_state(route) is None and (spreads_over_workers(route) or splits_over_workers(route)))
+    if not everywhere:
+        held |= {split[endpoint.connection] for endpoint in route.endpoints() if endpoint.connection in split}
+    return tuple(sorted(held))
 
 
 def _expressions(route: RouteSpec) -> list[str]:

@@ -6,7 +6,10 @@ the supervisor checked it, and runs only what :func:`~engine.running.placement.p
 gives its index; the other routes are listed as ``elsewhere`` in its status, as the routes
 pinned to other instances are. Placement is recomputed from each generation it loads, so a
 reload that moves a route (a new route joins a device group) stops it here and starts it on
-its new worker; both are the same pure function of the same files.
+its new worker; both are the same pure function of the same files. A connection split over the
+workers (placement rule 1b) is opened with this worker's place on it
+(``Transport.split_connection``): which worker holds it, and the supervisor's runtime directory
+where the workers' local sockets meet.
 """
 
 from __future__ import annotations
@@ -18,12 +21,14 @@ import logging
 import os
 import signal
 import sys
+import tempfile
 from dataclasses import replace
 from typing import Any
 
 from engine import endpoints
 from engine.common.schemas import SchemaRegistry
-from engine.language.specs import RouteSpec, RoutesConfig
+from engine.endpoints.workers import ConnectionShare
+from engine.language.specs import ConnectionSpec, RouteSpec, RoutesConfig
 from engine.running.placement import place_routes
 from engine.running.runtime import Engine, _Reload
 
@@ -38,9 +43,11 @@ class WorkerEngine(Engine):
     """An :class:`Engine` that runs the routes of worker ``index`` of ``workers``, and goes back
     to its previous generation when the supervisor asks (:data:`ROLL_BACK_SIGNAL`)."""
 
-    def __init__(self, *args: Any, index: int, workers: int, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, index: int, workers: int, runtime_dir: str | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.index, self.workers = index, workers
+        self.runtime_dir = runtime_dir or tempfile.gettempdir()
+        """The supervisor's private directory (``--runtime-dir``) for what the workers share locally."""
         self._applied: tuple[RoutesConfig, SchemaRegistry] | None = None
         self._previous: tuple[RoutesConfig, SchemaRegistry] | None = None
         """The compiled generation this worker ran before the last one it applied, kept in memory:
@@ -82,8 +89,11 @@ class WorkerEngine(Engine):
     def _plan(self, everywhere: RoutesConfig, schemas: SchemaRegistry) -> _Reload:
         placement = place_routes(everywhere, self.workers)
         placed = placement.on(self.index)
-        mine = replace(everywhere, routes={name: self._share(spec) if placement.routes[name].split else spec
-                                           for name, spec in everywhere.routes.items() if name in placed})
+        connections = {name: self._split(spec, placement.owners[name]) if name in placement.owners else spec
+                       for name, spec in everywhere.connections.items()}
+        mine = replace(everywhere, connections=connections,
+                       routes={name: self._share(spec) if placement.routes[name].split else spec
+                               for name, spec in everywhere.routes.items() if name in placed})
         change = super()._plan(mine, schemas)
         change.everywhere = everywhere  # the others are listed as elsewhere (Engine._retire)
         return change
@@ -93,6 +103,12 @@ class WorkerEngine(Engine):
         source = spec.source
         options = endpoints.transport(source.protocol).split_source(source.options, self.index, self.workers)
         return replace(spec, source=replace(source, options=options))
+
+    def _split(self, spec: ConnectionSpec, owner: int) -> ConnectionSpec:
+        """A connection split over the workers, as this worker opens it (its owner holds it)."""
+        share = ConnectionShare(self.index, self.workers, owner, self.runtime_dir)
+        options = endpoints.transport(spec.protocol).split_connection(spec.options, share)
+        return replace(spec, options=options, fingerprint=f"{spec.fingerprint}:held-by-{owner}")  # a new owner: opened again
 
     def status(self) -> dict[str, Any]:
         return {**super().status(), "worker": {"index": self.index, "workers": self.workers}}

@@ -4,6 +4,12 @@ It runs the link's :class:`~.port.MavlinkPort`, sends our HEARTBEAT (a SiK radio
 RADIO_STATUS only after one, and a vehicle only talks to a GCS it hears), learns the vehicles it
 hears (:attr:`MavlinkConnection.vehicles`), hands TUNNEL frames addressed to us to the JSON
 tunnel, and every accepted message to the routes and transactions that subscribed to its type.
+
+Split over the workers of ``run --workers N`` (``split_over_workers``, split.py), a connection
+is given its worker's :class:`~engine.endpoints.workers.ConnectionShare`: the owner's link
+holds the socket, the others' go through it; each reports only the vehicles of its own share
+(liveness, ``vehicles_heard``, per-vehicle metrics), so the supervisor's merged status and
+metrics name each vehicle once, from the worker that hears it.
 """
 
 from __future__ import annotations
@@ -15,18 +21,22 @@ from collections.abc import Hashable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from engine.common.shares import share_of
 from engine.endpoints.base import Connection, ConnectionMetric, EndpointError, MessageRejected, Sink, Source, typed
 from engine.endpoints.mavlink.checks import sink_options, source_options
 from engine.endpoints.mavlink.codec import MESSAGES, TUNNEL, mavlink2
 from engine.endpoints.mavlink.contract import Listener
 from engine.endpoints.mavlink.enums import enum_name
-from engine.endpoints.mavlink.framing import BAD_FRAME_REASONS
+from engine.endpoints.mavlink.framing import BAD_FRAME_REASONS, FrameReader
+from engine.endpoints.mavlink.links import Link, OnBytes
 from engine.endpoints.mavlink.liveness import VehicleLiveness, last_heard, vehicles
 from engine.endpoints.mavlink.messages import MessageSource, sink_for
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
-from engine.endpoints.mavlink.settings import settings_problems
+from engine.endpoints.mavlink.settings import Address, settings_problems
+from engine.endpoints.mavlink.split import PRESENCE, SplitOwnerLink, SplitWorkerLink
 from engine.endpoints.mavlink.tunnel import TunnelHub, TunnelSink, TunnelSource
+from engine.endpoints.workers import ConnectionShare
 
 HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
 
@@ -55,7 +65,8 @@ class MavlinkConnection(Connection):
     """One MAVLink link shared by every route that names it (the
     :class:`~.contract.SharedLink` its route endpoints use)."""
 
-    def __init__(self, name: str, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> None:
+    def __init__(self, name: str, settings: MavlinkConnectionOptions | Mapping[str, Any],
+                 share: ConnectionShare | None = None) -> None:
         config, problems = settings_problems(settings)
         if config is None or problems:
             raise EndpointError(f"mavlink connection {name!r}: " + "; ".join(m for _, m in problems))
@@ -77,6 +88,16 @@ class MavlinkConnection(Connection):
         """Listeners of one vehicle's messages (:meth:`listen` with a ``system_id``)."""
         self._locks: dict[Hashable, asyncio.Lock] = {}
         self._tasks: list[asyncio.Task[None]] = []
+        self._answers: dict[int | None, list[Listener]] = {}
+        """Listeners of transactions (``listen(answers=True)``), also called for the answers
+        the owner of a split link copies to this worker (split.py)."""
+        self.split = share if share is not None and config.split_over_workers and share.workers > 1 else None
+        """This worker's place on a link split over the workers (split.py), else None."""
+        self._owner_link: SplitOwnerLink | None = None
+        self._copies = FrameReader({})
+        """Reads the owner's copies; they are counted by the vehicle's own worker."""
+        if self.split is not None:
+            self.port.make_link = self._split_link
 
     @property
     def address(self) -> tuple[str, int] | None:
@@ -90,14 +111,17 @@ class MavlinkConnection(Connection):
     @property
     def vehicles(self) -> list[dict[str, Any]]:
         """What the connection has heard, for the status view."""
-        return [asdict(seen) for seen in self.seen.values()]
+        return [asdict(seen) for seen in self.seen.values() if self.mine(seen.system_id)]
 
     def health(self) -> dict[str, Any]:
         """For the status: the link's state, its counters (bad CRC, bad data and signature
         rejections among them; see :data:`.port.PORT_STATS`), the components heard and the
         vehicles' liveness (liveness.py)."""
         now = time.monotonic()
+        split = {} if self.split is None else {"split": {"worker": self.split.index, "owner": self.split.owner,
+                                                         "workers": self.split.workers}}
         return {
+            **split,
             "state": "up" if self.port.ready else "waiting for a peer",
             "rejected": {key: self.stats[key] for key in REJECTION_STATS},
             "counters": dict(self.stats),
@@ -105,15 +129,21 @@ class MavlinkConnection(Connection):
             "heartbeat_timeout": self.config.heartbeat_timeout,
             "vehicles": [{"system_id": seen.system_id, "component_id": seen.component_id, "type": seen.type,
                           "agent": self.agent_names.get(seen.system_id),
-                          "heard_s_ago": round(now - seen.last_heard, 1)} for seen in self.seen.values()],
+                          "heard_s_ago": round(now - seen.last_heard, 1)}
+                         for seen in self.seen.values() if self.mine(seen.system_id)],
             "liveness": [{"system_id": vehicle.system_id, "agent": vehicle.agent, "up": vehicle.up,
                           "heard_s_ago": round(vehicle.heard_s_ago, 1)} for vehicle in self.liveness(now)],
         }
 
     def liveness(self, now: float | None = None) -> list[VehicleLiveness]:
-        """Each vehicle heard on the link, up or down (liveness.py)."""
-        return vehicles(self.seen.values(), self.agent_names, self.config.heartbeat_timeout,
-                        self.config.source_system, now)
+        """Each vehicle heard on the link, up or down (liveness.py); on a split link, those of
+        this worker's share."""
+        return vehicles((seen for seen in self.seen.values() if self.mine(seen.system_id)), self.agent_names,
+                        self.config.heartbeat_timeout, self.config.source_system, now)
+
+    def mine(self, system: int) -> bool:
+        """Whether this worker reports ``system`` (every system, unless the link is split)."""
+        return self.split is None or share_of(str(system), self.split.workers) == self.split.index
 
     def unavailable(self) -> list[str]:
         """The vehicles that are down, each named with how long it has been silent."""
@@ -151,7 +181,7 @@ class MavlinkConnection(Connection):
 
     async def open(self) -> None:
         await self.port.open()
-        if self.config.heartbeat > 0:
+        if self.config.heartbeat > 0 and (self.split is None or self.split.index == self.split.owner):  # one ground station
             self._tasks.append(asyncio.create_task(self._heartbeat(), name=f"mavlink-heartbeat:{self.name}"))
 
     async def close(self) -> None:
@@ -192,14 +222,50 @@ class MavlinkConnection(Connection):
 
     def enqueue(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False, priority: str | None = None,
                 key: Hashable | None = None) -> asyncio.Future[float]:
+        self._opening(msg)
         return self.port.enqueue(msg, bulk=bulk, priority=priority, key=key)
 
     async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
                            priority: str | None = None) -> float:
+        self._opening(msg)
         return await self.port.enqueue(msg, bulk=bulk, priority=priority)
 
     def post(self, msg: mavlink2.MAVLink_message) -> None:
+        self._opening(msg)
         self.port.post(msg)
+
+    def _opening(self, msg: mavlink2.MAVLink_message) -> None:
+        """The owner of a split link notes its own commands as it notes the workers' (split.py)."""
+        if self._owner_link is not None and self.split is not None:
+            self._owner_link.opened(msg.get_msgId(), getattr(msg, "target_system", 0), self.split.index)
+
+    # split over workers (split.py)
+
+    def _split_link(self, address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> Link:
+        assert self.split is not None
+        if self.split.index == self.split.owner:
+            self._owner_link = SplitOwnerLink(address, on_bytes, stats, self.name, self.split, self._on_copy, self._sent_by)
+            return self._owner_link
+        return SplitWorkerLink(address, on_bytes, stats, self.name, self.split, self._on_copy)
+
+    def _sent_by(self, frame: bytes, worker: int) -> None:
+        """A frame worker ``worker`` wrote: the owner's writer packs and sends it (split.py)."""
+        assert self._owner_link is not None
+        for msg in self._copies.datagram(frame):
+            self._owner_link.opened(msg.get_msgId(), getattr(msg, "target_system", 0), worker)
+            self.port.post(msg)
+
+    def _on_copy(self, kind: bytes, frame: bytes) -> None:
+        """Another worker's vehicle's HEARTBEAT (who is heard, for commands) or an answer to a
+        transaction of this worker (its listeners only, never a route)."""
+        for msg in self._copies.datagram(frame):
+            msg_id = msg.get_msgId()
+            if kind == PRESENCE:
+                if msg_id == HEARTBEAT:
+                    self._heard_from(msg)
+                continue
+            for listener in self._answers.get(msg_id, ()):
+                listener(msg)
 
     async def _heartbeat(self) -> None:
         period = 1.0 / self.config.heartbeat
@@ -235,19 +301,25 @@ class MavlinkConnection(Connection):
                 for listener in self._from_system.get(key, ()):
                     listener(msg)
 
-    def listen(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None:
+    def listen(self, msg_id: int | None, listener: Listener, system_id: int | None = None, answers: bool = False) -> None:
         """Call ``listener`` with every accepted message of ``msg_id`` (None: all), from
-        vehicle ``system_id`` only when given.
+        vehicle ``system_id`` only when given; ``answers``: a transaction's, which also gets the
+        answers a split link's owner copies to this worker (split.py).
 
         A link carries several vehicles (bench/fleet.py: 7 or 8 per ``udpin`` link), each with
         a route per message it sends: a listener that filtered by sender itself was called for
         every vehicle's message of its type, 8 calls where one is for it."""
+        if answers:
+            self._answers.setdefault(msg_id, []).append(listener)
         if system_id is None:
             self._listeners.setdefault(msg_id, []).append(listener)
         else:
             self._from_system.setdefault((msg_id, system_id), []).append(listener)
 
-    def unlisten(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None:
+    def unlisten(self, msg_id: int | None, listener: Listener, system_id: int | None = None, answers: bool = False) -> None:
+        if answers:
+            with contextlib.suppress(KeyError, ValueError):
+                self._answers[msg_id].remove(listener)
         with contextlib.suppress(KeyError, ValueError):
             if system_id is None:
                 self._listeners[msg_id].remove(listener)
@@ -264,7 +336,7 @@ class MavlinkConnection(Connection):
         key = (header.srcSystem, header.srcComponent)
         seen = self.seen.get(key)
         if seen is None:
-            self.stats["vehicles_heard"] += 1
+            self.stats["vehicles_heard"] += self.mine(key[0])
             self.seen[key] = VehicleSeen(key[0], key[1], enum_name("MAV_AUTOPILOT", msg.autopilot),
                                          enum_name("MAV_TYPE", msg.type), time.monotonic())
             waiters, self._heard = self._heard, []

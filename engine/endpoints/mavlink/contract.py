@@ -29,11 +29,12 @@ class SharedLink(Protocol):
     mission_refs: dict[tuple[int, int], str]
     """Per vehicle, the id of the message whose mission was uploaded last (MISSION_ACK's ``ref_id``)."""
 
-    def listen(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None:
+    def listen(self, msg_id: int | None, listener: Listener, system_id: int | None = None, answers: bool = False) -> None:
         """Call ``listener`` with every accepted message of ``msg_id`` (None: all), from
-        vehicle ``system_id`` only when given."""
+        vehicle ``system_id`` only when given; ``answers``: a transaction's listener, which
+        also gets the answers to this worker's transactions on a link split over workers."""
 
-    def unlisten(self, msg_id: int | None, listener: Listener, system_id: int | None = None) -> None: ...
+    def unlisten(self, msg_id: int | None, listener: Listener, system_id: int | None = None, answers: bool = False) -> None: ...
 
     async def send_message(self, msg: mavlink2.MAVLink_message, *, bulk: bool = False,
                            priority: str | None = None) -> float:

@@ -62,6 +62,44 @@ _UNKNOWN = mavlink2.MAVLink_unknown
 _MAX_FRAME = _V2_HEADER + 255 + _CHECKSUM + _SIGNATURE
 
 
+def frame_size(buf: bytes, at: int) -> int | None:
+    """The length of the frame whose start byte is at ``buf[at]`` (at least 3 bytes there), by
+    its header alone; None for a MAVLink 2 header with an incompatibility flag no frame has."""
+    length = buf[at + 1]
+    if buf[at] == _V2:
+        flags = buf[at + 2]
+        if flags & ~_SIGNED:
+            return None
+        return _V2_HEADER + length + _CHECKSUM + (_SIGNATURE if flags & _SIGNED else 0)
+    return _V1_HEADER + length + _CHECKSUM
+
+
+def frame_headers(data: bytes) -> list[tuple[int, int, int, int]]:
+    """``(start, end, system id, message id)`` of each frame of a datagram, read from the
+    headers without decoding (MAVLink 2: ``FD``, system id at byte 5, message id at 7-9; MAVLink
+    1: ``FE``, system id at byte 3, message id at 5), for handing frames on by their sender
+    (split.py); what is no frame is skipped, as a frame cut off at the end. The CRC and fields are
+    the receiver's :class:`FrameReader`'s to check."""
+    found: list[tuple[int, int, int, int]] = []
+    end, at = len(data), 0
+    while at < end:
+        match = _START.search(data, at)
+        if match is None:
+            break
+        at = match.start()
+        size = frame_size(data, at) if end - at >= 3 else None
+        header = _V2_HEADER if data[at] == _V2 else _V1_HEADER
+        if size is None or end - at < max(size, header):
+            at += 1
+            continue
+        if data[at] == _V2:
+            found.append((at, at + size, data[at + 5], int.from_bytes(data[at + 7:at + 10], "little")))
+        else:
+            found.append((at, at + size, data[at + 3], data[at + 5]))
+        at += size
+    return found
+
+
 class FrameReader:
     """Frames of one link (or one peer of a TCP server) as pymavlink messages; rejected bytes
     counted into ``stats`` (see the module docstring)."""
@@ -142,18 +180,13 @@ class FrameReader:
                 counted_to = end
                 at += 1
                 continue
-            length = buf[at + 1]
-            if buf[at] == _V2:
-                flags = buf[at + 2]
-                if flags & ~_SIGNED:  # no MAVLink 2 frame has other incompatibility flags
-                    if at >= counted_to:
-                        stats["bad_data"] += 1
-                    counted_to = max(counted_to, at + 3)
-                    at += 1
-                    continue
-                size = _V2_HEADER + length + _CHECKSUM + (_SIGNATURE if flags & _SIGNED else 0)
-            else:
-                size = _V1_HEADER + length + _CHECKSUM
+            size = frame_size(buf, at)
+            if size is None:  # no MAVLink 2 frame has other incompatibility flags
+                if at >= counted_to:
+                    stats["bad_data"] += 1
+                counted_to = max(counted_to, at + 3)
+                at += 1
+                continue
             if end - at < size:
                 if not final:
                     return frames, at, counted_to

@@ -80,6 +80,11 @@ class Link:
     async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         raise NotImplementedError
 
+    def peer_for(self, system: int, heard: dict[int, Hashable]) -> Hashable | None:
+        """Where a frame for ``system`` goes: the peer its last accepted frame came from
+        (``heard``, the port's); None: every peer."""
+        return heard.get(system)
+
     async def close(self) -> None:
         self.closed = True
 
@@ -258,12 +263,16 @@ class UdpLink(Link):
         return any(now - seen < PEER_TTL for seen in self.peers.values())
 
     def received(self, data: bytes, addr: Any) -> None:
+        self.heard(addr)
+        self.on_bytes(data, addr)
+
+    def heard(self, addr: Any) -> None:
+        """A ``udpin`` link remembers who wrote to it last (the peers it answers)."""
         if self.address.kind == "udpin":
             self.peers[addr] = time.monotonic()
             self.peers.move_to_end(addr)
             while len(self.peers) > MAX_PEERS:
                 self.peers.popitem(last=False)
-        self.on_bytes(data, addr)
 
     async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         if self._transport is None or self._transport.is_closing():

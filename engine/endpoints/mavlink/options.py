@@ -108,6 +108,11 @@ class MavlinkConnectionOptions:
     mav_type: int = option(mavlink2.MAV_TYPE_GCS, **_BYTE,
                            description="MAV_TYPE of our HEARTBEAT: 6 ground station, 18 onboard controller")
     tunnel: MavlinkTunnel | None = option(None)
+    split_over_workers: bool = option(False, description="udpin links under run --workers N: the link's vehicles are split over "
+                                                         "the workers by system id (one worker holds the socket and hands each "
+                                                         "vehicle's frames to its worker; every worker runs the link's routes and "
+                                                         "sends through it). Without --workers it changes nothing. Not with "
+                                                         "signing nor json_tunnel sinks")
 
 
 @dataclass(frozen=True, kw_only=True)

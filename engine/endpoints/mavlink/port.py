@@ -44,8 +44,8 @@ from engine.endpoints.mavlink.budget import RadioBudget
 from engine.endpoints.mavlink.codec import RADIO_STATUS, mavlink2
 from engine.endpoints.mavlink.errors import edge_error
 from engine.endpoints.mavlink.framing import BAD_FRAME_REASONS, FrameReader
-from engine.endpoints.mavlink.links import Link, make_link
-from engine.endpoints.mavlink.settings import LinkConfig
+from engine.endpoints.mavlink.links import Link, OnBytes, make_link
+from engine.endpoints.mavlink.settings import Address, LinkConfig
 from engine.endpoints.mavlink.signing import SignatureCheck, SigningClock
 from engine.endpoints.mavlink.tunnel import TUNNEL_PAYLOAD, ignore_result
 
@@ -101,6 +101,8 @@ class MavlinkPort:
         self.budget = RadioBudget(config.bulk_rate)
         """Bytes/s the routes' frames may take, following the radio's RADIO_STATUS."""
         self.on_lost: Callable[[], None] | None = None
+        self.make_link: Callable[[Address, OnBytes, dict[str, int]], Link] = make_link
+        """The link under the port (a connection split over workers gives its own, split.py)."""
         self._clock: SigningClock | None = None
         self._check: SignatureCheck | None = None
         self._link: Link | None = None
@@ -159,7 +161,7 @@ class MavlinkPort:
             s.secret_key, s.link_id, s.sign_outgoing = signing.key, signing.link_id, True
             s.timestamp = self._clock.start()
             self._check = SignatureCheck(signing, lambda: self.mav.signing.timestamp)
-        self._link = make_link(self.config.address, self._on_bytes, self.stats)
+        self._link = self.make_link(self.config.address, self._on_bytes, self.stats)
         self._link.on_lost = self._lost
         self._datagrams = self._link.datagrams
         await self._link.open()
@@ -281,7 +283,7 @@ class MavlinkPort:
                 continue
             target = getattr(msg, "target_system", 0)
             try:
-                await self._link.transmit(data, self._heard_at.get(target) if target else None)
+                await self._link.transmit(data, self._link.peer_for(target, self._heard_at) if target else None)
             except EndpointError as exc:
                 self.stats["send_errors"] += 1
                 if not future.done():

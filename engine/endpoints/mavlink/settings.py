@@ -169,6 +169,8 @@ class LinkConfig:
     budget: float | None = None
     heartbeat_timeout: float = 3.0
     """Seconds without a HEARTBEAT after which a vehicle is down (connection.py)."""
+    split_over_workers: bool = False
+    """Under ``run --workers N``, the vehicles are split over the workers by system id (split.py)."""
 
     @property
     def bulk_rate(self) -> float:
@@ -205,9 +207,15 @@ def settings_problems(
         tunnel = TunnelSettings.from_settings(options.tunnel, serial=address.kind == "serial")
     except ValueError as exc:
         problems.append(("tunnel", str(exc)))
+    if options.split_over_workers and address.kind != "udpin":
+        problems.append(("split_over_workers", f"split_over_workers applies to udpin links only (vehicles told apart by "
+                                               f"their UDP source), not {address.kind}"))
+    if options.split_over_workers and options.signing is not None:
+        problems.append(("split_over_workers", "split_over_workers is not built for signed links: the worker holding the "
+                                               "socket would hand frames on by headers it has not verified"))
     if problems:
         return None, problems
     rate = options.rate if options.rate is not None else (address.baud / 10 if address.kind == "serial" else 0.0)
     return LinkConfig(address, options.source_system, options.source_component, signing, float(rate),
                       float(options.heartbeat), options.mav_type, tunnel, options.budget,
-                      float(options.heartbeat_timeout)), problems
+                      float(options.heartbeat_timeout), options.split_over_workers), problems

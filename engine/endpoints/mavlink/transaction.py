@@ -186,12 +186,12 @@ class Conversation:
 
     async def __aenter__(self) -> Conversation:
         for msg_id in self.msg_ids:
-            self.connection.listen(msg_id, self._offer)
+            self.connection.listen(msg_id, self._offer, answers=True)
         return self
 
     async def __aexit__(self, *exc: object) -> None:
         for msg_id in self.msg_ids:
-            self.connection.unlisten(msg_id, self._offer)
+            self.connection.unlisten(msg_id, self._offer, answers=True)
 
     async def next(self, timeout: float) -> Any | None:
         """The next answer, or None after ``timeout`` seconds."""

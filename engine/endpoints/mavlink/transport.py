@@ -63,10 +63,11 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from engine.common.suggest import closest
-from engine.endpoints.base import CheckResult, FieldProblem, Outbound, Transport, flat_field_problem, typed_or_problem
+from engine.endpoints.base import CheckResult, FieldProblem, Outbound, Transport, flat_field_problem, typed, typed_or_problem
 from engine.endpoints.mavlink import settings as _settings
 from engine.endpoints.mavlink.checks import sink_problems, source_problems
 from engine.endpoints.mavlink.codec import ADDED_FIELDS, MESSAGES, build_message, message_fields, received_nan
@@ -76,6 +77,7 @@ from engine.endpoints.mavlink.messages import dry_run, field_check, target_field
 from engine.endpoints.mavlink.mission import MISSION_ANSWER
 from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSinkOptions, MavlinkSourceOptions
 from engine.endpoints.mavlink.settings import settings_problems
+from engine.endpoints.workers import ConnectionShare
 
 
 @functools.lru_cache(maxsize=1)
@@ -176,12 +178,39 @@ class MavlinkTransport(Transport):
         a device or a listening port is placed by that exclusive resource instead)."""
         return f"mavlink link {connection!r}"
 
+    def splits_connection(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> bool:
+        """``split_over_workers`` on a ``udpin`` link: its vehicles split over the workers (split.py)."""
+        options, _ = typed_or_problem(MavlinkConnectionOptions, settings)
+        return options is not None and options.split_over_workers and _settings.settings_problems(options)[0] is not None
+
+    def split_connection(self, settings: MavlinkConnectionOptions | Mapping[str, Any], share: ConnectionShare) -> SplitSettings:
+        return SplitSettings(typed(MavlinkConnectionOptions, settings, "mavlink connection"), share)
+
+    def split_problems(self, side: str, options: MavlinkSourceOptions) -> list[tuple[str | None, str]]:
+        """A JSON tunnel sink waits for the vehicle's TUNNEL acknowledgements, which reach the
+        vehicle's own worker only (split.py)."""
+        if side == "sink" and options.json_tunnel:
+            return [("json_tunnel", "a json_tunnel sink cannot write to a connection with split_over_workers (its vehicle's "
+                                    "acknowledgements reach the vehicle's own worker only); use a connection without it")]
+        return []
+
     def key_files(self, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> Iterable[str]:
         options, _ = typed_or_problem(MavlinkConnectionOptions, settings)
         return _settings.key_files(options) if options is not None else []
 
-    def connect(self, name: str, settings: MavlinkConnectionOptions | Mapping[str, Any]) -> MavlinkConnection:
+    def connect(self, name: str, settings: MavlinkConnectionOptions | SplitSettings | Mapping[str, Any]) -> MavlinkConnection:
+        if isinstance(settings, SplitSettings):
+            return MavlinkConnection(name, settings.options, settings.share)
         return MavlinkConnection(name, settings)
+
+
+@dataclass(frozen=True)
+class SplitSettings:
+    """A connection's settings in one worker of ``run --workers N`` when it is split over them
+    (``split_connection``): the typed options and the worker's place."""
+
+    options: MavlinkConnectionOptions
+    share: ConnectionShare
 
 
 TRANSPORT = MavlinkTransport()

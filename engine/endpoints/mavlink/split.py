@@ -1,0 +1,432 @@
+"""A ``udpin`` link's vehicles split over the workers of ``run --workers N``
+(``split_over_workers: true``): one owner that hands frames on by system id.
+
+One engine process uses one core; a ``udpin`` link carrying a fleet (many system ids on one
+socket) was one process's (engine/running/placement.py rule 1), however many workers ran. With
+the option, the worker placement gives the link to (its *owner*) holds the UDP socket and every
+worker runs the link's routes; each worker is connected to the owner by a local socket
+(``AF_UNIX``, ``SOCK_SEQPACKET``: one message per MAVLink datagram, nothing to frame; see
+:class:`OwnerSockets` for why not ``SOCK_DGRAM``) in the supervisor's private runtime
+directory. Chosen over the kernel spreading one port over several
+sockets (``SO_REUSEPORT``): the kernel hashes the sender's address, so a vehicle's replies and
+its telemetry reach the same socket, but a command's sender cannot choose the socket its
+vehicle's reply reaches, and a vehicle's address changing (a NAT, a router restarting) would
+move it to another worker mid-transaction.
+
+What crosses, and why (each datagram starts with its kind):
+
+* :data:`VEHICLE`, owner to worker: a datagram of a vehicle whose share (engine/common/shares.py,
+  ``share_of(str(system_id), N)``) is that worker's, read from the MAVLink headers without
+  decoding (framing.py ``frame_headers``). Each vehicle's frames reach exactly one worker, whole
+  and in order, which handles them as a single engine does (its telemetry routes, sequence
+  gaps, liveness, status and metrics); the owner keeps its own share. A datagram holding frames
+  of several systems is cut into frames.
+* :data:`PRESENCE`, owner to every other worker: a copy of each HEARTBEAT, which the receiving
+  worker only records (who is heard, and when) and reports nowhere: a worker that takes a command
+  for a vehicle of another share waits for it and refuses it when it is down as a single engine
+  does, while status and metrics report each vehicle from its own worker alone.
+* :data:`SEND`, worker to owner: a frame a worker's sink or transaction wrote. The owner decodes
+  it and queues it in its own writer, which packs it (so one sequence number stream goes out, as
+  from one ground station) and writes it to the address it last heard the target system from, or
+  to every peer for a frame with no target, as a single engine does: nothing that reaches a
+  vehicle is guessed. Our HEARTBEAT is the owner's alone.
+* :data:`ANSWER`, owner to worker: a copy of a vehicle's COMMAND_ACK, MISSION_REQUEST(_INT) or
+  MISSION_ACK for every worker that sent that vehicle a command (or a mission frame) in the last
+  :data:`TRANSACTION_S`: a command route's source competes on every worker, and the worker that
+  took a command for vehicle X waits for X's answer though X's frames are another worker's. The
+  copy reaches only the transactions waiting (``listen(answers=True)``), never a route, so a
+  telemetry route still carries the answer once, from X's own worker. Each transaction reads
+  the answer as a single engine does (a COMMAND_ACK of another command is passed over). What a
+  single engine does and this does not: serialize two transactions of one command to one vehicle
+  taken by two workers at once (MAVLink's COMMAND_ACK cannot tell them apart either; the
+  single engine's lock is per process).
+
+A worker that is down misses its vehicles' frames (counted ``split_dropped`` in the link's
+counters: UDP telemetry is lost as over the air); a worker whose owner is down gets
+EndpointError for what it sends, so its sinks retry. Not built: signed links (the owner would
+hand frames on by headers it has not verified; settings.py refuses them) and JSON tunnel
+sinks (their acknowledgements come as TUNNEL frames of the vehicle's worker; checked by the
+transport's ``split_problems``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import os
+import socket
+import time
+from collections.abc import Callable, Hashable
+from typing import Any
+
+from engine.common.backoff import Backoff
+from engine.common.shares import share_of
+from engine.endpoints.base import EndpointError
+from engine.endpoints.mavlink.dialect import mavlink2
+from engine.endpoints.mavlink.framing import frame_headers
+from engine.endpoints.mavlink.links import PEER_TTL, Link, OnBytes, UdpLink
+from engine.endpoints.mavlink.settings import Address
+from engine.endpoints.workers import ConnectionShare
+
+VEHICLE, PRESENCE, ANSWER, SEND, HELLO = b"V", b"H", b"A", b"S", b"W"
+"""The kinds of datagram between the owner and the workers (see the module docstring)."""
+HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
+ANSWERS = {mavlink2.MAVLINK_MSG_ID_COMMAND_ACK: "command", mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST: "mission",
+           mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_INT: "mission", mavlink2.MAVLINK_MSG_ID_MISSION_ACK: "mission"}
+"""A vehicle's answers, by the transaction they answer."""
+REQUESTS = {mavlink2.MAVLINK_MSG_ID_COMMAND_LONG: "command", mavlink2.MAVLINK_MSG_ID_COMMAND_INT: "command",
+            mavlink2.MAVLINK_MSG_ID_MISSION_COUNT: "mission", mavlink2.MAVLINK_MSG_ID_MISSION_ITEM: "mission",
+            mavlink2.MAVLINK_MSG_ID_MISSION_ITEM_INT: "mission", mavlink2.MAVLINK_MSG_ID_MISSION_CLEAR_ALL: "mission"}
+"""What a worker sends that opens (or goes on with) a transaction whose answers it waits for."""
+TRANSACTION_S = 60.0
+"""How long after a worker's last command (or mission frame) to a vehicle the vehicle's answers
+are copied to it: beyond a command's bound with a MAV_RESULT_IN_PROGRESS (in_progress_timeout,
+30 s by default). A copy after the transaction ended reaches no listener and costs a datagram."""
+LOCAL_BUFFER = 4 << 20
+"""Bytes of socket buffer for the local sockets, as for the UDP socket (links.py)."""
+CONNECT_FIRST_S, CONNECT_CAP_S = 0.05, 1.0
+"""A worker tries the owner's socket again after 25-50 ms, at most every 0.5-1 s: workers
+start together, and an owner started again is reached within a second."""
+READS_PER_WAKE = 64
+"""Datagrams read per readiness callback, so one busy socket cannot hold the loop."""
+SPLIT_STATS = ("split_handed", "split_dropped", "split_answers")
+"""The owner's counters (the link's, in its status): datagrams handed to other workers, those
+a worker could not take (down, starting, its socket full: lost, as UDP telemetry is), and
+answers copied to a worker whose transaction waits for them (its own or another's)."""
+OWNER_PEER = "owner"
+"""The peer a worker's frames come from (the owner heard the vehicle's address)."""
+
+OnCopy = Callable[[bytes, bytes], None]
+"""``(kind, frame)``: a :data:`PRESENCE` or :data:`ANSWER` copy for the connection."""
+
+
+def socket_path(runtime_dir: str, connection: str) -> str:
+    """The owner's listening socket for ``connection``: short, as ``AF_UNIX`` paths are (108
+    bytes), and the same in every worker."""
+    tag = hashlib.blake2b(connection.encode(), digest_size=4).hexdigest()
+    return os.path.join(runtime_dir, f"mav-{tag}.sock")
+
+
+def _local_socket() -> socket.socket:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    sock.setblocking(False)
+    for option in (socket.SO_RCVBUF, socket.SO_SNDBUF):
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, option, LOCAL_BUFFER)
+    return sock
+
+
+def _read(sock: socket.socket, on_message: Callable[[bytes], None]) -> bool:
+    """Up to :data:`READS_PER_WAKE` messages of a ready socket; False once the other end closed."""
+    for _ in range(READS_PER_WAKE):
+        try:
+            data = sock.recv(65536)
+        except (BlockingIOError, InterruptedError):
+            return True
+        except OSError:
+            return False
+        if not data:
+            return False
+        on_message(data)
+    return True
+
+
+class OwnerSockets:
+    """The owner's end: a listening ``AF_UNIX`` ``SOCK_SEQPACKET`` socket (message boundaries
+    kept, as datagrams; chosen over ``SOCK_DGRAM``, whose receive queue holds 10 datagrams
+    (``net.unix.max_dgram_qlen``): a worker busy for a few milliseconds lost frames; a 4 MiB
+    connection buffer holds some 10,000 frames), and one connection per worker, which names
+    itself first (:data:`HELLO`)."""
+
+    def __init__(self, path: str, on_message: Callable[[int, bytes], None]) -> None:
+        self.path = path
+        self.on_message = on_message
+        self.workers: dict[int, socket.socket] = {}
+        self._listening: socket.socket | None = None
+        self._unnamed: set[socket.socket] = set()
+
+    def open(self) -> None:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.path)  # a predecessor's, killed before it closed it
+        sock = _local_socket()
+        try:
+            sock.bind(self.path)
+            sock.listen(64)
+        except OSError as exc:
+            sock.close()
+            raise EndpointError(f"cannot listen on the local socket {self.path}: {exc.strerror or exc}") from None
+        self._listening = sock
+        asyncio.get_running_loop().add_reader(sock.fileno(), self._accept)
+
+    def _accept(self) -> None:
+        assert self._listening is not None
+        try:
+            conn, _ = self._listening.accept()
+        except OSError:
+            return
+        conn.setblocking(False)
+        for option in (socket.SO_RCVBUF, socket.SO_SNDBUF):
+            with contextlib.suppress(OSError):
+                conn.setsockopt(socket.SOL_SOCKET, option, LOCAL_BUFFER)
+        self._unnamed.add(conn)
+        asyncio.get_running_loop().add_reader(conn.fileno(), self._readable, conn)
+
+    def _readable(self, conn: socket.socket) -> None:
+        index = next((k for k, sock in self.workers.items() if sock is conn), None)
+
+        def message(data: bytes) -> None:
+            nonlocal index
+            if index is None:
+                if data[:1] == HELLO and len(data) == 3:
+                    index = int.from_bytes(data[1:3], "big")
+                    self._unnamed.discard(conn)
+                    old = self.workers.get(index)
+                    self.workers[index] = conn
+                    if old is not None and old is not conn:
+                        self._drop(old)
+                return
+            self.on_message(index, data)
+
+        if not _read(conn, message):
+            self._drop(conn)
+
+    def _drop(self, conn: socket.socket) -> None:
+        with contextlib.suppress(Exception):
+            asyncio.get_running_loop().remove_reader(conn.fileno())
+        for index, sock in list(self.workers.items()):
+            if sock is conn:
+                del self.workers[index]
+        self._unnamed.discard(conn)
+        conn.close()
+
+    def send(self, worker: int, data: bytes) -> bool:
+        """False when the worker is not connected (down, starting) or cannot take more now."""
+        conn = self.workers.get(worker)
+        if conn is None:
+            return False
+        try:
+            conn.send(data)
+        except (BlockingIOError, InterruptedError):
+            return False
+        except OSError:
+            self._drop(conn)
+            return False
+        return True
+
+    def close(self) -> None:
+        for conn in [*self.workers.values(), *self._unnamed]:
+            self._drop(conn)
+        if self._listening is not None:
+            with contextlib.suppress(Exception):
+                asyncio.get_running_loop().remove_reader(self._listening.fileno())
+            self._listening.close()
+            self._listening = None
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.path)
+
+
+class WorkerSocket:
+    """A worker's end: connected to the owner's socket, again whenever the owner went away (a
+    restart), after the engine's backoff."""
+
+    def __init__(self, path: str, index: int, on_message: Callable[[bytes], None]) -> None:
+        self.path = path
+        self.index = index
+        self.on_message = on_message
+        self.connected: socket.socket | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._lost: asyncio.Event = asyncio.Event()
+
+    def open(self) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._keep_connected(), name=f"split-link:{self.path}")
+
+    async def _keep_connected(self) -> None:
+        loop = asyncio.get_running_loop()
+        backoff = Backoff(CONNECT_FIRST_S, CONNECT_CAP_S)
+        while True:
+            sock = _local_socket()
+            try:
+                await loop.sock_connect(sock, self.path)
+                sock.send(HELLO + self.index.to_bytes(2, "big"))
+            except OSError:
+                sock.close()
+                await asyncio.sleep(backoff.next())
+                continue
+            except BaseException:  # cancelled while connecting: the link closes
+                sock.close()
+                raise
+            backoff.reset()
+            self._lost.clear()
+            self.connected = sock
+            loop.add_reader(sock.fileno(), self._readable, sock)
+            await self._lost.wait()
+
+    def _readable(self, sock: socket.socket) -> None:
+        if not _read(sock, self.on_message):
+            self._disconnect(sock)
+
+    def _disconnect(self, sock: socket.socket) -> None:
+        with contextlib.suppress(Exception):
+            asyncio.get_running_loop().remove_reader(sock.fileno())
+        sock.close()
+        if self.connected is sock:
+            self.connected = None
+        self._lost.set()
+
+    def send(self, data: bytes) -> bool:
+        sock = self.connected
+        if sock is None:
+            return False
+        try:
+            sock.send(data)
+        except (BlockingIOError, InterruptedError):
+            return False
+        except OSError:
+            self._disconnect(sock)
+            return False
+        return True
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+        if self.connected is not None:
+            self._disconnect(self.connected)
+
+
+class SplitOwnerLink(UdpLink):
+    """The ``udpin`` socket, held by the link's owner, which hands each vehicle's datagrams to
+    its worker and writes what the workers send (see the module docstring)."""
+
+    def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int], name: str, share: ConnectionShare,
+                 on_copy: OnCopy, on_send: Callable[[bytes, int], None]) -> None:
+        super().__init__(address, on_bytes, stats)
+        self.share = share
+        self.local = OwnerSockets(socket_path(share.runtime_dir, name), self._from_worker)
+        self.on_copy = on_copy
+        self.on_send = on_send
+        """``(frame, worker)``: a frame a worker wrote, for the owner's writer."""
+        self.address_of: dict[int, Any] = {}
+        """System id -> the address its last datagram came from (where its frames go)."""
+        self.transactions: dict[tuple[int, str], dict[int, float]] = {}
+        """(system id, command or mission) -> worker -> until when its answers are copied to it."""
+        self._worker_of: dict[int, int] = {}
+        for key in SPLIT_STATS:
+            stats.setdefault(key, 0)
+
+    def worker_of(self, system: int) -> int:
+        worker = self._worker_of.get(system)
+        if worker is None:
+            worker = self._worker_of[system] = share_of(str(system), self.share.workers)
+        return worker
+
+    async def open(self) -> None:
+        self.local.open()
+        try:
+            await super().open()
+        except BaseException:
+            self.local.close()
+            raise
+
+    def peer_for(self, system: int, heard: dict[int, Hashable]) -> Hashable | None:
+        """Every vehicle's address, not only those of the owner's own share."""
+        return self.address_of.get(system)
+
+    def received(self, data: bytes, addr: Any) -> None:
+        self.heard(addr)
+        headers = frame_headers(data)
+        if not headers:  # no frame at all: the owner's reader counts it
+            self.on_bytes(data, addr)
+            return
+        first = headers[0][2]
+        for _, _, system, _ in headers:
+            self.address_of[system] = addr
+        if all(system == first for _, _, system, _ in headers):
+            self._hand(self.worker_of(first), VEHICLE, data, addr)
+        else:
+            for start, end, system, _ in headers:
+                self._hand(self.worker_of(system), VEHICLE, data[start:end], addr)
+        for start, end, system, msg_id in headers:
+            if msg_id == HEARTBEAT:
+                own = self.worker_of(system)
+                for worker in range(self.share.workers):
+                    if worker != own:
+                        self._hand(worker, PRESENCE, data[start:end], addr)
+            elif (kind := ANSWERS.get(msg_id)) is not None and (waiting := self.transactions.get((system, kind))):
+                now, own = time.monotonic(), self.worker_of(system)
+                for worker, until in list(waiting.items()):
+                    if until < now:
+                        del waiting[worker]
+                    elif worker != own:
+                        self.stats["split_answers"] += 1
+                        self._hand(worker, ANSWER, data[start:end], addr)
+
+    def _hand(self, worker: int, kind: bytes, data: bytes, addr: Any) -> None:
+        if worker == self.share.index:
+            if kind == VEHICLE:
+                self.on_bytes(data, addr)
+            else:
+                self.on_copy(kind, data)
+            return
+        if self.local.send(worker, kind + data):
+            self.stats["split_handed"] += 1
+        else:
+            self.stats["split_dropped"] += 1
+
+    def opened(self, msg_id: int, target: int, worker: int) -> None:
+        """A frame ``worker`` sends to ``target``: a command or mission frame opens (or renews) its
+        transaction, whose answers the worker then gets (:data:`TRANSACTION_S`)."""
+        kind = REQUESTS.get(msg_id)
+        if kind is not None and target:
+            self.transactions.setdefault((target, kind), {})[worker] = time.monotonic() + TRANSACTION_S
+
+    def _from_worker(self, worker: int, data: bytes) -> None:
+        if data[:1] == SEND and len(data) > 1:
+            self.on_send(data[1:], worker)
+
+    async def close(self) -> None:
+        self.local.close()
+        await super().close()
+
+
+class SplitWorkerLink(Link):
+    """A worker's side of a split link: its vehicles' datagrams come from the owner, what it
+    writes goes to the owner (see the module docstring)."""
+
+    datagrams = True
+
+    def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int], name: str, share: ConnectionShare,
+                 on_copy: OnCopy) -> None:
+        super().__init__(address, on_bytes, stats)
+        self.share = share
+        self.local = WorkerSocket(socket_path(share.runtime_dir, name), share.index, self._from_owner)
+        self.on_copy = on_copy
+        self._heard = -PEER_TTL
+
+    async def open(self) -> None:
+        self.local.open()
+
+    @property
+    def ready(self) -> bool:
+        """Whether the owner handed anything on lately (a vehicle's frame, a HEARTBEAT copy)."""
+        return not self.closed and time.monotonic() - self._heard < PEER_TTL
+
+    def _from_owner(self, data: bytes) -> None:
+        self._heard = time.monotonic()
+        kind, frame = data[:1], data[1:]
+        if kind == VEHICLE:
+            self.on_bytes(frame, OWNER_PEER)
+        else:
+            self.on_copy(kind, frame)
+
+    async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
+        if self.closed:
+            raise EndpointError("udp link is closed")
+        if not self.local.send(SEND + data):
+            raise EndpointError(f"udpin:{self.address.host}:{self.address.port} is held by worker {self.share.owner} "
+                                "(split_over_workers), which does not take frames now (down, starting or busy)")
+
+    async def close(self) -> None:
+        await super().close()
+        await self.local.close()
