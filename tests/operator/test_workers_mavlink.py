@@ -83,6 +83,16 @@ def test_a_fleet_on_one_udp_link_is_split_over_two_workers_by_vehicle(tmp_path: 
             positions = await Collector.bind(channel, f"{tag}-out", "uav.#")
             caller = await Caller.open(await connection.channel())
             await channel.declare_queue(f"{tag}-cmd", durable=True)
+
+            async def connected() -> bool:
+                workers = (await admin_status(admin))["workers"]
+                splits = [(w.get("status") or {}).get("connections", {}).get("fleet", {}).get("split") for w in workers]
+                if None in splits:
+                    return False
+                owner = splits[0]["owner"]
+                return bool(splits[owner]["connected"] == [1 - owner])
+
+            await wait_for(connected, 30, "the other worker connected to the link's owner")
             for vehicle in vehicles.values():
                 vehicle.start()
 

@@ -94,6 +94,7 @@ class MavlinkConnection(Connection):
         self.split = share if share is not None and config.split_over_workers and share.workers > 1 else None
         """This worker's place on a link split over the workers (split.py), else None."""
         self._owner_link: SplitOwnerLink | None = None
+        self._split_end: SplitOwnerLink | SplitWorkerLink | None = None
         self._copies = FrameReader({})
         """Reads the owner's copies; they are counted by the vehicle's own worker."""
         if self.split is not None:
@@ -118,8 +119,9 @@ class MavlinkConnection(Connection):
         rejections among them; see :data:`.port.PORT_STATS`), the components heard and the
         vehicles' liveness (liveness.py)."""
         now = time.monotonic()
-        split = {} if self.split is None else {"split": {"worker": self.split.index, "owner": self.split.owner,
-                                                         "workers": self.split.workers}}
+        split = {} if self.split is None else {"split": {
+            "worker": self.split.index, "owner": self.split.owner, "workers": self.split.workers,
+            **(self._split_end.split_status() if self._split_end is not None else {})}}
         return {
             **split,
             "state": "up" if self.port.ready else "waiting for a peer",
@@ -244,9 +246,11 @@ class MavlinkConnection(Connection):
     def _split_link(self, address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> Link:
         assert self.split is not None
         if self.split.index == self.split.owner:
-            self._owner_link = SplitOwnerLink(address, on_bytes, stats, self.name, self.split, self._on_copy, self._sent_by)
-            return self._owner_link
-        return SplitWorkerLink(address, on_bytes, stats, self.name, self.split, self._on_copy)
+            self._owner_link = self._split_end = SplitOwnerLink(address, on_bytes, stats, self.name, self.split, self._on_copy,
+                                                                self._sent_by)
+        else:
+            self._split_end = SplitWorkerLink(address, on_bytes, stats, self.name, self.split, self._on_copy)
+        return self._split_end
 
     def _sent_by(self, frame: bytes, worker: int) -> None:
         """A frame worker ``worker`` wrote: the owner's writer packs and sends it (split.py)."""

@@ -329,6 +329,10 @@ class SplitOwnerLink(UdpLink):
             self.local.close()
             raise
 
+    def split_status(self) -> dict[str, Any]:
+        """For the connection's status: the workers connected to the owner now."""
+        return {"connected": sorted(self.local.workers)}
+
     def peer_for(self, system: int, heard: dict[int, Hashable]) -> Hashable | None:
         """Every vehicle's address, not only those of the owner's own share."""
         return self.address_of.get(system)
@@ -406,6 +410,10 @@ class SplitWorkerLink(Link):
 
     async def open(self) -> None:
         self.local.open()
+
+    def split_status(self) -> dict[str, Any]:
+        """For the connection's status: whether this worker is connected to the owner now."""
+        return {"connected": self.local.connected is not None}
 
     @property
     def ready(self) -> bool:

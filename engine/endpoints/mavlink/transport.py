@@ -29,6 +29,7 @@ Settings (YAML ``connections.<name>.mavlink``)::
     heartbeat_timeout: 3.0       # s without a vehicle's HEARTBEAT: down (liveness.py)
     mav_type: 6                  # MAV_TYPE of our HEARTBEAT (6 GCS, 18 onboard controller)
     tunnel: {fragment_size, rto_min, rto_max, retries, sack_delay, window, bundle, rate, ...}
+    split_over_workers: false    # udpin under run --workers N: the vehicles split over the workers (split.py)
 
 Source options: ``message`` (optional), ``system_id``, ``component_id``; or ``json_tunnel:
 true`` with ``payload_type``. Sink options: ``message``, ``target_system``,
@@ -55,7 +56,8 @@ options), :mod:`.errors` (the link's failures as the two edge errors), :mod:`.di
 :mod:`.connection` (heartbeat, vehicles heard, dispatch), :mod:`.contract` (what the route
 endpoints need of the connection), :mod:`.messages` (route endpoints), :mod:`.mission` and
 :mod:`.command` (transactions the vehicle acknowledges), :mod:`.enums` (enum names for
-mappings), :mod:`.checks` (static checks), :mod:`.tunnel` (JSON over TUNNEL). No module
+mappings), :mod:`.checks` (static checks), :mod:`.tunnel` (JSON over TUNNEL), :mod:`.split` (a
+``udpin`` link's vehicles split over the workers of ``run --workers N``). No module
 imports one that imports it back.
 """
 

@@ -1,0 +1,103 @@
+"""A ``udpin`` link split over two workers (``split_over_workers``, engine/endpoints/mavlink/split.py),
+both ends in one process: the owner's connection (worker 0, holding the UDP socket) and worker
+1's, connected by the local socket in a runtime directory, as ``run --workers 2`` opens them.
+
+Real parts: eight vehicles on plain pymavlink behind their own UDP sockets
+(tests/support/udp_vehicle.py ``FleetVehicle``: HEARTBEAT and GLOBAL_POSITION_INT at 20 Hz,
+each COMMAND_LONG addressed to it acknowledged), the engine's two connections with their local
+sockets. Each vehicle's frames reach exactly its worker (its system id's share); each worker
+reports its own vehicles' liveness and hears every vehicle's HEARTBEAT (a command waits for its
+vehicle); a command worker 1 sends to a vehicle of worker 0's share goes out through the owner
+to that vehicle alone and worker 1's transaction gets the COMMAND_ACK, which no route of worker 1
+sees; once worker 1 is gone, the owner counts what it could not hand on (``split_dropped``) and
+its own vehicles' frames still flow.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import Counter
+from pathlib import Path
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from engine.common.shares import share_of
+from engine.endpoints.mavlink.connection import MavlinkConnection
+from engine.endpoints.mavlink.transaction import Conversation
+from engine.endpoints.workers import ConnectionShare
+from tests.support.udp_vehicle import FleetVehicle, free_udp_port
+from tests.support.waiting import wait_for
+
+VEHICLES = range(1, 9)
+POSITION = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT
+ACK = mavlink2.MAVLINK_MSG_ID_COMMAND_ACK
+
+
+def test_each_vehicle_reaches_its_worker_and_a_command_from_the_other_worker_gets_its_answer(tmp_path: Path) -> None:
+    shares = {system: share_of(str(system), 2) for system in VEHICLES}
+    assert set(shares.values()) == {0, 1}, shares
+    target = next(system for system in VEHICLES if shares[system] == 0)  # commanded by worker 1, heard by worker 0
+    port = free_udp_port()
+    settings = {"url": f"udpin:127.0.0.1:{port}", "heartbeat": 1, "split_over_workers": True}
+    vehicles = {system: FleetVehicle(system, port, rate=20.0) for system in VEHICLES}
+    found: dict[str, object] = {}
+
+    async def scenario() -> None:
+        owner = MavlinkConnection("fleet", settings, ConnectionShare(0, 2, 0, str(tmp_path)))
+        other = MavlinkConnection("fleet", settings, ConnectionShare(1, 2, 0, str(tmp_path)))
+        heard: dict[int, Counter[int]] = {0: Counter(), 1: Counter()}
+        acks_to_routes: list[int] = []
+        for index, connection in ((0, owner), (1, other)):
+            connection.listen(POSITION, lambda msg, index=index: heard[index].update([msg.get_srcSystem()]))
+        other.listen(ACK, lambda msg: acks_to_routes.append(msg.get_srcSystem()))  # a route's listener
+        await owner.open()
+        await other.open()
+        try:
+            await wait_for(lambda: owner.health()["split"]["connected"] == [1] and other.health()["split"]["connected"], 10,
+                           "worker 1 connected to the owner")
+            for vehicle in vehicles.values():
+                vehicle.start()
+            await wait_for(lambda: all(heard[shares[s]][s] >= 20 for s in VEHICLES), 30, "20 positions of every vehicle",
+                           lambda: heard)
+            found["heard"] = {index: dict(counts) for index, counts in heard.items()}
+            found["liveness"] = {index: sorted(v.system_id for v in c.liveness()) for index, c in ((0, owner), (1, other))}
+            found["other_heard_target"] = other.has_heard(target, 1)
+            loop = asyncio.get_running_loop()
+            await other.wait_for_vehicle(target, 1, loop.time() + 10)  # from the owner's HEARTBEAT copies
+            async with Conversation(other, (target, 1), (ACK,)) as answers:
+                await other.send_message(mavlink2.MAVLink_command_long_message(target, 1, 400, 0, 1, 77, 0, 0, 0, 0, 0))
+                found["ack"] = await answers.next(10)
+            found["acks_to_routes"] = list(acks_to_routes)
+            found["owner_counters"] = dict(owner.stats)
+            await other.close()
+            dropped = owner.stats["split_dropped"]
+            before = heard[0].copy()
+            await wait_for(lambda: owner.stats["split_dropped"] > dropped + 20, 10, "frames for the closed worker dropped")
+            await wait_for(lambda: all(heard[0][s] > before[s] + 5 for s in VEHICLES if shares[s] == 0), 10,
+                           "the owner's own vehicles still carried")
+        finally:
+            for vehicle in vehicles.values():
+                vehicle.stop.set()
+            await other.close()
+            await owner.close()
+
+    try:
+        asyncio.run(asyncio.wait_for(scenario(), 90))
+    finally:
+        for vehicle in vehicles.values():
+            vehicle.stop.set()
+            vehicle.join(5)
+    for index in (0, 1):  # each vehicle's frames at its own worker only
+        assert set(found["heard"][index]) == {s for s in VEHICLES if shares[s] == index}, found["heard"]  # type: ignore[index]
+        assert found["liveness"][index] == [s for s in VEHICLES if shares[s] == index], found["liveness"]  # type: ignore[index]
+    assert found["other_heard_target"] is True
+    ack = found["ack"]
+    assert ack is not None and ack.command == 400 and ack.result == mavlink2.MAV_RESULT_ACCEPTED, ack  # type: ignore[attr-defined]
+    assert found["acks_to_routes"] == []  # the copy reached the transaction, no route
+    counters = found["owner_counters"]
+    assert counters["split_answers"] == 1 and counters["split_dropped"] == 0, counters  # type: ignore[index]
+    commanded = vehicles[target].received()
+    assert [(msg.command, msg.param2, msg.get_srcSystem()) for msg in commanded] == [(400, 77.0, 255)]
+    assert all(not vehicle.received() for system, vehicle in vehicles.items() if system != target)
+    assert all(vehicle.foreign == 0 for vehicle in vehicles.values())  # written to the target's address alone
+    assert all(vehicle.heartbeats > 0 for vehicle in vehicles.values())  # the owner's HEARTBEAT, to every peer
