@@ -95,7 +95,7 @@ def test_a_route_reading_a_split_link_with_state_of_its_own_is_refused_naming_it
     loaded = config(tmp_path, routes)
     with pytest.raises(PlacementError) as caught:
         place_routes(loaded, 2)
-    assert caught.value.file.endswith("routes.yaml") and caught.value.line == 5
+    assert caught.value.file.endswith("routes.yaml") and caught.value.line == 6  # the route item
     assert "route 'position': reads connection 'fleet', split over the workers" in str(caught.value)
     assert "dedupe keys" in str(caught.value)
     assert main(["check", "--routes", str(tmp_path / "routes.yaml"), "--schemas", str(REPO / "schemas"), "--workers", "2"]) == 1
