@@ -63,7 +63,7 @@ from engine.common.suggest import closest
 from engine.endpoints.errors import (Conflated, EndpointError, ExceptionTable, Expired, MessageRejected, NotSent, Refused, Unroutable,
                                      UnroutableRejected)
 from engine.endpoints.messages import FINAL_REPLIES, OVERFLOW_POLICIES, REPLY_KINDS, Inbound, Inbox, Outbound, Reply, StoredLetter, late_window
-from engine.endpoints.workers import WorkerHints
+from engine.endpoints.workers import ConnectionShare, WorkerHints
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
@@ -74,7 +74,7 @@ __all__ = [  # the contract's errors (engine/endpoints/errors.py) and values (en
     "FINAL_REPLIES", "OVERFLOW_POLICIES", "REPLY_KINDS", "Inbound", "Inbox", "Outbound", "Reply", "StoredLetter", "late_window",
     "DeadLetterReader",
     "Deliver", "BatchReader", "Source", "Sink", "ConnectionMetric", "Connection", "Lease", "ELEMENT", "FieldPath", "FieldProblem",
-    "CheckResult", "flat_field_problem", "EndpointOptions", "typed", "typed_or_problem", "Transport",
+    "CheckResult", "flat_field_problem", "EndpointOptions", "typed", "typed_or_problem", "Transport", "ConnectionShare",
 ]
 
 

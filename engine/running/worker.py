@@ -27,7 +27,7 @@ from typing import Any
 
 from engine import endpoints
 from engine.common.schemas import SchemaRegistry
-from engine.endpoints.workers import ConnectionShare
+from engine.endpoints.base import ConnectionShare
 from engine.language.specs import ConnectionSpec, RouteSpec, RoutesConfig
 from engine.running.placement import place_routes
 from engine.running.runtime import Engine, _Reload
