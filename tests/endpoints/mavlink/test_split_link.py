@@ -16,12 +16,15 @@ its own vehicles' frames still flow.
 from __future__ import annotations
 
 import asyncio
+import json
+import uuid
 from collections import Counter
 from pathlib import Path
 
 from pymavlink.dialects.v20 import common as mavlink2
 
 from engine.common.shares import share_of
+from engine.endpoints.base import Outbound
 from engine.endpoints.mavlink.connection import MavlinkConnection
 from engine.endpoints.mavlink.transaction import Conversation
 from engine.endpoints.workers import ConnectionShare
@@ -101,3 +104,48 @@ def test_each_vehicle_reaches_its_worker_and_a_command_from_the_other_worker_get
     assert all(not vehicle.received() for system, vehicle in vehicles.items() if system != target)
     assert all(vehicle.foreign == 0 for vehicle in vehicles.values())  # written to the target's address alone
     assert all(vehicle.heartbeats > 0 for vehicle in vehicles.values())  # the owner's HEARTBEAT, to every peer
+
+
+def test_missions_from_either_worker_reach_a_vehicle_of_the_other_share(tmp_path: Path) -> None:
+    """Mission uploads across the split: worker 1 uploads to vehicle 1 (worker 0's share) and the
+    owner, worker 0, to vehicle 3 (worker 1's); the vehicles (rabbitros_sim, their own UDP sockets)
+    answer MISSION_REQUEST_INT and MISSION_ACK, which the owner copies to the uploading worker.
+    Each vehicle has exactly its own mission, and nothing for another system reached it."""
+    from tests.endpoints.mavlink.test_fleet_missions import _mission, _points, _Watched
+
+    assert (share_of("1", 2), share_of("3", 2)) == (0, 1)
+    port = free_udp_port()
+    settings = {"url": f"udpin:127.0.0.1:{port}", "heartbeat": 1, "split_over_workers": True}
+
+    async def scenario() -> tuple[list[BaseException | None], list[BaseException | None], dict[int, _Watched], dict[str, int]]:
+        owner = MavlinkConnection("fleet", settings, ConnectionShare(0, 2, 0, str(tmp_path)))
+        other = MavlinkConnection("fleet", settings, ConnectionShare(1, 2, 0, str(tmp_path)))
+        await owner.open()
+        await other.open()
+        await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected to the owner")
+        vehicles = {system: _Watched(port, system) for system in (1, 3)}
+        stop = asyncio.Event()
+        running = [asyncio.create_task(vehicle.sim.run(stop)) for vehicle in vehicles.values()]
+        try:
+            await wait_for(lambda: all(c.has_heard(s) for c in (owner, other) for s in vehicles), 10, "both vehicles heard by both workers")
+            options = {"mission": "upload", "target_system": "{vehicle}", "timeout": 1.0, "retries": 3}
+            from_other = other.sink("missions", options).send_batch([_outbound(_mission(1, _points(1)))])
+            from_owner = owner.sink("missions", options).send_batch([_outbound(_mission(3, _points(3)))])
+            results = await asyncio.gather(from_other, from_owner)
+            return results[0], results[1], vehicles, dict(owner.stats)
+        finally:
+            stop.set()
+            await asyncio.gather(*running)
+            await other.close()
+            await owner.close()
+
+    by_other, by_owner, vehicles, counters = asyncio.run(asyncio.wait_for(scenario(), 60))
+    assert by_other == [None] and by_owner == [None], (by_other, by_owner)
+    for system in (1, 3):
+        assert vehicles[system].latitudes() == [round(lat * 1e7) / 1e7 for lat, _ in _points(system)], system
+        assert vehicles[system].foreign == 0
+    assert counters["split_answers"] >= 2 and counters["split_dropped"] == 0, counters
+
+
+def _outbound(canonical: dict[str, object]) -> Outbound:
+    return Outbound(json.dumps(canonical).encode(), canonical, canonical, uuid.uuid4().hex, {})
