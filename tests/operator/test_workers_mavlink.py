@@ -14,11 +14,16 @@ at 10 Hz from its own UDP socket and acknowledging every COMMAND_LONG addressed 
   only its peer, and every caller gets its MAV_RESULT_ACCEPTED, including for the commands a
   worker took for a vehicle of the other worker's share (the owner copied their COMMAND_ACKs:
   ``split_answers``).
+- The worker holding the socket killed with -9 is started again by the supervisor, holds the
+  socket again, the other worker connects to it again, and every vehicle's telemetry and
+  commands flow again.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import signal
 import uuid
 from pathlib import Path
 from typing import Any
@@ -115,7 +120,25 @@ def test_a_fleet_on_one_udp_link_is_split_over_two_workers_by_vehicle(tmp_path: 
                     calls[await caller.call("", f"{tag}-cmd", body)] = system
             await caller.wait(lambda replies: all(call in replies for call in calls), 60, "every command's reply")
             after = await admin_status(admin)
-            return {"status": status, "after": after, "positions": [json.loads(m.body) | {"key": m.routing_key}
+            # the worker holding the socket killed: started again, it holds it again, and the other reconnects
+            owner = after["workers"][0]["status"]["connections"]["fleet"]["split"]["owner"]
+            victim = after["workers"][owner]["pid"]
+            os.kill(victim, signal.SIGKILL)
+
+            async def back() -> bool:
+                worker = (await admin_status(admin))["workers"][owner]
+                return bool(worker["up"] and worker["restarts"] == 1 and worker["pid"] != victim)
+
+            await wait_for(back, 90, "the link's owner started again", lambda: engine.log())
+            await wait_for(connected, 30, "the other worker connected to the new owner")
+            mark = len(positions.messages)
+            await wait_for(lambda: {json.loads(m.body)["vehicle"] for m in positions.messages[mark:]} == set(VEHICLES), 60,
+                           "telemetry of every vehicle again")
+            again = {await caller.call("", f"{tag}-cmd", json.dumps({"vehicle": system, "param": 1000 + system}).encode()): system
+                     for system in VEHICLES}
+            await caller.wait(lambda replies: all(call in replies for call in again), 60, "every command's reply after the restart")
+            calls.update(again)
+            return {"status": status, "after": after, "victim": victim, "positions": [json.loads(m.body) | {"key": m.routing_key}
                                                                       for m in positions.messages],
                     "replies": {call: (caller.replies[call][0].headers.get("x-rabbitros-reply"), json.loads(caller.replies[call][0].body))
                                 for call in calls}}
@@ -153,6 +176,6 @@ def test_a_fleet_on_one_udp_link_is_split_over_two_workers_by_vehicle(tmp_path: 
     assert sum(taken) >= ROUNDS * len(VEHICLES), taken
     for system, vehicle in vehicles.items():
         params = sorted(int(msg.param2) for msg in vehicle.received())
-        assert set(params) == {round_ * 100 + system for round_ in range(ROUNDS)}, (system, params)
+        assert set(params) == {round_ * 100 + system for round_ in range(ROUNDS)} | {1000 + system}, (system, params)
         assert vehicle.foreign == 0  # each command went only to the peer its vehicle was heard from
 
