@@ -15,7 +15,7 @@ from pymavlink.dialects.v10 import common as mavlink1
 from pymavlink.dialects.v20 import common as mavlink2
 
 from engine.common.schemas import SchemaRegistry
-from engine.endpoints.mavlink.framing import frame_headers
+from engine.endpoints.mavlink.framing import crc_holds, frame_headers
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.language.specs import RoutesConfig
 from engine.ops.cli import main
@@ -134,3 +134,7 @@ def test_the_owner_reads_each_frames_sender_from_its_header():
         (start + len(position), start + len(position) + len(old), 200, mavlink1.MAVLINK_MSG_ID_HEARTBEAT),
     ]
     assert frame_headers(b"noise") == []
+    assert all(crc_holds(data, start, end, msg_id) for start, end, _, msg_id in frame_headers(data))
+    damaged = bytearray(position)
+    damaged[5] = 9  # the system id: the CRC no longer holds
+    assert [crc_holds(bytes(damaged), start, end, msg_id) for start, end, _, msg_id in frame_headers(bytes(damaged))] == [False]

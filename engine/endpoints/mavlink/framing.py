@@ -100,6 +100,19 @@ def frame_headers(data: bytes) -> list[tuple[int, int, int, int]]:
     return found
 
 
+def crc_holds(data: bytes, start: int, end: int, msg_id: int) -> bool:
+    """Whether the frame ``data[start:end]`` (as :func:`frame_headers` found it) has a good
+    CRC, without decoding its fields (the dialect's CRC, fastcrc where installed); a message id
+    the dialect does not know cannot be checked: False."""
+    known = mavlink2.mavlink_map.get(msg_id)
+    if known is None:
+        return False
+    signed = data[start] == _V2 and data[start + 2] & _SIGNED
+    crc_at = end - _CHECKSUM - (_SIGNATURE if signed else 0)
+    crc = mavlink2.x25crc(data[start + 1:crc_at] + bytes((known.crc_extra,))).crc
+    return bool(crc == int.from_bytes(data[crc_at:crc_at + _CHECKSUM], "little"))
+
+
 class FrameReader:
     """Frames of one link (or one peer of a TCP server) as pymavlink messages; rejected bytes
     counted into ``stats`` (see the module docstring)."""

@@ -29,7 +29,9 @@ What crosses, and why (each datagram starts with its kind):
   it and queues it in its own writer, which packs it (so one sequence number stream goes out, as
   from one ground station) and writes it to the address it last heard the target system from, or
   to every peer for a frame with no target, as a single engine does: nothing that reaches a
-  vehicle is guessed. Our HEARTBEAT is the owner's alone.
+  vehicle is guessed (an address is learnt only from a frame whose CRC holds, as a single
+  engine learns it from the frames it accepts; a damaged header would otherwise send a
+  vehicle's commands to another peer until its next frame). Our HEARTBEAT is the owner's alone.
 * :data:`ANSWER`, owner to worker: a copy of a vehicle's COMMAND_ACK, MISSION_REQUEST(_INT) or
   MISSION_ACK for every worker that sent that vehicle a command (or a mission frame) in the last
   :data:`TRANSACTION_S`: a command route's source competes on every worker, and the worker that
@@ -64,7 +66,7 @@ from engine.common.backoff import Backoff
 from engine.common.shares import share_of
 from engine.endpoints.base import EndpointError
 from engine.endpoints.mavlink.dialect import mavlink2
-from engine.endpoints.mavlink.framing import frame_headers
+from engine.endpoints.mavlink.framing import crc_holds, frame_headers
 from engine.endpoints.mavlink.links import PEER_TTL, Link, OnBytes, UdpLink
 from engine.endpoints.mavlink.settings import Address
 from engine.endpoints.workers import ConnectionShare
@@ -344,8 +346,9 @@ class SplitOwnerLink(UdpLink):
             self.on_bytes(data, addr)
             return
         first = headers[0][2]
-        for _, _, system, _ in headers:
-            self.address_of[system] = addr
+        for start, end, system, msg_id in headers:
+            if crc_holds(data, start, end, msg_id):  # a damaged header never redirects a vehicle's frames
+                self.address_of[system] = addr
         if all(system == first for _, _, system, _ in headers):
             self._hand(self.worker_of(first), VEHICLE, data, addr)
         else:
