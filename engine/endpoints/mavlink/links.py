@@ -59,6 +59,9 @@ class Link:
 
     datagrams = False
     """True where each chunk is a datagram, parsed on its own (framing.py); else a byte stream."""
+    relayed = False
+    """True where another process writes what is transmitted (a worker's end of a link split
+    over workers, split.py): it counts ``split_sent``, the writer ``frames_sent``."""
 
     def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int]) -> None:
         self.address = address

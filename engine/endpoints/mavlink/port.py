@@ -289,8 +289,11 @@ class MavlinkPort:
                 if not future.done():
                     future.set_exception(exc)
                 continue
-            self.stats["frames_sent"] += 1
-            self.stats["bytes_sent"] += len(data)
+            if self._link.relayed:  # handed to the worker holding a split link, which writes and counts it
+                self.stats["split_sent"] += 1
+            else:
+                self.stats["frames_sent"] += 1
+                self.stats["bytes_sent"] += len(data)
             if rate:
                 self._tx_ready = max(self._tx_ready, start) + len(data) / rate
             if paced and (budget := self.budget.rate(start)):

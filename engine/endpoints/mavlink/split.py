@@ -95,7 +95,9 @@ READS_PER_WAKE = 64
 SPLIT_STATS = ("split_handed", "split_dropped", "split_answers")
 """The owner's counters (the link's, in its status): datagrams handed to other workers, those
 a worker could not take (down, starting, its socket full: lost, as UDP telemetry is), and
-answers copied to a worker whose transaction waits for them (its own or another's)."""
+answers copied to a worker whose transaction waits for them (its own or another's). A worker's
+frames handed to the owner count ``split_sent`` there; the owner counts them ``frames_sent`` once
+written, so the merged counters count each frame on the wire once."""
 OWNER_PEER = "owner"
 """The peer a worker's frames come from (the owner heard the vehicle's address)."""
 
@@ -402,10 +404,12 @@ class SplitWorkerLink(Link):
     writes goes to the owner (see the module docstring)."""
 
     datagrams = True
+    relayed = True
 
     def __init__(self, address: Address, on_bytes: OnBytes, stats: dict[str, int], name: str, share: ConnectionShare,
                  on_copy: OnCopy) -> None:
         super().__init__(address, on_bytes, stats)
+        stats.setdefault("split_sent", 0)
         self.share = share
         self.local = WorkerSocket(socket_path(share.runtime_dir, name), share.index, self._from_owner)
         self.on_copy = on_copy

@@ -72,6 +72,7 @@ def test_each_vehicle_reaches_its_worker_and_a_command_from_the_other_worker_get
                 found["ack"] = await answers.next(10)
             found["acks_to_routes"] = list(acks_to_routes)
             found["owner_counters"] = dict(owner.stats)
+            found["other_sent"] = (other.stats["split_sent"], other.stats["frames_sent"])
             await other.close()
             dropped = owner.stats["split_dropped"]
             before = heard[0].copy()
@@ -97,6 +98,7 @@ def test_each_vehicle_reaches_its_worker_and_a_command_from_the_other_worker_get
     ack = found["ack"]
     assert ack is not None and ack.command == 400 and ack.result == mavlink2.MAV_RESULT_ACCEPTED, ack  # type: ignore[attr-defined]
     assert found["acks_to_routes"] == []  # the copy reached the transaction, no route
+    assert found["other_sent"] == (1, 0)  # handed to the owner (no HEARTBEAT of its own); the owner counts it written
     counters = found["owner_counters"]
     assert counters["split_answers"] == 1 and counters["split_dropped"] == 0, counters  # type: ignore[index]
     commanded = vehicles[target].received()
