@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from contextlib import AbstractAsyncContextManager
 from collections.abc import Hashable, Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -35,6 +36,7 @@ from engine.endpoints.mavlink.options import MavlinkConnectionOptions, MavlinkSi
 from engine.endpoints.mavlink.port import PORT_STATS, MavlinkPort
 from engine.endpoints.mavlink.settings import Address, settings_problems
 from engine.endpoints.mavlink.split import PRESENCE, SplitOwnerLink, SplitWorkerLink
+from engine.endpoints.mavlink.split_leases import SplitLock
 from engine.endpoints.mavlink.tunnel import TunnelHub, TunnelSink, TunnelSource
 from engine.endpoints.workers import ConnectionShare
 
@@ -86,7 +88,7 @@ class MavlinkConnection(Connection):
         self._listeners: dict[int | None, list[Listener]] = {}
         self._from_system: dict[tuple[int | None, int], list[Listener]] = {}
         """Listeners of one vehicle's messages (:meth:`listen` with a ``system_id``)."""
-        self._locks: dict[Hashable, asyncio.Lock] = {}
+        self._locks: dict[Hashable, asyncio.Lock | SplitLock] = {}
         self._tasks: list[asyncio.Task[None]] = []
         self._answers: dict[int | None, list[Listener]] = {}
         """Listeners of transactions (``listen(answers=True)``), also called for the answers
@@ -386,9 +388,10 @@ class MavlinkConnection(Connection):
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(heard, left)
 
-    def transaction_lock(self, key: Hashable) -> asyncio.Lock:
-        """One mission upload (or command) at a time per target, as the protocols require."""
+    def transaction_lock(self, key: Hashable) -> AbstractAsyncContextManager[Any]:
+        """One mission upload (or command) at a time per target, as the protocols require; on a
+        split link, across the workers (split_leases.py)."""
         lock = self._locks.get(key)
         if lock is None:
-            lock = self._locks[key] = asyncio.Lock()
+            lock = self._locks[key] = asyncio.Lock() if self._split_end is None else SplitLock(self._split_end, repr(key))
         return lock

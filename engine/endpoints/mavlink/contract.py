@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable, Hashable
-from typing import Protocol
+from contextlib import AbstractAsyncContextManager
+from typing import Any, Protocol
 
 from engine.endpoints.mavlink.dialect import mavlink2
 from engine.endpoints.mavlink.settings import LinkConfig
@@ -50,7 +51,7 @@ class SharedLink(Protocol):
     def post(self, msg: mavlink2.MAVLink_message) -> None:
         """Queue a frame nobody waits for (a failure is only counted)."""
 
-    def transaction_lock(self, key: Hashable) -> asyncio.Lock:
+    def transaction_lock(self, key: Hashable) -> AbstractAsyncContextManager[Any]:
         """One mission upload (or command) at a time per target, as the protocols require."""
 
     async def wait_for_vehicle(self, system: int, component: int, deadline: float) -> None:

@@ -38,10 +38,10 @@ What crosses, and why (each datagram starts with its kind):
   took a command for vehicle X waits for X's answer though X's frames are another worker's. The
   copy reaches only the transactions waiting (``listen(answers=True)``), never a route, so a
   telemetry route still carries the answer once, from X's own worker. Each transaction reads
-  the answer as a single engine does (a COMMAND_ACK of another command is passed over). What a
-  single engine does and this does not: serialize two transactions of one command to one vehicle
-  taken by two workers at once (MAVLink's COMMAND_ACK cannot tell them apart either; the
-  single engine's lock is per process).
+  the answer as a single engine does (a COMMAND_ACK of another command is passed over). A
+  transaction's lock (one mission upload, and one command of each kind, per vehicle at a time:
+  two COMMAND_ACKs of one command cannot be told apart) is held at the owner for every worker
+  (split_leases.py), so two workers taking commands for one vehicle take turns as in one process.
 
 A worker that is down misses its vehicles' frames (counted ``split_dropped`` in the link's
 counters: UDP telemetry is lost as over the air); a worker whose owner is down gets
@@ -69,9 +69,12 @@ from engine.endpoints.mavlink.dialect import mavlink2
 from engine.endpoints.mavlink.framing import crc_holds, frame_headers
 from engine.endpoints.mavlink.links import PEER_TTL, Link, OnBytes, UdpLink
 from engine.endpoints.mavlink.settings import Address
+from engine.endpoints.mavlink.split_leases import Claim, Leases, lease_message, read_lease
 from engine.endpoints.workers import ConnectionShare
 
 VEHICLE, PRESENCE, ANSWER, SEND, HELLO = b"V", b"H", b"A", b"S", b"W"
+LEASE, RELEASE, GRANT = b"L", b"R", b"G"
+"""A transaction's lock across the workers (split_leases.py): asked, given back, granted."""
 """The kinds of datagram between the owner and the workers (see the module docstring)."""
 HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
 ANSWERS = {mavlink2.MAVLINK_MSG_ID_COMMAND_ACK: "command", mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST: "mission",
@@ -143,9 +146,11 @@ class OwnerSockets:
     connection buffer holds some 10,000 frames), and one connection per worker, which names
     itself first (:data:`HELLO`)."""
 
-    def __init__(self, path: str, on_message: Callable[[int, bytes], None]) -> None:
+    def __init__(self, path: str, on_message: Callable[[int, bytes], None], on_gone: Callable[[int], None]) -> None:
         self.path = path
         self.on_message = on_message
+        self.on_gone = on_gone
+        """Called with a worker's index when its connection closed (it went away)."""
         self.workers: dict[int, socket.socket] = {}
         self._listening: socket.socket | None = None
         self._unnamed: set[socket.socket] = set()
@@ -198,11 +203,13 @@ class OwnerSockets:
     def _drop(self, conn: socket.socket) -> None:
         with contextlib.suppress(Exception):
             asyncio.get_running_loop().remove_reader(conn.fileno())
-        for index, sock in list(self.workers.items()):
-            if sock is conn:
-                del self.workers[index]
+        gone = [index for index, sock in self.workers.items() if sock is conn]
+        for index in gone:
+            del self.workers[index]
         self._unnamed.discard(conn)
         conn.close()
+        for index in gone:
+            self.on_gone(index)
 
     def send(self, worker: int, data: bytes) -> bool:
         """False when the worker is not connected (down, starting) or cannot take more now."""
@@ -234,10 +241,12 @@ class WorkerSocket:
     """A worker's end: connected to the owner's socket, again whenever the owner went away (a
     restart), after the engine's backoff."""
 
-    def __init__(self, path: str, index: int, on_message: Callable[[bytes], None]) -> None:
+    def __init__(self, path: str, index: int, on_message: Callable[[bytes], None], on_lost: Callable[[], None]) -> None:
         self.path = path
         self.index = index
         self.on_message = on_message
+        self.on_lost = on_lost
+        """Called when the connection to the owner closed."""
         self.connected: socket.socket | None = None
         self._task: asyncio.Task[None] | None = None
         self._lost: asyncio.Event = asyncio.Event()
@@ -276,6 +285,7 @@ class WorkerSocket:
         sock.close()
         if self.connected is sock:
             self.connected = None
+            self.on_lost()
         self._lost.set()
 
     def send(self, data: bytes) -> bool:
@@ -307,7 +317,10 @@ class SplitOwnerLink(UdpLink):
                  on_copy: OnCopy, on_send: Callable[[bytes, int], None]) -> None:
         super().__init__(address, on_bytes, stats)
         self.share = share
-        self.local = OwnerSockets(socket_path(share.runtime_dir, name), self._from_worker)
+        self.local = OwnerSockets(socket_path(share.runtime_dir, name), self._from_worker, self._gone)
+        self.leases = Leases(self._grant)
+        self._own_grants: dict[int, asyncio.Future[None]] = {}
+        self._requests = 0
         self.on_copy = on_copy
         self.on_send = on_send
         """``(frame, worker)``: a frame a worker wrote, for the owner's writer."""
@@ -391,8 +404,42 @@ class SplitOwnerLink(UdpLink):
             self.transactions.setdefault((target, kind), {})[worker] = time.monotonic() + TRANSACTION_S
 
     def _from_worker(self, worker: int, data: bytes) -> None:
-        if data[:1] == SEND and len(data) > 1:
+        kind = data[:1]
+        if kind == SEND and len(data) > 1:
             self.on_send(data[1:], worker)
+        elif kind in (LEASE, RELEASE):
+            request, key = read_lease(data)
+            (self.leases.acquire if kind == LEASE else self.leases.release)(key, (worker, request))
+
+    def _gone(self, worker: int) -> None:
+        self.leases.gone(worker)
+
+    def _grant(self, claim: Claim, key: str) -> bool:
+        worker, request = claim
+        if worker != self.share.index:
+            return self.local.send(worker, lease_message(GRANT, request, key))
+        waiter = self._own_grants.pop(request, None)
+        if waiter is None or waiter.done():
+            return False
+        waiter.set_result(None)
+        return True
+
+    async def lease(self, key: str) -> int:
+        """The owner's own transactions take their turn with the workers' (split_leases.py)."""
+        self._requests += 1
+        claim = (self.share.index, self._requests)
+        waiter = self._own_grants[claim[1]] = asyncio.get_running_loop().create_future()
+        self.leases.acquire(key, claim)
+        try:
+            await waiter
+        except BaseException:
+            self._own_grants.pop(claim[1], None)
+            self.leases.release(key, claim)
+            raise
+        return claim[1]
+
+    def unlease(self, key: str, request: int) -> None:
+        self.leases.release(key, (self.share.index, request))
 
     async def close(self) -> None:
         self.local.close()
@@ -411,9 +458,11 @@ class SplitWorkerLink(Link):
         super().__init__(address, on_bytes, stats)
         stats.setdefault("split_sent", 0)
         self.share = share
-        self.local = WorkerSocket(socket_path(share.runtime_dir, name), share.index, self._from_owner)
+        self.local = WorkerSocket(socket_path(share.runtime_dir, name), share.index, self._from_owner, self._owner_lost)
         self.on_copy = on_copy
         self._heard = -PEER_TTL
+        self._grants: dict[int, asyncio.Future[None]] = {}
+        self._requests = 0
 
     async def open(self) -> None:
         self.local.open()
@@ -432,8 +481,43 @@ class SplitWorkerLink(Link):
         kind, frame = data[:1], data[1:]
         if kind == VEHICLE:
             self.on_bytes(frame, OWNER_PEER)
+        elif kind == GRANT:
+            request, key = read_lease(data)
+            waiter = self._grants.pop(request, None)
+            if waiter is None or waiter.done():  # it gave up meanwhile: the next claim may have it
+                self.local.send(lease_message(RELEASE, request, key))
+            else:
+                waiter.set_result(None)
         else:
             self.on_copy(kind, frame)
+
+    async def lease(self, key: str) -> int:
+        """Wait for the owner's grant of ``key`` (split_leases.py); the request's number."""
+        self._requests += 1
+        request = self._requests
+        waiter = self._grants[request] = asyncio.get_running_loop().create_future()
+        if not self.local.send(lease_message(LEASE, request, key)):
+            del self._grants[request]
+            raise EndpointError(f"udpin:{self.address.host}:{self.address.port} is held by worker {self.share.owner} "
+                                "(split_over_workers), which does not answer now (down or starting)")
+        try:
+            await waiter
+        except BaseException:
+            self._grants.pop(request, None)
+            self.local.send(lease_message(RELEASE, request, key))
+            raise
+        return request
+
+    def unlease(self, key: str, request: int) -> None:
+        self.local.send(lease_message(RELEASE, request, key))
+
+    def _owner_lost(self) -> None:
+        """What waits for the owner's grant fails: the owner went away (its successor knows nothing of it)."""
+        waiting, self._grants = self._grants, {}
+        for waiter in waiting.values():
+            if not waiter.done():
+                waiter.set_exception(EndpointError("the worker holding the split link went away while a transaction "
+                                                   "waited for its turn"))
 
     async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
         if self.closed:

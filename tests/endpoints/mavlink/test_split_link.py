@@ -21,11 +21,13 @@ import uuid
 from collections import Counter
 from pathlib import Path
 
+import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 from engine.common.shares import share_of
 from engine.endpoints.base import Outbound
 from engine.endpoints.mavlink.connection import MavlinkConnection
+from engine.endpoints.mavlink.split_leases import Leases
 from engine.endpoints.mavlink.transaction import Conversation
 from engine.endpoints.workers import ConnectionShare
 from tests.support.udp_vehicle import FleetVehicle, free_udp_port
@@ -151,3 +153,86 @@ def test_missions_from_either_worker_reach_a_vehicle_of_the_other_share(tmp_path
 
 def _outbound(canonical: dict[str, object]) -> Outbound:
     return Outbound(json.dumps(canonical).encode(), canonical, canonical, uuid.uuid4().hex, {})
+
+
+def test_a_transactions_lock_is_held_across_the_workers_and_freed_when_its_holder_goes(tmp_path: Path) -> None:
+    """``transaction_lock`` of a split link (split_leases.py): worker 1 holds a vehicle's command
+    lock, the owner's transaction for the same key waits until worker 1 lets go; then worker 1
+    waits for the owner's, and the owner gets it back at once when worker 1's end closes (a
+    worker killed while it held a lock does not hold it for good). Another key is never held up."""
+    port = free_udp_port()
+    settings = {"url": f"udpin:127.0.0.1:{port}", "heartbeat": 0, "split_over_workers": True}
+    key = ("command", (3, 1), 400)
+
+    async def scenario() -> list[str]:
+        owner = MavlinkConnection("fleet", settings, ConnectionShare(0, 2, 0, str(tmp_path)))
+        other = MavlinkConnection("fleet", settings, ConnectionShare(1, 2, 0, str(tmp_path)))
+        await owner.open()
+        await other.open()
+        events: list[str] = []
+        try:
+            await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected to the owner")
+            held = asyncio.Event()
+
+            async def worker_one() -> None:
+                async with other.transaction_lock(key):
+                    events.append("1 holds")
+                    held.set()
+                    await asyncio.sleep(0.3)
+                    events.append("1 lets go")
+
+            first = asyncio.create_task(worker_one())
+            await held.wait()
+            async with owner.transaction_lock(("command", (3, 1), 176)):  # another command: not held up
+                events.append("0 holds another")
+            async with owner.transaction_lock(key):
+                events.append("0 holds")
+                waiting = asyncio.create_task(other.transaction_lock(key).__aenter__())
+                await asyncio.sleep(0.2)
+                events.append(f"1 waits: {not waiting.done()}")
+            await asyncio.wait_for(waiting, 5)
+            events.append("1 holds again")
+            await first
+            third = asyncio.create_task(owner.transaction_lock(key).__aenter__())
+            await asyncio.sleep(0.2)
+            events.append(f"0 waits: {not third.done()}")
+            await other.close()  # worker 1 goes away holding it
+            await asyncio.wait_for(third, 5)
+            events.append("0 holds after 1 went away")
+        finally:
+            await other.close()
+            await owner.close()
+        return events
+
+    events = asyncio.run(asyncio.wait_for(scenario(), 30))
+    assert events == ["1 holds", "0 holds another", "1 lets go", "0 holds", "1 waits: True", "1 holds again", "0 waits: True",
+                      "0 holds after 1 went away"], events
+
+
+@pytest.mark.fast
+def test_leases_go_in_order_and_a_late_grant_is_told_from_the_next_request() -> None:
+    """The owner's table (split_leases.py ``Leases``) alone: claims are (worker, request)."""
+    granted: list[tuple[tuple[int, int], str]] = []
+    away: set[int] = set()
+
+    def grant(claim: tuple[int, int], key: str) -> bool:
+        if claim[0] in away:
+            return False
+        granted.append((claim, key))
+        return True
+
+    leases = Leases(grant)
+    leases.acquire("k", (1, 1))
+    leases.acquire("k", (0, 1))
+    leases.acquire("k", (2, 1))
+    leases.acquire("j", (0, 2))
+    assert granted == [((1, 1), "k"), ((0, 2), "j")]
+    leases.release("k", (1, 7))  # a stale release of another request: nothing
+    assert leases.holder["k"] == (1, 1)
+    away.add(0)
+    leases.release("k", (1, 1))  # worker 0 is gone: its claim is passed over
+    assert granted[-1] == ((2, 1), "k")
+    leases.gone(2)
+    assert "k" not in leases.holder and "k" not in leases.waiting
+    leases.gone(0)
+    assert leases.holder == {} and leases.waiting == {}
