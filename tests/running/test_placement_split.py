@@ -62,10 +62,14 @@ def config(tmp_path: Path, routes: str, connections: str = CONNECTIONS) -> Route
     return load_routes(tmp_path / "routes.yaml", SchemaRegistry([REPO / "schemas"]))
 
 
-def test_a_split_links_routes_run_on_every_worker_and_one_worker_holds_it(tmp_path: Path):
+def test_a_split_links_routes_run_on_every_worker_and_one_worker_holds_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]):
     """Telemetry from the link and commands to it (a competing queue) run on every worker; the
-    socket is held by the worker its resource hashes to."""
+    socket is held by the worker its resource hashes to; ``check --workers 3`` prints both."""
     placement = place_routes(config(tmp_path, TELEMETRY + COMMANDS), 3)
+    assert main(["check", "--routes", str(tmp_path / "routes.yaml"), "--schemas", str(REPO / "schemas"), "--workers", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert "  position: every worker (each worker with its share of connection fleet, held by worker" in printed, printed
+    assert "  connection fleet: split over every worker, held by worker" in printed, printed
     assert placement.routes["position"].workers == placement.routes["commands"].workers == (0, 1, 2)
     owner = stable_worker("udp:14660", 3)
     assert placement.owners == {"fleet": owner}
