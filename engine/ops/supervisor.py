@@ -483,6 +483,8 @@ class Supervisor:
             "workers": [worker.status(self.placement) for worker in self.workers],
             "placement": {name: list(place.workers) for name, place in sorted(self.placement.routes.items())}
             if self.placement else {},
+            "split_connections": dict(sorted(self.placement.owners.items())) if self.placement else {},
+            # a connection split over the workers -> the worker holding it (placement rule 1b)
         }
 
 

@@ -155,6 +155,7 @@ def test_a_fleet_on_one_udp_link_is_split_over_two_workers_by_vehicle(tmp_path: 
             vehicle.join(5)
     status, after = result["status"], result["after"]
     assert status["placement"] == {"command": [0, 1], "position": [0, 1]}, status["placement"]
+    assert status["split_connections"] == {"fleet": status["workers"][0]["status"]["connections"]["fleet"]["split"]["owner"]}
     for worker in (0, 1):  # each worker reports exactly the vehicles whose system id falls to it
         link = status["workers"][worker]["status"]["connections"]["fleet"]
         own = sorted(v["system_id"] for v in link["liveness"])
