@@ -71,6 +71,23 @@ def fly(port: int, vehicles: int, rate: float, stop: Any, sent: Any) -> None:
         time.sleep(max(0.0, started + tick / rate - time.monotonic()))
 
 
+async def connected(status_file: Path, workers: int, timeout: float = 60.0) -> None:
+    """Until every other worker is connected to the worker holding the link (its status says so)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            docs = [w.get("status") or {} for w in json.loads(status_file.read_text()).get("workers", [])]
+            splits = [d.get("connections", {}).get("fleet", {}).get("split") for d in docs]
+            if splits and None not in splits:
+                owner = splits[0]["owner"]
+                if splits[owner]["connected"] == [k for k in range(workers) if k != owner]:
+                    return
+        except (OSError, ValueError, KeyError):
+            pass
+        await asyncio.sleep(0.2)
+    raise RuntimeError("the workers did not connect to the link's holder")
+
+
 async def one_run(broker: Broker, workers: int, vehicles: int, rate: float, seconds: float) -> dict[str, Any]:
     tag = uuid.uuid4().hex[:8]
     exchange, sink = f"split-out-{tag}", f"split-sink-{tag}"
@@ -92,6 +109,8 @@ async def one_run(broker: Broker, workers: int, vehicles: int, rate: float, seco
             try:
                 pids = await engine.running()
                 processes = [engine.process.pid, *(pid for pid in pids if pid != engine.process.pid)]
+                if workers > 1:
+                    await connected(engine.status_file, workers)
                 flying.start()
                 await asyncio.sleep(3.0)  # warm-up: every vehicle heard, the routes' first batches
                 before = ([process_cpu_seconds(pid) for pid in processes], group_cpu_seconds(BROKER_GROUP[0]),
