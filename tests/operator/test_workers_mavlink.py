@@ -9,7 +9,8 @@ at 10 Hz from its own UDP socket and acknowledging every COMMAND_LONG addressed 
 
 - Every vehicle's telemetry reaches RabbitMQ, each from the worker its system id falls to; each
   worker reports (status: the link's liveness) exactly its share of the vehicles, the shares
-  disjoint and both nonempty, and the merged status names each vehicle once.
+  disjoint and both nonempty, and the merged status and ``/metrics`` (``rabbitros_vehicle_up``)
+  name each vehicle once, from its own worker.
 - Commands (AMQP -> acknowledged COMMAND_LONG, competing on both workers) reach each vehicle and
   only its peer, and every caller gets its MAV_RESULT_ACCEPTED, including for the commands a
   worker took for a vehicle of the other worker's share (the owner copied their COMMAND_ACKs:
@@ -30,6 +31,7 @@ from typing import Any
 
 import aio_pika
 import aiohttp
+from prometheus_client.parser import text_string_to_metric_families
 
 from engine.common.processes import listening_port
 from engine.common.shares import share_of
@@ -113,6 +115,8 @@ def test_a_fleet_on_one_udp_link_is_split_over_two_workers_by_vehicle(tmp_path: 
                 return status if sorted(v["system_id"] for v in link.get("liveness", [])) == list(VEHICLES) else None
 
             status = await wait_for(every_vehicle_reported, 30, "each vehicle's liveness in the merged status")
+            async with aiohttp.ClientSession() as session, session.get(f"http://127.0.0.1:{admin}/metrics") as answer:
+                metrics = await answer.text()
             calls = {}
             for round_ in range(ROUNDS):
                 for system in VEHICLES:
@@ -138,7 +142,7 @@ def test_a_fleet_on_one_udp_link_is_split_over_two_workers_by_vehicle(tmp_path: 
                      for system in VEHICLES}
             await caller.wait(lambda replies: all(call in replies for call in again), 60, "every command's reply after the restart")
             calls.update(again)
-            return {"status": status, "after": after, "victim": victim, "positions": [json.loads(m.body) | {"key": m.routing_key}
+            return {"status": status, "after": after, "victim": victim, "metrics": metrics, "positions": [json.loads(m.body) | {"key": m.routing_key}
                                                                       for m in positions.messages],
                     "replies": {call: (caller.replies[call][0].headers.get("x-rabbitros-reply"), json.loads(caller.replies[call][0].body))
                                 for call in calls}}
@@ -166,6 +170,13 @@ def test_a_fleet_on_one_udp_link_is_split_over_two_workers_by_vehicle(tmp_path: 
         assert received > 0, (worker, received)
     for position in result["positions"]:
         assert position["key"] == f"uav.{position['vehicle']}"
+    up = {s.labels["system_id"]: s.value for family in text_string_to_metric_families(result["metrics"]) for s in family.samples
+          if s.name == "rabbitros_vehicle_up"}  # the merged series: one per vehicle, from its worker
+    assert up == {str(system): 1.0 for system in VEHICLES}, up
+    per_worker = [s.labels for family in text_string_to_metric_families(result["metrics"]) for s in family.samples
+                  if s.name == "rabbitros_worker_vehicle_up"]
+    assert sorted((labels["worker"], int(labels["system_id"])) for labels in per_worker) == sorted(
+        (str(shares[system]), system) for system in VEHICLES), per_worker
     merged = after["connections"]["fleet"]
     assert sorted(v["system_id"] for v in merged["liveness"]) == list(VEHICLES)  # once each, from its own worker
     assert merged["counters"]["split_dropped"] == 0, merged["counters"]
