@@ -361,9 +361,10 @@ class SplitOwnerLink(UdpLink):
             self.on_bytes(data, addr)
             return
         first = headers[0][2]
-        for start, end, system, msg_id in headers:
-            if crc_holds(data, start, end, msg_id):  # a damaged header never redirects a vehicle's frames
-                self.address_of[system] = addr
+        address_of = self.address_of
+        for start, end, system, msg_id in headers:  # a damaged header never redirects a vehicle's frames
+            if address_of.get(system) != addr and crc_holds(data, start, end, msg_id):
+                address_of[system] = addr
         if all(system == first for _, _, system, _ in headers):
             self._hand(self.worker_of(first), VEHICLE, data, addr)
         else:
