@@ -236,3 +236,37 @@ def test_leases_go_in_order_and_a_late_grant_is_told_from_the_next_request() -> 
     assert "k" not in leases.holder and "k" not in leases.waiting
     leases.gone(0)
     assert leases.holder == {} and leases.waiting == {}
+
+
+def test_a_datagram_with_frames_of_two_vehicles_is_cut_between_their_workers(tmp_path: Path) -> None:
+    """A router may put frames of several systems in one datagram: each frame goes to its own
+    system's worker (system 1: worker 0, system 3: worker 1), none twice."""
+    import socket
+
+    port = free_udp_port()
+    settings = {"url": f"udpin:127.0.0.1:{port}", "heartbeat": 0, "split_over_workers": True}
+    one, three = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), mavlink2.MAVLink(None, srcSystem=3, srcComponent=1)
+
+    async def scenario() -> dict[int, list[tuple[int, int]]]:
+        owner = MavlinkConnection("fleet", settings, ConnectionShare(0, 2, 0, str(tmp_path)))
+        other = MavlinkConnection("fleet", settings, ConnectionShare(1, 2, 0, str(tmp_path)))
+        heard: dict[int, list[tuple[int, int]]] = {0: [], 1: []}
+        for index, connection in ((0, owner), (1, other)):
+            connection.listen(POSITION, lambda msg, index=index: heard[index].append((msg.get_srcSystem(), msg.time_boot_ms)))
+        await owner.open()
+        await other.open()
+        try:
+            await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected to the owner")
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as router:
+                for n in range(5):
+                    frames = [mav.global_position_int_encode(n, 0, 0, 0, 0, 0, 0, 0, 0).pack(mav) for mav in (one, three, one)]
+                    router.sendto(b"".join(frames), ("127.0.0.1", port))
+                await wait_for(lambda: len(heard[0]) == 10 and len(heard[1]) == 5, 10, "every frame at its worker", lambda: heard)
+        finally:
+            await other.close()
+            await owner.close()
+        return heard
+
+    heard = asyncio.run(asyncio.wait_for(scenario(), 30))
+    assert heard[0] == [(1, n) for n in range(5) for _ in range(2)], heard
+    assert heard[1] == [(3, n) for n in range(5)], heard
