@@ -97,18 +97,20 @@ class MqttHarness(Harness):
         await asyncio.to_thread(self.broker.start)
         await self._connect_again()
 
-    async def _connect_again(self, timeout: float = 10.0) -> None:
+    async def _connect_again(self, timeout: float = 30.0, attempt_s: float = 5.0) -> None:
         """The test's own clients back on a restarted broker: a connection refused in the moment
-        after it first accepted one (seen once under a loaded CI-like run) is tried again; a broker
+        after it first accepted one (seen once under a loaded CI-like run) is tried again, and so
+        is one the broker reset while connecting, after which the client waits for a CONNACK that
+        never comes (its own timeout is 30 s: each attempt is bounded to ``attempt_s``); a broker
         that stays down still fails the case, naming the error."""
         import aiomqtt
 
         deadline = asyncio.get_running_loop().time() + timeout
         while True:
             try:
-                await self._connect()
+                await asyncio.wait_for(self._connect(), attempt_s)
                 return
-            except aiomqtt.MqttError:
+            except (aiomqtt.MqttError, asyncio.TimeoutError):
                 await self._disconnect()  # whichever of the two clients got through: never two collectors
                 if asyncio.get_running_loop().time() > deadline:
                     raise
