@@ -123,7 +123,14 @@ def test_a_fleet_on_one_udp_link_is_split_over_two_workers_by_vehicle(tmp_path: 
                     body = json.dumps({"vehicle": system, "param": round_ * 100 + system}).encode()
                     calls[await caller.call("", f"{tag}-cmd", body)] = system
             await caller.wait(lambda replies: all(call in replies for call in calls), 60, "every command's reply")
-            after = await admin_status(admin)
+
+            async def every_command_counted() -> dict[str, Any] | None:
+                """The reply goes out before the route counts the command delivered: wait for the counts."""
+                status = await admin_status(admin)
+                taken = [status["workers"][w]["status"]["routes"]["command"]["delivered"] for w in (0, 1)]
+                return status if sum(taken) >= ROUNDS * len(VEHICLES) else None
+
+            after = await wait_for(every_command_counted, 30, "every command counted delivered by the workers")
             # the worker holding the socket killed: started again, it holds it again, and the other reconnects
             owner = after["workers"][0]["status"]["connections"]["fleet"]["split"]["owner"]
             victim = after["workers"][owner]["pid"]
