@@ -6,7 +6,7 @@ socket) was one process's (engine/running/placement.py rule 1), however many wor
 the option, the worker placement gives the link to (its *owner*) holds the UDP socket and every
 worker runs the link's routes; each worker is connected to the owner by a local socket
 (``AF_UNIX``, ``SOCK_SEQPACKET``: one message per MAVLink datagram, nothing to frame; see
-:class:`OwnerSockets` for why not ``SOCK_DGRAM``) in the supervisor's private runtime
+split_sockets.py for why not ``SOCK_DGRAM``) in the supervisor's private runtime
 directory. Chosen over the kernel spreading one port over several
 sockets (``SO_REUSEPORT``): the kernel hashes the sender's address, so a vehicle's replies and
 its telemetry reach the same socket, but a command's sender cannot choose the socket its
@@ -54,15 +54,10 @@ transport's ``split_problems``).
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import hashlib
-import os
-import socket
 import time
 from collections.abc import Callable, Hashable
 from typing import Any
 
-from engine.common.backoff import Backoff
 from engine.common.shares import share_of
 from engine.endpoints.base import EndpointError
 from engine.endpoints.mavlink.dialect import mavlink2
@@ -70,12 +65,14 @@ from engine.endpoints.mavlink.framing import crc_holds, frame_headers
 from engine.endpoints.mavlink.links import PEER_TTL, Link, OnBytes, UdpLink
 from engine.endpoints.mavlink.settings import Address
 from engine.endpoints.mavlink.split_leases import Claim, Leases, lease_message, read_lease
+from engine.endpoints.mavlink.split_sockets import OwnerSockets, WorkerSocket, socket_path
 from engine.endpoints.workers import ConnectionShare
 
-VEHICLE, PRESENCE, ANSWER, SEND, HELLO = b"V", b"H", b"A", b"S", b"W"
+VEHICLE, PRESENCE, ANSWER, SEND = b"V", b"H", b"A", b"S"
+"""The kinds of datagram between the owner and the workers (see the module docstring; a
+worker's connection starts with :data:`.split_sockets.HELLO`)."""
 LEASE, RELEASE, GRANT = b"L", b"R", b"G"
 """A transaction's lock across the workers (split_leases.py): asked, given back, granted."""
-"""The kinds of datagram between the owner and the workers (see the module docstring)."""
 HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
 ANSWERS = {mavlink2.MAVLINK_MSG_ID_COMMAND_ACK: "command", mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST: "mission",
            mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_INT: "mission", mavlink2.MAVLINK_MSG_ID_MISSION_ACK: "mission"}
@@ -88,13 +85,6 @@ TRANSACTION_S = 60.0
 """How long after a worker's last command (or mission frame) to a vehicle the vehicle's answers
 are copied to it: beyond a command's bound with a MAV_RESULT_IN_PROGRESS (in_progress_timeout,
 30 s by default). A copy after the transaction ended reaches no listener and costs a datagram."""
-LOCAL_BUFFER = 4 << 20
-"""Bytes of socket buffer for the local sockets, as for the UDP socket (links.py)."""
-CONNECT_FIRST_S, CONNECT_CAP_S = 0.05, 1.0
-"""A worker tries the owner's socket again after 25-50 ms, at most every 0.5-1 s: workers
-start together, and an owner started again is reached within a second."""
-READS_PER_WAKE = 64
-"""Datagrams read per readiness callback, so one busy socket cannot hold the loop."""
 SPLIT_STATS = ("split_handed", "split_dropped", "split_answers")
 """The owner's counters (the link's, in its status): datagrams handed to other workers, those
 a worker could not take (down, starting, its socket full: lost, as UDP telemetry is), and
@@ -104,209 +94,9 @@ written, so the merged counters count each frame on the wire once."""
 OWNER_PEER = "owner"
 """The peer a worker's frames come from (the owner heard the vehicle's address)."""
 
+
 OnCopy = Callable[[bytes, bytes], None]
 """``(kind, frame)``: a :data:`PRESENCE` or :data:`ANSWER` copy for the connection."""
-
-
-def socket_path(runtime_dir: str, connection: str) -> str:
-    """The owner's listening socket for ``connection``: short, as ``AF_UNIX`` paths are (108
-    bytes), and the same in every worker."""
-    tag = hashlib.blake2b(connection.encode(), digest_size=4).hexdigest()
-    return os.path.join(runtime_dir, f"mav-{tag}.sock")
-
-
-def _local_socket() -> socket.socket:
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-    sock.setblocking(False)
-    for option in (socket.SO_RCVBUF, socket.SO_SNDBUF):
-        with contextlib.suppress(OSError):
-            sock.setsockopt(socket.SOL_SOCKET, option, LOCAL_BUFFER)
-    return sock
-
-
-def _read(sock: socket.socket, on_message: Callable[[bytes], None]) -> bool:
-    """Up to :data:`READS_PER_WAKE` messages of a ready socket; False once the other end closed."""
-    for _ in range(READS_PER_WAKE):
-        try:
-            data = sock.recv(65536)
-        except (BlockingIOError, InterruptedError):
-            return True
-        except OSError:
-            return False
-        if not data:
-            return False
-        on_message(data)
-    return True
-
-
-class OwnerSockets:
-    """The owner's end: a listening ``AF_UNIX`` ``SOCK_SEQPACKET`` socket (message boundaries
-    kept, as datagrams; chosen over ``SOCK_DGRAM``, whose receive queue holds 10 datagrams
-    (``net.unix.max_dgram_qlen``): a worker busy for a few milliseconds lost frames; a 4 MiB
-    connection buffer holds some 10,000 frames), and one connection per worker, which names
-    itself first (:data:`HELLO`)."""
-
-    def __init__(self, path: str, on_message: Callable[[int, bytes], None], on_gone: Callable[[int], None]) -> None:
-        self.path = path
-        self.on_message = on_message
-        self.on_gone = on_gone
-        """Called with a worker's index when its connection closed (it went away)."""
-        self.workers: dict[int, socket.socket] = {}
-        self._listening: socket.socket | None = None
-        self._unnamed: set[socket.socket] = set()
-
-    def open(self) -> None:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(self.path)  # a predecessor's, killed before it closed it
-        sock = _local_socket()
-        try:
-            sock.bind(self.path)
-            sock.listen(64)
-        except OSError as exc:
-            sock.close()
-            raise EndpointError(f"cannot listen on the local socket {self.path}: {exc.strerror or exc}") from None
-        self._listening = sock
-        asyncio.get_running_loop().add_reader(sock.fileno(), self._accept)
-
-    def _accept(self) -> None:
-        assert self._listening is not None
-        try:
-            conn, _ = self._listening.accept()
-        except OSError:
-            return
-        conn.setblocking(False)
-        for option in (socket.SO_RCVBUF, socket.SO_SNDBUF):
-            with contextlib.suppress(OSError):
-                conn.setsockopt(socket.SOL_SOCKET, option, LOCAL_BUFFER)
-        self._unnamed.add(conn)
-        asyncio.get_running_loop().add_reader(conn.fileno(), self._readable, conn)
-
-    def _readable(self, conn: socket.socket) -> None:
-        index = next((k for k, sock in self.workers.items() if sock is conn), None)
-
-        def message(data: bytes) -> None:
-            nonlocal index
-            if index is None:
-                if data[:1] == HELLO and len(data) == 3:
-                    index = int.from_bytes(data[1:3], "big")
-                    self._unnamed.discard(conn)
-                    old = self.workers.get(index)
-                    self.workers[index] = conn
-                    if old is not None and old is not conn:
-                        self._drop(old)
-                return
-            self.on_message(index, data)
-
-        if not _read(conn, message):
-            self._drop(conn)
-
-    def _drop(self, conn: socket.socket) -> None:
-        with contextlib.suppress(Exception):
-            asyncio.get_running_loop().remove_reader(conn.fileno())
-        gone = [index for index, sock in self.workers.items() if sock is conn]
-        for index in gone:
-            del self.workers[index]
-        self._unnamed.discard(conn)
-        conn.close()
-        for index in gone:
-            self.on_gone(index)
-
-    def send(self, worker: int, data: bytes) -> bool:
-        """False when the worker is not connected (down, starting) or cannot take more now."""
-        conn = self.workers.get(worker)
-        if conn is None:
-            return False
-        try:
-            conn.send(data)
-        except (BlockingIOError, InterruptedError):
-            return False
-        except OSError:
-            self._drop(conn)
-            return False
-        return True
-
-    def close(self) -> None:
-        for conn in [*self.workers.values(), *self._unnamed]:
-            self._drop(conn)
-        if self._listening is not None:
-            with contextlib.suppress(Exception):
-                asyncio.get_running_loop().remove_reader(self._listening.fileno())
-            self._listening.close()
-            self._listening = None
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(self.path)
-
-
-class WorkerSocket:
-    """A worker's end: connected to the owner's socket, again whenever the owner went away (a
-    restart), after the engine's backoff."""
-
-    def __init__(self, path: str, index: int, on_message: Callable[[bytes], None], on_lost: Callable[[], None]) -> None:
-        self.path = path
-        self.index = index
-        self.on_message = on_message
-        self.on_lost = on_lost
-        """Called when the connection to the owner closed."""
-        self.connected: socket.socket | None = None
-        self._task: asyncio.Task[None] | None = None
-        self._lost: asyncio.Event = asyncio.Event()
-
-    def open(self) -> None:
-        self._task = asyncio.get_running_loop().create_task(self._keep_connected(), name=f"split-link:{self.path}")
-
-    async def _keep_connected(self) -> None:
-        loop = asyncio.get_running_loop()
-        backoff = Backoff(CONNECT_FIRST_S, CONNECT_CAP_S)
-        while True:
-            sock = _local_socket()
-            try:
-                await loop.sock_connect(sock, self.path)
-                sock.send(HELLO + self.index.to_bytes(2, "big"))
-            except OSError:
-                sock.close()
-                await asyncio.sleep(backoff.next())
-                continue
-            except BaseException:  # cancelled while connecting: the link closes
-                sock.close()
-                raise
-            backoff.reset()
-            self._lost.clear()
-            self.connected = sock
-            loop.add_reader(sock.fileno(), self._readable, sock)
-            await self._lost.wait()
-
-    def _readable(self, sock: socket.socket) -> None:
-        if not _read(sock, self.on_message):
-            self._disconnect(sock)
-
-    def _disconnect(self, sock: socket.socket) -> None:
-        with contextlib.suppress(Exception):
-            asyncio.get_running_loop().remove_reader(sock.fileno())
-        sock.close()
-        if self.connected is sock:
-            self.connected = None
-            self.on_lost()
-        self._lost.set()
-
-    def send(self, data: bytes) -> bool:
-        sock = self.connected
-        if sock is None:
-            return False
-        try:
-            sock.send(data)
-        except (BlockingIOError, InterruptedError):
-            return False
-        except OSError:
-            self._disconnect(sock)
-            return False
-        return True
-
-    async def close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
-        if self.connected is not None:
-            self._disconnect(self.connected)
 
 
 class SplitOwnerLink(UdpLink):
@@ -347,8 +137,11 @@ class SplitOwnerLink(UdpLink):
             raise
 
     def split_status(self) -> dict[str, Any]:
-        """For the connection's status: the workers connected to the owner now."""
-        return {"connected": sorted(self.local.workers)}
+        """For the connection's status: the workers connected to the owner now, the locks
+        held (key -> worker) and how many claims wait for one (split_leases.py)."""
+        return {"connected": sorted(self.local.workers),
+                "locks": {key: worker for key, (worker, _) in sorted(self.leases.holder.items())},
+                "locks_waiting": sum(map(len, self.leases.waiting.values()))}
 
     def peer_for(self, system: int, heard: dict[int, Hashable]) -> Hashable | None:
         """Every vehicle's address, not only those of the owner's own share."""
@@ -418,7 +211,7 @@ class SplitOwnerLink(UdpLink):
     def _grant(self, claim: Claim, key: str) -> bool:
         worker, request = claim
         if worker != self.share.index:
-            return self.local.send(worker, lease_message(GRANT, request, key))
+            return self.local.send(worker, lease_message(GRANT, request, key), keep=True)
         waiter = self._own_grants.pop(request, None)
         if waiter is None or waiter.done():
             return False
@@ -486,7 +279,7 @@ class SplitWorkerLink(Link):
             request, key = read_lease(data)
             waiter = self._grants.pop(request, None)
             if waiter is None or waiter.done():  # it gave up meanwhile: the next claim may have it
-                self.local.send(lease_message(RELEASE, request, key))
+                self.local.send(lease_message(RELEASE, request, key), keep=True)
             else:
                 waiter.set_result(None)
         else:
@@ -497,7 +290,7 @@ class SplitWorkerLink(Link):
         self._requests += 1
         request = self._requests
         waiter = self._grants[request] = asyncio.get_running_loop().create_future()
-        if not self.local.send(lease_message(LEASE, request, key)):
+        if not self.local.send(lease_message(LEASE, request, key), keep=True):
             del self._grants[request]
             raise EndpointError(f"udpin:{self.address.host}:{self.address.port} is held by worker {self.share.owner} "
                                 "(split_over_workers), which does not answer now (down or starting)")
@@ -505,12 +298,12 @@ class SplitWorkerLink(Link):
             await waiter
         except BaseException:
             self._grants.pop(request, None)
-            self.local.send(lease_message(RELEASE, request, key))
+            self.local.send(lease_message(RELEASE, request, key), keep=True)
             raise
         return request
 
     def unlease(self, key: str, request: int) -> None:
-        self.local.send(lease_message(RELEASE, request, key))
+        self.local.send(lease_message(RELEASE, request, key), keep=True)
 
     def _owner_lost(self) -> None:
         """What waits for the owner's grant fails: the owner went away (its successor knows nothing of it)."""

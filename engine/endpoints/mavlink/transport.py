@@ -57,7 +57,8 @@ options), :mod:`.errors` (the link's failures as the two edge errors), :mod:`.di
 endpoints need of the connection), :mod:`.messages` (route endpoints), :mod:`.mission` and
 :mod:`.command` (transactions the vehicle acknowledges), :mod:`.enums` (enum names for
 mappings), :mod:`.checks` (static checks), :mod:`.tunnel` (JSON over TUNNEL), :mod:`.split` (a
-``udpin`` link's vehicles split over the workers of ``run --workers N``). No module
+``udpin`` link's vehicles split over the workers of ``run --workers N``; its locks in
+:mod:`.split_leases`, its local sockets in :mod:`.split_sockets`). No module
 imports one that imports it back.
 """
 

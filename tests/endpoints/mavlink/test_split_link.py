@@ -172,29 +172,38 @@ def test_a_transactions_lock_is_held_across_the_workers_and_freed_when_its_holde
         events: list[str] = []
         try:
             await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected to the owner")
-            held = asyncio.Event()
+            held, let_go = asyncio.Event(), asyncio.Event()
+
+            def owner_waiting() -> int:
+                return int(owner.health()["split"]["locks_waiting"])
 
             async def worker_one() -> None:
                 async with other.transaction_lock(key):
                     events.append("1 holds")
                     held.set()
-                    await asyncio.sleep(0.3)
+                    await let_go.wait()
                     events.append("1 lets go")
+
+            async def let_go_once_the_owner_waits() -> None:
+                await wait_for(lambda: owner_waiting() == 1, 5, "the owner's claim queued behind worker 1's")
+                let_go.set()
 
             first = asyncio.create_task(worker_one())
             await held.wait()
             async with owner.transaction_lock(("command", (3, 1), 176)):  # another command: not held up
                 events.append("0 holds another")
+            helper = asyncio.create_task(let_go_once_the_owner_waits())
             async with owner.transaction_lock(key):
                 events.append("0 holds")
                 waiting = asyncio.create_task(other.transaction_lock(key).__aenter__())
-                await asyncio.sleep(0.2)
+                await wait_for(lambda: owner_waiting() == 1, 5, "worker 1's claim queued behind the owner's")
                 events.append(f"1 waits: {not waiting.done()}")
             await asyncio.wait_for(waiting, 5)
             events.append("1 holds again")
             await first
+            await helper
             third = asyncio.create_task(owner.transaction_lock(key).__aenter__())
-            await asyncio.sleep(0.2)
+            await wait_for(lambda: owner_waiting() == 1, 5, "the owner's claim queued behind worker 1's")
             events.append(f"0 waits: {not third.done()}")
             await other.close()  # worker 1 goes away holding it
             await asyncio.wait_for(third, 5)
