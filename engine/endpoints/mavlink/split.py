@@ -71,8 +71,13 @@ from engine.endpoints.workers import ConnectionShare
 VEHICLE, PRESENCE, ANSWER, SEND = b"V", b"H", b"A", b"S"
 """The kinds of datagram between the owner and the workers (see the module docstring; a
 worker's connection starts with :data:`.split_sockets.HELLO`)."""
-LEASE, RELEASE, GRANT = b"L", b"R", b"G"
-"""A transaction's lock across the workers (split_leases.py): asked, given back, granted."""
+LEASE, RELEASE, GRANT, RECLAIM, RECLAIMED = b"L", b"R", b"G", b"C", b"D"
+"""A transaction's lock across the workers (split_leases.py): asked, given back, granted; and
+a worker's word to an owner started again: still held, and all that it holds said."""
+RECLAIM_S = 2.0
+"""How long an owner (started, or started again) waits for every worker to say which locks it
+holds before it grants any: workers reconnect within a second (:data:`.split_sockets.CONNECT_CAP_S`);
+a worker not up by then holds none."""
 HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
 ANSWERS = {mavlink2.MAVLINK_MSG_ID_COMMAND_ACK: "command", mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST: "mission",
            mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_INT: "mission", mavlink2.MAVLINK_MSG_ID_MISSION_ACK: "mission"}
@@ -85,10 +90,11 @@ TRANSACTION_S = 60.0
 """How long after a worker's last command (or mission frame) to a vehicle the vehicle's answers
 are copied to it: beyond a command's bound with a MAV_RESULT_IN_PROGRESS (in_progress_timeout,
 30 s by default). A copy after the transaction ended reaches no listener and costs a datagram."""
-SPLIT_STATS = ("split_handed", "split_dropped", "split_answers")
+SPLIT_STATS = ("split_handed", "split_dropped", "split_answers", "split_lock_conflicts")
 """The owner's counters (the link's, in its status): datagrams handed to other workers, those
 a worker could not take (down, starting, its socket full: lost, as UDP telemetry is), and
-answers copied to a worker whose transaction waits for them (its own or another's). A worker's
+answers copied to a worker whose transaction waits for them (its own or another's), and locks
+a worker said it still held that the owner had granted another meanwhile. A worker's
 frames handed to the owner count ``split_sent`` there; the owner counts them ``frames_sent`` once
 written, so the merged counters count each frame on the wire once."""
 OWNER_PEER = "owner"
@@ -108,7 +114,10 @@ class SplitOwnerLink(UdpLink):
         super().__init__(address, on_bytes, stats)
         self.share = share
         self.local = OwnerSockets(socket_path(share.runtime_dir, name), self._from_worker, self._gone)
-        self.leases = Leases(self._grant)
+        self.leases = Leases(self._grant, paused=True)
+        self._reclaimed: set[int] = set()
+        """The workers that said which locks they hold (see :data:`RECLAIM_S`)."""
+        self._resuming: asyncio.TimerHandle | None = None
         self._own_grants: dict[int, asyncio.Future[None]] = {}
         self._requests = 0
         self.on_copy = on_copy
@@ -130,9 +139,11 @@ class SplitOwnerLink(UdpLink):
 
     async def open(self) -> None:
         self.local.open()
+        self._resuming = asyncio.get_running_loop().call_later(RECLAIM_S, self.leases.resume)
         try:
             await super().open()
         except BaseException:
+            self._resuming.cancel()
             self.local.close()
             raise
 
@@ -204,6 +215,14 @@ class SplitOwnerLink(UdpLink):
         elif kind in (LEASE, RELEASE):
             request, key = read_lease(data)
             (self.leases.acquire if kind == LEASE else self.leases.release)(key, (worker, request))
+        elif kind == RECLAIM:
+            request, key = read_lease(data)
+            if not self.leases.reclaim(key, (worker, request)):
+                self.stats["split_lock_conflicts"] += 1
+        elif kind == RECLAIMED:
+            self._reclaimed.add(worker)
+            if self.leases.paused and self._reclaimed >= set(range(self.share.workers)) - {self.share.index}:
+                self.leases.resume()
 
     def _gone(self, worker: int) -> None:
         self.leases.gone(worker)
@@ -236,6 +255,8 @@ class SplitOwnerLink(UdpLink):
         self.leases.release(key, (self.share.index, request))
 
     async def close(self) -> None:
+        if self._resuming is not None:
+            self._resuming.cancel()
         self.local.close()
         await super().close()
 
@@ -252,10 +273,13 @@ class SplitWorkerLink(Link):
         super().__init__(address, on_bytes, stats)
         stats.setdefault("split_sent", 0)
         self.share = share
-        self.local = WorkerSocket(socket_path(share.runtime_dir, name), share.index, self._from_owner, self._owner_lost)
+        self.local = WorkerSocket(socket_path(share.runtime_dir, name), share.index, self._from_owner, self._owner_lost,
+                                  self._connected)
         self.on_copy = on_copy
         self._heard = -PEER_TTL
         self._grants: dict[int, asyncio.Future[None]] = {}
+        self._held: dict[int, str] = {}
+        """The locks this worker holds (request -> key), said again to an owner started again."""
         self._requests = 0
 
     async def open(self) -> None:
@@ -300,10 +324,19 @@ class SplitWorkerLink(Link):
             self._grants.pop(request, None)
             self.local.send(lease_message(RELEASE, request, key), keep=True)
             raise
+        self._held[request] = key
         return request
 
     def unlease(self, key: str, request: int) -> None:
+        self._held.pop(request, None)
         self.local.send(lease_message(RELEASE, request, key), keep=True)
+
+    def _connected(self) -> None:
+        """Connected to an owner (perhaps one started again, which knows nothing of the locks
+        this worker holds): the locks held, then that this is all (split_leases.py)."""
+        for request, key in self._held.items():
+            self.local.send(lease_message(RECLAIM, request, key), keep=True)
+        self.local.send(RECLAIMED, keep=True)
 
     def _owner_lost(self) -> None:
         """What waits for the owner's grant fails: the owner went away (its successor knows nothing of it)."""

@@ -8,7 +8,10 @@ at once: the lock is then held at the link's owner, which grants it to one worke
 in the order asked (:class:`Leases`), as the process's lock does; each worker's
 :class:`SplitLock` asks for it after its own process's lock. A lock held by a worker that goes
 away (killed: its connection to the owner closes) is granted to the next; a worker whose owner
-goes away fails what it waits for (EndpointError: its route tries again).
+goes away fails what it waits for (EndpointError: its route tries again), and tells the
+owner started again which locks it still holds (``reclaim``) before that owner grants any: a
+transaction in flight across an owner's restart (waiting for its COMMAND_ACK) keeps its lock,
+so no other worker sends the same command meanwhile and takes its acknowledgement.
 """
 
 from __future__ import annotations
@@ -28,16 +31,33 @@ class Leases:
     """At the owner: each key's holder and the claims waiting, in order. ``grant(claim, key)``
     tells a worker its claim holds ``key``; False: the worker is gone (the next claim waits)."""
 
-    def __init__(self, grant: Callable[[Claim, str], bool]) -> None:
+    def __init__(self, grant: Callable[[Claim, str], bool], paused: bool = False) -> None:
         self.grant = grant
         self.holder: dict[str, Claim] = {}
         self.waiting: dict[str, deque[Claim]] = {}
+        self.paused = paused
+        """Nothing is granted meanwhile: an owner started again waits for the workers to say
+        what its predecessor granted them (:meth:`reclaim`) before it grants anything."""
 
     def acquire(self, key: str, claim: Claim) -> None:
-        if key in self.holder:
+        if key in self.holder or self.paused:
             self.waiting.setdefault(key, deque()).append(claim)
             return
         self._hand(key, claim)
+
+    def reclaim(self, key: str, claim: Claim) -> bool:
+        """``claim`` holds ``key`` still, granted by this owner's predecessor: recorded as
+        holding it. False where another claim holds it already (granted in between: two
+        transactions may then meet; the caller counts it)."""
+        held = self.holder.setdefault(key, claim)
+        return held == claim
+
+    def resume(self) -> None:
+        """Every worker said what it holds (or the wait for them is over): the claims waiting
+        for a free key are granted."""
+        self.paused = False
+        for key in [key for key in self.waiting if key not in self.holder]:
+            self._next(key)
 
     def release(self, key: str, claim: Claim) -> None:
         """``claim`` is done with ``key``, or no longer waits for it (its worker gave up)."""
@@ -68,6 +88,8 @@ class Leases:
             self._next(key)
 
     def _next(self, key: str) -> None:
+        if self.paused:
+            return
         queue = self.waiting.get(key)
         if not queue:
             self.waiting.pop(key, None)

@@ -215,12 +215,15 @@ class WorkerSocket:
     """A worker's end: connected to the owner's socket, again whenever the owner went away (a
     restart), after the engine's backoff."""
 
-    def __init__(self, path: str, index: int, on_message: Callable[[bytes], None], on_lost: Callable[[], None]) -> None:
+    def __init__(self, path: str, index: int, on_message: Callable[[bytes], None], on_lost: Callable[[], None],
+                 on_connected: Callable[[], None]) -> None:
         self.path = path
         self.index = index
         self.on_message = on_message
         self.on_lost = on_lost
         """Called when the connection to the owner closed."""
+        self.on_connected = on_connected
+        """Called once connected (and named) to an owner, the first or one started again."""
         self.connected: LocalConnection | None = None
         self._task: asyncio.Task[None] | None = None
         self._lost: asyncio.Event = asyncio.Event()
@@ -247,6 +250,7 @@ class WorkerSocket:
             self._lost.clear()
             conn = self.connected = LocalConnection(sock, self._disconnect)
             loop.add_reader(sock.fileno(), self._readable, conn)
+            self.on_connected()
             await self._lost.wait()
 
     def _readable(self, conn: LocalConnection) -> None:

@@ -20,7 +20,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 from engine.common.shares import share_of
 from engine.endpoints.base import EndpointError
 from engine.endpoints.mavlink.connection import MavlinkConnection
-from engine.endpoints.mavlink.split import GRANT, LEASE, RELEASE
+from engine.endpoints.mavlink.split import GRANT, LEASE, RECLAIMED, RELEASE
 from engine.endpoints.mavlink.split_sockets import HELLO, OwnerSockets, socket_path
 from engine.endpoints.mavlink.split_leases import lease_message, read_lease
 from engine.endpoints.workers import ConnectionShare
@@ -82,6 +82,7 @@ def test_a_lock_granted_while_the_workers_socket_is_full_still_reaches_it(tmp_pa
             worker.setblocking(False)
             await asyncio.get_running_loop().sock_connect(worker, socket_path(str(tmp_path), "fleet"))
             worker.send(HELLO + (1).to_bytes(2, "big"))
+            worker.send(RECLAIMED)  # it holds no lock (the owner grants once every worker said so)
             await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected")
             await _fill(owner, port, system)
             worker.send(lease_message(LEASE, 1, repr(KEY)))
@@ -167,6 +168,7 @@ def test_a_worker_named_again_frees_what_its_predecessor_held(tmp_path: Path) ->
                 sock.setblocking(False)
             await loop.sock_connect(old, path)
             old.send(HELLO + (1).to_bytes(2, "big"))
+            old.send(RECLAIMED)
             old.send(lease_message(LEASE, 1, repr(KEY)))
             await _read_until(old, GRANT, 5)
             await loop.sock_connect(new, path)
@@ -180,6 +182,44 @@ def test_a_worker_named_again_frees_what_its_predecessor_held(tmp_path: Path) ->
             await owner.close()
 
     asyncio.run(asyncio.wait_for(scenario(), 30))
+
+
+def test_a_lock_held_across_the_owners_restart_is_granted_to_no_other(tmp_path: Path) -> None:
+    """Worker 1 holds a vehicle's command lock (its COMMAND_ACK awaited) when the owner goes away
+    and starts again, knowing nothing of it: worker 1 says it still holds it once connected
+    again, and the new owner grants it to no other (here its own transaction of the same
+    command) before worker 1 lets go; else both would send the command, and one would take the
+    other's COMMAND_ACK for its own."""
+    port = free_udp_port()
+
+    async def scenario() -> list[str]:
+        owner = MavlinkConnection("fleet", _settings(port), ConnectionShare(0, 2, 0, str(tmp_path)))
+        other = MavlinkConnection("fleet", _settings(port), ConnectionShare(1, 2, 0, str(tmp_path)))
+        await owner.open()
+        await other.open()
+        events: list[str] = []
+        try:
+            await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected")
+            held = other.transaction_lock(KEY)
+            await asyncio.wait_for(held.__aenter__(), 10)
+            await owner.close()
+            await wait_for(lambda: not other.health()["split"]["connected"], 10, "worker 1 saw the owner go")
+            owner = MavlinkConnection("fleet", _settings(port), ConnectionShare(0, 2, 0, str(tmp_path)))  # started again
+            await owner.open()
+            theirs = asyncio.create_task(owner.transaction_lock(KEY).__aenter__())
+            await wait_for(lambda: owner.health()["split"].get("locks") == {repr(KEY): 1}, 10,
+                           "worker 1's lock known to the new owner", lambda: owner.health()["split"])
+            events.append(f"owner waits: {not theirs.done()}")
+            await held.__aexit__(None, None, None)
+            await asyncio.wait_for(theirs, 5)
+            events.append("owner holds")
+        finally:
+            await other.close()
+            await owner.close()
+        return events
+
+    events = asyncio.run(asyncio.wait_for(scenario(), 60))
+    assert events == ["owner waits: True", "owner holds"], events
 
 
 def test_an_owner_closing_leaves_its_successors_socket(tmp_path: Path) -> None:
