@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from dataclasses import dataclass
 from collections.abc import Callable, Hashable
 from typing import Any
 
@@ -99,6 +100,13 @@ frames handed to the owner count ``split_sent`` there; the owner counts them ``f
 written, so the merged counters count each frame on the wire once."""
 OWNER_PEER = "owner"
 """The peer a worker's frames come from (the owner heard the vehicle's address)."""
+
+
+@dataclass(frozen=True)
+class Unheard:
+    """Where a frame for a system the owner has not heard goes: nowhere (:meth:`SplitOwnerLink.peer_for`)."""
+
+    system: int
 
 
 OnCopy = Callable[[bytes, bytes], None]
@@ -155,8 +163,16 @@ class SplitOwnerLink(UdpLink):
                 "locks_waiting": sum(map(len, self.leases.waiting.values()))}
 
     def peer_for(self, system: int, heard: dict[int, Hashable]) -> Hashable | None:
-        """Every vehicle's address, not only those of the owner's own share."""
-        return self.address_of.get(system)
+        """Every vehicle's address, not only those of the owner's own share; for a vehicle this
+        owner has not heard, :class:`Unheard`: the workers may know it still (this owner started
+        again meanwhile), and a frame for it must not go to every peer instead."""
+        return self.address_of.get(system) or Unheard(system)
+
+    async def transmit(self, data: bytes, peer: Hashable | None = None) -> None:
+        if isinstance(peer, Unheard):
+            raise EndpointError(f"udpin:{self.address.host}:{self.address.port}: system {peer.system} has not been heard "
+                                "by the worker holding the link (started again since?); not written to the other peers")
+        await super().transmit(data, peer)
 
     def received(self, data: bytes, addr: Any) -> None:
         self.heard(addr)

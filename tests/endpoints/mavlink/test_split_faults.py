@@ -222,6 +222,56 @@ def test_a_lock_held_across_the_owners_restart_is_granted_to_no_other(tmp_path: 
     assert events == ["owner waits: True", "owner holds"], events
 
 
+def test_a_frame_for_a_vehicle_the_restarted_owner_has_not_heard_goes_to_no_other_peer(tmp_path: Path) -> None:
+    """The owner starts again; worker 1 still knows vehicle 1 (heard before) and commands it
+    before vehicle 1 is heard again, while vehicle 3 is: the command must not go to vehicle 3's
+    address (nor any other peer's), as the owner's address of vehicle 1 is not known yet."""
+    port = free_udp_port()
+
+    async def scenario() -> bytes | None:
+        owner = MavlinkConnection("fleet", _settings(port), ConnectionShare(0, 2, 0, str(tmp_path)))
+        other = MavlinkConnection("fleet", _settings(port), ConnectionShare(1, 2, 0, str(tmp_path)))
+        one, three = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+        mavs = {one: mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), three: mavlink2.MAVLink(None, srcSystem=3, srcComponent=1)}
+
+        def beat(vehicle: socket.socket) -> None:
+            mav = mavs[vehicle]
+            vehicle.sendto(mav.heartbeat_encode(2, 3, 0, 0, 4).pack(mav), ("127.0.0.1", port))
+
+        for vehicle in (one, three):
+            vehicle.bind(("127.0.0.1", 0))
+            vehicle.setblocking(False)
+        await owner.open()
+        await other.open()
+        try:
+            await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected")
+            beat(one)
+            beat(three)
+            await wait_for(lambda: other.has_heard(1, 1) and other.has_heard(3, 1), 10, "both vehicles heard by worker 1")
+            await owner.close()
+            await wait_for(lambda: not other.health()["split"]["connected"], 10, "worker 1 saw the owner go")
+            owner = MavlinkConnection("fleet", _settings(port), ConnectionShare(0, 2, 0, str(tmp_path)))  # started again
+            await owner.open()
+            await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected again")
+            beat(three)
+            await wait_for(lambda: owner.has_heard(3, 1), 10, "vehicle 3 heard by the new owner")
+            before = owner.stats["frames_sent"] + owner.stats["send_errors"]
+            await other.send_message(mavlink2.MAVLink_command_long_message(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0))
+            await wait_for(lambda: owner.stats["frames_sent"] + owner.stats["send_errors"] > before, 10,
+                           "the owner wrote the command or refused it")
+            try:
+                return three.recv(1024)
+            except BlockingIOError:
+                return None
+        finally:
+            one.close()
+            three.close()
+            await other.close()
+            await owner.close()
+
+    assert asyncio.run(asyncio.wait_for(scenario(), 60)) is None
+
+
 def test_an_owner_closing_leaves_its_successors_socket(tmp_path: Path) -> None:
     """Two owners of one link meet when the owner moves (a reload places it on another worker:
     the new one opens while the old one closes): the one closing last must not unlink the
