@@ -2,7 +2,7 @@
 ``AF_UNIX`` ``SOCK_SEQPACKET`` socket the owner listens on in the supervisor's runtime
 directory, and one connection per worker, which names itself first (:data:`HELLO`).
 
-Apart from split.py, which says what crosses them, as the sockets' own faults (a busy end, an
+Kept apart from split.py (what crosses them, and why): the sockets' own faults (a busy end, an
 end gone, a socket file left over or removed) are handled here, the same for both ends.
 """
 
@@ -22,7 +22,10 @@ from engine.endpoints.base import EndpointError
 HELLO = b"W"
 """A worker's first message: its index (2 bytes)."""
 LOCAL_BUFFER = 4 << 20
-"""Bytes of socket buffer for the local sockets, as for the UDP socket (links.py)."""
+"""Bytes of socket buffer for the local sockets, as for the UDP socket (links.py). The kernel
+caps it at ``net.core.wmem_max``: measured with 61-byte messages, 10,923 fit with 4 MiB
+allowed, 555 with a stock kernel's 208 KiB (a worker busy for some 0.15 s at 4,000 frames/s
+then drops frames; docs/operations.md says to raise it)."""
 CONNECT_FIRST_S, CONNECT_CAP_S = 0.05, 1.0
 """A worker tries the owner's socket again after 25-50 ms, at most every 0.5-1 s: workers
 start together, and an owner started again is reached within a second."""
