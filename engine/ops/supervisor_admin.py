@@ -102,13 +102,18 @@ def merge_split(merged: dict[str, Any], health: dict[str, Any]) -> None:
     """One more worker's health of a connection split over the workers (placement rule 1b),
     which reports only its own share of what the connection carries (a MAVLink link's
     vehicles): its counters added, its lists (the vehicles heard, their liveness) joined, so
-    the merged connection names each vehicle once."""
+    the merged connection names each vehicle once; the rest (the link's ``state``, ``split``:
+    the workers connected to it) is the holder's, whichever worker answered first."""
+    split = health.get("split")
+    holder = isinstance(split, dict) and split.get("worker") == split.get("owner")
     for key, value in health.items():
         held = merged.get(key)
         if isinstance(value, list) and isinstance(held, list):
             merged[key] = held + copy.deepcopy(value)
         elif key in ("counters", "rejected") and isinstance(value, dict) and isinstance(held, dict):
             add_counts(held, value)
+        elif holder and key not in ("healthy", "up", "workers"):
+            merged[key] = copy.deepcopy(value)
 
 
 def merge_status(own: dict[str, Any], documents: list[dict[str, Any] | None]) -> dict[str, Any]:

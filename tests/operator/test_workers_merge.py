@@ -229,3 +229,24 @@ def test_a_worker_that_cannot_be_started_is_tried_again_until_the_stop() -> None
 
     restarts, alive = asyncio.run(scenario())
     assert alive and restarts >= 3
+
+
+def test_a_split_links_merged_status_is_its_holders_with_every_workers_vehicles() -> None:
+    """A MAVLink link split over the workers (placement rule 1b), held by worker 1: the merged
+    connection joins the vehicles and adds the counters of both, and takes the link's own view
+    (``state``, ``split``: the workers connected, the locks held) from the holder, not from
+    whichever worker answered first (worker 0 has no vehicle heard yet: "waiting for a peer")."""
+
+    def link(worker: int, vehicles: list[int], state: str, split: dict[str, Any]) -> dict[str, Any]:
+        return {"routes": {}, "connections": {"fleet": {
+            "protocol": "mavlink", "healthy": True, "state": state, "counters": {"frames_received": 10 * len(vehicles)},
+            "split": {"worker": worker, "owner": 1, "workers": 2, **split},
+            "liveness": [{"system_id": system, "up": True} for system in vehicles]}}}
+
+    merged = merge_status(supervisor(2).status(), [link(0, [], "waiting for a peer", {"connected": True}),
+                                                   link(1, [1, 2], "up", {"connected": [0], "locks": {"k": 0}})])
+    fleet = merged["connections"]["fleet"]
+    assert [v["system_id"] for v in fleet["liveness"]] == [1, 2] and fleet["counters"] == {"frames_received": 20}
+    assert fleet["state"] == "up", fleet
+    assert fleet["split"] == {"worker": 1, "owner": 1, "workers": 2, "connected": [0], "locks": {"k": 0}}, fleet
+    assert fleet["workers"] == [0, 1] and fleet["up"] is True
