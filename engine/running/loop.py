@@ -13,10 +13,11 @@ own cost per callback is a small part of a message's. Measured on the 2-core mac
 - a backlog drain AMQP -> AMQP, one engine, 4 rounds alternating: 52.75 µs of CPU a message
   on either loop (median), asyncio / uvloop 0.92-1.15 round by round; AMQP -> ROS 2: 59.7 /
   58.75 µs (1.6 % more on asyncio's), 0.68-1.3 round by round;
-- the fleet (bench/fleet.py): not measured yet on both loops. The rounds of
-  session4-status-ab named "1 worker asyncio" ran on the default loop, uvloop at that commit
-  (bench/bench_fleet_workers.py did not pass the system's environment on), so their 262 / 276, 239 / 215 and 182 / 189 µs a
-  message compare uvloop with itself: a spread of up to 11 % between identical systems.
+- the fleet (bench/fleet.py, 100 agents, 2,100 msg/s; session4-fleet-loops), 3 rounds
+  alternating: 257, 257, 266 µs of CPU a message on asyncio's loop, 245, 252, 237 on uvloop
+  (4.7 % less, median); telemetry p99 25.6 / 13.4 / 14.8 ms and 11.4 / 12.9 / 25.1 ms. (The
+  rounds of session4-status-ab named "1 worker asyncio" ran on uvloop: bench/bench_fleet_workers.py
+  did not pass the system's environment on then.)
 
 One loop less to reason about (signal handling, ``add_reader`` and subprocess support differ
 in corner cases) and one native dependency less on a robot's computer.
