@@ -74,12 +74,14 @@ def frame_size(buf: bytes, at: int) -> int | None:
     return _V1_HEADER + length + _CHECKSUM
 
 
-def frame_headers(data: bytes) -> list[tuple[int, int, int, int]]:
+def frame_headers(data: bytes, checked: bool = False) -> list[tuple[int, int, int, int]]:
     """``(start, end, system id, message id)`` of each frame of a datagram, read from the
     headers without decoding (MAVLink 2: ``FD``, system id at byte 5, message id at 7-9; MAVLink
     1: ``FE``, system id at byte 3, message id at 5), for handing frames on by their sender
-    (split.py); what is no frame is skipped, as a frame cut off at the end. The CRC and fields are
-    the receiver's :class:`FrameReader`'s to check."""
+    (split.py); what is no frame is skipped, as a frame cut off at the end. The fields are the
+    receiver's :class:`FrameReader`'s to check; the CRC too, unless ``checked``: then a frame
+    whose CRC fails is no frame, and the scan goes on from the byte after its start byte, as
+    the receiver's parser does (a false start byte in junk cannot swallow the frame after it)."""
     found: list[tuple[int, int, int, int]] = []
     end, at = len(data), 0
     while at < end:
@@ -93,11 +95,23 @@ def frame_headers(data: bytes) -> list[tuple[int, int, int, int]]:
             at += 1
             continue
         if data[at] == _V2:
-            found.append((at, at + size, data[at + 5], int.from_bytes(data[at + 7:at + 10], "little")))
+            frame = (at, at + size, data[at + 5], int.from_bytes(data[at + 7:at + 10], "little"))
         else:
-            found.append((at, at + size, data[at + 3], data[at + 5]))
+            frame = (at, at + size, data[at + 3], data[at + 5])
+        if checked and not crc_holds(data, *frame[:2], frame[3]):
+            at += 1
+            continue
+        found.append(frame)
         at += size
     return found
+
+
+def tiles(headers: list[tuple[int, int, int, int]], size: int) -> bool:
+    """Whether the frames :func:`frame_headers` found cover a datagram of ``size`` bytes
+    exactly, end to end (what a vehicle or a router sends): nothing beside them that a false
+    start byte could have come from."""
+    return bool(headers) and headers[0][0] == 0 and headers[-1][1] == size and all(
+        before[1] == after[0] for before, after in zip(headers, headers[1:]))
 
 
 def crc_holds(data: bytes, start: int, end: int, msg_id: int) -> bool:

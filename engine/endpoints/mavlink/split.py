@@ -62,7 +62,7 @@ from typing import Any
 from engine.common.shares import share_of
 from engine.endpoints.base import EndpointError
 from engine.endpoints.mavlink.dialect import mavlink2
-from engine.endpoints.mavlink.framing import crc_holds, frame_headers
+from engine.endpoints.mavlink.framing import crc_holds, frame_headers, tiles
 from engine.endpoints.mavlink.links import PEER_TTL, Link, OnBytes, UdpLink
 from engine.endpoints.mavlink.settings import Address
 from engine.endpoints.mavlink.split_leases import Claim, Leases, lease_message, read_lease
@@ -177,6 +177,8 @@ class SplitOwnerLink(UdpLink):
     def received(self, data: bytes, addr: Any) -> None:
         self.heard(addr)
         headers = frame_headers(data)
+        if not tiles(headers, len(data)):  # junk beside the frames: only frames whose CRC holds decide the worker
+            headers = frame_headers(data, checked=True)
         if not headers:  # no frame at all: the owner's reader counts it
             self.on_bytes(data, addr)
             return

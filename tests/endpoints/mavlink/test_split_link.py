@@ -279,3 +279,42 @@ def test_a_datagram_with_frames_of_two_vehicles_is_cut_between_their_workers(tmp
     heard = asyncio.run(asyncio.wait_for(scenario(), 30))
     assert heard[0] == [(1, n) for n in range(5) for _ in range(2)], heard
     assert heard[1] == [(3, n) for n in range(5)], heard
+
+
+def test_junk_before_a_frame_does_not_send_it_to_another_systems_worker(tmp_path: Path) -> None:
+    """A datagram whose leading junk reads as a MAVLink 2 header of system 1 (worker 0), whose
+    claimed length covers the start of the real frame of system 3 after it: the owner hands it by the frame whose
+    CRC holds, to system 3's worker (1); worker 0 gets nothing of it. Before, the false header
+    decided, and worker 0's parser then found system 3's frame: a vehicle carried by two workers."""
+    import socket
+
+    port = free_udp_port()
+    settings = {"url": f"udpin:127.0.0.1:{port}", "heartbeat": 0, "split_over_workers": True}
+    one, three = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), mavlink2.MAVLink(None, srcSystem=3, srcComponent=1)
+    fake = bytes([0xFD, 2, 0, 0, 0, 1, 1, 33, 0, 0])  # v2, 2 bytes of payload, system 1, GLOBAL_POSITION_INT: 14 bytes claimed
+
+    async def scenario() -> dict[int, list[tuple[int, int]]]:
+        owner = MavlinkConnection("fleet", settings, ConnectionShare(0, 2, 0, str(tmp_path)))
+        other = MavlinkConnection("fleet", settings, ConnectionShare(1, 2, 0, str(tmp_path)))
+        heard: dict[int, list[tuple[int, int]]] = {0: [], 1: []}
+        for index, connection in ((0, owner), (1, other)):
+            connection.listen(POSITION, lambda msg, index=index: heard[index].append((msg.get_srcSystem(), msg.time_boot_ms)))
+        await owner.open()
+        await other.open()
+        try:
+            await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected to the owner")
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
+                for n in range(5):
+                    sender.sendto(fake + three.global_position_int_encode(n, 0, 0, 0, 0, 0, 0, 0, 0).pack(three), ("127.0.0.1", port))
+                await wait_for(lambda: len(heard[1]) == 5, 10, "system 3's frames at worker 1", lambda: heard)
+                # a clean frame of system 1 after them: worker 0 has had whatever the owner handed it before
+                sender.sendto(one.global_position_int_encode(99, 0, 0, 0, 0, 0, 0, 0, 0).pack(one), ("127.0.0.1", port))
+                await wait_for(lambda: (1, 99) in heard[0], 10, "system 1's frame at worker 0", lambda: heard)
+        finally:
+            await other.close()
+            await owner.close()
+        return heard
+
+    heard = asyncio.run(asyncio.wait_for(scenario(), 30))
+    assert heard[1] == [(3, n) for n in range(5)], heard
+    assert heard[0] == [(1, 99)], heard
