@@ -176,28 +176,44 @@ async def observe(sunk: Callable[[], Awaitable[int]], total: int, pids: list[int
             "cpu_us_per_msg": round(sum(cpu) * 1e6 / carried, 1) if carried else float("nan")}
 
 
-async def measure(url: str, count: int, rounds: int, broker_group: int = 0, kind: str = "amqp-amqp") -> dict[str, Any]:
-    """``rounds`` pairs of drains, 1 and 2 workers alternating first; the ratio of the medians,
-    and each round's own ratio (its two drains ran back to back, under the same load)."""
+async def alternating(url: str, count: int, rounds: int, broker_group: int, kind: str,
+                      systems: dict[str, tuple[int, dict[str, str] | None]]) -> list[dict[str, Any]]:
+    """``rounds`` rounds of one drain by each system (name -> its workers and engine
+    environment), back to back, their order reversed every other round: a drift of the shared
+    machine's load weighs on each alike."""
     BROKER_GROUP[0] = broker_group
     broker = Broker(url)
     await broker.open()
     runs: list[dict[str, Any]] = []
+    names = list(systems)
     try:
         for round_index in range(rounds):
-            for workers in ((1, 2) if round_index % 2 == 0 else (2, 1)):
-                result = await drain(broker, workers, count, kind)
-                print(f"  round {round_index + 1}, {workers} worker(s): {result['msg_per_s']:.0f} msg/s, lost {result['lost']}, "
-                      f"{result['seconds']} s, CPU s {result['cpu_s_by_process']}, broker {result['broker_cpu_s']}", flush=True)
+            for name in (names if round_index % 2 == 0 else names[::-1]):
+                workers, env = systems[name]
+                result = {"system": name, **await drain(broker, workers, count, kind, env)}
+                print(f"  round {round_index + 1}, {name}: {result['msg_per_s']:.0f} msg/s, {result['cpu_us_per_msg']} us/msg, "
+                      f"lost {result['lost']}, {result['seconds']} s, CPU s {result['cpu_s_by_process']}, "
+                      f"broker {result['broker_cpu_s']}", flush=True)
                 runs.append(result)
     finally:
         await broker.close()
-    median = {k: statistics.median(r["msg_per_s"] for r in runs if r["workers"] == k) for k in (1, 2)}
+    return runs
+
+
+def round_ratios(runs: list[dict[str, Any]], key: str, over: str, under: str) -> list[float]:
+    """Per round (two runs back to back), ``key`` of system ``over`` divided by ``under``'s."""
     pairs = [runs[i:i + 2] for i in range(0, len(runs), 2)]
-    round_ratios = [round(next(r for r in pair if r["workers"] == 2)["msg_per_s"] / next(r for r in pair if r["workers"] == 1)["msg_per_s"], 2)
-                    for pair in pairs]
+    return [round(next(r for r in pair if r["system"] == over)[key] / next(r for r in pair if r["system"] == under)[key], 2)
+            for pair in pairs]
+
+
+async def measure(url: str, count: int, rounds: int, broker_group: int = 0, kind: str = "amqp-amqp") -> dict[str, Any]:
+    """``rounds`` pairs of drains, 1 and 2 workers alternating first; the ratio of the medians,
+    and each round's own ratio (its two drains ran back to back, under the same load)."""
+    runs = await alternating(url, count, rounds, broker_group, kind, {"1 worker": (1, None), "2 workers": (2, None)})
+    median = {k: statistics.median(r["msg_per_s"] for r in runs if r["workers"] == k) for k in (1, 2)}
     return {"kind": kind, "count": count, "rounds": rounds, "runs": runs, "median_msg_per_s": median,
-            "ratio_2_over_1": round(median[2] / median[1], 2), "round_ratios": round_ratios,
+            "ratio_2_over_1": round(median[2] / median[1], 2), "round_ratios": round_ratios(runs, "msg_per_s", "2 workers", "1 worker"),
             "lost": sum(r["lost"] for r in runs), "cpus": os.cpu_count(), "loadavg": os.getloadavg()}
 
 
@@ -209,25 +225,10 @@ async def measure_loops(url: str, count: int, rounds: int, broker_group: int = 0
     """``rounds`` pairs of drains by one engine on uvloop and on asyncio's own loop, alternating
     first: the engine's CPU per message on each, and each round's asyncio / uvloop ratio (issue
     34: keep uvloop only if it saves at least 15 % per message)."""
-    BROKER_GROUP[0] = broker_group
-    broker = Broker(url)
-    await broker.open()
-    runs: list[dict[str, Any]] = []
-    try:
-        for round_index in range(rounds):
-            for loop in (list(LOOPS) if round_index % 2 == 0 else list(LOOPS)[::-1]):
-                result = {"loop": loop, **await drain(broker, 1, count, kind, LOOPS[loop])}
-                print(f"  round {round_index + 1}, {loop}: {result['msg_per_s']:.0f} msg/s, {result['cpu_us_per_msg']} us/msg, "
-                      f"lost {result['lost']}", flush=True)
-                runs.append(result)
-    finally:
-        await broker.close()
-    pairs = [runs[i:i + 2] for i in range(0, len(runs), 2)]
-    cpu = {loop: statistics.median(r["cpu_us_per_msg"] for r in runs if r["loop"] == loop) for loop in LOOPS}
+    runs = await alternating(url, count, rounds, broker_group, kind, {loop: (1, env) for loop, env in LOOPS.items()})
+    cpu = {loop: statistics.median(r["cpu_us_per_msg"] for r in runs if r["system"] == loop) for loop in LOOPS}
     return {"kind": kind, "count": count, "rounds": rounds, "runs": runs, "median_cpu_us_per_msg": cpu,
-            "round_cpu_ratios_asyncio_over_uvloop": [round(next(r for r in pair if r["loop"] == "asyncio")["cpu_us_per_msg"]
-                                                           / next(r for r in pair if r["loop"] == "uvloop")["cpu_us_per_msg"], 2)
-                                                     for pair in pairs],
+            "round_cpu_ratios_asyncio_over_uvloop": round_ratios(runs, "cpu_us_per_msg", "asyncio", "uvloop"),
             "lost": sum(r["lost"] for r in runs), "loadavg": os.getloadavg()}
 
 

@@ -18,9 +18,6 @@ import base64
 import json
 import os
 import shutil
-import ssl
-import urllib.error
-import urllib.request
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -36,6 +33,7 @@ from tests.support.browser import PAGE_SNAPSHOT, browser
 from tests.support.engine_process import EngineProcess
 from tests.support.repo import REPO
 from tests.support.tls_helpers import make_pki
+from tests.support.admin_http import fetch
 from tests.support.waiting import wait_for_sync
 
 TOKEN = "console-test-token-0123456789abcdef"
@@ -61,19 +59,6 @@ routes:
 """
 FIELD = (48.1500, 11.5800)
 """A field near Munich: the UAV and the robot are about 180 m apart."""
-
-
-def fetch(url: str, authorization: str | None = None) -> tuple[int, dict[str, Any], str]:
-    request = urllib.request.Request(url)
-    if authorization:
-        request.add_header("Authorization", authorization)
-    context = ssl.create_default_context()
-    context.check_hostname, context.verify_mode = False, ssl.CERT_NONE  # the throwaway certificate
-    try:
-        with urllib.request.urlopen(request, timeout=10, context=context) as response:
-            return response.status, dict(response.headers), response.read().decode()
-    except urllib.error.HTTPError as exc:
-        return exc.code, {"WWW-Authenticate": exc.headers.get_all("WWW-Authenticate")}, exc.read().decode()
 
 
 async def amqp_send(url: str, routing_key: str, bodies: list[dict[str, Any]]) -> None:

@@ -18,9 +18,6 @@ import json
 import math
 import os
 import shutil
-import ssl
-import urllib.error
-import urllib.request
 import uuid
 from pathlib import Path
 from typing import Any
@@ -34,6 +31,7 @@ from tests.support.browser import PAGE_SNAPSHOT, browser
 from tests.support.engine_process import EngineProcess
 from tests.support.repo import REPO
 from tests.support.tls_helpers import make_pki
+from tests.support.admin_http import fetch
 from tests.support.waiting import wait_for_sync
 
 TOKEN = "workers-console-token-0123456789abcdef"
@@ -48,19 +46,6 @@ routes:
 AGENTS = 12
 MESSAGES = 240
 FIELD = (48.15, 11.58)
-
-
-def fetch(url: str, authorization: str | None = None) -> tuple[int, str]:
-    request = urllib.request.Request(url)
-    if authorization:
-        request.add_header("Authorization", authorization)
-    context = ssl.create_default_context()
-    context.check_hostname, context.verify_mode = False, ssl.CERT_NONE  # the throwaway certificate
-    try:
-        with urllib.request.urlopen(request, timeout=10, context=context) as response:
-            return response.status, response.read().decode()
-    except urllib.error.HTTPError as exc:
-        return exc.code, exc.read().decode()
 
 
 async def sink_queue(url: str, tag: str) -> None:
@@ -97,7 +82,7 @@ def test_the_supervisors_console_shows_both_workers_and_the_engine_as_a_whole(am
                            "--admin-tls-cert", str(pki.server_cert), "--admin-tls-key", str(pki.server_key))
 
     def status() -> dict[str, Any]:
-        code, body = fetch(base + "/status", bearer)
+        code, _, body = fetch(base + "/status", bearer)
         assert code == 200, body
         return dict(json.loads(body))
 
@@ -111,7 +96,7 @@ def test_the_supervisors_console_shows_both_workers_and_the_engine_as_a_whole(am
         # the console sits behind the supervisor admin's token like every other path
         for path in ("/", "/console.js", "/console/events", "/console/state"):
             assert fetch(base + path)[0] == 401, path
-        code, page = fetch(base + "/", "Basic " + base64.b64encode(f"anyone:{TOKEN}".encode()).decode())
+        code, _, page = fetch(base + "/", "Basic " + base64.b64encode(f"anyone:{TOKEN}".encode()).decode())
         assert code == 200 and 'id="workers-panel"' in page
 
         driver = browser(tmp_path / "chromium-profile")
@@ -150,13 +135,13 @@ def test_the_supervisors_console_shows_both_workers_and_the_engine_as_a_whole(am
                                lambda: seen()["agents"])
         assert sorted(agents) == sorted(f"agent{n}" for n in range(AGENTS))
         # each agent's latest position over the workers: what each worker's own console document says
-        fleets = [json.loads(fetch(f"http://127.0.0.1:{w['admin_port']}/console/state", bearer)[1])["fleet"] for w in status()["workers"]]
+        fleets = [json.loads(fetch(f"http://127.0.0.1:{w['admin_port']}/console/state", bearer)[2])["fleet"] for w in status()["workers"]]
         latest: dict[str, tuple[float, int]] = {}
         for index, fleet in enumerate(fleets):
             for agent in fleet:
                 if agent["at"] > latest.get(agent["agent_id"], (0.0, -1))[0]:
                     latest[agent["agent_id"]] = (agent["at"], index)
-        merged = json.loads(fetch(base + "/console/state", bearer)[1])["fleet"]
+        merged = json.loads(fetch(base + "/console/state", bearer)[2])["fleet"]
         assert {a["agent_id"]: (a["at"], a["worker"]) for a in merged} == latest
 
         # a live tap through the supervisor: both workers' taps attached, lines from either

@@ -16,10 +16,12 @@ its own vehicles' frames still flow.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import uuid
 from collections import Counter
 from pathlib import Path
+from typing import AsyncIterator
 
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
@@ -247,33 +249,41 @@ def test_leases_go_in_order_and_a_late_grant_is_told_from_the_next_request() -> 
     assert leases.holder == {} and leases.waiting == {}
 
 
+@contextlib.asynccontextmanager
+async def two_workers_hearing_positions(tmp_path: Path, port: int) -> AsyncIterator[dict[int, list[tuple[int, int]]]]:
+    """Worker 0 (holding a split ``udpin`` link on ``port``) and worker 1, connected to it; yields
+    what each worker's GLOBAL_POSITION_INT listener heard, (system id, time_boot_ms) in order."""
+    settings = {"url": f"udpin:127.0.0.1:{port}", "heartbeat": 0, "split_over_workers": True}
+    owner = MavlinkConnection("fleet", settings, ConnectionShare(0, 2, 0, str(tmp_path)))
+    other = MavlinkConnection("fleet", settings, ConnectionShare(1, 2, 0, str(tmp_path)))
+    heard: dict[int, list[tuple[int, int]]] = {0: [], 1: []}
+    for index, connection in ((0, owner), (1, other)):
+        connection.listen(POSITION, lambda msg, index=index: heard[index].append((msg.get_srcSystem(), msg.time_boot_ms)))
+    await owner.open()
+    await other.open()
+    try:
+        await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected to the owner")
+        yield heard
+    finally:
+        await other.close()
+        await owner.close()
+
+
 def test_a_datagram_with_frames_of_two_vehicles_is_cut_between_their_workers(tmp_path: Path) -> None:
     """A router may put frames of several systems in one datagram: each frame goes to its own
     system's worker (system 1: worker 0, system 3: worker 1), none twice."""
     import socket
 
     port = free_udp_port()
-    settings = {"url": f"udpin:127.0.0.1:{port}", "heartbeat": 0, "split_over_workers": True}
     one, three = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), mavlink2.MAVLink(None, srcSystem=3, srcComponent=1)
 
     async def scenario() -> dict[int, list[tuple[int, int]]]:
-        owner = MavlinkConnection("fleet", settings, ConnectionShare(0, 2, 0, str(tmp_path)))
-        other = MavlinkConnection("fleet", settings, ConnectionShare(1, 2, 0, str(tmp_path)))
-        heard: dict[int, list[tuple[int, int]]] = {0: [], 1: []}
-        for index, connection in ((0, owner), (1, other)):
-            connection.listen(POSITION, lambda msg, index=index: heard[index].append((msg.get_srcSystem(), msg.time_boot_ms)))
-        await owner.open()
-        await other.open()
-        try:
-            await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected to the owner")
+        async with two_workers_hearing_positions(tmp_path, port) as heard:
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as router:
                 for n in range(5):
                     frames = [mav.global_position_int_encode(n, 0, 0, 0, 0, 0, 0, 0, 0).pack(mav) for mav in (one, three, one)]
                     router.sendto(b"".join(frames), ("127.0.0.1", port))
                 await wait_for(lambda: len(heard[0]) == 10 and len(heard[1]) == 5, 10, "every frame at its worker", lambda: heard)
-        finally:
-            await other.close()
-            await owner.close()
         return heard
 
     heard = asyncio.run(asyncio.wait_for(scenario(), 30))
@@ -289,20 +299,11 @@ def test_junk_before_a_frame_does_not_send_it_to_another_systems_worker(tmp_path
     import socket
 
     port = free_udp_port()
-    settings = {"url": f"udpin:127.0.0.1:{port}", "heartbeat": 0, "split_over_workers": True}
     one, three = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1), mavlink2.MAVLink(None, srcSystem=3, srcComponent=1)
     fake = bytes([0xFD, 2, 0, 0, 0, 1, 1, 33, 0, 0])  # v2, 2 bytes of payload, system 1, GLOBAL_POSITION_INT: 14 bytes claimed
 
     async def scenario() -> dict[int, list[tuple[int, int]]]:
-        owner = MavlinkConnection("fleet", settings, ConnectionShare(0, 2, 0, str(tmp_path)))
-        other = MavlinkConnection("fleet", settings, ConnectionShare(1, 2, 0, str(tmp_path)))
-        heard: dict[int, list[tuple[int, int]]] = {0: [], 1: []}
-        for index, connection in ((0, owner), (1, other)):
-            connection.listen(POSITION, lambda msg, index=index: heard[index].append((msg.get_srcSystem(), msg.time_boot_ms)))
-        await owner.open()
-        await other.open()
-        try:
-            await wait_for(lambda: owner.health()["split"]["connected"] == [1], 10, "worker 1 connected to the owner")
+        async with two_workers_hearing_positions(tmp_path, port) as heard:
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:
                 for n in range(5):
                     sender.sendto(fake + three.global_position_int_encode(n, 0, 0, 0, 0, 0, 0, 0, 0).pack(three), ("127.0.0.1", port))
@@ -310,9 +311,6 @@ def test_junk_before_a_frame_does_not_send_it_to_another_systems_worker(tmp_path
                 # a clean frame of system 1 after them: worker 0 has had whatever the owner handed it before
                 sender.sendto(one.global_position_int_encode(99, 0, 0, 0, 0, 0, 0, 0, 0).pack(one), ("127.0.0.1", port))
                 await wait_for(lambda: (1, 99) in heard[0], 10, "system 1's frame at worker 0", lambda: heard)
-        finally:
-            await other.close()
-            await owner.close()
         return heard
 
     heard = asyncio.run(asyncio.wait_for(scenario(), 30))
