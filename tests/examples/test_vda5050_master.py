@@ -19,6 +19,7 @@ import asyncio
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -163,6 +164,24 @@ class Heard:
     factsheets: dict[VehicleKey, Factsheet] = field(default_factory=dict)
     connections: dict[VehicleKey, list[str]] = field(default_factory=dict)
     states: dict[VehicleKey, list[State]] = field(default_factory=dict)
+
+
+MISMATCH = re.compile(r"vehicle reports orderId '(?P<reported>[^']*)' but master has '(?P<current>[^']*)'")
+"""The SDK's ORDER_ID_MISMATCH text (vda5050/domain/order/monitor.py)."""
+
+
+def in_flight(heard: Heard, key: VehicleKey, issue: ProgressIssue) -> bool:
+    """An ORDER_ID_MISMATCH of a state that was on its way when the master dispatched the next
+    order: the SDK's monitor checks each state against the order the master holds now, so a
+    state the vehicle sent before the new order reached it (through mosquitto and the engine,
+    longer on a loaded machine) is flagged. Such a mismatch names the vehicle's previous order,
+    and the vehicle reported the master's order afterwards; anything else is a real mismatch."""
+    found = MISMATCH.search(issue.detail) if issue.kind.value == "ORDER_ID_MISMATCH" else None
+    if found is None:
+        return False
+    reported = [state.order_id for state in heard.states.get(key, [])]
+    previous, current = found["reported"], found["current"]
+    return previous in reported and current in reported and reported.index(previous) < len(reported) - 1 - reported[::-1].index(current)
 
 
 def master_control(broker: LocalMosquitto) -> tuple[MasterClient, Heard]:
@@ -359,7 +378,7 @@ def test_an_independent_master_control_runs_orders_pauses_resumes_and_cancels_bo
     print(" ".join(f"{key}={value:.2f}" for key, value in figures.items()))
 
     assert heard.errors == [], [(event.key, str(event.error)) for event in heard.errors]
-    kinds = {(key.serial_number, issue.kind.value) for key, issue in heard.issues}
+    kinds = {(key.serial_number, issue.kind.value) for key, issue in heard.issues if not in_flight(heard, key, issue)}
     assert not {kind for _, kind in kinds} & {"MAP_NOT_ENABLED", "ORDER_ID_MISMATCH", "UNKNOWN_NODE", "POSITION_MAP_MISMATCH"}, kinds
     assert heard.vehicle_errors == [], heard.vehicle_errors
     for key in (UAV, ROBOT):
