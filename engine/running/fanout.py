@@ -260,7 +260,7 @@ class FanOutSink(Sink):
         self.observer = observer
         """The route's counters: returns that end a message's send here (a fallback took it, or
         the sink refused it for good) count ``unroutable`` here; the runner counts the rest."""
-        self.batches_in_flight = min(slot.sink.batches_in_flight for slot in slots)  # type: ignore[misc]
+        self.batches_in_flight = min(slot.sink.batches_in_flight for slot in slots)  # type: ignore[misc]  # a ClassVar on Sink; a fan-out's is its sinks' least, known per instance
 
     @property
     def ready(self) -> bool:
@@ -352,7 +352,7 @@ class FanOutSink(Sink):
         copies: list[Outbound] = []
         for p in mine:
             try:
-                fields = fallback.mapped.fields(p.message.canonical, p.message.meta)  # type: ignore[arg-type]
+                fields = fallback.mapped.fields(p.message.canonical, p.message.meta)  # type: ignore[arg-type]  # the source's own dict
             except Exception as problem:
                 p.refused[fallback.name] = f"sink mapping: {problem}"
                 continue

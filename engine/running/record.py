@@ -48,7 +48,7 @@ from collections import deque
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import orjson
 
@@ -57,6 +57,14 @@ from engine.endpoints.base import Inbound, Outbound
 
 if TYPE_CHECKING:  # imported when a recording starts: the SDK's import costs some 40 ms every command would pay
     import foxglove
+
+_Log = Callable[[Any, int, Any], None]
+"""A channel's ``log(message, log_time, sink_id)`` (foxglove.Channel.log)."""
+
+
+def _unlogged(message: Any, log_time: int, sink_id: Any) -> None:
+    """Where the writer loop starts, before its first entry names its channels."""
+    raise AssertionError("a recorded entry before its channels")
 
 log = logging.getLogger("engine.running.record")
 
@@ -163,7 +171,7 @@ class Recorder:
         self._inputs: dict[str, foxglove.Channel] = {}
         """Per route: its ``in`` channel (the same whatever the route's schema: its ``sequence`` goes on)."""
         self._canonical: dict[_Channels, foxglove.Channel] = {}
-        self._logs: dict[_Channels, tuple[Any, Any]] = {}
+        self._logs: dict[_Channels, tuple[_Log, _Log]] = {}
         self._unflushed: dict[str, int] = {}
         self._retry_at = 0.0
         """Monotonic time before which no new file is opened after a failure (:data:`RETRY_S`)."""
@@ -285,7 +293,8 @@ class Recorder:
         offset_ns = self._offset_ns
         unflushed = self._unflushed
         last: _Channels | None = None
-        log_input = log_canonical = None
+        log_input: _Log = _unlogged
+        log_canonical: _Log = _unlogged
         route = ""
         while queue:
             if stream.error is not None:  # the disk refused a chunk: stop logging into a writer that failed
@@ -296,13 +305,13 @@ class Recorder:
                 last, route = channels, channels.route
             if inbound is not None:
                 received_at_ns = inbound.received_ns + offset_ns
-                log_input(_input_json(inbound, received_at_ns), received_at_ns, None)  # type: ignore[misc]
+                log_input(_input_json(inbound, received_at_ns), received_at_ns, None)
             elif outbound is not None:
                 received_ns = outbound.received_ns
-                log_canonical(outbound.body, sent_at_ns if received_ns is None else received_ns + offset_ns, None)  # type: ignore[misc]
+                log_canonical(outbound.body, sent_at_ns if received_ns is None else received_ns + offset_ns, None)
             unflushed[route] = unflushed.get(route, 0) + 1
 
-    def _channels(self, channels: _Channels) -> tuple[Any, Any]:
+    def _channels(self, channels: _Channels) -> tuple[_Log, _Log]:
         """The ``log`` of the route's two SDK channels (declared on first use; a route whose
         schema changed gets a new canonical channel, the old one closed)."""
         import foxglove
@@ -361,7 +370,7 @@ class _Stream:
         self.file = open(path, "wb")  # closed by close()
         self.error: OSError | None = None
 
-    def write(self, data: bytes) -> int:
+    def write(self, data: bytes | bytearray) -> int:
         try:
             return self.file.write(data)
         except OSError as error:
@@ -403,7 +412,7 @@ class _File:
         options = MCAPWriteOptions(compression=MCAPCompression.Zstd, chunk_size=chunk_bytes, compression_threads=0,
                                    profile="")
         try:
-            self.writer = foxglove.open_mcap(self.stream, context=context, writer_options=options)  # type: ignore[arg-type]
+            self.writer = foxglove.open_mcap(self.stream, context=context, writer_options=options)
             self.writer.write_metadata("rabbitros", {"engine_version": __version__, "layout": "routes/NAME/in, routes/NAME/canonical"})
         except Exception as error:  # the SDK's FoxgloveError: a disk that refused the header
             self.stream.close()

@@ -28,7 +28,7 @@ import logging
 import os
 import socket
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
@@ -51,6 +51,8 @@ from engine.running.pipeline import Pipeline
 from engine.running.plan import ReloadPlan, plan_reload
 from engine.running.reload_stats import ReloadStats
 from engine.running.runner import RouteRunner
+from engine.running.shutdown import stop_routes
+from engine.running.engine_status import engine_status
 
 log = logging.getLogger("engine.running.runtime")
 
@@ -62,10 +64,6 @@ published meanwhile. After the delay, only what the live configuration no longer
 
 EMPTIED_SETTLE_S = 0.1
 """How long a reload waits to read again a route file found empty (see Engine._emptied)."""
-
-STOP_GRACE = 2.0
-"""Seconds a stop gives sources to hand back what they hold once the drain timeout is over."""
-
 
 @dataclass
 class _Reload:
@@ -508,89 +506,18 @@ class Engine:
             used.add(id(self.dead_letters.connection))
         await self.connections.close_unused(used)
 
-    # -- stopping
+    # -- stopping and the status (engine/running/shutdown.py, engine/running/engine_status.py)
 
     async def stop(self, drain_timeout: float = 10.0) -> None:
-        """Graceful stop: sources stop taking messages; what is in flight is settled for at
-        most ``drain_timeout`` seconds in all (buffers keep delivering meanwhile, then stay
-        spilled on disk); then the connections close, which returns unacknowledged AMQP
-        messages to their queues."""
+        """Graceful stop, in the order engine/running/shutdown.py gives and explains."""
         gc.unfreeze()
         if self._retirement is not None:  # a stopped engine keeps its topology: its queues buffer
             self._retirement.cancel()
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + drain_timeout
         async with self._lock:
-            runners = list(self.runners.values())
-            self.connections.stop_opening()
-            await self._stop_sources(runners, deadline)
-            buffers = self.buffers.take_all()
-            await asyncio.gather(*(b.close(max(0.0, deadline - loop.time())) for b in buffers), return_exceptions=True)
-            pipelines = asyncio.ensure_future(asyncio.gather(*(r.retire_pipeline(r.pipeline) for r in runners), return_exceptions=True))
-            if not await _finished(pipelines, max(deadline, loop.time() + STOP_GRACE)):
-                pipelines.cancel()
-                await asyncio.gather(pipelines, return_exceptions=True)
-            await self.leases.release_unused(())
-            await self.connections.close_all()
-            await self.dedupe.close()
-
-    @staticmethod
-    async def _stop_sources(runners: list[RouteRunner], deadline: float) -> None:
-        """Stop every source, letting in-flight messages settle until ``deadline``; then stop
-        retrying, so sources settle what they can within STOP_GRACE."""
-        for runner in runners:
-            runner.stop_starting()
-        sources = asyncio.ensure_future(asyncio.gather(*(r.source.stop() for r in runners), return_exceptions=True))
-        if await _finished(sources, deadline):
-            return
-        log.warning("drain timeout: what is not settled yet is redelivered by its broker, or dropped and counted where the source cannot redeliver")
-        for runner in runners:
-            runner.halt()
-        if not await _finished(sources, asyncio.get_running_loop().time() + STOP_GRACE):
-            sources.cancel()
-            await asyncio.gather(sources, return_exceptions=True)
-
-    # -- the status
+            await stop_routes(self, drain_timeout)
 
     def status(self) -> dict[str, Any]:
-        config = self.config
-        return {
-            "pid": os.getpid(),
-            "routes_dir": str(self.routes_dir),
-            "generation": self.generation,
-            "config_hash": config.content_hash if config else None,
-            "reloads": asdict(self.reloads),
-            "dead_letters": None if self.dead_letters is None else self.dead_letters.status(),
-            "instance": self.instance,
-            "brokers": {
-                key[0]: connection.endpoint  # type: ignore[attr-defined]  # a broker's connection has one (the getattr below)
-                for key, connection in self.connections.items()
-                if getattr(connection, "endpoint", None)
-            },
-            "elsewhere": self.elsewhere,
-            "stores": self.stores.status(),
-            "dedupe": self.dedupe.status(),
-            **({} if self.recorder is None else {"recording": self.recorder.status()}),
-            "routes": {name: runner.status() for name, runner in sorted(self.runners.items())},
-            "connections": self._connections_status(),
-        }
-
-    def _connections_status(self) -> dict[str, Any]:
-        return {
-            connection.name: {
-                "protocol": protocol,
-                "healthy": connection.healthy and self.is_open(connection),
-                **connection.health(),
-                **({} if self.is_open(connection) else {"state": "retrying"}),
-            }
-            for protocol, connection in self.open_connections()
-        }
-
-
-async def _finished(work: asyncio.Future[Any], deadline: float) -> bool:
-    """Wait for ``work`` until ``deadline`` (loop time) without cancelling it; True if done."""
-    done, _ = await asyncio.wait({work}, timeout=max(0.0, deadline - asyncio.get_running_loop().time()))
-    return bool(done)
+        return engine_status(self)
 
 
 SOURCE_START_CONCURRENCY = 64

@@ -19,7 +19,7 @@ import pytest
 
 from engine import __version__
 from engine.common.processes import listening_port
-from engine.ops.cli import COMMANDS, build_parser
+from engine.ops.cli_parser import COMMANDS, build_parser
 from tests.support.amqp_helpers import Collector, publish
 from tests.support.repo import REPO
 from tests.support.waiting import wait_for_sync

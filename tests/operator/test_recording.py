@@ -30,7 +30,7 @@ from mcap.stream_reader import StreamReader
 
 from engine.common.processes import listening_port
 from engine.endpoints.mqtt.broker import LocalMosquitto
-from engine.ops.cli import build_parser
+from engine.ops.cli_parser import build_parser
 from engine.ops.replay_sinks import parse_speed
 from tests.endpoints.mqtt.test_mqtt import publish
 from tests.support.amqp_helpers import Collector

@@ -193,7 +193,7 @@ def test_the_merged_counters_never_go_down_when_a_worker_restarts_or_does_not_an
 def test_every_run_option_reaches_the_workers_or_is_the_supervisors() -> None:
     """The supervisor writes its workers' command lines from its own options: one it neither
     passes on nor keeps for itself (SUPERVISOR_OWN_OPTIONS) would be dropped for workers."""
-    from engine.ops.cli import build_parser
+    from engine.ops.cli_parser import build_parser
     from engine.ops.supervisor import SUPERVISOR_OWN_OPTIONS
 
     run = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["run"]
