@@ -64,20 +64,29 @@ class ConnectionPool:
                 if self.require_connections or not retry_in_background:
                     raise
                 log.warning("connection unreachable; retrying in the background", extra={"connection": spec.name, "error": str(error)})
-                self._openers[id(connection)] = asyncio.create_task(self._keep_opening(connection), name=f"open-{spec.name}")
+                self._openers[id(connection)] = asyncio.create_task(self._keep_opening(connection, str(error)), name=f"open-{spec.name}")
             else:
                 self._opened.add(id(connection))
             self._connections[key] = connection
         return connection
 
-    async def _keep_opening(self, connection: Connection) -> None:
+    async def _keep_opening(self, connection: Connection, reason: str) -> None:
+        """Retry with the engine's backoff. A retry failing as the last did is logged at debug
+        only, but a new reason is a warning: the first attempt often fails for another reason
+        than the rest (a broker still starting resets the connection, then refuses the client
+        certificate), and the log must name what keeps the connection down now."""
         backoff = Backoff(OPEN_RETRY_FIRST, OPEN_RETRY_MAX)
         while True:
             await asyncio.sleep(backoff.next())
             try:
                 await connection.open()
             except EndpointError as error:
-                log.debug("connection still unreachable", extra={"connection": connection.name, "error": str(error)})
+                now = str(error)
+                if now != reason:
+                    log.warning("connection still unreachable, now for another reason", extra={"connection": connection.name, "error": now})
+                else:
+                    log.debug("connection still unreachable", extra={"connection": connection.name, "error": now})
+                reason = now
                 continue
             self._opened.add(id(connection))
             self._openers.pop(id(connection), None)
