@@ -2,7 +2,7 @@
 # Sets everything up, then runs the whole test suite against real RabbitMQ, rclpy and pymavlink,
 # in three pytest runs sharing one 1500 s bound:
 #   1. the fast tier: the tests marked `fast` (no broker, no network peer, no ROS 2 node: the route
-#      language, check, test, plan, mappings, schemas, codecs; 341 tests, 55 s of CPU in all), on
+#      language, check, test, plan, mappings, schemas, codecs; about 490 tests, 54 s on 3 workers), on
 #      $RABBITROS_TEST_WORKERS workers. When it fails the run stops there, its failures first and
 #      alone, without waiting out the broker tests;
 #   2. every other test but the `alone` ones, on $RABBITROS_TEST_WORKERS pytest-xdist workers

@@ -19,7 +19,8 @@ from pathlib import Path
 import aio_pika
 from pymavlink.dialects.v20 import common as mavlink2
 
-from engine.running.runtime import STOP_GRACE, Engine
+from engine.running.runtime import Engine
+from engine.running.shutdown import STOP_GRACE
 from tests.support.repo import REPO
 from tests.support.udp_vehicle import free_udp_port
 
