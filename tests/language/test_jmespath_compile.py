@@ -192,7 +192,9 @@ def test_shipped_mapping_evaluates_as_jmespath_does(where: str, expression: str)
     )
     messages = st.fixed_dictionaries({}, optional={name: values for name in names})
 
-    @settings(max_examples=100, deadline=None)
+    # 40 messages a mapping: the 45 shipped ones took 37 s of the fast tier's CPU at 100 (the VDA 5050
+    # state mappings 3-4 s each), and the generated expressions below cover the forms in depth
+    @settings(max_examples=40, deadline=None)
     @given(messages)
     def compare(message: dict[str, Any]) -> None:
         assert_same(expression, message)
