@@ -263,15 +263,7 @@ def store_keys(config: RoutesConfig) -> dict[str, bool]:
 def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mapping[str, bool] | None = None) -> Result:
     """``keyed``: each store's ``per`` given or not (:func:`store_keys`), to read the case's
     ``remembered``; every case starts with stores holding only that, and ``sequence()`` at 1."""
-    schema = schemas.get(spec.schema)
-    assert schema is not None  # the route compiled
-    reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
-    stores = Stores.given(case.body.get("remembered") or {}, keyed or {})
-    seen = None
-    if spec.dedupe is not None:  # in memory only: a route test writes no state
-        seen = SeenKeys(spec.dedupe.path, spec.dedupe.ttl, spec.dedupe.max_keys)
-        seen.accepted(text for text in map(key_text, case.body.get("accepted") or ()) if text is not None)
-    pipeline = Pipeline.compile(spec, 0, schema, DrySink(), reply_schema, stores, seen)
+    pipeline, stores = _case_pipeline(case, spec, schemas, keyed)
     body = case.body
     if "window" in body:
         return _window_case(case, spec, pipeline)
@@ -319,6 +311,28 @@ def run_case(case: Case, spec: RouteSpec, schemas: SchemaRegistry, keyed: Mappin
     if expected_error:
         return Result(case, False, f"expected a {expected_error} error, but the message converted",
                       _diff({"error": expected_error}, {"canonical": _plain(outbound.canonical), "routing_key": destination}))
+    return _compare(case, pipeline, outbound, reply, destination, stores, keyed)
+
+
+def _case_pipeline(case: Case, spec: RouteSpec, schemas: SchemaRegistry,
+                   keyed: Mapping[str, bool] | None) -> tuple[Pipeline, Stores]:
+    """The route's conversion as the engine compiles it, on a dry sink, with the stores and the
+    de-duplication keys the case gives (in memory only: a route test writes no state)."""
+    schema = schemas.get(spec.schema)
+    assert schema is not None  # the route compiled
+    reply_schema = schemas.get(spec.reply.schema) if spec.reply is not None and spec.reply.schema else None
+    stores = Stores.given(case.body.get("remembered") or {}, keyed or {})
+    seen = None
+    if spec.dedupe is not None:
+        seen = SeenKeys(spec.dedupe.path, spec.dedupe.ttl, spec.dedupe.max_keys)
+        seen.accepted(text for text in map(key_text, case.body.get("accepted") or ()) if text is not None)
+    return Pipeline.compile(spec, 0, schema, DrySink(), reply_schema, stores, seen), stores
+
+
+def _compare(case: Case, pipeline: Pipeline, outbound: Outbound, reply: Any, destination: str | None, stores: Stores,
+             keyed: Mapping[str, bool] | None) -> Result:
+    """A converted message against every ``expect*`` of the case, all differences together."""
+    body = case.body
     ignore = body.get("ignore") or ()
     failures: list[tuple[str, list[str]]] = []
     if "expect" in body:
