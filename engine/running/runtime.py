@@ -65,6 +65,7 @@ published meanwhile. After the delay, only what the live configuration no longer
 EMPTIED_SETTLE_S = 0.1
 """How long a reload waits to read again a route file found empty (see Engine._emptied)."""
 
+
 @dataclass
 class _Reload:
     """One reload being applied: the plan and what its phases made so far."""
