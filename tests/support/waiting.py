@@ -4,7 +4,8 @@ Every wait has a deadline and polls a cheap predicate (a count, a status field, 
 test goes on the moment the condition holds instead of sleeping a fixed time and hoping, and a
 condition that never holds fails with ``what`` (and ``detail()``, what was seen instead) rather
 than a bare timeout. ``wait_for`` is for coroutines (it yields to the event loop between
-polls), ``wait_for_sync`` for plain code (engines as processes, threads)."""
+polls), ``wait_for_sync`` for plain code (engines as processes, threads), ``probe_until`` for a
+message that must be sent again until one gets through."""
 
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ async def wait_for(predicate: Callable[[], T | Awaitable[T]], timeout: float = 1
             return value  # type: ignore[return-value]
         if loop.time() > deadline:
             raise _timed_out(timeout, what, detail)
-        await asyncio.sleep(ASYNC_POLL_S)
+        await asyncio.sleep(ASYNC_POLL_S)  # poll: the interval between two checks of the predicate
 
 
 def wait_for_sync(predicate: Callable[[], T], timeout: float = 10.0, what: str = "the condition",
@@ -51,5 +52,29 @@ def wait_for_sync(predicate: Callable[[], T], timeout: float = 10.0, what: str =
     while not (value := predicate()):
         if time.monotonic() > deadline:
             raise _timed_out(timeout, what, detail)
-        time.sleep(SYNC_POLL_S)
+        time.sleep(SYNC_POLL_S)  # poll: the interval between two checks of the predicate
     return value
+
+
+async def probe_until(arrived: Callable[[], object], probe: Callable[[], object], timeout: float = 30.0,
+                      what: str = "a probe through", every: float = 0.2,
+                      detail: Callable[[], object] | None = None) -> None:
+    """Send a probe (``probe()``, awaited if it returns an awaitable) every ``every`` seconds
+    until ``arrived()`` holds, or fail naming ``what`` after ``timeout`` seconds: for a peer that
+    drops what it sends before the far end matched it (a volatile DDS writer, a datagram to a port
+    not yet bound), where one message sent once could be lost and a fixed sleep only hopes."""
+    loop = asyncio.get_running_loop()
+    next_probe = loop.time()
+
+    async def probed() -> bool:
+        nonlocal next_probe
+        if arrived():
+            return True
+        if loop.time() >= next_probe:
+            sent = probe()
+            if inspect.isawaitable(sent):
+                await sent
+            next_probe = loop.time() + every
+        return False
+
+    await wait_for(probed, timeout, what, detail)
