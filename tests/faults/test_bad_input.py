@@ -24,8 +24,9 @@ from rclpy.serialization import serialize_message
 from rclpy.signals import SignalHandlerOptions
 
 from engine.endpoints.ros2.rosmsg import resolve_type
+from tests.support.amqp_helpers import Collector
 from tests.support.faults_harness import (
-    LoopThread, Recorder, dead_letter_key, outputs_by_route, ros_domain, start_engine,
+    LoopThread, dead_letter_key, outputs_by_route, ros_domain, start_engine,
 )
 from tests.support.udp_vehicle import free_udp_port
 from tests.support.waiting import wait_for
@@ -98,8 +99,8 @@ class Harness:
         self.connection = await aio_pika.connect(self.url)
         self.channel = await self.connection.channel()
         self.inbox_exchange = await self.channel.declare_exchange(self.inbox, aio_pika.ExchangeType.TOPIC, durable=True)
-        self.out = await Recorder.bind(self.channel, self.outbox, "#")
-        self.dead = await Recorder.bind(self.channel, "rabbitros.dead-letter", "#")
+        self.out = await Collector.bind(self.channel, self.outbox, "#")
+        self.dead = await Collector.bind(self.channel, "rabbitros.dead-letter", "#")
 
     def next_seq(self) -> int:
         self.seq += 1
@@ -133,7 +134,7 @@ class Harness:
         async def arrived() -> None:
             await wait_for(lambda: got()[0] >= self.example_out and got()[1] >= self.example_dead,
                            timeout, "every valid message and every dead letter")
-            await asyncio.sleep(0.2)  # time for a duplicate to show up
+            await asyncio.sleep(0.2)  # quiet window: time for a duplicate to show up
 
         try:
             self.loop.run(arrived(), timeout + 10)

@@ -82,7 +82,7 @@ async def publish_seq(
         if rate:
             ahead = (first + batch - start) / rate - (time.monotonic() - began)
             if ahead > 0:
-                await asyncio.sleep(ahead)
+                await asyncio.sleep(ahead)  # pacing: the publisher's rate
 
 
 def kill_engine(engine: EngineProcess) -> float:
@@ -313,11 +313,11 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
                 publisher.publish(String(data=json.dumps({"seq": len(published)})))
                 published.append(time.monotonic())
                 ahead = len(published) / rate - (time.monotonic() - began)
-                await asyncio.sleep(max(ahead, 0))
+                await asyncio.sleep(max(ahead, 0))  # pacing: the robot's rate
 
         try:
             collector = await TimedCollector.bind_output(await connection.channel(), f"out-{tag}")
-            await asyncio.sleep(0.5)  # as before this change: the cluster's output queue settles before the robot streams (not measured without the cluster)
+            await asyncio.sleep(0.5)  # settle: as before this change, the cluster's output queue settles before the robot streams (not measured without the cluster)
             robot_task = asyncio.create_task(robot())
             await wait_for(lambda: len(collector.seq_arrivals) >= 400, 30, "the active engine to forward")
             await wait_for(lambda: standby.status()["routes"][route]["standby_skipped"] > 0, 10, "the standby to see the stream")
@@ -327,7 +327,7 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
             at_kill = len(published)
             await wait_for(lambda: collector.first_after(killed_at + 0.05) is not None, 30, "the standby to forward")
             resumed = collector.first_after(killed_at + 0.05)
-            await asyncio.sleep(2.0)  # the stream goes on 2 s after the takeover (the behaviour under test)
+            await asyncio.sleep(2.0)  # pacing: the stream goes on 2 s after the takeover (the behaviour under test)
             stop.set()
             await robot_task
             await wait_for(lambda: len(collector.unique) >= len(published) - 2 * rate * (resumed - killed_at + 0.5), 20, "the stream after takeover")

@@ -15,7 +15,7 @@ import aio_pika
 import pytest
 
 from tests.support.engine_process import EngineProcess
-from tests.support.faults_harness import Recorder
+from tests.support.amqp_helpers import Collector
 from tests.support.waiting import wait_for
 
 TOTAL = 10_000
@@ -49,8 +49,8 @@ def test_engine_killed_twice_loses_nothing(tmp_path: Path, amqp_url: str) -> Non
     async def scenario() -> dict[str, int]:
         connection = await aio_pika.connect(amqp_url)
         channel = await connection.channel()
-        out = await Recorder.bind(channel, outbox, "#")
-        dead = await Recorder.bind(channel, "rabbitros.dead-letter", "kill-weeds")
+        out = await Collector.bind(channel, outbox, "#")
+        dead = await Collector.bind(channel, "rabbitros.dead-letter", "kill-weeds")
         fast = await connection.channel(publisher_confirms=False)
         queue = await fast.declare_queue(f"{inbox}-q", durable=True)
         exchange = await fast.declare_exchange(inbox, aio_pika.ExchangeType.TOPIC, durable=True)
@@ -59,8 +59,11 @@ def test_engine_killed_twice_loses_nothing(tmp_path: Path, amqp_url: str) -> Non
             body = {"agent": f"uav{seq % 3}", "seq": seq,
                     "detections": [{"lat": -22.0, "lon": -47.9, "confidence": 0.5 + (seq % 40) / 100}]}
             await exchange.publish(aio_pika.Message(json.dumps(body).encode(), delivery_mode=2), "k.x")
-        while (await fast.declare_queue(f"{inbox}-q", passive=True)).declaration_result.message_count < TOTAL:
-            await asyncio.sleep(0.05)
+
+        async def all_queued() -> bool:
+            return (await fast.declare_queue(f"{inbox}-q", passive=True)).declaration_result.message_count >= TOTAL
+
+        await wait_for(all_queued, 60, f"all {TOTAL} messages in the source queue")
 
         def seen() -> int:
             return len({json.loads(m.body)["seq"] for m in out.messages})
@@ -72,7 +75,7 @@ def test_engine_killed_twice_loses_nothing(tmp_path: Path, amqp_url: str) -> Non
                 await asyncio.to_thread(engine.wait_started)
                 if kill_at is None:
                     await wait_for(lambda: seen() == TOTAL, 240, f"all {TOTAL} messages")
-                    await asyncio.sleep(1.0)  # let any duplicate in flight arrive
+                    await asyncio.sleep(1.0)  # quiet window: let any duplicate in flight arrive
                     break
                 await wait_for(lambda: seen() >= kill_at, 240, f"{kill_at} messages before the kill")
                 kill(engine)

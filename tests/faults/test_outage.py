@@ -24,7 +24,7 @@ from tests.support.amqp_helpers import Collector
 from tests.support.outage_helpers import RosPeer, Tally, declare_bound_queue, publish_reliably, robust
 from tests.support.udp_vehicle import free_udp_port
 from tests.support.workers import ros_domain
-from tests.support.waiting import wait_for
+from tests.support.waiting import probe_until, wait_for
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
@@ -74,15 +74,15 @@ async def _warm_up(peer: RosPeer, connection: Any, names: dict[str, str], down: 
     channel = await connection.channel()
     inbox = await channel.declare_exchange(names["inbox"], aio_pika.ExchangeType.TOPIC, durable=True)
     await wait_for(lambda: peer.subscribers(f"/{names['tag']}/up") > 0, 30, "the engine's ROS subscription")
-    deadline = time.monotonic() + 30
-    while (both and -1 not in down.copies) or -1 not in up.copies:
-        if time.monotonic() > deadline:
-            raise TimeoutError("the engine's ROS 2 endpoints were not matched")
+
+    async def probe() -> None:
         if both:
             await inbox.publish(aio_pika.Message(b'{"seq": -1}'), "r.x")
         peer.publish(-1)
-        await asyncio.sleep(0.2)  # probe pace: a probe each 0.2 s until both flows carry one
-    await asyncio.sleep(0.5)  # the last probes in flight land before the tallies are cleared
+
+    await probe_until(lambda: (not both or -1 in down.copies) and -1 in up.copies, probe, 30,
+                      "a probe through each direction (the engine's ROS 2 endpoints matched)")
+    await asyncio.sleep(0.5)  # quiet window: the last probes in flight land before the tallies are cleared
     for tally in (down, up):
         with tally.lock:
             tally.copies.clear()
@@ -125,7 +125,7 @@ def test_broker_killed_twice_under_traffic_both_directions_lose_nothing(tmp_path
                 for threshold in (N_FLOW * 3 // 10, N_FLOW * 65 // 100):
                     await wait_for(lambda: from_ros.sent >= threshold, 300, "the senders")
                     broker.kill()
-                    await asyncio.sleep(1.0)  # the broker stays down 1 s (the outage under test)
+                    await asyncio.sleep(1.0)  # outage: the broker stays down 1 s (the outage under test)
                     await asyncio.to_thread(broker.start)
                     restarts.append(time.monotonic())
 
@@ -284,17 +284,18 @@ def test_engine_starts_without_the_broker_and_routes_that_do_not_need_it_run_at_
             assert status["routes"]["uav-to-ros"]["state"] == "running"
             assert status["routes"]["from-ros"]["state"] == "running", "a buffered route runs without its sink"
             sent = 0
-            while not down.copies:
+
+            def send_position() -> None:
+                nonlocal sent
                 sent += 1
                 vehicle.mav.global_position_int_send(sent, 0, 0, 0, 0, 0, 0, 0, 0)
-                if time.monotonic() - started > 30:
-                    raise TimeoutError("MAVLink -> ROS 2 did not work while the broker was down")
-                await asyncio.sleep(0.05)
+
+            await probe_until(lambda: down.copies, send_position, 30, "MAVLink -> ROS 2 while the broker is down", every=0.05)
             figures["mavlink_to_ros_first_s"] = min(down.arrivals) - started
             for seq in range(100):  # while the broker is down: into from-ros's buffer
                 vehicle.mav.global_position_int_send(10_000 + seq, 0, 0, 0, 0, 0, 0, 0, 0)
             await wait_for(lambda: peer.subscribers(f"/{names['tag']}/up") > 0, 30, "the engine's ROS subscription")
-            await asyncio.sleep(1.0)  # our writer sees the engine's reader; the engine's reader matching our writer is not observable from here
+            await asyncio.sleep(1.0)  # settle: our writer sees the engine's reader; the engine's reader matching our writer is not observable from here
             for seq in range(200):
                 peer.publish(seq)
                 up.sent += 1
@@ -356,7 +357,7 @@ def test_held_messages_survive_a_reload_that_replaces_the_route(tmp_path: Path, 
             runner = engine.runners["from-ros"]
             assert runner.state == "running" and engine.runners["to-ros"].state == "waiting"
             await wait_for(lambda: peer.subscribers(f"/{names['tag']}/up") > 0, 30, "the engine's ROS subscription")
-            await asyncio.sleep(1.0)  # our writer sees the engine's reader; the engine's reader matching our writer is not observable from here
+            await asyncio.sleep(1.0)  # settle: our writer sees the engine's reader; the engine's reader matching our writer is not observable from here
             for seq in range(300):
                 peer.publish(seq)
                 arrived.sent += 1

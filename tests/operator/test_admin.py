@@ -26,7 +26,7 @@ from engine.endpoints.amqp.broker import LocalBroker
 from tests.support.amqp_helpers import Collector, publish
 from tests.support.repo import REPO
 from tests.support.engine_process import EngineProcess
-from tests.support.waiting import wait_for_sync
+from tests.support.waiting import wait_for, wait_for_sync
 
 ROUTES = """
 routes:
@@ -159,7 +159,8 @@ def _open_tap(port: int, route: str, receive_buffer: int | None = None) -> socke
 
 
 def _read_tap(sock: socket.socket, count: int, timeout: float) -> list[dict[str, Any]]:
-    """Read ``count`` JSON lines from a raw chunked HTTP response."""
+    """Read ``count`` JSON lines from a raw chunked HTTP response; fails naming how many came
+    if fewer than ``count`` did within ``timeout`` seconds."""
     deadline = time.monotonic() + timeout
     buffer = b""
     while buffer.count(b"\n{") < count and time.monotonic() < deadline:
@@ -171,7 +172,9 @@ def _read_tap(sock: socket.socket, count: int, timeout: float) -> list[dict[str,
         if not chunk:
             break
         buffer += chunk
-    return [json.loads(line) for line in buffer.split(b"\n") if line.startswith(b"{")]
+    lines = [json.loads(line) for line in buffer.split(b"\n") if line.startswith(b"{")]
+    assert len(lines) >= count, f"the tap sent {len(lines)} of {count} lines within {timeout:g} s"
+    return lines
 
 
 def test_tap_gets_every_canonical_message(admin: Admin):
@@ -235,10 +238,9 @@ def test_throttle_keeps_the_latest_per_agent(admin: Admin):
         for seq in range(40):  # 20 msg/s per agent for 2 s, against max_rate 2
             for agent in ("uav1", "uav2"):
                 await target.publish(aio_pika.Message(json.dumps({"agent": agent, "seq": seq}).encode()), f"throttled.{agent}")
-            await asyncio.sleep(0.05)
-        deadline = time.monotonic() + 10  # the last slot opens within 0.5 s
-        while not latest_of_both(output) and time.monotonic() < deadline:
-            await asyncio.sleep(0.05)
+            await asyncio.sleep(0.05)  # pacing: 20 msg/s per agent
+        await wait_for(lambda: latest_of_both(output), 10, "seq 39 of both agents (the last slot opens within 0.5 s)",
+                       detail=lambda: sorted(json.loads(m.body)["seq"] for m in output.messages))
         elapsed = time.monotonic() - began
         await connection.close()
         return output.messages, elapsed

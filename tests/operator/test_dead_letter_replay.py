@@ -108,7 +108,7 @@ def test_a_dead_letter_replayed_after_the_route_was_fixed_reaches_the_sink_once(
             await out.wait_for(3, 10)
             second = await asyncio.to_thread(main, ["dead-letters", "replay", *cli, "--route", f"weeds-{tag}"])
             second_out = capsys.readouterr().out
-            await asyncio.sleep(0.5)  # a second copy would arrive now (none may)
+            await asyncio.sleep(0.5)  # quiet window: a second copy would arrive now (none may)
             return sorted(json.loads(m.body)["seq"] for m in out.messages), first, second, first_out, second_out
 
     received, first, second, first_out, second_out = asyncio.run(replay_twice())
@@ -190,7 +190,7 @@ def test_a_dead_letter_of_one_sink_among_several_is_replayed_to_that_sink_only(
             replayed = await asyncio.to_thread(main, ["dead-letters", "replay", *cli, "--route", f"fan-{tag}"])
             out = capsys.readouterr().out
             await b.wait_for(3, 10)
-            await asyncio.sleep(0.5)  # a second copy to a would arrive now (none may)
+            await asyncio.sleep(0.5)  # quiet window: a second copy to a would arrive now (none may)
             return (sorted(json.loads(m.body)["seq"] for m in a.messages), sorted(json.loads(m.body)["seq"] for m in b.messages),
                     replayed, out)
 

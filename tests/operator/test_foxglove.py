@@ -72,7 +72,7 @@ async def _feed(url: str, stop: asyncio.Event) -> int:
                 await publish(channel, "fox-test", f"pos.{agent}", [json.dumps(body).encode()])
             await publish(channel, "fox-test", "tel.x", [json.dumps({"agent": "uav1", "seq": sent}).encode()])
             sent += 1
-            await asyncio.sleep(0.05)
+            await asyncio.sleep(0.05)  # pacing: a position of each agent every 50 ms
     finally:
         del collector
         await connection.close()

@@ -120,18 +120,13 @@ def test_logs_status_and_dead_letters_never_show_the_password_and_sigterm_loses_
             inbox = await channel.declare_exchange(names["inbox"], aio_pika.ExchangeType.TOPIC, durable=True)
             await inbox.publish(aio_pika.Message(b"{not json"), "bad")
             dead = await channel.declare_queue("rabbitros.dead-letter", passive=True)
-            letter = None
-            deadline = time.monotonic() + 30
-            while letter is None and time.monotonic() < deadline:
-                letter = await dead.get(no_ack=True, fail=False)
-                await asyncio.sleep(0.1)
-            assert letter is not None, "no dead letter"
+            letter = await wait_for(lambda: dead.get(no_ack=True, fail=False), 30, "the dead letter of '{not json'")
             figures["dead_letter_headers"] = json.dumps(dict(letter.headers), default=str)
 
             broker.kill()
             await wait_for(lambda: not (engines[0].status() or {}).get("connections", {}).get("gcs", {}).get("healthy", True),
                            30, "the engine to see the broker down")
-            await asyncio.sleep(2.0)  # a few reconnection attempts, logged
+            await asyncio.sleep(2.0)  # outage: the broker stays down 2 s, a few reconnection attempts logged
             await asyncio.to_thread(broker.start)
             await wait_for(lambda: (engines[0].status() or {}).get("connections", {}).get("gcs", {}).get("healthy", False),
                            60, "the engine to reconnect")
@@ -215,14 +210,13 @@ def test_sigterm_with_the_sink_down_exits_0_within_the_drain_timeout_and_requeue
             began = time.monotonic()
             code = await asyncio.to_thread(engine.stop)
             figures["stop_s"] = time.monotonic() - began
-            deadline = time.monotonic() + 30
-            while True:
+
+            async def all_requeued() -> bool:
                 queue = await channel.declare_queue(f"{inbox}-q", passive=True)
-                count = queue.declaration_result.message_count
-                if count == 500 or time.monotonic() > deadline:
-                    break
-                await asyncio.sleep(0.2)  # poll interval of a deadline loop (an await in each poll: wait_for takes a plain predicate)
-            figures["requeued"] = count
+                figures["requeued"] = queue.declaration_result.message_count
+                return figures["requeued"] == 500
+
+            await wait_for(all_requeued, 30, "all 500 back in the source queue", detail=lambda: figures.get("requeued"))
             return code
         finally:
             await connection.close()

@@ -24,7 +24,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from engine.common.processes import listening_port
 from tests.support.engine_process import EngineProcess
-from tests.support.faults_harness import Recorder
+from tests.support.amqp_helpers import Collector
 from tests.support.repo import REPO
 from tests.support.waiting import wait_for
 
@@ -78,7 +78,7 @@ def test_a_worker_killed_under_load_loses_nothing_and_comes_back(tmp_path: Path,
 
     async def scenario() -> dict[str, Any]:
         connection = await aio_pika.connect(amqp_url)
-        out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
+        out = await Collector.bind(await connection.channel(), f"{tag}-out", "#")
         publishing = asyncio.create_task(publish(connection, tag, range(TOTAL)))  # while the workers drain it
         seen: set[int] = set()
         read = [0]
@@ -146,7 +146,7 @@ def stopped_under_load(tmp_path: Path, amqp_url: str, stop: Callable[[EngineProc
 
     async def scenario() -> tuple[list[int], int | None, int]:
         connection = await aio_pika.connect(amqp_url)
-        out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
+        out = await Collector.bind(await connection.channel(), f"{tag}-out", "#")
         try:
             await asyncio.to_thread(first.wait_started)
             status = await admin_status(port)
@@ -303,7 +303,7 @@ def test_an_mqtt_shared_subscription_is_split_between_the_workers(tmp_path: Path
 
     async def scenario() -> dict[str, Any]:
         connection = await aio_pika.connect(amqp_url)
-        out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
+        out = await Collector.bind(await connection.channel(), f"{tag}-out", "#")
         try:
             placed = await admin_status(port)
             assert placed["placement"] == {f"weather-{tag}": [0, 1]}
@@ -356,7 +356,7 @@ def test_a_generation_one_worker_refuses_is_rolled_back_on_the_others(tmp_path: 
 
     async def scenario() -> tuple[dict[str, Any], dict[str, Any], list[str]]:
         connection = await aio_pika.connect(amqp_url)
-        out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
+        out = await Collector.bind(await connection.channel(), f"{tag}-out", "#")
         try:
             first = await admin_status(port)
             route_file.write_text(ROLLBACK_ROUTES.format(url=amqp_url, tag=tag, key="second", port=busy))

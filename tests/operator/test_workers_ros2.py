@@ -17,7 +17,7 @@ import aio_pika
 
 from engine.common.shares import share_of
 from tests.operator.test_workers import admin_status, two_workers
-from tests.support.faults_harness import Recorder
+from tests.support.amqp_helpers import Collector
 from tests.support.waiting import wait_for
 from tests.support.workers import ros_domain
 
@@ -70,7 +70,7 @@ def test_a_topic_patterns_robots_are_shared_between_the_workers(tmp_path: Path, 
 
     async def scenario() -> dict[str, Any]:
         connection = await aio_pika.connect(amqp_url)
-        out = await Recorder.bind(await connection.channel(), f"{tag}-out", "#")
+        out = await Collector.bind(await connection.channel(), f"{tag}-out", "#")
         try:
             placed = await admin_status(port)
             assert placed["placement"] == {f"fixes-{tag}": [0, 1]}, placed["placement"]

@@ -23,7 +23,7 @@ from engine.endpoints.base import EndpointError
 from engine.ops.cli import main
 from engine.running.dedupe import SeenKeys, key_text
 from tests.support.engine_process import EngineProcess
-from tests.support.faults_harness import Recorder
+from tests.support.amqp_helpers import Collector
 from tests.support.repo import REPO
 from tests.support.waiting import wait_for
 
@@ -137,7 +137,7 @@ def test_a_message_redelivered_after_a_kill_is_sent_once(tmp_path: Path, amqp_ur
     async def scenario() -> dict[str, object]:
         connection = await aio_pika.connect(amqp_url)
         channel = await connection.channel()
-        out = await Recorder.bind(channel, f"{tag}-out", "#")
+        out = await Collector.bind(channel, f"{tag}-out", "#")
         fast = await connection.channel(publisher_confirms=False)
         queue = await fast.declare_queue(f"{tag}-q", durable=True)
         exchange = await fast.declare_exchange(f"{tag}-in", aio_pika.ExchangeType.TOPIC, durable=True)
@@ -149,8 +149,11 @@ def test_a_message_redelivered_after_a_kill_is_sent_once(tmp_path: Path, amqp_ur
                 await exchange.publish(aio_pika.Message(json.dumps(body).encode(), delivery_mode=2), "m.x")
 
         await publish(range(TOTAL))
-        while (await fast.declare_queue(f"{tag}-q", passive=True)).declaration_result.message_count < TOTAL:
-            await asyncio.sleep(0.05)
+
+        async def all_queued() -> bool:
+            return (await fast.declare_queue(f"{tag}-q", passive=True)).declaration_result.message_count >= TOTAL
+
+        await wait_for(all_queued, 60, f"all {TOTAL} missions in the source queue")
 
         def seen() -> int:
             return len({json.loads(m.body)["mission_id"] for m in out.messages})
@@ -179,14 +182,14 @@ def test_a_message_redelivered_after_a_kill_is_sent_once(tmp_path: Path, amqp_ur
                 return int((((second.status() or {}).get("dedupe") or {}).get(route) or {}).get("in_doubt", 0))
 
             # every mission through: all of them, but under skip those in doubt the sink never got
-            deadline = asyncio.get_running_loop().time() + 240
-            while True:
-                ready = (await fast.declare_queue(f"{tag}-q", passive=True)).declaration_result.message_count
-                if ready == 0 and all_settled() and seen() >= TOTAL - (in_doubt() if policy == "skip" else 0):
-                    break
-                assert asyncio.get_running_loop().time() < deadline, (f"missions: {seen()} of {TOTAL}, {ready} in the queue, "
-                                                                      f"{counters()}, in doubt {in_doubt()}")
-                await asyncio.sleep(0.05)
+            ready = [-1]
+
+            async def all_through() -> bool:
+                ready[0] = (await fast.declare_queue(f"{tag}-q", passive=True)).declaration_result.message_count
+                return ready[0] == 0 and all_settled() and seen() >= TOTAL - (in_doubt() if policy == "skip" else 0)
+
+            await wait_for(all_through, 240, "every mission through",
+                           lambda: f"missions: {seen()} of {TOTAL}, {ready[0]} in the queue, {counters()}, in doubt {in_doubt()}")
             # The status file is written every 0.5 s and the engine may still settle prefetched
             # messages the queue no longer counts as ready: read ``before`` once ``received`` stood
             # still across two writes (a stale one made the exact count below unreachable in CI)
@@ -202,7 +205,7 @@ def test_a_message_redelivered_after_a_kill_is_sent_once(tmp_path: Path, amqp_ur
             before = counters()["received"]
             await publish(range(200))  # the first 200 again: their keys were accepted before the kill
             await wait_for(lambda: counters()["received"] == before + 200 and all_settled(), 120, "the 200 published again settled")
-            await asyncio.sleep(0.5)  # a duplicate sent by mistake would arrive now (none may)
+            await asyncio.sleep(0.5)  # quiet window: a duplicate sent by mistake would arrive now (none may)
             status = second.status() or {}
         finally:
             exited = second.stop()

@@ -38,7 +38,7 @@ class EngineProcess:
             status = self.status()
             if status and status.get("generation", 0) >= 1:
                 return status
-            time.sleep(0.1)
+            time.sleep(0.1)  # poll: the status file, until the deadline above (then TimeoutError)
         raise TimeoutError(f"engine did not start: {self.log()}")
 
     def status(self) -> dict[str, Any] | None:

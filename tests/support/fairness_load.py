@@ -59,7 +59,7 @@ class Senders(threading.Thread):
                         with contextlib.suppress(OSError):
                             sock.sendto(frame.pack(mav), target)
                         self.sent[system] += 1
-                time.sleep(0.002)
+                time.sleep(0.002)  # pacing: the senders' tick
         finally:
             for _, sock, _ in agents.values():
                 sock.close()
@@ -154,7 +154,7 @@ def flood(directory: Path, fair: bool, seconds: float = 6.0, drain: float = 5.0,
         quiet_sent = sum(senders.sent[system] for system in QUIET)
         deadline = time.monotonic() + drain  # the quiet agents' last messages: wait for them, bounded
         while receiver.quiet_count() < quiet_sent and time.monotonic() < deadline:
-            time.sleep(0.05)
+            time.sleep(0.05)  # poll: a drain bounded by design; what did not arrive is the measured loss (quiet_lost)
         status = engine.status() or {}
     finally:
         senders.stop.set()

@@ -33,25 +33,6 @@ class LoopThread:
         self.loop.close()
 
 
-class Recorder:
-    """Every message of one queue bound to ``exchange`` with ``binding_key``."""
-
-    def __init__(self) -> None:
-        self.messages: list[aio_pika.abc.AbstractIncomingMessage] = []
-
-    @classmethod
-    async def bind(cls, channel: Any, exchange: str, binding_key: str) -> Recorder:
-        recorder = cls()
-        target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
-        queue = await channel.declare_queue("", exclusive=True)
-        await queue.bind(target, binding_key)
-        await queue.consume(recorder._on_message, no_ack=True)
-        return recorder
-
-    async def _on_message(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
-        self.messages.append(message)
-
-
 def dead_letter_key(message: aio_pika.abc.AbstractIncomingMessage) -> tuple[str, str, bytes]:
     return message.routing_key or "", str(message.headers.get("x-rabbitros-stage")), message.body
 

@@ -17,7 +17,14 @@ import aio_pika
 
 @dataclass
 class Tally:
-    """Arrivals of one flow: seq -> copies, and when each arrival happened (monotonic)."""
+    """Arrivals of one flow: seq -> copies, and when each arrival happened (monotonic).
+
+    Not a second collector: it consumes nothing. It is the bookkeeping of one flow that several
+    peers feed by seq, whatever the protocol: tests/support/amqp_helpers.py ``Collector``
+    (``tally=``) records the AMQP side into it, ``RosPeer`` a ROS 2 subscription, a test its
+    MAVLink peer; what it adds to a collector's list of messages is copies per seq
+    (duplicates, lost) and arrival times across a broker's restart. Tests wait on it with
+    tests/support/waiting.py ``wait_for`` (``lambda: tally.delivered >= n``)."""
 
     name: str
     sent: int = 0
@@ -81,7 +88,7 @@ async def publish_reliably(connection: Any, exchange: str, key: str, seqs: range
         except Exception:
             if time.monotonic() > deadline:
                 raise
-            await asyncio.sleep(0.2)  # retry pace while a robust connection reconnects (deadline above)
+            await asyncio.sleep(0.2)  # pacing: retries while a robust connection reconnects (deadline above)
     slots = asyncio.Semaphore(window)
 
     async def confirmed(body: bytes) -> None:
@@ -92,7 +99,7 @@ async def publish_reliably(connection: Any, exchange: str, key: str, seqs: range
                         aio_pika.Message(body, delivery_mode=aio_pika.DeliveryMode.PERSISTENT), key), 30)
                     break
                 except Exception:
-                    await asyncio.sleep(0.2)  # retry pace of a publish the dead broker refused
+                    await asyncio.sleep(0.2)  # pacing: retries of a publish the dead broker refused
             tally.sent += 1
         finally:
             slots.release()
@@ -104,7 +111,7 @@ async def publish_reliably(connection: Any, exchange: str, key: str, seqs: range
         publishing.append(asyncio.create_task(confirmed(json.dumps({"seq": seq, **extra(seq)}).encode())))
         delay = started + (index + 1) / rate - time.monotonic()
         if delay > 0:
-            await asyncio.sleep(delay)
+            await asyncio.sleep(delay)  # pacing: the publisher's rate
     await asyncio.gather(*publishing)
 
 
@@ -146,7 +153,7 @@ class RosPeer:
             tally.sent += 1
             delay = started + (index + 1) / rate - time.monotonic()
             if delay > 0:
-                time.sleep(delay)
+                time.sleep(delay)  # pacing: the publisher's rate
 
     def subscribers(self, topic: str) -> int:
         return self.node.count_subscribers(topic)

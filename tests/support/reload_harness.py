@@ -19,6 +19,7 @@ import aio_pika
 
 from tests.support.engine_process import EngineProcess
 from tests.support.workers import ros_domain
+from tests.support.waiting import probe_until, wait_for
 
 ROUTE = """
 connections:
@@ -132,7 +133,7 @@ class RosPeer:
         while not stop.is_set():
             self.publisher.publish(self._String(data=json.dumps({"seq": self.flow_up.sent})))
             self.flow_up.sent += 1
-            time.sleep(max(0.0, started + self.flow_up.sent / rate - time.monotonic()))
+            time.sleep(max(0.0, started + self.flow_up.sent / rate - time.monotonic()))  # pacing: the rate
 
     def close(self) -> None:
         self._stop.set()
@@ -146,14 +147,14 @@ async def _warm_up(inbox: Any, peer: RosPeer, run: ReloadRun) -> None:
     """DDS matching is asynchronous and a volatile writer drops what it publishes before it
     matches a reader: probe both ROS 2 directions (seq -1) until each gets through."""
     down, up = run.flows["amqp->ros2"], run.flows["ros2->amqp"]
-    deadline = time.monotonic() + 30
-    while -1 not in down.copies or -1 not in up.copies:
-        if time.monotonic() > deadline:
-            raise TimeoutError("the engine's ROS 2 endpoints were not matched")
+
+    async def probe() -> None:
         await inbox.publish(aio_pika.Message(b'{"seq": -1}'), "r.x")
         peer.publisher.publish(peer._String(data='{"seq": -1}'))
-        await asyncio.sleep(0.1)
-    await asyncio.sleep(0.3)  # the last probes in flight land before the tallies are cleared
+
+    await probe_until(lambda: -1 in down.copies and -1 in up.copies, probe, 30,
+                      "a probe through each ROS 2 direction (the engine's endpoints matched)", every=0.1)
+    await asyncio.sleep(0.3)  # quiet window: the last probes in flight land before the tallies are cleared
     down.copies.clear()
     up.copies.clear()
 
@@ -215,12 +216,12 @@ async def run_reloads(
                     amqp.sent += 1
                     await inbox.publish(aio_pika.Message(json.dumps({"seq": to_ros.sent}).encode()), "r.x")
                     to_ros.sent += 1
-                await asyncio.sleep(max(0.0, started + amqp.sent / rate - time.monotonic()))
+                await asyncio.sleep(max(0.0, started + amqp.sent / rate - time.monotonic()))  # pacing: the rate
 
         publishing = asyncio.gather(publisher(), asyncio.to_thread(peer.publish_steadily, rate, stop_publishing))
         written_at: dict[int, float] = {}
         for gen in range(1, rewrites + 1):
-            await asyncio.sleep(interval)
+            await asyncio.sleep(interval)  # pacing: the rewrites' interval
             applied = _succeeded(engine)
             prefetch = 256 if gen % 7 else 128
             text = ROUTE.format(gen=gen, prefetch=prefetch, **names)
@@ -231,28 +232,22 @@ async def run_reloads(
             if gen % 10 == 8:
                 before = (engine.status() or {}).get("reloads", {}).get("rejected", 0)
                 _write(farm, INVALID.format(gen=gen, prefetch=prefetch, **names), atomic=False)
-                deadline = time.monotonic() + 10
-                while time.monotonic() < deadline:
-                    await asyncio.sleep(0.1)
-                    status = engine.status() or {}
-                    if status.get("reloads", {}).get("rejected", 0) > before:
-                        run.rejected_reported = any("farm.yaml:" in p for p in status["reloads"]["last_error"])
-                        break
+                status = await wait_for(lambda: _rejected_since(engine, before), 10, f"the invalid file of generation {gen} rejected",
+                                        lambda: (engine.status() or {}).get("reloads"))
+                run.rejected_reported = any("farm.yaml:" in p for p in status["reloads"]["last_error"])
             _write(farm, text, atomic=gen % 2 == 0)
             written_at[gen] = time.monotonic()
             run.written_generations.append(gen)
             # Pace the saves by the engine, not by the clock: on a loaded machine a reload takes
             # longer than the interval, and saves made meanwhile share one reload (fewer
             # configurations ever live), which is right for the engine but not what this measures.
-            deadline = time.monotonic() + 10
-            while _succeeded(engine) <= applied and time.monotonic() < deadline:
-                await asyncio.sleep(0.05)
-        await asyncio.sleep(1.0)  # the stream goes on after the last rewrite (the behaviour under test)
+            await wait_for(lambda: _succeeded(engine) > applied, 30, f"the reload of generation {gen}",
+                           lambda: (engine.status() or {}).get("reloads"))
+        await asyncio.sleep(1.0)  # pacing: the stream goes on after the last rewrite (the behaviour under test)
         # The stream outlives the rewrites until every flow carried at least min_sent messages:
         # on a loaded machine the publishers in this process fall behind their nominal rate.
-        deadline = time.monotonic() + 60
-        while min(f.sent for f in (run.flows["amqp->amqp"], run.flows["ros2->amqp"])) < min_sent and time.monotonic() < deadline:
-            await asyncio.sleep(0.2)  # poll interval of a deadline loop
+        await wait_for(lambda: min(f.sent for f in (run.flows["amqp->amqp"], run.flows["ros2->amqp"])) >= min_sent, 60,
+                       f"{min_sent} sent by each publisher", lambda: {name: f.sent for name, f in run.flows.items()})
         stop_publishing.set()
         await publishing
         # Wait for the backlog while it still drains (a loaded machine drains slowly): give up
@@ -265,7 +260,7 @@ async def run_reloads(
                 received, last_progress = total, now
             if now - last_progress > 15 or now > overall:
                 break
-            await asyncio.sleep(0.2)  # poll interval of a loop that ends when the stream stalls 15 s
+            await asyncio.sleep(0.2)  # poll: a drain that ends when the stream stalls 15 s; the test then names what is missing
         await asyncio.sleep(0.5)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
         run.latencies = [first_seen[g] - written_at[g] for g in written_at if g in first_seen]
         run.status = engine.status() or {}
@@ -275,6 +270,12 @@ async def run_reloads(
         engine.stop()
         peer.close()
     return run
+
+
+def _rejected_since(engine: EngineProcess, before: int) -> dict[str, Any] | None:
+    """The engine's status once it counts more rejected reloads than ``before``, else None."""
+    status = engine.status() or {}
+    return status if status.get("reloads", {}).get("rejected", 0) > before else None
 
 
 def _succeeded(engine: EngineProcess) -> int:

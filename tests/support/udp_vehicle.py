@@ -37,7 +37,7 @@ class Vehicle(threading.Thread):
                 except OSError:
                     pass  # nobody listening during the handover: UDP telemetry is lost, as over the air
                 self.sent += 1
-                time.sleep(max(0.0, started + self.sent / self.rate - time.monotonic()))
+                time.sleep(max(0.0, started + self.sent / self.rate - time.monotonic()))  # pacing: the vehicle's rate
 
 
 def free_udp_port() -> int:
