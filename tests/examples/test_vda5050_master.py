@@ -147,7 +147,7 @@ class RobotDriver:
                 self.publish_pose()
                 self.publish_battery()
                 next_battery_at = now + 0.5
-            await asyncio.sleep(0.02)
+            await asyncio.sleep(0.02)  # pacing: the simulated robot's tick
 
 
 # ------------------------------------------------------------------ the master control

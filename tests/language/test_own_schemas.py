@@ -20,6 +20,7 @@ from engine.common.schemas import SchemaError, SchemaRegistry
 from engine.language.routes import load_routes
 from engine.running.watch import watch_routes
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
@@ -172,14 +173,11 @@ def test_an_edit_in_either_schema_directory_is_seen(mine: Path, tmp_path: Path):
         stop = asyncio.Event()
         task = asyncio.create_task(watch_routes(routes, lambda: calls.append(time.monotonic()), stop, [bundled, mine]))
         try:
-            await asyncio.sleep(0.3)  # the watch is set up
+            await asyncio.sleep(0.3)  # settle: the watch is set up (watchfiles says nothing once it watches)
             for changed in (bundled / "envelope.v1.json", mine / "robot_pose.v1.json", mine / "acme" / "dock.v1.json"):
                 count = len(calls)
                 changed.write_text(changed.read_text() + "\n")
-                deadline = time.monotonic() + 10
-                while len(calls) == count:
-                    assert time.monotonic() < deadline, f"an edit of {changed} was not seen"
-                    await asyncio.sleep(0.02)
+                await wait_for(lambda: len(calls) > count, 10, f"an edit of {changed} seen")
         finally:
             stop.set()
             await asyncio.wait_for(task, 10)

@@ -47,7 +47,7 @@ def test_recall_reads_the_store_by_key_and_sequence_counts_per_route() -> None:
     with pytest.raises(MappingError, match="store name in quotes"):
         compile_mapping("recall(name, agent)")
     stores.store("positions").max_age_ns = 1  # a value older than max_age is not given any more
-    time.sleep(0.001)
+    time.sleep(0.001)  # pacing: the stored value grows older than max_age (1 ns)
     assert mapping({"agent": "uav1"})["x"] is None
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import time
 import uuid
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from engine.running.plan import plan_reload
 from engine.running.runtime import Engine
 from engine.running.watch import watch_routes
 from tests.support.amqp_helpers import Collector
+from tests.support.waiting import wait_for
 
 FLEET = """
 connections:
@@ -212,11 +212,10 @@ def test_a_for_each_file_edited_while_the_engine_runs(tmp_path: Path, schemas_di
             kept = engine.runners["robot2-fix"]
             assert engine.status()["routes"]["robot2-fix"]["generation"] == 1
 
-            await asyncio.sleep(0.2)  # the watcher is set up (a missed event would only delay the test)
+            await asyncio.sleep(0.2)  # settle: the watcher is set up (a missed event would only delay the test)
             agents.write_text("- agent: robot2\n- agent: robot3\n")
-            deadline = time.monotonic() + 20
-            while "robot3-fix" not in engine.runners and time.monotonic() < deadline:
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: "robot3-fix" in engine.runners, 20, "the route robot3-fix added by the reload",
+                           lambda: (sorted(engine.runners), reloads))
             assert sorted(engine.runners) == ["robot2-fix", "robot3-fix"], reloads
             status = engine.status()["routes"]
             assert status["robot3-fix"]["generation"] == 2

@@ -23,6 +23,7 @@ from engine.language.routes import RoutesInvalid, load_routes
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector, started_with_client
 from tests.support.udp_vehicle import FleetVehicle, free_udp_port
+from tests.support.waiting import wait_for
 
 AGENTS = """\
 agents:
@@ -88,17 +89,14 @@ def test_routes_name_vehicles_from_the_agents_table(tmp_path: Path, schemas_dir:
             dead = await Collector.bind(channel, "rabbitros.dead-letter", "fleet-commands")
             for vehicle in vehicles.values():
                 vehicle.start()
-            loop = asyncio.get_running_loop()
-            deadline = loop.time() + 20
-            while loop.time() < deadline and len({m.routing_key for m in positions.messages}) < 6:
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: len({m.routing_key for m in positions.messages}) >= 6, 20, "positions under 6 routing keys",
+                           lambda: sorted({m.routing_key for m in positions.messages}))
             exchange = await channel.declare_exchange(names["commands"], aio_pika.ExchangeType.TOPIC, durable=True)
             for number, agent in enumerate(wanted):
                 await exchange.publish(aio_pika.Message(json.dumps({"param": number, "vehicle": agent}).encode()), "cmd")
             await exchange.publish(aio_pika.Message(json.dumps({"param": 9}).encode()), "arm3")
-            deadline = loop.time() + 20
-            while loop.time() < deadline and sum(len(v.received()) for v in vehicles.values()) < 5:
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: sum(len(v.received()) for v in vehicles.values()) >= 5, 20, "5 commands at the vehicles",
+                           lambda: {agent: len(v.received()) for agent, v in vehicles.items()})
             letters = await dead.wait_for(1)
             got = [json.loads(m.body) | {"key": m.routing_key} for m in positions.messages]
         for vehicle in vehicles.values():

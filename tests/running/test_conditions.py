@@ -24,6 +24,7 @@ from engine.running.pipeline import passes
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for
 
 ROUTE = """
 connections:
@@ -110,10 +111,9 @@ def test_filtered_messages_are_settled_counted_and_never_dead_lettered(tmp_path:
                 for message in sent:
                     await exchange.publish(aio_pika.Message(json.dumps(message).encode()), "d.x")
                 observer = engine.observers.get("confident")
-                for _ in range(600):
-                    if observer.filtered + observer.delivered == len(sent):
-                        break
-                    await asyncio.sleep(0.05)
+                await wait_for(lambda: observer.filtered + observer.delivered == len(sent), 30,
+                               f"all {len(sent)} messages filtered or delivered",
+                               lambda: f"filtered {observer.filtered}, delivered {observer.delivered}")
                 await out.wait_for(len(passing), 10)
                 status = status_document(engine)["routes"]["confident"]
                 registry = CollectorRegistry()

@@ -21,7 +21,6 @@ from __future__ import annotations
 import asyncio
 import json
 import threading
-import time
 import urllib.request
 import uuid
 from pathlib import Path
@@ -36,7 +35,7 @@ from tests.support.engine_process import EngineProcess
 from tests.support.amqp_helpers import Collector
 from tests.support.outage_helpers import Tally, robust
 from tests.support.workers import ros_domain
-from tests.support.waiting import wait_for
+from tests.support.waiting import wait_for, wait_for_sync
 
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
@@ -139,15 +138,15 @@ def logged(log_file: Path, route: str) -> dict[str, Any] | None:
 def agreed(views: dict[str, Callable[[], dict[str, Any]]], timeout: float = 30.0) -> dict[str, Any]:
     """Read every view until they agree (each is read at its own moment, and the log is
     written every 0.5 s); the agreed counters, or an AssertionError showing each view."""
-    deadline = time.monotonic() + timeout
-    while True:
-        seen = {name: read() for name, read in views.items()}
+    seen: dict[str, Any] = {}
+
+    def agree() -> bool:
+        seen.update({name: read() for name, read in views.items()})
         shared = [{k: v for k, v in (value or {}).items() if k != "dropped"} for value in seen.values()]
-        if all(value == shared[0] for value in shared) and all(value is not None for value in seen.values()):
-            return seen["status"]
-        if time.monotonic() > deadline:
-            raise AssertionError("the views of one route's counters disagree:\n" + json.dumps(seen, indent=1))
-        time.sleep(0.3)  # poll interval of a deadline loop comparing four views
+        return all(value == shared[0] for value in shared) and all(value is not None for value in seen.values())
+
+    wait_for_sync(agree, timeout, "the views of one route's counters to agree", lambda: "\n" + json.dumps(seen, indent=1))
+    return seen["status"]
 
 
 @pytest.mark.soak
@@ -188,14 +187,12 @@ def test_log_status_metrics_and_tap_count_the_same_known_traffic(tmp_path: Path,
 
 
 def wait_until_attached(port: int) -> None:
-    deadline = time.monotonic() + 20
-    while time.monotonic() < deadline:
+    def attached() -> bool:
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/status", timeout=10) as response:
             routes = json.loads(response.read())["routes"]
-        if all(routes[name]["taps"] == 1 for name in ("throttled", "buffered")):
-            return
-        time.sleep(0.1)
-    raise AssertionError("the taps did not attach")
+        return all(routes[name]["taps"] == 1 for name in ("throttled", "buffered"))
+
+    wait_for_sync(attached, 20, "the taps to attach")
 
 
 async def throttled_traffic(url: str, tag: str) -> int:
@@ -218,10 +215,10 @@ async def throttled_traffic(url: str, tag: str) -> int:
         for seq in range(PER_AGENT):  # 20 msg/s per agent for 0.8 s, against max_rate 2
             for agent in AGENTS:
                 await inbox.publish(aio_pika.Message(json.dumps({"agent": agent, "seq": seq}).encode()), f"t.{agent}")
-            await asyncio.sleep(0.02)
+            await asyncio.sleep(0.02)  # pacing: 20 msg/s per agent
         await wait_for(lambda: sorted(json.loads(b)["seq"] for b in got)[-2:] == [PER_AGENT - 1] * 2, 30,
                        "the last message of each agent (kept by the throttle, sent when its slot opens)")
-        await asyncio.sleep(1.0)  # nothing else is parked: the latest was sent
+        await asyncio.sleep(1.0)  # quiet window: nothing else is parked: the latest was sent
         return len(got)
     finally:
         await connection.close()
@@ -263,7 +260,7 @@ async def buffered_traffic(flaky: LocalBroker, engine: EngineProcess, tag: str, 
     try:
         await Collector.bind(await connection.channel(), f"{tag}-up", "up.#", queue=f"collect-{tag}", ack=True, tally=arrived, prefetch=500)
         await wait_for(lambda: publisher.get_subscription_count() > 0, 30, "the engine's ROS subscription")
-        await asyncio.sleep(1.0)  # our writer sees the engine's reader; the engine (a child process) matching our writer is not observable from here
+        await asyncio.sleep(1.0)  # settle: our writer sees the engine's reader; the engine (a child process) matching our writer is not observable from here
         publish(0, UP_GOOD, UP_BAD)
         await wait_for(lambda: arrived.delivered == UP_GOOD and route().get("failed") == UP_BAD, 30, "the first messages")
         flaky.kill()

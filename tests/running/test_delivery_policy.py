@@ -153,12 +153,14 @@ def test_no_amqp_dead_letters_go_to_a_bounded_spool_and_wrong_ros_types_are_repo
             await wait_for(lambda: right.get_subscription_count() > 0, 30, "discovery of the right type")
             wrong.publish(NavSatFix())
             right.publish(String(data='{"ok": true}'))
-            deadline = time.monotonic() + 30
             executor = rclpy.executors.SingleThreadedExecutor(context=context)
             executor.add_node(node)
-            while not received and time.monotonic() < deadline:
+
+            def spun() -> bool:
                 executor.spin_once(timeout_sec=0.05)
-                await asyncio.sleep(0)
+                return bool(received)
+
+            await wait_for(spun, 30, "the right-typed message at our subscriber")
             assert received == ['{"ok": true}']
             mismatch = engine.status()["routes"]["ros-wrong-type"]["source"]["mismatched_publishers"]
             executor.shutdown()

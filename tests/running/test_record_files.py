@@ -113,7 +113,7 @@ recorder = Recorder(Path(sys.argv[1]), RecordLimits(flush_s=0.05, chunk_bytes=40
 recorder.start()
 recording = recorder.route("r", "raw_json", {"type": "object"})
 fed = 0
-deadline = time.monotonic() + 30
+deadline = time.monotonic() + 30  # feeds traffic, bounded: the parent asserts write_errors >= 2
 while recorder.status()["write_errors"] < 2 and time.monotonic() < deadline:  # two files refused: a retry after the first
     for _ in range(20):
         body = b'{"seq": %d, "noise": "%s"}' % (fed, base64.b64encode(os.urandom(300)))
@@ -121,7 +121,7 @@ while recorder.status()["write_errors"] < 2 and time.monotonic() < deadline:  # 
         recording.received((inbound,))
         recording.sent(Outbound(body, None, None, str(fed), {}, received_ns=inbound.received_ns))
         fed += 1
-    time.sleep(0.02)  # traffic's pace, not a wait for a condition
+    time.sleep(0.02)  # pacing: traffic's pace, not a wait for a condition
 recorder.stop()
 print(json.dumps({"fed": fed, **recorder.status()}))
 """

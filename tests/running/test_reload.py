@@ -43,6 +43,7 @@ def test_sighup_reloads_and_status_names_the_live_config(amqp_url: str, tmp_path
 
     from tests.support.repo import REPO
     from tests.support.engine_process import EngineProcess
+    from tests.support.waiting import wait_for_sync
 
     routes = tmp_path / "routes"
     routes.mkdir()
@@ -55,9 +56,7 @@ def test_sighup_reloads_and_status_names_the_live_config(amqp_url: str, tmp_path
         time.sleep(0.5)  # quiet window: no reload may happen without SIGHUP (the behaviour under test)
         assert engine.status()["generation"] == 1, "reloaded without SIGHUP despite --no-watch"
         os.killpg(engine.process.pid, signal.SIGHUP)
-        deadline = time.monotonic() + 20
-        while engine.status()["generation"] < 2 and time.monotonic() < deadline:
-            time.sleep(0.1)
+        wait_for_sync(lambda: (engine.status() or {}).get("generation", 0) >= 2, 20, "generation 2 after SIGHUP", engine.status)
         after = engine.status()
         shown = subprocess.run(
             [sys.executable, "-m", "engine", "status", "--status-file", str(engine.status_file)],

@@ -22,7 +22,7 @@ from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector, publish, started_with_client
 from tests.support.engine_process import EngineProcess
 from tests.support.udp_vehicle import Vehicle, free_udp_port, telemetry_routes
-from tests.support.waiting import wait_for
+from tests.support.waiting import probe_until, wait_for
 
 PROBE_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "type": "object", "required": ["a"]}
 PROBE_ROUTE = """
@@ -74,11 +74,14 @@ def test_schema_edit_takes_effect_within_a_second(amqp_url: str, tmp_path: Path,
             edited = time.monotonic()
             exchange = await channel.get_exchange(n["inbox"])
             sequence = 0
-            while len(out.messages) < 2:
-                assert time.monotonic() - edited < 10, f"the schema edit was never applied: {engine.log()}"
+
+            async def send_b() -> None:
+                nonlocal sequence
                 sequence += 1
                 await exchange.publish(aio_pika.Message(json.dumps({"b": sequence}).encode()), "p.x")
-                await asyncio.sleep(0.01)
+
+            await probe_until(lambda: len(out.messages) >= 2, send_b, 10, "the schema edit applied (a {b} message delivered)",
+                              every=0.01, detail=engine.log)
             live = time.monotonic() - edited
             # the new generation carries messages before its reload returns and the status file
             # is written: wait for the file (read at the end) to say so

@@ -27,13 +27,13 @@ def test_key_files_are_watched_and_followed_across_reloads(tmp_path: Path) -> No
         stop = asyncio.Event()
         task = asyncio.create_task(watch_routes(routes, lambda: calls.append(time.monotonic()), stop, None, lambda: keys["now"]))
         try:
-            await asyncio.sleep(0.3)  # the watch is set up: watchfiles says nothing once it watches
+            await asyncio.sleep(0.3)  # settle: the watch is set up: watchfiles says nothing once it watches
             (first / "unrelated.txt").write_text("y")
             (first / "a.key").write_text("new")
             await wait_for(lambda: len(calls) > 0, 10, "a key file edit to be seen")
             count = len(calls)
             keys["now"] = frozenset({(second / "b.key").resolve()})  # a reload named another key file
-            await asyncio.sleep(0.5)  # the watcher takes the new key set on its next turn; it says nothing then either
+            await asyncio.sleep(0.5)  # settle: the watcher takes the new key set on its next turn; it says nothing then either
             (second / "b.key").write_text("new")
             await wait_for(lambda: len(calls) > count, 10, "an edit of the key file a reload named to be seen")
             count = len(calls)

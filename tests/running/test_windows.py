@@ -166,7 +166,7 @@ def test_windows_over_10_hz_telemetry_equal_the_same_computation_and_cut_the_byt
                 loop = asyncio.get_running_loop()
                 began = loop.time()
                 for tick in range(RATE_HZ * SECONDS):  # paced at 10 Hz: the rate is what is under test
-                    await asyncio.sleep(max(0.0, began + tick / RATE_HZ - loop.time()))
+                    await asyncio.sleep(max(0.0, began + tick / RATE_HZ - loop.time()))  # pacing: 10 Hz
                     for agent, messages in sent.items():
                         message = {"agent_id": agent, "seq": tick, "speed": round(rng.uniform(0, 12), 6),
                                    "battery": round(100 - tick * 0.05 - rng.random(), 3), "x": round(rng.uniform(-500, 500), 4),
@@ -250,7 +250,7 @@ def test_an_engine_killed_mid_window_loses_that_window_and_no_more(tmp_path: Pat
                 loop = asyncio.get_running_loop()
                 began, tick = loop.time(), 0
                 while True:  # 10 Hz until at least 1.5 s went by and the clock is half way through a second
-                    await asyncio.sleep(max(0.0, began + tick / RATE_HZ - loop.time()))
+                    await asyncio.sleep(max(0.0, began + tick / RATE_HZ - loop.time()))  # pacing: 10 Hz
                     if tick >= 15 and 0.45 <= time.time() % 1 < 0.75:
                         break
                     for agent in agents:
