@@ -70,7 +70,7 @@ def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_
                     await wait_for(lambda: len(received) == 30, 30, "the first 30 did not all arrive")
                     # 31-60 at a robot's pace: each one alone
                     for body in bodies[30:]:
-                        await asyncio.sleep(ALONE_GAP_NS / 1e9 * 5)
+                        await asyncio.sleep(ALONE_GAP_NS / 1e9 * 5)  # pacing: a robot's pace, each one alone
                         await channel.default_exchange.publish(aio_pika.Message(body), queue)
                     await wait_for(lambda: len(received) == 60, 30, "the last 30 did not all arrive")
                     await wait_for(lambda: runner.observer.delivered == 60, 30, "not counted delivered")

@@ -230,10 +230,14 @@ def test_publish_channel_closed_under_concurrent_rounds_is_reopened(node: LocalB
                     await asyncio.sleep(0)
 
             await asyncio.gather(*(pump(index) for index in range(30)))
-            deadline = loop.time() + DEADLINE_S
-            while (after := await connection.publish_batch(healthy, _messages(1))) != [None]:
-                assert loop.time() < deadline, f"publishing to a healthy exchange still fails: {after}, {connection.health()}"
-                await asyncio.sleep(0.05)
+            after: list[object] = []
+
+            async def published() -> bool:
+                after[:] = await connection.publish_batch(healthy, _messages(1))
+                return after == [None]
+
+            await wait_for(published, DEADLINE_S, "a publish to a healthy exchange to succeed",
+                           lambda: f"{after}, {connection.health()}")
             publisher = connection._publisher  # type: ignore[attr-defined]
             return {"outcomes": outcomes, "states": states, "health": connection.health(),
                     "writing": dict(publisher._writing), "gone_again": await connection.publish_batch(gone, _messages(1))}

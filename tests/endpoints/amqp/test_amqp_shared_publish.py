@@ -13,6 +13,7 @@ import aio_pika
 from engine.endpoints.amqp.transport import TRANSPORT
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound
 from tests.support.amqp_helpers import Collector
+from tests.support.waiting import wait_for
 
 ROUTES = 20
 PER_ROUTE = 3
@@ -148,12 +149,13 @@ def test_a_channel_closed_before_its_confirms_fails_every_route_of_the_round(amq
             failed = await asyncio.wait_for(asyncio.gather(
                 publisher.publish(missing, [("b", b"{}", properties), ("c", b"{}", properties)]),
                 publisher.publish(exchange, [("d", b"{}", properties)])), 10)
-            deadline = asyncio.get_running_loop().time() + 10
-            while True:  # aio-pika reopens the robust channel
-                after = await asyncio.wait_for(publisher.publish(exchange, [("e", b"{}", properties)]), 10)
-                if after == [None] or asyncio.get_running_loop().time() > deadline:
-                    break
-                await asyncio.sleep(0.05)
+            after: list[object] = []
+
+            async def published() -> bool:  # aio-pika reopens the robust channel
+                after[:] = await asyncio.wait_for(publisher.publish(exchange, [("e", b"{}", properties)]), 10)
+                return after == [None]
+
+            await wait_for(published, 10, "a publish after the robust channel reopened", lambda: after)
             return first, list(failed), after, publisher.rounds
         finally:
             await connection.close()

@@ -20,7 +20,7 @@ from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import BrokerTls, LocalBroker
 from tests.support.engine_process import EngineProcess
 from tests.support.tls_helpers import Pki, make_pki, renew_client
-from tests.support.waiting import wait_for_sync
+from tests.support.waiting import wait_for, wait_for_sync
 
 CERT_USER = "guest"
 """The client certificate's common name: EXTERNAL logs in as the user of that name, and the
@@ -87,20 +87,18 @@ def test_right_ca_and_client_certificate_carry_messages(tls_broker: tuple[LocalB
             await queue.consume(collect, no_ack=True)
             for key in ("pw", "cert"):
                 await inbox.publish(aio_pika.Message(json.dumps({"via": key}).encode()), key)
-            deadline = time.monotonic() + 30
-            while (not got["pw"] or not got["cert"]) and time.monotonic() < deadline:
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: got["pw"] and got["cert"], 30, "a message through each connection (password, certificate)",
+                           lambda: got)
 
             # the client certificate renewed in place: a reload reopens the connection with it
             before = (engine.status() or {}).get("reloads", {}).get("succeeded", 0)
             began = time.monotonic()
             await asyncio.to_thread(renew_client, pki, client_cert, client_key, CERT_USER)
-            while (engine.status() or {}).get("reloads", {}).get("succeeded", 0) <= before and time.monotonic() < began + 30:
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: (engine.status() or {}).get("reloads", {}).get("succeeded", 0) > before, 30,
+                           "the reload after the client certificate's renewal", lambda: (engine.status() or {}).get("reloads"))
             figures["renewal_reload_s"] = time.monotonic() - began
             await inbox.publish(aio_pika.Message(b'{"via": "renewed"}'), "pw")
-            while len(got["pw"]) < 2 and time.monotonic() < began + 30:
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: len(got["pw"]) >= 2, 30, "a message through the renewed connection", lambda: got)
             return got
         finally:
             await connection.close()

@@ -138,7 +138,7 @@ def test_a_file_found_empty_is_read_again_before_its_routes_go(amqp_url: str, tm
             runner = engine.runners["named"]
             farm.write_text("")
             reloading = asyncio.create_task(engine.reload())
-            await asyncio.sleep(0.05)
+            await asyncio.sleep(0.05)  # settle: the reload reads the emptied file before the rewrite (the race under test)
             farm.write_text(ROUTES.format(key="k2", **n))
             assert await reloading
             assert engine.runners["named"] is not runner and engine.generation == 2, "one reload, to the rewritten file"

@@ -34,7 +34,7 @@ from engine.running.runtime import Engine
 from tests.endpoints.conformance.harness import CASES, Harness, Seen, harness_class
 from tests.support.engine_process import EngineProcess
 from tests.support.repo import REPO
-from tests.support.waiting import wait_for
+from tests.support.waiting import probe_until, wait_for
 
 pytestmark = pytest.mark.timeout(180)
 """A case's scenario has SCENARIO_S; with its peer's start (a private RabbitMQ node: up to 90 s on
@@ -132,16 +132,17 @@ async def until_healthy(engine: Engine, healthy: bool, admin: AdminServer | None
                         timeout: float = 30.0) -> dict[str, Any]:
     """Until the connection's health in the status (and in ``/healthz``, given the admin
     endpoint: 200 or 503 naming it) is ``healthy``; returns the status's health."""
-    deadline = time.monotonic() + timeout
-    while True:
+    seen: dict[str, Any] = {}
+
+    async def reached() -> dict[str, Any] | None:
         health = peer_health(engine)
         code, document = await healthz(admin) if admin is not None else (None, {})
+        seen.update(health=health, code=code, document=document)
         served = admin is None or ((code == 200) is healthy and (CONNECTION in document["down"]) is not healthy)
-        if health.get("healthy") is healthy and served:
-            return health
-        assert time.monotonic() < deadline, (f"timed out after {timeout:g} s waiting for connection {CONNECTION} "
-                                             f"healthy={healthy}: status {health}, /healthz {code} {document}")
-        await asyncio.sleep(0.05)
+        return health if health.get("healthy") is healthy and served else None
+
+    return await wait_for(reached, timeout, f"connection {CONNECTION} healthy={healthy}",
+                          lambda: f"status {seen.get('health')}, /healthz {seen.get('code')} {seen.get('document')}")
 
 
 async def until_seen(harness: Harness, condition: Callable[[list[Seen]], bool], what: str, timeout: float = 30.0) -> list[Seen]:
@@ -154,14 +155,9 @@ async def carried(harness: Harness, robot: int, seq: int, edition: int, timeout:
     is taken anew — a reload, a broker back — a message injected before it is in place is not
     carried by protocols that do not hold messages for absent subscribers: injected again
     every second, seq stays the same so the copies are recognised)."""
-    deadline = time.monotonic() + timeout
-    while not any(s.robot == robot and s.seq == seq and s.edition == edition for s in harness.seen()):
-        assert time.monotonic() < deadline, f"seq {seq} for robot {robot} not carried by edition {edition}: {harness.seen()[-5:]}"
-        await harness.inject(robot, seq)
-        try:
-            await wait_for(lambda: any(s.seq == seq and s.edition == edition for s in harness.seen()), 1.0)
-        except AssertionError:
-            pass
+    await probe_until(lambda: any(s.robot == robot and s.seq == seq and s.edition == edition for s in harness.seen()),
+                      lambda: harness.inject(robot, seq), timeout, f"seq {seq} for robot {robot} carried by edition {edition}",
+                      every=1.0, detail=lambda: harness.seen()[-5:])
 
 
 # ------------------------------------------------------------------------------ the registry

@@ -20,6 +20,7 @@ from engine.language.routes import RoutesInvalid, load_routes
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector, started_with_client
 from tests.support.udp_vehicle import FleetVehicle, free_udp_port
+from tests.support.waiting import wait_for
 
 ROUTES = """
 connections:
@@ -66,10 +67,8 @@ def test_twelve_vehicles_on_one_udp_link(tmp_path: Path, schemas_dir: Path, amqp
             for number, system_id in enumerate(wanted):
                 body = {"param": number} if system_id == 99 else {"param": number, "vehicle": system_id}
                 await exchange.publish(aio_pika.Message(json.dumps(body).encode()), "cmd")
-            loop = asyncio.get_running_loop()
-            deadline = loop.time() + 20
-            while loop.time() < deadline and sum(len(v.received()) for v in vehicles.values()) < len(wanted) - 1:
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: sum(len(v.received()) for v in vehicles.values()) >= len(wanted) - 1, 20,
+                           f"{len(wanted) - 1} commands at the vehicles", lambda: {k: len(v.received()) for k, v in vehicles.items()})
             letters = await dead.wait_for(1)
             got = [json.loads(m.body) | {"key": m.routing_key} for m in positions.messages]
         for vehicle in vehicles.values():

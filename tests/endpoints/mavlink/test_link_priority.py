@@ -27,6 +27,7 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import Inbound, Outbound  # noqa: E402
+from tests.support.waiting import wait_for
 from rabbitros_sim import sik_radio  # noqa: E402
 
 TRANSPORT = mavlink.TRANSPORT
@@ -94,10 +95,8 @@ def high_waits(priority: str) -> tuple[list[float], int]:
             loader = asyncio.create_task(saturate())
             waits: list[float] = []
             try:
-                deadline = time.monotonic() + 30
-                while len(low_got.at) < 4:  # the low route's window is full and flowing
-                    assert time.monotonic() < deadline and not loader.done(), "the low load never flowed"
-                    await asyncio.sleep(0.05)
+                await wait_for(lambda: len(low_got.at) >= 4 or loader.done(), 30, "the low load to flow (its window full)")
+                assert not loader.done(), "the low load stopped before it flowed"
                 for n in range(SAMPLES):
                     body = b'{"high":%d,"pad":"%s"}' % (n, b"y" * (HIGH_BODY - 30))
                     sent = time.monotonic()

@@ -239,7 +239,7 @@ def test_source_delivers_fields_and_filters_by_system() -> None:
             peer.send(chunk, port)
             await got.wait_for(1)
             await everything.wait_for(3)
-            await asyncio.sleep(0.1)
+            await asyncio.sleep(0.1)  # quiet window: a second item for the route would arrive now
             assert len(got.items) == 1
             item = got.items[0]
             assert item.body is None
@@ -414,14 +414,15 @@ def test_serial_reads_chunks_with_garbage_and_paces_writes() -> None:
             assert elapsed >= 0.9 * (sent - 45) / 5760, (sent, elapsed)
             parser = mavlink2.MAVLink(None)
             received: list[Any] = []
-            while len(received) < 40:
-                await asyncio.sleep(0.02)
-                with_data = b""
+
+            def all_read() -> bool:
                 try:
-                    with_data = os.read(master, 4096)
+                    received.extend(parser.parse_buffer(os.read(master, 4096)) or ())
                 except BlockingIOError:
                     pass
-                received.extend(parser.parse_buffer(with_data) or ())
+                return len(received) >= 40
+
+            await wait_for(all_read, 20, "40 COMMAND_LONG at the serial port", lambda: len(received))
             assert [m.command for m in received] == list(range(40))
         finally:
             await source.stop()
@@ -470,7 +471,7 @@ def test_signing_rejects_unsigned_forged_and_replayed_frames(tmp_path: Path, mon
             assert radio.items[0].fields["txbuf"] == 87
             peer.send(gpi(good, lat=4), port)
             await positions.wait_for(2)
-            await asyncio.sleep(0.1)
+            await asyncio.sleep(0.1)  # quiet window: a refused frame would be delivered by now
 
             assert [i.fields["lat"] for i in positions.items] == [1, 4]
             stats = conn.stats
@@ -543,8 +544,9 @@ def test_engines_talk_signed_and_a_wrong_key_is_rejected(tmp_path: Path) -> None
             sink = sender.sink("cmd", {"message": "COMMAND_LONG", "target_system": 1})
             for i in range(5):
                 await sink.send(outbound({"command": i}))
-            await wait_for(lambda: receiver.stats["frames_received"] == 5)
-            await asyncio.sleep(0.05)
+            await wait_for(lambda: receiver.stats["frames_received"] == 5, what="5 frames received")
+            await wait_for(lambda: len(got.items) + receiver.stats.get("bad_signature", 0) >= 5, 10,
+                           "each frame delivered or refused", lambda: (len(got.items), dict(receiver.stats)))
             return got.items, dict(receiver.stats)
         finally:
             await source.stop()

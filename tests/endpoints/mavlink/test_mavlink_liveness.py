@@ -93,7 +93,7 @@ def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(
                 while True:
                     status, body = await get(session, admin, "/healthz")
                     probe.update(status=status, document=json.loads(body))
-                    await asyncio.sleep(0.02)
+                    await asyncio.sleep(0.02)  # pacing: a load balancer's probe every 20 ms
 
             prober = asyncio.create_task(probing())
 

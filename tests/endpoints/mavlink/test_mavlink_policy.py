@@ -56,7 +56,7 @@ async def flood(overflow: str, *, stop_while_queued: bool = False) -> tuple[Gate
         await wait_for(lambda: source.status()["received"] == 101, 5)
         if stop_while_queued:
             stopping = asyncio.create_task(source.stop())
-            await asyncio.sleep(0.05)
+            await asyncio.sleep(0.05)  # settle: the stop begins while the batch is queued (the race under test)
             deliver.gate.set()
             await asyncio.wait_for(stopping, 5)
         else:
@@ -152,7 +152,7 @@ def test_tunnel_message_is_acknowledged_only_after_the_route_settled_it() -> Non
             sending = asyncio.create_task(sink.send(outbound(body)))
             inbounds, verdict = await asyncio.wait_for(deliver.batches.get(), 5)
             assert [i.body for i in inbounds] == [body]
-            await asyncio.sleep(0.3)  # the sender's retransmissions meanwhile earn no DELIVERED
+            await asyncio.sleep(0.3)  # quiet window: the sender's retransmissions meanwhile earn no DELIVERED
             assert not sending.done() and acks == [] and uav.stats.get("tunnel_delivered", 0) == 0
             verdict.set_result(False)  # not settled: no acknowledgement, the sender sends again
             inbounds, verdict = await asyncio.wait_for(deliver.batches.get(), 10)

@@ -27,6 +27,7 @@ from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector
 from tests.support.repo import REPO
 from tests.support.udp_vehicle import CommandVehicle
+from tests.support.waiting import wait_for
 
 QUIET_S = 1.0
 """After the good command arrived, how long the vehicle must hear nothing more."""
@@ -96,11 +97,9 @@ def test_null_or_absent_command_field_sends_nothing_and_is_dead_lettered(tmp_pat
             published["goto"] = time.monotonic()
             await farm.publish(aio_pika.Message(json.dumps(GOTO_GOOD).encode()), "goto")
             letters = {name: await collector.wait_for(3 if name != "goto" else 0, 20) for name, collector in dead.items()}
-            deadline = time.monotonic() + 20
-            while len(vehicle.received()) < 3:
-                assert time.monotonic() < deadline, f"the vehicle got {len(vehicle.received())} of the 3 good commands"
-                await asyncio.sleep(0.02)
-            await asyncio.sleep(QUIET_S)  # nothing else may arrive: the refused ones were settled before the good ones
+            await wait_for(lambda: len(vehicle.received()) >= 3, 20, "the 3 good commands at the vehicle",
+                           lambda: len(vehicle.received()))
+            await asyncio.sleep(QUIET_S)  # quiet window: nothing else may arrive: the refused ones were settled before the good ones
             status = engine.status()
         finally:
             await engine.stop()

@@ -15,6 +15,7 @@ import math
 import shutil
 import time
 import uuid
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ from rabbitros_sim.sik_radio import SikRadioPair
 from rabbitros_sim.vehicle import expected_state
 from tests.support.amqp_helpers import Collector
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for
 
 EXAMPLE = REPO / "examples" / "fragments" / "farm_routes_mavlink.yaml"
 
@@ -138,13 +140,14 @@ def test_vehicle_telemetry_arrives_canonical_in_enu_and_si(tmp_path: Path, amqp_
                 await engine.start()
                 farm = await channel.declare_exchange("farm", aio_pika.ExchangeType.TOPIC, durable=True)
                 await farm.publish(aio_pika.Message(command, content_type="application/json"), "command.uav1")
-                deadline = time.monotonic() + 20
-                while time.monotonic() < deadline:
+
+                def enough() -> bool:
                     kinds = [m.routing_key for m in canonical.messages]
-                    if replies.messages and min(kinds.count(f"canonical.{k}.uav1") for k in ("position", "attitude")) >= 12 \
-                            and min(kinds.count(f"canonical.{k}.uav1") for k in ("battery", "status")) >= 3:
-                        break
-                    await asyncio.sleep(0.2)  # poll interval of a deadline loop
+                    return bool(replies.messages and min(kinds.count(f"canonical.{k}.uav1") for k in ("position", "attitude")) >= 12
+                                and min(kinds.count(f"canonical.{k}.uav1") for k in ("battery", "status")) >= 3)
+
+                await wait_for(enough, 20, "a reply and 12 positions/attitudes, 3 batteries/statuses of uav1",
+                               lambda: (len(replies.messages), Counter(m.routing_key for m in canonical.messages)))
                 status = engine.status()
             finally:
                 await connection.close()

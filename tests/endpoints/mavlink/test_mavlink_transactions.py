@@ -549,7 +549,7 @@ def test_a_stale_accepted_ack_does_not_complete_an_upload() -> None:
             sink = gcs.sink("m", {"mission": "upload", "target_system": 1, "timeout": 0.3, "retries": 1})
             await gcs.wait_for_vehicle(1, 1, asyncio.get_running_loop().time() + 5)
             upload = asyncio.create_task(sink.send(outbound(canonical_mission(WEEDS))))
-            await asyncio.sleep(0.1)
+            await asyncio.sleep(0.1)  # settle: the upload's MISSION_COUNT goes out before the stale ACK (the race under test)
             sim.port.post(mavlink2.MAVLink_mission_ack_message(255, 190, mavlink2.MAV_MISSION_ACCEPTED, 0))
             with pytest.raises(MessageRejected, match=r"the mission upload \(3 items\) got no answer to MISSION_COUNT"):
                 await upload

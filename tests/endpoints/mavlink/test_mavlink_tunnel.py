@@ -25,6 +25,7 @@ from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.mavlink import tunnel  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
 from tests.support.collecting_deliver import CollectingDeliver  # noqa: E402
+from tests.support.waiting import wait_for
 
 TRANSPORT = mavlink.TRANSPORT
 
@@ -450,7 +451,7 @@ def test_sik_radio_three_second_outage() -> None:
             await source.start(got)
             sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
             try:
-                await asyncio.sleep(0.3)  # the radio link settles before its scheduled outage
+                await asyncio.sleep(0.3)  # settle: the radio link settles before its scheduled outage
                 pair.add_outage(pair.elapsed() + 0.8, 3.0)
                 body = body_of(4096, 9)
                 started = time.monotonic()
@@ -495,19 +496,14 @@ def test_signed_round_trip_through_radio_and_simulated_vehicle(monkeypatch: pyte
                 body = body_of(250, 77)
                 await sink.send(outbound(body))
                 assert echoes.items[-1].body == body
-                while len(positions.items) < 4:
-                    await asyncio.sleep(0.1)
+                await wait_for(lambda: len(positions.items) >= 4, 20, "4 signed positions", lambda: len(positions.items))
                 for item in positions.items:
                     assert item.meta["signed"] is True
                     expected = vehicle_sim.expected_state(item.fields["time_boot_ms"] / 1000)
                     assert {k: item.fields[k] for k in ("lat", "lon", "alt", "vx", "vy", "hdg")} == \
                         {k: expected[k] for k in ("lat", "lon", "alt", "vx", "vy", "hdg")}
                 stats = gcs.stats
-                for _ in range(40):
-                    if stats["unsigned_accepted"]:
-                        break
-                    await asyncio.sleep(0.1)
-                assert stats["unsigned_accepted"] > 0, "the radio's RADIO_STATUS must pass unsigned"
+                await wait_for(lambda: stats["unsigned_accepted"] > 0, 10, "the radio's unsigned RADIO_STATUS accepted")
                 assert stats["bad_signature"] == stats["unsigned_rejected"] == stats["replayed"] == 0
                 assert vehicle.stats.bad_frames == 0
             finally:
@@ -613,9 +609,8 @@ def test_every_route_on_a_message_type_gets_every_message_with_nan_as_null() -> 
             nan = float("nan")
             for n in range(2):
                 await gcs.send_message(mavlink2.MAVLink_hil_gps_message(n, 3, 1, 2, 3, 65535, 65535, 0, 0, 0, 0, 0, 255))
-            deadline = time.monotonic() + 5
-            while (len(one.items) < 2 or len(two.items) < 2) and time.monotonic() < deadline:
-                await asyncio.sleep(0.02)
+            await wait_for(lambda: len(one.items) >= 2 and len(two.items) >= 2, 5, "2 HIL_GPS at each source",
+                           lambda: (len(one.items), len(two.items)))
             assert [i.fields["time_usec"] for i in one.items] == [i.fields["time_usec"] for i in two.items] == [0, 1]
             vision = mavlink.message_fields(mavlink2.MAVLink_vision_position_estimate_message(1, 1.0, nan, 3.0, 0, 0, 0,
                                                                                              [nan] + [0.0] * 20))

@@ -38,6 +38,7 @@ from engine.endpoints import mavlink  # noqa: E402
 from engine.running.runtime import Engine  # noqa: E402
 from rabbitros_sim import sik_radio  # noqa: E402
 from tests.support.amqp_helpers import started_with_client  # noqa: E402
+from tests.support.waiting import wait_for
 
 ROUTES = """
 connections:
@@ -91,15 +92,15 @@ def run(tmp_path: Path, schemas_dir: Path, amqp_url: str, radio_status: float | 
                     channel = await connection.channel()
                     target = await channel.declare_exchange(exchange, aio_pika.ExchangeType.TOPIC, durable=True)
                     await offer(target)
-                    loop = asyncio.get_running_loop()
-                    deadline = loop.time() + 10
-                    while loop.time() < deadline:  # the queued frames drain; every event arrives
+
+                    def drained() -> bool:  # the queued frames drain; every event arrives
                         routes = engine.status()["routes"]
                         lost = pair.stats()["a"].serial_rx_dropped  # without reports: some events never arrive
-                        if (lost or arrived["STATUSTEXT"] >= events_sent()) and all(
-                                settled(routes[name]) for name in ("positions", "events")):
-                            break
-                        await asyncio.sleep(0.1)
+                        return bool((lost or arrived["STATUSTEXT"] >= events_sent()) and all(
+                            settled(routes[name]) for name in ("positions", "events")))
+
+                    await wait_for(drained, 20, "the queued frames drained and every event arrived",
+                                   lambda: (dict(arrived), engine.status()["routes"]))
                     link = next(c for c in engine.connections if c.name == "radio")
                     return {"routes": engine.status()["routes"], "arrived": dict(arrived),
                             "link": dict(link.stats), "decreases": link.port.budget.decreases,
@@ -132,7 +133,7 @@ async def offer(target: Any) -> None:
         while events < min(events_sent(), (now - start) / EVENT_EVERY):
             await target.publish(aio_pika.Message(json.dumps({"text": f"event {events}"}).encode()), "event")
             events += 1
-        await asyncio.sleep(0.01)
+        await asyncio.sleep(0.01)  # pacing: the offered load's tick
     while events < events_sent():
         await target.publish(aio_pika.Message(json.dumps({"text": f"event {events}"}).encode()), "event")
         events += 1

@@ -59,7 +59,7 @@ def through_an_outage(max_age: float | None) -> tuple[BaseException | None, floa
                 took = time.monotonic() - began
                 end = time.monotonic() + max(0.0, OUTAGE - took) + 2.0  # past the outage, and a TDM round or more
                 while time.monotonic() < end and body not in got.at:
-                    await asyncio.sleep(0.05)
+                    await asyncio.sleep(0.05)  # poll: until the body arrives or the window past the outage ends (the test asserts which)
                 return result, took, {k: v for k, v in got.at.items() if k != warm}, dict(gcs.stats)
             finally:
                 await source.stop()

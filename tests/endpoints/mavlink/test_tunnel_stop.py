@@ -23,6 +23,7 @@ from engine.running.runtime import Engine
 from engine.running.shutdown import STOP_GRACE
 from tests.support.repo import REPO
 from tests.support.udp_vehicle import free_udp_port
+from tests.support.waiting import wait_for
 
 DRAIN_TIMEOUT = 1.0
 
@@ -75,10 +76,7 @@ routes:
             channel = await connection.channel()
             for index in range(40):
                 await channel.default_exchange.publish(aio_pika.Message(b'{"n": %d}' % index), routing_key=queue)
-            deadline = time.monotonic() + 30  # until the tunnel is busy: frames reach the vehicle
-            while vehicle.received < 3:
-                assert time.monotonic() < deadline, "the tunnel never sent to the vehicle"
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: vehicle.received >= 3, 30, "the tunnel busy (3 frames at the vehicle)")
             began = time.monotonic()
             await asyncio.wait_for(engine.stop(drain_timeout=DRAIN_TIMEOUT), 60)
             took = time.monotonic() - began

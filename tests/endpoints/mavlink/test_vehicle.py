@@ -34,6 +34,7 @@ from rabbitros_sim.vehicle import (  # noqa: E402
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 from tests.support.udp_vehicle import free_udp_port  # noqa: E402
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for
 
 TUNNEL_TYPE = 0xA900
 KEY = bytes(range(32))
@@ -315,9 +316,7 @@ def test_json_tunnel_peer_stores_before_acknowledging_and_sends_back(tmp_path: P
             for index, body in enumerate(bodies):
                 await sink.send(Outbound(body, None, None, f"m{index}", {}))
                 assert store.read_bytes().splitlines() == bodies[:index + 1], "stored before DELIVERED"
-            deadline = time.monotonic() + 10
-            while len(echoes) < len(bodies) and time.monotonic() < deadline:
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: len(echoes) >= len(bodies), 10, f"{len(bodies)} echoes", lambda: len(echoes))
             await asyncio.sleep(0.5)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
             return echoes
         finally:

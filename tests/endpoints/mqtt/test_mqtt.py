@@ -60,7 +60,7 @@ async def publish(broker: LocalMosquitto, messages: Iterable[tuple[str, Any]], q
                 sent += len(batch)
                 batch = []
                 if pause:
-                    await asyncio.sleep(pause)
+                    await asyncio.sleep(pause)  # pacing: the caller's pause between windows
         await asyncio.gather(*batch)
         sent += len(batch)
     return sent
@@ -135,7 +135,7 @@ def test_mqtt_to_amqp_with_a_wildcard(tmp_path: Path, mosquitto: LocalMosquitto,
             sent = [weather(f"a{seq % 3}", seq) for seq in range(300)]
             await publish(mosquitto, [("farm/a0/soil", {"seq": -1}), ("farm/a0/b/weather", {"seq": -2}), *sent])
             received = await out.wait_for(300, 30)
-            await asyncio.sleep(0.5)  # anything unexpected arrives meanwhile
+            await asyncio.sleep(0.5)  # quiet window: anything unexpected arrives meanwhile
             return list(received), engine.status()
         finally:
             await connection.close()
@@ -175,7 +175,7 @@ def test_reload_to_another_topic_unsubscribes_the_old_one_from_the_session(
             await engine.topology_settled()
             await publish(mosquitto, [weather("a1", 2), ("farm/a1/wind", {"agent_id": "a1", "seq": 3})])
             await out.wait_for(2, 20)
-            await asyncio.sleep(0.5)  # the old topic's message would be here by now
+            await asyncio.sleep(0.5)  # quiet window: the old topic's message would be here by now
             return [json.loads(m.body)["seq"] for m in out.messages], engine.status()["connections"]["field"]
         finally:
             await connection.close()
@@ -379,7 +379,7 @@ async def settled(count: Callable[[], int], total: int, quiet: float = 20.0, tim
             last, moved = count(), now
         if now - moved > quiet or now > deadline:
             return
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # poll: a wait that ends when the count stalls; the caller names what was lost
     await asyncio.sleep(1.0)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
 
 
@@ -424,7 +424,7 @@ def test_qos1_engine_killed_twice_mid_stream_loses_nothing(tmp_path: Path, mosqu
                     await wait_for(lambda: seen() >= kill_at, 240, f"{kill_at} messages before the kill")
                     kill(engine)
                     kills.append(seen())
-                    await asyncio.sleep(0.5)  # the stream goes on while the engine is down
+                    await asyncio.sleep(0.5)  # outage: the stream goes on while the engine is down
                 finally:
                     if engine.process.poll() is None:
                         engine.stop()
@@ -553,7 +553,7 @@ def test_two_engines_with_one_shared_group_split_the_stream_every_message_once(
                 await asyncio.to_thread(engine.wait_started)
             await publish(mosquitto, (weather(f"a{seq % 5}", seq) for seq in range(SHARED_TOTAL)))
             await wait_for(lambda: len(out.messages) >= SHARED_TOTAL, 60, f"{SHARED_TOTAL} messages")
-            await asyncio.sleep(1.0)  # a duplicate would arrive meanwhile
+            await asyncio.sleep(1.0)  # quiet window: a duplicate would arrive meanwhile
             messages = list(out.messages)
         finally:
             exits = [await asyncio.to_thread(engine.stop) for engine in engines]
@@ -669,7 +669,7 @@ async def retained_state(broker: LocalMosquitto, topic: str, state: str, timeout
                 pass
         if last is not None and last.get("connectionState") == state:
             return last
-        await asyncio.sleep(0.2)  # poll interval of a deadline loop (each poll reads a retained message)
+        await asyncio.sleep(0.2)  # poll: a deadline loop (each poll reads a retained message)
     raise AssertionError(f"retained {topic} is not {state} within {timeout} s: {last}")
 
 

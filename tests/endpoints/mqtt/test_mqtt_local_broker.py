@@ -63,7 +63,7 @@ async def weather_through_the_engine(host: str, port: int | None, tls_context: s
             async def publish_until_answered() -> None:
                 while True:
                     await writer.publish("farm/station1/weather", b'{"t": 21.5}', qos=1)
-                    await asyncio.sleep(0.5)  # publisher pace: one message each 0.5 s until the engine answers
+                    await asyncio.sleep(0.5)  # pacing: one message each 0.5 s until the engine answers
             publishing = asyncio.create_task(publish_until_answered())
             try:
                 async with asyncio.timeout(30):

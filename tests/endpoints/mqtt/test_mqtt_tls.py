@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import time
 from pathlib import Path
 
 import aiomqtt
@@ -14,6 +13,7 @@ from engine.common.processes import listening_port
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from tests.support.engine_process import EngineProcess
 from tests.support.tls_helpers import make_pki
+from tests.support.waiting import wait_for
 
 
 def test_mqtts_with_a_client_certificate_carries_and_names_failed_checks(tmp_path: Path):
@@ -44,8 +44,8 @@ def test_mqtts_with_a_client_certificate_carries_and_names_failed_checks(tmp_pat
         got: list[dict[str, object]] = []
         async with aiomqtt.Client("127.0.0.1", broker.port) as client:  # the test's client: the plain listener
             await client.subscribe("tls/out", qos=1)
-            deadline = time.monotonic() + 30
-            while not got and time.monotonic() < deadline:
+
+            async def carried() -> bool:
                 await client.publish("tls/in", json.dumps({"n": 1}), qos=1)
                 try:
                     async with asyncio.timeout(1.0):
@@ -54,8 +54,11 @@ def test_mqtts_with_a_client_certificate_carries_and_names_failed_checks(tmp_pat
                             break
                 except TimeoutError:
                     pass
-        while named() is None and time.monotonic() < deadline + 30:  # a refused attempt ends in paho's connect timeout
-            await asyncio.sleep(0.2)  # poll interval of a deadline loop
+                return bool(got)
+
+            await wait_for(carried, 30, "a message through the mqtts route", lambda: engine.log()[-3000:])
+        # a refused attempt ends in paho's connect timeout
+        await wait_for(named, 45, "both TLS failures named in the status", lambda: (engine.status() or {}).get("connections"))
         return got
 
     try:

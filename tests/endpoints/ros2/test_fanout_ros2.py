@@ -15,6 +15,7 @@ import pytest
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector, publish
 from tests.support.workers import ros_domain
+from tests.support.waiting import probe_until
 
 ROUTES = """
 connections:
@@ -50,12 +51,10 @@ def test_two_routes_on_one_ros_topic_each_get_every_message(amqp_url: str, tmp_p
             channel = await connection.channel()
             record = await Collector.bind(channel, n["outbox"], "record")
             echo = await Collector.bind(channel, n["outbox"], "echo")
-            for _ in range(100):  # DDS matching is asynchronous: probe until both readers hear the writer
-                await publish(channel, n["inbox"], "x", [b'{"seq": -1}'])
-                await asyncio.sleep(0.1)
-                if record.messages and echo.messages:
-                    break
-            await asyncio.sleep(0.3)  # the last probes in flight land before the collectors are cleared
+            # DDS matching is asynchronous: probe until both readers hear the writer
+            await probe_until(lambda: record.messages and echo.messages, lambda: publish(channel, n["inbox"], "x", [b'{"seq": -1}']),
+                              20, "a probe through both readers", every=0.1)
+            await asyncio.sleep(0.3)  # quiet window: the last probes in flight land before the collectors are cleared
             record.messages.clear()
             echo.messages.clear()
             await publish(channel, n["inbox"], "x", [json.dumps({"seq": i}).encode() for i in range(300)])

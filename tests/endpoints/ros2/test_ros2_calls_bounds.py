@@ -85,7 +85,7 @@ routes:
             work = await channel.declare_queue(f"work-{tag}", exclusive=True)
 
             async def answer(message: aio_pika.abc.AbstractIncomingMessage, delay: float) -> None:
-                await asyncio.sleep(delay)
+                await asyncio.sleep(delay)  # pacing: the worker's answer time (the behaviour under test)
                 request = json.loads(message.body)
                 await channel.default_exchange.publish(aio_pika.Message(
                     json.dumps({"answer": request["n"] * 3, "note": "done"}).encode(),
@@ -149,7 +149,7 @@ routes:
     server = SpunNode(domain, "slow_server")
 
     def slow(request: Any, response: Any) -> Any:
-        time.sleep(SLOW_S)
+        time.sleep(SLOW_S)  # pacing: a slow service (the behaviour under test)
         response.int64_value = request.int64_value
         return response
 

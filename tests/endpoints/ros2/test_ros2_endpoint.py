@@ -185,7 +185,7 @@ def test_source_stop_drains_queue_then_unsubscribes():
             delivered: list[bytes] = []
 
             async def slow_deliver(inbound: Inbound) -> None:
-                await asyncio.sleep(0.002)
+                await asyncio.sleep(0.002)  # pacing: a slow deliver (the behaviour under test)
                 delivered.append(inbound.body)
 
             source = connection.source("r-stop", {"topic": "/t_stop/in"})
@@ -291,9 +291,9 @@ def test_idle_connection_does_not_burn_cpu():
         try:
             source = connection.source("r-idle", {"topic": "/t_idle/in"})
             await source.start(CollectingDeliver())
-            await asyncio.sleep(0.3)  # the source's start-up work is over before CPU is measured
+            await asyncio.sleep(0.3)  # settle: the source's start-up work is over before CPU is measured
             cpu, wall = time.process_time(), time.perf_counter()
-            await asyncio.sleep(1.5)  # the idle interval whose CPU is measured (the behaviour under test)
+            await asyncio.sleep(1.5)  # quiet window: the idle interval whose CPU is measured (the behaviour under test)
             assert (time.process_time() - cpu) / (time.perf_counter() - wall) < 0.15
         finally:
             await connection.close()
@@ -519,7 +519,7 @@ def test_round_trip_through_robot_echo_example(tmp_path):
             await subscribed(connection, "/t_robot/json_in")
             await wait_for(lambda: connection.node.count_publishers("/t_robot/json_out") > 0,
                              what="robot publisher")
-            await asyncio.sleep(0.3)  # the robot's reader matching our writer is not observable from here (graph and our side are, above)
+            await asyncio.sleep(0.3)  # settle: the robot's reader matching our writer is not observable from here (graph and our side are, above)
             for text in texts:
                 await sink.send(outbound(body=text.encode(), canonical=json.loads(text)))
             await wait_for(lambda: len(got.items) == len(texts), timeout=15, what="echoes")

@@ -209,7 +209,7 @@ def test_a_best_effort_robot_joining_a_reliable_one_mid_stream_loses_and_repeats
             async def publish_stream() -> None:
                 for seq in range(stream):
                     steady.publish(NavSatFix(latitude=1.0, altitude=float(seq)))
-                    await asyncio.sleep(0.005)
+                    await asyncio.sleep(0.005)  # pacing: the stream's rate
 
             streaming = asyncio.create_task(publish_stream())
             await wait_for(lambda: len(output.messages) >= 50, 15, "the stream under way")

@@ -23,6 +23,7 @@ from engine.endpoints.base import Outbound
 from engine.endpoints.ros2 import TRANSPORT
 from engine.endpoints.ros2.node import RELEASE_ACK_WAIT
 from tests.support.workers import ros_domain
+from tests.support.waiting import wait_for
 
 DOMAIN = ros_domain(0)
 SUBSCRIBER = """
@@ -61,7 +62,7 @@ class LoopLag:
     async def _tick(self) -> None:
         while True:
             began = time.monotonic()
-            await asyncio.sleep(0.005)
+            await asyncio.sleep(0.005)  # pacing: the ticker's period, measured
             self.worst = max(self.worst, time.monotonic() - began - 0.005)
 
     def stop(self) -> float:
@@ -78,10 +79,8 @@ async def _sinks_beside_a_stalled_reader(body) -> None:  # type: ignore[no-untyp
     try:
         assert (await asyncio.to_thread(reader.stdout.readline)).strip() == "ready"  # type: ignore[union-attr]
         sinks = [connection.sink(f"r{n}", {"topic": topic}) for n, topic in enumerate(topics)]
-        deadline = time.monotonic() + 30
-        while not all(sink.ready for sink in sinks):  # each matched by the reader
-            assert time.monotonic() < deadline, "the reader never matched"
-            await asyncio.sleep(0.05)
+        await wait_for(lambda: all(sink.ready for sink in sinks), 30, "each sink matched by the reader",
+                       lambda: [sink.ready for sink in sinks])
         for n, sink in enumerate(sinks):  # a first message each way through: matched on both sides
             await sink.send(_outbound(f"warm{n}"))
         assert await _lines(reader, len(sinks)) == {f"got warm{n}" for n in range(len(sinks))}

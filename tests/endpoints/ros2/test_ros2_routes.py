@@ -25,7 +25,7 @@ from tests.operator.test_cli import cli  # noqa: E402
 from tests.support.repo import REPO  # noqa: E402
 from tests.support.engine_process import EngineProcess  # noqa: E402
 from tests.support.workers import ros_domain
-from tests.support.waiting import wait_for
+from tests.support.waiting import wait_for, wait_for_sync
 
 TYPED = """
 connections:
@@ -274,7 +274,7 @@ def test_a_prefilled_queue_reaches_a_subscriber_that_starts_before_or_after_the_
         engine.wait_started()
         if subscriber_delay is not None:
             cpu, began = engine_cpu_seconds(engine), time.monotonic()
-            time.sleep(subscriber_delay)
+            time.sleep(subscriber_delay)  # quiet window: no subscriber this long, the engine holds (the behaviour under test)
             figures["cpu_while_waiting"] = (engine_cpu_seconds(engine) - cpu) / (time.monotonic() - began)
             route = engine.status()["routes"]["backlog-to-ros"]
             assert route["delivered"] == 0 and route["failed"] == 0, route
@@ -288,19 +288,19 @@ def test_a_prefilled_queue_reaches_a_subscriber_that_starts_before_or_after_the_
             received = peer.subscribe(String, f"/{tag}/backlog")
             peer.start()
         subscribed_at = time.monotonic()
-        deadline = subscribed_at + 60
-        while len(received) < BACKLOG and time.monotonic() < deadline:
+
+        def all_arrived() -> bool:
             if received and "first_message_s" not in figures:
                 figures["first_message_s"] = time.monotonic() - subscribed_at
-            time.sleep(0.01)
+            return len(received) >= BACKLOG
+
+        wait_for_sync(all_arrived, 60, f"the backlog's {BACKLOG} messages", lambda: f"{len(received)} arrived; {engine.log()}")
         figures["all_messages_s"] = time.monotonic() - subscribed_at
-        time.sleep(0.5)  # nothing more than the backlog may arrive
+        time.sleep(0.5)  # quiet window: nothing more than the backlog may arrive
         assert len(received) == BACKLOG, f"{len(received)} of {BACKLOG} arrived; {engine.log()}"
         assert [m.data for m in received] == bodies
-        deadline = time.monotonic() + 10
-        while (engine.status() or {}).get("routes", {}).get("backlog-to-ros", {}).get("delivered") != BACKLOG:
-            assert time.monotonic() < deadline, engine.status()
-            time.sleep(0.1)
+        wait_for_sync(lambda: (engine.status() or {}).get("routes", {}).get("backlog-to-ros", {}).get("delivered") == BACKLOG, 10,
+                      f"the engine to count {BACKLOG} delivered", engine.status)
         route = engine.status()["routes"]["backlog-to-ros"]
         assert route["sink_not_ready"] is None and route["failed"] == 0 and route["retries"] == 0, route
         assert asyncio.run(ready_count()) == 0
@@ -348,10 +348,7 @@ def test_a_reload_while_the_sink_waits_for_a_reader_completes_and_loses_nothing(
                 for body in bodies:
                     await channel.default_exchange.publish(aio_pika.Message(body), names["queue"])
             runner = engine.runners["waits-for-reader"]
-            deadline = time.monotonic() + 10
-            while runner.observer.received == 0:  # a batch is in settle, waiting for a reader
-                assert time.monotonic() < deadline, "the route took nothing"
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: runner.observer.received > 0, 10, "the route to take a batch (held in settle, waiting for a reader)")
             await asyncio.sleep(0.5)  # quiet window: the held batch stays undelivered (the behaviour under test)
             route = engine.status()["routes"]["waits-for-reader"]
             assert route["delivered"] == 0 and route["sink_not_ready"], route
@@ -363,9 +360,8 @@ def test_a_reload_while_the_sink_waits_for_a_reader_completes_and_loses_nothing(
             peer = Peer()
             received = peer.subscribe(String, f"/{tag}/waiting")
             peer.start()
-            deadline = time.monotonic() + 30
-            while len(received) < len(bodies) and time.monotonic() < deadline:
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: len(received) >= len(bodies), 30, f"the {len(bodies)} held messages at the reader",
+                           lambda: len(received))
             await asyncio.sleep(0.3)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
             return list(received), figures
         finally:
@@ -404,17 +400,25 @@ def test_an_engine_stops_at_once_while_a_route_waits_for_a_reader(amqp_url: str,
                 for i in range(50):
                     await channel.default_exchange.publish(aio_pika.Message(b'{"seq": %d}' % i), names["queue"])
                 runner = engine.runners["waits-for-reader"]
-                deadline = time.monotonic() + 10
-                while runner.observer.received == 0:
-                    assert time.monotonic() < deadline, "the route took nothing"
-                    await asyncio.sleep(0.05)
+                await wait_for(lambda: runner.observer.received > 0, 10, "the route to take a batch")
                 began = time.monotonic()
                 await engine.stop(drain_timeout=10.0)
                 took = time.monotonic() - began
                 stopped = True
-                await asyncio.sleep(0.5)  # the requeue reaches the queue
-                declared = await (await connection.channel()).declare_queue(names["queue"], passive=True)
-                return took, declared.declaration_result.message_count
+                requeued = await connection.channel()
+
+                async def back_in_queue() -> int:
+                    declared = await requeued.declare_queue(names["queue"], passive=True)
+                    return declared.declaration_result.message_count
+
+                left: list[int] = []
+
+                async def all_back() -> bool:
+                    left[:] = [await back_in_queue()]
+                    return left == [50]
+
+                await wait_for(all_back, 10, "the 50 held messages back in the queue", lambda: left)
+                return took, left[0]
         finally:
             if not stopped:
                 await engine.stop()
@@ -514,18 +518,14 @@ def test_a_templated_topic_waits_for_its_robot_without_spending_attempts(amqp_ur
                 channel = await connection.channel(publisher_confirms=True)
                 for body in bodies:
                     await channel.default_exchange.publish(aio_pika.Message(body.encode()), queue)
-            deadline = time.monotonic() + 10
-            while not engine.status()["routes"]["per-robot"]["sink_not_ready"]:
-                assert time.monotonic() < deadline, engine.status()["routes"]["per-robot"]
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: engine.status()["routes"]["per-robot"]["sink_not_ready"], 10, "the route to wait for its robot",
+                           lambda: engine.status()["routes"]["per-robot"])
             assert f"no subscriber has matched /uav1/{tag}" in engine.status()["routes"]["per-robot"]["sink_not_ready"]
             await asyncio.sleep(2.0)  # quiet window: held while no subscriber (the behaviour under test)
             peer = Peer()
             received = peer.subscribe(String, f"/uav1/{tag}")
             peer.start()
-            deadline = time.monotonic() + 30
-            while len(received) < len(bodies) and time.monotonic() < deadline:
-                await asyncio.sleep(0.05)
+            await wait_for(lambda: len(received) >= len(bodies), 30, f"the {len(bodies)} messages at the robot", lambda: len(received))
             await asyncio.sleep(0.3)  # quiet window: nothing more may arrive (the behaviour under test; no event says 'nothing')
             return [m.data for m in received], engine.status()["routes"]["per-robot"]
         finally:

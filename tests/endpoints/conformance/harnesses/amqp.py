@@ -84,16 +84,7 @@ class AmqpHarness(Harness):
                 if not channel.is_closed:
                     await channel.close()
 
-        counts: list[int] = [0]
-
-        async def poll() -> None:
-            while not counts[0]:
-                counts[0] = await consumers()
-                if not counts[0]:
-                    await asyncio.sleep(0.05)
-
-        await asyncio.wait_for(poll(), 30)
-        await wait_for(lambda: counts[0] > 0, 1, "a consumer on the route's queue")
+        await wait_for(consumers, 30, "a consumer on the route's queue")
 
     async def _publish(self, robot: int, body: bytes) -> None:
         import aio_pika

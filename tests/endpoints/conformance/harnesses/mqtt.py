@@ -114,7 +114,7 @@ class MqttHarness(Harness):
                 await self._disconnect()  # whichever of the two clients got through: never two collectors
                 if asyncio.get_running_loop().time() > deadline:
                     raise
-                await asyncio.sleep(0.1)  # poll interval of a deadline loop
+                await asyncio.sleep(0.1)  # poll: the retry interval of a connect until its deadline
 
     async def cancel_subscription(self) -> None:
         """Killed and started again: the engine's clean session (no client_id) and its
