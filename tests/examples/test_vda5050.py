@@ -89,7 +89,7 @@ def test_an_edit_of_a_family_schema_is_seen_by_the_watcher(tmp_path: Path) -> No
         stop = asyncio.Event()
         task = asyncio.create_task(watch_routes(routes, lambda: calls.append(time.monotonic()), stop, tmp_path / "schemas"))
         try:
-            await asyncio.sleep(0.3)  # settle: the watch is set up (watchfiles says nothing once it watches)
+            await asyncio.sleep(0)  # the watch task's first step sets the watch up (engine/running/watch.py), before our next
             (family / "state.v2.json").write_text('{"type": "object", "required": ["headerId"]}')
             await wait_for(lambda: len(calls) > 0, 10, "the watcher to see the family schema's edit")
             return len(calls)

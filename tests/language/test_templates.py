@@ -212,7 +212,6 @@ def test_a_for_each_file_edited_while_the_engine_runs(tmp_path: Path, schemas_di
             kept = engine.runners["robot2-fix"]
             assert engine.status()["routes"]["robot2-fix"]["generation"] == 1
 
-            await asyncio.sleep(0.2)  # settle: the watcher is set up (a missed event would only delay the test)
             agents.write_text("- agent: robot2\n- agent: robot3\n")
             await wait_for(lambda: "robot3-fix" in engine.runners, 20, "the route robot3-fix added by the reload",
                            lambda: (sorted(engine.runners), reloads))

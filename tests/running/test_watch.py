@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from engine.running.watch import watch_routes
-from tests.support.waiting import wait_for
+from tests.support.waiting import probe_until, wait_for
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
@@ -27,15 +27,15 @@ def test_key_files_are_watched_and_followed_across_reloads(tmp_path: Path) -> No
         stop = asyncio.Event()
         task = asyncio.create_task(watch_routes(routes, lambda: calls.append(time.monotonic()), stop, None, lambda: keys["now"]))
         try:
-            await asyncio.sleep(0.3)  # settle: the watch is set up: watchfiles says nothing once it watches
+            await asyncio.sleep(0)  # the watch task's first step sets the watch up (engine/running/watch.py), before our next
             (first / "unrelated.txt").write_text("y")
             (first / "a.key").write_text("new")
             await wait_for(lambda: len(calls) > 0, 10, "a key file edit to be seen")
             count = len(calls)
             keys["now"] = frozenset({(second / "b.key").resolve()})  # a reload named another key file
-            await asyncio.sleep(0.5)  # settle: the watcher takes the new key set on its next turn; it says nothing then either
-            (second / "b.key").write_text("new")
-            await wait_for(lambda: len(calls) > count, 10, "an edit of the key file a reload named to be seen")
+            # the watcher takes the new key set on its next turn and says nothing then: edit until seen
+            await probe_until(lambda: len(calls) > count, lambda: (second / "b.key").write_text("new"), 10,
+                              "an edit of the key file a reload named to be seen", every=0.25)
             count = len(calls)
             (routes / "r.yaml").write_text("routes: []\n")
             await wait_for(lambda: len(calls) > count, 10, "a route file edit to be seen")
