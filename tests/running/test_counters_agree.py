@@ -200,15 +200,7 @@ async def throttled_traffic(url: str, tag: str) -> int:
     connection = await aio_pika.connect(url)
     try:
         channel = await connection.channel()
-        out = await channel.declare_exchange(f"{tag}-out", aio_pika.ExchangeType.TOPIC, durable=True)
-        queue = await channel.declare_queue(exclusive=True)
-        await queue.bind(out, "out.#")
-        got: list[bytes] = []
-
-        async def record(message: aio_pika.abc.AbstractIncomingMessage) -> None:
-            got.append(message.body)
-
-        await queue.consume(record, no_ack=True)
+        got = (await Collector.bind(channel, f"{tag}-out", "out.#")).messages
         inbox = await channel.declare_exchange(f"{tag}-in", aio_pika.ExchangeType.TOPIC, durable=True)
         for index in range(NOT_JSON):
             await inbox.publish(aio_pika.Message(b"{not json %d" % index), "t.bad")
@@ -216,7 +208,7 @@ async def throttled_traffic(url: str, tag: str) -> int:
             for agent in AGENTS:
                 await inbox.publish(aio_pika.Message(json.dumps({"agent": agent, "seq": seq}).encode()), f"t.{agent}")
             await asyncio.sleep(0.02)  # pacing: 20 msg/s per agent
-        await wait_for(lambda: sorted(json.loads(b)["seq"] for b in got)[-2:] == [PER_AGENT - 1] * 2, 30,
+        await wait_for(lambda: sorted(json.loads(m.body)["seq"] for m in got)[-2:] == [PER_AGENT - 1] * 2, 30,
                        "the last message of each agent (kept by the throttle, sent when its slot opens)")
         await asyncio.sleep(1.0)  # quiet window: nothing else is parked: the latest was sent
         return len(got)

@@ -26,7 +26,8 @@ class Collector:
     restart (``quorum``: a quorum queue, which outlives the node that dies in a cluster test);
     ``ack``: each message acknowledged once recorded, so a broker killed mid-delivery redelivers
     it (a duplicate) instead of losing it; ``tally``: each message's JSON ``seq`` recorded there;
-    ``prefetch``: the channel's prefetch."""
+    ``prefetch``: the channel's prefetch. :meth:`consume`: on a queue the test declared itself.
+    A test that keeps its own view of the stream (arrival times, seqs) overrides :meth:`received`."""
 
     def __init__(self, ack: bool = False, tally: SeqRecorder | None = None) -> None:
         self.messages: list[aio_pika.abc.AbstractIncomingMessage] = []
@@ -49,6 +50,14 @@ class Collector:
                                                    arguments={"x-queue-type": "quorum"} if quorum else None)
         await declared.bind(target, binding_key)
         await declared.consume(collector._on_message, no_ack=not ack)
+        return collector
+
+    @classmethod
+    async def consume(cls, queue: Any, *, ack: bool = False, tally: SeqRecorder | None = None) -> Self:
+        """A collector on a queue the test declared and bound itself (an alternate exchange's
+        fanout queue, a queue bound to several exchanges)."""
+        collector = cls(ack, tally)
+        await queue.consume(collector._on_message, no_ack=not ack)
         return collector
 
     async def _on_message(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:

@@ -27,6 +27,7 @@ from aiormq import spec
 
 from engine.endpoints.amqp.broker import LocalBroker
 from engine.running.runtime import Engine
+from tests.support.amqp_helpers import Collector, SeqRecorder
 from tests.support.waiting import wait_for
 
 AFTER = 100
@@ -62,16 +63,15 @@ def node() -> Iterator[LocalBroker]:
     broker.stop()
 
 
-class Seqs:
-    """The ``seq`` of every message a queue received, in arrival order."""
+class Seqs(Collector):
+    """A collector that keeps the ``seq`` of every message, in arrival order."""
 
-    def __init__(self) -> None:
+    def __init__(self, ack: bool = False, tally: SeqRecorder | None = None) -> None:
+        super().__init__(ack, tally)
         self.seqs: list[int] = []
-        self.arrived = asyncio.Event()
 
-    async def on_message(self, message: aio_pika.abc.AbstractIncomingMessage) -> None:
+    def received(self, at: float, message: aio_pika.abc.AbstractIncomingMessage) -> None:
         self.seqs.append(json.loads(message.body)["seq"])
-        self.arrived.set()
 
     def distinct(self) -> list[int]:
         """First arrivals only (a round the broker took but could not confirm before the
@@ -97,17 +97,17 @@ def test_exchange_deleted_behind_the_engine_fails_only_its_route_and_it_recovers
         client = await aio_pika.connect(node.url)
         try:
             channel = await client.channel()
-            out_a, out_b, unrouted = Seqs(), Seqs(), Seqs()
             ae = await channel.declare_exchange(alternate, aio_pika.ExchangeType.FANOUT, durable=True)
             kept = await channel.declare_queue(f"pc-unrouted-{tag}", exclusive=True)
             await kept.bind(ae)
-            await kept.consume(unrouted.on_message, no_ack=True)
-            queues = {}
-            for key, seqs in (("ex_a", out_a), ("ex_b", out_b)):
+            unrouted = await Seqs.consume(kept)
+            queues, outputs = {}, {}
+            for key in ("ex_a", "ex_b"):
                 exchange = await channel.declare_exchange(names[key], aio_pika.ExchangeType.TOPIC, durable=True)
                 queue = queues[key] = await channel.declare_queue(f"pc-out-{key}-{tag}", exclusive=True)
                 await queue.bind(exchange, "#")
-                await queue.consume(seqs.on_message, no_ack=True)
+                outputs[key] = await Seqs.consume(queue)
+            out_a, out_b = outputs["ex_a"], outputs["ex_b"]
 
             def connection() -> dict[str, Any]:
                 return engine.status()["connections"]["gcs"]

@@ -18,6 +18,7 @@ import pytest
 
 from engine.common.processes import listening_port
 from engine.endpoints.amqp.broker import BrokerTls, LocalBroker
+from tests.support.amqp_helpers import Collector
 from tests.support.engine_process import EngineProcess
 from tests.support.tls_helpers import Pki, make_pki, renew_client
 from tests.support.waiting import wait_for, wait_for_sync
@@ -75,19 +76,18 @@ def test_right_ca_and_client_certificate_carry_messages(tls_broker: tuple[LocalB
         connection = await aio_pika.connect(broker.url)  # the test's own client: the node's plain port
         try:
             channel = await connection.channel()
-            out = await channel.declare_exchange("tls-out", aio_pika.ExchangeType.TOPIC, durable=True)
+            out = await Collector.bind(channel, "tls-out")
             inbox = await channel.declare_exchange("tls-in", aio_pika.ExchangeType.TOPIC, durable=True)
             got: dict[str, list[bytes]] = {"pw": [], "cert": []}
-            queue = await channel.declare_queue(exclusive=True)
-            await queue.bind(out, "#")
 
-            async def collect(message: aio_pika.abc.AbstractIncomingMessage) -> None:
-                got[str(message.routing_key)].append(message.body)
+            def collected() -> dict[str, list[bytes]]:
+                for key in got:
+                    got[key] = [m.body for m in out.messages if m.routing_key == key]
+                return got
 
-            await queue.consume(collect, no_ack=True)
             for key in ("pw", "cert"):
                 await inbox.publish(aio_pika.Message(json.dumps({"via": key}).encode()), key)
-            await wait_for(lambda: got["pw"] and got["cert"], 30, "a message through each connection (password, certificate)",
+            await wait_for(lambda: collected()["pw"] and got["cert"], 30, "a message through each connection (password, certificate)",
                            lambda: got)
 
             # the client certificate renewed in place: a reload reopens the connection with it
@@ -98,8 +98,8 @@ def test_right_ca_and_client_certificate_carry_messages(tls_broker: tuple[LocalB
                            "the reload after the client certificate's renewal", lambda: (engine.status() or {}).get("reloads"))
             figures["renewal_reload_s"] = time.monotonic() - began
             await inbox.publish(aio_pika.Message(b'{"via": "renewed"}'), "pw")
-            await wait_for(lambda: len(got["pw"]) >= 2, 30, "a message through the renewed connection", lambda: got)
-            return got
+            await wait_for(lambda: len(collected()["pw"]) >= 2, 30, "a message through the renewed connection", lambda: got)
+            return collected()
         finally:
             await connection.close()
 

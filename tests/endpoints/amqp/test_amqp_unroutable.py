@@ -58,12 +58,7 @@ def test_an_unroutable_message_is_held_until_a_queue_is_bound_or_dead_lettered(
             channel = await client.channel()
             letters = await channel.declare_queue(f"{tag}-letters", exclusive=True)
             await letters.bind("rabbitros.dead-letter", "refused")
-            dead: list[aio_pika.abc.AbstractIncomingMessage] = []
-
-            async def dead_letter(message: aio_pika.abc.AbstractIncomingMessage) -> None:
-                dead.append(message)
-
-            await letters.consume(dead_letter, no_ack=True)
+            dead = (await Collector.consume(letters)).messages
 
             def route(name: str) -> dict[str, Any]:
                 return engine.status()["routes"][name]
