@@ -8,11 +8,11 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any, Awaitable, Callable, TypeVar
 
 from tests.support.repo import REPO
+from tests.support.waiting import wait_for_sync
 
 T = TypeVar("T")
 
@@ -31,15 +31,15 @@ class EngineProcess:
         )
 
     def wait_started(self, timeout: float = 60.0) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+        """Until the status file says generation 1; fails naming the engine's log if it does
+        not within ``timeout`` s, and at once if the engine exits meanwhile."""
+        def started() -> dict[str, Any] | None:
             if self.process.poll() is not None:
                 raise RuntimeError(f"engine exited {self.process.returncode}: {self.log()}")
             status = self.status()
-            if status and status.get("generation", 0) >= 1:
-                return status
-            time.sleep(0.1)  # poll: the status file, until the deadline above (then TimeoutError)
-        raise TimeoutError(f"engine did not start: {self.log()}")
+            return status if status and status.get("generation", 0) >= 1 else None
+
+        return wait_for_sync(started, timeout, "the engine to start (generation 1 in its status file)", self.log)
 
     def status(self) -> dict[str, Any] | None:
         try:
