@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import inspect
 import time
-from typing import Awaitable, Callable, TypeVar
+from typing import Any, Awaitable, Callable, TypeVar, overload
 
 T = TypeVar("T")
 
@@ -27,8 +27,14 @@ def _timed_out(timeout: float, what: str, detail: Callable[[], object] | None) -
     return AssertionError(f"timed out after {timeout:g} s waiting for {what}{seen}")
 
 
-async def wait_for(predicate: Callable[[], T | Awaitable[T]], timeout: float = 10.0, what: str = "the condition",
-                   detail: Callable[[], object] | None = None) -> T:
+@overload
+async def wait_for(predicate: Callable[[], Awaitable[T]], timeout: float = ..., what: str = ...,
+                   detail: Callable[[], object] | None = ...) -> T: ...
+@overload
+async def wait_for(predicate: Callable[[], T], timeout: float = ..., what: str = ...,
+                   detail: Callable[[], object] | None = ...) -> T: ...
+async def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, what: str = "the condition",
+                   detail: Callable[[], object] | None = None) -> Any:
     """Until ``predicate()`` is truthy; returns that value. After ``timeout`` seconds, fails
     (AssertionError) naming ``what`` and ``detail()``. A predicate that returns an awaitable
     (a question to a broker or an HTTP endpoint) is awaited at each poll."""
@@ -39,7 +45,7 @@ async def wait_for(predicate: Callable[[], T | Awaitable[T]], timeout: float = 1
         if inspect.isawaitable(value):
             value = await value
         if value:
-            return value  # type: ignore[return-value]
+            return value
         if loop.time() > deadline:
             raise _timed_out(timeout, what, detail)
         await asyncio.sleep(ASYNC_POLL_S)  # poll: the interval between two checks of the predicate
