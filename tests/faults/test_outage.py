@@ -80,13 +80,8 @@ async def _warm_up(peer: RosPeer, connection: Any, names: dict[str, str], down: 
             await inbox.publish(aio_pika.Message(b'{"seq": -1}'), "r.x")
         peer.publish(-1)
 
-    await probe_until(lambda: (not both or -1 in down.copies) and -1 in up.copies, probe, 30,
+    await probe_until(lambda: (not both or down.probes) and up.probes, probe, 30,
                       "a probe through each direction (the engine's ROS 2 endpoints matched)")
-    await asyncio.sleep(0.5)  # quiet window: the last probes in flight land before the tallies are cleared
-    for tally in (down, up):
-        with tally.lock:
-            tally.copies.clear()
-            tally.arrivals.clear()
     await channel.close()
 
 

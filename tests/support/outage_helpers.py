@@ -31,9 +31,15 @@ class Tally:
     copies: dict[int, int] = field(default_factory=dict)
     arrivals: list[float] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
+    probes: int = 0
+    """Arrivals of a negative seq: a warm-up's probe, counted apart so that a probe still in
+    flight when the flow starts is never a copy, a duplicate or an arrival of the flow."""
 
     def record(self, seq: int) -> None:
         with self.lock:
+            if seq < 0:
+                self.probes += 1
+                return
             self.copies[seq] = self.copies.get(seq, 0) + 1
             self.arrivals.append(time.monotonic())
 

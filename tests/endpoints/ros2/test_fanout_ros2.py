@@ -15,7 +15,7 @@ import pytest
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector, publish
 from tests.support.workers import ros_domain
-from tests.support.waiting import probe_until
+from tests.support.waiting import probe_until, wait_for
 
 ROUTES = """
 connections:
@@ -54,12 +54,13 @@ def test_two_routes_on_one_ros_topic_each_get_every_message(amqp_url: str, tmp_p
             # DDS matching is asynchronous: probe until both readers hear the writer
             await probe_until(lambda: record.messages and echo.messages, lambda: publish(channel, n["inbox"], "x", [b'{"seq": -1}']),
                               20, "a probe through both readers", every=0.1)
-            await asyncio.sleep(0.3)  # quiet window: the last probes in flight land before the collectors are cleared
-            record.messages.clear()
-            echo.messages.clear()
             await publish(channel, n["inbox"], "x", [json.dumps({"seq": i}).encode() for i in range(300)])
-            await record.wait_for(300)
-            await echo.wait_for(300)
+
+            def carried(collector: Collector) -> int:  # a probe still in flight may land among them
+                return sum(json.loads(m.body)["seq"] >= 0 for m in collector.messages)
+
+            await wait_for(lambda: carried(record) >= 300 and carried(echo) >= 300, 60, "the 300 at both routes",
+                           lambda: (carried(record), carried(echo)))
             return {name: [json.loads(m.body)["seq"] for m in c.messages] for name, c in (("record", record), ("echo", echo))}
         finally:
             await connection.close()
