@@ -31,6 +31,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.endpoints.ros2.rosmsg import resolve_type
 from engine.running.runtime import Engine
+from tests.endpoints.mqtt.test_mqtt import Subscriber
 from tests.support.amqp_helpers import Collector, started_with_client
 from tests.support.ros_nodes import SpunNode
 from tests.support.waiting import wait_for
@@ -83,29 +84,9 @@ async def publish(broker: LocalMosquitto, bodies: list[dict[str, Any]]) -> None:
             await client.publish("farm/uav1/fix", json.dumps(body).encode(), qos=1)
 
 
-class RelaySubscriber:
-    """An MQTT client on the relay's mosquitto recording the ``alt_msl`` (the seq) of each message."""
-
-    def __init__(self, broker: LocalMosquitto) -> None:
-        self.client = aiomqtt.Client("127.0.0.1", broker.port, timeout=30)
-        self.seqs: list[int] = []
-        self._task: asyncio.Task[None] | None = None
-
-    async def __aenter__(self) -> RelaySubscriber:
-        await self.client.__aenter__()
-        await self.client.subscribe("relay/#", qos=1)
-        self._task = asyncio.create_task(self._collect())
-        return self
-
-    async def _collect(self) -> None:
-        async for message in self.client.messages:
-            self.seqs.append(int(json.loads(bytes(message.payload)).get("alt_msl", -1)))  # type: ignore[arg-type]
-
-    async def __aexit__(self, *exc: object) -> None:
-        assert self._task is not None
-        self._task.cancel()
-        await asyncio.gather(self._task, return_exceptions=True)
-        await self.client.__aexit__(None, None, None)
+def relayed_seqs(subscriber: Subscriber) -> list[int]:
+    """The ``alt_msl`` (the seq) of each message on the relay's mosquitto."""
+    return [int(json.loads(bytes(m.payload)).get("alt_msl", -1)) for m in subscriber.messages]  # type: ignore[arg-type]
 
 
 def seqs(collector: Collector) -> list[int]:
@@ -148,12 +129,12 @@ def test_one_source_to_several_sinks_one_dead_letter_and_a_fallback_that_takes_o
             # phase 1: every sink takes; one bad message (a latitude that is no number) among them, and
             # one without an altitude, which the robot's NavSatFix needs (its sink mapping refuses it)
             no_altitude = {key: value for key, value in position(0).items() if key != "alt_msl"}
-            async with RelaySubscriber(relay) as relayed:
+            async with Subscriber(relay, "relay/#") as relayed:
                 await publish(mosquitto, [position(seq) for seq in range(PHASE)] + [{**position(999), "lat": "north"}, no_altitude])
-                await wait_for(lambda: len(cloud.messages) > PHASE and len(relayed.seqs) > PHASE and len(robot) >= PHASE
+                await wait_for(lambda: len(cloud.messages) > PHASE and len(relayed.messages) > PHASE and len(robot) >= PHASE
                                and len(nobody_spool.messages) > PHASE and len(dead.messages) >= 2, DEADLINE_S, "phase 1",
-                               detail=lambda: (len(cloud.messages), len(relayed.seqs), len(robot), len(nobody_spool.messages), route()))
-                figures["relay 1"] = list(relayed.seqs)
+                               detail=lambda: (len(cloud.messages), len(relayed.messages), len(robot), len(nobody_spool.messages), route()))
+                figures["relay 1"] = relayed_seqs(relayed)
 
             # phase 2: the relay's mosquitto stopped: after 1 s its fallback takes what the relay cannot
             await asyncio.to_thread(relay.halt)
@@ -166,13 +147,13 @@ def test_one_source_to_several_sinks_one_dead_letter_and_a_fallback_that_takes_o
             # phase 3: the relay is back: new messages go to it again (the fallback gives back)
             await asyncio.to_thread(relay.start)
             await wait_for(lambda: sinks()["relay"]["can_take"], DEADLINE_S, "the relay to be seen back", detail=sinks)
-            async with RelaySubscriber(relay) as relayed:
+            async with Subscriber(relay, "relay/#") as relayed:
                 await publish(mosquitto, [position(seq) for seq in range(2 * PHASE, 3 * PHASE)])
-                await wait_for(lambda: len(relayed.seqs) >= PHASE and len(cloud.messages) > 3 * PHASE and len(robot) >= 3 * PHASE
+                await wait_for(lambda: len(relayed.messages) >= PHASE and len(cloud.messages) > 3 * PHASE and len(robot) >= 3 * PHASE
                                and len(nobody_spool.messages) > 3 * PHASE, DEADLINE_S, "phase 3",
-                               detail=lambda: (len(relayed.seqs), len(cloud.messages), len(robot), len(nobody_spool.messages), route()))
+                               detail=lambda: (len(relayed.messages), len(cloud.messages), len(robot), len(nobody_spool.messages), route()))
                 await wait_for(lambda: route()["delivered"] >= 3 * PHASE, DEADLINE_S, "the route's counters")
-                figures["relay 3"] = list(relayed.seqs)
+                figures["relay 3"] = relayed_seqs(relayed)
             figures.update(cloud=seqs(cloud), spool=seqs(spool), nobody_spool=seqs(nobody_spool), route=route(),
                            robot=[int(m.altitude) for m in robot], dead=[dict(m.headers) for m in dead.messages])
             return figures

@@ -67,7 +67,8 @@ async def publish(broker: LocalMosquitto, messages: Iterable[tuple[str, Any]], q
 
 
 class Subscriber:
-    """An aiomqtt client subscribed to one filter, recording every message it gets."""
+    """An aiomqtt client subscribed to one filter, recording every message it gets: the MQTT side
+    of tests/support/amqp_helpers.py ``Collector`` (the one the other tests import)."""
 
     def __init__(self, broker: LocalMosquitto, topic: str) -> None:
         self.client = mqtt_client(broker)
