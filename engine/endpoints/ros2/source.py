@@ -436,6 +436,7 @@ class Ros2Source(Source):
 
     def status(self) -> dict[str, Any]:
         status: dict[str, Any] = {"received": self.received, "dropped": self.dropped, "queued": len(self._queue),
+                                  "matched_publishers": sum(self._matched(topic) for topic in self._readers),
                                   "mismatched_publishers": self.mismatched_publishers}
         if self._discovery is None:
             reader = self._readers.get(next(iter(self._readers), ""))
