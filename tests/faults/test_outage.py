@@ -61,6 +61,12 @@ def _status(engine: EngineProcess) -> dict[str, Any]:
     return engine.status() or {}
 
 
+def _matched_publishers(status: dict[str, Any], route: str) -> int:
+    """How many publishers the route's ROS 2 source has matched: its reader knows our writer (a
+    reliable message published before it does may be lost), as our writer's count says the converse."""
+    return int(((status.get("routes") or {}).get(route) or {}).get("source", {}).get("matched_publishers", 0))
+
+
 def _connection_healthy(engine: EngineProcess, name: str = "default-amqp") -> bool:
     return bool(_status(engine).get("connections", {}).get(name, {}).get("healthy"))
 
@@ -290,7 +296,7 @@ def test_engine_starts_without_the_broker_and_routes_that_do_not_need_it_run_at_
             for seq in range(100):  # while the broker is down: into from-ros's buffer
                 vehicle.mav.global_position_int_send(10_000 + seq, 0, 0, 0, 0, 0, 0, 0, 0)
             await wait_for(lambda: peer.subscribers(f"/{names['tag']}/up") > 0, 30, "the engine's ROS subscription")
-            await asyncio.sleep(1.0)  # settle: our writer sees the engine's reader; the engine's reader matching our writer is not observable from here
+            await wait_for(lambda: _matched_publishers(_status(engine), "from-ros"), 30, "the engine's reader to match our writer")
             for seq in range(200):
                 peer.publish(seq)
                 up.sent += 1
@@ -352,7 +358,7 @@ def test_held_messages_survive_a_reload_that_replaces_the_route(tmp_path: Path, 
             runner = engine.runners["from-ros"]
             assert runner.state == "running" and engine.runners["to-ros"].state == "waiting"
             await wait_for(lambda: peer.subscribers(f"/{names['tag']}/up") > 0, 30, "the engine's ROS subscription")
-            await asyncio.sleep(1.0)  # settle: our writer sees the engine's reader; the engine's reader matching our writer is not observable from here
+            await wait_for(lambda: _matched_publishers(engine.status(), "from-ros"), 30, "the engine's reader to match our writer")
             for seq in range(300):
                 peer.publish(seq)
                 arrived.sent += 1

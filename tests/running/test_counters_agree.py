@@ -252,7 +252,7 @@ async def buffered_traffic(flaky: LocalBroker, engine: EngineProcess, tag: str, 
     try:
         await Collector.bind(await connection.channel(), f"{tag}-up", "up.#", queue=f"collect-{tag}", ack=True, tally=arrived, prefetch=500)
         await wait_for(lambda: publisher.get_subscription_count() > 0, 30, "the engine's ROS subscription")
-        await asyncio.sleep(1.0)  # settle: our writer sees the engine's reader; the engine (a child process) matching our writer is not observable from here
+        await wait_for(lambda: route().get("source", {}).get("matched_publishers", 0) > 0, 30, "the engine's reader to match our writer")
         publish(0, UP_GOOD, UP_BAD)
         await wait_for(lambda: arrived.delivered == UP_GOOD and route().get("failed") == UP_BAD, 30, "the first messages")
         flaky.kill()

@@ -124,7 +124,8 @@ async def traffic(flaky: LocalBroker, engine: EngineProcess, tag: str, domain: i
         await Collector.bind(await connection.channel(), f"{tag}-out", "aged", queue=f"aged-{tag}", ack=True, tally=aged, prefetch=500)
         await Collector.bind(await connection.channel(), f"{tag}-out", "latest", queue=f"latest-{tag}", ack=True, tally=latest, prefetch=500)
         await wait_for(lambda: publisher.get_subscription_count() >= 2, 30, "the engine's ROS subscriptions")
-        await asyncio.sleep(1.0)  # settle: discovery both ways (as tests/running/test_counters_agree.py)
+        await wait_for(lambda: all(route(name).get("source", {}).get("matched_publishers", 0) > 0 for name in ("aged", "latest")), 30,
+                       "the engine's readers to match our writer")
         publish(range(BEFORE))
         await wait_for(lambda: aged.delivered == BEFORE and latest.delivered == BEFORE, 30, "the first messages")
         flaky.kill()
