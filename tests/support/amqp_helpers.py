@@ -77,21 +77,23 @@ class Collector:
         subclass that keeps its own view of the stream."""
 
     async def wait_for(self, count: int, timeout: float = 20.0) -> list[aio_pika.abc.AbstractIncomingMessage]:
-        """Wait until ``count`` messages arrived, or none arrived for ``timeout`` seconds (ten times
-        that at most in all): a stream that keeps coming is waited for however slowly it flows (on
-        a machine loaded by parallel test workers, 3,000 messages took more than 20 s), a stalled
-        one is not waited for longer than before."""
+        """Wait until ``count`` messages arrived; fail naming how many did once none arrived for
+        ``timeout`` seconds (or ten times that passed in all): a stream that keeps coming is
+        waited for however slowly it flows (on a machine loaded by parallel test workers, 3,000
+        messages took more than 20 s), a stalled one is not waited for longer than before."""
         loop = asyncio.get_running_loop()
-        overall = loop.time() + 10 * timeout
+        began = loop.time()
+        overall = began + 10 * timeout
         while len(self.messages) < count:
             self._arrived.clear()
             stall = min(timeout, overall - loop.time())
-            if stall <= 0:
-                break
             try:
+                if stall <= 0:
+                    raise asyncio.TimeoutError
                 await asyncio.wait_for(self._arrived.wait(), stall)
             except asyncio.TimeoutError:
-                break
+                raise AssertionError(f"timed out after {loop.time() - began:.1f} s waiting for {count} messages: "
+                                     f"{len(self.messages)} arrived, the last more than {stall:g} s ago") from None
         return self.messages
 
 
