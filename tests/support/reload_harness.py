@@ -235,7 +235,7 @@ async def run_reloads(
             if gen % 10 == 8:
                 before = (engine.status() or {}).get("reloads", {}).get("rejected", 0)
                 _write(farm, INVALID.format(gen=gen, prefetch=prefetch, **names), atomic=False)
-                status = await wait_for(lambda: _rejected_since(engine, before), 10, f"the invalid file of generation {gen} rejected",
+                status = await wait_for(lambda: _rejected_since(engine, before), 30, f"the invalid file of generation {gen} rejected",
                                         lambda: (engine.status() or {}).get("reloads"))
                 run.rejected_reported = any("farm.yaml:" in p for p in status["reloads"]["last_error"])
             _write(farm, text, atomic=gen % 2 == 0)
