@@ -95,7 +95,7 @@ async def publish_agents(channel: Any, exchange: str, rate: float) -> None:
             for agent in range(AGENTS)))
         ahead = (seq + 1) * AGENTS / rate - (time.monotonic() - began)
         if ahead > 0:
-            await asyncio.sleep(ahead)  # pacing the load generator, not waiting for an outcome
+            await asyncio.sleep(ahead)  # pacing: the load generator, not waiting for an outcome
 
 
 @pytest.mark.soak

@@ -132,7 +132,7 @@ def stop_group(pgid: int, timeout: float = 60) -> None:
         except ProcessLookupError:
             return
         signal_to_send = signal.SIGKILL if time.monotonic() > deadline else 0
-        time.sleep(0.2)  # pacing: the signals to a process group until it is gone to a process group until it is gone
+        time.sleep(0.2)  # pacing: the signals to a process group until it is gone
 
 
 @pytest.mark.soak

@@ -145,7 +145,8 @@ def agreed(views: dict[str, Callable[[], dict[str, Any]]], timeout: float = 30.0
         shared = [{k: v for k, v in (value or {}).items() if k != "dropped"} for value in seen.values()]
         return all(value == shared[0] for value in shared) and all(value is not None for value in seen.values())
 
-    wait_for_sync(agree, timeout, "the views of one route's counters to agree", lambda: "\n" + json.dumps(seen, indent=1))
+    wait_for_sync(agree, timeout, "the views of one route's counters to agree", lambda: "\n" + json.dumps(seen, indent=1),
+                  every=0.3)  # each poll asks two HTTP endpoints and reads the log
     return seen["status"]
 
 

@@ -92,8 +92,9 @@ class Collector:
                     raise asyncio.TimeoutError
                 await asyncio.wait_for(self._arrived.wait(), stall)
             except asyncio.TimeoutError:
+                why = f"the last more than {stall:g} s ago" if stall > 0 else f"the overall bound of {10 * timeout:g} s reached"
                 raise AssertionError(f"timed out after {loop.time() - began:.1f} s waiting for {count} messages: "
-                                     f"{len(self.messages)} arrived, the last more than {stall:g} s ago") from None
+                                     f"{len(self.messages)} arrived, {why}") from None
         return self.messages
 
 

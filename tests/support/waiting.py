@@ -29,15 +29,16 @@ def _timed_out(timeout: float, what: str, detail: Callable[[], object] | None) -
 
 @overload
 async def wait_for(predicate: Callable[[], Awaitable[T]], timeout: float = ..., what: str = ...,
-                   detail: Callable[[], object] | None = ...) -> T: ...
+                   detail: Callable[[], object] | None = ..., every: float = ...) -> T: ...
 @overload
 async def wait_for(predicate: Callable[[], T], timeout: float = ..., what: str = ...,
-                   detail: Callable[[], object] | None = ...) -> T: ...
+                   detail: Callable[[], object] | None = ..., every: float = ...) -> T: ...
 async def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, what: str = "the condition",
-                   detail: Callable[[], object] | None = None) -> Any:
+                   detail: Callable[[], object] | None = None, every: float = ASYNC_POLL_S) -> Any:
     """Until ``predicate()`` is truthy; returns that value. After ``timeout`` seconds, fails
     (AssertionError) naming ``what`` and ``detail()``. A predicate that returns an awaitable
-    (a question to a broker or an HTTP endpoint) is awaited at each poll."""
+    (a question to a broker or an HTTP endpoint) is awaited at each poll; one that costs more
+    than a count (a channel opened, a request, a log read) polls less often (``every``)."""
     loop = asyncio.get_running_loop()
     deadline = loop.time() + timeout
     while True:
@@ -48,17 +49,17 @@ async def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, what: st
             return value
         if loop.time() > deadline:
             raise _timed_out(timeout, what, detail)
-        await asyncio.sleep(ASYNC_POLL_S)  # poll: the interval between two checks of the predicate
+        await asyncio.sleep(every)  # poll: the interval between two checks of the predicate
 
 
 def wait_for_sync(predicate: Callable[[], T], timeout: float = 10.0, what: str = "the condition",
-                  detail: Callable[[], object] | None = None) -> T:
+                  detail: Callable[[], object] | None = None, every: float = SYNC_POLL_S) -> T:
     """:func:`wait_for` for plain (blocking) code."""
     deadline = time.monotonic() + timeout
     while not (value := predicate()):
         if time.monotonic() > deadline:
             raise _timed_out(timeout, what, detail)
-        time.sleep(SYNC_POLL_S)  # poll: the interval between two checks of the predicate
+        time.sleep(every)  # poll: the interval between two checks of the predicate
     return value
 
 

@@ -47,7 +47,7 @@ async def publish_agents(channel: Any, exchange: str, agents: int, seqs: range, 
                                             delivery_mode=aio_pika.DeliveryMode.PERSISTENT), f"agent.{agent}")
             for agent in range(agents)))
         if rate is not None and (ahead := count * agents / rate - (time.monotonic() - began)) > 0:
-            await asyncio.sleep(ahead)  # pacing the load generator, not waiting for an outcome
+            await asyncio.sleep(ahead)  # pacing: the load generator, not waiting for an outcome
 
 
 def per_agent(messages: list[aio_pika.abc.AbstractIncomingMessage]) -> dict[int, list[int]]:

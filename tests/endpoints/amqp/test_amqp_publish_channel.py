@@ -124,7 +124,7 @@ def test_exchange_deleted_behind_the_engine_fails_only_its_route_and_it_recovers
                     seq += 1
                     if last is None and rebound.is_set():
                         last = seq + AFTER
-                    await asyncio.sleep(0.003)  # a steady flow, not one burst
+                    await asyncio.sleep(0.003)  # pacing: a steady flow, not one burst
                 return seq
 
             feeding = asyncio.create_task(feed())

@@ -333,7 +333,7 @@ def test_at_least_once_under_an_engine_kill_9(protocol: str, tmp_path: Path, req
             async def inject_all() -> None:
                 for seq in range(KILL9_MESSAGES):
                     await harness.inject(1 + seq % 2, seq)
-                    await asyncio.sleep(0.005)  # a steady stream (pace, not a wait for something)
+                    await asyncio.sleep(0.005)  # pacing: a steady stream, not a wait for something
 
             injecting = asyncio.create_task(inject_all())
             await until_seen(harness, lambda seen: len(seen) >= KILL9_AFTER, f"{KILL9_AFTER} messages before the kill")

@@ -102,7 +102,7 @@ def high_waits(priority: str) -> tuple[list[float], int]:
                     sent = time.monotonic()
                     await asyncio.wait_for(high.send(outbound(body)), 30)
                     waits.append(high_got.at[body] - sent)
-                    await asyncio.sleep(0.1 + 0.07 * n)  # a different phase of the TDM round each time
+                    await asyncio.sleep(0.1 + 0.07 * n)  # pacing: a different phase of the TDM round each time
                 assert not loader.done(), "the low load stopped: the high messages were not measured under it"
                 assert pair.stats()["a"].serial_rx_dropped == 0, "the radio buffer overflowed: pacing failed"
                 return waits, len(low_got.at)

@@ -84,7 +84,7 @@ class AmqpHarness(Harness):
                 if not channel.is_closed:
                     await channel.close()
 
-        await wait_for(consumers, 30, "a consumer on the route's queue")
+        await wait_for(consumers, 30, "a consumer on the route's queue", every=0.1)  # a channel a poll
 
     async def _publish(self, robot: int, body: bytes) -> None:
         import aio_pika
