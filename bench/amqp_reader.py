@@ -19,7 +19,7 @@ from __future__ import annotations
 import socket
 import struct
 import time
-from typing import Callable
+from typing import Callable, TypeVar
 from urllib.parse import unquote, urlparse
 
 from pamqp import commands, frame, header
@@ -32,6 +32,7 @@ DELIVER = (60, 60)
 CLOSES = {(10, 50): "connection", (20, 40): "channel"}
 Arrival = tuple[int, str, bytes]
 """(wall-clock ns at arrival, routing key, body)"""
+_Frame = TypeVar("_Frame", bound=frame.FrameTypes)
 
 
 class _Message:
@@ -67,10 +68,10 @@ class QueueReader:
         self._send(1, commands.Channel.Open())
         self._expect(commands.Channel.OpenOk)
 
-    def _send(self, channel: int, value: object) -> None:
+    def _send(self, channel: int, value: frame.FrameTypes) -> None:
         self._sock.sendall(frame.marshal(value, channel))
 
-    def _expect(self, kind: type) -> object:
+    def _expect(self, kind: type[_Frame]) -> _Frame:
         """The next frame, which must be ``kind`` (handshake and declarations only)."""
         while True:
             if len(self._buffer) >= 8 and len(self._buffer) >= 8 + _HEAD.unpack_from(self._buffer)[2]:  # a whole frame
@@ -91,6 +92,7 @@ class QueueReader:
         """Declare a server-named exclusive queue, bind it; its name."""
         self._send(1, commands.Queue.Declare(queue="", exclusive=True, auto_delete=True))
         name = self._expect(commands.Queue.DeclareOk).queue
+        assert name is not None, "Queue.DeclareOk always carries the queue's name"
         self._send(1, commands.Queue.Bind(queue=name, exchange=exchange, routing_key=routing_key))
         self._expect(commands.Queue.BindOk)
         return name
@@ -146,6 +148,7 @@ class QueueReader:
                     message.key = buffer[p + 1:p + 1 + buffer[p]].decode()
                 elif method in CLOSES:
                     _, _, value = frame.unmarshal(bytes(buffer[at:end + 1]))
+                    assert isinstance(value, (commands.Connection.Close, commands.Channel.Close))
                     raise BrokerClosed(f"{CLOSES[method]} closed: {value.reply_code} {value.reply_text}")
             at = end + 1
         del buffer[:at]

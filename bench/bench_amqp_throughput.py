@@ -52,7 +52,7 @@ async def measure(url: str, count: int, confirms: bool) -> dict[str, float]:
     await sink_queue.bind(outbox, "#")
     for _ in range(count):
         await inbox.publish(aio_pika.Message(body), "w.x")
-    while (await channel.declare_queue(names["queue"], passive=True)).declaration_result.message_count < count:
+    while ((await channel.declare_queue(names["queue"], passive=True)).declaration_result.message_count or 0) < count:
         await asyncio.sleep(0.05)
     with tempfile.TemporaryDirectory() as routes:
         Path(routes, "r.yaml").write_text(ROUTE.format(url=url, confirms=str(confirms).lower(), **names))

@@ -97,6 +97,7 @@ async def _consume(url: str, exchange: str, fleet: Fleet) -> Any:
     channel = await connection.channel()
     await channel.exchange_declare(exchange, exchange_type="topic", durable=True)
     queue = (await channel.queue_declare("", exclusive=True)).queue
+    assert queue is not None, "Queue.DeclareOk always names the server-named queue"
     await channel.queue_bind(queue, exchange, routing_key="farm.#")
 
     async def on_message(message: Any) -> None:

@@ -83,7 +83,11 @@ async def scenario(
             station = await channel.declare_queue(exclusive=True)
             await station.bind(exchange, "l2")
             back: list[bytes] = []
-            await station.consume(lambda message: back.append(message.body), no_ack=True)
+
+            async def came_back(message: aio_pika.abc.AbstractIncomingMessage) -> None:
+                back.append(message.body)
+
+            await station.consume(came_back, no_ack=True)
             deadline = time.monotonic() + 30
             while not back and time.monotonic() < deadline:
                 await exchange.publish(aio_pika.Message(b'{"probe":1}'), "l1")

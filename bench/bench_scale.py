@@ -28,12 +28,13 @@ from pathlib import Path
 
 import aio_pika
 import aiormq
+from pamqp.common import FieldTable
 
 from engine.endpoints.amqp.broker import LocalCluster
 from tests.support.engine_process import EngineProcess
 from tests.faults.test_cluster import TimedCollector, publish_seq
 
-QUORUM = {"x-queue-type": "quorum"}
+QUORUM: FieldTable = {"x-queue-type": "quorum"}
 RELAY_ROUTE = """connections:
   gcs: {{amqp: {{urls: {urls}, queue_type: quorum}}}}
 routes:
@@ -104,6 +105,7 @@ async def drain_rate(url: str, tag: str, count: int, engines: list[EngineProcess
     while time.monotonic() < deadline:
         queue = await channel.declare_queue(f"sink-{tag}", passive=True)
         have = queue.declaration_result.message_count
+        assert have is not None, "a passive Queue.Declare's DeclareOk carries the message count"
         now = time.monotonic()
         if have and first_at is None:
             first_at, first_count, first_cpu = now, have, cpu_seconds(engines)
@@ -143,7 +145,9 @@ async def reference_relay(url: str, tag: str, count: int, prefetch: int) -> None
         await asyncio.gather(*(publish.basic_publish(m.body, exchange=f"out-{tag}", routing_key="relayed",
                                                      properties=aiormq.spec.Basic.Properties(delivery_mode=2))
                                for m in batch))
-        await consume.basic_ack(batch[-1].delivery_tag, multiple=True)
+        last = batch[-1].delivery_tag
+        assert last is not None, "a Basic.Deliver always carries its delivery tag"
+        await consume.basic_ack(last, multiple=True)
         done += len(batch)
     await connection.close()
 
@@ -204,7 +208,7 @@ async def node_failovers(cluster: LocalCluster, work: Path, rounds: int) -> list
             stream = asyncio.create_task(publish_seq(channel, f"in-{tag}", total, total + 6000, rate=1000))
             total += 6000
             await asyncio.sleep(2.0)
-            in_use = pair[0].status()["brokers"]["gcs"]
+            in_use = pair[0].current_status()["brokers"]["gcs"]
             index = next(i for i, url in enumerate(cluster.urls) if in_use in url)
             killed_at = time.monotonic()
             await asyncio.to_thread(cluster.kill, index)
@@ -240,9 +244,9 @@ async def ordered_failovers(cluster: LocalCluster, work: Path, rounds: int) -> l
             stream = asyncio.create_task(publish_seq(channel, f"in-{tag}", total, total + 2000, rate=500, batch=1))
             total += 2000
             await asyncio.sleep(1.5)
-            before = {name: e.status()["routes"]["relay"]["received"] for name, e in live.items()}
+            before = {name: e.current_status()["routes"]["relay"]["received"] for name, e in live.items()}
             await asyncio.sleep(0.6)
-            active = max(live, key=lambda name: live[name].status()["routes"]["relay"]["received"] - before[name])
+            active = max(live, key=lambda name: live[name].current_status()["routes"]["relay"]["received"] - before[name])
             killed_at = kill(live[active])
             await stream
             await collector.wait_unique(total, 120)
@@ -293,20 +297,20 @@ async def standby_failovers(cluster: LocalCluster, work: Path, rounds: int) -> l
         task = asyncio.create_task(robot())
         for _ in range(rounds):
             await asyncio.sleep(2.0)
-            active = next(n for n, e in live.items() if e.status()["routes"]["telemetry"]["role"] == "active")
+            active = next(n for n, e in live.items() if e.current_status()["routes"]["telemetry"]["role"] == "active")
             killed_at = kill(live[active])
             await asyncio.sleep(4.0)
             around = [seq for seq, at in enumerate(published) if killed_at - 1.0 <= at <= killed_at + 3.0]
             lost = len(set(around) - collector.unique)
             stalls.append(collector.stall(killed_at, 4.0))
-            survivor = next(e for n, e in live.items() if n != active).status()["routes"]["telemetry"]
+            survivor = next(e for n, e in live.items() if n != active).current_status()["routes"]["telemetry"]
             print(f"  active engine {active} killed: stream stood still {stalls[-1]:.2f} s "
                   f"({lost} robot messages lost in the gap; survivor {survivor['role']}, "
                   f"forwarded {survivor['delivered']}, skipped {survivor['standby_skipped']})", flush=True)
             live[active] = engines(directory, work, [active])[0]
             live[active].wait_started(90)
             restarted = time.monotonic()
-            while live[active].status()["routes"]["telemetry"]["standby_skipped"] == 0:
+            while live[active].current_status()["routes"]["telemetry"]["standby_skipped"] == 0:
                 if time.monotonic() - restarted > 120:
                     raise TimeoutError("the restarted engine never saw the robot's messages")
                 await asyncio.sleep(0.1)

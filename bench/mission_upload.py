@@ -163,8 +163,8 @@ def mavsdk_upload(link: str, count: int, timeout: float | None = None) -> float:
 async def vehicle_behind(kind: str, pair: SikRadioPair, work: Path) -> AsyncIterator[dict[str, Any]]:
     """The vehicle on radio B; yields a dict that receives its counters when it stops."""
     if kind == "simulated":
-        async with vehicle_process(pair.link_b, work / "store", 600) as final:
-            yield final
+        async with vehicle_process(pair.link_b, work / "store", 600) as counters:
+            yield counters
         return
     from tests.support.mavsdk_vehicle import MavsdkAutopilot
 

@@ -148,7 +148,7 @@ def test_two_engines_on_quorum_queues_lose_nothing_when_a_broker_node_is_killed(
             collector = await TimedCollector.bind_output(await connection.channel(), f"out-{tag}")
             publishing = asyncio.create_task(publish_seq(channel, f"in-{tag}", 0, total, rate=1500))
             await wait_for(lambda: len(collector.seq_arrivals) >= total // 4, 120, "a quarter of the stream")
-            before = {e.status_file.stem: e.status()["brokers"]["gcs"] for e in engines}
+            before = {e.status_file.stem: e.current_status()["brokers"]["gcs"] for e in engines}
             killed_at = time.monotonic()
             await asyncio.to_thread(cluster.kill, 0)
             figures["delivered_at_kill"] = len(collector.unique)
@@ -164,8 +164,8 @@ def test_two_engines_on_quorum_queues_lose_nothing_when_a_broker_node_is_killed(
                 first_arrival_after_kill_s=round(resumed - killed_at, 3) if resumed else None,
                 stall_s=round(collector.stall(killed_at), 3),
                 brokers_before=before,
-                brokers_after={e.status_file.stem: e.status()["brokers"]["gcs"] for e in engines},
-                per_engine_delivered={e.status_file.stem: e.status()["routes"][f"relay-{tag}"]["delivered"] for e in engines},
+                brokers_after={e.status_file.stem: e.current_status()["brokers"]["gcs"] for e in engines},
+                per_engine_delivered={e.status_file.stem: e.current_status()["routes"][f"relay-{tag}"]["delivered"] for e in engines},
             )
         finally:
             await connection.close()
@@ -211,7 +211,7 @@ def test_ordered_route_fails_over_to_the_other_engine_in_order(amqp_cluster, tmp
             collector = await TimedCollector.bind_output(await connection.channel(), f"out-{tag}")
             publishing = asyncio.create_task(publish_seq(channel, f"in-{tag}", 0, total, rate=500, batch=1))
             await wait_for(lambda: len(collector.seq_arrivals) >= total // 3, 60, "a third of the stream")
-            figures["standby_received_before_kill"] = second.status()["routes"][f"ordered-{tag}"]["received"]
+            figures["standby_received_before_kill"] = second.current_status()["routes"][f"ordered-{tag}"]["received"]
             killed_at = kill_engine(first)
             seen_at_kill = collector.unique
             in_flight_from = min(set(range(total)) - seen_at_kill)
@@ -239,7 +239,7 @@ def test_ordered_route_fails_over_to_the_other_engine_in_order(amqp_cluster, tmp
                 lost=total - len(collector.unique),
                 takeover_s=round(resumed - killed_at, 3) if resumed else None,
                 stall_s=round(collector.stall(killed_at), 3),
-                survivor_delivered=second.status()["routes"][f"ordered-{tag}"]["delivered"],
+                survivor_delivered=second.current_status()["routes"][f"ordered-{tag}"]["delivered"],
                 first_disorder=context,
             )
         finally:
@@ -320,13 +320,14 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
             await asyncio.sleep(0.5)  # settle: as before this change, the cluster's output queue settles before the robot streams (not measured without the cluster)
             robot_task = asyncio.create_task(robot())
             await wait_for(lambda: len(collector.seq_arrivals) >= 400, 30, "the active engine to forward")
-            await wait_for(lambda: standby.status()["routes"][route]["standby_skipped"] > 0, 10, "the standby to see the stream")
-            figures["standby_role_before"] = standby.status()["routes"][route]["role"]
-            figures["standby_forwarded_before"] = standby.status()["routes"][route]["delivered"]
+            await wait_for(lambda: standby.current_status()["routes"][route]["standby_skipped"] > 0, 10, "the standby to see the stream")
+            figures["standby_role_before"] = standby.current_status()["routes"][route]["role"]
+            figures["standby_forwarded_before"] = standby.current_status()["routes"][route]["delivered"]
             killed_at = kill_engine(active)
             at_kill = len(published)
             await wait_for(lambda: collector.first_after(killed_at + 0.05) is not None, 30, "the standby to forward")
             resumed = collector.first_after(killed_at + 0.05)
+            assert resumed is not None  # waited for just above
             await asyncio.sleep(2.0)  # pacing: the stream goes on 2 s after the takeover (the behaviour under test)
             stop.set()
             await robot_task
@@ -352,8 +353,8 @@ def test_active_standby_ros2_route_standby_takes_over_when_the_active_engine_die
                 backlog_at_kill=at_kill - 1 - last_before_kill,
                 takeover_s=round(resumed - killed_at, 3),
                 stall_s=round(collector.stall(killed_at), 3),
-                survivor_role=standby.status()["routes"][route]["role"],
-                survivor_delivered=standby.status()["routes"][route]["delivered"],
+                survivor_role=standby.current_status()["routes"][route]["role"],
+                survivor_delivered=standby.current_status()["routes"][route]["delivered"],
             )
         finally:
             stop.set()

@@ -9,7 +9,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any, Awaitable, Callable, TypeVar
+from typing import Any, Callable, Coroutine, TypeVar
 
 from tests.support.repo import REPO
 from tests.support.waiting import wait_for_sync
@@ -47,12 +47,19 @@ class EngineProcess:
         except (OSError, ValueError):
             return None
 
+    def current_status(self) -> dict[str, Any]:
+        """The status file as the engine last wrote it, for a test that reads it after
+        :meth:`wait_started`; fails naming the engine's log if there is none to read."""
+        status = self.status()
+        assert status is not None, f"no status file {self.status_file}: {self.log()}"
+        return status
+
     def log(self) -> str:
         """The engine's last 4,000 characters of output, while it runs and once it is stopped
         (the child writes to the file itself: nothing of ours to flush)."""
         return self.log_file.read_text(errors="replace")[-4000:]
 
-    def run(self, scenario: Callable[[], Awaitable[T]]) -> tuple[T, dict[str, Any]]:
+    def run(self, scenario: Callable[[], Coroutine[Any, Any, T]]) -> tuple[T, dict[str, Any]]:
         """Wait for the engine to start, run ``scenario`` against it, and stop it (exit status 0
         asserted); returns the scenario's result and the engine's last status."""
         try:

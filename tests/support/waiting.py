@@ -28,10 +28,10 @@ def _timed_out(timeout: float, what: str, detail: Callable[[], object] | None) -
 
 
 @overload
-async def wait_for(predicate: Callable[[], Awaitable[T]], timeout: float = ..., what: str = ...,
+async def wait_for(predicate: Callable[[], Awaitable[T | None]], timeout: float = ..., what: str = ...,
                    detail: Callable[[], object] | None = ..., every: float = ...) -> T: ...
 @overload
-async def wait_for(predicate: Callable[[], T], timeout: float = ..., what: str = ...,
+async def wait_for(predicate: Callable[[], T | None], timeout: float = ..., what: str = ...,
                    detail: Callable[[], object] | None = ..., every: float = ...) -> T: ...
 async def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, what: str = "the condition",
                    detail: Callable[[], object] | None = None, every: float = ASYNC_POLL_S) -> Any:
@@ -52,7 +52,7 @@ async def wait_for(predicate: Callable[[], Any], timeout: float = 10.0, what: st
         await asyncio.sleep(every)  # poll: the interval between two checks of the predicate
 
 
-def wait_for_sync(predicate: Callable[[], T], timeout: float = 10.0, what: str = "the condition",
+def wait_for_sync(predicate: Callable[[], T | None], timeout: float = 10.0, what: str = "the condition",
                   detail: Callable[[], object] | None = None, every: float = SYNC_POLL_S) -> T:
     """:func:`wait_for` for plain (blocking) code."""
     deadline = time.monotonic() + timeout
