@@ -39,7 +39,7 @@ async def _run(vehicles: int, waypoints: int, repeat: int) -> dict[str, list[flo
     times: dict[str, list[float]] = {"one vehicle": [], "concurrent": [], "one after the other": []}
     try:
         sink = gcs.sink("missions", {"mission": "upload", "target_system": "{vehicle}"})
-        while not all(gcs.has_heard(s) for s in range(1, vehicles + 1)):  # type: ignore[attr-defined]
+        while not all(gcs.has_heard(s) for s in range(1, vehicles + 1)):
             await asyncio.sleep(0.05)
         for _ in range(repeat):
             for kind in times:
@@ -70,7 +70,7 @@ async def _silent_first(waypoints: int) -> dict[str, list[float]]:
         running = [asyncio.create_task(sim.run(stop)) for sim in sims]
         try:
             sink = gcs.sink("missions", {"mission": "upload", "target_system": "{vehicle}", "timeout": 1.0, "retries": 3})
-            while not all(gcs.has_heard(s) for s in (1, 2, 3)):  # type: ignore[attr-defined]
+            while not all(gcs.has_heard(s) for s in (1, 2, 3)):
                 await asyncio.sleep(0.05)
             batch = [_outbound(s, waypoints) for s in (1, 2, 3)]
             started = time.perf_counter()

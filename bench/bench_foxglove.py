@@ -38,6 +38,7 @@ from typing import Any
 
 import aio_pika
 import websockets
+from websockets.typing import Subprotocol
 
 from bench.position_route import body, routes_yaml, status
 from bench.throughput import Broker, process_cpu_seconds
@@ -64,7 +65,7 @@ class Viewer:
         self.ws: Any = None
 
     async def start(self) -> None:
-        self.ws = await websockets.connect(f"ws://127.0.0.1:{self.port}", subprotocols=["foxglove.sdk.v1"])  # type: ignore[list-item]
+        self.ws = await websockets.connect(f"ws://127.0.0.1:{self.port}", subprotocols=[Subprotocol("foxglove.sdk.v1")])
         self._task = asyncio.create_task(self._read())
         deadline = time.monotonic() + 30
         while len(self.channels) < 3:

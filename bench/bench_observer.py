@@ -37,7 +37,9 @@ async def main() -> None:
     schemas = SchemaRegistry(__import__("pathlib").Path("schemas"))
     endpoint = EndpointSpec("amqp", "gcs", {})
     spec = RouteSpec("bench", endpoint, "{agent_id: agent, seq: seq, pad: pad}", "raw_json", endpoint, None, "x")
-    pipeline = Pipeline.compile(spec, 1, schemas.get("raw_json"), DrySink())
+    schema = schemas.get("raw_json")
+    assert schema is not None, "schemas/raw_json is the repository's own schema"
+    pipeline = Pipeline.compile(spec, 1, schema, DrySink())
     for label, pad in (("small", ""), ("4 KB", "x" * 4000)):
         inbound = Inbound(body=json.dumps({"agent": "uav1", "seq": 1, "pad": pad}).encode())
         outbound = pipeline.convert(inbound)

@@ -21,7 +21,10 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Sequence
+
+if TYPE_CHECKING:
+    from engine.endpoints.base import Inbound, Inbox
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -85,7 +88,10 @@ class Meter:
         self.first = self.last = 0.0
         self.latencies: list[float] = []
 
-    async def batch(self, inbounds: Any) -> list[bool]:
+    async def __call__(self, inbound: Inbound) -> None:
+        await self.deliver(inbound)
+
+    async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
         for inbound in inbounds:
             await self.deliver(inbound)
         return [True] * len(inbounds)
@@ -93,7 +99,7 @@ class Meter:
     def dropped(self, count: int = 1) -> None:
         pass
 
-    def inbox(self, overflow: str) -> Any:
+    def inbox(self, overflow: str) -> Inbox[Inbound]:
         from engine.endpoints.base import Inbox
         return Inbox(self.queue_limit, overflow)
 
@@ -141,7 +147,7 @@ async def receive_phase(meter: Meter, count: int, rate: int) -> tuple[int, float
     return meter.count, (meter.count - 1) / took if took > 0 else 0.0, worst[0] * 1e3, cpu_percent
 
 
-async def start_poll_baseline(args: argparse.Namespace, meter: Meter) -> Any:
+async def start_poll_baseline(args: argparse.Namespace, meter: Meter) -> list[asyncio.Task[None]]:
     import rclpy
     from rclpy.experimental import EventsExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -201,7 +207,8 @@ async def main(args: argparse.Namespace) -> None:
     from engine.endpoints.ros2 import TRANSPORT
 
     meter = Meter()
-    connection = tasks = None
+    connection: Any = None
+    tasks: list[asyncio.Task[None]] = []
     if args.baseline == "poll":
         tasks = await start_poll_baseline(args, meter)
     else:

@@ -51,7 +51,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from bench import throughput as tp
 
@@ -364,8 +364,9 @@ def vehicles(args: dict[str, Any]) -> None:
         while not finished.is_set():
             for key, _ in selector.select(0.05):
                 sid, mav = key.data
+                sock = cast(socket.socket, key.fileobj)  # only sockets are registered (above)
                 try:
-                    data = key.fileobj.recv(65535)  # type: ignore[union-attr]
+                    data = sock.recv(65535)
                 except OSError:
                     continue
                 now = _ms24()
@@ -835,8 +836,12 @@ async def fleet(url: str | None, modes: list[str], robots_n: int = 50, vehicles_
 
     out: dict[str, Any] = {}
     for mode in modes:
-        node = None if url else LocalBroker()
-        mode_url = url or await asyncio.to_thread(node.start)  # type: ignore[union-attr]
+        node: LocalBroker | None = None
+        if url:
+            mode_url = url
+        else:
+            node = LocalBroker()
+            mode_url = await asyncio.to_thread(node.start)
         try:
             before = os.getloadavg()
             print(f"  fleet: {mode} ({robots_n} robots, {vehicles_n} vehicles, {duration:.0f} s)", flush=True)

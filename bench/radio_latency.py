@@ -188,6 +188,7 @@ async def engine_gcs(url: str, pair: Any, vehicle: Vehicle, signed: bool, load: 
     """The engine on radio A with AMQP on the other side; returns the engine's own counters."""
     import aio_pika
 
+    from engine.endpoints.mavlink.connection import MavlinkConnection
     from engine.running.runtime import Engine
 
     exchange = f"lat-{uuid.uuid4().hex[:6]}"
@@ -252,6 +253,7 @@ async def engine_gcs(url: str, pair: Any, vehicle: Vehicle, signed: bool, load: 
                     window.fail("no reply in 15 s")
                 await asyncio.sleep(COMMAND_GAP)
         link = next(c for c in engine.connections if c.name == "radio")
+        assert isinstance(link, MavlinkConnection)  # the route file's "radio" is a MAVLink link
         routes = engine.status()["routes"]
         return {"bulk_delivered": routes["bulk"]["delivered"], "frames_delivered": routes["frames"]["delivered"],
                 "link_frames_sent": link.stats["frames_sent"], "engine_stop": stopped}
@@ -306,7 +308,7 @@ def mavsdk_gcs(device: str, vehicle: Vehicle, load: str, seconds: float, window:
                 "payload_length": len(TUNNEL_PAYLOAD), "payload": TUNNEL_PAYLOAD}))
             period = (len(TUNNEL_PAYLOAD) + 4 + 12) / MAVSDK_TUNNEL_RATE  # payload, TUNNEL's fields, MAVLink 2 framing
 
-            def load() -> None:
+            def send_tunnel_frames() -> None:
                 nonlocal tunnel_frames
                 due = time.monotonic()
                 while not stop.wait(max(0.0, due - time.monotonic())):
@@ -314,7 +316,7 @@ def mavsdk_gcs(device: str, vehicle: Vehicle, load: str, seconds: float, window:
                     tunnel_frames += 1
                     due += period
 
-            loader = threading.Thread(target=load, name="mavsdk-tunnel-load", daemon=True)
+            loader = threading.Thread(target=send_tunnel_frames, name="mavsdk-tunnel-load", daemon=True)
             loader.start()
             time.sleep(3.0)  # the radio's buffer is full
         action = Action(system)

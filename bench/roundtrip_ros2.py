@@ -119,11 +119,11 @@ async def _wait_for_path(exchange: Any, returned: list[bytes], timeout: float) -
 
 def _record(out: Path, run: int, size: int, originals: list[bytes], robot_store: Path, returned: list[bytes]) -> dict[str, Any]:
     key = lambda body: (json.loads(body)["run"], json.loads(body)["size"], json.loads(body)["seq"])  # noqa: E731
-    at_robot = {}
+    at_robot: dict[tuple[Any, Any, Any], bytes] = {}
     for line in robot_store.read_bytes().splitlines():
         if b'"probe"' not in line and json.loads(line).get("run") == run and json.loads(line).get("size") == size:
             at_robot.setdefault(key(line), line)
-    back = {}
+    back: dict[tuple[Any, Any, Any], bytes] = {}
     for body in returned:
         back.setdefault(key(body), body)
     out.mkdir(parents=True, exist_ok=True)

@@ -32,6 +32,7 @@ awaited per batch).
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import logging
 import os
@@ -552,7 +553,7 @@ async def ref_fleet(args: dict[str, Any]) -> None:
 
     endpoints = []
     for port, ids in links:
-        transport, protocol = await loop.create_datagram_endpoint(lambda ids=ids: Link(ids), local_addr=("127.0.0.1", port))
+        transport, protocol = await loop.create_datagram_endpoint(functools.partial(Link, ids), local_addr=("127.0.0.1", port))
         transport.get_extra_info("socket").setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
         endpoints.append(transport)
         senders.append((transport, mavlink2.MAVLink(None, srcSystem=255, srcComponent=190), protocol.peers))

@@ -339,7 +339,8 @@ class SimVehicle:
         if not isinstance(message, dict) or not isinstance(message.get("command"), str):
             return False
         self._stats.json_commands += 1
-        params = message.get("params") if isinstance(message.get("params"), dict) else {}
+        given = message.get("params")
+        params: dict[str, Any] = given if isinstance(given, dict) else {}
         if message["command"] == "detect_weeds" and self._detector is None and self._loop is not None:
             every = float(params.get("every_s") or self.weeds_every or 6.0)
             self._detector = self._loop.create_task(self._weed_detector(every), name="vehicle-weeds")

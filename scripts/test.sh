@@ -16,8 +16,9 @@
 # Arguments go to every run (test files, -k, -x, --durations=N ...); a run that selects no test
 # is not a failure unless none selects any. RABBITROS_TEST_WORKERS=0: no workers (one process).
 # Before the tests, the static checks (configured in pyproject.toml; seconds with their caches):
-# ruff's lint over engine/, tests/, bench/, rabbitros_sim/ and mypy over engine/. A finding fails
-# the run before any broker starts.
+# ruff's lint over engine/, tests/, bench/, rabbitros_sim/ and mypy over engine/, tests/support/,
+# bench/, rabbitros_sim/ (and the test modules these import). A finding fails the run before any
+# broker starts.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh

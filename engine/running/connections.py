@@ -11,7 +11,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from typing import Awaitable, Callable, Iterable, Sequence
+from typing import Awaitable, Callable, Iterator, Sequence
 
 from engine import endpoints
 from engine.common.backoff import Backoff
@@ -48,7 +48,7 @@ class ConnectionPool:
     def items(self) -> list[tuple[ConnectionKey, Connection]]:
         return list(self._connections.items())
 
-    def __iter__(self) -> Iterable[Connection]:
+    def __iter__(self) -> Iterator[Connection]:
         return iter(list(self._connections.values()))
 
     async def get(self, spec: ConnectionSpec, retry_in_background: bool = True) -> Connection:

@@ -19,6 +19,7 @@ import aio_pika
 import jsonschema
 import pytest
 import websockets
+from websockets.typing import Subprotocol
 from foxglove.messages import LocationFix, LocationFixes
 
 from engine.common.processes import listening_port
@@ -165,7 +166,7 @@ def test_the_older_subprotocol_name_is_refused_at_the_handshake(engine) -> None:
 
     async def scenario() -> None:
         with pytest.raises(websockets.InvalidStatus):
-            await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.websocket.v1"])  # type: ignore[list-item]
+            await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[Subprotocol("foxglove.websocket.v1")])
 
     asyncio.run(scenario())
 
@@ -181,16 +182,16 @@ def test_with_tls_only_wss_is_served_and_verified(amqp_url: str, tmp_path: Path)
 
     async def scenario() -> None:
         trusted = ssl.create_default_context(cafile=str(pki.ca))
-        ws = await websockets.connect(f"wss://localhost:{port}", subprotocols=[SUBPROTOCOL], ssl=trusted)  # type: ignore[list-item]
+        ws = await websockets.connect(f"wss://localhost:{port}", subprotocols=[SUBPROTOCOL], ssl=trusted)
         client = FoxgloveClient(ws)
         try:
             await wait_for(lambda: "/routes/positions/canonical" in client.channels, 15, "the routes advertised over wss")
         finally:
             await client.close()
         with pytest.raises((websockets.InvalidMessage, websockets.InvalidHandshake, OSError)):
-            await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], open_timeout=10)  # type: ignore[list-item]
+            await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], open_timeout=10)
         with pytest.raises(ssl.SSLCertVerificationError):
-            await websockets.connect(f"wss://localhost:{port}", subprotocols=[SUBPROTOCOL],  # type: ignore[list-item]
+            await websockets.connect(f"wss://localhost:{port}", subprotocols=[SUBPROTOCOL],
                                      ssl=ssl.create_default_context(cafile=str(pki.other_ca)))
 
     process.run(scenario)

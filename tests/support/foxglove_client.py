@@ -11,8 +11,9 @@ import struct
 from typing import Any
 
 import websockets
+from websockets.typing import Subprotocol
 
-SUBPROTOCOL = "foxglove.sdk.v1"
+SUBPROTOCOL = Subprotocol("foxglove.sdk.v1")
 
 
 class FoxgloveClient:
@@ -60,5 +61,5 @@ class FoxgloveClient:
 
 
 async def connect(port: int) -> FoxgloveClient:
-    ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL])  # type: ignore[list-item]
+    ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL])
     return FoxgloveClient(ws)

@@ -138,7 +138,11 @@ class RosPeer:
         self.node = rclpy.create_node(name, context=self.context)
         qos = QoSProfile(depth=100_000, reliability=ReliabilityPolicy.RELIABLE)
         self.publisher = self.node.create_publisher(String, up, qos)
-        self.node.create_subscription(String, down, lambda msg: tally_down.record(json.loads(msg.data)["seq"]), qos)
+
+        def on_down(msg: Any) -> None:
+            tally_down.record(json.loads(msg.data)["seq"])
+
+        self.node.create_subscription(String, down, on_down, qos)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stop = threading.Event()

@@ -105,7 +105,7 @@ class RosPeer:
     """The robot side in the test process: publishes ``/tag/up`` at a steady rate and records
     ``/tag/down``, in its own rclpy context and executor thread."""
 
-    def __init__(self, domain: int, tag: str, flow_up: Flow, flow_down: Flow, on_gen: Callable[[int], None]) -> None:
+    def __init__(self, domain: int, tag: str, flow_up: Flow, flow_down: Flow, on_gen: Callable[[int], object]) -> None:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -203,7 +203,9 @@ async def run_reloads(
         await collect.bind(outbox, "up.#")
 
         async def on_message(message: aio_pika.abc.AbstractIncomingMessage) -> None:
-            flow = run.flows["amqp->amqp" if message.routing_key.startswith("out.") else "ros2->amqp"]
+            key = message.routing_key
+            assert key is not None, "a Basic.Deliver always carries its routing key"
+            flow = run.flows["amqp->amqp" if key.startswith("out.") else "ros2->amqp"]
             seen(flow.record(message.body))
 
         await collect.consume(on_message, no_ack=True)

@@ -64,7 +64,7 @@ def outbound(fields: Any) -> Outbound:
 
 
 def run(coro: Awaitable[Any], timeout: float) -> Any:
-    return asyncio.run(asyncio.wait_for(coro, timeout))  # type: ignore[arg-type]
+    return asyncio.run(asyncio.wait_for(coro, timeout))
 
 
 @asynccontextmanager
@@ -393,6 +393,7 @@ def test_a_mission_to_a_silent_vehicle_is_a_dead_letter_at_its_bound(tmp_path: P
         try:
             declared = await channel.declare_queue(f"mission-{tag}", passive=True)
             pending = declared.declaration_result.message_count
+            assert pending is not None, "a passive Queue.Declare's DeclareOk carries the message count"
             await declared.delete(if_unused=False, if_empty=False)
         finally:
             await connection.close()
@@ -491,8 +492,14 @@ def test_a_transaction_waits_for_a_vehicle_not_heard_yet() -> None:
             stop = asyncio.Event()
             running = asyncio.create_task(sim.run(stop))
             heartbeats: list[Any] = []
-            sim.port.on_message = lambda msg, inner=sim.port.on_message: (
-                heartbeats.append(msg) if msg.get_type() == "HEARTBEAT" else None, inner(msg))
+            inner = sim.port.on_message
+
+            def on_message(msg: Any) -> None:
+                if msg.get_type() == "HEARTBEAT":
+                    heartbeats.append(msg)
+                inner(msg)
+
+            sim.port.on_message = on_message
             await asyncio.wait_for(upload, 10)
             await wait_for(lambda: bool(heartbeats), 3, "the engine's HEARTBEAT")
             stop.set()
