@@ -14,7 +14,7 @@ import uuid
 from functools import lru_cache
 from functools import partial as functools_partial
 from types import MappingProxyType
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, overload
 
 import jmespath
 from jmespath import exceptions as jmespath_errors
@@ -263,6 +263,15 @@ def _options_for(parsed: Any) -> jmespath.Options:
     return _all_options() if _called(parsed) & protocol_functions else _OPTIONS
 
 
+@overload
+def compile_mapping(expression: str, variables: Mapping[str, Any] | None = None,
+                    stores: Stores | None = None, route: str = "") -> Mapper: ...
+@overload
+def compile_mapping(expression: None, variables: Mapping[str, Any] | None = None,
+                    stores: Stores | None = None, route: str = "") -> None: ...
+@overload
+def compile_mapping(expression: str | None, variables: Mapping[str, Any] | None = None,
+                    stores: Stores | None = None, route: str = "") -> Mapper | None: ...
 def compile_mapping(expression: str | None, variables: Mapping[str, Any] | None = None,
                     stores: Stores | None = None, route: str = "") -> Mapper | None:
     """Compile a JMESPath expression (to closures, see :mod:`engine.language.jmespath_compile`);

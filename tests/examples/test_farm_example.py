@@ -20,6 +20,7 @@ from engine.common.schemas import SchemaRegistry
 from engine.endpoints.mavlink.dialect import mavlink2
 from tests.support.repo import REPO
 from tests.support.workers import ros_domain
+from tests.support.schemas import known_schema
 
 DURATION = 30
 
@@ -47,7 +48,7 @@ def test_farm_example_end_to_end(tmp_path: Path):
         seen = by_key[f"canonical.{kind}.uav1"]
         assert len(seen) >= rate * DURATION / 2, f"{kind}: only {len(seen)} messages"
         for record in seen:
-            schemas.get(kind).validate(record["body"])
+            known_schema(schemas, kind).validate(record["body"])
             assert record["body"]["agent_id"] == "uav1" and record["body"]["type"] == kind
         span = seen[-1]["t"] - seen[0]["t"]
         measured = (len(seen) - 1) / span
@@ -59,7 +60,7 @@ def test_farm_example_end_to_end(tmp_path: Path):
     # Every weed detection the UAV sent reaches RabbitMQ: ids are numbered from 1 with no gap.
     weeds = [record["body"] for record in by_key["canonical.weeds.uav1"]]
     for body in weeds:
-        schemas.get("weed_detection").validate(body)
+        known_schema(schemas, "weed_detection").validate(body)
     numbers = [int(body["id"].removeprefix("weeds-")) for body in weeds]
     assert numbers == list(range(1, len(numbers) + 1)), numbers
     uav_span = by_key["canonical.position.uav1"][-1]["t"] - by_key["canonical.position.uav1"][0]["t"]
@@ -76,7 +77,7 @@ def test_farm_example_end_to_end(tmp_path: Path):
     assert sent and sent == received, out[-3000:]
     assert [ack["ref_id"] for ack in acks] == sent and all(ack["result"] == "accepted" for ack in acks)
     for ack in acks:
-        schemas.get("ack").validate(ack)
+        known_schema(schemas, "ack").validate(ack)
     assert by_key["canonical.position.robot1"], "the robot's fix never reached RabbitMQ"
 
     # The UAV's missions are uploaded over the radio with the MAVLink mission protocol, and the
@@ -84,7 +85,7 @@ def test_farm_example_end_to_end(tmp_path: Path):
     uav_sent = re.findall(r"gcs -> mission\.uav\.uav1: (uav-spray-\d+)", out)
     uav_acks = [record["body"] for record in by_key["canonical.ack.uav1"]]
     for ack in uav_acks:
-        schemas.get("ack").validate(ack)
+        known_schema(schemas, "ack").validate(ack)
     assert uav_sent and len(uav_sent) - 1 <= len(uav_acks) <= len(uav_sent), (uav_sent, uav_acks)
     assert all(ack["result"] == "accepted" and ack["detail"] == "MAV_MISSION_ACCEPTED" for ack in uav_acks), uav_acks
     assert status["uav1-missions"]["delivered"] == len(uav_acks) or status["uav1-missions"]["delivered"] == len(uav_sent)

@@ -21,6 +21,7 @@ from engine.language.routes import load_routes
 from engine.running.watch import watch_routes
 from tests.support.repo import REPO
 from tests.support.waiting import wait_for
+from tests.support.schemas import known_schema
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
@@ -64,21 +65,21 @@ def mine(tmp_path: Path) -> Path:
 def test_own_ids_resolve_by_file_name_over_the_bundled_directory(mine: Path):
     registry = SchemaRegistry([BUNDLED, mine])
     assert registry.problems == []
-    registry.get("robot_pose").validate({"agent_id": "r1", "x": 1.5})
+    known_schema(registry, "robot_pose").validate({"agent_id": "r1", "x": 1.5})
     with pytest.raises(SchemaError, match=r"schema robot_pose.v1: \$.agent_id: .* is shorter than 1 character"):
-        registry.get("robot_pose").validate({"agent_id": "", "x": 1.5})  # the bundled envelope's header, through $ref
+        known_schema(registry, "robot_pose").validate({"agent_id": "", "x": 1.5})  # the bundled envelope's header, through $ref
     with pytest.raises(SchemaError, match=r"\$.where.lat"):
-        registry.get("no_id").validate({"where": {"lat": 91, "lon": 0}})
+        known_schema(registry, "no_id").validate({"where": {"lat": 91, "lon": 0}})
     with pytest.raises(SchemaError, match=r"\$.at"):
-        registry.get("by_bundled_id").validate({"at": {"sec": 1, "nanosec": 1, "extra": 1}})
+        known_schema(registry, "by_bundled_id").validate({"at": {"sec": 1, "nanosec": 1, "extra": 1}})
     with pytest.raises(SchemaError, match=r"\$.pose"):
-        registry.get("acme/dock").validate({"stamp": {"sec": 1, "nanosec": 0}, "pose": {"agent_id": "r1"}})
+        known_schema(registry, "acme/dock").validate({"stamp": {"sec": 1, "nanosec": 0}, "pose": {"agent_id": "r1"}})
     # the user's position.v1.json replaced the bundled one, and only that file
-    assert registry.get("position").path == mine / "position.v1.json"
-    registry.get("position").validate({"label": "dock", "lat": 100})
+    assert known_schema(registry, "position").path == mine / "position.v1.json"
+    known_schema(registry, "position").validate({"label": "dock", "lat": 100})
     with pytest.raises(SchemaError, match="label"):
-        registry.get("position").validate({"lat": 1})
-    assert registry.get("battery").path == BUNDLED / "battery.v1.json"
+        known_schema(registry, "position").validate({"lat": 1})
+    assert known_schema(registry, "battery").path == BUNDLED / "battery.v1.json"
     assert [(f.relative, f.path, f.replaces) for f in registry.files_used(["position", "robot_pose"])] == [
         ("envelope.v1.json", BUNDLED / "envelope.v1.json", ()),
         ("position.v1.json", mine / "position.v1.json", (BUNDLED / "position.v1.json",)),
@@ -94,7 +95,7 @@ def test_one_directory_of_own_ids_was_the_trap_and_resolves_now(tmp_path: Path):
     registry = SchemaRegistry(directory)
     assert registry.problems == []
     with pytest.raises(SchemaError, match="agent_id"):
-        registry.get("pose").validate({"agent_id": 5, "x": 1})
+        known_schema(registry, "pose").validate({"agent_id": 5, "x": 1})
 
 
 def test_a_copy_keeping_a_bundled_id_does_not_capture_the_bundled_references(mine: Path):
@@ -105,9 +106,9 @@ def test_a_copy_keeping_a_bundled_id_does_not_capture_the_bundled_references(min
     write(mine, "my_envelope.v1.json", bundled_envelope)
     registry = SchemaRegistry([BUNDLED, mine])
     assert registry.problems == []
-    registry.get("battery").validate({"agent_id": "uav1", "voltage": 12.1})
+    known_schema(registry, "battery").validate({"agent_id": "uav1", "voltage": 12.1})
     with pytest.raises(SchemaError, match="agent_id"):
-        registry.get("battery").validate({"agent_id": 7, "voltage": 12.1})
+        known_schema(registry, "battery").validate({"agent_id": 7, "voltage": 12.1})
 
 
 def test_a_later_envelope_replaces_it_for_every_schema_and_changes_their_digests(mine: Path):
@@ -118,9 +119,9 @@ def test_a_later_envelope_replaces_it_for_every_schema_and_changes_their_digests
     after = SchemaRegistry([BUNDLED, mine])
     assert after.problems == []
     with pytest.raises(SchemaError, match='"id" is a required property'):
-        after.get("battery").validate({"agent_id": "uav1", "voltage": 12.1})  # a bundled schema, through the user's envelope
-    assert after.get("battery").digest != before.get("battery").digest
-    assert after.get("raw_json").digest == before.get("raw_json").digest
+        known_schema(after, "battery").validate({"agent_id": "uav1", "voltage": 12.1})  # a bundled schema, through the user's envelope
+    assert known_schema(after, "battery").digest != known_schema(before, "battery").digest
+    assert known_schema(after, "raw_json").digest == known_schema(before, "raw_json").digest
 
 
 def test_a_reference_to_no_file_names_the_directories(mine: Path):

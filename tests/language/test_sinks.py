@@ -20,6 +20,7 @@ from engine.running.fanout import REFUSED
 from engine.running.pipeline import ConversionError, Filtered, Pipeline
 from tests.language.test_route_tests import engine_cli
 from tests.support.repo import REPO
+from tests.support.schemas import known_schema
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
@@ -126,14 +127,14 @@ def test_check_names_each_sinks_problem_where_it_is_written(tmp_path: Path):
 def test_a_message_is_mapped_once_per_chosen_sink_and_one_sinks_refusal_waits_in_its_meta(tmp_path: Path):
     config = load_routes(routes(tmp_path, FAN), SCHEMAS, env={})
     spec = config.routes["fan"]
-    pipeline = Pipeline.compile(spec, 1, SCHEMAS.get("position"), DrySink())
+    pipeline = Pipeline.compile(spec, 1, known_schema(SCHEMAS, "position"), DrySink())
     high = pipeline.convert(Inbound(body=b'{"agent_id": "uav1", "lat": 1.0, "lon": 2.0, "alt_msl": 5.0}', meta={}))
     assert high.fields == {"amqp.0": high.canonical, "spool": {"who": "uav1"},
                            "ros2": {"header": {"frame_id": "uav1"}, "latitude": 1.0, "longitude": 2.0, "altitude": 5.0}}
     low = pipeline.convert(Inbound(body=b'{"agent_id": "uav1", "lat": 1.0, "lon": 2.0, "alt_msl": -5.0}', meta={}))
     assert set(low.fields) == {"amqp.0", "spool"}  # the ros2 sink's when: says no
     assert REFUSED not in low.meta
-    only = Pipeline.compile(replace(spec, sinks=spec.sinks[1:2]), 1, SCHEMAS.get("position"), DrySink())
+    only = Pipeline.compile(replace(spec, sinks=spec.sinks[1:2]), 1, known_schema(SCHEMAS, "position"), DrySink())
     with pytest.raises(Filtered):  # the one sink's when: says no: nothing is sent, counted filtered
         only.convert(Inbound(body=b'{"agent_id": "uav1", "lat": 1.0, "lon": 2.0, "alt_msl": -5.0}', meta={}))
 
@@ -141,12 +142,12 @@ def test_a_message_is_mapped_once_per_chosen_sink_and_one_sinks_refusal_waits_in
 def test_a_sink_whose_mapping_refuses_leaves_the_others_and_all_refusing_is_one_sink_mapping_error(tmp_path: Path):
     config = load_routes(routes(tmp_path, FAN.replace('        when: "alt_msl > `0`"\n', "")), SCHEMAS, env={})
     spec = config.routes["fan"]
-    pipeline = Pipeline.compile(spec, 1, SCHEMAS.get("position"), DrySink())
+    pipeline = Pipeline.compile(spec, 1, known_schema(SCHEMAS, "position"), DrySink())
     no_altitude = b'{"agent_id": "uav1", "lat": 1.0, "lon": 2.0}'  # the NavSatFix needs one
     outbound = pipeline.convert(Inbound(body=no_altitude, meta={}))
     assert set(outbound.fields) == {"amqp.0", "spool"}
     assert list(outbound.meta[REFUSED]) == ["ros2"] and outbound.meta[REFUSED]["ros2"].startswith("sink mapping: "), outbound.meta
-    alone = Pipeline.compile(replace(spec, sinks=spec.sinks[1:2]), 1, SCHEMAS.get("position"), DrySink())
+    alone = Pipeline.compile(replace(spec, sinks=spec.sinks[1:2]), 1, known_schema(SCHEMAS, "position"), DrySink())
     with pytest.raises(ConversionError) as refused:  # every chosen sink's mapping fails: one dead letter
         alone.convert(Inbound(body=no_altitude, meta={}))
     assert refused.value.stage == "sink mapping" and refused.value.detail.startswith("sink 'ros2': "), refused.value

@@ -17,6 +17,7 @@ from engine.common.processes import listening_port
 from engine.common.schemas import SchemaError, SchemaRegistry
 from engine.language.mapping import compile_mapping, known_functions
 from tests.support.repo import REPO
+from tests.support.schemas import known_schema
 
 DOCS = REPO / "docs"
 ROW = re.compile(r"^\| `(?P<name>\w+)` \| `` (?P<expr>.+?) `` \| `(?P<result>.+?)` \| .* \|$")
@@ -86,7 +87,7 @@ def test_the_shared_types_are_defined_and_the_stamp_is_what_the_schemas_accept()
     shared = json.loads((REPO / "schemas" / "envelope.v1.json").read_text())["$defs"]
     for name in set(shared) - {"header"}:
         assert f"### `{name}`" in text, name
-    position = SchemaRegistry(REPO / "schemas").get("position")
+    position = known_schema(SchemaRegistry(REPO / "schemas"), "position")
     fix = {"agent_id": "uav1", "lat": -22.0, "lon": -47.9}
     position.validate({**fix, "stamp": {"sec": 1700000000, "nanosec": 500000000}})
     stamp_section = text.split("### `stamp`", 1)[1].split("###", 1)[0]
@@ -125,7 +126,7 @@ def stop_group(pgid: int, timeout: float = 60) -> None:
     """Stop whatever of the script's process group still runs (an engine stops its private
     broker on SIGTERM: never leave one behind), SIGKILL after ``timeout``."""
     deadline = time.monotonic() + timeout
-    signal_to_send = signal.SIGTERM
+    signal_to_send: signal.Signals | int = signal.SIGTERM
     while time.monotonic() < deadline + 10:  # a zombie nobody reaps still answers: give up then
         try:
             os.killpg(pgid, signal_to_send)
@@ -175,11 +176,15 @@ def test_the_tutorial_steps_work_as_written(tmp_path: Path):
 
     route = work / "my-routes" / "tractor.yaml"
     route.write_text((DOCS / "tutorial" / "routes" / "tractor.yaml").read_text().replace("schema: position", "schema: positon"))
-    typo = re.search(r"`check` says `(.+?)`\.", text.replace("\n", " "))[1]
+    typo_line = re.search(r"`check` says `(.+?)`\.", text.replace("\n", " "))
+    assert typo_line is not None, "the tutorial shows what `check` says about the typo"
+    typo = typo_line[1]
     assert re.fullmatch(re.escape(typo).replace(r"\(\.\.\.\)", r"\(.*\)"), engine("check").stderr.strip())
     route.write_text((DOCS / "tutorial" / "routes" / "tractor.yaml").read_text())
     cases = work / "my-routes" / "tractor.test.yaml"
     cases.write_text(cases.read_text().replace("alt_msl: 612.5}", "alt_msl: 6125}"))
     failed = engine("test")
-    shown = re.search(r"e\.g\.\n`alt_msl: 6125`:\n\n```\n(.*?)```", text, re.S)[1]
+    shown_block = re.search(r"e\.g\.\n`alt_msl: 6125`:\n\n```\n(.*?)```", text, re.S)
+    assert shown_block is not None, "the tutorial shows what `test` prints for the failing case"
+    shown = shown_block[1]
     assert failed.returncode == 1 and shown in failed.stdout, failed.stdout

@@ -16,7 +16,7 @@ def test_wait_for_returns_the_value_and_awaits_an_async_predicate():
     async def scenario() -> tuple[object, object]:
         polls = iter([None, 0, "ready"])
 
-        async def asked() -> str | None:
+        async def asked() -> str | int | None:
             return next(polls)
 
         return await wait_for(lambda: [1], 1, "a list"), await wait_for(asked, 1, "the third answer")

@@ -545,7 +545,7 @@ def test_enum_functions_in_mappings() -> None:
     with pytest.raises(ValueError, match="'ARM' is not a MAV_CMD name"):
         bad({})
     with pytest.raises(ValueError, match="unknown MAVLink enum 'MAV_NOPE'"):
-        compile_mapping("mav_enum(`1`, 'MAV_NOPE')")({})  # type: ignore[misc]
+        compile_mapping("mav_enum(`1`, 'MAV_NOPE')")({})
 
 
 def test_a_stale_accepted_ack_does_not_complete_an_upload() -> None:
