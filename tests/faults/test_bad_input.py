@@ -23,6 +23,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from rclpy.signals import SignalHandlerOptions
 
+from engine.endpoints.mavlink.connection import MavlinkConnection
 from engine.endpoints.ros2.rosmsg import resolve_type
 from tests.support.amqp_helpers import Collector
 from tests.support.faults_harness import (
@@ -329,6 +330,7 @@ def test_mavlink_source_bad_values_and_damaged_frames(harness: Harness, cases: l
     truncated frame is followed by filler without a start byte, so the next frame parses."""
     h = harness
     connection = next(c for _, c in h.engine.connections.items() if c.name == "uav")
+    assert isinstance(connection, MavlinkConnection), "the uav connection is the MAVLink one"
     damaged_before = connection.stats["bad_crc"] + connection.stats["bad_data"]
     damaged = 0
     h.begin()
@@ -366,7 +368,7 @@ def test_engine_survived_and_counted(harness: Harness) -> None:
     assert sum(r["failed"] for r in routes.values()) == dead
     assert sum(r["delivered"] for r in routes.values()) == out
     assert all(r["sink_errors"] == 0 and r["dropped"] == 0 for r in routes.values())
-    stages = Counter()
+    stages: Counter[str] = Counter()
     for r in routes.values():
         stages.update(r["dead_lettered"])
     assert stages == Counter(stage for (_, stage, _), n in h.expected_dead.items() for _ in range(n))

@@ -10,12 +10,13 @@ import signal
 import uuid
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import aio_pika
 import pytest
 
 from tests.support.engine_process import EngineProcess
-from tests.support.amqp_helpers import Collector
+from tests.support.amqp_helpers import Collector, message_count
 from tests.support.waiting import wait_for
 
 TOTAL = 10_000
@@ -46,7 +47,7 @@ def test_engine_killed_twice_loses_nothing(tmp_path: Path, amqp_url: str) -> Non
     routes.mkdir()
     (routes / "r.yaml").write_text(ROUTES.format(url=amqp_url, inbox=inbox, outbox=outbox))
 
-    async def scenario() -> dict[str, int]:
+    async def scenario() -> dict[str, Any]:
         connection = await aio_pika.connect(amqp_url)
         channel = await connection.channel()
         out = await Collector.bind(channel, outbox, "#")
@@ -61,14 +62,14 @@ def test_engine_killed_twice_loses_nothing(tmp_path: Path, amqp_url: str) -> Non
             await exchange.publish(aio_pika.Message(json.dumps(body).encode(), delivery_mode=2), "k.x")
 
         async def all_queued() -> bool:
-            return (await fast.declare_queue(f"{inbox}-q", passive=True)).declaration_result.message_count >= TOTAL
+            return message_count(await fast.declare_queue(f"{inbox}-q", passive=True)) >= TOTAL
 
         await wait_for(all_queued, 60, f"all {TOTAL} messages in the source queue")
 
         def seen() -> int:
             return len({json.loads(m.body)["seq"] for m in out.messages})
 
-        kills = []
+        kills: list[int] = []
         for kill_at in (TOTAL // 4, TOTAL * 3 // 5, None):
             engine = EngineProcess(routes, tmp_path / f"status-{len(kills)}.json", {})
             try:
@@ -77,7 +78,8 @@ def test_engine_killed_twice_loses_nothing(tmp_path: Path, amqp_url: str) -> Non
                     await wait_for(lambda: seen() == TOTAL, 240, f"all {TOTAL} messages")
                     await asyncio.sleep(1.0)  # quiet window: let any duplicate in flight arrive
                     break
-                await wait_for(lambda: seen() >= kill_at, 240, f"{kill_at} messages before the kill")
+                kill_after: int = kill_at
+                await wait_for(lambda: seen() >= kill_after, 240, f"{kill_after} messages before the kill")
                 kill(engine)
                 kills.append(seen())
             finally:

@@ -366,7 +366,7 @@ def test_held_messages_survive_a_reload_that_replaces_the_route(tmp_path: Path, 
             (routes / "outage.yaml").write_text(text.replace(f"topic: /{names['tag']}/up}}", f"topic: /{names['tag']}/up, qos: {{depth: 500}}}}"))
             assert await engine.reload()
             replaced = engine.runners["from-ros"]
-            assert replaced is not runner and replaced.buffer is runner.buffer and len(replaced.buffer) == 300
+            assert replaced is not runner and replaced.buffer is runner.buffer and replaced.buffer is not None and len(replaced.buffer) == 300
             await asyncio.to_thread(broker.start)
             connection = await robust(broker.url)
             await Collector.bind(await connection.channel(), names["outbox"], "up.#", queue=f"collect-{names['tag']}", ack=True, tally=arrived, prefetch=500)

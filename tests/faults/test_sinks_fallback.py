@@ -86,7 +86,7 @@ async def publish(broker: LocalMosquitto, bodies: list[dict[str, Any]]) -> None:
 
 def relayed_seqs(subscriber: Subscriber) -> list[int]:
     """The ``alt_msl`` (the seq) of each message on the relay's mosquitto."""
-    return [int(json.loads(bytes(m.payload)).get("alt_msl", -1)) for m in subscriber.messages]  # type: ignore[arg-type]
+    return [int(json.loads(bytes(m.payload)).get("alt_msl", -1)) for m in subscriber.messages]
 
 
 def seqs(collector: Collector) -> list[int]:

@@ -371,7 +371,12 @@ def test_healthz_follows_the_broker(tmp_path: Path):
         code, body = get(port, "/healthz")
         assert code == 200 and json.loads(body)["status"] == "ok", body
         broker.stop(timeout=30)
-        code, body = wait_for_sync(lambda: (r := get(port, "/healthz"))[0] == 503 and r, 30, "/healthz to turn 503")
+
+        def unhealthy() -> tuple[int, str] | None:
+            answer = get(port, "/healthz")
+            return answer if answer[0] == 503 else None
+
+        code, body = wait_for_sync(unhealthy, 30, "/healthz to turn 503")
         document = json.loads(body)
         assert document["down"] == ["farm-broker"] and document["connections"]["farm-broker"]["up"] is False
         assert metrics(port)['rabbitros_connection_up{connection="farm-broker",protocol="amqp"}'] == 0

@@ -190,3 +190,11 @@ class Caller:
     def summary(self) -> dict[str, list[tuple[Any, bytes]]]:
         return {key: [(m.headers.get("x-rabbitros-reply"), m.body[:200]) for m in messages]
                 for key, messages in list(self.replies.items())[:5]}
+
+
+def message_count(queue: aio_pika.abc.AbstractQueue) -> int:
+    """The ready-message count the broker gave when ``queue`` was declared (aiormq types it
+    optional; a declare, passive or not, always answers with it)."""
+    count = queue.declaration_result.message_count
+    assert count is not None, f"the declare of {queue.name} answered without a message count"
+    return count

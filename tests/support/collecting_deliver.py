@@ -31,3 +31,10 @@ class CollectingDeliver(FunctionDeliver):
         """Until ``count`` messages were delivered; fails naming how many came."""
         await wait_for(lambda: len(self.items) >= count, timeout, f"{count} deliveries", detail=lambda: f"{len(self.items)} came")
         return self.items
+
+    def bodies(self) -> list[bytes]:
+        """The raw body of each message delivered, in order; asserts every one kept its body
+        (a source that forwards bytes)."""
+        bodies = [inbound.body for inbound in self.items]
+        assert all(body is not None for body in bodies), "a delivered message came without its raw body"
+        return [body for body in bodies if body is not None]

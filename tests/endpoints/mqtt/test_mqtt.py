@@ -251,6 +251,7 @@ def test_a_payload_that_fails_its_schema_is_dead_lettered_and_acknowledged(
 
 import rclpy  # noqa: E402,F401  (a missing rclpy fails the run, never skips it)
 
+from engine.endpoints.ros2.node import Ros2Node  # noqa: E402
 from engine.endpoints.ros2.rosmsg import resolve_type  # noqa: E402
 from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer  # noqa: E402
 from tests.support.waiting import wait_for
@@ -342,6 +343,7 @@ def test_mqtt_to_ros2_with_wildcards(tmp_path: Path, mosquitto: LocalMosquitto) 
         await engine.start()
         try:
             ros = engine.runners["fix-in"].connections[-1]
+            assert isinstance(ros, Ros2Node), "the route's last connection is the ROS 2 one"
             await wait_for(lambda: ros.node.count_subscribers(f"/{tag}/fix") > 0, 20, "the engine to see the ROS 2 subscriber")
             position = {"lat": -22.0, "lon": -47.9, "alt_msl": 600.0}
             await publish(mosquitto, [
@@ -664,7 +666,7 @@ async def retained_state(broker: LocalMosquitto, topic: str, state: str, timeout
                 async with asyncio.timeout(1.0):
                     async for message in client.messages:
                         if message.retain:
-                            last = json.loads(bytes(message.payload))  # type: ignore[arg-type]
+                            last = json.loads(bytes(message.payload))
                             break
             except TimeoutError:
                 pass

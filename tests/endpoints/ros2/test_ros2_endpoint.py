@@ -144,6 +144,7 @@ def test_source_typed_message_gives_fields():
             await wait_for(lambda: len(got.items) == 1, what="message")
             fields = got.items[0].fields
             assert got.items[0].body is None
+            assert fields is not None, "a ROS 2 message is delivered decoded, as fields"
             assert fields["latitude"] == -22.00123456789 and fields["altitude"] is None
             assert fields == to_dict(fix)
             assert got.items[0].meta["type"] == "sensor_msgs/msg/NavSatFix"
@@ -167,7 +168,7 @@ def test_source_2000_messages_full_speed_none_lost_in_order():
             for i in range(2000):
                 publisher.publish(String(data=json.dumps({"seq": i})))
             await wait_for(lambda: len(got.items) == 2000, timeout=20, what="2000 messages")
-            assert [json.loads(i.body)["seq"] for i in got.items] == list(range(2000))
+            assert [json.loads(body)["seq"] for body in got.bodies()] == list(range(2000))
             assert source.dropped == 0
         finally:
             await connection.close()
@@ -182,7 +183,7 @@ def test_source_stop_drains_queue_then_unsubscribes():
         publisher = peer.publisher(String, "/t_stop/in")
         connection = await open_connection()
         try:
-            delivered: list[bytes] = []
+            delivered: list[bytes | None] = []
 
             async def slow_deliver(inbound: Inbound) -> None:
                 await asyncio.sleep(0.002)  # pacing: a slow deliver (the behaviour under test)
@@ -213,7 +214,7 @@ def test_unsettled_messages_are_counted_as_dropped_never_retried_by_the_source()
         publisher = peer.publisher(String, "/t_retry/in")
         connection = await open_connection()
         try:
-            attempts: list[bytes] = []
+            attempts: list[bytes | None] = []
 
             async def flaky(inbound: Inbound) -> None:
                 attempts.append(inbound.body)
@@ -247,9 +248,9 @@ def test_overflow_policies_bound_the_queue_and_count_drops():
                 topic = f"/t_overflow_{policy}/in"
                 publisher = peer.publisher(String, topic)
                 gate = asyncio.Event()
-                got: list[bytes] = []
+                got: list[bytes | None] = []
 
-                async def stalled(inbound: Inbound, got: list[bytes] = got, gate: asyncio.Event = gate) -> None:
+                async def stalled(inbound: Inbound, got: list[bytes | None] = got, gate: asyncio.Event = gate) -> None:
                     await gate.wait()
                     got.append(inbound.body)
 
@@ -511,6 +512,7 @@ def test_round_trip_through_robot_echo_example(tmp_path):
         )
         connection = await open_connection()
         try:
+            assert robot.stdout is not None, "the robot's stdout is a pipe"
             assert (await asyncio.wait_for(robot.stdout.readline(), 15)).strip() == b"ready"
             got = CollectingDeliver()
             source = connection.source("r-echo-in", {"topic": "/t_robot/json_out"})
