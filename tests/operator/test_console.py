@@ -137,10 +137,14 @@ def test_the_console_shows_routes_counters_dead_letters_and_the_fleet(console: t
         dead = wait_for_sync(lambda: seen()["dead"], 10, "the dead letter in the console", seen)
         assert [(d["route"], d["stage"]) for d in dead] == [("weeds", "schema")] and "7" in dead[0]["reason"], dead
 
-        page = wait_for_sync(lambda: (view := seen()) and len(view["agents"]) == 2 and view, 30, "the UAV and the robot on the map", seen)
-        (ux, uy), (rx, ry) = page["agents"]["uav1"], page["agents"]["robot1"]
-        assert rx > ux and ry < uy, page["agents"]  # the robot is north-east of the UAV: right and up
-        assert sorted(page["labels"]) == ["robot1", "uav1"] and page["scale"].endswith("m"), page
+        def both_on_the_map() -> dict[str, Any] | None:
+            view = seen()
+            return view if view and len(view["agents"]) == 2 else None
+
+        snapshot = wait_for_sync(both_on_the_map, 30, "the UAV and the robot on the map", seen)
+        (ux, uy), (rx, ry) = snapshot["agents"]["uav1"], snapshot["agents"]["robot1"]
+        assert rx > ux and ry < uy, snapshot["agents"]  # the robot is north-east of the UAV: right and up
+        assert sorted(snapshot["labels"]) == ["robot1", "uav1"] and snapshot["scale"].endswith("m"), snapshot
         assert cell("uav-position", "delivered") == "1" and cell("robot-position", "delivered") == "1"
 
         lines = wait_for_sync(lambda: len(tapped := seen()["tap"]) == 4 and tapped, 20, "the tapped messages", seen)

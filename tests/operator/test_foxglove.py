@@ -217,7 +217,7 @@ def test_nothing_watches_a_route_while_no_client_subscribes_and_channels_follow_
             await client.subscribe(["/routes/positions/canonical", "/fleet"])
             await wait_for(lambda: len(positions.watchers) == 2, 10, "the route's channel and the fleet attached",
                            lambda: positions.watchers)
-            assert {type(w) for w in positions.watchers} == {RouteChannel, Fleet} and telemetry.watchers == ()
+            assert set(map(type, positions.watchers)) == {RouteChannel, Fleet} and telemetry.watchers == ()
             await client.close()
             await wait_for(lambda: positions.watchers == (), 10, "everything detached once the client left",
                            lambda: positions.watchers)

@@ -21,7 +21,7 @@ from engine.common.redaction import Secret, redact_urls, reveal
 from engine.endpoints.amqp.broker import LocalBroker
 from tests.support.repo import REPO
 from tests.support.engine_process import EngineProcess
-from tests.support.amqp_helpers import Collector
+from tests.support.amqp_helpers import Collector, message_count
 from tests.support.outage_helpers import Tally, publish_reliably, robust
 from tests.support.waiting import wait_for
 
@@ -213,7 +213,7 @@ def test_sigterm_with_the_sink_down_exits_0_within_the_drain_timeout_and_requeue
 
             async def all_requeued() -> bool:
                 queue = await channel.declare_queue(f"{inbox}-q", passive=True)
-                figures["requeued"] = queue.declaration_result.message_count
+                figures["requeued"] = message_count(queue)
                 return figures["requeued"] == 500
 
             await wait_for(all_requeued, 30, "all 500 back in the source queue", detail=lambda: figures.get("requeued"))

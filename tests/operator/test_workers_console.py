@@ -118,9 +118,12 @@ def test_the_supervisors_console_shows_both_workers_and_the_engine_as_a_whole(am
                    "lon": lon + 0.00135 * math.sin(seq % AGENTS * math.tau / AGENTS), "seq": seq} for seq in range(MESSAGES)]
         asyncio.run(send(amqp_url, tag, [*bodies, {"agent": "broken", "lat": 500.0, "lon": lon}]))
 
-        settled = wait_for_sync(lambda: sum(per_worker(document := status(), "delivered")) == MESSAGES
-                                and sum(per_worker(document, "received")) == MESSAGES + 1 and document, 60,
-                                "every message carried", lambda: per_worker(status(), "received"))
+        def all_carried() -> dict[str, Any] | None:
+            document = status()
+            carried = sum(per_worker(document, "delivered")) == MESSAGES and sum(per_worker(document, "received")) == MESSAGES + 1
+            return document if carried else None
+
+        settled = wait_for_sync(all_carried, 60, "every message carried", lambda: per_worker(status(), "received"))
         received = per_worker(settled, "received")
         assert all(count > 0 for count in received), f"one worker carried everything: {received}"
 

@@ -9,7 +9,6 @@ from pathlib import Path
 
 from selenium import webdriver
 from selenium.webdriver.chrome.service import Service
-from selenium.webdriver.remote.webdriver import WebDriver
 
 CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 PAGE_SNAPSHOT = """
@@ -34,7 +33,7 @@ return {
 by one could be replaced between two reads)."""
 
 
-def browser(profile: Path, window: str = "1400,1000") -> WebDriver:
+def browser(profile: Path, window: str = "1400,1000") -> webdriver.Chrome:
     """Headless chromium with the system driver; no network of its own (no updates, sync, QUIC)."""
     options = webdriver.ChromeOptions()
     options.binary_location = CHROMIUM
