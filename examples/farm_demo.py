@@ -69,7 +69,7 @@ def wait_for(path: Path, process: subprocess.Popen[bytes], timeout: float) -> No
     deadline = time.monotonic() + timeout
     while not (path.exists() and path.stat().st_size) and time.monotonic() < deadline:
         if process.poll() is not None:
-            raise RuntimeError(f"{process.args} exited with {process.returncode}")
+            raise RuntimeError(f"{process.args!r} exited with {process.returncode}")
         time.sleep(0.2)
     if not path.exists():
         raise TimeoutError(f"{path} did not appear")

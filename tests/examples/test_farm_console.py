@@ -84,8 +84,11 @@ def test_the_console_shows_the_farm(tmp_path: Path) -> None:
         assert '"command" is a required property' in dead[0]["reason"], dead
         assert count("uav1-commands", "dead-lettered") == 1
 
-        page = wait_for_sync(lambda: (view := seen()) and {"uav1", "robot1"} <= set(view["agents"]) and view, 60,
-                             "the UAV and the ground robot on the map", seen)
+        def both_on_the_map() -> dict[str, Any] | None:
+            view = seen()
+            return view if view and {"uav1", "robot1"} <= set(view["agents"]) else None
+
+        page = wait_for_sync(both_on_the_map, 60, "the UAV and the ground robot on the map", seen)
         assert sorted(page["agents"]) == ["robot1", "uav1"] and sorted(page["labels"]) == ["robot1", "uav1"], page
         assert page["scale"].endswith("m"), page
         wait_for_sync(lambda: count("uav1-weeds") and count("robot-missions"), 60, "a weed detection and a mission",

@@ -71,7 +71,9 @@ def test_the_farm_recorded_counts_schemas_and_replay(tmp_path: Path) -> None:
                 jsonschema.Draft202012Validator.check_schema(document)
                 validators[schema.id] = jsonschema.Draft202012Validator(document)
             validators[schema.id].validate(json.loads(message.data))  # every message against its channel's schema
-            route, kind = re.fullmatch(r"/routes/(.+)/(in|canonical)", channel.topic).groups()  # type: ignore[union-attr]
+            topic = re.fullmatch(r"/routes/(.+)/(in|canonical)", channel.topic)
+            assert topic is not None, f"a channel that is neither a route's input nor its canonical: {channel.topic}"
+            route, kind = topic.groups()
             if kind == "in":
                 inputs.setdefault(route, set()).add(message.sequence)
 

@@ -130,7 +130,7 @@ def fly_at(alt_rel: float, action_id: str) -> list[dict[str, Any]]:
              "actionParameters": [{"key": "altRel", "value": alt_rel}]}]
 
 
-UAV_ORDER = {**ORDER_HEADER, "headerId": 1, "serialNumber": "uav1", "orderId": "spray-1", "orderUpdateId": 0,
+UAV_ORDER: dict[str, Any] = {**ORDER_HEADER, "headerId": 1, "serialNumber": "uav1", "orderId": "spray-1", "orderUpdateId": 0,
              "nodes": [{"nodeId": "p1", "sequenceId": 0, "released": True, "actions": fly_at(15, "f1"),
                         "nodePosition": {"x": 0.0, "y": 0.0, "mapId": "farm"}},
                        {"nodeId": "p2", "sequenceId": 2, "released": True, "actions": fly_at(15, "f2"),
@@ -181,7 +181,7 @@ async def retained(broker: LocalMosquitto, topic: str, timeout: float = 5.0) -> 
         async with asyncio.timeout(timeout):
             async for message in client.messages:
                 if message.retain:
-                    return json.loads(bytes(message.payload))  # type: ignore[arg-type,no-any-return]
+                    return json.loads(bytes(message.payload))
     raise AssertionError(f"nothing retained on {topic}")
 
 

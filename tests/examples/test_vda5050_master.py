@@ -267,7 +267,7 @@ async def until(predicate: Callable[[], bool], what: str, heard: Heard) -> None:
     try:
         await wait_for(predicate, WAIT, what)
     except AssertionError as timeout:
-        refused = [(event.key.serial_number, str(event.error)[:300]) for event in heard.errors]
+        refused = [(event.key and event.key.serial_number, str(event.error)[:300]) for event in heard.errors]
         raise AssertionError(f"{timeout}; the master control refused: {refused}") from None
 
 
@@ -363,7 +363,7 @@ def test_an_independent_master_control_runs_orders_pauses_resumes_and_cancels_bo
             assert result.accepted, result
             await timed("robot_order_after_cancel_to_every_node_finished_s", lambda: finished(latest(master, ROBOT), row), figures)
             for key in (UAV, ROBOT):
-                assert (heard.connections.get(key) or [None])[-1] == "ONLINE", heard.connections
+                assert heard.connections.get(key, [])[-1:] == ["ONLINE"], heard.connections
             return heard
         finally:
             driving.cancel()
@@ -398,6 +398,8 @@ def test_orders_the_vehicles_must_not_take_are_answered_with_errors_and_every_to
     driver = RobotDriver(peer)
     peer.start()
     uav = start_uav(example_env)
+
+    master: MasterClient  # bound by scenario(), read by the closures below
 
     def names(key: VehicleKey, error_type: str, named: str, header_id: int) -> Callable[[], bool]:
         def found() -> bool:
@@ -440,11 +442,16 @@ def test_orders_the_vehicles_must_not_take_are_answered_with_errors_and_every_to
                                    f"{serial}'s state to name {error_type} ({named})")
                 # a repeat of the current order (the same orderUpdateId) is discarded, without an error
                 await publish(mosquitto, [("uagv/v2/rabbitros/robot1/order", {**update, "headerId": 105})])
-                await wait_for(lambda: not (latest(master, ROBOT).errors or []), WAIT,  # type: ignore[union-attr]
-                               "the robot's errors cleared by the repeat (the latest order's check)")
+
+                def robot_errors_cleared() -> bool:
+                    state = latest(master, ROBOT)
+                    assert state is not None, "the master control holds the robot's state"
+                    return not (state.errors or [])
+
+                await wait_for(robot_errors_cleared, WAIT, "the robot's errors cleared by the repeat (the latest order's check)")
                 assert len(driver.goals) == goals, "no order that does not fit reached the robot"
                 await engine.stop()
-                await wait_for(lambda: sum(str(m.topic).endswith("/connection") and b"OFFLINE" in m.payload  # type: ignore[operator]
+                await wait_for(lambda: sum(str(m.topic).endswith("/connection") and b"OFFLINE" in m.payload
                                            for m in wire.messages) == 2, WAIT, "both OFFLINE")
             await master.disconnect()
         finally:
@@ -455,7 +462,6 @@ def test_orders_the_vehicles_must_not_take_are_answered_with_errors_and_every_to
             ids.setdefault(str(message.topic), []).append(json.loads(message.payload)["headerId"])
         return heard, ids, goals
 
-    master: MasterClient
     try:
         heard, ids, goals = asyncio.run(asyncio.wait_for(scenario(), 150))
     finally:
@@ -525,6 +531,8 @@ def test_a_new_order_while_the_current_one_runs_is_refused_and_the_running_order
     peer.start()
     uav = start_uav(example_env)
 
+    master: MasterClient  # bound by scenario(), read by the closures below
+
     def refused(key: VehicleKey, header_id: int) -> Callable[[], bool]:
         def found() -> bool:
             state = latest(master, key)
@@ -569,7 +577,6 @@ def test_a_new_order_while_the_current_one_runs_is_refused_and_the_running_order
             await master.disconnect()
             await engine.stop()
 
-    master: MasterClient
     try:
         heard = asyncio.run(asyncio.wait_for(scenario(), 150))
     finally:
@@ -591,6 +598,8 @@ def test_an_order_the_vda_schema_refuses_is_answered_with_a_validation_error(exa
     driver = RobotDriver(peer)
     peer.start()
     uav = start_uav(example_env)
+
+    master: MasterClient  # bound by scenario(), read by the closures below
 
     def refused(key: VehicleKey, header_id: int) -> Callable[[], bool]:
         def found() -> bool:
@@ -627,7 +636,6 @@ def test_an_order_the_vda_schema_refuses_is_answered_with_a_validation_error(exa
             await master.disconnect()
             await engine.stop()
 
-    master: MasterClient
     try:
         heard = asyncio.run(asyncio.wait_for(scenario(), 120))
     finally:

@@ -27,6 +27,7 @@ from engine.endpoints.mqtt.broker import LocalMosquitto
 from engine.running.runtime import Engine
 from tests.endpoints.mqtt.test_mqtt import Subscriber, publish
 from tests.endpoints.ros2.test_ros2_endpoint import DOMAIN, Peer
+from tests.support.schemas import known_schema
 from tests.examples.test_vda5050_master import WAIT, RobotDriver, start_uav, stop_uav
 from tests.support.repo import REPO
 from tests.support.udp_vehicle import free_udp_port
@@ -55,13 +56,13 @@ def order(serial: str, order_id: str, points: list[tuple[float, float, float]], 
     edges = [{"edgeId": f"{order_id}-e{i}", "sequenceId": 2 * i - 1, "released": True, "startNodeId": f"{order_id}-n{i - 1}",
               "endNodeId": f"{order_id}-n{i}", "actions": []} for i in range(1, len(points))]
     body = {**header(serial, header_id), "orderId": order_id, "orderUpdateId": 0, "nodes": nodes, "edges": edges}
-    SCHEMAS.get("vda5050/order.v3").validate(body)  # type: ignore[union-attr]
+    known_schema(SCHEMAS, "vda5050/order.v3").validate(body)
     return body
 
 
 def instant(serial: str, action_type: str, action_id: str, header_id: int) -> dict[str, Any]:
     body = {**header(serial, header_id), "actions": [{"actionType": action_type, "actionId": action_id, "blockingType": "NONE"}]}
-    SCHEMAS.get("vda5050/instant_actions.v3").validate(body)  # type: ignore[union-attr]
+    known_schema(SCHEMAS, "vda5050/instant_actions.v3").validate(body)
     return body
 
 
@@ -93,7 +94,7 @@ def test_vda5050_3_orders_pauses_and_cancels_both_vehicles_with_every_message_va
                 def latest(serial: str) -> dict[str, Any] | None:
                     topic = TOPIC.format(serial=serial, topic="state")
                     states = [m for m in wire.messages if str(m.topic) == topic]
-                    return json.loads(states[-1].payload) if states else None  # type: ignore[arg-type]
+                    return json.loads(states[-1].payload) if states else None
 
                 def state_is(serial: str, wanted: Callable[[dict[str, Any]], bool]) -> Callable[[], bool]:
                     return lambda: (s := latest(serial)) is not None and wanted(s)
@@ -134,14 +135,14 @@ def test_vda5050_3_orders_pauses_and_cancels_both_vehicles_with_every_message_va
                 status = engine.status()
                 assert all(route["failed"] == 0 for route in status["routes"].values()), status["routes"]
                 await engine.stop()
-                await wait_for(lambda: sum(m.topic.value.endswith("/connection") and b"OFFLINE" in m.payload  # type: ignore[operator]
+                await wait_for(lambda: sum(m.topic.value.endswith("/connection") and b"OFFLINE" in m.payload
                                            for m in wire.messages) == 2, WAIT, "both OFFLINE")
         finally:
             driving.cancel()
             await engine.stop()
         by_topic: dict[str, list[dict[str, Any]]] = {}
         for message in wire.messages:
-            by_topic.setdefault(str(message.topic), []).append(json.loads(message.payload))  # type: ignore[arg-type]
+            by_topic.setdefault(str(message.topic), []).append(json.loads(message.payload))
         return by_topic
 
     try:
