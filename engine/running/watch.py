@@ -51,7 +51,7 @@ class _StopOrRewatch:
 
 
 async def watch_routes(
-    routes: Path, changed: Callable[[], None], stop: asyncio.Event, schemas: Path | Sequence[Path] | None = None,
+    routes: Path, changed: Callable[[], object], stop: asyncio.Event, schemas: Path | Sequence[Path] | None = None,
     key_files: Callable[[], Iterable[Path]] | None = None,
 ) -> None:
     """Call ``changed`` after every change of a route file (or of the one file ``routes``

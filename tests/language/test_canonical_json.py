@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 
 from engine.common.schemas import SchemaError, SchemaRegistry, canonical_bytes, parse_json
 from tests.support.repo import REPO
+from tests.support.schemas import known_schema
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
@@ -25,6 +26,34 @@ HEADER = {"id": "0f4c2a", "type": "x", "stamp": {"sec": 1732320000, "nanosec": 1
 
 VDA_HEADER = {"headerId": 1763917200123, "timestamp": "2026-11-23T17:00:00.123Z", "version": "2.0.0",
               "manufacturer": "rabbitros", "serialNumber": "uav1"}
+# VDA 5050 2.0, the VDA's own schemas (schemas/vda5050/): what examples/vda5050 sends and receives
+VDA_BODIES: dict[str, dict[str, Any]] = {
+    "order": {"orderId": "spray-1", "orderUpdateId": 0, "edges": [
+        {"edgeId": "e1", "sequenceId": 1, "released": True, "startNodeId": "p1", "endNodeId": "p2", "actions": []}],
+        "nodes": [{"nodeId": "p1", "sequenceId": 0, "released": True, "nodePosition": {"x": 1032.6215, "y": -1e-7, "mapId": "farm"},
+                   "actions": [{"actionType": "flyAt", "actionId": "f1", "blockingType": "NONE",
+                                "actionParameters": [{"key": "altRel", "value": 15}]}]},
+                  {"nodeId": "p2", "sequenceId": 2, "released": False, "actions": []}]},
+    "instant_actions": {"actions": [{"actionType": "startPause", "actionId": "a1", "blockingType": "HARD"}]},
+    "state": {"orderId": "", "orderUpdateId": 0, "lastNodeId": "", "lastNodeSequenceId": 0, "nodeStates": [],
+              "edgeStates": [], "actionStates": [], "driving": False, "operatingMode": "AUTOMATIC",
+              "batteryState": {"batteryCharge": 87, "charging": False, "batteryVoltage": 12.4},
+              "errors": [{"errorType": "MAV_SYS_STATUS_SENSOR_GPS", "errorLevel": "FATAL", "errorReferences": []}],
+              "safetyState": {"eStop": "NONE", "fieldViolation": False}},
+    "connection": {"connectionState": "ONLINE"},
+    "factsheet": {"typeSpecification": {"seriesName": "x500", "agvKinematic": "OMNI", "agvClass": "CARRIER",
+                                        "maxLoadMass": 0.0, "localizationTypes": ["GNSS"], "navigationTypes": ["AUTONOMOUS"]},
+                  "physicalParameters": {"speedMin": 0.0, "speedMax": 12.0, "accelerationMax": 3.0, "decelerationMax": 3.0,
+                                         "heightMax": 120.0, "heightMin": 0.0, "width": 0.8, "length": 0.8},
+                  "protocolLimits": {"maxStringLens": {}, "maxArrayLens": {},
+                                     "timing": {"minOrderInterval": 1.0, "minStateInterval": 1.0}},
+                  "protocolFeatures": {"optionalParameters": [{"parameter": "order.nodes.nodePosition.theta", "support": "SUPPORTED"}],
+                                       "agvActions": [{"actionType": "flyAt", "actionScopes": ["NODE"],
+                                                       "actionParameters": [{"key": "altRel", "valueDataType": "FLOAT"}]}]},
+                  "agvGeometry": {}, "loadSpecification": {}},
+    "visualization": {"agvPosition": {"x": 3.5, "y": -1.25, "theta": 1.5707963267948966, "mapId": "map",
+                                      "positionInitialized": True}},
+}
 EXAMPLES: dict[str, list[Any]] = {
     "ack": [{**HEADER, "agent_id": "robot1", "ref_id": "m-1", "result": "accepted", "detail": "ok ✓"}],
     "attitude": [{**HEADER, "agent_id": "uav1", "quaternion": {"x": 0.0, "y": -0.0, "z": 0.7071067811865476, "w": 0.7071067811865475},
@@ -47,34 +76,8 @@ EXAMPLES: dict[str, list[Any]] = {
                 "autopilot": "PX4", "vehicle_type": "QUADROTOR"}],
     "weed_detection": [{**HEADER, "agent_id": "uav1", "points": [{"lat": -22.0, "lon": -47.9, "p": 0.8, "species": "Amaranthus 🌱"},
                                                                   {"lat": 1.5e-5, "lon": 123.0, "p": 1}]}],
-    # VDA 5050 2.0, the VDA's own schemas (schemas/vda5050/): what examples/vda5050 sends and receives
-    **{f"vda5050/{name}": [{**VDA_HEADER, **body}] for name, body in {
-        "order": {"orderId": "spray-1", "orderUpdateId": 0, "edges": [
-            {"edgeId": "e1", "sequenceId": 1, "released": True, "startNodeId": "p1", "endNodeId": "p2", "actions": []}],
-            "nodes": [{"nodeId": "p1", "sequenceId": 0, "released": True, "nodePosition": {"x": 1032.6215, "y": -1e-7, "mapId": "farm"},
-                       "actions": [{"actionType": "flyAt", "actionId": "f1", "blockingType": "NONE",
-                                    "actionParameters": [{"key": "altRel", "value": 15}]}]},
-                      {"nodeId": "p2", "sequenceId": 2, "released": False, "actions": []}]},
-        "instant_actions": {"actions": [{"actionType": "startPause", "actionId": "a1", "blockingType": "HARD"}]},
-        "state": {"orderId": "", "orderUpdateId": 0, "lastNodeId": "", "lastNodeSequenceId": 0, "nodeStates": [],
-                  "edgeStates": [], "actionStates": [], "driving": False, "operatingMode": "AUTOMATIC",
-                  "batteryState": {"batteryCharge": 87, "charging": False, "batteryVoltage": 12.4},
-                  "errors": [{"errorType": "MAV_SYS_STATUS_SENSOR_GPS", "errorLevel": "FATAL", "errorReferences": []}],
-                  "safetyState": {"eStop": "NONE", "fieldViolation": False}},
-        "connection": {"connectionState": "ONLINE"},
-        "factsheet": {"typeSpecification": {"seriesName": "x500", "agvKinematic": "OMNI", "agvClass": "CARRIER",
-                                            "maxLoadMass": 0.0, "localizationTypes": ["GNSS"], "navigationTypes": ["AUTONOMOUS"]},
-                      "physicalParameters": {"speedMin": 0.0, "speedMax": 12.0, "accelerationMax": 3.0, "decelerationMax": 3.0,
-                                             "heightMax": 120.0, "heightMin": 0.0, "width": 0.8, "length": 0.8},
-                      "protocolLimits": {"maxStringLens": {}, "maxArrayLens": {},
-                                         "timing": {"minOrderInterval": 1.0, "minStateInterval": 1.0}},
-                      "protocolFeatures": {"optionalParameters": [{"parameter": "order.nodes.nodePosition.theta", "support": "SUPPORTED"}],
-                                           "agvActions": [{"actionType": "flyAt", "actionScopes": ["NODE"],
-                                                           "actionParameters": [{"key": "altRel", "valueDataType": "FLOAT"}]}]},
-                      "agvGeometry": {}, "loadSpecification": {}},
-        "visualization": {"agvPosition": {"x": 3.5, "y": -1.25, "theta": 1.5707963267948966, "mapId": "map",
-                                          "positionInitialized": True}},
-    }.items()},
+    # VDA 5050 2.0 (VDA_BODIES above)
+    **{f"vda5050/{name}": [{**VDA_HEADER, **body}] for name, body in VDA_BODIES.items()},
 }
 
 
@@ -98,7 +101,7 @@ def test_every_schema_has_examples_that_validate_and_serialise_identically() -> 
     for name in sorted(names):
         # VDA 5050's families hold two major versions side by side, the unpinned name meaning the
         # newest (3.0); these examples are 2.0's (3.0 traffic: tests/examples/test_vda5050_v3.py)
-        schema = registry.get(f"{name}.v2" if name.startswith("vda5050/") else name)
+        schema = known_schema(registry, f"{name}.v2" if name.startswith("vda5050/") else name)
         examples = json.loads(schema.path.read_text()).get("examples", []) + EXAMPLES[name]
         for example in examples:
             if name != "envelope":  # the envelope is a library of $defs, not a message type

@@ -10,6 +10,7 @@ import math
 
 import pytest
 from aiormq import spec
+from pamqp.common import FieldTable
 
 from engine.endpoints.amqp import PublishProperties
 from engine.endpoints.mavlink.codec import MESSAGES, build_message, mavlink2, message_fields
@@ -65,7 +66,7 @@ def test_message_fields_strings_floats_and_arrays() -> None:
 ])
 def test_publish_properties_encode_as_pamqp(content_type: str, delivery_mode: int, route: str,
                                             generation: int, message_id: str | None) -> None:
-    headers = {"x-rabbitros-route": route, "x-rabbitros-generation": generation}
+    headers: FieldTable = {"x-rabbitros-route": route, "x-rabbitros-generation": generation}
     fixed = PublishProperties.fixed(content_type, delivery_mode, headers)
     ours = PublishProperties(fixed, message_id)
     theirs = spec.Basic.Properties(content_type=content_type, delivery_mode=delivery_mode, headers=headers,

@@ -74,7 +74,8 @@ def test_check_refuses_the_billion_laughs_in_a_few_mb_more_than_a_clean_check(tm
     """``check`` as an operator runs it; its peak RSS against that of a clean one-route check."""
 
     clean, bomb = tmp_path / "clean", tmp_path / "bomb"
-    clean.mkdir(), bomb.mkdir()
+    clean.mkdir()
+    bomb.mkdir()
     (clean / "r.yaml").write_text(ROUTE)
     (bomb / "r.yaml").write_text(ROUTE)
     (bomb / "bomb.yaml").write_text(BOMB)

@@ -12,6 +12,7 @@ from engine.common.schemas import SchemaError, SchemaRegistry, parse_json
 from engine.language.mapping import compile_mapping, top_level_keys, unknown_functions
 from engine.language.route_yaml import substitute_env
 from engine.language.routes import RoutesInvalid, load_routes
+from tests.support.schemas import known_schema
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
 
@@ -124,7 +125,7 @@ def test_schema_registry_versions_and_errors_name_the_field(schemas_dir: Path):
     assert not registry.problems
     for name in ("envelope", "position", "attitude", "battery", "status", "weed_detection", "mission", "command", "ack", "raw_json"):
         assert registry.get(name) is not None, name
-    weeds = registry.get("weed_detection")
+    weeds = known_schema(registry, "weed_detection")
     assert weeds is registry.get("weed_detection.v1")
     weeds.validate({"agent_id": "uav1", "points": [{"lat": 1, "lon": 2, "p": 0.5}]})
     with pytest.raises(SchemaError, match=r"\$\.points\[0\]\.p"):

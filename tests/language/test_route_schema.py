@@ -17,6 +17,7 @@ from engine.common.options import OptionError, evolve, given, option, parse, sch
 from engine.common.redaction import Secret
 from engine.common.schemas import SchemaRegistry
 from engine.endpoints.amqp.options import AmqpConnectionOptions, AmqpSourceOptions
+from engine.endpoints.ros2.node import Ros2Node
 from engine.language import route_schema
 from engine.language.route_keys import anchor
 from engine.language.route_schema import KEYS_PATH, REGENERATE, SCHEMA_PATH, render, render_reference, route_file_schema
@@ -118,14 +119,14 @@ def test_a_declaration_change_makes_the_key_reference_stale(monkeypatch: pytest.
 
     @dataclass(frozen=True, kw_only=True)
     class WithPriority(AmqpSourceOptions):
-        priority: int = option(0, minimum=0, maximum=255, description="AMQP message priority")
+        message_priority: int = option(0, minimum=0, maximum=255, description="AMQP message priority")
 
     monkeypatch.setattr(endpoints.transport("amqp"), "sink_options", WithPriority)
     changed = render_reference()
     assert changed != shipped
-    assert "| `priority` | integer, 0..255 | `0` | AMQP message priority |" in changed.split('id="routes-sink-amqp"')[1]
-    assert "routes[].sink.amqp.priority" in reference_keys(changed)
-    assert "routes[].sink.amqp.priority" not in reference_keys(shipped)
+    assert "| `message_priority` | integer, 0..255 | `0` | AMQP message priority |" in changed.split('id="routes-sink-amqp"')[1]
+    assert "routes[].sink.amqp.message_priority" in reference_keys(changed)
+    assert "routes[].sink.amqp.message_priority" not in reference_keys(shipped)
     monkeypatch.undo()
 
     prefetch = AmqpSourceOptions.__dataclass_fields__["prefetch"]
@@ -273,5 +274,7 @@ def test_ros2_domain_defaults_to_the_environment_as_before(monkeypatch: pytest.M
     """A ros2 connection without domain_id joins ROS_DOMAIN_ID, as every ROS 2 program does."""
     transport = endpoints.transport("ros2")
     monkeypatch.setenv("ROS_DOMAIN_ID", "7")
-    assert transport.connect("ros", {"node": "n"}).domain_id == 7
-    assert transport.connect("ros", {"node": "n", "domain_id": 3}).domain_id == 3
+    from_environment, configured = transport.connect("ros", {"node": "n"}), transport.connect("ros", {"node": "n", "domain_id": 3})
+    assert isinstance(from_environment, Ros2Node) and isinstance(configured, Ros2Node), "ros2 connects a Ros2Node"
+    assert from_environment.domain_id == 7
+    assert configured.domain_id == 3

@@ -73,6 +73,7 @@ def test_sinks_compile_named_each_with_its_mapping_when_and_fallback(tmp_path: P
     assert [sink.name for sink in fan.sinks] == ["amqp.0", "ros2", "spool"]
     assert fan.sink_mapping is None and fan.sink is fan.sinks[0].endpoint
     ros2, spool = fan.sinks[1], fan.sinks[2]
+    assert ros2.mapping is not None, "the ros2 sink has its own mapping"
     assert ros2.when == "alt_msl > `0`" and ros2.mapping.startswith("{header:") and ros2.fallback is None
     assert spool.fallback is not None and spool.fallback.name == "spool.fallback" and spool.after == 2.5
     assert spool.fallback.endpoint.protocol == "mqtt" and spool.fallback.endpoint.connection == "field"
