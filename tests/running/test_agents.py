@@ -21,7 +21,7 @@ import pytest
 from engine.common.schemas import SchemaRegistry
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.running.runtime import Engine
-from tests.support.amqp_helpers import Collector, started_with_client
+from tests.support.amqp_helpers import Collector, header_text, started_with_client
 from tests.support.udp_vehicle import FleetVehicle, free_udp_port
 from tests.support.waiting import wait_for
 
@@ -90,7 +90,7 @@ def test_routes_name_vehicles_from_the_agents_table(tmp_path: Path, schemas_dir:
             for vehicle in vehicles.values():
                 vehicle.start()
             await wait_for(lambda: len({m.routing_key for m in positions.messages}) >= 6, 20, "positions under 6 routing keys",
-                           lambda: sorted({m.routing_key for m in positions.messages}))
+                           lambda: sorted({str(m.routing_key) for m in positions.messages}))
             exchange = await channel.declare_exchange(names["commands"], aio_pika.ExchangeType.TOPIC, durable=True)
             for number, agent in enumerate(wanted):
                 await exchange.publish(aio_pika.Message(json.dumps({"param": number, "vehicle": agent}).encode()), "cmd")
@@ -121,7 +121,7 @@ def test_routes_name_vehicles_from_the_agents_table(tmp_path: Path, schemas_dir:
     assert params == {1: [0], 2: [1, 3], 3: [2, 9]}, params
     assert [vehicle.foreign for vehicle in vehicles.values()] == [0, 0, 0]
     assert [m.headers["x-rabbitros-stage"] for m in letters] == ["sink"]
-    error = letters[0].headers["x-rabbitros-error"]
+    error = header_text(letters[0], "x-rabbitros-error")
     assert "target_system: field 'vehicle' is 'uav9', which is no agent on this connection" in error, error
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from engine.endpoints.base import EndpointError, MessageRejected, Outbound
-from engine.running.buffer import HoldingBuffer
+from engine.running.buffer import Held, HoldingBuffer
 from engine.running.buffer_stores import SEGMENT_MESSAGES, decode, encode
 from tests.support.waiting import wait_for
 
@@ -72,7 +72,7 @@ def test_a_held_message_with_values_orjson_refuses_round_trips_exactly() -> None
 def test_holds_in_order_while_down_and_delivers_after(tmp_path: Path, spill: bool) -> None:
     async def scenario() -> None:
         sink = SwitchableSink()
-        delivered = []
+        delivered: list[list[Held]] = []
         buffer = HoldingBuffer("r", sink.send_batch, spill_dir=tmp_path if spill else None, on_delivered=delivered.append)
         buffer.start()
         for index in range(2_500):
@@ -90,7 +90,7 @@ def test_holds_in_order_while_down_and_delivers_after(tmp_path: Path, spill: boo
 
 
 def test_spilled_messages_survive_a_restart_and_nothing_is_replayed_twice(tmp_path: Path) -> None:
-    async def first_run() -> None:
+    async def first_run() -> list[int]:
         sink = SwitchableSink()
         buffer = HoldingBuffer("r", sink.send_batch, spill_dir=tmp_path)
         buffer.start()
@@ -219,7 +219,14 @@ def test_a_message_the_healthy_sink_keeps_failing_is_given_up_after_max_attempts
         given_up: list[tuple[int, int]] = []
 
         async def send_batch(messages: list[Outbound]) -> list[BaseException | None]:
-            return [EndpointError("no answer") if m.canonical["seq"] == 1 else await sink.send(m) for m in messages]
+            results: list[BaseException | None] = []
+            for m in messages:
+                if m.canonical["seq"] == 1:
+                    results.append(EndpointError("no answer"))
+                else:
+                    await sink.send(m)
+                    results.append(None)
+            return results
 
         async def dead_letter(outbound: Outbound, error: BaseException, attempts: int) -> None:
             given_up.append((outbound.canonical["seq"], attempts))

@@ -10,6 +10,7 @@ import asyncio
 import json
 import uuid
 from pathlib import Path
+from typing import Any
 
 import aio_pika
 import pytest
@@ -22,7 +23,7 @@ from engine.ops.cli import main
 from engine.running.observe import COUNTERS, Tap
 from engine.running.pipeline import passes
 from engine.running.runtime import Engine
-from tests.support.amqp_helpers import Collector
+from tests.support.amqp_helpers import Collector, message_count
 from tests.support.repo import REPO
 from tests.support.waiting import wait_for
 
@@ -41,8 +42,10 @@ routes:
 
 @pytest.mark.fast
 def test_jmespath_truth_is_the_specifications() -> None:
-    assert [passes(v) for v in (None, False, "", [], {})] == [False] * 5
-    assert [passes(v) for v in (0, 0.0, True, "x", [0], {"a": None})] == [True] * 6
+    falsy: tuple[Any, ...] = (None, False, "", [], {})
+    truthy: tuple[Any, ...] = (0, 0.0, True, "x", [0], {"a": None})
+    assert [passes(v) for v in falsy] == [False] * 5
+    assert [passes(v) for v in truthy] == [True] * 6
 
 
 @pytest.mark.parametrize(("when", "expected"), [
@@ -92,7 +95,7 @@ tests:
 def test_filtered_messages_are_settled_counted_and_never_dead_lettered(tmp_path: Path, amqp_url: str) -> None:
     tag = "w" + uuid.uuid4().hex[:8]
     (tmp_path / "r.yaml").write_text(ROUTE.format(url=amqp_url, tag=tag, when="'confidence > `0.7` && agent_id != ''uav9'''"))
-    sent = [{"agent": f"uav{i % 10}", "confidence": (i % 10) / 10} for i in range(100)]
+    sent: list[dict[str, Any]] = [{"agent": f"uav{i % 10}", "confidence": (i % 10) / 10} for i in range(100)]
     passing = [m for m in sent if m["confidence"] > 0.7 and m["agent"] != "uav9"]  # uav8 only: 10 of 100
     assert len(passing) == 10
 
@@ -120,7 +123,7 @@ def test_filtered_messages_are_settled_counted_and_never_dead_lettered(tmp_path:
                 registry.register(EngineCollector(engine))
                 metrics = generate_latest(registry).decode()
                 queue = await channel.declare_queue(f"{tag}-q", passive=True)
-                left = queue.declaration_result.message_count
+                left = message_count(queue)
                 lines = [json.loads(tap.lines.get_nowait()) for _ in range(tap.lines.qsize())]
                 filtered = [line["canonical"] for line in lines if line["outcome"] == "filtered"]
                 assert filtered == [{"agent_id": m["agent"], "confidence": m["confidence"]} for m in sent if m not in passing], filtered

@@ -15,6 +15,7 @@ import time
 import uuid
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import aio_pika
 import pytest
@@ -23,7 +24,7 @@ from engine.endpoints.base import EndpointError
 from engine.ops.cli import main
 from engine.running.dedupe import SeenKeys, key_text
 from tests.support.engine_process import EngineProcess
-from tests.support.amqp_helpers import Collector
+from tests.support.amqp_helpers import Collector, message_count
 from tests.support.repo import REPO
 from tests.support.waiting import wait_for
 
@@ -40,13 +41,20 @@ routes:
 TOTAL = 3000
 
 
+def key_of(value: Any) -> str:
+    """``key_text`` of a value that has a key (only null has none)."""
+    key = key_text(value)
+    assert key is not None, f"{value!r} gave no key"
+    return key
+
+
 @pytest.mark.fast
 def test_keys_survive_a_reopen_expire_and_stay_bounded(tmp_path: Path) -> None:
     path = tmp_path / "r.keys"
     keys = SeenKeys(path, ttl=60, max_keys=100)
     keys.open()
-    keys.accepted(["m-1", key_text(42), key_text({"b": 1, "a": 2})])
-    assert keys.seen("m-1") and keys.seen(key_text(42)) and keys.seen(key_text({"a": 2, "b": 1}))
+    keys.accepted(["m-1", key_of(42), key_of({"b": 1, "a": 2})])
+    assert keys.seen("m-1") and keys.seen(key_of(42)) and keys.seen(key_of({"a": 2, "b": 1}))
     assert not keys.seen("42") and key_text(None) is None  # a string and a number are two keys; null is none
     keys.close()
     with open(path, "a") as file:  # a key accepted two ttls ago, and a line a crash cut short
@@ -71,7 +79,8 @@ def test_a_key_sent_and_never_answered_is_in_doubt(tmp_path: Path, policy: str) 
     keys.open()
     keys.send(["m-1", "m-2", "m-3"])
     keys.answered(["m-1"], ["m-2"])
-    os.close(keys._fd)  # type: ignore[arg-type]  # as a kill -9 leaves it: no answer for m-3
+    assert keys._fd is not None, "open keys hold their file"
+    os.close(keys._fd)  # as a kill -9 leaves it: no answer for m-3
     again = SeenKeys(tmp_path / "r.keys", 60, 100, policy)
     again.open()
     assert again.doubtful == 1 and again.seen("m-1") and not again.seen("m-2")
@@ -134,7 +143,7 @@ def test_a_message_redelivered_after_a_kill_is_sent_once(tmp_path: Path, amqp_ur
     state = tmp_path / "state"
     env = {"XDG_STATE_HOME": str(state)}
 
-    async def scenario() -> dict[str, object]:
+    async def scenario() -> dict[str, Any]:
         connection = await aio_pika.connect(amqp_url)
         channel = await connection.channel()
         out = await Collector.bind(channel, f"{tag}-out", "#")
@@ -151,7 +160,7 @@ def test_a_message_redelivered_after_a_kill_is_sent_once(tmp_path: Path, amqp_ur
         await publish(range(TOTAL))
 
         async def all_queued() -> bool:
-            return (await fast.declare_queue(f"{tag}-q", passive=True)).declaration_result.message_count >= TOTAL
+            return message_count(await fast.declare_queue(f"{tag}-q", passive=True)) >= TOTAL
 
         await wait_for(all_queued, 60, f"all {TOTAL} missions in the source queue")
 
@@ -185,7 +194,7 @@ def test_a_message_redelivered_after_a_kill_is_sent_once(tmp_path: Path, amqp_ur
             ready = [-1]
 
             async def all_through() -> bool:
-                ready[0] = (await fast.declare_queue(f"{tag}-q", passive=True)).declaration_result.message_count
+                ready[0] = message_count(await fast.declare_queue(f"{tag}-q", passive=True))
                 return ready[0] == 0 and all_settled() and seen() >= TOTAL - (in_doubt() if policy == "skip" else 0)
 
             await wait_for(all_through, 240, "every mission through",
@@ -212,21 +221,21 @@ def test_a_message_redelivered_after_a_kill_is_sent_once(tmp_path: Path, amqp_ur
         assert exited == 0, second.log()
         await connection.close()
         counts = Counter(json.loads(m.body)["mission_id"] for m in out.messages)
-        counters = status["routes"][route]
+        route_counters = status["routes"][route]
         return {"missions": len(counts), "sent_twice": sum(c - 1 for c in counts.values()), "killed_after": killed_after,
-                "duplicates": counters["duplicates"], "second_received": counters["received"],
-                "second_delivered": counters["delivered"], "dedupe": status["dedupe"][route]}
+                "duplicates": route_counters["duplicates"], "second_received": route_counters["received"],
+                "second_delivered": route_counters["delivered"], "dedupe": status["dedupe"][route]}
 
     figures = asyncio.run(asyncio.wait_for(scenario(), 600))
     print(f"\ndedupe across kill -9: {figures}")
-    in_doubt = figures["dedupe"]["in_doubt"]  # type: ignore[index]
+    in_doubt = figures["dedupe"]["in_doubt"]
     if policy == "skip":
-        assert figures["sent_twice"] == 0 and TOTAL - figures["missions"] <= in_doubt, figures  # type: ignore[operator]
+        assert figures["sent_twice"] == 0 and TOTAL - figures["missions"] <= in_doubt, figures
     else:
-        assert figures["missions"] == TOTAL and figures["sent_twice"] <= in_doubt, figures  # type: ignore[operator]
-    assert 0 < figures["killed_after"] < TOTAL  # type: ignore[operator]
+        assert figures["missions"] == TOTAL and figures["sent_twice"] <= in_doubt, figures
+    assert 0 < figures["killed_after"] < TOTAL
     # the second engine took what the first had not acknowledged (whatever of it was sent already
     # counted duplicates) and the 200 published again, all duplicates
     assert figures["duplicates"] >= 200 and figures["second_received"] == figures["second_delivered"] + figures["duplicates"]
-    assert figures["dedupe"]["file"] == str(state / "rabbitros-engine" / "dedupe" / f"{route}.keys")  # type: ignore[index]
-    assert figures["dedupe"]["keys"] >= figures["missions"]  # type: ignore[index,operator]
+    assert figures["dedupe"]["file"] == str(state / "rabbitros-engine" / "dedupe" / f"{route}.keys")
+    assert figures["dedupe"]["keys"] >= figures["missions"]

@@ -90,8 +90,14 @@ def test_max_age_expires_stale_held_messages_and_latest_only_replays_one_per_key
             assert metric(port, route, "expired") == want["expired"]
             assert metric(port, route, "conflated") == want["conflated"]
             assert document["buffer"]["expired"] == want["expired"] and document["buffer"]["conflated"] == want["conflated"]
-            wait_for_sync(lambda route=route: logged(engine.log_file, route) == want["expired"], 15, "the log's counter line",
-                          detail=lambda route=route: f"{logged(engine.log_file, route)} != {want['expired']}")
+
+            def log_counts_expired(route: str = route, want: dict[str, int] = want) -> bool:
+                return logged(engine.log_file, route) == want["expired"]
+
+            def log_detail(route: str = route, want: dict[str, int] = want) -> str:
+                return f"{logged(engine.log_file, route)} != {want['expired']}"
+
+            wait_for_sync(log_counts_expired, 15, "the log's counter line", detail=log_detail)
         wait_for_sync(lambda: sum(line["outcome"] == "expired" for line in tap.lines) == DURING, 15, "the tap's expired lines",
                       detail=lambda: sum(line["outcome"] == "expired" for line in tap.lines))
         expired_lines = [line for line in tap.lines if line["outcome"] == "expired"]

@@ -58,8 +58,11 @@ def test_files_rotate_by_size_and_the_oldest_go_past_the_total(tmp_path: Path) -
     try:
         for batch in range(30):  # in steps, as traffic comes: rotation is decided after each flush
             feed(recorder, "r", batch * 40 + 1, 40)
-            wait_for_sync(lambda batch=batch: recorder.written == (batch + 1) * 80, 20, "the writer to catch up",
-                          recorder.status)
+
+            def caught_up(batch: int = batch) -> bool:
+                return recorder.written == (batch + 1) * 80
+
+            wait_for_sync(caught_up, 20, "the writer to catch up", recorder.status)
     finally:
         recorder.stop()
     files = sorted(tmp_path.glob("rabbitros-*.mcap"))

@@ -54,10 +54,10 @@ def test_sighup_reloads_and_status_names_the_live_config(amqp_url: str, tmp_path
         before = engine.wait_started()
         (routes / "b.yaml").write_text(route.format(name="second"))
         time.sleep(0.5)  # quiet window: no reload may happen without SIGHUP (the behaviour under test)
-        assert engine.status()["generation"] == 1, "reloaded without SIGHUP despite --no-watch"
+        assert engine.current_status()["generation"] == 1, "reloaded without SIGHUP despite --no-watch"
         os.killpg(engine.process.pid, signal.SIGHUP)
         wait_for_sync(lambda: (engine.status() or {}).get("generation", 0) >= 2, 20, "generation 2 after SIGHUP", engine.status)
-        after = engine.status()
+        after = engine.current_status()
         shown = subprocess.run(
             [sys.executable, "-m", "engine", "status", "--status-file", str(engine.status_file)],
             capture_output=True, text=True, timeout=30, cwd=REPO,

@@ -18,6 +18,7 @@ from typing import Any
 import aio_pika
 import pytest
 
+from engine.endpoints.mavlink.connection import MavlinkConnection
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector, publish, started_with_client
 from tests.support.engine_process import EngineProcess
@@ -216,6 +217,7 @@ def test_udpin_settings_change_while_telemetry_flows_is_break_before_make(
                 sent_at_reload = vehicle.sent
                 assert engine.runners["other"] is other, "a route on another connection was touched"
                 radio = next(c for (name, _), c in engine.connections.items() if name == "radio")
+                assert isinstance(radio, MavlinkConnection), "the radio connection is the MAVLink one"
                 assert radio.config.heartbeat == 2.0
                 await out.wait_for(len(out.messages) + 50)
                 seqs = [json.loads(m.body)["seq"] for m in out.messages]

@@ -272,8 +272,8 @@ def test_an_engine_killed_mid_window_loses_that_window_and_no_more(tmp_path: Pat
             await wait_for(consumers_gone, 30, "the killed engine's consumer gone (its unacknowledged inputs requeued)")
             left = []
             remaining = await channel.declare_queue(queue, passive=True)
-            while (message := await remaining.get(no_ack=True, fail=False)) is not None:
-                left.append(json.loads(message.body))
+            while (leftover := await remaining.get(no_ack=True, fail=False)) is not None:
+                left.append(json.loads(leftover.body))
             return [json.loads(m.body) for m in win.messages], left, killed_at
 
     outputs, left, killed_at = asyncio.run(asyncio.wait_for(scenario(), 120))

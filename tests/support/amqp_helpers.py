@@ -198,3 +198,19 @@ def message_count(queue: aio_pika.abc.AbstractQueue) -> int:
     count = queue.declaration_result.message_count
     assert count is not None, f"the declare of {queue.name} answered without a message count"
     return count
+
+
+def header_text(message: aio_pika.abc.AbstractMessage, name: str) -> str:
+    """Header ``name`` of ``message``, a string as the engine writes it (an AMQP table value
+    may be any of a dozen types; the test reads this one as text)."""
+    value = message.headers[name]
+    assert isinstance(value, str), f"header {name} is not text: {value!r}"
+    return value
+
+
+def consumer_count(queue: aio_pika.abc.AbstractQueue) -> int:
+    """The consumer count the broker gave when ``queue`` was declared (optional in aiormq's
+    types, always in a declare's answer)."""
+    count = queue.declaration_result.consumer_count
+    assert count is not None, f"the declare of {queue.name} answered without a consumer count"
+    return count
