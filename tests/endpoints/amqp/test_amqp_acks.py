@@ -23,7 +23,7 @@ import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 import engine.endpoints.amqp.acks as amqp_acks
 from engine.endpoints.amqp.source import AmqpSource
 from engine.running.runtime import Engine
-from tests.support.amqp_helpers import amqp_to_ros2_routes, publish_burst
+from tests.support.amqp_helpers import amqp_to_ros2_routes, message_count, publish_burst
 from tests.support.repo import REPO
 from tests.support.waiting import wait_for
 
@@ -85,6 +85,7 @@ def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_res
                     await wait_for(lambda: runner.observer.delivered == len(burst) + len(tail), 60, "the tail was not delivered")
                     await wait_for(lambda: len(received) == len(burst) + len(tail), 60, "the reader did not get them all")
                     source = runner.source
+                    assert isinstance(source, AmqpSource), "the route reads an AMQP queue"
                     held = source._acks.held
                     counters = runner.observer.counters()
             finally:
@@ -92,7 +93,7 @@ def test_a_burst_is_acknowledged_a_quarter_of_the_prefetch_at_a_time_and_the_res
             connection = await aio_pika.connect(amqp_url)
             async with connection:
                 declared = await (await connection.channel()).declare_queue(queue, passive=True)
-                left = declared.declaration_result.message_count
+                left = message_count(declared)
             return [m.data.encode() for m in received], left, counters, held
         finally:
             peer.close()

@@ -19,7 +19,7 @@ import rclpy  # noqa: F401  (a missing rclpy fails the run, never skips it)
 
 from engine.endpoints.amqp.source import ALONE_GAP_NS, AmqpSource
 from engine.running.runtime import Engine
-from tests.support.amqp_helpers import amqp_to_ros2_routes, publish_burst
+from tests.support.amqp_helpers import amqp_to_ros2_routes, message_count, publish_burst
 from tests.support.repo import REPO
 from tests.support.waiting import wait_for
 
@@ -59,6 +59,7 @@ def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_
                     # 2-30: a burst behind it, queued for the batch loop, which must wait for 1
                     await publish_burst(channel, queue, bodies[1:30])
                     source = runner.source
+                    assert isinstance(source, AmqpSource), "the route reads an AMQP queue"
                     # the batch loop has taken (some of) the burst: were it to hand it on, it would have in the same step
                     await wait_for(lambda: not source._parked, 30, "the batch loop never took any of the burst")
                     # the route has been handed nothing behind the waiting one: no batch can overtake it
@@ -80,7 +81,7 @@ def test_messages_alone_and_a_burst_behind_one_waiting_for_its_reader_arrive_in_
             connection = await aio_pika.connect(amqp_url)
             async with connection:
                 declared = await (await connection.channel()).declare_queue(queue, passive=True)
-                left = declared.declaration_result.message_count
+                left = message_count(declared)
             return [m.data.encode() for m in received], left, counters  # all that arrived until the stop
         finally:
             if peer is not None:

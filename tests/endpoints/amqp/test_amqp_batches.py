@@ -57,7 +57,10 @@ def test_a_backlog_is_taken_in_batches_larger_than_aiormqs_ten_frames(
             await engine.start()
             try:
                 runner = engine.runners["backlog"]
-                frames = (await runner.source._channel.get_underlay_channel()).frames.maxsize
+                source = runner.source
+                assert isinstance(source, AmqpSource), "the route reads an AMQP queue"
+                assert source._channel is not None, "a started source has its channel"
+                frames = (await source._channel.get_underlay_channel()).frames.maxsize
                 await wait_for(lambda: len(received) == len(bodies), 60, "the reader did not get them all")
             finally:
                 await engine.stop()

@@ -24,7 +24,7 @@ import aiormq
 import pytest
 
 from engine.common.processes import listening_port
-from tests.support.amqp_helpers import Collector
+from tests.support.amqp_helpers import Collector, consumer_count
 from tests.support.engine_process import EngineProcess
 from tests.support.waiting import wait_for
 
@@ -83,7 +83,7 @@ def test_a_queue_deleted_while_consumed_is_declared_and_consumed_again(tmp_path:
                 admin_channel = await client.channel()
                 try:
                     declared = await admin_channel.declare_queue(queue, passive=True)
-                    return declared.declaration_result.consumer_count
+                    return consumer_count(declared)
                 except aio_pika.exceptions.ChannelClosed:  # 404: not there
                     return 0
                 finally:

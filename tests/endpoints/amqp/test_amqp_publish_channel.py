@@ -26,6 +26,7 @@ import pytest
 from aiormq import spec
 
 from engine.endpoints.amqp.broker import LocalBroker
+from engine.endpoints.amqp.link import AmqpLink
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector, SeqRecorder
 from tests.support.waiting import wait_for
@@ -238,7 +239,7 @@ def test_publish_channel_closed_under_concurrent_rounds_is_reopened(node: LocalB
 
             await wait_for(published, DEADLINE_S, "a publish to a healthy exchange to succeed",
                            lambda: f"{after}, {connection.health()}")
-            publisher = connection._publisher  # type: ignore[attr-defined]
+            publisher = connection._publisher
             return {"outcomes": outcomes, "states": states, "health": connection.health(),
                     "writing": dict(publisher._writing), "gone_again": await connection.publish_batch(gone, _messages(1))}
 
@@ -361,7 +362,7 @@ def test_the_calls_channel_closed_by_the_broker_is_opened_again_and_only_once(no
     assert result["after"] == result["before"], result  # one calls channel, not a restored one beside it
 
 
-async def _proxy(target_port: int) -> tuple[asyncio.AbstractServer, dict[str, Any]]:
+async def _proxy(target_port: int) -> tuple[asyncio.Server, dict[str, Any]]:
     """A TCP relay to the node that can stop reading from its clients (``state["paused"]``
     set) and cut them (``state["cut"]()``): a connection whose peer no longer reads fills its
     socket, then aiormq's write queue, then dies."""
@@ -453,10 +454,12 @@ def test_a_round_waiting_for_room_in_the_write_queue_ends_with_its_connection(no
         # peer that stops reading stops the writer and fills the write queue (with confirms
         # aiormq writes without draining: the transport's buffer grows instead)
         connection = TRANSPORT.connect("c", {"url": f"amqp://guest:guest@127.0.0.1:{port}/", "publisher_confirms": False})
+        assert isinstance(connection, AmqpLink), "the amqp transport connects an AmqpLink"
         await connection.open()
         try:
             assert await connection.publish_batch(exchange, [("k", b"{}", spec.Basic.Properties())]) == [None]
-            publisher = connection._publisher  # type: ignore[attr-defined]
+            publisher = connection._publisher
+            assert publisher is not None, "an open link has its publisher"
             relay["paused"].set()
             loop = asyncio.get_running_loop()
             publishing: list[asyncio.Task[list[BaseException | None]]] = []

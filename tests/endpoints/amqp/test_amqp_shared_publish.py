@@ -58,7 +58,7 @@ def test_routes_share_one_round_and_each_hears_only_its_own_outcomes(amqp_url: s
             results = await asyncio.gather(*(sink.send_batch(batch) for sink, batch in zip(sinks, batches)))
             after = engine_side.health()
             ok_count = 1 + ROUTES * PER_ROUTE - PER_ROUTE - 1  # r0's first, all but r7's and r3's bad one
-            arrived = [m.routing_key for m in await collector.wait_for(ok_count)]
+            arrived = [str(m.routing_key) for m in await collector.wait_for(ok_count)]  # a delivery always has one
             refused = []
             while (message := await refusing.get(no_ack=True, fail=False)) is not None:
                 refused.append(message.body.decode())
@@ -117,7 +117,7 @@ def test_frames_are_pamqps_bytes() -> None:
     for case in cases:
         assert _frames(*case) == pamqps(*case), case
     for exchange, key in (("e" * 128, "k"), ("bad exchange!", "k"), ("ex", "k" * 256), ("ex", "\u00e9" * 200)):
-        outcomes = []
+        outcomes: list[tuple[type[Exception], str] | None] = []
         for encode in (pamqps, _frames):
             try:
                 encode(1, 100, exchange, key, b"x", PublishProperties(fixed, None))
@@ -149,7 +149,7 @@ def test_a_channel_closed_before_its_confirms_fails_every_route_of_the_round(amq
             failed = await asyncio.wait_for(asyncio.gather(
                 publisher.publish(missing, [("b", b"{}", properties), ("c", b"{}", properties)]),
                 publisher.publish(exchange, [("d", b"{}", properties)])), 10)
-            after: list[object] = []
+            after: list[BaseException | None] = []
 
             async def published() -> bool:  # aio-pika reopens the robust channel
                 after[:] = await asyncio.wait_for(publisher.publish(exchange, [("e", b"{}", properties)]), 10)
@@ -177,6 +177,7 @@ def test_confirms_settle_the_acknowledged_prefix_of_the_table(amqp_url: str) -> 
     to its own (not the newer ones), a single Nack fails only its tag with aiormq's
     ``DeliveryError``, a multiple Nack fails the rest of its prefix, and an unknown tag changes
     nothing."""
+    import aiormq
     from aiormq import spec
     from aiormq.exceptions import DeliveryError
 
@@ -186,6 +187,7 @@ def test_confirms_settle_the_acknowledged_prefix_of_the_table(amqp_url: str) -> 
         connection = await aio_pika.connect(amqp_url)
         try:
             channel = await (await connection.channel(publisher_confirms=True)).get_underlay_channel()
+            assert isinstance(channel, aiormq.Channel), "aio-pika's underlay is an aiormq Channel"
             _confirm_in_order(channel)
             loop = asyncio.get_running_loop()
             # aiormq's reader dispatches to the handler installed on the instance: a frame put
@@ -196,13 +198,13 @@ def test_confirms_settle_the_acknowledged_prefix_of_the_table(amqp_url: str) -> 
                 seen.append(frame)
                 await installed(frame)
 
-            channel._on_confirm_frame = counting
+            channel._on_confirm_frame = counting  # type: ignore[method-assign]  # deliberately wraps this instance's handler (aiormq dispatches to it)
             probe = loop.create_future()
             channel.confirmations[100] = probe
             channel.frames.put_nowait((0, spec.Basic.Ack(delivery_tag=100, multiple=True)))
             await asyncio.wait_for(probe, 10)
             assert len(seen) == 1 and channel.confirmations == {}
-            channel._on_confirm_frame = installed
+            channel._on_confirm_frame = installed  # type: ignore[method-assign]  # puts the instance's own handler back
             futures = {tag: loop.create_future() for tag in range(1, 9)}
             channel.confirmations.update(futures)
             await channel._on_confirm_frame(spec.Basic.Ack(delivery_tag=3, multiple=True))

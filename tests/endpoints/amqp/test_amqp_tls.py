@@ -147,7 +147,7 @@ def test_each_failed_check_is_named_and_a_renewed_ca_file_reconnects(tls_broker:
             return found if all(expected[name] in found[name] for name in expected) else None
 
         found = wait_for_sync(errors, 60, f"the three TLS failures named in the status: {engine.log()}")
-        assert all(not engine.status()["connections"][name]["healthy"] for name in expected)
+        assert all(not engine.current_status()["connections"][name]["healthy"] for name in expected)
         named_s = time.monotonic() - started
         with pytest.raises(urllib.error.HTTPError) as refused:
             urllib.request.urlopen(f"http://127.0.0.1:{admin}/healthz", timeout=10)

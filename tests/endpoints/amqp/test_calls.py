@@ -20,7 +20,7 @@ import aio_pika
 from engine.running.runtime import Engine
 from rabbitros_sim.sik_radio import SikRadioPair
 from rabbitros_sim.vehicle import SimVehicle
-from tests.support.amqp_helpers import Caller
+from tests.support.amqp_helpers import Caller, header_text
 from tests.support.mavsdk_vehicle import MavsdkAutopilot
 from tests.endpoints.mavlink.test_mavlink_transactions import WEEDS, canonical_mission, canonical_stamp, free_udp_port, run
 from tests.support.waiting import wait_for
@@ -62,7 +62,7 @@ def _command(**extra: Any) -> bytes:
 
 
 def _reply(message: aio_pika.abc.AbstractIncomingMessage) -> tuple[str, Any]:
-    return message.headers["x-rabbitros-reply"], json.loads(message.body)
+    return header_text(message, "x-rabbitros-reply"), json.loads(message.body)
 
 
 async def arm_and_mission(amqp_url: str, tag: str, timeout: float) -> tuple[Caller, str, str]:

@@ -47,14 +47,15 @@ def start_engine(tmp_path: Path, routes_text: str, env: dict[str, str], *flags: 
 
 def local_broker_started(process: subprocess.Popen[str]) -> dict[str, Any]:
     """The engine's ``local broker started`` log line (read from its stderr as it runs)."""
+    assert process.stderr is not None, "the engine's stderr is a pipe"
     while process.poll() is None:
-        line = process.stderr.readline()  # type: ignore[union-attr]
+        line = process.stderr.readline()
         if line.startswith("{") and json.loads(line)["msg"] == "local broker started":
             return json.loads(line)
     raise AssertionError("no 'local broker started' line")
 
 
-async def weather_through_the_engine(host: str, port: int | None, tls_context: ssl.SSLContext | None = None) -> bytes:
+async def weather_through_the_engine(host: str, port: int, tls_context: ssl.SSLContext | None = None) -> bytes:
     """Publish a station's weather until the engine's route has carried one to ``farm/weather``
     (it subscribes once its connection is up), and return what arrived there."""
     async with aiomqtt.Client(host, port, identifier="test-reader", tls_context=tls_context) as reader:
@@ -80,6 +81,7 @@ def test_run_local_broker_starts_a_private_mosquitto_for_an_mqtt_connection_with
     try:
         mqtt_url = next(url for url in urls if url.startswith("mqtt://"))
         host, port = urlsplit(mqtt_url).hostname, urlsplit(mqtt_url).port
+        assert host is not None and port is not None, f"the URL names a host and a port: {mqtt_url}"
         assert port != 1883  # its own port, not a system broker's
         started = local_broker_started(process)
         assert any("mosquitto" in node for node in started["nodes"]), started
@@ -116,6 +118,7 @@ def test_run_local_broker_tls_gives_a_private_mosquitto_with_a_tls_listener(tmp_
         mqtt_url = next(url for url in urls if url.startswith("mqtt"))
         assert mqtt_url.startswith("mqtts://localhost:"), mqtt_url
         port = urlsplit(mqtt_url).port
+        assert port is not None, f"the URL names a port: {mqtt_url}"
         started = local_broker_started(process)
         ca_file = Path(started["environment"]["RABBITROS_MQTT_CA_FILE"])
         verified = ssl.create_default_context(cafile=str(ca_file))

@@ -234,6 +234,7 @@ def test_a_zenoh_query_is_answered_by_an_amqp_worker(tmp_path: Path, amqp_url: s
                 attachment = reply.ok.attachment
                 out.append(("ok", json.loads(reply.ok.payload.to_bytes()), attachment.to_bytes() if attachment else None))
             else:
+                assert reply.err is not None, "a reply is either ok or an error"
                 out.append(("error", json.loads(reply.err.payload.to_bytes()), None))
         return out
 
@@ -248,6 +249,7 @@ def test_a_zenoh_query_is_answered_by_an_amqp_worker(tmp_path: Path, amqp_url: s
             async def worker(message: aio_pika.abc.AbstractIncomingMessage) -> None:
                 request = json.loads(message.body)
                 steps = [f"{request['robot']}:{request.get('goal', 'depth ' + str(request.get('depth')))}"]
+                assert message.reply_to is not None, "the engine's call names its reply queue"
                 await channel.default_exchange.publish(aio_pika.Message(
                     json.dumps({"steps": steps, "robot": request["robot"]}).encode(),
                     correlation_id=message.correlation_id), message.reply_to)
