@@ -54,7 +54,7 @@ class BasicTypesServer:
 def call_routes(tmp_path: Path, amqp_url: str) -> Iterator[tuple[Path, dict[str, Any], BasicTypesServer]]:
     tag = "c" + uuid.uuid4().hex[:8]
     domain = ros_domain(4)
-    names = {"tag": tag, "domain": domain, "service": f"/{tag}/basic", "missing": f"/{tag}/nobody"}
+    names: dict[str, Any] = {"tag": tag, "domain": domain, "service": f"/{tag}/basic", "missing": f"/{tag}/nobody"}
     (tmp_path / "calls.yaml").write_text(f"""\
 connections:
   bus: {{amqp: "{amqp_url}"}}
@@ -314,6 +314,7 @@ routes:
                 request = json.loads(message.body)
                 if request["ask"] == "ignore me":
                     return
+                assert message.reply_to is not None, "the engine's call names its reply queue"
                 await channel.default_exchange.publish(aio_pika.Message(
                     json.dumps({"answer": request["n"] * 3, "note": f"{request['ask']} done"}).encode(),
                     correlation_id=message.correlation_id), message.reply_to)

@@ -87,6 +87,7 @@ routes:
             async def answer(message: aio_pika.abc.AbstractIncomingMessage, delay: float) -> None:
                 await asyncio.sleep(delay)  # pacing: the worker's answer time (the behaviour under test)
                 request = json.loads(message.body)
+                assert message.reply_to is not None, "the engine's call names its reply queue"
                 await channel.default_exchange.publish(aio_pika.Message(
                     json.dumps({"answer": request["n"] * 3, "note": "done"}).encode(),
                     correlation_id=message.correlation_id), message.reply_to)

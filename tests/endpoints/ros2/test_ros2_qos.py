@@ -29,6 +29,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from engine.endpoints.ros2 import offers
 from engine.endpoints.ros2.rosmsg import resolve_type
+from engine.endpoints.ros2.source import Ros2Source
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Collector
 from tests.support.repo import REPO
@@ -259,6 +260,7 @@ def test_a_stated_qos_that_cannot_match_names_the_publisher_in_status_and_once_i
             named = await wait_for(mismatched, 15, "the mismatched publisher named in the status",
                                    detail=lambda: engine.status()["routes"]["fix-stated"]["source"])
             source = engine.runners["fix-stated"].source
+            assert isinstance(source, Ros2Source), "fix-stated reads a ROS 2 topic"
             looks = source._looked[topic][1]
             # several more full reads of the publishers (every 2 s while one stays unmatched)
             await wait_for(lambda: source._looked[topic][1] > looks, 10, "another read of the publishers")

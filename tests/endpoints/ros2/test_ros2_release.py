@@ -18,8 +18,9 @@ import signal
 import subprocess
 import sys
 import time
+from typing import Awaitable, Callable
 
-from engine.endpoints.base import Outbound
+from engine.endpoints.base import Outbound, Sink
 from engine.endpoints.ros2 import TRANSPORT
 from engine.endpoints.ros2.node import RELEASE_ACK_WAIT
 from tests.support.workers import ros_domain
@@ -49,7 +50,9 @@ def _outbound(text: str) -> Outbound:
 
 
 async def _lines(reader: subprocess.Popen[str], count: int) -> set[str]:
-    return {(await asyncio.to_thread(reader.stdout.readline)).strip() for _ in range(count)}  # type: ignore[union-attr]
+    assert reader.stdout is not None, "the reader's stdout is a pipe"
+    stdout = reader.stdout
+    return {(await asyncio.to_thread(stdout.readline)).strip() for _ in range(count)}
 
 
 class LoopLag:
@@ -70,14 +73,15 @@ class LoopLag:
         return self.worst
 
 
-async def _sinks_beside_a_stalled_reader(body) -> None:  # type: ignore[no-untyped-def]
+async def _sinks_beside_a_stalled_reader(body: Callable[[list[Sink]], Awaitable[None]]) -> None:
     topics = [f"/release_{os.getpid()}_{n}" for n in range(3)]
     reader = subprocess.Popen(["timeout", "-s", "KILL", "60", sys.executable, "-c", SUBSCRIBER, str(DOMAIN), *topics],
                               stdout=subprocess.PIPE, text=True, start_new_session=True)
     connection = TRANSPORT.connect("ros", {"node": "release_test", "domain_id": DOMAIN})
     await connection.open()
     try:
-        assert (await asyncio.to_thread(reader.stdout.readline)).strip() == "ready"  # type: ignore[union-attr]
+        assert reader.stdout is not None, "the reader's stdout is a pipe"
+        assert (await asyncio.to_thread(reader.stdout.readline)).strip() == "ready"
         sinks = [connection.sink(f"r{n}", {"topic": topic}) for n, topic in enumerate(topics)]
         await wait_for(lambda: all(sink.ready for sink in sinks), 30, "each sink matched by the reader",
                        lambda: [sink.ready for sink in sinks])
@@ -95,7 +99,7 @@ async def _sinks_beside_a_stalled_reader(body) -> None:  # type: ignore[no-untyp
 
 
 def test_sinks_released_beside_a_stalled_reader_wait_together_and_leave_the_loop_running() -> None:
-    async def body(sinks: list) -> None:  # type: ignore[type-arg]
+    async def body(sinks: list[Sink]) -> None:
         lag = LoopLag()
         began = time.monotonic()
         await asyncio.gather(*(sink.close() for sink in sinks))

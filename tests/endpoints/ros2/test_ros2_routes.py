@@ -19,8 +19,9 @@ import pytest
 import rclpy  # noqa: F401,E402  (a missing rclpy fails the run, never skips it)
 
 from engine.common.schemas import canonical_bytes  # noqa: E402
+from engine.endpoints.ros2.source import Ros2Source  # noqa: E402
 from engine.running.runtime import Engine  # noqa: E402
-from tests.support.amqp_helpers import Collector, publish  # noqa: E402
+from tests.support.amqp_helpers import Collector, header_text, message_count, publish  # noqa: E402
 from tests.operator.test_cli import cli  # noqa: E402
 from tests.support.repo import REPO  # noqa: E402
 from tests.support.engine_process import EngineProcess  # noqa: E402
@@ -64,6 +65,7 @@ async def matched_both_ways(engine: Engine, names: dict[str, str]) -> None:
     the subscriber's side matched is dropped by it (a fixed 1 s sleep hoped it had)."""
     sink = engine.runners["position-to-ros"].pipeline.sink
     source = engine.runners["position-from-ros"].source
+    assert isinstance(source, Ros2Source), "position-from-ros reads a ROS 2 topic"
     topic = f"/{names['tag']}/fix"
     await wait_for(lambda: sink.ready and source._matched(topic) > 0, 30, f"the engine's publisher and subscriber on {topic} to match",
                    detail=lambda: f"publisher matched: {sink.ready}, subscriber matched: {source._matched(topic)}")
@@ -132,7 +134,7 @@ def test_unmappable_ros_message_is_counted_and_the_next_one_flows(typed_routes, 
     assert status["routes"]["position-from-ros"]["failed"] == 1
     assert len(dead_letters) == 1
     assert dead_letters[0].headers["x-rabbitros-stage"] == "schema"
-    assert "$.lat" in dead_letters[0].headers["x-rabbitros-error"]
+    assert "$.lat" in header_text(dead_letters[0], "x-rabbitros-error")
 
 
 def test_a_null_from_the_sink_mapping_is_dead_lettered_naming_the_field_and_test_says_the_same(typed_routes, amqp_url):
@@ -166,7 +168,7 @@ def test_a_null_from_the_sink_mapping_is_dead_lettered_naming_the_field_and_test
     assert len(dead_letters) == 1 and dead_letters[0].body == canonical_bytes(no_altitude)
     headers = dead_letters[0].headers
     error = f"ros2 topic '/{names['tag']}/fix': field altitude: null (the sink mapping gave no value"
-    assert headers["x-rabbitros-stage"] == "sink mapping" and headers["x-rabbitros-error"].startswith(error), headers
+    assert headers["x-rabbitros-stage"] == "sink mapping" and header_text(dead_letters[0], "x-rabbitros-error").startswith(error), headers
 
     (directory / "typed.test.yaml").write_text(f"""tests:
   - name: no altitude
@@ -182,7 +184,7 @@ def test_a_null_from_the_sink_mapping_is_dead_lettered_naming_the_field_and_test
     assert result.returncode == 1, result.stdout + result.stderr
     lines = result.stdout.splitlines()
     assert lines[-1] == "1 passed, 1 failed", result.stdout
-    assert f"no altitude: expected it to pass, got a sink mapping error: {headers['x-rabbitros-error']}" in result.stdout
+    assert f"no altitude: expected it to pass, got a sink mapping error: {header_text(dead_letters[0], 'x-rabbitros-error')}" in result.stdout
 
 
 def test_check_names_the_route_for_uninstalled_type_and_bad_field(tmp_path: Path):
@@ -261,10 +263,11 @@ def test_a_prefilled_queue_reaches_a_subscriber_that_starts_before_or_after_the_
         connection = await aio_pika.connect(amqp_url)
         async with connection:
             declared = await (await connection.channel()).declare_queue(queue, passive=True)
-            return declared.declaration_result.message_count
+            return message_count(declared)
 
     asyncio.run(fill())
-    peer = received = None
+    peer: Peer | None = None
+    received: list[Any] = []  # the subscriber's messages, once it exists
     if subscriber_delay is None:
         peer = Peer()
         received = peer.subscribe(String, f"/{tag}/backlog")
@@ -276,11 +279,11 @@ def test_a_prefilled_queue_reaches_a_subscriber_that_starts_before_or_after_the_
             cpu, began = engine_cpu_seconds(engine), time.monotonic()
             time.sleep(subscriber_delay)  # quiet window: no subscriber this long, the engine holds (the behaviour under test)
             figures["cpu_while_waiting"] = (engine_cpu_seconds(engine) - cpu) / (time.monotonic() - began)
-            route = engine.status()["routes"]["backlog-to-ros"]
+            route = engine.current_status()["routes"]["backlog-to-ros"]
             assert route["delivered"] == 0 and route["failed"] == 0, route
             assert route["sink_not_ready"].startswith(f"no subscriber has matched /{tag}/backlog"), route
             table = Console(width=250, record=True, file=io.StringIO())
-            table.print(status_table(engine.status()))
+            table.print(status_table(engine.current_status()))
             assert re.search(r"backlog-to-ros +│ holding .*│ no subscriber has matched", table.export_text()), table.export_text()
             assert asyncio.run(ready_count()) >= BACKLOG - 256  # at most a prefetch window taken, none acked
             assert figures["cpu_while_waiting"] < 0.10, figures
@@ -301,7 +304,7 @@ def test_a_prefilled_queue_reaches_a_subscriber_that_starts_before_or_after_the_
         assert [m.data for m in received] == bodies
         wait_for_sync(lambda: (engine.status() or {}).get("routes", {}).get("backlog-to-ros", {}).get("delivered") == BACKLOG, 10,
                       f"the engine to count {BACKLOG} delivered", engine.status)
-        route = engine.status()["routes"]["backlog-to-ros"]
+        route = engine.current_status()["routes"]["backlog-to-ros"]
         assert route["sink_not_ready"] is None and route["failed"] == 0 and route["retries"] == 0, route
         assert asyncio.run(ready_count()) == 0
     finally:
@@ -332,7 +335,7 @@ def test_a_reload_while_the_sink_waits_for_a_reader_completes_and_loses_nothing(
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "w" + uuid.uuid4().hex[:8]
-    names = {"domain": DOMAIN, "tag": tag, "queue": f"waiting-{tag}"}
+    names: dict[str, Any] = {"domain": DOMAIN, "tag": tag, "queue": f"waiting-{tag}"}
     (tmp_path / "waiting.yaml").write_text(WAITING.format(generation=1, **names))
     bodies = [json.dumps({"seq": i}).encode() for i in range(200)]
 
@@ -386,7 +389,7 @@ def test_an_engine_stops_at_once_while_a_route_waits_for_a_reader(amqp_url: str,
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "s" + uuid.uuid4().hex[:8]
-    names = {"domain": DOMAIN, "tag": tag, "queue": f"stopping-{tag}"}
+    names: dict[str, Any] = {"domain": DOMAIN, "tag": tag, "queue": f"stopping-{tag}"}
     (tmp_path / "waiting.yaml").write_text(WAITING.format(generation=1, **names))
 
     async def scenario() -> tuple[float, int]:
@@ -409,7 +412,7 @@ def test_an_engine_stops_at_once_while_a_route_waits_for_a_reader(amqp_url: str,
 
                 async def back_in_queue() -> int:
                     declared = await requeued.declare_queue(names["queue"], passive=True)
-                    return declared.declaration_result.message_count
+                    return message_count(declared)
 
                 left: list[int] = []
 
@@ -434,7 +437,7 @@ def test_a_subscriber_that_leaves_makes_the_route_hold_again(amqp_url: str, tmp_
 
     monkeypatch.setenv("RABBITROS_AMQP_URL", amqp_url)
     tag = "l" + uuid.uuid4().hex[:8]
-    names = {"domain": DOMAIN, "tag": tag, "queue": f"leaving-{tag}"}
+    names: dict[str, Any] = {"domain": DOMAIN, "tag": tag, "queue": f"leaving-{tag}"}
     (tmp_path / "waiting.yaml").write_text(WAITING.format(generation=1, **names))
 
     async def scenario() -> tuple[list[int], list[int], float]:

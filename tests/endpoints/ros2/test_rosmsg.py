@@ -12,6 +12,7 @@ import math
 import re
 import struct
 import time
+from typing import Any
 
 import pytest
 
@@ -165,7 +166,7 @@ def rosbridge_base64(field_type: str) -> bool:
     return False
 
 
-def byte_kinds(cls: type, prefix: str = "") -> list[tuple[str, str]]:
+def byte_kinds(cls: Any, prefix: str = "") -> list[tuple[str, str]]:  # a generated message class
     """(path, type string) of every uint8/octet array or sequence in ``cls``, nested included."""
     found = []
     for name, kind in cls.get_fields_and_field_types().items():
@@ -242,7 +243,7 @@ def test_a_null_from_a_sink_mapping_is_refused_wherever_it_is():
     error names the field. Fields left out keep their defaults."""
     Odometry = resolve_type("nav_msgs/msg/Odometry")
     UnboundedSequences = resolve_type("test_msgs/msg/UnboundedSequences")
-    cases = [
+    cases: list[tuple[Any, dict[str, Any], str]] = [
         (Odometry, {"pose": {"pose": {"position": {"x": None}}}}, "pose.pose.position.x"),
         (Odometry, {"pose": None}, "pose"),
         (Odometry, {"header": {"frame_id": None}}, "header.frame_id"),
@@ -306,7 +307,8 @@ def test_wrong_value_types_name_the_field(data, field, reason):
 
 def test_top_level_must_be_an_object():
     with pytest.raises(MessageError, match="expected an object"):
-        from_dict(NavSatFix, [1, 2])
+        not_an_object: Any = [1, 2]  # the wrong kind of input under test
+        from_dict(NavSatFix, not_an_object)
 
 
 def test_conversion_is_fast_enough_for_10k_per_second():
