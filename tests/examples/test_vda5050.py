@@ -32,6 +32,7 @@ from engine.endpoints.ros2.rosmsg import resolve_type
 from engine.running.runtime import Engine
 from engine.running.watch import watch_routes
 from tests.support.repo import REPO
+from tests.support.schemas import known_schema
 
 from tests.operator.test_cli import cli
 from tests.endpoints.mqtt.test_mqtt import Subscriber, mqtt_client, publish, retained_state
@@ -305,7 +306,7 @@ def test_vda5050_example_commands_the_robot_and_the_uav_and_publishes_valid_stat
         kind = topic.rsplit("/", 1)[1] if "/" in topic else topic.rsplit(" ", 1)[1]
         if kind in ("state", "visualization", "connection", "factsheet"):
             for body in bodies:
-                schemas.get(f"vda5050/{kind}.v2").validate(body)  # type: ignore[union-attr]
+                known_schema(schemas, f"vda5050/{kind}.v2").validate(body)
                 validated[kind] = validated.get(kind, 0) + 1
             ids = [body["headerId"] for body in bodies]
             if kind != "connection" and "/" in topic:  # headerId +1 each

@@ -12,6 +12,7 @@ from engine.common.schemas import SchemaRegistry
 from engine.endpoints.amqp.options import AmqpSourceOptions
 from engine.endpoints.amqp.partitions import hash_exchange, partition_arguments, partition_queue, should_hand_over
 from engine.language.routes import RoutesInvalid, load_routes
+from engine.language.specs import RoutesConfig
 from tests.support.repo import REPO
 
 pytestmark = pytest.mark.fast  # no broker, no network peer, no ROS 2 node: ./scripts/test.sh's first tier
@@ -22,7 +23,7 @@ routes:
 """
 
 
-def load(tmp_path: Path, routes: str) -> object:
+def load(tmp_path: Path, routes: str) -> RoutesConfig:
     directory = tmp_path / "routes"
     directory.mkdir(exist_ok=True)
     (directory / "r.yaml").write_text(HEAD + routes)
@@ -52,7 +53,7 @@ def test_partitioned_route_reaches_the_source_as_classic_single_active_queues(tm
     schema: raw_json
     sink: {amqp: {exchange: out}}
 """)
-    routes = config.routes  # type: ignore[attr-defined]
+    routes = config.routes
     options = routes["telemetry"].source.options
     assert isinstance(options, AmqpSourceOptions)
     assert (options.ordered, options.partitions, options.partition_key) == (True, 4, "routing_key")

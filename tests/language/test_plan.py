@@ -75,7 +75,7 @@ def test_initial_plan_adds_everything_and_opens_used_connections(ws: Workspace):
     assert plan.add == ("command", "position", "raw", "weeds")
     assert conns(plan.open) == ["gcs", "radio"] and plan.close == () and plan.handovers == ()
     with pytest.raises(dataclasses.FrozenInstanceError):
-        plan.add = ()  # type: ignore[misc]
+        plan.add = ()  # type: ignore[misc]  # assigning a frozen field is the error under test
 
 
 def test_unchanged_configuration_is_an_empty_plan(ws: Workspace):

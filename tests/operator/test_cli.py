@@ -256,8 +256,9 @@ def test_run_with_local_broker_tls_carries_a_message_over_amqps(tmp_path: Path):
         url = url_file.read_text().strip()
         assert url.startswith("amqps://guest:guest@localhost:"), url
         started = None
+        assert process.stderr is not None, "the engine's stderr is a pipe"
         while started is None and process.poll() is None:
-            line = process.stderr.readline()  # type: ignore[union-attr]
+            line = process.stderr.readline()
             if line.startswith("{") and json.loads(line)["msg"] == "local broker started":
                 started = json.loads(line)
         assert started is not None, "no 'local broker started' line"

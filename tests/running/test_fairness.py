@@ -15,6 +15,7 @@ from engine.endpoints.base import Inbound
 from engine.language.routes import RoutesInvalid, load_routes
 from engine.language.stage_options import FairOptions
 from engine.running.fairness import FairInbox
+from tests.support.collecting_deliver import decoded
 from tests.support.fairness_load import FLOODER, flood
 
 
@@ -47,7 +48,7 @@ def test_batches_take_each_agent_in_turn_and_drop_only_the_full_agents_oldest() 
     assert dropped == [(9, 1), (9, 1)] and len(inbox) == 5 and not inbox.full
 
     async def take() -> list[tuple[int, int]]:
-        return [(m.meta["system_id"], m.fields["n"]) for m in await inbox.take(100)]  # type: ignore[index]
+        return [(m.meta["system_id"], decoded(m)["n"]) for m in await inbox.take(100)]
 
     assert asyncio.run(take()) == [(9, 2), (1, 0), (2, 0), (9, 3)]  # round-robin, at most 2 of one agent
     assert asyncio.run(take()) == [(9, 4)]

@@ -10,6 +10,12 @@ from rabbitros_sim.deliver import FunctionDeliver
 from tests.support.waiting import wait_for
 
 
+def decoded(inbound: Inbound) -> dict[str, Any]:
+    """The fields of a message from a source that decodes (MAVLink, ROS 2); asserts it has them."""
+    assert inbound.fields is not None, "a delivered message came without its fields"
+    return inbound.fields
+
+
 class CollectingDeliver(FunctionDeliver):
     """A Deliver that records every message it settles in ``items``; its first ``fail_first``
     calls raise (a sink that is down), and ``calls`` counts every attempt. ``deliver``: the
@@ -31,6 +37,11 @@ class CollectingDeliver(FunctionDeliver):
         """Until ``count`` messages were delivered; fails naming how many came."""
         await wait_for(lambda: len(self.items) >= count, timeout, f"{count} deliveries", detail=lambda: f"{len(self.items)} came")
         return self.items
+
+    def fields(self) -> list[dict[str, Any]]:
+        """The decoded fields of each message delivered, in order; asserts every one has them
+        (a source that decodes, as MAVLink's and ROS 2's do)."""
+        return [decoded(inbound) for inbound in self.items]
 
     def bodies(self) -> list[bytes]:
         """The raw body of each message delivered, in order; asserts every one kept its body

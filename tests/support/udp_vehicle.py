@@ -7,10 +7,15 @@ import contextlib
 import socket
 import threading
 import time
+from typing import TYPE_CHECKING
 
 from pymavlink.dialects.v20 import common as mavlink2
 
 from engine.common.processes import listening_port
+from engine.endpoints.mavlink.connection import MavlinkConnection
+
+if TYPE_CHECKING:  # the engine only as a type: a simulated vehicle needs no runtime loaded
+    from engine.running.runtime import Engine
 
 
 class Vehicle(threading.Thread):
@@ -171,3 +176,10 @@ class FleetVehicle(threading.Thread):
                     ack = mav.command_ack_encode(msg.command, self.answer, 0, 0,
                                                  msg.get_srcSystem(), msg.get_srcComponent())
                     self.sock.sendto(ack.pack(mav), peer)
+
+
+def mavlink_connection(engine: Engine, name: str) -> MavlinkConnection:
+    """The engine's MAVLink connection ``name``, for a test that reads its counters or port."""
+    connection = next(c for c in engine.connections if c.name == name)
+    assert isinstance(connection, MavlinkConnection), f"connection {name} is not a MAVLink one"
+    return connection

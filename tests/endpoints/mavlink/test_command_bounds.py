@@ -36,8 +36,8 @@ from pymavlink.dialects.v20 import common as mavlink2
 from engine.endpoints.mavlink.links import PEER_TTL
 from engine.ops.admin import AdminServer
 from engine.running.runtime import Engine
-from tests.support.amqp_helpers import Caller, Collector
-from tests.support.udp_vehicle import FleetVehicle, free_udp_port
+from tests.support.amqp_helpers import Caller, Collector, header_text
+from tests.support.udp_vehicle import FleetVehicle, free_udp_port, mavlink_connection
 from tests.support.waiting import wait_for
 
 ROUTES = """\
@@ -75,7 +75,7 @@ def write_routes(tmp_path: Path, amqp_url: str, port: int, routes: str) -> Path:
 
 def reply_of(caller: Caller, correlation_id: str) -> tuple[str, Any]:
     message = caller.replies[correlation_id][0]
-    return message.headers["x-rabbitros-reply"], json.loads(message.body)
+    return header_text(message, "x-rabbitros-reply"), json.loads(message.body)
 
 
 @pytest.mark.parametrize("bound", [None, 1.5], ids=["default-3s", "command_timeout-1.5"])
@@ -97,7 +97,7 @@ def test_a_command_to_a_vehicle_that_never_acknowledges_fails_within_its_bound_n
         client = await aio_pika.connect(amqp_url)
         try:
             caller = await Caller.open(await client.channel())
-            link = next(c for _, c in engine.connections.items() if c.name == "uav")
+            link = mavlink_connection(engine, "uav")
             await wait_for(lambda: link.has_heard(1, 1), 10, "the vehicle's HEARTBEAT")
             dead = await Collector.bind(await client.channel(), "rabbitros.dead-letter", name)
             asked = time.monotonic()
@@ -157,7 +157,7 @@ def test_a_denied_command_is_a_reply_with_its_result_counted_refused_unless_dead
         client = await aio_pika.connect(amqp_url)
         try:
             caller = await Caller.open(await client.channel())
-            link = next(c for _, c in engine.connections.items() if c.name == "uav")
+            link = mavlink_connection(engine, "uav")
             await wait_for(lambda: link.has_heard(1, 1), 10, "the vehicle's HEARTBEAT")
             dead = await Collector.bind(await client.channel(), "rabbitros.dead-letter", name)
             call = await caller.call("", name, command())
@@ -226,7 +226,7 @@ def test_a_udpin_link_whose_peers_expired_says_so(tmp_path: Path, amqp_url: str,
         vehicle.start()
         client = await aio_pika.connect(amqp_url)
         try:
-            link = next(c for _, c in engine.connections.items() if c.name == "uav")
+            link = mavlink_connection(engine, "uav")
             await wait_for(lambda: link.has_heard(1, 1), 10, "the vehicle's HEARTBEAT")
             vehicle.stop.set()
             vehicle.join(5)

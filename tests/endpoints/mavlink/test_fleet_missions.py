@@ -50,7 +50,7 @@ class _Watched:
                 self.foreign += 1
             handle(msg)
 
-        self.sim.autopilot.handle = counted  # type: ignore[method-assign]
+        self.sim.autopilot.handle = counted  # type: ignore[method-assign]  # deliberately wraps this simulated autopilot's handler
 
     def latitudes(self) -> list[float]:
         return [item["x"] / 1e7 for item in self.sim.autopilot.mission]

@@ -21,7 +21,7 @@ from __future__ import annotations
 import asyncio
 import os
 import time
-from typing import Any
+from typing import Any, Sequence
 
 os.environ.setdefault("MAVLINK20", "1")
 
@@ -29,6 +29,7 @@ from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import Inbound, Outbound  # noqa: E402
 from tests.support.waiting import wait_for
 from rabbitros_sim import sik_radio  # noqa: E402
+from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
 
 TRANSPORT = mavlink.TRANSPORT
 HIGH_BOUND = 1.0
@@ -44,19 +45,18 @@ def outbound(body: bytes) -> Outbound:
     return Outbound(body, canonical, canonical, "id", {})  # fields is canonical: the body goes as it is
 
 
-class Arrivals:
+class Arrivals(FunctionDeliver):
     """A tunnel source's deliver: when each body arrived."""
 
-    overflow, queue_limit = "block", 10_000
-
     def __init__(self) -> None:
+        super().__init__(overflow="block", queue_limit=10_000)
         self.at: dict[bytes, float] = {}
 
     async def __call__(self, inbound: Inbound) -> None:
         assert inbound.body is not None
         self.at.setdefault(inbound.body, time.monotonic())
 
-    async def batch(self, inbounds: list[Inbound]) -> list[bool]:
+    async def batch(self, inbounds: Sequence[Inbound]) -> list[bool]:
         for inbound in inbounds:
             await self(inbound)
         return [True] * len(inbounds)

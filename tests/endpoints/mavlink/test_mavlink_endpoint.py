@@ -17,6 +17,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
+from engine.endpoints.mavlink.connection import MavlinkConnection  # noqa: E402
 from tests.support.waiting import wait_for
 from tests.support.collecting_deliver import CollectingDeliver
 
@@ -34,6 +35,13 @@ def run(coro: Awaitable[Any], timeout: float = 30.0) -> Any:
 
 def outbound(fields: Any = None, body: bytes = b"{}") -> Outbound:
     return Outbound(body=body, canonical=None, fields=fields, message_id="m", meta={})
+
+
+def bound_port(connection: MavlinkConnection) -> int:
+    """The port a ``udpin``/``tcpin`` connection bound (it asked for port 0)."""
+    address = connection.address
+    assert address is not None, f"connection {connection.name} is bound to no address"
+    return address[1]
 
 
 class UdpPeer(asyncio.DatagramProtocol):
@@ -234,7 +242,7 @@ def test_source_delivers_fields_and_filters_by_system() -> None:
         await raw_source.start(everything)
         try:
             vehicle1, vehicle2 = packer(1, 1), packer(2, 1)
-            port = conn.address[1]
+            port = bound_port(conn)
             chunk = gpi(vehicle2, lat=1) + gpi(vehicle1) + vehicle1.heartbeat_encode(2, 3, 0, 0, 4, 3).pack(vehicle1)
             peer.send(chunk, port)
             await got.wait_for(1)
@@ -279,20 +287,20 @@ def test_sources_of_one_vehicle_each_hear_only_theirs_and_stop_hearing_when_stop
             await source.start(collector)
         try:
             vehicle1, vehicle2 = packer(1, 1), packer(2, 1)
-            port = conn.address[1]
+            port = bound_port(conn)
             peer.send(gpi(vehicle2, lat=2) + gpi(vehicle1, lat=1) + gpi(vehicle2, lat=3), port)
             await every.wait_for(3)
             await got2.wait_for(2)
             await got1.wait_for(1)
-            assert [i.fields["lat"] for i in got1.items] == [1]
-            assert [i.fields["lat"] for i in got2.items] == [2, 3]
+            assert [fields["lat"] for fields in got1.fields()] == [1]
+            assert [fields["lat"] for fields in got2.fields()] == [2, 3]
             await one.stop()
             peer.send(gpi(vehicle1, lat=4) + gpi(vehicle2, lat=5), port)
             await every.wait_for(5)
             await got2.wait_for(3)
-            assert [i.fields["lat"] for i in got1.items] == [1]
-            assert [i.fields["lat"] for i in got2.items] == [2, 3, 5]
-            assert [i.fields["lat"] for i in every.items] == [2, 1, 3, 4, 5]
+            assert [fields["lat"] for fields in got1.fields()] == [1]
+            assert [fields["lat"] for fields in got2.fields()] == [2, 3, 5]
+            assert [fields["lat"] for fields in every.fields()] == [2, 1, 3, 4, 5]
         finally:
             await two.stop()
             await both.stop()
@@ -332,7 +340,7 @@ def test_tcp_server_and_client_share_messages() -> None:
     async def scenario() -> None:
         server = TRANSPORT.connect("srv", {"url": "tcpin:127.0.0.1:0", "heartbeat": 0})
         await server.open()
-        client = TRANSPORT.connect("cli", {"url": f"tcp:127.0.0.1:{server.address[1]}", "source_system": 1,
+        client = TRANSPORT.connect("cli", {"url": f"tcp:127.0.0.1:{bound_port(server)}", "source_system": 1,
                                            "heartbeat": 0})
         await client.open()
         got = CollectingDeliver()
@@ -343,7 +351,7 @@ def test_tcp_server_and_client_share_messages() -> None:
             for i in range(20):
                 await sink.send(outbound({"command": i}))
             await got.wait_for(20)
-            assert [i.fields["command"] for i in got.items] == list(range(20))
+            assert [fields["command"] for fields in got.fields()] == list(range(20))
         finally:
             await source.stop()
             await client.close()
@@ -358,7 +366,7 @@ def test_tcp_client_reconnects_to_a_restarted_server() -> None:
     async def scenario() -> None:
         server = TRANSPORT.connect("srv", {"url": "tcpin:127.0.0.1:0", "heartbeat": 0})
         await server.open()
-        port = server.address[1]
+        port = bound_port(server)
         client = TRANSPORT.connect("cli", {"url": f"tcp:127.0.0.1:{port}", "source_system": 1, "heartbeat": 0})
         await client.open()
         sink = client.sink("r", {"message": "COMMAND_LONG", "target_system": 255})
@@ -376,7 +384,7 @@ def test_tcp_client_reconnects_to_a_restarted_server() -> None:
             await sink.send(outbound({"command": 7}))
             await got.wait_for(1)
             await source.stop()
-            assert got.items[0].fields["command"] == 7
+            assert got.fields()[0]["command"] == 7
             assert reconnected_s < 2.5, f"reconnected after {reconnected_s:.2f} s"
         finally:
             await client.close()
@@ -403,7 +411,7 @@ def test_serial_reads_chunks_with_garbage_and_paces_writes() -> None:
             for start in range(0, len(stream), 97):
                 os.write(master, stream[start:start + 97])
             await got.wait_for(50)
-            assert [i.fields["lat"] for i in got.items] == list(range(50))
+            assert [fields["lat"] for fields in got.fields()] == list(range(50))
             assert conn.stats["bad_data"] >= 1
 
             sink = conn.sink("cmd", {"message": "COMMAND_LONG", "target_system": 1})
@@ -447,7 +455,7 @@ def test_signing_rejects_unsigned_forged_and_replayed_frames(tmp_path: Path, mon
         })
         await conn.open()
         peer = await UdpPeer.bind()
-        port = conn.address[1]
+        port = bound_port(conn)
         positions, radio = CollectingDeliver(), CollectingDeliver()
         source = conn.source("pos", {"message": "GLOBAL_POSITION_INT"})
         radio_source = conn.source("radio", {"message": "RADIO_STATUS"})
@@ -468,12 +476,12 @@ def test_signing_rejects_unsigned_forged_and_replayed_frames(tmp_path: Path, mon
             sik = packer(51, 68)
             peer.send(sik.radio_status_encode(200, 190, 87, 40, 38, 0, 0).pack(sik), port)
             await radio.wait_for(1)
-            assert radio.items[0].fields["txbuf"] == 87
+            assert radio.fields()[0]["txbuf"] == 87
             peer.send(gpi(good, lat=4), port)
             await positions.wait_for(2)
             await asyncio.sleep(0.1)  # quiet window: a refused frame would be delivered by now
 
-            assert [i.fields["lat"] for i in positions.items] == [1, 4]
+            assert [fields["lat"] for fields in positions.fields()] == [1, 4]
             stats = conn.stats
             assert (stats["unsigned_rejected"], stats["bad_signature"], stats["replayed"]) == (1, 1, 1)
             assert stats["unsigned_accepted"] == 1
@@ -534,7 +542,7 @@ def test_engines_talk_signed_and_a_wrong_key_is_rejected(tmp_path: Path) -> None
         receiver = TRANSPORT.connect("uav", {"url": "udpin:127.0.0.1:0", "source_system": 1, "heartbeat": 0,
                                              "signing": {"key_file": str(tmp_path / receiver_key)}})
         await receiver.open()
-        sender = TRANSPORT.connect("gcs", {"url": f"udpout:127.0.0.1:{receiver.address[1]}", "heartbeat": 0,
+        sender = TRANSPORT.connect("gcs", {"url": f"udpout:127.0.0.1:{bound_port(receiver)}", "heartbeat": 0,
                                            "signing": {"key_file": str(tmp_path / "a.key")}})
         await sender.open()
         got = CollectingDeliver()

@@ -26,7 +26,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from engine.ops.admin import AdminServer, status_document
 from engine.running.runtime import Engine
 from tests.support.amqp_helpers import Caller
-from tests.support.udp_vehicle import FleetVehicle, free_udp_port
+from tests.support.udp_vehicle import FleetVehicle, free_udp_port, mavlink_connection
 from tests.support.waiting import wait_for
 
 DEFAULT_TIMEOUT = 3.0
@@ -109,7 +109,7 @@ def test_a_silent_vehicle_is_named_by_healthz_and_a_command_to_it_fails_at_once(
             vehicle.stop.set()
             silent_from = time.monotonic()
             vehicle.join(5)
-            link = next(c for _, c in engine.connections.items() if c.name == "uav")
+            link = mavlink_connection(engine, "uav")
             resends_before = link.stats.get("command_resends", 0)
 
             found["healthz"] = await wait_for(lambda: probe["status"] == 503 and probe["document"], limit + 3,

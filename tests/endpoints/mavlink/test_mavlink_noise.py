@@ -43,7 +43,7 @@ from engine.running.runtime import Engine  # noqa: E402
 from rabbitros_sim.sik_radio import SikRadioPair  # noqa: E402
 from rabbitros_sim.vehicle import open_serial  # noqa: E402
 from tests.support.amqp_helpers import Collector  # noqa: E402
-from tests.support.udp_vehicle import free_udp_port, telemetry_routes  # noqa: E402
+from tests.support.udp_vehicle import free_udp_port, mavlink_connection, telemetry_routes  # noqa: E402
 from tests.support.waiting import wait_for  # noqa: E402
 
 GOOD = 500
@@ -137,7 +137,7 @@ def test_udpin_delivers_every_good_frame_among_20000_noise_datagrams(tmp_path: P
     sent = {"bytes": 0, "datagrams": 0}
 
     async def traffic(engine: Engine) -> None:
-        radio = next(c for _, c in engine.connections.items() if c.name == "radio")
+        radio = mavlink_connection(engine, "radio")
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
             sock.setblocking(False)
             for index in range(GOOD):
@@ -262,7 +262,7 @@ def test_a_false_start_byte_on_a_quiet_serial_link_holds_the_frame_behind_it_bri
             collector = await Collector.bind(await client.channel(), exchange, "telemetry")
             await engine.start()
             try:
-                radio = next(c for _, c in engine.connections.items() if c.name == "radio")
+                radio = mavlink_connection(engine, "radio")
                 for index in range(3):
                     written = time.monotonic()
                     os.write(master, b"\xfd\xff\x00" + vehicle.frame(index))

@@ -14,9 +14,9 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from engine.endpoints import mavlink  # noqa: E402
-from engine.endpoints.base import Inbound, MessageRejected, Outbound  # noqa: E402
+from engine.endpoints.base import Inbound, MessageRejected, Outbound, Transport  # noqa: E402
 from rabbitros_sim.deliver import FunctionDeliver  # noqa: E402
-from tests.endpoints.mavlink.test_mavlink_endpoint import UdpPeer, packer, run  # noqa: E402
+from tests.endpoints.mavlink.test_mavlink_endpoint import UdpPeer, bound_port, packer, run  # noqa: E402
 from tests.support.waiting import wait_for
 
 
@@ -50,9 +50,9 @@ async def flood(overflow: str, *, stop_while_queued: bool = False) -> tuple[Gate
     await source.start(deliver)
     try:
         mav = packer(1, 1)
-        peer.send(positions(mav, range(1)), conn.address[1])
+        peer.send(positions(mav, range(1)), bound_port(conn))
         await asyncio.wait_for(deliver.entered.wait(), 5)
-        peer.send(positions(mav, range(1, 101)), conn.address[1])
+        peer.send(positions(mav, range(1, 101)), bound_port(conn))
         await wait_for(lambda: source.status()["received"] == 101, 5)
         if stop_while_queued:
             stopping = asyncio.create_task(source.stop())
@@ -101,7 +101,7 @@ def test_unsettled_messages_are_counted_as_dropped() -> None:
         source = conn.source("telemetry", {"message": "GLOBAL_POSITION_INT"})
         await source.start(deliver)
         try:
-            peer.send(positions(packer(1, 1), range(5)), conn.address[1])
+            peer.send(positions(packer(1, 1), range(5)), bound_port(conn))
             await wait_for(lambda: deliver.drops == 5, 5)
             return source.status()
         finally:
@@ -263,7 +263,7 @@ def test_exclusive_resource_and_key_files_come_from_the_mavlink_transport(tmp_pa
 
     assert not hasattr(identity, "mavlink_exclusive_resource") and not hasattr(identity, "mavlink_key_files")
     transport = mavlink.TRANSPORT
-    assert type(transport).exclusive_resource is not type(transport).__mro__[1].exclusive_resource
+    assert type(transport).exclusive_resource is not Transport.exclusive_resource
     assert transport.exclusive_resource({"url": "udpin:0.0.0.0:14550"}) == "udp:14550"
     assert transport.exclusive_resource({"url": "tcpin:127.0.0.1:5760"}) == "tcp:5760"
     assert transport.exclusive_resource({"url": "udpout:10.0.0.2:14550"}) is None
@@ -285,7 +285,7 @@ def test_closing_a_udpin_connection_frees_its_port_before_close_returns() -> Non
     async def scenario() -> None:
         conn = mavlink.TRANSPORT.connect("radio", {"url": "udpin:127.0.0.1:0", "heartbeat": 0})
         await conn.open()
-        port = conn.address[1]
+        port = bound_port(conn)
         await conn.close()
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
             sock.bind(("127.0.0.1", port))  # no retry: the old socket is gone

@@ -154,7 +154,7 @@ def test_vehicle_telemetry_arrives_canonical_in_enu_and_si(tmp_path: Path, amqp_
                 await engine.stop()
         by_key: dict[str, list[Any]] = {}
         for message in canonical.messages + replies.messages:
-            by_key.setdefault(message.routing_key, []).append(message)
+            by_key.setdefault(str(message.routing_key), []).append(message)  # a delivery always has one
         return by_key, status
 
     received, status = asyncio.run(asyncio.wait_for(scenario(), 90))

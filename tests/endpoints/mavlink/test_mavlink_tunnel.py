@@ -23,7 +23,9 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from engine.endpoints import mavlink  # noqa: E402
 from engine.endpoints.mavlink import tunnel  # noqa: E402
+from engine.endpoints.mavlink.tunnel.hub import TunnelSource  # noqa: E402
 from engine.endpoints.base import EndpointError, Inbound, MessageRejected, Outbound  # noqa: E402
+from tests.endpoints.mavlink.test_mavlink_endpoint import bound_port  # noqa: E402
 from tests.support.collecting_deliver import CollectingDeliver  # noqa: E402
 from tests.support.waiting import wait_for
 
@@ -47,20 +49,34 @@ def body_of(size: int, seed: int = 0) -> bytes:
 # -- wire format ------------------------------------------------------------------------------------
 
 
+def data_frame(payload: bytes) -> tunnel.Data:
+    """``tunnel.decode`` of a frame the test knows carries data."""
+    frame = tunnel.decode(payload)
+    assert isinstance(frame, tunnel.Data), frame
+    return frame
+
+
+def ack_frame(payload: bytes) -> tunnel.Ack:
+    """``tunnel.decode`` of a frame the test knows is an acknowledgement."""
+    frame = tunnel.decode(payload)
+    assert isinstance(frame, tunnel.Ack), frame
+    return frame
+
+
 def test_wire_format_is_as_documented() -> None:
     frames = tunnel.fragment(0x1234, b"hello", 121)
     crc = zlib.crc32(b"hello").to_bytes(4, "little")
     assert frames == [bytes([0x20, 0x34, 0x12, 0, 1]) + b"hello" + crc]
     frames = tunnel.fragment(7, bytes(300), 100)
     assert [len(f) for f in frames] == [105, 105, 105, 9]
-    assert [tunnel.decode(f).index for f in frames] == [0, 1, 2, 3]
-    assert {tunnel.decode(f).count for f in frames} == {4}
-    assert sum(len(tunnel.decode(f).chunk) for f in frames) == 304  # the length is what the fragments carry
+    assert [data_frame(f).index for f in frames] == [0, 1, 2, 3]
+    assert {data_frame(f).count for f in frames} == {4}
+    assert sum(len(data_frame(f).chunk) for f in frames) == 304  # the length is what the fragments carry
     ack = tunnel.encode_ack(tunnel.Ack(7, 10, 0, 0b1000000101))
     assert ack == bytes([0x21, 7, 0, 0, 10, 0b00000101, 0b10])
     assert tunnel.decode(ack) == tunnel.Ack(7, 10, 0, 0b1000000101)
     done = tunnel.encode_ack(tunnel.Ack(7, 10, tunnel.FLAG_DELIVERED | tunnel.FLAG_COMPLETE, 0))
-    assert len(done) == 5 and tunnel.decode(done).held == 0b1111111111
+    assert len(done) == 5 and ack_frame(done).held == 0b1111111111
     with pytest.raises(ValueError):
         tunnel.fragment(1, bytes(255 * 121), 121)
     for bad in (b"", b"\x20\x00", bytes([0x20, 0, 0, 3, 2, 9]), bytes([0x20, 0, 0, 0, 1]),
@@ -127,9 +143,9 @@ class Sim:
                     self.delivered.append(complete[1])
                     self._send(self.rev, "rev", self.reassembler.delivered(complete[0], self.t))
             while self.rev and self.rev[0][0] <= self.t:
-                ack = tunnel.decode(self.rev.popleft()[1])
-                assert isinstance(ack, tunnel.Ack)
-                plan(tr.on_ack(ack, self.t))
+                answer = tunnel.decode(self.rev.popleft()[1])
+                assert isinstance(answer, tunnel.Ack)
+                plan(tr.on_ack(answer, self.t))
             deadline = self.reassembler.next_deadline()
             if deadline is not None and deadline <= self.t:
                 for _, ack in self.reassembler.poll(self.t):
@@ -212,7 +228,7 @@ def test_sim_duplicates_and_lost_acks_never_deliver_twice() -> None:
 
 def test_reassembler_rejects_bad_crc_and_bounds_its_memory() -> None:
     reasm = tunnel.Reassembler(memory=4)
-    frames = [tunnel.decode(f) for f in tunnel.fragment(9, b"x" * 200, 100)]
+    frames = [data_frame(f) for f in tunnel.fragment(9, b"x" * 200, 100)]
     bad = frames[1]
     frames[1] = tunnel.Data(bad.msg_id, bad.index, bad.count, b"y" + bad.chunk[1:])
     results = [reasm.on_data("p", f, 0.0) for f in frames]
@@ -221,7 +237,7 @@ def test_reassembler_rejects_bad_crc_and_bounds_its_memory() -> None:
     assert tunnel.decode(results[-1][0][0]) == tunnel.Ack(9, 3, 0, 0)
 
     for msg_id in range(10):
-        (frame,) = [tunnel.decode(f) for f in tunnel.fragment(msg_id, b"m%d" % msg_id)]
+        (frame,) = [data_frame(f) for f in tunnel.fragment(msg_id, b"m%d" % msg_id)]
         _, done = reasm.on_data("p", frame, 1.0)
         assert done is not None
         reasm.delivered(done[0], 1.0)
@@ -284,7 +300,7 @@ async def udp_pair(**forwarder: Any) -> tuple[mavlink.MavlinkConnection, mavlink
     uav = TRANSPORT.connect("uav", {"url": "udpin:127.0.0.1:0", "source_system": 1, "source_component": 191,
                                     "heartbeat": 0})
     await uav.open()
-    relay = await LossyForwarder.start(uav.address[1], **forwarder)
+    relay = await LossyForwarder.start(bound_port(uav), **forwarder)
     gcs = TRANSPORT.connect("gcs", {"url": f"udpout:127.0.0.1:{relay.port}", "heartbeat": 0,
                                     "tunnel": {"rto_min": 0.1, "sack_delay": 0.05}})
     await gcs.open()
@@ -333,6 +349,7 @@ def test_udp_lost_acknowledgements_and_failed_delivery() -> None:
         gcs, uav, _ = await udp_pair(drop=drop)
         got = CollectingDeliver(fail_first=1)
         source = uav.source("json", {"json_tunnel": True})
+        assert isinstance(source, TunnelSource), "a json_tunnel source reads the tunnel"
         await source.start(got)
         sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
         try:
@@ -360,6 +377,7 @@ def test_a_new_source_takes_over_without_losing_state() -> None:
         old, new = CollectingDeliver(), CollectingDeliver()
         first = uav.source("json", {"json_tunnel": True})
         second = uav.source("json", {"json_tunnel": True})
+        assert isinstance(first, TunnelSource) and isinstance(second, TunnelSource), "json_tunnel sources read the tunnel"
         assert first.reassembler is second.reassembler
         sink = gcs.sink("json", {"json_tunnel": True, "target_system": 1})
         try:
@@ -497,10 +515,10 @@ def test_signed_round_trip_through_radio_and_simulated_vehicle(monkeypatch: pyte
                 await sink.send(outbound(body))
                 assert echoes.items[-1].body == body
                 await wait_for(lambda: len(positions.items) >= 4, 20, "4 signed positions", lambda: len(positions.items))
-                for item in positions.items:
+                for item, fields in zip(positions.items, positions.fields()):
                     assert item.meta["signed"] is True
-                    expected = vehicle_sim.expected_state(item.fields["time_boot_ms"] / 1000)
-                    assert {k: item.fields[k] for k in ("lat", "lon", "alt", "vx", "vy", "hdg")} == \
+                    expected = vehicle_sim.expected_state(fields["time_boot_ms"] / 1000)
+                    assert {k: fields[k] for k in ("lat", "lon", "alt", "vx", "vy", "hdg")} == \
                         {k: expected[k] for k in ("lat", "lon", "alt", "vx", "vy", "hdg")}
                 stats = gcs.stats
                 await wait_for(lambda: stats["unsigned_accepted"] > 0, 10, "the radio's unsigned RADIO_STATUS accepted")
@@ -585,8 +603,8 @@ def test_a_batch_travels_as_bundles_and_each_message_is_settled_once_per_route()
             results = await sink.send_batch([outbound(x) for x in bodies[:5]] + [huge] + [outbound(x) for x in bodies[5:]])
             assert results[:5] + results[6:] == [None] * 10
             assert isinstance(results[5], MessageRejected)
-            assert sorted(i.body for i in steady.items) == sorted(bodies), "each message once on the steady route"
-            assert sorted(i.body for i in flaky.items) == sorted(bodies), "and once on the one that failed one"
+            assert sorted(steady.bodies()) == sorted(bodies), "each message once on the steady route"
+            assert sorted(flaky.bodies()) == sorted(bodies), "and once on the one that failed one"
             assert flaky.calls == 11 and steady.calls == 10
             parts = {(i.meta["tunnel_id"], i.meta["tunnel_part"]) for i in steady.items}
             transfers = {tunnel_id for tunnel_id, _ in parts}
@@ -611,7 +629,7 @@ def test_every_route_on_a_message_type_gets_every_message_with_nan_as_null() -> 
                 await gcs.send_message(mavlink2.MAVLink_hil_gps_message(n, 3, 1, 2, 3, 65535, 65535, 0, 0, 0, 0, 0, 255))
             await wait_for(lambda: len(one.items) >= 2 and len(two.items) >= 2, 5, "2 HIL_GPS at each source",
                            lambda: (len(one.items), len(two.items)))
-            assert [i.fields["time_usec"] for i in one.items] == [i.fields["time_usec"] for i in two.items] == [0, 1]
+            assert [fields["time_usec"] for fields in one.fields()] == [fields["time_usec"] for fields in two.fields()] == [0, 1]
             vision = mavlink.message_fields(mavlink2.MAVLink_vision_position_estimate_message(1, 1.0, nan, 3.0, 0, 0, 0,
                                                                                              [nan] + [0.0] * 20))
             assert vision["y"] is None and vision["covariance"][:2] == [None, 0.0]

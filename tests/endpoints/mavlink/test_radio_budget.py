@@ -36,6 +36,7 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from engine.endpoints import mavlink  # noqa: E402
 from engine.running.runtime import Engine  # noqa: E402
+from tests.support.udp_vehicle import mavlink_connection  # noqa: E402
 from rabbitros_sim import sik_radio  # noqa: E402
 from tests.support.amqp_helpers import started_with_client  # noqa: E402
 from tests.support.waiting import wait_for
@@ -101,7 +102,7 @@ def run(tmp_path: Path, schemas_dir: Path, amqp_url: str, radio_status: float | 
 
                     await wait_for(drained, 20, "the queued frames drained and every event arrived",
                                    lambda: (dict(arrived), engine.status()["routes"]))
-                    link = next(c for c in engine.connections if c.name == "radio")
+                    link = mavlink_connection(engine, "radio")
                     return {"routes": engine.status()["routes"], "arrived": dict(arrived),
                             "link": dict(link.stats), "decreases": link.port.budget.decreases,
                             "budget": link.health()["budget"],

@@ -122,13 +122,14 @@ def test_a_release_sent_while_the_owners_socket_is_full_still_reaches_it(tmp_pat
         await worker.open()
         owner: socket.socket | None = None
         try:
-            owner, _ = await asyncio.wait_for(loop.sock_accept(listening), 10)
-            owner.setblocking(False)
-            assert await _read_until(owner, HELLO, 5) == HELLO + (1).to_bytes(2, "big")
+            accepted, _ = await asyncio.wait_for(loop.sock_accept(listening), 10)
+            owner = accepted  # closed in finally
+            accepted.setblocking(False)
+            assert await _read_until(accepted, HELLO, 5) == HELLO + (1).to_bytes(2, "big")
             lock = worker.transaction_lock(KEY)
             asking = asyncio.create_task(lock.__aenter__())
-            request, key = read_lease(await _read_until(owner, LEASE, 5))
-            owner.send(lease_message(GRANT, request, key))
+            request, key = read_lease(await _read_until(accepted, LEASE, 5))
+            accepted.send(lease_message(GRANT, request, key))
             await asyncio.wait_for(asking, 5)
             frame = mavlink2.MAVLink_command_long_message(3, 1, 511, 0, 0, 0, 0, 0, 0, 0, 0)
             for _ in range(100000):  # the owner reads nothing meanwhile: worker 1's socket fills
@@ -139,7 +140,7 @@ def test_a_release_sent_while_the_owners_socket_is_full_still_reaches_it(tmp_pat
             else:
                 raise AssertionError("worker 1's socket to the owner never filled")
             await lock.__aexit__(None, None, None)
-            return await _read_until(owner, RELEASE, 10)
+            return await _read_until(accepted, RELEASE, 10)
         finally:
             if owner is not None:
                 owner.close()

@@ -21,7 +21,8 @@ import json
 import uuid
 from collections import Counter
 from pathlib import Path
-from typing import AsyncIterator
+from functools import partial
+from typing import Any, AsyncIterator
 
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
@@ -47,15 +48,19 @@ def test_each_vehicle_reaches_its_worker_and_a_command_from_the_other_worker_get
     port = free_udp_port()
     settings = {"url": f"udpin:127.0.0.1:{port}", "heartbeat": 1, "split_over_workers": True}
     vehicles = {system: FleetVehicle(system, port, rate=20.0) for system in VEHICLES}
-    found: dict[str, object] = {}
+    found: dict[str, Any] = {}
 
     async def scenario() -> None:
         owner = MavlinkConnection("fleet", settings, ConnectionShare(0, 2, 0, str(tmp_path)))
         other = MavlinkConnection("fleet", settings, ConnectionShare(1, 2, 0, str(tmp_path)))
         heard: dict[int, Counter[int]] = {0: Counter(), 1: Counter()}
         acks_to_routes: list[int] = []
+
+        def tally(index: int, msg: Any) -> None:
+            heard[index].update([msg.get_srcSystem()])
+
         for index, connection in ((0, owner), (1, other)):
-            connection.listen(POSITION, lambda msg, index=index: heard[index].update([msg.get_srcSystem()]))
+            connection.listen(POSITION, partial(tally, index))
         other.listen(ACK, lambda msg: acks_to_routes.append(msg.get_srcSystem()))  # a route's listener
         await owner.open()
         await other.open()
@@ -96,15 +101,15 @@ def test_each_vehicle_reaches_its_worker_and_a_command_from_the_other_worker_get
             vehicle.stop.set()
             vehicle.join(5)
     for index in (0, 1):  # each vehicle's frames at its own worker only
-        assert set(found["heard"][index]) == {s for s in VEHICLES if shares[s] == index}, found["heard"]  # type: ignore[index]
-        assert found["liveness"][index] == [s for s in VEHICLES if shares[s] == index], found["liveness"]  # type: ignore[index]
+        assert set(found["heard"][index]) == {s for s in VEHICLES if shares[s] == index}, found["heard"]
+        assert found["liveness"][index] == [s for s in VEHICLES if shares[s] == index], found["liveness"]
     assert found["other_heard_target"] is True
     ack = found["ack"]
-    assert ack is not None and ack.command == 400 and ack.result == mavlink2.MAV_RESULT_ACCEPTED, ack  # type: ignore[attr-defined]
+    assert ack is not None and ack.command == 400 and ack.result == mavlink2.MAV_RESULT_ACCEPTED, ack
     assert found["acks_to_routes"] == []  # the copy reached the transaction, no route
     assert found["other_sent"] == (1, 0)  # handed to the owner (no HEARTBEAT of its own); the owner counts it written
     counters = found["owner_counters"]
-    assert counters["split_answers"] == 1 and counters["split_dropped"] == 0, counters  # type: ignore[index]
+    assert counters["split_answers"] == 1 and counters["split_dropped"] == 0, counters
     commanded = vehicles[target].received()
     assert [(msg.command, msg.param2, msg.get_srcSystem()) for msg in commanded] == [(400, 77.0, 255)]
     assert all(not vehicle.received() for system, vehicle in vehicles.items() if system != target)
@@ -257,8 +262,12 @@ async def two_workers_hearing_positions(tmp_path: Path, port: int) -> AsyncItera
     owner = MavlinkConnection("fleet", settings, ConnectionShare(0, 2, 0, str(tmp_path)))
     other = MavlinkConnection("fleet", settings, ConnectionShare(1, 2, 0, str(tmp_path)))
     heard: dict[int, list[tuple[int, int]]] = {0: [], 1: []}
+
+    def note(index: int, msg: Any) -> None:
+        heard[index].append((msg.get_srcSystem(), msg.time_boot_ms))
+
     for index, connection in ((0, owner), (1, other)):
-        connection.listen(POSITION, lambda msg, index=index: heard[index].append((msg.get_srcSystem(), msg.time_boot_ms)))
+        connection.listen(POSITION, partial(note, index))
     await owner.open()
     await other.open()
     try:

@@ -21,6 +21,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from engine.running.runtime import Engine
 from engine.running.shutdown import STOP_GRACE
+from tests.support.amqp_helpers import message_count
 from tests.support.repo import REPO
 from tests.support.udp_vehicle import free_udp_port
 from tests.support.waiting import wait_for
@@ -80,7 +81,7 @@ routes:
             began = time.monotonic()
             await asyncio.wait_for(engine.stop(drain_timeout=DRAIN_TIMEOUT), 60)
             took = time.monotonic() - began
-            kept = (await channel.declare_queue(queue, passive=True)).declaration_result.message_count
+            kept = message_count(await channel.declare_queue(queue, passive=True))
             return took, kept, vehicle.received
         finally:
             await connection.close()
