@@ -69,6 +69,7 @@ async def main(url: str, duration: float, robot: str, record: str | None = None,
     async def on_reply(message: aio_pika.abc.AbstractIncomingMessage) -> None:
         what = calls.get(message.correlation_id or "", "?")
         kind = (message.headers or {}).get("x-rabbitros-reply")
+        kind = kind.decode() if isinstance(kind, bytes) else kind  # a header string may arrive as bytes
         print(f"gcs <- reply {what}: {kind} {message.body.decode()[:160]}", flush=True)
         if kind in ("result", "rejected", "error"):
             answered[what] = str(kind)
@@ -80,7 +81,7 @@ async def main(url: str, duration: float, robot: str, record: str | None = None,
 
     async def on_message(message: aio_pika.abc.AbstractIncomingMessage) -> None:
         nonlocal missions
-        kind = message.routing_key.removeprefix("canonical.")
+        kind = (message.routing_key or "").removeprefix("canonical.")
         seen[kind] += 1
         body = json.loads(message.body)
         if recording is not None:

@@ -20,6 +20,7 @@ import time
 
 import rclpy
 from rclpy.action import ActionServer, GoalResponse
+from rclpy.action.server import ServerGoalHandle
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -73,15 +74,15 @@ def main() -> int:
     def follow_row(goal: Fibonacci.Goal) -> GoalResponse:
         return GoalResponse.ACCEPT if 0 < goal.order <= MAX_STOPS else GoalResponse.REJECT
 
-    def drive_row(goal_handle: object) -> Fibonacci.Result:
-        stops = goal_handle.request.order  # type: ignore[attr-defined]
+    def drive_row(goal_handle: ServerGoalHandle) -> Fibonacci.Result:
+        stops = goal_handle.request.order
         print(f"{args.name}: along the row, {stops} stops", flush=True)
         reached = [0]
         for _ in range(1, stops):
             time.sleep(ROW_STOP_S)
             reached.append(reached[-1] + (reached[-2] if len(reached) > 1 else 1))
-            goal_handle.publish_feedback(Fibonacci.Feedback(sequence=reached))  # type: ignore[attr-defined]
-        goal_handle.succeed()  # type: ignore[attr-defined]
+            goal_handle.publish_feedback(Fibonacci.Feedback(sequence=reached))
+        goal_handle.succeed()
         print(f"{args.name}: row done at {reached[-1]} m", flush=True)
         return Fibonacci.Result(sequence=reached)
 
